@@ -1,0 +1,3 @@
+"""ccrp: Clone-based Cloud Robotic Platform."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,72 @@
+"""The fleet address plan: a VPN subnet per clone, a common-network address, hostnames.
+
+Slots (indexes) are allocated once per robot and recorded in state, so removing a robot never
+shifts another robot's addresses.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+
+from pydantic import BaseModel, ConfigDict
+
+from .errors import InputError
+from .models.inventory import Inventory
+from .models.names import clone_host
+
+
+class CloneAddresses(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    robot: str
+    index: int
+    clone_host: str
+    vpn_subnet: ipaddress.IPv4Network
+    clone_vpn_ip: ipaddress.IPv4Address  # .1 of the subnet
+    robot_vpn_ip: ipaddress.IPv4Address  # .2: the robot's fixed address
+    common_ip: ipaddress.IPv4Address
+
+
+def capacity(inv: Inventory) -> int:
+    """How many clones the pools can address."""
+    vpn_slots = 2 ** (inv.vpn.subnet_prefix - inv.vpn.pool.prefixlen) - 1  # slot 0 is kept free
+    common_slots = inv.common.cidr.num_addresses - 1 - inv.common.first_host  # minus broadcast
+    return max(0, min(vpn_slots, common_slots))
+
+
+def allocate(inv: Inventory, robots: list[str], existing: dict[str, int]) -> dict[str, int]:
+    """Return slot indexes for `robots`: existing ones kept, new ones get the lowest free slot."""
+    result = {name: existing[name] for name in robots if name in existing}
+    used = set(existing.values())
+    limit = capacity(inv)
+    slot = 1
+    for name in robots:
+        if name in result:
+            continue
+        while slot in used:
+            slot += 1
+        if slot > limit:
+            raise InputError(
+                f"address pools are exhausted: {len(robots)} clones requested, room for {limit} "
+                f"(vpn.pool {inv.vpn.pool} in /{inv.vpn.subnet_prefix} subnets, common.cidr {inv.common.cidr})",
+                hint="widen vpn.pool or common.cidr in the inventory",
+            )
+        result[name] = slot
+        used.add(slot)
+    return result
+
+
+def addresses(inv: Inventory, robot: str, index: int) -> CloneAddresses:
+    subnet_size = 2 ** (32 - inv.vpn.subnet_prefix)
+    subnet = ipaddress.IPv4Network(
+        (int(inv.vpn.pool.network_address) + index * subnet_size, inv.vpn.subnet_prefix)
+    )
+    return CloneAddresses(
+        robot=robot,
+        index=index,
+        clone_host=clone_host(robot),
+        vpn_subnet=subnet,
+        clone_vpn_ip=subnet.network_address + 1,
+        robot_vpn_ip=subnet.network_address + 2,
+        common_ip=inv.common.cidr.network_address + inv.common.first_host + index - 1,
+    )

@@ -1,0 +1,60 @@
+"""The `ccrp` command: `ccrp <object> <action>`."""
+
+from __future__ import annotations
+
+import sys
+from typing import Annotated
+
+import typer
+
+from .. import __version__
+from ..errors import BAD_INPUT, CcrpError
+from . import fleet, render, vpn
+
+app = typer.Typer(
+    name="ccrp",
+    help="Clone-based Cloud Robotic Platform: one cloud clone per robot, ROS over a per-robot VPN.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+app.add_typer(fleet.app, name="fleet")
+app.add_typer(vpn.app, name="vpn")
+app.add_typer(render.app, name="render")
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"ccrp {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Show the version and exit.")
+    ] = False,
+) -> None:
+    pass
+
+
+def run() -> None:
+    """Console entry point: every failure a user can cause ends in one line on stderr."""
+    try:
+        app(standalone_mode=False)
+    except CcrpError as exc:
+        print(f"ccrp: error: {exc.one_line()}", file=sys.stderr)
+        sys.exit(exc.code)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except (typer.Abort, KeyboardInterrupt):
+        print("ccrp: interrupted; state on disk is consistent, run the command again to continue", file=sys.stderr)
+        sys.exit(130)
+    except typer.TyperException as exc:  # usage errors from the parser
+        ctx = getattr(exc, "ctx", None)
+        if type(exc).__name__ == "NoArgsIsHelpError" and ctx is not None:
+            typer.echo(ctx.get_help())
+            sys.exit(BAD_INPUT)
+        where = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+        print(f"ccrp: error: {exc.format_message()}{where}", file=sys.stderr)
+        sys.exit(BAD_INPUT if ctx is not None else exc.exit_code)

@@ -1,0 +1,16 @@
+"""Options shared by commands."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+Inventory = Annotated[
+    Path,
+    typer.Option("--inventory", "-i", envvar="CCRP_INVENTORY", help="Fleet inventory YAML.", show_default=False),
+]
+Robot = Annotated[str, typer.Option("--robot", "-r", help="Robot name (its clone is cri-<robot>).")]
+Json = Annotated[bool, typer.Option("--json", help="JSON on stdout (logs stay on stderr).")]
+OutDir = Annotated[Path, typer.Option("--out", "-o", help="Directory to write (created 0700).")]

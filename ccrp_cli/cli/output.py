@@ -1,0 +1,49 @@
+"""The one output path: JSON on stdout for --json, tables for humans; messages on stderr."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+
+def err(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def info(message: str) -> None:
+    err(f"ccrp: {message}")
+
+
+def warn(message: str) -> None:
+    err(f"ccrp: warning: {message}")
+
+
+def emit_json(data: Any) -> None:
+    json.dump(data, sys.stdout, indent=2, default=str)
+    sys.stdout.write("\n")
+
+
+def table(columns: Sequence[str], rows: Sequence[Sequence[Any]], title: str | None = None) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=title, title_justify="left", box=None, header_style="bold", pad_edge=False)
+    for col in columns:
+        t.add_column(col)
+    for row in rows:
+        t.add_row(*("" if v is None else str(v) for v in row))
+    console = Console()
+    if not console.is_terminal:  # pipes and files get whole cells, never "…"
+        console.width = 100_000
+    console.print(t)
+
+
+def emit(data: Any, as_json: bool, columns: Sequence[str] = (), rows: Sequence[Sequence[Any]] = (),
+         title: str | None = None) -> None:
+    """Render `data` as JSON, or the human view given by columns/rows."""
+    if as_json:
+        emit_json(data)
+    else:
+        table(columns, rows, title)

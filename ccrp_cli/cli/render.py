@@ -1,0 +1,70 @@
+"""ccrp render ...: the files a clone and a robot receive, without provisioning anything."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from ..errors import InputError
+from ..fleet import Fleet, clone_view
+from . import options, output
+
+app = typer.Typer(help="Render clone and robot files without provisioning.", no_args_is_help=True)
+
+
+@app.command("cloud-init")
+def cloud_init(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    bare: Annotated[bool, typer.Option(help="Install packages at boot (bare base image, no snapshot).")] = False,
+) -> None:
+    """Print the clone's cloud-init user-data (no private key; checked against the provider's limit)."""
+    from ..render import cloudinit
+    from ..render.limits import fit_user_data
+
+    fleet = Fleet.open(inventory)
+    view = clone_view(fleet, fleet.store.load_state(), robot)
+    text = cloudinit.user_data(view, install_packages=bare)
+    fit_user_data(fleet.inventory.provider.kind, text)
+    typer.echo(text, nl=False)
+
+
+@app.command("clone-secrets")
+def clone_secrets(inventory: options.Inventory, robot: options.Robot, out: options.OutDir) -> None:
+    """Write the secrets pushed to the clone after boot (server key+cert, CA, CRL, tls-crypt, password hash)."""
+    from ..render import bundles
+
+    fleet = Fleet.open(inventory)
+    state = fleet.store.load_state()
+    view = clone_view(fleet, state, robot)
+    files = bundles.clone_secrets(view, fleet.pki.credentials(robot))
+    bundles.write_bundle(out, files, {"fleet": fleet.name, "robot": robot, "kind": "clone-secrets"})
+    output.info(f"wrote {len(files)} files for clone {view.addr.clone_host} to {out}")
+
+
+@app.command()
+def edge(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    out: options.OutDir,
+    remote: Annotated[
+        str | None, typer.Option(help="HOST[:PORT] the robot dials (default: the clone's recorded endpoint).")
+    ] = None,
+) -> None:
+    """Write the robot's edge bundle: .ovpn profile, credentials, ROS env, hosts, chrony, units, install.sh."""
+    from ..render import bundles
+
+    fleet = Fleet.open(inventory)
+    state = fleet.store.load_state()
+    view = clone_view(fleet, state, robot)
+    rec = state.robots.get(robot)
+    endpoint = remote or (rec.public_endpoint if rec else None)
+    if not endpoint:
+        raise InputError(
+            f"the public endpoint of clone {view.addr.clone_host} is not known yet",
+            hint="create the clone first, or pass --remote HOST[:PORT]",
+        )
+    files = bundles.edge_bundle(view, fleet.pki.credentials(robot), endpoint)
+    bundles.write_bundle(out, files, {"fleet": fleet.name, "robot": robot, "kind": "edge", "remote": endpoint})
+    output.info(f"wrote the edge bundle of robot {robot!r} to {out}; install it with `sudo {out}/install.sh`")

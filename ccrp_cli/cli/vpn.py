@@ -1,0 +1,68 @@
+"""ccrp vpn ...: the fleet's CA, certificates, CRL."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from .. import vpn
+from ..fleet import Fleet
+from . import options, output
+
+app = typer.Typer(help="Fleet PKI: CA, robot and clone certificates, revocation.", no_args_is_help=True)
+
+CERT_COLUMNS = ["SERIAL", "CN", "PROFILE", "NOT AFTER", "REVOKED", "PATH"]
+
+
+def _rows(records: list[dict]) -> list[tuple]:
+    return [
+        (r["serial"][:16], r["cn"], r["profile"], r["not_after"][:10], "yes" if r["revoked"] else "", r["path"])
+        for r in records
+    ]
+
+
+@app.command()
+def init(inventory: options.Inventory, as_json: options.Json = False) -> None:
+    """Create the fleet's CA and CRL (idempotent)."""
+    result = vpn.init(Fleet.open(inventory))
+    if as_json:
+        output.emit_json(result)
+    else:
+        verb = "created" if result["created"] else "already exists:"
+        output.info(f"fleet {result['fleet']!r} CA {verb} {result['ca']} (CRL {result['crl']})")
+
+
+@app.command("issue-cert")
+def issue_cert(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    renew: Annotated[bool, typer.Option(help="Issue new certificates even if valid ones exist.")] = False,
+    as_json: options.Json = False,
+) -> None:
+    """Issue the robot's client certificate and its clone's server certificate."""
+    records = vpn.issue(Fleet.open(inventory), robot, renew)
+    if not as_json:
+        for r in records:
+            output.info(f"{'issued' if r['issued'] else 'kept valid'} {r['profile']} certificate {r['cn']} ({r['path']})")
+    output.emit(records, as_json, CERT_COLUMNS, _rows(records))
+
+
+@app.command()
+def revoke(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
+    """Revoke the robot's client certificate(s) and re-issue the CRL."""
+    records = vpn.revoke(Fleet.open(inventory), robot)
+    if not as_json:
+        output.info(f"revoked {len(records)} certificate(s) of robot {robot!r}; CRL re-issued")
+    output.emit(records, as_json, CERT_COLUMNS, _rows(records))
+
+
+@app.command("list")
+def list_(inventory: options.Inventory, as_json: options.Json = False) -> None:
+    """List the fleet's certificates: serial, CN, not-after, revoked, file path."""
+    fleet = Fleet.open(inventory)
+    records = vpn.list_certs(fleet)
+    warning = vpn.crl_warning(fleet)
+    if warning:
+        output.warn(warning)
+    output.emit(records, as_json, CERT_COLUMNS, _rows(records))

@@ -1,0 +1,1 @@
+"""Typed records at the edges: the inventory (desired fleet) and the state (what exists)."""

@@ -1,0 +1,33 @@
+"""Names that end up in GCE resource names, DNS labels, ROS names and file names."""
+
+from __future__ import annotations
+
+import re
+from typing import Annotated
+
+from pydantic import StringConstraints
+
+# The one alphabet valid at once for GCE names, DNS labels and ROS names (DESIGN.md §3).
+NAME_PATTERN = r"^[a-z][a-z0-9]{0,30}$"
+NAME_RE = re.compile(NAME_PATTERN)
+# An absolute ROS graph name for a shared topic.
+TOPIC_PATTERN = r"^(/[A-Za-z][A-Za-z0-9_]*)+$"
+
+Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN)]
+Topic = Annotated[str, StringConstraints(pattern=TOPIC_PATTERN)]
+
+
+def clone_host(robot: str) -> str:
+    """Hostname of a robot's clone (DESIGN.md §7)."""
+    return f"cri-{robot}"
+
+
+def check_name(value: str, what: str = "robot name") -> str:
+    from ..errors import InputError
+
+    if not NAME_RE.match(value):
+        raise InputError(
+            f"invalid {what} {value!r}: must match {NAME_PATTERN}",
+            hint="lower-case letters and digits, starting with a letter, at most 31 characters",
+        )
+    return value

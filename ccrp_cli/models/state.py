@@ -1,0 +1,33 @@
+"""What ccrp knows exists for a fleet: address allocations, provider ids, lifecycle phase."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict
+
+SCHEMA_VERSION = 1
+
+Phase = Literal["planned", "creating", "ready", "failed", "deleting"]
+
+
+class RobotRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    # Slot in the address plan; kept for the robot's life so addresses never shift.
+    index: int
+    origin: Literal["inventory", "template"] = "inventory"
+    phase: Phase = "planned"
+    provider_id: str | None = None
+    # Host or IP (and port) the robot dials for its VPN; known once the clone exists.
+    public_endpoint: str | None = None
+    addresses: dict[str, str] = {}
+
+
+class FleetState(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    schema_version: int = SCHEMA_VERSION
+    fleet: str
+    robots: dict[str, RobotRecord] = {}
+    snapshot: dict[str, str] | None = None

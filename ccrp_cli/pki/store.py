@@ -1,0 +1,237 @@
+"""The fleet PKI on disk: $CCRP_HOME/<fleet>/pki/.
+
+    ca.crt  crl.pem  index.json
+    private/ca.key  private/<cn>-<serial>.key      (0600)
+    issued/<cn>-<serial>.crt
+    tls-crypt/<robot>.key                           (0600, shared by a clone and its robot)
+    passwords/<robot>.txt  passwords/<robot>.hash   (0600; only the hash reaches the clone)
+
+Callers hold the fleet lock (FleetStore.lock) around every mutating call.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+from typing import Literal
+
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
+from pydantic import BaseModel, ConfigDict
+
+from ..errors import CcrpError
+from ..models.names import clone_host
+from ..store import atomic_write, ensure_dir
+from . import profiles
+from .secrets import hash_password, new_password, tls_crypt_key
+
+CRL_WARN_DAYS = 30
+
+
+class CertRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    serial: str  # hex, as openssl prints it
+    cn: str
+    profile: Literal["ca", "server", "client"]
+    robot: str | None = None
+    not_after: dt.datetime
+    cert_path: str
+    key_path: str
+    revoked_at: dt.datetime | None = None
+
+    @property
+    def revoked(self) -> bool:
+        return self.revoked_at is not None
+
+
+class PkiIndex(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    fleet: str
+    key_type: profiles.KeyType
+    crl_number: int = 0
+    certs: list[CertRecord] = []
+
+
+class RobotCredentials(BaseModel):
+    """Everything secret that a clone and its robot need, loaded from the store."""
+
+    robot: str
+    ca_pem: str
+    crl_pem: str
+    server_cert_pem: str
+    server_key_pem: str
+    client_cert_pem: str
+    client_key_pem: str
+    tls_crypt_key: str
+    password: str
+    password_hash: str
+
+
+def _now() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc).replace(microsecond=0)
+
+
+class PkiStore:
+    def __init__(self, root: Path, fleet: str) -> None:
+        self.root = root
+        self.fleet = fleet
+
+    # -- paths -----------------------------------------------------------------------------
+    @property
+    def ca_path(self) -> Path:
+        return self.root / "ca.crt"
+
+    @property
+    def crl_path(self) -> Path:
+        return self.root / "crl.pem"
+
+    @property
+    def index_path(self) -> Path:
+        return self.root / "index.json"
+
+    def _tls_crypt_path(self, robot: str) -> Path:
+        return self.root / "tls-crypt" / f"{robot}.key"
+
+    def _password_paths(self, robot: str) -> tuple[Path, Path]:
+        return self.root / "passwords" / f"{robot}.txt", self.root / "passwords" / f"{robot}.hash"
+
+    # -- index -----------------------------------------------------------------------------
+    def exists(self) -> bool:
+        return self.index_path.exists() and self.ca_path.exists()
+
+    def load_index(self) -> PkiIndex:
+        if not self.exists():
+            raise CcrpError(
+                f"the PKI of fleet {self.fleet!r} is not initialised ({self.root})",
+                hint="run `ccrp vpn init -i INVENTORY` first",
+            )
+        return PkiIndex.model_validate_json(self.index_path.read_text())
+
+    def _save_index(self, index: PkiIndex) -> None:
+        atomic_write(self.index_path, index.model_dump_json(indent=2) + "\n")
+
+    def _ca(self) -> tuple[x509.Certificate, profiles.PrivateKey]:
+        ca_cert = x509.load_pem_x509_certificate(self.ca_path.read_bytes())
+        ca_key = serialization.load_pem_private_key((self.root / "private" / "ca.key").read_bytes(), None)
+        return ca_cert, ca_key  # type: ignore[return-value]
+
+    # -- operations ------------------------------------------------------------------------
+    def init(self, key_type: profiles.KeyType, crl_days: int) -> bool:
+        """Create the CA and an empty CRL. Returns False when they already exist."""
+        if self.exists():
+            # Re-running init also renews a missing or soon-expiring CRL.
+            if not self.crl_path.exists() or self.crl_days_left() < CRL_WARN_DAYS:
+                self._write_crl(self.load_index(), crl_days)
+            return False
+        for sub in ("private", "issued", "tls-crypt", "passwords"):
+            ensure_dir(self.root / sub)
+        key = profiles.generate_key(key_type)
+        ca = profiles.build_ca(self.fleet, key)
+        # Key, certificate, CRL, and index.json last: the index marks a complete CA.
+        atomic_write(self.root / "private" / "ca.key", profiles.key_pem(key))
+        atomic_write(self.ca_path, profiles.cert_pem(ca), mode=0o644)
+        index = PkiIndex(fleet=self.fleet, key_type=key_type)
+        index.certs.append(
+            CertRecord(
+                serial=format(ca.serial_number, "X"), cn=ca.subject.rfc4514_string().removeprefix("CN="),
+                profile="ca", not_after=ca.not_valid_after_utc, cert_path="ca.crt", key_path="private/ca.key",
+            )
+        )
+        self._write_crl(index, crl_days)
+        return True
+
+    def current(self, index: PkiIndex, cn: str) -> CertRecord | None:
+        """The newest valid (unrevoked, unexpired) certificate for `cn`."""
+        now = _now()
+        valid = [c for c in index.certs if c.cn == cn and not c.revoked and c.not_after > now]
+        return valid[-1] if valid else None
+
+    def _issue(self, index: PkiIndex, profile: profiles.Profile, cn: str, robot: str, days: int) -> CertRecord:
+        ca_cert, ca_key = self._ca()
+        key = profiles.generate_key(index.key_type)
+        cert = profiles.build_leaf(profile, cn, key, ca_cert, ca_key, days)
+        serial = format(cert.serial_number, "X")
+        stem = f"{cn}-{serial[:16]}"
+        rec = CertRecord(
+            serial=serial, cn=cn, profile=profile, robot=robot, not_after=cert.not_valid_after_utc,
+            cert_path=f"issued/{stem}.crt", key_path=f"private/{stem}.key",
+        )
+        atomic_write(self.root / rec.key_path, profiles.key_pem(key))
+        atomic_write(self.root / rec.cert_path, profiles.cert_pem(cert), mode=0o644)
+        index.certs.append(rec)
+        return rec
+
+    def issue_robot(self, robot: str, days: int, renew: bool = False) -> list[tuple[CertRecord, bool]]:
+        """Ensure the robot's client cert, its clone's server cert, tls-crypt key and password.
+
+        Returns (record, newly_issued) for the client and the server certificate.
+        """
+        index = self.load_index()
+        out = []
+        for profile, cn in (("client", robot), ("server", clone_host(robot))):
+            rec = None if renew else self.current(index, cn)
+            out.append((rec, False) if rec else (self._issue(index, profile, cn, robot, days), True))
+        self._save_index(index)
+        tc = self._tls_crypt_path(robot)
+        if not tc.exists():
+            atomic_write(tc, tls_crypt_key())
+        txt, hashed = self._password_paths(robot)
+        if not txt.exists() or not hashed.exists():
+            password = new_password()
+            atomic_write(hashed, hash_password(password) + "\n")
+            atomic_write(txt, password + "\n")
+        return out
+
+    def revoke_robot(self, robot: str, crl_days: int) -> list[CertRecord]:
+        """Revoke every valid client certificate of `robot` and re-issue the CRL."""
+        index = self.load_index()
+        now = _now()
+        revoked = []
+        for rec in index.certs:
+            if rec.profile == "client" and rec.cn == robot and not rec.revoked:
+                rec.revoked_at = now
+                revoked.append(rec)
+        if not revoked:
+            raise CcrpError(
+                f"robot {robot!r} has no certificate to revoke",
+                hint="`ccrp vpn list -i INVENTORY` shows the issued certificates",
+            )
+        self._write_crl(index, crl_days)
+        return revoked
+
+    def _write_crl(self, index: PkiIndex, days: int) -> None:
+        ca_cert, ca_key = self._ca()
+        index.crl_number += 1
+        revoked = [(int(c.serial, 16), c.revoked_at) for c in index.certs if c.revoked_at]
+        crl = profiles.build_crl(ca_cert, ca_key, revoked, index.crl_number, days)
+        atomic_write(self.crl_path, crl.public_bytes(serialization.Encoding.PEM), mode=0o644)
+        self._save_index(index)
+
+    def crl_days_left(self) -> float:
+        crl = x509.load_pem_x509_crl(self.crl_path.read_bytes())
+        return (crl.next_update_utc - _now()).total_seconds() / 86400
+
+    def credentials(self, robot: str) -> RobotCredentials:
+        index = self.load_index()
+        client, server = self.current(index, robot), self.current(index, clone_host(robot))
+        if client is None or server is None:
+            raise CcrpError(
+                f"robot {robot!r} has no valid certificate",
+                hint=f"run `ccrp vpn issue-cert -i INVENTORY --robot {robot}`",
+            )
+        txt, hashed = self._password_paths(robot)
+        read = lambda p: (self.root / p).read_text()  # noqa: E731
+        return RobotCredentials(
+            robot=robot,
+            ca_pem=self.ca_path.read_text(),
+            crl_pem=self.crl_path.read_text(),
+            server_cert_pem=read(server.cert_path),
+            server_key_pem=read(server.key_path),
+            client_cert_pem=read(client.cert_path),
+            client_key_pem=read(client.key_path),
+            tls_crypt_key=self._tls_crypt_path(robot).read_text(),
+            password=txt.read_text().strip(),
+            password_hash=hashed.read_text().strip(),
+        )

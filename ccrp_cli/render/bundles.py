@@ -1,0 +1,72 @@
+"""Bundles written to a directory: the clone's secrets (pushed after boot) and the robot's edge
+bundle (installed on the robot). Each carries a manifest.json naming every file and its mode."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..pki.store import RobotCredentials
+from ..store import atomic_write, ensure_dir
+from . import network, openvpn
+from .templates import render, static
+from .view import VPN_DIR, CloneView
+
+
+@dataclass(frozen=True)
+class BundleFile:
+    name: str
+    content: str
+    mode: int
+    dest: str | None = None  # absolute path on the target, for pushed bundles
+    group: str = "root"
+
+
+def clone_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
+    """What the clone needs but user-data must never carry."""
+    return [
+        BundleFile("ca.crt", creds.ca_pem, 0o644, f"{VPN_DIR}/ca.crt"),
+        BundleFile("crl.pem", creds.crl_pem, 0o644, f"{VPN_DIR}/crl.pem"),
+        BundleFile("server.crt", creds.server_cert_pem, 0o644, f"{VPN_DIR}/server.crt"),
+        BundleFile("server.key", creds.server_key_pem, 0o600, f"{VPN_DIR}/server.key"),
+        BundleFile("tc.key", creds.tls_crypt_key, 0o600, f"{VPN_DIR}/tc.key"),
+        # Read by ccrp-auth after OpenVPN dropped to the openvpn user.
+        BundleFile("passwd", f"{view.name}:{creds.password_hash}\n", 0o640, f"{VPN_DIR}/passwd", "openvpn"),
+    ]
+
+
+def edge_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[BundleFile]:
+    a = view.addr
+    watchdog_env = (
+        f"CCRP_CLONE_HOST={a.clone_host}\nCCRP_MASTER_PORT={view.inv.ros.master_port}\n"
+        "CCRP_WATCHDOG_INTERVAL=2\nCCRP_WATCHDOG_FAIL_AFTER=3\n"
+    )
+    return [
+        BundleFile("robot.ovpn", openvpn.client_profile(view, creds, remote), 0o600),
+        BundleFile("vpn-credentials", f"{view.name}\n{creds.password}\n", 0o600),
+        BundleFile("ros.env", network.ros_env(view, "robot"), 0o644),
+        BundleFile("ccrp-ros.sh", static("edge/ccrp-ros.sh"), 0o644),
+        BundleFile("hosts", network.hosts_block(view, "robot"), 0o644),
+        BundleFile("chrony.conf", network.chrony_conf(view, "robot"), 0o644),
+        BundleFile("watchdog.env", watchdog_env, 0o644),
+        BundleFile("ccrp-watchdog", static("edge/ccrp-watchdog"), 0o755),
+        BundleFile("ccrp-vpn.service", static("edge/ccrp-vpn.service"), 0o644),
+        BundleFile("ccrp-watchdog.service", static("edge/ccrp-watchdog.service"), 0o644),
+        BundleFile("install.sh", render("edge/install.sh.j2", **view.ctx()), 0o755),
+    ]
+
+
+def write_bundle(out: Path, files: list[BundleFile], meta: dict[str, str]) -> Path:
+    """Write files (atomically, with their modes) and manifest.json into `out` (made 0700)."""
+    ensure_dir(out)
+    entries = []
+    for f in files:
+        atomic_write(out / f.name, f.content, mode=f.mode)
+        entry = {"name": f.name, "mode": f"{f.mode:04o}", "sha256": hashlib.sha256(f.content.encode()).hexdigest()}
+        if f.dest:
+            entry.update(dest=f.dest, group=f.group)
+        entries.append(entry)
+    atomic_write(out / "manifest.json", json.dumps({**meta, "files": entries}, indent=2) + "\n", mode=0o644)
+    return out

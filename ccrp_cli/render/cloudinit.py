@@ -1,0 +1,88 @@
+"""cloud-init user-data of a clone: a dict dumped with yaml.safe_dump. Never a private key."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import yaml
+
+from ..errors import CcrpError
+from . import network, openvpn
+from .templates import static
+from .view import CCRP_ETC, CCRP_LIB, VPN_DIR, CloneView
+
+# Packages a bare base image needs when nothing was baked into a snapshot.
+BARE_PACKAGES = {
+    "noetic": ["openvpn", "iptables", "chrony", "python3", "ros-noetic-ros-base"],
+}
+
+PRIVATE_KEY_MARKERS = ("PRIVATE KEY-----", "OpenVPN Static key")
+
+
+def _file(path: str, content: str, mode: str = "0644") -> dict[str, Any]:
+    return {"path": path, "content": content, "permissions": mode, "owner": "root:root"}
+
+
+def user_data_dict(
+    view: CloneView,
+    *,
+    install_packages: bool = False,
+    default_user: bool = True,
+    ssh_authorized_keys: list[str] | None = None,
+) -> dict[str, Any]:
+    a = view.addr
+    fw4, fw6 = network.firewall_rules(view)
+    units = ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-rosmaster.service"]
+    files = [
+        _file("/etc/hosts", network.clone_hosts_file(view)),
+        _file(f"{CCRP_ETC}/ros.env", network.ros_env(view, "clone")),
+        _file("/etc/profile.d/ccrp-ros.sh", static("edge/ccrp-ros.sh")),
+        _file(f"{CCRP_ETC}/firewall.rules", fw4, "0600"),
+        _file(f"{CCRP_ETC}/firewall6.rules", fw6, "0600"),
+        _file("/etc/chrony/conf.d/ccrp.conf", network.chrony_conf(view, "clone")),
+        _file(f"{VPN_DIR}/server.conf", openvpn.server_conf(view)),
+        _file(f"{VPN_DIR}/ccd/{view.name}", openvpn.ccd_entry(view)),
+        _file(f"{VPN_DIR}/ccrp-auth", static("clone/ccrp-auth"), "0755"),
+        _file(f"{CCRP_LIB}/ros-run", static("clone/ros-run"), "0755"),
+    ] + [_file(f"/etc/systemd/system/{u}", static(f"systemd/{u}")) for u in units]
+
+    # "default" is the image's login user (ubuntu, debian...), which receives ssh_authorized_keys.
+    users: list[Any] = ["default"] if default_user else []
+    users += [
+        {"name": "openvpn", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
+        {"name": "ros", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "homedir": "/var/lib/ros"},
+    ]
+    data: dict[str, Any] = {
+        "hostname": a.clone_host,
+        "preserve_hostname": False,
+        "manage_etc_hosts": False,
+        "users": users,
+        "write_files": files,
+        "runcmd": [
+            ["install", "-d", "-m", "0750", "-o", "root", "-g", "openvpn", VPN_DIR],
+            ["install", "-d", "-m", "0755", "-o", "ros", "-g", "ros", "/var/lib/ros"],
+            ["systemctl", "daemon-reload"],
+            ["systemctl", "enable", "--now", *units],
+            ["systemctl", "try-restart", "chrony.service"],
+        ],
+        "final_message": f"ccrp clone {a.clone_host} of fleet {view.fleet} configured after $UPTIME s",
+    }
+    if ssh_authorized_keys:
+        data["ssh_authorized_keys"] = list(ssh_authorized_keys)
+    if install_packages:
+        data["package_update"] = True
+        data["packages"] = BARE_PACKAGES[view.inv.ros.distro]
+    return data
+
+
+def dump(data: dict[str, Any]) -> str:
+    text = "#cloud-config\n" + yaml.safe_dump(data, sort_keys=False, width=1000)
+    # Secrets only ever travel through the transport after boot (DESIGN.md §5).
+    for marker in PRIVATE_KEY_MARKERS:
+        if marker in text:
+            raise CcrpError("refusing to render user-data that contains key material")
+    return text
+
+
+def user_data(view: CloneView, **kwargs: Any) -> str:
+    return dump(user_data_dict(view, **kwargs))

@@ -1,0 +1,50 @@
+"""What every renderer needs to know about one clone and its robot."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..addressing import CloneAddresses
+from ..models.inventory import Inventory, Robot
+
+# Paths on the clone.
+VPN_DIR = "/etc/openvpn/server/ccrp"
+CCRP_ETC = "/etc/ccrp"
+CCRP_LIB = "/usr/local/lib/ccrp"
+
+
+@dataclass(frozen=True)
+class CloneView:
+    inv: Inventory
+    robot: Robot
+    addr: CloneAddresses
+    # The other clones of the fleet (for /etc/hosts and topic sharing).
+    peers: tuple[CloneAddresses, ...] = ()
+
+    @property
+    def fleet(self) -> str:
+        return self.inv.fleet
+
+    @property
+    def name(self) -> str:
+        return self.robot.name
+
+    @property
+    def operator_cidr(self) -> str | None:
+        cidr = getattr(self.inv.provider, "operator_cidr", None)
+        return str(cidr) if cidr else None
+
+    def ctx(self, **extra: object) -> dict[str, object]:
+        """Template context shared by all templates."""
+        return {
+            "fleet": self.fleet,
+            "robot": self.name,
+            "a": self.addr,
+            "vpn": self.inv.vpn,
+            "ros": self.inv.ros,
+            "sharing": self.inv.sharing,
+            "common_cidr": self.inv.common.cidr,
+            "operator_cidr": self.operator_cidr,
+            "vpn_dir": VPN_DIR,
+            **extra,
+        }
