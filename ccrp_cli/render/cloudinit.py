@@ -75,8 +75,18 @@ def user_data_dict(
     return data
 
 
+class _Dumper(yaml.SafeDumper):
+    """Multi-line strings as literal blocks, so the user-data stays readable in a console."""
+
+
+_Dumper.add_representer(
+    str,
+    lambda d, s: d.represent_scalar("tag:yaml.org,2002:str", s, style="|" if "\n" in s else None),
+)
+
+
 def dump(data: dict[str, Any]) -> str:
-    text = "#cloud-config\n" + yaml.safe_dump(data, sort_keys=False, width=1000)
+    text = "#cloud-config\n" + yaml.dump(data, Dumper=_Dumper, sort_keys=False, width=1000)
     # Secrets only ever travel through the transport after boot (DESIGN.md §5).
     for marker in PRIVATE_KEY_MARKERS:
         if marker in text:

@@ -32,14 +32,14 @@ def hosts_block(view: CloneView, side: str) -> str:
         rows += [(str(p.common_ip), p.clone_host) for p in view.peers]
     else:
         rows = [(str(a.clone_vpn_ip), a.clone_host), (str(a.robot_vpn_ip), view.name)]
-    body = "".join(f"{ip}\t{host}\n" for ip, host in rows)
+    body = "".join(f"{ip:<15} {host}\n" for ip, host in rows)
     return f"{HOSTS_BEGIN}\n{body}{HOSTS_END}\n"
 
 
 def clone_hosts_file(view: CloneView) -> str:
     return (
-        "127.0.0.1\tlocalhost\n::1\tlocalhost ip6-localhost ip6-loopback\n"
-        "ff02::1\tip6-allnodes\nff02::2\tip6-allrouters\n" + hosts_block(view, "clone")
+        "127.0.0.1       localhost\n::1             localhost ip6-localhost ip6-loopback\n"
+        + hosts_block(view, "clone")
     )
 
 

@@ -1,4 +1,4 @@
-# ccrp: ROS environment of this robot (ROS_MASTER_URI points at its clone).
+# ccrp: ROS environment (ROS_MASTER_URI points at the robot's clone).
 set -a
 . /etc/ccrp/ros.env
 set +a

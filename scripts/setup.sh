@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Install what ccrp and its tests need on a Debian/Ubuntu machine, then the package in .venv.
+# Idempotent: installs only what is missing. Run as root (or with sudo).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+APT_PACKAGES=(
+  openvpn            # the real VPN used by tests and simulated robots
+  cloud-init         # `cloud-init schema` validates every rendered user-data
+  iproute2 iptables  # network namespaces and firewall rules in end-to-end tests
+  openssl            # certificate checks
+  python3-venv
+)
+
+missing=()
+for pkg in "${APT_PACKAGES[@]}"; do
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+if ((${#missing[@]})); then
+  echo "ccrp setup: installing ${missing[*]}" >&2
+  export DEBIAN_FRONTEND=noninteractive
+  apt-get update -qq
+  apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  python3 -m venv .venv
+fi
+.venv/bin/python -m pip install -q --upgrade pip >/dev/null
+.venv/bin/python -m pip install -q -e '.[dev]'
+echo "ccrp setup: ready ($(.venv/bin/ccrp --version))" >&2

@@ -1,0 +1,387 @@
+"""End to end: a clone's OpenVPN server and its robot's client, both rendered by ccrp, run for real.
+
+Two network namespaces made for this module ("clone" and "robot") are joined by a veth pair on
+192.168.250.0/30; nothing touches the host's own interfaces. One server runs for the whole
+module, laid out as a clone's /etc/openvpn/server/ccrp would be. The first test brings nao1's
+tunnel up; the others show the server refusing clients that must not get in (DESIGN.md §6).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+import yaml
+
+from ccrp_cli import vpn
+from ccrp_cli.fleet import Fleet, clone_view
+from ccrp_cli.pki.store import RobotCredentials
+from ccrp_cli.render import openvpn
+from ccrp_cli.render.bundles import clone_secrets, edge_bundle, write_bundle
+from ccrp_cli.render.templates import static
+from ccrp_cli.render.view import CloneView
+
+OPENVPN = "/usr/sbin/openvpn"
+LAB = Path(__file__).resolve().parents[2] / "inventories" / "lab.yaml"
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.root,
+    pytest.mark.skipif(os.geteuid() != 0, reason="needs root for network namespaces and tun devices"),
+    pytest.mark.skipif(not os.access(OPENVPN, os.X_OK), reason=f"{OPENVPN} is not installed"),
+    pytest.mark.skipif(not os.path.exists("/dev/net/tun"), reason="/dev/net/tun is missing (no tun support)"),
+    pytest.mark.skipif(shutil.which("ip") is None, reason="iproute2 (`ip`) is not installed"),
+]
+
+# Unique per run, so that parallel runs on one host never meet.
+NS_CLONE = f"ccrp-e2e-clone-{os.getpid()}"
+NS_ROBOT = f"ccrp-e2e-robot-{os.getpid()}"
+CLONE_OUTER_IP, ROBOT_OUTER_IP, OUTER_PREFIX = "192.168.250.1", "192.168.250.2", 30
+
+START_TIMEOUT = 20.0  # the server or a good client reaching "Initialization Sequence Completed"
+REFUSAL_WINDOW = 15.0  # a refused client must not get a tunnel in this time
+COMPLETED = "Initialization Sequence Completed"
+# When the server refuses a certificate, the client hears nothing back and would wait out its
+# 60 s hand-window before giving up on the attempt. Refused clients get a short one, so that the
+# attempt visibly ends; this changes when a client gives up, never what it accepts.
+GIVE_UP_SOON = ("--hand-window", "4")
+# The client gave up on an attempt: it restarts (TLS errors) or exits (AUTH_FAILED).
+ATTEMPT_ENDED = re.compile(r"SIGUSR1\[soft,|SIGTERM\[soft,auth-failure\]|AUTH_FAILED")
+
+
+# -- helpers ---------------------------------------------------------------------------------
+
+
+def sh(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(args, check=check, capture_output=True, text=True)
+
+
+# An ICMP echo from inside a namespace, without depending on iputils-ping being installed.
+ICMP_ECHO = r"""
+import os, socket, struct, sys, time
+
+def checksum(b):
+    s = sum(struct.unpack(f"!{len(b) // 2}H", b))
+    s = (s >> 16) + (s & 0xFFFF)
+    return ~(s + (s >> 16)) & 0xFFFF
+
+target, ident, payload = sys.argv[1], os.getpid() & 0xFFFF, b"ccrp-e2e"
+header = struct.pack("!BBHHH", 8, 0, 0, ident, 1)
+packet = struct.pack("!BBHHH", 8, 0, checksum(header + payload), ident, 1) + payload
+with socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_ICMP) as s:
+    s.settimeout(1.0)
+    s.sendto(packet, (target, 0))
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline:
+        try:
+            data, (source, _) = s.recvfrom(2048)
+        except TimeoutError:
+            break
+        ihl = (data[0] & 0x0F) * 4
+        kind, _, _, reply_id, _ = struct.unpack("!BBHHH", data[ihl : ihl + 8])
+        if source == target and kind == 0 and reply_id == ident:
+            sys.exit(0)
+sys.exit(1)
+"""
+
+
+def ping(netns: str, ip: object) -> bool:
+    """One ICMP echo from `netns` to `ip`, answered within a second."""
+    return sh("ip", "netns", "exec", netns, sys.executable, "-c", ICMP_ECHO, str(ip), check=False).returncode == 0
+
+
+def wait_for(predicate: Callable[[], object], timeout: float, interval: float = 0.1) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return bool(predicate())
+
+
+@dataclass
+class OpenVPNProcess:
+    """openvpn running in a namespace, its stdout and stderr in `log`."""
+
+    proc: subprocess.Popen[bytes]
+    log: Path
+
+    @classmethod
+    def start(cls, netns: str, log: Path, *args: str) -> "OpenVPNProcess":
+        with log.open("wb") as out:
+            proc = subprocess.Popen(
+                ["ip", "netns", "exec", netns, OPENVPN, "--suppress-timestamps", *args],
+                stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+            )
+        return cls(proc, log)
+
+    def size(self) -> int:
+        return self.log.stat().st_size
+
+    def text(self, since: int = 0) -> str:
+        return self.log.read_bytes()[since:].decode(errors="replace")
+
+    @property
+    def running(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self) -> None:
+        if self.running:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=5)
+
+    def wait_completed(self, timeout: float = START_TIMEOUT) -> None:
+        ok = wait_for(lambda: COMPLETED in self.text() or not self.running, timeout)
+        assert ok and COMPLETED in self.text(), f"openvpn did not come up:\n{self.text()}"
+
+
+@dataclass
+class Lab:
+    """The lab fleet with nao1 and nao2 issued, and a view and the credentials of each."""
+
+    fleet: Fleet
+    views: dict[str, CloneView]
+    creds: dict[str, RobotCredentials]
+
+
+def build_fleet(inventory: Path, home: Path, robots: tuple[str, ...]) -> Lab:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("CCRP_HOME", str(home))
+        fleet = Fleet.open(inventory)
+        vpn.init(fleet)
+        for robot in robots:
+            vpn.issue(fleet, robot)
+        state = fleet.store.load_state()
+        views = {r: clone_view(fleet, state, r) for r in robots}
+        creds = {r: fleet.pki.credentials(r) for r in robots}
+    return Lab(fleet, views, creds)
+
+
+def write_edge_bundle(out: Path, view: CloneView, creds: RobotCredentials) -> Path:
+    """The robot's edge bundle, pointing at the clone's end of the veth pair."""
+    files = edge_bundle(view, creds, remote=CLONE_OUTER_IP)
+    return write_bundle(out, files, {"kind": "edge", "fleet": view.fleet, "robot": view.name})
+
+
+def write_credentials(path: Path, user: str, password: str) -> Path:
+    path.write_text(f"{user}\n{password}\n")
+    path.chmod(0o600)
+    return path
+
+
+def replace_file(src: Path, dest: Path) -> None:
+    """Swap `dest` for a copy of `src` in one rename, as the transport pushes files."""
+    tmp = dest.with_name(f".{dest.name}.tmp")
+    shutil.copyfile(src, tmp)
+    tmp.chmod(0o644)
+    os.replace(tmp, dest)
+
+
+# -- fixtures --------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory: pytest.TempPathFactory) -> Lab:
+    return build_fleet(LAB, tmp_path_factory.mktemp("ccrp-home"), ("nao1", "nao2"))
+
+
+@pytest.fixture(scope="module")
+def namespaces() -> Iterator[None]:
+    """The clone and robot namespaces and a veth pair between them, created inside them."""
+    try:
+        for ns in (NS_CLONE, NS_ROBOT):
+            sh("ip", "netns", "add", ns)
+            sh("ip", "-n", ns, "link", "set", "lo", "up")
+        sh("ip", "-n", NS_CLONE, "link", "add", "veth0", "type", "veth", "peer", "name", "veth0", "netns", NS_ROBOT)
+        for ns, ip in ((NS_CLONE, CLONE_OUTER_IP), (NS_ROBOT, ROBOT_OUTER_IP)):
+            sh("ip", "-n", ns, "addr", "add", f"{ip}/{OUTER_PREFIX}", "dev", "veth0")
+            sh("ip", "-n", ns, "link", "set", "veth0", "up")
+        assert wait_for(lambda: ping(NS_ROBOT, CLONE_OUTER_IP), 5), "the veth pair does not carry packets"
+        yield
+    finally:
+        for ns in (NS_CLONE, NS_ROBOT):
+            sh("ip", "netns", "delete", ns, check=False)
+
+
+@dataclass
+class Clone:
+    dir: Path
+    server: OpenVPNProcess
+    view: CloneView
+
+
+@pytest.fixture(scope="module")
+def clone(lab: Lab, namespaces: None, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Clone]:
+    """nao1's clone: its VPN directory laid out as on the clone, and openvpn serving from it."""
+    view, creds = lab.views["nao1"], lab.creds["nao1"]
+    # Under /tmp and 0755: openvpn re-reads ccd/, crl.pem and runs ccrp-auth as nobody, who
+    # cannot traverse pytest's 0700 tmp_path.
+    vpn_dir = Path(tempfile.mkdtemp(prefix="ccrp-e2e-vpn-", dir="/tmp"))
+    server: OpenVPNProcess | None = None
+    try:
+        vpn_dir.chmod(0o755)
+        write_bundle(vpn_dir, clone_secrets(view, creds), {"kind": "clone-secrets", "robot": view.name})
+        os.chown(vpn_dir / "passwd", 0, 65534)  # root:nogroup 0640, as root:openvpn on the clone
+        (vpn_dir / "server.conf").write_text(openvpn.server_conf(view, user="nobody", group="nogroup"))
+        (vpn_dir / "ccd").mkdir(mode=0o755)
+        (vpn_dir / "ccd" / view.name).write_text(openvpn.ccd_entry(view))
+        (vpn_dir / "ccrp-auth").write_text(static("clone/ccrp-auth"))
+        (vpn_dir / "ccrp-auth").chmod(0o755)
+        log = tmp_path_factory.mktemp("clone") / "server.log"
+        server = OpenVPNProcess.start(NS_CLONE, log, "--cd", str(vpn_dir), "--config", "server.conf")
+        server.wait_completed()
+        yield Clone(vpn_dir, server, view)
+    finally:
+        if server is not None:
+            server.stop()
+        shutil.rmtree(vpn_dir, ignore_errors=True)
+
+
+@dataclass
+class Robot:
+    """Starts robot-side clients in the robot namespace; all are stopped after the test."""
+
+    tmp: Path
+    clients: list[OpenVPNProcess] = field(default_factory=list)
+
+    def connect(self, bundle: Path, credentials: Path | None = None, *extra: str) -> OpenVPNProcess:
+        # The profile reads /etc/ccrp/vpn-credentials, where install.sh puts the bundle's file;
+        # a later --auth-user-pass overrides it with the file in the bundle itself.
+        creds = credentials or bundle / "vpn-credentials"
+        log = self.tmp / f"client-{len(self.clients)}.log"
+        client = OpenVPNProcess.start(
+            NS_ROBOT, log, "--config", str(bundle / "robot.ovpn"), "--auth-user-pass", str(creds), *extra
+        )
+        self.clients.append(client)
+        return client
+
+
+@pytest.fixture
+def robot(clone: Clone, tmp_path: Path) -> Iterator[Robot]:
+    r = Robot(tmp_path)
+    try:
+        yield r
+    finally:
+        for client in r.clients:
+            client.stop()
+
+
+def assert_refused(client: OpenVPNProcess, clone: Clone, since: int, reason: str) -> None:
+    """The server logs `reason` and the client's attempt ends, without a tunnel, within the window.
+
+    Returning as soon as the attempt has ended keeps the module fast; a retry meets the same
+    refusal, which the check below would see as "Initialization Sequence Completed" otherwise.
+    """
+    pattern = re.compile(reason)
+    wait_for(
+        lambda: COMPLETED in client.text()
+        or (pattern.search(clone.server.text(since)) and (ATTEMPT_ENDED.search(client.text()) or not client.running)),
+        REFUSAL_WINDOW,
+    )
+    logs = f"--- client ---\n{client.text()}\n--- server ---\n{clone.server.text(since)}"
+    assert COMPLETED not in client.text(), f"the client got a tunnel:\n{logs}"
+    assert pattern.search(clone.server.text(since)), f"the server did not log {reason!r}:\n{logs}"
+    assert ATTEMPT_ENDED.search(client.text()) or not client.running, f"the client's attempt did not end:\n{logs}"
+    assert clone.server.running, f"the server died:\n{logs}"
+
+
+# -- tests -----------------------------------------------------------------------------------
+
+
+def test_tunnel_comes_up(lab: Lab, clone: Clone, robot: Robot) -> None:
+    a = clone.view.addr
+    bundle = write_edge_bundle(robot.tmp / "edge", lab.views["nao1"], lab.creds["nao1"])
+    client = robot.connect(bundle)
+    client.wait_completed()
+
+    addrs = sh("ip", "-n", NS_ROBOT, "-4", "-o", "addr", "show", "dev", "ccrpvpn").stdout
+    assert f"inet {a.robot_vpn_ip}/{a.vpn_subnet.prefixlen}" in addrs
+    assert wait_for(lambda: ping(NS_ROBOT, a.clone_vpn_ip), 5), "the robot cannot ping its clone"
+    assert ping(NS_CLONE, a.robot_vpn_ip), "the clone cannot ping its robot"
+    # The second factor was checked, and nao1 is who the server thinks it is.
+    assert re.search(rf"\bnao1/{re.escape(ROBOT_OUTER_IP)}:\d+ MULTI: primary virtual IP for \S+: {a.robot_vpn_ip}",
+                     clone.server.text()), clone.server.text()
+
+
+def _wrong_password(lab: Lab, robot: Robot, tmp: Path) -> tuple[Path, Path | None]:
+    bundle = write_edge_bundle(tmp / "edge", lab.views["nao1"], lab.creds["nao1"])
+    return bundle, write_credentials(tmp / "wrong-credentials", "nao1", "not-" + lab.creds["nao1"].password)
+
+
+def _foreign_ca(fleet_name: str) -> Callable[[Lab, Robot, Path], tuple[Path, Path | None]]:
+    """nao1's real bundle, except that its client certificate comes from another fleet's CA.
+
+    The client keeps the real CA (so it accepts the clone) and the real tls-crypt key (so the
+    packets get through): only the server's certificate check can refuse it.
+    """
+
+    def build(lab: Lab, robot: Robot, tmp: Path) -> tuple[Path, Path | None]:
+        inventory = yaml.safe_load(LAB.read_text()) | {"fleet": fleet_name}
+        (tmp / "other.yaml").write_text(yaml.safe_dump(inventory))
+        other = build_fleet(tmp / "other.yaml", tmp / "other-home", ("nao1",)).creds["nao1"]
+        real = lab.creds["nao1"]
+        assert other.ca_pem != real.ca_pem
+        creds = real.model_copy(update={"client_cert_pem": other.client_cert_pem, "client_key_pem": other.client_key_pem})
+        return write_edge_bundle(tmp / "edge", lab.views["nao1"], creds), None
+
+    return build
+
+
+def _wrong_robot(lab: Lab, robot: Robot, tmp: Path) -> tuple[Path, Path | None]:
+    """nao2's certificate (valid in this fleet) offered to nao1's clone, with nao1's tls-crypt
+    key, profile and password: only verify-x509-name tells the two robots apart."""
+    nao2 = lab.creds["nao2"]
+    creds = lab.creds["nao1"].model_copy(update={"client_cert_pem": nao2.client_cert_pem, "client_key_pem": nao2.client_key_pem})
+    return write_edge_bundle(tmp / "edge", lab.views["nao1"], creds), None
+
+
+@pytest.mark.parametrize(
+    ("build", "reason"),
+    [
+        pytest.param(_wrong_password, r"Auth Username/Password verification failed for peer", id="wrong-password"),
+        pytest.param(_foreign_ca("rogue"), r"VERIFY ERROR: depth=0, error=unable to get local issuer", id="other-fleet-ca"),
+        # Same fleet name, so the same CA name: only the signature tells them apart.
+        pytest.param(
+            _foreign_ca("lab"), r"VERIFY ERROR: depth=0, error=(unable to get local issuer|certificate signature)",
+            id="lookalike-ca",
+        ),
+        pytest.param(_wrong_robot, r"VERIFY X509NAME ERROR: CN=nao2, must be nao1", id="wrong-robot-cert"),
+    ],
+)
+def test_refused(lab: Lab, clone: Clone, robot: Robot, build, reason: str) -> None:
+    bundle, credentials = build(lab, robot, robot.tmp)
+    since = clone.server.size()
+    client = robot.connect(bundle, credentials, *GIVE_UP_SOON)
+    assert_refused(client, clone, since, reason)
+
+
+def test_revoked_cert_refused(lab: Lab, clone: Clone, robot: Robot) -> None:
+    # Rendered while nao1's certificate was still valid, as on a robot that is then revoked.
+    bundle = write_edge_bundle(robot.tmp / "edge", lab.views["nao1"], lab.creds["nao1"])
+    served_crl = clone.dir / "crl.pem"
+    original = robot.tmp / "crl.before.pem"
+    shutil.copyfile(served_crl, original)
+    try:
+        (revoked,) = vpn.revoke(lab.fleet, "nao1")
+        # Push the new CRL to the clone; openvpn re-reads it on the next TLS session.
+        replace_file(lab.fleet.pki.crl_path, served_crl)
+        since = clone.server.size()
+        client = robot.connect(bundle, None, *GIVE_UP_SOON)
+        assert_refused(client, clone, since, r"VERIFY ERROR: depth=0, error=certificate revoked: CN=nao1")
+        assert revoked["revoked"]
+    finally:
+        # The server keeps running for the other tests: hand it back the CRL it started with.
+        replace_file(original, served_crl)
