@@ -7,14 +7,10 @@ from typing import Any
 import yaml
 
 from ..errors import CcrpError
+from ..recipes import platform
 from . import network, openvpn
 from .templates import static
 from .view import CCRP_ETC, CCRP_LIB, VPN_DIR, CloneView
-
-# Packages a bare base image needs when nothing was baked into a snapshot.
-BARE_PACKAGES = {
-    "noetic": ["openvpn", "iptables", "chrony", "python3", "ros-noetic-ros-base"],
-}
 
 PRIVATE_KEY_MARKERS = ("PRIVATE KEY-----", "OpenVPN Static key")
 
@@ -70,8 +66,12 @@ def user_data_dict(
     if ssh_authorized_keys:
         data["ssh_authorized_keys"] = list(ssh_authorized_keys)
     if install_packages:
+        # A bare base image: install at boot what a snapshot would already contain.
+        plat = platform(view.inv.ros.distro, view.inv.provider.kind)
+        if plat.apt_sources:
+            data["apt"] = {"sources": {f"ccrp{i}.list": s.model_dump() for i, s in enumerate(plat.apt_sources)}}
         data["package_update"] = True
-        data["packages"] = BARE_PACKAGES[view.inv.ros.distro]
+        data["packages"] = [p for p in plat.packages if p not in ("cloud-init",)]
     return data
 
 
