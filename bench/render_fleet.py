@@ -9,7 +9,9 @@ Per repetition (fresh temp dirs, fresh CCRP_HOME):
               each written with bundles.write_bundle
 The inventory is generated from inventories/lab.yaml's shape: robots bot1..botN, no sharing imports.
 If the median total misses the target (or with --profile), one more repetition runs under cProfile
-and the time is attributed to the suspects (scrypt, index.json load/save, fsync, key generation...).
+and the time is attributed to the suspects (scrypt, index.json load/save, fsync, key generation...);
+then one instrumented run (timers around the suspects, no profiler overhead) and "what-if" runs
+with fsync and/or scrypt stubbed out IN THIS PROCESS ONLY (diagnosis; ccrp_cli is not modified).
 
 Run: .venv/bin/python bench/render_fleet.py [--robots 100] [--repeat 3] [--profile] [--tmp DIR]
 Writes bench/results/render_fleet.json.
@@ -18,6 +20,7 @@ Writes bench/results/render_fleet.json.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import datetime as dt
 import io
@@ -46,6 +49,8 @@ from ccrp_cli import vpn  # noqa: E402
 from ccrp_cli.fleet import Fleet, clone_view  # noqa: E402
 from ccrp_cli.render import bundles, cloudinit  # noqa: E402
 from ccrp_cli.pki import secrets as pki_secrets  # noqa: E402
+from ccrp_cli.pki import store as pki_store  # noqa: E402
+from ccrp_cli import fleet as fleet_mod, store as fleet_store  # noqa: E402
 
 
 def write_inventory(path: Path, robots: int, key_type: str | None) -> None:
@@ -56,6 +61,10 @@ def write_inventory(path: Path, robots: int, key_type: str | None) -> None:
     if key_type:
         inv["vpn"]["key_type"] = key_type
     path.write_text(yaml.safe_dump(inv, sort_keys=False))
+
+
+def _clone_view(fleet: Fleet, state: object, name: str) -> object:
+    return clone_view(fleet, state, name)  # a module-level hop so the instrumented run can wrap it
 
 
 def run_once(robots: int, key_type: str | None, tmp_base: str | None) -> dict[str, object]:
@@ -83,13 +92,13 @@ def run_once(robots: int, key_type: str | None, tmp_base: str | None) -> dict[st
         state = fleet.store.load_state()
         ud_bytes = 0
         for name in names:
-            ud_bytes += len(cloudinit.user_data(clone_view(fleet, state, name)).encode())
+            ud_bytes += len(cloudinit.user_data(_clone_view(fleet, state, name)).encode())
         t3 = time.perf_counter()
         t["cloud_init"] = t3 - t2
 
         files = 0
         for name in names:
-            view = clone_view(fleet, state, name)
+            view = _clone_view(fleet, state, name)
             creds = fleet.pki.credentials(name)  # read once, used by both bundles
             secret_files = bundles.clone_secrets(view, creds)
             bundles.write_bundle(out / name / "clone-secrets", secret_files,
@@ -172,6 +181,76 @@ def profile_once(robots: int, key_type: str | None, tmp_base: str | None) -> dic
     }
 
 
+@contextlib.contextmanager
+def patched(patches: list[tuple[object, str, object]]):
+    saved = [(obj, attr, getattr(obj, attr)) for obj, attr, _ in patches]
+    try:
+        for obj, attr, new in patches:
+            setattr(obj, attr, new)
+        yield
+    finally:
+        for obj, attr, old in reversed(saved):
+            setattr(obj, attr, old)
+
+
+def instrumented_once(robots: int, key_type: str | None, tmp_base: str | None) -> dict[str, object]:
+    """One run with wall-clock timers around the suspects (nested: atomic_write includes fsync)."""
+    acc: dict[str, list[float]] = {}
+
+    def timer(label: str, fn):  # noqa: ANN001, ANN202
+        acc[label] = [0, 0.0]
+
+        def wrapper(*a, **kw):  # noqa: ANN002, ANN003, ANN202
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **kw)
+            finally:
+                acc[label][0] += 1
+                acc[label][1] += time.perf_counter() - t0
+
+        return wrapper
+
+    aw = timer("atomic_write (incl. fsync)", fleet_store.atomic_write)
+    me = sys.modules[__name__]
+    patches = [
+        (pki_store, "hash_password", timer("scrypt hash_password", pki_store.hash_password)),
+        (os, "fsync", timer("os.fsync (file + dir)", os.fsync)),
+        (fleet_store, "atomic_write", aw),
+        (pki_store, "atomic_write", aw),
+        (bundles, "atomic_write", aw),
+        (pki_store.PkiStore, "load_index", timer("PkiStore.load_index (index.json parse)", pki_store.PkiStore.load_index)),
+        (pki_store.PkiStore, "_save_index", timer("PkiStore._save_index (index.json dump+write)", pki_store.PkiStore._save_index)),
+        (pki_store.PkiStore, "_ca", timer("PkiStore._ca (CA cert+key load)", pki_store.PkiStore._ca)),
+        (pki_store.profiles, "generate_key", timer("profiles.generate_key", pki_store.profiles.generate_key)),
+        (pki_store.profiles, "build_leaf", timer("profiles.build_leaf (sign)", pki_store.profiles.build_leaf)),
+        (fleet_mod.Fleet, "load_allocated", timer("Fleet.load_allocated (state.json)", fleet_mod.Fleet.load_allocated)),
+        (me, "_clone_view", timer("clone_view (incl. Fleet.plan of all robots)", _clone_view)),
+        (cloudinit, "dump", timer("cloudinit.dump (yaml.safe_dump)", cloudinit.dump)),
+        (cloudinit, "user_data_dict", timer("cloudinit.user_data_dict (templates)", cloudinit.user_data_dict)),
+        (bundles, "edge_bundle", timer("bundles.edge_bundle (templates)", bundles.edge_bundle)),
+        (bundles, "write_bundle", timer("bundles.write_bundle (incl. atomic_write)", bundles.write_bundle)),
+    ]
+    with patched(patches):
+        run = run_once(robots, key_type, tmp_base)
+    return {
+        "phases_s": run["seconds"],
+        "timers": {k: {"calls": int(v[0]), "seconds": round(v[1], 4)} for k, v in acc.items()},
+    }
+
+
+def what_if(robots: int, key_type: str | None, tmp_base: str | None) -> dict[str, object]:
+    """Phase times with fsync and/or scrypt stubbed out (diagnosis only, never how ccrp runs)."""
+    stub_hash = pki_secrets.hash_password("stub")
+    no_fsync = (os, "fsync", lambda fd: None)
+    no_scrypt = (pki_store, "hash_password", lambda password: stub_hash)
+    variants = {"no_fsync": [no_fsync], "no_scrypt": [no_scrypt], "no_fsync_no_scrypt": [no_fsync, no_scrypt]}
+    out = {}
+    for name, patches in variants.items():
+        with patched(patches):
+            out[name] = run_once(robots, key_type, tmp_base)["seconds"]
+    return out
+
+
 def micro(tmp_base: str | None) -> dict[str, float]:
     """Single-operation costs that explain the phases."""
     out: dict[str, float] = {}
@@ -214,7 +293,7 @@ def main() -> None:
     median = {k: statistics.median(r["seconds"][k] for r in runs) for k in (*PHASES, "total")}
     ok = median["total"] < TARGET_S
     tmp_dir = runs[0]["filesystem_dir"]
-    fs = subprocess.run(["df", "-T", "--output=fstype", tmp_dir], capture_output=True, text=True).stdout.split()
+    fs = subprocess.run(["df", "--output=fstype", tmp_dir], capture_output=True, text=True).stdout.split()
     result: dict[str, object] = {
         "benchmark": "render_fleet",
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
@@ -237,6 +316,9 @@ def main() -> None:
     if not ok or args.profile:
         print("  profiling one more run (cProfile)...", flush=True)
         result["profile"] = profile_once(args.robots, args.key_type, args.tmp)
+        print("  one instrumented run and three what-if runs...", flush=True)
+        result["instrumented"] = instrumented_once(args.robots, args.key_type, args.tmp)
+        result["what_if"] = what_if(args.robots, args.key_type, args.tmp)
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
@@ -254,6 +336,13 @@ def main() -> None:
         for label, v in prof["suspects"].items():
             if v["calls"]:
                 print(f"    {label:<34}{v['calls']:>6} calls {v['cumulative_s']:>8.3f}s cumulative")
+        ins = result["instrumented"]
+        print(f"  instrumented run (no profiler): total {ins['phases_s']['total']:.2f}s; time inside:")
+        for label, v in sorted(ins["timers"].items(), key=lambda kv: kv[1]["seconds"], reverse=True):
+            print(f"    {label:<46}{v['calls']:>6} calls {v['seconds']:>7.3f}s")
+        print("  what-if (stubbed in this process only):")
+        for name, s in result["what_if"].items():
+            print(f"    {name:<20} total {s['total']:.2f}s  " + "  ".join(f"{p} {s[p]:.2f}s" for p in PHASES))
     print(f"  -> {args.out.relative_to(ROOT) if args.out.is_relative_to(ROOT) else args.out}")
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import typer
 
 from ..fleet import Fleet
@@ -47,3 +49,58 @@ def validate(inventory: options.Inventory, as_json: options.Json = False) -> Non
         ["ROBOT", "TYPE", "CLONE", "VPN SUBNET", "ROBOT IP", "COMMON IP"],
         [(r["name"], r["type"], r["clone"], r["vpn_subnet"], r["robot_vpn_ip"], r["common_ip"]) for r in data["robots"]],
     )
+
+
+def _open(inventory):
+    from ..providers import get_provider
+
+    fleet = Fleet.open(inventory)
+    return fleet, get_provider(fleet.inventory)
+
+
+@app.command()
+def up(inventory: options.Inventory, as_json: options.Json = False) -> None:
+    """Create or reuse every robot's clone, in parallel (idempotent; safe to re-run after a crash)."""
+    from .. import reconcile
+
+    fleet, provider = _open(inventory)
+    with fleet.store.lock():
+        items = reconcile.up(fleet, provider, output.info)
+    raise typer.Exit(output.results(items, as_json))
+
+
+@app.command()
+def scale(
+    size: Annotated[int, typer.Argument(help="Total number of clones wanted.", min=0)],
+    inventory: options.Inventory,
+    as_json: options.Json = False,
+) -> None:
+    """Grow or shrink the fleet to SIZE clones with template robots (inventory robots always stay)."""
+    from .. import reconcile
+
+    fleet, provider = _open(inventory)
+    with fleet.store.lock():
+        items = reconcile.scale(fleet, provider, size, output.info)
+    raise typer.Exit(output.results(items, as_json))
+
+
+@app.command()
+def down(inventory: options.Inventory, as_json: options.Json = False) -> None:
+    """Remove every container, network and volume ccrp created for the fleet (PKI and state stay)."""
+    from .. import reconcile
+
+    fleet, provider = _open(inventory)
+    with fleet.store.lock():
+        removed = reconcile.down(fleet, provider, output.info)
+    if as_json:
+        output.emit_json({"removed": removed})
+
+
+@app.command()
+def plan(inventory: options.Inventory, as_json: options.Json = False) -> None:
+    """Show what `fleet up` would change. Read-only."""
+    from .. import reconcile
+
+    fleet, provider = _open(inventory)
+    rows = reconcile.plan(fleet, provider)
+    output.emit(rows, as_json, ["ROBOT", "ACTION", "ID"], [(r["robot"], r["action"], r["provider_id"]) for r in rows])

@@ -9,7 +9,7 @@ import typer
 
 from .. import __version__
 from ..errors import BAD_INPUT, CcrpError
-from . import fleet, render, vpn
+from . import clone, fleet, render, robot, snapshot, status, vpn
 
 app = typer.Typer(
     name="ccrp",
@@ -18,9 +18,13 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
+app.add_typer(clone.app, name="clone")
 app.add_typer(fleet.app, name="fleet")
+app.add_typer(robot.app, name="robot")
 app.add_typer(vpn.app, name="vpn")
+app.add_typer(snapshot.app, name="snapshot")
 app.add_typer(render.app, name="render")
+app.command("status")(status.status)
 
 
 def _version(value: bool) -> None:

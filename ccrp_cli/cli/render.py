@@ -6,7 +6,6 @@ from typing import Annotated
 
 import typer
 
-from ..errors import InputError
 from ..fleet import Fleet, clone_view
 from . import options, output
 
@@ -53,18 +52,7 @@ def edge(
     ] = None,
 ) -> None:
     """Write the robot's edge bundle: .ovpn profile, credentials, ROS env, hosts, chrony, units, install.sh."""
-    from ..render import bundles
+    from ..robots import write_edge
 
-    fleet = Fleet.open(inventory)
-    state = fleet.store.load_state()
-    view = clone_view(fleet, state, robot)
-    rec = state.robots.get(robot)
-    endpoint = remote or (rec.public_endpoint if rec else None)
-    if not endpoint:
-        raise InputError(
-            f"the public endpoint of clone {view.addr.clone_host} is not known yet",
-            hint="create the clone first, or pass --remote HOST[:PORT]",
-        )
-    files = bundles.edge_bundle(view, fleet.pki.credentials(robot), endpoint)
-    bundles.write_bundle(out, files, {"fleet": fleet.name, "robot": robot, "kind": "edge", "remote": endpoint})
+    write_edge(Fleet.open(inventory), robot, out, remote)
     output.info(f"wrote the edge bundle of robot {robot!r} to {out}; install it with `sudo {out}/install.sh`")

@@ -1,0 +1,1 @@
+"""Code that runs ON a clone (standard library + the clone's ROS python only)."""

@@ -1,0 +1,66 @@
+"""Health of a clone, printed as one JSON object: the VPN (from OpenVPN's management socket) and
+the ROS master (XML-RPC). Run on the clone: `python3 health.py [kill <robot>]`. Stdlib only."""
+
+import json
+import socket
+import sys
+import xmlrpc.client
+
+MGMT = "/etc/openvpn/server/ccrp/mgmt.sock"
+MASTER = "http://127.0.0.1:11311"
+
+
+def mgmt(command):
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(3)
+    s.connect(MGMT)
+    data = b""
+    s.sendall(command.encode() + b"\nquit\n")
+    while True:
+        chunk = s.recv(65536)
+        if not chunk:
+            break
+        data += chunk
+    s.close()
+    return data.decode(errors="replace")
+
+
+def vpn():
+    try:
+        text = mgmt("status 2")
+    except OSError as exc:
+        return {"up": False, "error": str(exc), "clients": []}
+    clients = []
+    for line in text.splitlines():
+        if line.startswith("CLIENT_LIST,"):
+            f = line.split(",")
+            clients.append({"cn": f[1], "real_address": f[2], "vpn_ip": f[3], "since": f[7] if len(f) > 7 else ""})
+    return {"up": True, "clients": clients}
+
+
+def master():
+    try:
+        proxy = xmlrpc.client.ServerProxy(MASTER)
+        socket.setdefaulttimeout(3)
+        code, _, state = proxy.getSystemState("/ccrp_health")
+        nodes = sorted({n for group in state for _, names in group for n in names})
+        uris = {}
+        for n in nodes:
+            c, _, uri = proxy.lookupNode("/ccrp_health", n)
+            if c == 1:
+                uris[n] = uri
+        topics = sorted(t for t, _ in state[0])
+        return {"reachable": code == 1, "nodes": uris, "published_topics": topics}
+    except (OSError, xmlrpc.client.Error) as exc:
+        return {"reachable": False, "error": str(exc), "nodes": {}, "published_topics": []}
+
+
+def main():
+    if len(sys.argv) == 3 and sys.argv[1] == "kill":
+        print(json.dumps({"kill": mgmt("kill " + sys.argv[2]).strip().splitlines()}))
+        return
+    print(json.dumps({"vpn": vpn(), "master": master()}))
+
+
+if __name__ == "__main__":
+    main()

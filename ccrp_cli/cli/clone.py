@@ -1,0 +1,68 @@
+"""ccrp clone ...: one robot's clone."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from .. import clones
+from ..fleet import Fleet
+from . import options, output
+
+app = typer.Typer(help="One robot's clone: create, delete, list, exec.", no_args_is_help=True)
+
+
+def _open(inventory):
+    from ..providers import get_provider
+
+    fleet = Fleet.open(inventory)
+    return fleet, get_provider(fleet.inventory)
+
+
+@app.command()
+def create(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
+    """Create the robot's clone from the fleet's snapshot (idempotent: reuses an existing one)."""
+    from .. import reconcile
+
+    fleet, provider = _open(inventory)
+    with fleet.store.lock():
+        fleet.robot(fleet.store.load_state(), robot)
+        items = reconcile.up(fleet, provider, output.info, only=[robot])
+    raise typer.Exit(output.results(items, as_json))
+
+
+@app.command()
+def delete(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
+    """Delete the robot's clone and its secrets volume (the robot keeps its certificates and addresses)."""
+    fleet, provider = _open(inventory)
+    with fleet.store.lock():
+        state = fleet.store.load_state()
+        existed = robot in provider.query()
+        item = clones.delete_clone(fleet, provider, clones.StateWriter(fleet, state), robot, forget=False)
+        if not existed:
+            item.action = "absent"
+    raise typer.Exit(output.results([item], as_json))
+
+
+@app.command("list")
+def list_(inventory: options.Inventory, as_json: options.Json = False) -> None:
+    """List the fleet's clones as the provider sees them (by ownership labels)."""
+    fleet, provider = _open(inventory)
+    records = [r.model_dump() for r in provider.query().values()]
+    output.emit(records, as_json, ["ROBOT", "ID", "STATUS", "PUBLIC IP", "COMMON IP"],
+                [(r["robot"], r["provider_id"], r["status"], r["public_ip"], r["common_ip"]) for r in records])
+
+
+@app.command(name="exec", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def exec_(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    command: Annotated[list[str], typer.Argument(help="Command and arguments, after --.")],
+    timeout: Annotated[float, typer.Option(help="Seconds before the command is killed.")] = 600,
+) -> None:
+    """Run a command inside the robot's clone: ccrp clone exec -i INV --robot nao1 -- rostopic list"""
+    fleet, provider = _open(inventory)
+    rc, out = provider.exec(robot, command, timeout=timeout)
+    typer.echo(out, nl=False)
+    raise typer.Exit(rc)

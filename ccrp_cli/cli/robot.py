@@ -1,0 +1,59 @@
+"""ccrp robot ...: the robot side (edge bundle, simulated robots)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ..errors import InputError
+from ..fleet import Fleet
+from . import options, output
+
+app = typer.Typer(help="The robot side: edge bundle and simulated robots.", no_args_is_help=True)
+
+
+@app.command()
+def bundle(
+    name: Annotated[str, typer.Argument(help="Robot name.")],
+    inventory: options.Inventory,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Directory (default $CCRP_HOME/<fleet>/edge/<robot>).")] = None,
+    remote: Annotated[str | None, typer.Option(help="HOST[:PORT] the robot dials (default: its clone's endpoint).")] = None,
+) -> None:
+    """Write the robot's ready-to-install bundle (same content as `ccrp render edge`)."""
+    from ..robots import write_edge
+
+    fleet = Fleet.open(inventory)
+    path = write_edge(fleet, name, out or fleet.store.root / "edge" / name, remote)
+    output.info(f"bundle for robot {name!r} in {path}; on the robot: `sudo ./install.sh`")
+    typer.echo(str(path))
+
+
+@app.command()
+def sim(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    stop: Annotated[bool, typer.Option("--stop", help="Stop and remove the simulated robot.")] = False,
+) -> None:
+    """Run a simulated robot (container on the public network) with exactly its edge bundle."""
+    from ..providers import get_provider
+    from ..providers.docker import robots as sims
+    from ..render.templates import static
+    from ..robots import edge_files
+
+    fleet = Fleet.open(inventory)
+    if fleet.inventory.provider.kind != "docker":
+        raise InputError("simulated robots run on the docker provider only")
+    provider = get_provider(fleet.inventory)
+    state = fleet.store.load_state()
+    fleet.robot(state, robot)
+    if stop:
+        removed = sims.stop(provider, robot)
+        output.info(f"simulated robot {robot!r} {'removed' if removed else 'was not running'}")
+        return
+    from ..clones import snapshot_image
+
+    files, endpoint = edge_files(fleet, robot)
+    cid = sims.start(provider, robot, snapshot_image(state), files, static("edge/ccrp-demo-node"))
+    output.info(f"simulated robot {robot!r} ({cid}) installed its bundle and dials {endpoint}")

@@ -1,0 +1,70 @@
+"""ccrp snapshot ...: golden images clones are created from."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from .. import snapshots
+from ..fleet import Fleet
+from . import options, output
+
+app = typer.Typer(help="Golden images: build, capture, list, delete.", no_args_is_help=True)
+COLUMNS = ["ID", "NAME", "CREATED", "SOURCE", "SIZE MB"]
+
+
+def _open(inventory):
+    from ..providers import get_provider
+
+    fleet = Fleet.open(inventory)
+    return fleet, get_provider(fleet.inventory)
+
+
+def _show(records, as_json: bool) -> None:
+    data = [r.model_dump() for r in records]
+    output.emit(data, as_json, COLUMNS, [(r["id"], r["name"], r["created"], r["source"], r["size_mb"]) for r in data])
+
+
+@app.command()
+def build(inventory: options.Inventory, as_json: options.Json = False) -> None:
+    """Build the golden clone image from the recipe in snapshots/ and record it for new clones."""
+    fleet, provider = _open(inventory)
+    with fleet.store.lock():
+        record = snapshots.build(fleet, provider, output.info)
+    output.info(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
+    _show([record], as_json)
+
+
+@app.command()
+def create(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    use: Annotated[bool, typer.Option("--use", help="Create new clones from this snapshot.")] = False,
+    as_json: options.Json = False,
+) -> None:
+    """Capture a configured clone as a snapshot (its secrets volume is not included)."""
+    fleet, provider = _open(inventory)
+    with fleet.store.lock():
+        record = snapshots.create(fleet, provider, robot, use)
+    _show([record], as_json)
+
+
+@app.command("list")
+def list_(inventory: options.Inventory, as_json: options.Json = False) -> None:
+    """List the fleet's snapshots."""
+    fleet, provider = _open(inventory)
+    _show(provider.list_snapshots(), as_json)
+
+
+@app.command()
+def delete(
+    inventory: options.Inventory,
+    snapshot: Annotated[str, typer.Argument(help="Snapshot id or name.")],
+    force: Annotated[bool, typer.Option(help="Delete even the snapshot new clones use.")] = False,
+) -> None:
+    """Delete a snapshot."""
+    fleet, provider = _open(inventory)
+    with fleet.store.lock():
+        snapshots.delete(fleet, provider, snapshot, force)
+    output.info(f"deleted snapshot {snapshot}")

@@ -1,0 +1,23 @@
+"""ccrp status."""
+
+from __future__ import annotations
+
+from ..fleet import Fleet
+from . import options, output
+
+
+def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
+    """Per robot: clone state, addresses, VPN connected, master reachable, robot nodes on its master."""
+    from ..providers import get_provider
+    from ..status import fleet_status
+
+    fleet = Fleet.open(inventory)
+    rows = fleet_status(fleet, get_provider(fleet.inventory))
+    yes = lambda b: "yes" if b else "no"  # noqa: E731
+    output.emit(
+        rows, as_json,
+        ["ROBOT", "CLONE", "STATE", "PUBLIC IP", "COMMON IP", "VPN", "MASTER", "ROBOT NODES"],
+        [(r["robot"], r["clone"], r["status"], r["public_ip"], r["common_ip"],
+          f"connected {r['robot_address']}" if r["vpn_connected"] else "no", yes(r["master_reachable"]),
+          ", ".join(r["robot_nodes"])) for r in rows],
+    )

@@ -1,0 +1,130 @@
+"""Clone lifecycle on any provider: create (idempotent), configure, check, delete.
+
+Commands hold the fleet lock; per-robot work may run in threads, so state updates go through
+StateWriter, which serialises them and saves atomically after each change.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from .errors import CcrpError
+from .fleet import Fleet, clone_view
+from .models.names import clone_host
+from .models.state import FleetState
+from .providers.base import CloneSpec, Provider
+
+Progress = Callable[[str], None]
+HEALTH_SCRIPT = (Path(__file__).parent / "agent" / "health.py").read_text
+
+
+class StateWriter:
+    """Thread-safe read-modify-save of the fleet state (the caller holds the fleet lock)."""
+
+    def __init__(self, fleet: Fleet, state: FleetState) -> None:
+        self.fleet, self.state, self._lock = fleet, state, threading.Lock()
+
+    def update(self, robot: str, **fields) -> None:
+        with self._lock:
+            rec = self.state.robots[robot]
+            for k, v in fields.items():
+                setattr(rec, k, v)
+            self.fleet.store.save_state(self.state)
+
+
+def snapshot_image(state: FleetState) -> str:
+    if not state.snapshot or not state.snapshot.get("image"):
+        raise CcrpError("the fleet has no snapshot to create clones from", hint="run `ccrp snapshot build -i INVENTORY`")
+    return state.snapshot["image"]
+
+
+@dataclass
+class CloneResult:
+    robot: str
+    action: str  # created | reused | deleted | absent | failed
+    detail: str = ""
+    seconds: float = 0.0
+
+    def row(self) -> tuple:
+        return (self.robot, self.action, f"{self.seconds:.1f}s", self.detail)
+
+
+def health(provider: Provider, robot: str) -> dict:
+    rc, out = provider.exec(robot, ["python3", "-c", HEALTH_SCRIPT()], timeout=20)
+    try:
+        return json.loads(out.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        return {"vpn": {"up": False, "clients": []}, "master": {"reachable": False, "nodes": {}}, "error": out[-200:]}
+
+
+def wait_serving(provider: Provider, robot: str, timeout: float = 60) -> dict:
+    """Until the VPN server runs and the ROS master answers inside the clone."""
+    deadline = time.monotonic() + timeout
+    while True:
+        h = health(provider, robot)
+        if h["vpn"]["up"] and h["master"]["reachable"]:
+            return h
+        if time.monotonic() > deadline:
+            raise CcrpError(f"clone {clone_host(robot)} is not serving after {timeout:.0f} s: {json.dumps(h)[:300]}")
+        time.sleep(0.5)
+
+
+def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress) -> CloneResult:
+    """Create or reuse the clone of `robot`, push its secrets, wait until it serves."""
+    from .render import bundles, cloudinit
+    from .render.limits import fit_user_data
+
+    t0 = time.monotonic()
+    state = writer.state
+    view = clone_view(fleet, state, robot)
+    fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
+    user_data = cloudinit.user_data(view, default_user=False)
+    fit_user_data(provider.kind, user_data)
+    image = snapshot_image(state)
+    rec = state.robots[robot]
+    writer.update(robot, phase="creating")
+    spec = CloneSpec(
+        robot=robot, hostname=view.addr.clone_host, image=image, user_data=user_data,
+        instance_id=f"{fleet.name}-{robot}-{rec.index}", common_ip=str(view.addr.common_ip),
+    )
+    progress(f"[{robot}] clone {view.addr.clone_host}: starting from {image}")
+    record = provider.run_instance(spec)
+    try:
+        provider.wait_ready(robot)
+        provider.push_files(robot, bundles.clone_secrets(view, fleet.pki.credentials(robot)),
+                            restart=["ccrp-openvpn.service"])
+        wait_serving(provider, robot)
+    except BaseException:
+        writer.update(robot, phase="failed", provider_id=record.provider_id)
+        if record.created:
+            provider.terminate(robot)  # roll back only what this attempt created
+        raise
+    endpoint = record.public_ip
+    writer.update(
+        robot, phase="ready", provider_id=record.provider_id, public_endpoint=endpoint,
+        addresses={"public": endpoint or "", "common": str(view.addr.common_ip),
+                   "vpn": str(view.addr.clone_vpn_ip), "robot_vpn": str(view.addr.robot_vpn_ip)},
+    )
+    took = time.monotonic() - t0
+    progress(f"[{robot}] clone {view.addr.clone_host} ready in {took:.1f}s ({endpoint})")
+    return CloneResult(robot, "created" if record.created else "reused", endpoint or "", took)
+
+
+def delete_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, forget: bool) -> CloneResult:
+    t0 = time.monotonic()
+    if robot in writer.state.robots:
+        writer.update(robot, phase="deleting")
+    provider.terminate(robot)  # the clone and its secrets volume
+    with writer._lock:
+        if forget:
+            writer.state.robots.pop(robot, None)
+        elif robot in writer.state.robots:
+            r = writer.state.robots[robot]
+            r.phase, r.provider_id, r.public_endpoint, r.addresses = "planned", None, None, {}
+        fleet.store.save_state(writer.state)
+    return CloneResult(robot, "deleted", "", time.monotonic() - t0)

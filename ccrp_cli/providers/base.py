@@ -1,0 +1,66 @@
+"""The lifecycle every backend implements (in the spirit of SkyPilot's sky/provision)."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from pydantic import BaseModel
+
+# Labels / tags on every resource ccrp creates; list, delete and gc filter on them.
+LABEL_MANAGED = "ccrp-managed"
+LABEL_FLEET = "ccrp-fleet"
+LABEL_ROBOT = "ccrp-robot"
+LABEL_ROLE = "ccrp-role"  # clone | robot-sim | snapshot | network | secrets
+
+
+def owner_labels(fleet: str, role: str, robot: str | None = None) -> dict[str, str]:
+    labels = {LABEL_MANAGED: "true", LABEL_FLEET: fleet, LABEL_ROLE: role}
+    if robot:
+        labels[LABEL_ROBOT] = robot
+    return labels
+
+
+class CloneSpec(BaseModel):
+    """What to create for one robot."""
+
+    robot: str
+    hostname: str
+    image: str
+    user_data: str
+    instance_id: str
+    common_ip: str
+
+
+class CloneRecord(BaseModel):
+    """What exists for one robot, as the provider sees it."""
+
+    robot: str
+    provider_id: str
+    status: str  # provider's own word (running, exited, ACTIVE...)
+    public_ip: str | None = None
+    common_ip: str | None = None
+    created: bool = False  # this call created it (rollback only touches these)
+
+
+class SnapshotRecord(BaseModel):
+    id: str
+    name: str
+    created: str
+    source: str  # "build" or the robot whose clone was captured
+    size_mb: float | None = None
+
+
+class Provider(Protocol):
+    kind: str
+
+    def bootstrap(self) -> None: ...
+    def run_instance(self, spec: CloneSpec) -> CloneRecord: ...
+    def wait_ready(self, robot: str, timeout: float) -> None: ...
+    def query(self) -> dict[str, CloneRecord]: ...
+    def terminate(self, robot: str) -> bool: ...
+    def push_files(self, robot: str, files: list, restart: list[str]) -> None: ...
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]: ...
+    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord: ...
+    def list_snapshots(self) -> list[SnapshotRecord]: ...
+    def delete_snapshot(self, snapshot_id: str) -> None: ...
+    def teardown(self) -> list[str]: ...

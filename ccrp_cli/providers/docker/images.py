@@ -1,0 +1,66 @@
+"""Images for the Docker backend: the base image (from Debian packages, since Docker Hub may be
+unreachable) and the golden clone image built from a snapshot recipe."""
+
+from __future__ import annotations
+
+import io
+import shutil
+import subprocess
+import tarfile
+import tempfile
+from pathlib import Path
+
+from ...errors import CcrpError
+from ...recipes import Platform
+from ...render.templates import render
+
+DEFAULT_BASE = "ccrp/base:bookworm"
+# Enough for systemd to boot and apt to work; the recipe adds the rest at `snapshot build`.
+BASE_PACKAGES = ["ca-certificates", "systemd", "systemd-sysv"]
+
+
+def build_base_image(client, tag: str, packages: list[str], progress=lambda msg: None) -> None:
+    """Build `tag` with mmdebstrap (Debian bookworm minbase) and `docker import` it."""
+    if shutil.which("mmdebstrap") is None:
+        raise CcrpError(
+            f"base image {tag} is missing and mmdebstrap is not installed to build it",
+            hint="apt-get install mmdebstrap, or set provider.base_image to an image your registry has",
+        )
+    progress(f"building base image {tag} from Debian packages (mmdebstrap, about a minute)")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "rootfs.tar"
+        argv = ["mmdebstrap", "--variant=minbase", f"--include={','.join(packages)}", "bookworm", str(out)]
+        proc = subprocess.run(argv, capture_output=True, text=True)
+        if proc.returncode != 0:
+            last = (proc.stderr.strip().splitlines() or ["?"])[-1]
+            raise CcrpError(f"mmdebstrap failed: {last}", hint="check that the Debian mirror is reachable")
+        repo, _, tagname = tag.rpartition(":")
+        with open(out, "rb") as fh:
+            client.api.import_image_from_data(fh.read(), repository=repo, tag=tagname,
+                                              changes=['CMD ["/lib/systemd/systemd"]'])
+
+
+def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform) -> str:
+    return render("docker/Dockerfile.j2", fleet=fleet, distro=distro, base_image=base_image, packages=plat.packages)
+
+
+def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progress=lambda msg: None) -> str:
+    """docker build from an in-memory context holding only the Dockerfile."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        data = text.encode()
+        info = tarfile.TarInfo("Dockerfile")
+        info.size = len(data)
+        tar.addfile(info, io.BytesIO(data))
+    buf.seek(0)
+    image_id = None
+    for chunk in client.api.build(fileobj=buf, custom_context=True, tag=tag, labels=labels, rm=True,
+                                  forcerm=True, decode=True):
+        if "error" in chunk:
+            raise CcrpError(f"snapshot build failed: {chunk['error'].strip()}")
+        line = chunk.get("stream", "").strip()
+        if line.startswith("Step "):
+            progress(line)
+        if "aux" in chunk and "ID" in chunk["aux"]:
+            image_id = chunk["aux"]["ID"]
+    return image_id or client.images.get(tag).id

@@ -1,0 +1,289 @@
+"""Docker provider: clones are systemd containers on <fleet>-public and <fleet>-common, booted
+by cloud-init from a NoCloud seed with the same user-data a cloud VM gets. Secrets go through the
+Docker API into a per-clone volume, never into user-data, labels, environment or image layers."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+from ...errors import CcrpError
+from ...models.inventory import Inventory
+from ...render.view import VPN_DIR
+from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, SnapshotRecord, owner_labels
+from .archive import tar_files
+
+SEED_DIR = "var/lib/cloud/seed/nocloud"
+
+
+def _client():
+    try:
+        import docker
+        from docker.errors import DockerException
+    except ImportError:  # pragma: no cover - docker is a core dependency
+        raise CcrpError("the Docker SDK is not installed", hint="pip install 'ccrp[docker]'") from None
+    try:
+        client = docker.from_env(timeout=300)
+        client.ping()
+    except DockerException as exc:
+        raise CcrpError(
+            f"cannot reach the Docker engine ({type(exc).__name__})",
+            hint="start it (`systemctl start docker` or `dockerd &`) and check DOCKER_HOST",
+        ) from None
+    return client
+
+
+class DockerProvider:
+    kind = "docker"
+
+    def __init__(self, inv: Inventory) -> None:
+        self.inv = inv
+        self.fleet = inv.fleet
+        self.client = _client()
+        from docker.errors import APIError, NotFound
+
+        self._NotFound, self._APIError = NotFound, APIError
+
+    # -- names ------------------------------------------------------------------------------
+    @property
+    def public_net(self) -> str:
+        return f"{self.fleet}-public"
+
+    @property
+    def common_net(self) -> str:
+        return f"{self.fleet}-common"
+
+    def container_name(self, robot: str, role: str = "clone") -> str:
+        return f"ccrp-{self.fleet}-{'cri-' if role == 'clone' else ''}{robot}"
+
+    def volume_name(self, robot: str) -> str:
+        return f"ccrp-{self.fleet}-cri-{robot}-vpn"
+
+    def _filters(self, role: str, robot: str | None = None) -> dict[str, Any]:
+        labels = [f"{LABEL_FLEET}={self.fleet}", f"{LABEL_ROLE}={role}"]
+        if robot:
+            labels.append(f"{LABEL_ROBOT}={robot}")
+        return {"label": labels}
+
+    # -- networks -----------------------------------------------------------------------------
+    def bootstrap(self) -> None:
+        """Create (or reuse) the fleet's public and common networks."""
+        from docker.types import IPAMConfig, IPAMPool
+
+        provider = self.inv.provider
+        for name, cidr, internal in (
+            (self.public_net, provider.public_cidr, False),  # type: ignore[union-attr]
+            (self.common_net, self.inv.common.cidr, True),
+        ):
+            existing = self.client.networks.list(names=[name])
+            existing = [n for n in existing if n.name == name]
+            if existing:
+                if existing[0].attrs.get("Labels", {}).get(LABEL_FLEET) != self.fleet:
+                    raise CcrpError(f"Docker network {name} exists and is not ccrp's", hint="remove or rename it")
+                continue
+            try:
+                self.client.networks.create(
+                    name, driver="bridge", internal=internal, labels=owner_labels(self.fleet, "network"),
+                    ipam=IPAMConfig(pool_configs=[IPAMPool(subnet=str(cidr))]),
+                )
+            except self._APIError as exc:
+                raise CcrpError(
+                    f"cannot create Docker network {name} ({cidr}): {exc.explanation}",
+                    hint="another network uses that subnet: change provider.public_cidr or common.cidr",
+                ) from None
+
+    # -- clones -------------------------------------------------------------------------------
+    def _container(self, robot: str, role: str = "clone"):
+        found = self.client.containers.list(all=True, filters=self._filters(role, robot))
+        return found[0] if found else None
+
+    def _record(self, c, created: bool = False) -> CloneRecord:
+        nets = c.attrs.get("NetworkSettings", {}).get("Networks", {})
+        return CloneRecord(
+            robot=c.labels.get(LABEL_ROBOT, ""),
+            provider_id=c.id[:12],
+            status=c.status,
+            public_ip=(nets.get(self.public_net) or {}).get("IPAddress") or None,
+            common_ip=(nets.get(self.common_net) or {}).get("IPAddress") or None,
+            created=created,
+        )
+
+    def run_instance(self, spec: CloneSpec) -> CloneRecord:
+        """Create the clone container (or reuse the one carrying its labels) and boot it."""
+        existing = self._container(spec.robot)
+        if existing is not None:
+            if existing.status != "running":
+                existing.start()
+                existing.reload()
+            return self._record(existing)
+        self._ensure_image(spec.image)
+        volume = self.volume_name(spec.robot)
+        labels = owner_labels(self.fleet, "clone", spec.robot)
+        self.client.volumes.create(volume, labels=owner_labels(self.fleet, "secrets", spec.robot))
+        ports = {}
+        if getattr(self.inv.provider, "publish_vpn_ports", False):
+            ports = {f"{self.inv.vpn.port}/{self.inv.vpn.proto}": None}  # a free host port
+        c = self.client.containers.create(
+            spec.image,
+            name=self.container_name(spec.robot),
+            hostname=spec.hostname,
+            labels=labels,
+            detach=True,
+            network=self.public_net,
+            # systemd as PID 1, like a VM: it needs its cgroups, /run on tmpfs and SYS_ADMIN.
+            cap_add=["NET_ADMIN", "SYS_ADMIN"],
+            devices=["/dev/net/tun:/dev/net/tun:rwm"],
+            tmpfs={"/run": "", "/run/lock": "", "/tmp": ""},
+            volumes={"/sys/fs/cgroup": {"bind": "/sys/fs/cgroup", "mode": "ro"}, volume: {"bind": VPN_DIR, "mode": "rw"}},
+            security_opt=["seccomp=unconfined"],
+            stop_signal="SIGRTMIN+3",
+            ports=ports,
+        )
+        try:
+            self.client.networks.get(self.common_net).connect(c, ipv4_address=spec.common_ip)
+            meta = f"instance-id: {spec.instance_id}\nlocal-hostname: {spec.hostname}\n"
+            seed = tar_files(
+                [(f"{SEED_DIR}/meta-data", meta.encode(), 0o600), (f"{SEED_DIR}/user-data", spec.user_data.encode(), 0o600)],
+                make_dirs=True,
+            )
+            c.put_archive("/", seed)
+            c.start()
+            c.reload()
+        except BaseException:
+            # Roll back only what this call created.
+            self._remove(c, volume)
+            raise
+        return self._record(c, created=True)
+
+    def _ensure_image(self, image: str) -> None:
+        try:
+            self.client.images.get(image)
+        except self._NotFound:
+            raise CcrpError(f"snapshot image {image} not found", hint="run `ccrp snapshot build -i INVENTORY`") from None
+
+    def wait_ready(self, robot: str, timeout: float = 300) -> None:
+        """Wait for cloud-init to finish inside the clone; fail with its own error detail."""
+        rc, out = self.exec(robot, ["timeout", str(int(timeout)), "cloud-init", "status", "--wait", "--long"])
+        if rc == 124:
+            raise CcrpError(f"clone cri-{robot}: cloud-init did not finish within {timeout:.0f} s")
+        if rc not in (0, 2):  # 2: finished with recoverable errors (cloud-init >= 23.4)
+            detail = " ".join(line.strip() for line in out.splitlines() if line.strip().startswith(("status", "detail", "(")))
+            raise CcrpError(f"clone cri-{robot}: cloud-init failed: {detail[:300]}",
+                            hint=f"ccrp clone exec --robot {robot} -- cloud-init status --long")
+
+    def query(self) -> dict[str, CloneRecord]:
+        return {
+            r.robot: r for r in (self._record(c) for c in self.client.containers.list(all=True, filters=self._filters("clone")))
+        }
+
+    def _remove(self, container, volume: str | None) -> None:
+        try:
+            container.remove(force=True, v=True)
+        except self._NotFound:
+            pass
+        if volume:
+            try:
+                self.client.volumes.get(volume).remove(force=True)
+            except self._NotFound:
+                pass
+
+    def terminate(self, robot: str) -> bool:
+        c = self._container(robot)
+        if c is not None:
+            self._remove(c, self.volume_name(robot))
+            return True
+        for v in self.client.volumes.list(filters=self._filters("secrets", robot)):
+            v.remove(force=True)
+        return False
+
+    # -- transport ----------------------------------------------------------------------------
+    def _running(self, robot: str, role: str = "clone"):
+        c = self._container(robot, role)
+        if c is None or c.status != "running":
+            what = "clone" if role == "clone" else "simulated robot"
+            raise CcrpError(f"{what} of robot {robot!r} is not running", hint=f"ccrp {'clone create' if role == 'clone' else 'robot sim'} --robot {robot}")
+        return c
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60, role: str = "clone") -> tuple[int, str]:
+        c = self._running(robot, role)
+        result = c.exec_run(["timeout", str(int(timeout)), *argv], demux=False)
+        return result.exit_code, (result.output or b"").decode(errors="replace")
+
+    def push_files(self, robot: str, files: list, restart: list[str] = (), role: str = "clone") -> None:
+        """Copy bundle files to their `dest` with their modes; chgrp where a group is named."""
+        c = self._running(robot, role)
+        by_dir: dict[str, list] = {}
+        for f in files:
+            directory, _, name = f.dest.rpartition("/")
+            by_dir.setdefault(directory, []).append((name, f.content.encode(), f.mode))
+        for directory, entries in by_dir.items():
+            c.put_archive(directory, tar_files(entries))
+        for f in files:
+            if f.group != "root":
+                self._check(c, ["chgrp", f.group, f.dest])
+        for unit in restart:
+            self._check(c, ["systemctl", "restart", unit])
+
+    def _check(self, c, argv: list[str]) -> str:
+        result = c.exec_run(argv)
+        if result.exit_code != 0:
+            raise CcrpError(f"{' '.join(argv)} failed in {c.name}: {result.output.decode(errors='replace').strip()[:200]}")
+        return result.output.decode(errors="replace")
+
+    # -- snapshots ----------------------------------------------------------------------------
+    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
+        c = self._running(robot)
+        # The secrets volume is not part of a commit: the snapshot carries no key.
+        repo, _, tag = name.rpartition(":")
+        image = c.commit(repository=repo, tag=tag, changes=[f"LABEL {k}={v}" for k, v in
+                                                            owner_labels(self.fleet, "snapshot", robot).items()])
+        return self._snapshot_record(image)
+
+    def _snapshot_record(self, image) -> SnapshotRecord:
+        return SnapshotRecord(
+            id=image.id.removeprefix("sha256:")[:12],
+            name=(image.tags or ["<untagged>"])[0],
+            created=image.attrs.get("Created", "")[:19],
+            source=image.labels.get(LABEL_ROBOT) or "build",
+            size_mb=round(image.attrs.get("Size", 0) / 1e6, 1),
+        )
+
+    def list_snapshots(self) -> list[SnapshotRecord]:
+        images = self.client.images.list(filters=self._filters("snapshot"))
+        return sorted((self._snapshot_record(i) for i in images), key=lambda s: s.created)
+
+    def delete_snapshot(self, snapshot_id: str) -> None:
+        try:
+            image = self.client.images.get(snapshot_id)
+        except self._NotFound:
+            raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list") from None
+        if image.labels.get(LABEL_FLEET) != self.fleet:
+            raise CcrpError(f"image {snapshot_id} is not a snapshot of fleet {self.fleet!r}")
+        self.client.images.remove(image.id, force=True)
+
+    # -- whole fleet ----------------------------------------------------------------------------
+    def teardown(self) -> list[str]:
+        """Remove every container, volume and network carrying the fleet's labels."""
+        removed = []
+        for c in self.client.containers.list(all=True, filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):
+            c.remove(force=True, v=True)
+            removed.append(f"container {c.name}")
+        for v in self.client.volumes.list(filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):
+            v.remove(force=True)
+            removed.append(f"volume {v.name}")
+        for n in self.client.networks.list(filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):
+            n.remove()
+            removed.append(f"network {n.name}")
+        return removed
+
+    def leftovers(self) -> list[str]:
+        label = {"label": [f"{LABEL_FLEET}={self.fleet}"]}
+        return (
+            [f"container {c.name}" for c in self.client.containers.list(all=True, filters=label)]
+            + [f"volume {v.name}" for v in self.client.volumes.list(filters=label)]
+            + [f"network {n.name}" for n in self.client.networks.list(filters=label)]
+        )
+
+
+def now_tag() -> str:
+    return dt.datetime.now(dt.timezone.utc).strftime("%Y%m%d%H%M%S")

@@ -1,0 +1,119 @@
+"""Desired fleet (inventory + scale) vs what the provider has: plan, then apply in parallel."""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+from .addressing import allocate
+from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone
+from .errors import CcrpError, InputError
+from .fleet import Fleet
+from .models.state import RobotRecord
+
+MAX_WORKERS = 8
+
+
+def plan(fleet: Fleet, provider) -> list[dict]:
+    """Read-only: what `fleet up` would do for every robot."""
+    state = fleet.store.load_state()
+    actual = provider.query()
+    members = [r.name for r in fleet.members(state)]
+    rows = []
+    for name in members:
+        rec = actual.get(name)
+        if rec is None:
+            action = "create"
+        elif rec.status != "running":
+            action = f"start ({rec.status})"
+        elif state.robots.get(name) and state.robots[name].phase == "ready":
+            action = "keep"
+        else:
+            action = "configure"
+        rows.append({"robot": name, "action": action, "provider_id": rec.provider_id if rec else None})
+    for name, rec in actual.items():
+        if name not in members:
+            rows.append({"robot": name, "action": "delete (not in fleet)", "provider_id": rec.provider_id})
+    return rows
+
+
+def _fan_out(fn, robots: list[str], progress: Progress) -> list[CloneResult]:
+    def run(robot: str) -> CloneResult:
+        t0 = time.monotonic()
+        try:
+            return fn(robot)
+        except CcrpError as exc:
+            progress(f"[{robot}] failed: {exc.one_line()}")
+            return CloneResult(robot, "failed", exc.one_line(), time.monotonic() - t0)
+        except Exception as exc:  # noqa: BLE001 - one robot's surprise must not stop the others
+            progress(f"[{robot}] failed: {type(exc).__name__}: {exc}")
+            return CloneResult(robot, "failed", f"{type(exc).__name__}: {exc}", time.monotonic() - t0)
+
+    if not robots:
+        return []
+    with ThreadPoolExecutor(max_workers=min(MAX_WORKERS, len(robots))) as pool:
+        return list(pool.map(run, robots))
+
+
+def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None) -> list[CloneResult]:
+    """Create or reuse every member's clone; delete clones of robots no longer in the fleet."""
+    state = fleet.load_allocated()
+    writer = StateWriter(fleet, state)
+    provider.bootstrap()
+    members = [r.name for r in fleet.members(state)]
+    targets = [r for r in members if only is None or r in only]
+    results = _fan_out(lambda r: ensure_clone(fleet, provider, writer, r, progress), targets, progress)
+    if only is None:
+        strays = [name for name in provider.query() if name not in members]
+        results += _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), strays, progress)
+    return results
+
+
+def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneResult]:
+    """Grow or shrink the fleet to `size` clones with template robots; inventory robots stay."""
+    inv = fleet.inventory
+    named = len(inv.robots)
+    if size < named:
+        raise InputError(
+            f"fleet {fleet.name!r} names {named} robots in its inventory; cannot scale to {size}",
+            hint="remove robots from the inventory to go below that",
+        )
+    state = fleet.store.load_state()
+    template = [n for n, r in sorted(state.robots.items(), key=lambda kv: kv[1].index) if r.origin == "template"]
+    want = size - named
+    if want > len(template) and inv.template is None:
+        raise InputError(f"fleet {fleet.name!r} has no template for new robots", hint="add a `template:` to the inventory")
+    if inv.template and want > inv.template.max:
+        raise InputError(f"template.max is {inv.template.max}; cannot add {want} template robots")
+    removed = template[want:]  # the newest template robots go first
+    new: list[str] = []
+    k = 1
+    taken = set(state.robots) | {r.name for r in inv.robots}
+    while len(template) + len(new) < want:
+        name = f"{inv.template.prefix}{k}"  # type: ignore[union-attr]
+        if name not in taken:
+            new.append(name)
+        k += 1
+    if new:
+        existing = {n: r.index for n, r in state.robots.items()}
+        slots = allocate(inv, [*existing, *new], existing)
+        for name in new:
+            state.robots[name] = RobotRecord(index=slots[name], origin="template")
+        fleet.store.save_state(state)
+    writer = StateWriter(fleet, state)
+    results = _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), removed, progress)
+    return results + up(fleet, provider, progress)
+
+
+def down(fleet: Fleet, provider, progress: Progress) -> list[str]:
+    """Remove everything ccrp created for the fleet, then verify nothing carrying its labels is left."""
+    removed = provider.teardown()
+    left = provider.leftovers()
+    if left:
+        raise CcrpError(f"fleet down left {len(left)} resources: {', '.join(left[:5])}", hint="run `ccrp fleet down` again")
+    state = fleet.store.load_state()
+    for rec in state.robots.values():
+        rec.phase, rec.provider_id, rec.public_endpoint, rec.addresses = "planned", None, None, {}
+    fleet.store.save_state(state)
+    progress(f"fleet {fleet.name!r} is down: removed {len(removed)} resources, none left")
+    return removed
