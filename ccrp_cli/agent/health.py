@@ -10,24 +10,26 @@ MGMT = "/etc/openvpn/server/ccrp/mgmt.sock"
 MASTER = "http://127.0.0.1:11311"
 
 
-def mgmt(command):
+def mgmt(command, until):
+    """Send one command to OpenVPN's management socket; read until a line starts with `until`."""
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     s.settimeout(3)
     s.connect(MGMT)
+    s.sendall(command.encode() + b"\n")
     data = b""
-    s.sendall(command.encode() + b"\nquit\n")
-    while True:
+    while not any(line.startswith(until) for line in data.decode(errors="replace").splitlines()):
         chunk = s.recv(65536)
         if not chunk:
             break
         data += chunk
+    s.sendall(b"quit\n")
     s.close()
     return data.decode(errors="replace")
 
 
 def vpn():
     try:
-        text = mgmt("status 2")
+        text = mgmt("status 2", ("END",))
     except OSError as exc:
         return {"up": False, "error": str(exc), "clients": []}
     clients = []
@@ -57,7 +59,8 @@ def master():
 
 def main():
     if len(sys.argv) == 3 and sys.argv[1] == "kill":
-        print(json.dumps({"kill": mgmt("kill " + sys.argv[2]).strip().splitlines()}))
+        reply = mgmt("kill " + sys.argv[2], ("SUCCESS", "ERROR"))
+        print(json.dumps({"kill": [line for line in reply.splitlines() if line.startswith(("SUCCESS", "ERROR"))]}))
         return
     print(json.dumps({"vpn": vpn(), "master": master()}))
 

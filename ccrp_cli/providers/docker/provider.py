@@ -5,6 +5,7 @@ Docker API into a per-clone volume, never into user-data, labels, environment or
 from __future__ import annotations
 
 import datetime as dt
+import time
 from typing import Any
 
 from ...errors import CcrpError
@@ -208,6 +209,17 @@ class DockerProvider:
         c = self._running(robot, role)
         result = c.exec_run(["timeout", str(int(timeout)), *argv], demux=False)
         return result.exit_code, (result.output or b"").decode(errors="replace")
+
+    def wait_systemd(self, robot: str, role: str = "clone", timeout: float = 60) -> None:
+        """Until systemd inside the container has finished booting."""
+        deadline = time.monotonic() + timeout
+        while True:
+            rc, out = self.exec(robot, ["systemctl", "is-system-running", "--wait"], timeout=timeout, role=role)
+            if out.strip() in ("running", "degraded"):
+                return
+            if time.monotonic() > deadline:
+                raise CcrpError(f"systemd did not come up in {self.container_name(robot, role)}: {out.strip()[:200]}")
+            time.sleep(0.2)
 
     def push_files(self, robot: str, files: list, restart: list[str] = (), role: str = "clone") -> None:
         """Copy bundle files to their `dest` with their modes; chgrp where a group is named."""

@@ -35,8 +35,7 @@ def start(provider: DockerProvider, robot: str, image: str, bundle: list, demo_n
     ]
     c.put_archive("/", tar_files(files, make_dirs=True))
     c.start()
-    # systemd must be up before install.sh enables the units.
-    rc, out = provider.exec(robot, ["systemctl", "is-system-running", "--wait"], timeout=60, role="robot-sim")
+    provider.wait_systemd(robot, role="robot-sim")  # install.sh enables units
     rc, out = provider.exec(robot, [f"/{BUNDLE_DIR}/install.sh"], timeout=60, role="robot-sim")
     if rc != 0:
         raise CcrpError(f"install.sh failed on simulated robot {robot}: {out.strip()[-300:]}")
