@@ -62,6 +62,13 @@ def health(provider: Provider, robot: str) -> dict:
         return {"vpn": {"up": False, "clients": []}, "master": {"reachable": False, "nodes": {}}, "error": out[-200:]}
 
 
+def kill_session(provider: Provider, robot: str) -> None:
+    """End the robot's live VPN session (management interface `kill <cn>`)."""
+    rc, out = provider.exec(robot, ["python3", "-c", HEALTH_SCRIPT(), "kill", robot], timeout=20)
+    if rc != 0:
+        raise CcrpError(f"cannot end the VPN session on {clone_host(robot)}: {out.strip()[-200:]}")
+
+
 def wait_serving(provider: Provider, robot: str, timeout: float = 60) -> dict:
     """Until the VPN server runs and the ROS master answers inside the clone."""
     deadline = time.monotonic() + timeout

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
+
+from .errors import CcrpError
 
 from .fleet import Fleet
 from .pki.store import CRL_WARN_DAYS
@@ -25,11 +27,44 @@ def issue(fleet: Fleet, robot: str, renew: bool = False) -> list[dict[str, Any]]
     return [_record(fleet, rec) | {"issued": new} for rec, new in results]
 
 
-def revoke(fleet: Fleet, robot: str) -> list[dict[str, Any]]:
+def revoke(fleet: Fleet, robot: str, progress: Callable[[str], None] = lambda m: None) -> list[dict[str, Any]]:
+    """Revoke the robot's certificates, push the new CRL to every live clone, end its session."""
     with fleet.store.lock():
-        fleet.robot(fleet.store.load_state(), robot)
+        state = fleet.store.load_state()
+        fleet.robot(state, robot)
         revoked = fleet.pki.revoke_robot(robot, fleet.inventory.vpn.crl_days)
+        live = [name for name, rec in state.robots.items() if rec.phase == "ready"]
+        if live:
+            _push_crl(fleet, live, robot, progress)
     return [_record(fleet, rec) for rec in revoked]
+
+
+def _push_crl(fleet: Fleet, clones: list[str], robot: str, progress: Callable[[str], None]) -> None:
+    from .clones import kill_session
+    from .providers import get_provider
+    from .render.bundles import BundleFile
+    from .render.view import VPN_DIR
+
+    provider = get_provider(fleet.inventory)
+    crl = BundleFile("crl.pem", fleet.pki.crl_path.read_text(), 0o644, f"{VPN_DIR}/crl.pem")
+    failed = []
+    for name in clones:
+        try:
+            provider.push_files(name, [crl])  # OpenVPN re-reads crl-verify files when they change
+        except CcrpError as exc:
+            failed.append(f"{name}: {exc.message}")
+    if robot in clones:
+        try:
+            kill_session(provider, robot)
+            progress(f"ended the live VPN session of robot {robot!r}")
+        except CcrpError as exc:
+            failed.append(f"{robot}: {exc.message}")
+    if failed:
+        raise CcrpError(
+            f"revoked, but the new CRL did not reach every clone ({'; '.join(failed)})",
+            hint="run `ccrp fleet up -i INVENTORY` to push it again",
+        )
+    progress(f"pushed the new CRL to {len(clones)} clone(s)")
 
 
 def list_certs(fleet: Fleet) -> list[dict[str, Any]]:

@@ -51,7 +51,7 @@ def issue_cert(
 @app.command()
 def revoke(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Revoke the robot's client certificate(s) and re-issue the CRL."""
-    records = vpn.revoke(Fleet.open(inventory), robot)
+    records = vpn.revoke(Fleet.open(inventory), robot, output.info)
     if not as_json:
         output.info(f"revoked {len(records)} certificate(s) of robot {robot!r}; CRL re-issued")
     output.emit(records, as_json, CERT_COLUMNS, _rows(records))
