@@ -8,16 +8,15 @@ from __future__ import annotations
 
 import ipaddress
 
-from pydantic import BaseModel, ConfigDict
+from dataclasses import dataclass
 
 from .errors import InputError
 from .models.inventory import Inventory
 from .models.names import clone_host
 
 
-class CloneAddresses(BaseModel):
-    model_config = ConfigDict(frozen=True)
-
+@dataclass(frozen=True)
+class CloneAddresses:
     robot: str
     index: int
     clone_host: str

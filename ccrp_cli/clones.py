@@ -89,7 +89,11 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     t0 = time.monotonic()
     state = writer.state
     view = clone_view(fleet, state, robot)
-    fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
+    # Clones are ensured in parallel threads, and issue_robot is a read-modify-write of the PKI
+    # index (whose temp file is named per process): serialise it, or one thread's certificates
+    # vanish from the index (or its temp file is renamed away under it).
+    with writer._lock:
+        fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
     user_data = cloudinit.user_data(view, default_user=False)
     fit_user_data(provider.kind, user_data)
     image = snapshot_image(state)

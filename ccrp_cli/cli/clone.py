@@ -6,18 +6,10 @@ from typing import Annotated
 
 import typer
 
-from .. import clones
-from ..fleet import Fleet
 from . import options, output
 
-app = typer.Typer(help="One robot's clone: create, delete, list, exec.", no_args_is_help=True)
+app = typer.Typer(help="One robot's clone: create, delete, list, exec.", no_args_is_help=True, rich_markup_mode=None)
 
-
-def _open(inventory):
-    from ..providers import get_provider
-
-    fleet = Fleet.open(inventory)
-    return fleet, get_provider(fleet.inventory)
 
 
 @app.command()
@@ -25,7 +17,7 @@ def create(inventory: options.Inventory, robot: options.Robot, as_json: options.
     """Create the robot's clone from the fleet's snapshot (idempotent: reuses an existing one)."""
     from .. import reconcile
 
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
         fleet.robot(fleet.store.load_state(), robot)
         items = reconcile.up(fleet, provider, output.info, only=[robot])
@@ -35,10 +27,12 @@ def create(inventory: options.Inventory, robot: options.Robot, as_json: options.
 @app.command()
 def delete(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Delete the robot's clone and its secrets volume (the robot keeps its certificates and addresses)."""
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
         state = fleet.store.load_state()
         existed = robot in provider.query()
+        from .. import clones
+
         item = clones.delete_clone(fleet, provider, clones.StateWriter(fleet, state), robot, forget=False)
         if not existed:
             item.action = "absent"
@@ -48,7 +42,7 @@ def delete(inventory: options.Inventory, robot: options.Robot, as_json: options.
 @app.command("list")
 def list_(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """List the fleet's clones as the provider sees them (by ownership labels)."""
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     records = [r.model_dump() for r in provider.query().values()]
     output.emit(records, as_json, ["ROBOT", "ID", "STATUS", "PUBLIC IP", "COMMON IP"],
                 [(r["robot"], r["provider_id"], r["status"], r["public_ip"], r["common_ip"]) for r in records])
@@ -62,7 +56,7 @@ def exec_(
     timeout: Annotated[float, typer.Option(help="Seconds before the command is killed.")] = 600,
 ) -> None:
     """Run a command inside the robot's clone: ccrp clone exec -i INV --robot nao1 -- rostopic list"""
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     rc, out = provider.exec(robot, command, timeout=timeout)
     typer.echo(out, nl=False)
     raise typer.Exit(rc)

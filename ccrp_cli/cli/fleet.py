@@ -6,16 +6,15 @@ from typing import Annotated
 
 import typer
 
-from ..fleet import Fleet
 from . import options, output
 
-app = typer.Typer(help="Whole-fleet operations.", no_args_is_help=True)
+app = typer.Typer(help="Whole-fleet operations.", no_args_is_help=True, rich_markup_mode=None)
 
 
 @app.command()
 def validate(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Check an inventory and show the fleet's address plan. Changes nothing."""
-    fleet = Fleet.open(inventory)
+    fleet = options.open_fleet(inventory)
     inv = fleet.inventory
     plan = fleet.plan(fleet.store.load_state())
     robots = {r.name: r for r in fleet.members(fleet.store.load_state())}
@@ -51,19 +50,13 @@ def validate(inventory: options.Inventory, as_json: options.Json = False) -> Non
     )
 
 
-def _open(inventory):
-    from ..providers import get_provider
-
-    fleet = Fleet.open(inventory)
-    return fleet, get_provider(fleet.inventory)
-
 
 @app.command()
 def up(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Create or reuse every robot's clone, in parallel (idempotent; safe to re-run after a crash)."""
     from .. import reconcile
 
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
         items = reconcile.up(fleet, provider, output.info)
     raise typer.Exit(output.results(items, as_json))
@@ -78,7 +71,7 @@ def scale(
     """Grow or shrink the fleet to SIZE clones with template robots (inventory robots always stay)."""
     from .. import reconcile
 
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
         items = reconcile.scale(fleet, provider, size, output.info)
     raise typer.Exit(output.results(items, as_json))
@@ -89,7 +82,7 @@ def down(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Remove every container, network and volume ccrp created for the fleet (PKI and state stay)."""
     from .. import reconcile
 
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
         removed = reconcile.down(fleet, provider, output.info)
     if as_json:
@@ -101,6 +94,6 @@ def plan(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Show what `fleet up` would change. Read-only."""
     from .. import reconcile
 
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     rows = reconcile.plan(fleet, provider)
     output.emit(rows, as_json, ["ROBOT", "ACTION", "ID"], [(r["robot"], r["action"], r["provider_id"]) for r in rows])

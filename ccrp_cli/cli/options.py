@@ -14,3 +14,18 @@ Inventory = Annotated[
 Robot = Annotated[str, typer.Option("--robot", "-r", help="Robot name (its clone is cri-<robot>).")]
 Json = Annotated[bool, typer.Option("--json", help="JSON on stdout (logs stay on stderr).")]
 OutDir = Annotated[Path, typer.Option("--out", "-o", help="Directory to write (created 0700).")]
+
+
+# The core (pydantic models, cryptography, yaml) is imported only when a command runs, so
+# `ccrp --help` and completion stay fast.
+def open_fleet(inventory: Path):
+    from ..fleet import Fleet
+
+    return Fleet.open(inventory)
+
+
+def open_provider(inventory: Path):
+    from ..providers import get_provider
+
+    fleet = open_fleet(inventory)
+    return fleet, get_provider(fleet.inventory)

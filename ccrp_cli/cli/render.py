@@ -6,10 +6,9 @@ from typing import Annotated
 
 import typer
 
-from ..fleet import Fleet, clone_view
 from . import options, output
 
-app = typer.Typer(help="Render clone and robot files without provisioning.", no_args_is_help=True)
+app = typer.Typer(help="Render clone and robot files without provisioning.", no_args_is_help=True, rich_markup_mode=None)
 
 
 @app.command("cloud-init")
@@ -19,10 +18,11 @@ def cloud_init(
     bare: Annotated[bool, typer.Option(help="Install packages at boot (bare base image, no snapshot).")] = False,
 ) -> None:
     """Print the clone's cloud-init user-data (no private key; checked against the provider's limit)."""
+    from ..fleet import clone_view
     from ..render import cloudinit
     from ..render.limits import fit_user_data
 
-    fleet = Fleet.open(inventory)
+    fleet = options.open_fleet(inventory)
     view = clone_view(fleet, fleet.store.load_state(), robot)
     text = cloudinit.user_data(view, install_packages=bare)
     fit_user_data(fleet.inventory.provider.kind, text)
@@ -32,9 +32,10 @@ def cloud_init(
 @app.command("clone-secrets")
 def clone_secrets(inventory: options.Inventory, robot: options.Robot, out: options.OutDir) -> None:
     """Write the secrets pushed to the clone after boot (server key+cert, CA, CRL, tls-crypt, password hash)."""
+    from ..fleet import clone_view
     from ..render import bundles
 
-    fleet = Fleet.open(inventory)
+    fleet = options.open_fleet(inventory)
     state = fleet.store.load_state()
     view = clone_view(fleet, state, robot)
     files = bundles.clone_secrets(view, fleet.pki.credentials(robot))
@@ -54,5 +55,5 @@ def edge(
     """Write the robot's edge bundle: .ovpn profile, credentials, ROS env, hosts, chrony, units, install.sh."""
     from ..robots import write_edge
 
-    write_edge(Fleet.open(inventory), robot, out, remote)
+    write_edge(options.open_fleet(inventory), robot, out, remote)
     output.info(f"wrote the edge bundle of robot {robot!r} to {out}; install it with `sudo {out}/install.sh`")

@@ -7,11 +7,9 @@ from typing import Annotated
 
 import typer
 
-from ..errors import InputError
-from ..fleet import Fleet
 from . import options, output
 
-app = typer.Typer(help="The robot side: edge bundle and simulated robots.", no_args_is_help=True)
+app = typer.Typer(help="The robot side: edge bundle and simulated robots.", no_args_is_help=True, rich_markup_mode=None)
 
 
 @app.command()
@@ -24,7 +22,7 @@ def bundle(
     """Write the robot's ready-to-install bundle (same content as `ccrp render edge`)."""
     from ..robots import write_edge
 
-    fleet = Fleet.open(inventory)
+    fleet = options.open_fleet(inventory)
     path = write_edge(fleet, name, out or fleet.store.root / "edge" / name, remote)
     output.info(f"bundle for robot {name!r} in {path}; on the robot: `sudo ./install.sh`")
     typer.echo(str(path))
@@ -42,7 +40,9 @@ def sim(
     from ..render.templates import static
     from ..robots import edge_files
 
-    fleet = Fleet.open(inventory)
+    fleet = options.open_fleet(inventory)
+    from ..errors import InputError
+
     if fleet.inventory.provider.kind != "docker":
         raise InputError("simulated robots run on the docker provider only")
     provider = get_provider(fleet.inventory)

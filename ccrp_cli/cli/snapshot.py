@@ -6,19 +6,11 @@ from typing import Annotated
 
 import typer
 
-from .. import snapshots
-from ..fleet import Fleet
 from . import options, output
 
-app = typer.Typer(help="Golden images: build, capture, list, delete.", no_args_is_help=True)
+app = typer.Typer(help="Golden images: build, capture, list, delete.", no_args_is_help=True, rich_markup_mode=None)
 COLUMNS = ["ID", "NAME", "CREATED", "SOURCE", "SIZE MB"]
 
-
-def _open(inventory):
-    from ..providers import get_provider
-
-    fleet = Fleet.open(inventory)
-    return fleet, get_provider(fleet.inventory)
 
 
 def _show(records, as_json: bool) -> None:
@@ -29,8 +21,10 @@ def _show(records, as_json: bool) -> None:
 @app.command()
 def build(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Build the golden clone image from the recipe in snapshots/ and record it for new clones."""
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
+        from .. import snapshots
+
         record = snapshots.build(fleet, provider, output.info)
     output.info(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
     _show([record], as_json)
@@ -44,8 +38,10 @@ def create(
     as_json: options.Json = False,
 ) -> None:
     """Capture a configured clone as a snapshot (its secrets volume is not included)."""
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
+        from .. import snapshots
+
         record = snapshots.create(fleet, provider, robot, use)
     _show([record], as_json)
 
@@ -53,7 +49,7 @@ def create(
 @app.command("list")
 def list_(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """List the fleet's snapshots."""
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     _show(provider.list_snapshots(), as_json)
 
 
@@ -64,7 +60,9 @@ def delete(
     force: Annotated[bool, typer.Option(help="Delete even the snapshot new clones use.")] = False,
 ) -> None:
     """Delete a snapshot."""
-    fleet, provider = _open(inventory)
+    fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
+        from .. import snapshots
+
         snapshots.delete(fleet, provider, snapshot, force)
     output.info(f"deleted snapshot {snapshot}")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from ..fleet import Fleet
 from . import options, output
 
 
@@ -11,7 +10,7 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
     from ..providers import get_provider
     from ..status import fleet_status
 
-    fleet = Fleet.open(inventory)
+    fleet = options.open_fleet(inventory)
     rows = fleet_status(fleet, get_provider(fleet.inventory))
     yes = lambda b: "yes" if b else "no"  # noqa: E731
     output.emit(

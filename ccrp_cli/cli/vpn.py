@@ -6,11 +6,15 @@ from typing import Annotated
 
 import typer
 
-from .. import vpn
-from ..fleet import Fleet
 from . import options, output
 
-app = typer.Typer(help="Fleet PKI: CA, robot and clone certificates, revocation.", no_args_is_help=True)
+app = typer.Typer(help="Fleet PKI: CA, robot and clone certificates, revocation.", no_args_is_help=True, rich_markup_mode=None)
+
+def _ops():
+    from .. import vpn
+
+    return vpn
+
 
 CERT_COLUMNS = ["SERIAL", "CN", "PROFILE", "NOT AFTER", "REVOKED", "PATH"]
 
@@ -25,7 +29,7 @@ def _rows(records: list[dict]) -> list[tuple]:
 @app.command()
 def init(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Create the fleet's CA and CRL (idempotent)."""
-    result = vpn.init(Fleet.open(inventory))
+    result = _ops().init(options.open_fleet(inventory))
     if as_json:
         output.emit_json(result)
     else:
@@ -41,7 +45,7 @@ def issue_cert(
     as_json: options.Json = False,
 ) -> None:
     """Issue the robot's client certificate and its clone's server certificate."""
-    records = vpn.issue(Fleet.open(inventory), robot, renew)
+    records = _ops().issue(options.open_fleet(inventory), robot, renew)
     if not as_json:
         for r in records:
             output.info(f"{'issued' if r['issued'] else 'kept valid'} {r['profile']} certificate {r['cn']} ({r['path']})")
@@ -51,7 +55,7 @@ def issue_cert(
 @app.command()
 def revoke(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Revoke the robot's client certificate(s) and re-issue the CRL."""
-    records = vpn.revoke(Fleet.open(inventory), robot, output.info)
+    records = _ops().revoke(options.open_fleet(inventory), robot, output.info)
     if not as_json:
         output.info(f"revoked {len(records)} certificate(s) of robot {robot!r}; CRL re-issued")
     output.emit(records, as_json, CERT_COLUMNS, _rows(records))
@@ -60,9 +64,9 @@ def revoke(inventory: options.Inventory, robot: options.Robot, as_json: options.
 @app.command("list")
 def list_(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """List the fleet's certificates: serial, CN, not-after, revoked, file path."""
-    fleet = Fleet.open(inventory)
-    records = vpn.list_certs(fleet)
-    warning = vpn.crl_warning(fleet)
+    fleet = options.open_fleet(inventory)
+    records = _ops().list_certs(fleet)
+    warning = _ops().crl_warning(fleet)
     if warning:
         output.warn(warning)
     output.emit(records, as_json, CERT_COLUMNS, _rows(records))

@@ -63,10 +63,10 @@ def write_bundle(out: Path, files: list[BundleFile], meta: dict[str, str]) -> Pa
     ensure_dir(out)
     entries = []
     for f in files:
-        atomic_write(out / f.name, f.content, mode=f.mode)
+        atomic_write(out / f.name, f.content, mode=f.mode, durable=False)
         entry = {"name": f.name, "mode": f"{f.mode:04o}", "sha256": hashlib.sha256(f.content.encode()).hexdigest()}
         if f.dest:
             entry.update(dest=f.dest, group=f.group)
         entries.append(entry)
-    atomic_write(out / "manifest.json", json.dumps({**meta, "files": entries}, indent=2) + "\n", mode=0o644)
+    atomic_write(out / "manifest.json", json.dumps({**meta, "files": entries}, indent=2) + "\n", mode=0o644, durable=False)
     return out
