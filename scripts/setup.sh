@@ -10,6 +10,8 @@ APT_PACKAGES=(
   iproute2 iptables  # network namespaces and firewall rules in end-to-end tests
   openssl            # certificate checks
   python3-venv
+  docker.io          # the local default backend (Docker Hub is not needed)
+  mmdebstrap         # builds the base image from Debian packages
 )
 
 missing=()

@@ -19,10 +19,20 @@ def _show(records, as_json: bool) -> None:
 
 
 @app.command()
-def build(inventory: options.Inventory, as_json: options.Json = False) -> None:
+def build(
+    inventory: options.Inventory,
+    if_missing: Annotated[bool, typer.Option("--if-missing", help="Keep the recorded snapshot if its image exists.")] = False,
+    as_json: options.Json = False,
+) -> None:
     """Build the golden clone image from the recipe in snapshots/ and record it for new clones."""
     fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
+        current = (fleet.store.load_state().snapshot or {}).get("image")
+        existing = {s.name: s for s in provider.list_snapshots()}
+        if if_missing and current in existing:
+            output.info(f"snapshot {current} exists; new clones start from it")
+            _show([existing[current]], as_json)
+            return
         from .. import snapshots
 
         record = snapshots.build(fleet, provider, output.info)
