@@ -6,6 +6,7 @@ StateWriter, which serialises them and saves atomically after each change.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import threading
 import time
@@ -62,6 +63,16 @@ def health(provider: Provider, robot: str) -> dict:
         return {"vpn": {"up": False, "clients": []}, "master": {"reachable": False, "nodes": {}}, "error": out[-200:]}
 
 
+def _secrets_current(provider: Provider, robot: str, files: list) -> bool:
+    """True when the clone already holds exactly these secrets: re-running `fleet up` then
+    leaves OpenVPN (and the robot's live session) alone."""
+    rc, out = provider.exec(robot, ["sha256sum", *(f.dest for f in files)], timeout=20)
+    if rc != 0:
+        return False
+    have = {line.split()[1]: line.split()[0] for line in out.splitlines() if len(line.split()) == 2}
+    return all(have.get(f.dest) == hashlib.sha256(f.content.encode()).hexdigest() for f in files)
+
+
 def kill_session(provider: Provider, robot: str) -> None:
     """End the robot's live VPN session (management interface `kill <cn>`)."""
     rc, out = provider.exec(robot, ["python3", "-c", HEALTH_SCRIPT(), "kill", robot], timeout=20)
@@ -107,8 +118,9 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     record = provider.run_instance(spec)
     try:
         provider.wait_ready(robot)
-        provider.push_files(robot, bundles.clone_secrets(view, fleet.pki.credentials(robot)),
-                            restart=["ccrp-openvpn.service"])
+        secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
+        if not _secrets_current(provider, robot, secrets):
+            provider.push_files(robot, secrets, restart=["ccrp-openvpn.service"])
         wait_serving(provider, robot)
     except BaseException:
         writer.update(robot, phase="failed", provider_id=record.provider_id)

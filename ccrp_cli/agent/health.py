@@ -36,7 +36,8 @@ def vpn():
     for line in text.splitlines():
         if line.startswith("CLIENT_LIST,"):
             f = line.split(",")
-            clients.append({"cn": f[1], "real_address": f[2], "vpn_ip": f[3], "since": f[7] if len(f) > 7 else ""})
+            clients.append({"cn": f[1], "real_address": f[2], "vpn_ip": f[3], "since": f[7] if len(f) > 7 else "",
+                            "client_id": f[10] if len(f) > 10 else ""})
     return {"up": True, "clients": clients}
 
 
@@ -59,8 +60,17 @@ def master():
 
 def main():
     if len(sys.argv) == 3 and sys.argv[1] == "kill":
-        reply = mgmt("kill " + sys.argv[2], ("SUCCESS", "ERROR"))
-        print(json.dumps({"kill": [line for line in reply.splitlines() if line.startswith(("SUCCESS", "ERROR"))]}))
+        # `client-kill <id>` pushes a connection reset to the robot before dropping its instance,
+        # so the robot reconnects at once and meets the new CRL. A bare `kill <cn>` drops the
+        # instance silently: the robot would go on sending into the void until its ping-restart
+        # (60 s) and only then find out. `kill <cn>` stays the fallback (no client id known).
+        ids = [c["client_id"] for c in vpn()["clients"] if c["cn"] == sys.argv[2] and c["client_id"]]
+        commands = [f"client-kill {cid}" for cid in ids] or ["kill " + sys.argv[2]]
+        lines = []
+        for command in commands:
+            reply = mgmt(command, ("SUCCESS", "ERROR"))
+            lines += [line for line in reply.splitlines() if line.startswith(("SUCCESS", "ERROR"))]
+        print(json.dumps({"kill": lines}))
         return
     print(json.dumps({"vpn": vpn(), "master": master()}))
 

@@ -47,7 +47,9 @@ def main(
 def run() -> None:
     """Console entry point: every failure a user can cause ends in one line on stderr."""
     try:
-        app(standalone_mode=False)
+        # Without standalone mode, `raise typer.Exit(n)` in a command comes back as a return value.
+        code = app(standalone_mode=False)
+        sys.exit(code if isinstance(code, int) else 0)
     except CcrpError as exc:
         print(f"ccrp: error: {exc.one_line()}", file=sys.stderr)
         sys.exit(exc.code)

@@ -112,6 +112,12 @@ class DockerProvider:
     def run_instance(self, spec: CloneSpec) -> CloneRecord:
         """Create the clone container (or reuse the one carrying its labels) and boot it."""
         existing = self._container(spec.robot)
+        if existing is not None and existing.attrs.get("State", {}).get("StartedAt", "").startswith("0001-"):
+            # Never started: an interrupted attempt created it and died before it joined the common
+            # network and got its NoCloud seed (both happen before the first start). Booting it now
+            # would run cloud-init without user-data, so replace it; nothing ever ran in it.
+            self._remove(existing, None)
+            existing = None
         if existing is not None:
             if existing.status != "running":
                 existing.start()

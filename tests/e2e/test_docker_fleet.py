@@ -1,0 +1,731 @@
+"""End to end on Docker, for real: a whole fleet brought up, used, attacked and torn down by the CLI.
+
+The module works on a fleet of its own (`e2e<random>`, with its own subnets and CCRP_HOME), so it
+never meets the `lab` fleet or another run of itself. One snapshot is built for the module; the
+fleet it brings up is shared by the tests, which run in file order:
+
+  1. fleet up creates the three clones; a second fleet up reuses all of them
+  2. a simulated robot's node registers on its clone's master, and a subscriber there hears it
+     (and `clone exec` hands back the command's exit code)
+  3. from the public network only the VPN port answers; ROS is reachable through the VPN
+  4. a wrong password, another robot's bundle and a leaked tls-crypt key are all refused
+  5. no private key in any image layer, label, environment variable or container log
+  6. `vpn revoke` ends the robot's live session and it cannot come back
+  7. fleet down leaves nothing labelled with the fleet
+  8. a `fleet up` killed midway is finished by the next one
+  9. a clone container an interrupted run created but never started is replaced
+
+A finalizer always runs `ccrp fleet down` and then removes, through the Docker API, every
+container, network, volume and image labelled with the module's fleet, even when tests fail.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+import re
+import secrets
+import shutil
+import signal
+import string
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import LAB, ROOT, run_ccrp
+
+
+def _docker_info() -> str | None:
+    """None when the engine answers `docker info`, else why not."""
+    if shutil.which("docker") is None:
+        return "the docker CLI is not installed"
+    try:
+        proc = subprocess.run(["docker", "info", "--format", "{{.ServerVersion}}"], capture_output=True,
+                              text=True, timeout=20)
+    except subprocess.TimeoutExpired:
+        return "`docker info` did not answer within 20 s"
+    if proc.returncode != 0:
+        last = (proc.stderr.strip().splitlines() or ["?"])[-1]
+        return f"`docker info` failed: {last}"
+    return None
+
+
+_NO_DOCKER = _docker_info()
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
+]
+
+docker = pytest.importorskip("docker", reason="the Docker SDK (`pip install docker`) is not installed")
+
+from ccrp_cli.providers.docker.archive import tar_files  # noqa: E402
+
+ROBOTS = ("nao1", "nao2", "turtlebot1")
+FLEET_LABEL = "ccrp-fleet"
+COMPLETED = "Initialization Sequence Completed"
+CONNECT_TIMEOUT = 30.0   # a simulated robot's node registered on its clone's master
+REVOKE_TIMEOUT = 60.0    # a revoked robot's live session ended
+# Markers of private key material in text; a hit must also be a whole PEM block with a body
+# (libraries and docs carry the bare header strings).
+PEM_BLOCK = re.compile(
+    rb"-----BEGIN ((?:[A-Z0-9]+ )*PRIVATE KEY|OpenVPN Static key V1)-----[\r\n]+"
+    rb"(?:[A-Za-z0-9+/=:,\- ]*[\r\n]+){2,}-----END \1-----"
+)
+MARKERS = (b"PRIVATE KEY", b"OpenVPN Static key")
+
+
+# -- the module's fleet ------------------------------------------------------------------------
+
+
+@dataclass
+class E2EFleet:
+    name: str
+    inventory: Path
+    home: Path
+    client: object  # docker.DockerClient
+    tmp: Path
+    log: list[str] = field(default_factory=list)
+
+    # ccrp through its CLI, in a subprocess: real exit codes, real stderr.
+    def run(self, *args: str, check: bool = False) -> subprocess.CompletedProcess:
+        t0 = time.monotonic()
+        proc = run_ccrp(*args, home=self.home)
+        shown = " ".join(a if len(a) < 60 and "\n" not in a else "<...>" for a in args)
+        self.log.append(f"ccrp {shown} -> {proc.returncode} in {time.monotonic() - t0:.1f}s")
+        if check and proc.returncode != 0:
+            pytest.fail(f"`ccrp {' '.join(args)}` exited {proc.returncode}:\n{proc.stderr[-3000:]}")
+        return proc
+
+    def inv(self, *args: str, check: bool = False) -> subprocess.CompletedProcess:
+        """ccrp <args> -i <the module's inventory> (before a `--`, when there is one)"""
+        cut = args.index("--") if "--" in args else len(args)
+        return self.run(*args[:cut], "-i", str(self.inventory), *args[cut:], check=check)
+
+    def json(self, *args: str) -> object:
+        proc = self.inv(*args, "--json", check=True)
+        try:
+            return json.loads(proc.stdout)
+        except ValueError:
+            pytest.fail(f"`ccrp {' '.join(args)} --json` printed no JSON on stdout:\n{proc.stdout[:2000]}")
+
+    def env(self) -> dict[str, str]:
+        env = {**os.environ, "CCRP_HOME": str(self.home)}
+        env.pop("CCRP_INVENTORY", None)
+        return env
+
+    # -- what Docker has, by the fleet's labels ----------------------------------------------
+    def labelled(self, **labels: str) -> dict[str, str]:
+        return {"label": [f"{FLEET_LABEL}={self.name}", *(f"ccrp-{k}={v}" for k, v in labels.items())]}
+
+    def containers(self, **labels: str) -> list:
+        return self.client.containers.list(all=True, filters=self.labelled(**labels))
+
+    def container(self, role: str, robot: str):
+        found = self.containers(role=role, robot=robot)
+        assert len(found) == 1, f"expected one {role} container of {robot}, found {[c.name for c in found]}"
+        return found[0]
+
+    def status(self) -> dict[str, dict]:
+        return {row["robot"]: row for row in self.json("status")}
+
+    def snapshot_image(self) -> str:
+        state = json.loads((self.home / self.name / "state.json").read_text())
+        return state["snapshot"]["image"]
+
+    def plan(self) -> dict[str, dict]:
+        return {r["name"]: r for r in self.json("fleet", "validate")["robots"]}
+
+    def secret_needles(self) -> dict[bytes, str]:
+        """Fragments of every secret in the fleet's PKI store: key bodies, tls-crypt keys, passwords."""
+        pki = self.home / self.name / "pki"
+        needles: dict[bytes, str] = {}
+        for path in sorted((pki / "private").glob("*.key")) + sorted((pki / "tls-crypt").glob("*.key")):
+            body = [ln.strip() for ln in path.read_text().splitlines()
+                    if ln.strip() and not ln.startswith(("-----", "#"))]
+            for line in body[:2]:  # random from the first line on (a P-256 key has 16 random chars there)
+                needles[line.encode()] = f"pki/{path.parent.name}/{path.name}"
+        for path in sorted((pki / "passwords").glob("*.txt")):
+            needles[path.read_text().strip().encode()] = f"pki/passwords/{path.name}"
+        assert needles, f"no secrets found under {pki}"
+        return needles
+
+
+def _free_subnets(client) -> tuple[str, str, str]:
+    """public, common and VPN pool subnets that no Docker network on this host overlaps."""
+    used = []
+    for net in client.networks.list():
+        for cfg in (net.attrs.get("IPAM") or {}).get("Config") or []:
+            if cfg.get("Subnet") and ":" not in cfg["Subnet"]:
+                used.append(ipaddress.ip_network(cfg["Subnet"], strict=False))
+    free = lambda n: not any(n.overlaps(u) for u in used)  # noqa: E731
+    pool = next((p for p in (ipaddress.ip_network(f"10.{k}.0.0/16") for k in range(82, 90)) if free(p)), None)
+    rng = secrets.SystemRandom()
+    for x in rng.sample(range(1, 255), 254):
+        public, common = ipaddress.ip_network(f"172.31.{x}.0/24"), ipaddress.ip_network(f"10.91.{x}.0/24")
+        if free(public) and free(common) and pool is not None:
+            return str(public), str(common), str(pool)
+    pytest.skip("no free 172.31.x.0/24 + 10.91.x.0/24 + 10.8x.0.0/16 subnets left for the e2e fleet")
+
+
+def _sweep(client, fleet: str) -> list[str]:
+    """Remove everything labelled with `fleet` (and containers of its images). Returns what is left."""
+    by_label = {"label": [f"{FLEET_LABEL}={fleet}"]}
+    problems = []
+
+    def attempt(what: str, fn: Callable[[], object]) -> None:
+        try:
+            fn()
+        except docker.errors.NotFound:
+            pass
+        except Exception as exc:  # noqa: BLE001 - keep sweeping; report at the end
+            problems.append(f"{what}: {exc}")
+
+    images = client.images.list(filters=by_label)
+    containers = {c.id: c for c in client.containers.list(all=True, filters=by_label)}
+    for image in images:
+        for c in client.containers.list(all=True, filters={"ancestor": image.id}):
+            containers[c.id] = c
+    for c in containers.values():
+        attempt(f"container {c.name}", lambda c=c: c.remove(force=True, v=True))
+    for v in client.volumes.list(filters=by_label):
+        attempt(f"volume {v.name}", lambda v=v: v.remove(force=True))
+    for n in client.networks.list(filters=by_label):
+        attempt(f"network {n.name}", n.remove)
+    for image in images:
+        attempt(f"image {image.tags or image.id}", lambda i=image: client.images.remove(i.id, force=True))
+    left = (
+        [f"container {c.name}" for c in client.containers.list(all=True, filters=by_label)]
+        + [f"volume {v.name}" for v in client.volumes.list(filters=by_label)]
+        + [f"network {n.name}" for n in client.networks.list(filters=by_label)]
+        + [f"image {i.tags or i.id}" for i in client.images.list(filters=by_label)]
+    )
+    return problems + left
+
+
+@pytest.fixture(scope="module")
+def fleet(request, tmp_path_factory) -> Iterator[E2EFleet]:
+    """A dedicated fleet with its CA and snapshot; always swept away at the end of the module."""
+    client = docker.from_env(timeout=300)
+    name = "e2e" + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
+    public, common, pool = _free_subnets(client)
+    tmp = tmp_path_factory.mktemp(name)
+    data = yaml.safe_load(LAB.read_text())
+    data["fleet"] = name
+    data["provider"]["public_cidr"] = public
+    data["common"]["cidr"] = common
+    data["vpn"]["pool"] = pool
+    inventory = tmp / "inventory.yaml"
+    inventory.write_text(yaml.safe_dump(data, sort_keys=False))
+    f = E2EFleet(name=name, inventory=inventory, home=tmp / "home", client=client, tmp=tmp)
+
+    def teardown() -> None:
+        try:
+            f.inv("fleet", "down")
+        except Exception as exc:  # noqa: BLE001 - the sweep below still runs
+            warnings.warn(f"ccrp fleet down of {name} failed: {exc}", stacklevel=1)
+        left = _sweep(client, name)
+        if left:
+            warnings.warn(f"e2e fleet {name}: could not remove {left}", stacklevel=1)
+        sys.stderr.write("\n" + "\n".join(f"[{name}] {line}" for line in f.log) + "\n")
+
+    request.addfinalizer(teardown)  # before anything is created
+    f.inv("vpn", "init", check=True)
+    f.inv("snapshot", "build", check=True)  # reuses ccrp/base:bookworm when it is there
+    return f
+
+
+@pytest.fixture(scope="module")
+def up(fleet: E2EFleet) -> dict:
+    """The first `fleet up` of the module: its result and the clones it left."""
+    proc = fleet.inv("fleet", "up", "--json")
+    assert proc.returncode == 0, f"fleet up exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr[-3000:]}"
+    return {"results": json.loads(proc.stdout), "stderr": proc.stderr}
+
+
+@pytest.fixture(scope="module")
+def sim_nao1(fleet: E2EFleet, up) -> dict:
+    """Simulated robot nao1, with its bundle installed and its demo node started."""
+    t0 = time.monotonic()
+    fleet.inv("robot", "sim", "--robot", "nao1", check=True)
+    return {"started": t0, "container": fleet.container("robot-sim", "nao1")}
+
+
+def wait_for(what: str, probe: Callable[[], tuple[bool, object]], timeout: float, interval: float = 1.0,
+             since: float | None = None) -> object:
+    """Call probe() until it says done; fail after `timeout` s (from `since`) with its last answer."""
+    deadline = (since if since is not None else time.monotonic()) + timeout
+    while True:
+        done, last = probe()
+        if done:
+            return last
+        if time.monotonic() > deadline:
+            pytest.fail(f"{what}: not within {timeout:.0f} s; last seen: {json.dumps(last, default=str)[:1500]}")
+        time.sleep(interval)
+
+
+def connected(fleet: E2EFleet, robot: str) -> Callable[[], tuple[bool, object]]:
+    def probe():
+        row = fleet.status()[robot]
+        return row["vpn_connected"] and f"/{robot}_demo" in row["robot_nodes"], row
+    return probe
+
+
+def exec_in(container, argv: list[str], timeout: int = 30) -> tuple[int, str]:
+    result = container.exec_run(["timeout", str(timeout), *argv])
+    return result.exit_code, (result.output or b"").decode(errors="replace")
+
+
+TCP_PROBE = r"""
+import json, socket, sys
+from concurrent.futures import ThreadPoolExecutor
+def probe(target):
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    s.settimeout(3)
+    try:
+        s.connect((target[0], target[1]))
+        return "open"
+    except socket.timeout:
+        return "timeout"
+    except OSError as exc:
+        return type(exc).__name__
+    finally:
+        s.close()
+targets = json.loads(sys.argv[1])
+with ThreadPoolExecutor(len(targets)) as pool:
+    print(json.dumps({f"{h}:{p}": r for (h, p), r in zip(targets, pool.map(probe, targets))}))
+"""
+
+
+# A TCP connect alone proves little for addresses off the container's own networks: this host's
+# egress may accept any TCP connection sent to its default gateway (a transparent proxy does
+# here). The master is asked who it is instead, which only a real ROS master answers.
+MASTER_PROBE = r"""
+import json, socket, sys, xmlrpc.client
+socket.setdefaulttimeout(4)
+out = {}
+for url in sys.argv[1:]:
+    try:
+        code, _, uri = xmlrpc.client.ServerProxy(url).getUri("/ccrp_e2e")
+        out[url] = f"master {uri}" if code == 1 else f"code {code}"
+    except Exception as exc:
+        out[url] = type(exc).__name__
+print(json.dumps(out))
+"""
+
+
+def master_probe(container, urls: list[str]) -> dict[str, str]:
+    rc, out = exec_in(container, ["python3", "-c", MASTER_PROBE, *urls])
+    assert rc == 0, f"master probe failed in {container.name}: {out[-500:]}"
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def tcp_probe(container, targets: list[tuple[str, int]]) -> dict[str, str]:
+    rc, out = exec_in(container, ["python3", "-c", TCP_PROBE, json.dumps(targets)])
+    assert rc == 0, f"TCP probe failed in {container.name}: {out[-500:]}"
+    return json.loads(out.strip().splitlines()[-1])
+
+
+# -- 1. up, and up again ------------------------------------------------------------------------
+
+
+def test_fleet_up_creates_every_clone_then_reuses_them(fleet: E2EFleet, up):
+    first = {r["robot"]: r for r in up["results"]}
+    assert set(first) == set(ROBOTS), first
+    assert all(r["action"] == "created" for r in first.values()), first
+    clones = fleet.containers(role="clone")
+    ids = {c.labels["ccrp-robot"]: c.id for c in clones}
+    assert sorted(ids) == sorted(ROBOTS) and len(clones) == 3, [c.name for c in clones]
+    assert all(c.status == "running" for c in clones), [(c.name, c.status) for c in clones]
+
+    proc = fleet.inv("fleet", "up", "--json")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    again = {r["robot"]: r for r in json.loads(proc.stdout)}
+    assert set(again) == set(ROBOTS), again
+    assert {r: a["action"] for r, a in again.items()} == {r: "reused" for r in ROBOTS}, again
+
+    clones = fleet.containers(role="clone")
+    assert len(clones) == 3, f"duplicate clones after a second fleet up: {[c.name for c in clones]}"
+    assert {c.labels["ccrp-robot"]: c.id for c in clones} == ids, "a second fleet up replaced a clone"
+    assert len(fleet.client.networks.list(filters=fleet.labelled(role="network"))) == 2
+
+
+# -- 2. a robot's node on its clone's master ------------------------------------------------------
+
+LISTENER = r"""
+import rospy
+from std_msgs.msg import String
+rospy.init_node("e2e_listener", anonymous=True, disable_signals=True)
+msg = rospy.wait_for_message("/chatter", String, timeout=20)
+header = getattr(msg, "_connection_header", None) or {}
+print("GOT %r FROM %s" % (msg.data, header.get("callerid", "?")))
+"""
+
+
+def test_simulated_robot_talks_to_its_clone(fleet: E2EFleet, sim_nao1):
+    row = wait_for("nao1 connected with /nao1_demo on its master", connected(fleet, "nao1"),
+                   CONNECT_TIMEOUT, since=sim_nao1["started"])
+    assert row["master_reachable"], row
+    assert row["robot_address"] and row["robot_address"].startswith(sim_nao1["container"].attrs[
+        "NetworkSettings"]["Networks"][f"{fleet.name}-public"]["IPAddress"] + ":"), row
+
+    proc = fleet.inv("clone", "exec", "--robot", "nao1", "--timeout", "40", "--",
+                     "env", "ROS_MASTER_URI=http://cri-nao1:11311", "ROS_HOSTNAME=cri-nao1",
+                     "python3", "-c", LISTENER)
+    assert proc.returncode == 0, f"subscriber on cri-nao1 failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}"
+    assert "hello from nao1" in proc.stdout, proc.stdout
+    assert "FROM /nao1_demo" in proc.stdout, proc.stdout
+
+
+def test_clone_exec_exits_with_the_commands_code(fleet: E2EFleet, up):
+    """What the other tests rely on: the CLI's exit code is the real one (here, the command's)."""
+    proc = fleet.inv("clone", "exec", "--robot", "nao2", "--", "sh", "-c", "echo on-the-clone; exit 3")
+    assert "on-the-clone" in proc.stdout, proc.stdout + proc.stderr
+    assert proc.returncode == 3, f"`ccrp clone exec -- sh -c 'exit 3'` exited {proc.returncode}"
+
+
+# -- 3. the public network sees the VPN port only --------------------------------------------------
+
+
+def test_master_port_closed_to_public_open_through_vpn(fleet: E2EFleet, sim_nao1):
+    wait_for("nao1 connected", connected(fleet, "nao1"), CONNECT_TIMEOUT, since=sim_nao1["started"])
+    robot = sim_nao1["container"]
+    robot.reload()
+    assert list(robot.attrs["NetworkSettings"]["Networks"]) == [f"{fleet.name}-public"], \
+        "the simulated robot must sit on the public network only"
+    clone = fleet.container("clone", "nao1")
+    public_ip = clone.attrs["NetworkSettings"]["Networks"][f"{fleet.name}-public"]["IPAddress"]
+    vpn_ip = fleet.plan()["nao1"]["clone_vpn_ip"]
+
+    # Every TCP port the clone listens on (the master's 11311 among them) must be dark from public.
+    rc, out = exec_in(clone, ["ss", "-ltnH"])
+    assert rc == 0, out
+    ports = sorted({int(line.split()[3].rsplit(":", 1)[1]) for line in out.splitlines() if line.strip()
+                    and not line.split()[3].startswith(("127.", "[::1]"))})
+    assert 11311 in ports, f"the ROS master does not listen on the clone: {out}"
+    seen = tcp_probe(robot, [(public_ip, p) for p in ports])
+    assert not [t for t, r in seen.items() if r == "open"], f"reachable from the public network: {seen}"
+
+    # Through the VPN the master answers, by address and by the name the bundle put in /etc/hosts.
+    seen = master_probe(robot, [f"http://{vpn_ip}:11311", "http://cri-nao1:11311"])
+    assert set(seen.values()) == {"master http://cri-nao1:11311/"}, f"no master through the VPN: {seen}"
+
+    # The VPN port is UDP: show that OpenVPN is what is bound there.
+    rc, udp = exec_in(clone, ["cat", "/proc/net/udp"])
+    assert rc == 0 and f":{1194:04X} " in udp, udp
+    if os.geteuid() == 0 and shutil.which("nsenter"):
+        pid = str(clone.attrs["State"]["Pid"])
+        ss = subprocess.run(["nsenter", "-t", pid, "-n", "ss", "-lunpH"], capture_output=True, text=True)
+        owners = [line for line in ss.stdout.splitlines() if re.search(r":1194\s", line)]
+        assert owners and all('"openvpn"' in line for line in owners), ss.stdout + ss.stderr
+
+
+# -- 4. refused clients ------------------------------------------------------------------------------
+
+
+@dataclass
+class ProbeResult:
+    logs: str
+    ip: str
+    exited: bool
+
+
+def openvpn_probe(fleet: E2EFleet, ovpn: str, creds: str, until: re.Pattern, timeout: float,
+                  extra: tuple[str, ...] = ()) -> ProbeResult:
+    """A throwaway OpenVPN client on the fleet's public network, from the snapshot image."""
+    c = fleet.client.containers.create(
+        fleet.snapshot_image(),
+        command=["openvpn", "--suppress-timestamps", "--config", "/probe/robot.ovpn",
+                 "--auth-user-pass", "/probe/creds", *extra],
+        labels={FLEET_LABEL: fleet.name, "ccrp-managed": "true", "ccrp-role": "e2e-probe"},
+        network=f"{fleet.name}-public", cap_add=["NET_ADMIN"], devices=["/dev/net/tun:/dev/net/tun:rwm"],
+        stop_signal="SIGTERM", detach=True,
+    )
+    try:
+        c.put_archive("/", tar_files([("probe/robot.ovpn", ovpn.encode(), 0o600),
+                                      ("probe/creds", creds.encode(), 0o600)], make_dirs=True))
+        c.start()
+        c.reload()
+        ip = c.attrs["NetworkSettings"]["Networks"][f"{fleet.name}-public"]["IPAddress"]  # gone once it exits
+        deadline = time.monotonic() + timeout
+        while True:
+            c.reload()
+            logs = c.logs().decode(errors="replace")
+            if until.search(logs) or c.status != "running" or time.monotonic() > deadline:
+                break
+            time.sleep(0.3)
+        return ProbeResult(logs, ip, c.status != "running")
+    finally:
+        try:
+            c.stop(timeout=3)  # SIGTERM: the client tells the server it leaves
+        finally:
+            c.remove(force=True)
+
+
+def server_log(fleet: E2EFleet, robot: str, since: float) -> str:
+    rc, out = exec_in(fleet.container("clone", robot),
+                      ["journalctl", "-u", "ccrp-openvpn", "--no-pager", "-o", "cat", f"--since=@{int(since) - 1}"])
+    return out
+
+
+def test_wrong_credentials_and_wrong_robot_are_refused(fleet: E2EFleet, up):
+    bundle = fleet.tmp / "bundle-nao2"
+    fleet.run("robot", "bundle", "nao2", "-i", str(fleet.inventory), "--out", str(bundle), check=True)
+    ovpn = (bundle / "robot.ovpn").read_text()
+    user, password = (bundle / "vpn-credentials").read_text().split("\n")[:2]
+    assert user == "nao2" and password
+    give_up_soon = ("--hand-window", "4", "--connect-retry", "1", "1", "--connect-retry-max", "1")
+    ended = re.compile(rf"{COMPLETED}|AUTH_FAILED|Exiting due to fatal error|process exiting")
+
+    # Control: the untouched bundle gets a tunnel from this very harness.
+    ok = openvpn_probe(fleet, ovpn, f"{user}\n{password}\n", ended, 20)
+    assert COMPLETED in ok.logs, f"the control client with nao2's own bundle got no tunnel:\n{ok.logs[-2000:]}"
+
+    # Right certificate, wrong password: the server's auth script refuses it.
+    bad = openvpn_probe(fleet, ovpn, f"{user}\nnot-{password}\n", ended, 25, give_up_soon)
+    assert COMPLETED not in bad.logs, bad.logs[-2000:]
+    assert "AUTH_FAILED" in bad.logs, f"no AUTH_FAILED for a wrong password:\n{bad.logs[-2000:]}"
+
+    # nao2's bundle dialling nao1's clone: its tls-crypt key is not nao1's, so the server drops it.
+    nao1_ip = fleet.status()["nao1"]["public_ip"]
+    assert nao1_ip
+    t0 = time.time()
+    wrong_remote = re.sub(r"(?m)^remote \S+ (\d+)$", rf"remote {nao1_ip} \1", ovpn)
+    assert wrong_remote != ovpn and f"remote {nao1_ip} " in wrong_remote
+    other = openvpn_probe(fleet, wrong_remote, f"{user}\n{password}\n", ended, 20, give_up_soon)
+    assert COMPLETED not in other.logs, other.logs[-2000:]
+    assert other.exited and "TLS handshake failed" in other.logs, other.logs[-2000:]
+    log = server_log(fleet, "nao1", t0)
+    assert f"tls-crypt unwrapping failed from [AF_INET]{other.ip}:" in log, log[-2000:]
+
+    # Even with nao1's tls-crypt key (leaked), nao2's certificate is not nao1's: the clone's
+    # verify-x509-name refuses it (the client's own server-name check is dropped for this).
+    t0 = time.time()
+    tc_nao1 = (fleet.home / fleet.name / "pki" / "tls-crypt" / "nao1.key").read_text()
+    leaked = re.sub(r"(?s)<tls-crypt>.*?</tls-crypt>", lambda _: f"<tls-crypt>\n{tc_nao1.strip()}\n</tls-crypt>", wrong_remote)
+    leaked = re.sub(r"(?m)^verify-x509-name .*$", "", leaked)
+    assert leaked != wrong_remote
+    stolen = openvpn_probe(fleet, leaked, f"{user}\n{password}\n", ended, 20, give_up_soon)
+    assert COMPLETED not in stolen.logs, stolen.logs[-2000:]
+    log = server_log(fleet, "nao1", t0)
+    assert "VERIFY X509NAME ERROR: CN=nao2, must be nao1" in log, log[-2000:]
+
+
+# -- 5. no secret where it must not be ------------------------------------------------------------
+
+
+def _dpkg_owned(layers: list[tarfile.TarFile]) -> set[str]:
+    owned: set[str] = set()
+    for layer in layers:
+        for m in layer.getmembers():
+            if m.isfile() and re.fullmatch(r"(\./)?var/lib/dpkg/info/[^/]+\.list", m.name):
+                owned.update(p.strip().lstrip("/") for p in layer.extractfile(m).read().decode(errors="replace").splitlines())
+    return owned
+
+
+def _package_path(path: str) -> str:
+    """The packaged file a path stands for: a .pyc that py3compile made at install is its .py."""
+    m = re.fullmatch(r"(.*)/__pycache__/([^/]+?)\.cpython-\d+(?:\.opt-\d)?\.pyc", path)
+    return f"{m.group(1)}/{m.group(2)}.py" if m else path
+
+
+def scan_image(client, image_ref: str, needles: dict[bytes, str]) -> list[str]:
+    """`docker save` the image; every file of every layer: no fleet secret, and no PEM private key
+    block except in files Debian's packages ship (their sample and test keys)."""
+    image = client.images.get(image_ref)
+    findings: list[str] = []
+    with tempfile.TemporaryFile() as fh:
+        for chunk in image.save(chunk_size=1 << 20):
+            fh.write(chunk)
+        fh.seek(0)
+        outer = tarfile.open(fileobj=fh)
+        layers, blobs = [], []
+        for m in outer.getmembers():
+            if not m.isfile():
+                continue
+            data = outer.extractfile(m)
+            try:
+                layers.append((m.name, tarfile.open(fileobj=data, mode="r:")))
+            except tarfile.TarError:
+                data.seek(0)
+                blobs.append((m.name, data.read()))
+        assert layers, f"docker save of {image_ref} held no layer"
+        owned = _dpkg_owned([t for _, t in layers])
+        for name, content in blobs:  # manifest, config (history, labels, env)
+            findings += [f"{name}: {what}" for what in _hits(content, needles, markers=True)]
+        for lname, layer in layers:
+            for m in layer.getmembers():
+                if not m.isfile():
+                    continue
+                content = layer.extractfile(m).read()
+                path = m.name.removeprefix("./")
+                for needle, source in needles.items():
+                    if needle in content:
+                        findings.append(f"layer {lname[:20]} {path}: contains {source}")
+                if (b"PRIVATE KEY" in content or b"Static key" in content) and PEM_BLOCK.search(content) \
+                        and _package_path(path) not in owned:
+                    findings.append(f"layer {lname[:20]} {path}: a private key block in a file no package owns")
+    return findings
+
+
+def _hits(data: bytes | str, needles: dict[bytes, str], markers: bool) -> list[str]:
+    raw = data.encode() if isinstance(data, str) else data
+    out = [f"contains {source}" for needle, source in needles.items() if needle in raw]
+    if markers:
+        out += [f"mentions {m.decode()!r}" for m in MARKERS if m in raw]
+    return out
+
+
+def test_no_private_key_in_images_labels_env_or_logs(fleet: E2EFleet, sim_nao1):
+    needles = fleet.secret_needles()
+    findings: list[str] = []
+
+    # The snapshot image, and a snapshot taken from a configured, running clone.
+    snap = fleet.json("snapshot", "create", "--robot", "nao1")
+    committed = snap[0]["name"] if isinstance(snap, list) else snap["name"]
+    for ref in (fleet.snapshot_image(), committed):
+        image = fleet.client.images.get(ref)
+        cfg = image.attrs.get("Config") or {}
+        findings += [f"image {ref} labels: {h}" for h in _hits(json.dumps(cfg.get("Labels") or {}), needles, True)]
+        findings += [f"image {ref} env: {h}" for h in _hits(json.dumps(cfg.get("Env") or []), needles, True)]
+        history = subprocess.run(["docker", "history", "--no-trunc", "--format", "{{.CreatedBy}}", ref],
+                                 capture_output=True, text=True, check=True).stdout
+        findings += [f"image {ref} history: {h}" for h in _hits(history, needles, True)]
+        findings += [f"image {ref}: {h}" for h in scan_image(fleet.client, ref, needles)]
+
+    # Every container of the fleet: labels, environment, logs; a clone's user-data too.
+    containers = fleet.containers()
+    roles = sorted(c.labels.get("ccrp-role") for c in containers)
+    assert roles.count("clone") == 3 and "robot-sim" in roles, roles
+    for c in containers:
+        cfg = c.attrs.get("Config") or {}
+        findings += [f"{c.name} labels: {h}" for h in _hits(json.dumps(cfg.get("Labels") or {}), needles, True)]
+        findings += [f"{c.name} env: {h}" for h in _hits(json.dumps(cfg.get("Env") or []), needles, True)]
+        findings += [f"{c.name} docker logs: {h}" for h in _hits(c.logs(), needles, True)]
+        if c.labels.get("ccrp-role") == "clone":
+            rc, seed = exec_in(c, ["cat", "/var/lib/cloud/seed/nocloud/user-data"])
+            assert rc == 0 and seed.startswith("#cloud-config"), seed[:200]
+            findings += [f"{c.name} user-data: {h}" for h in _hits(seed, needles, True)]
+    assert not findings, "secrets where they must not be:\n" + "\n".join(findings)
+
+
+# -- 6. revocation -----------------------------------------------------------------------------------
+
+
+def test_revoke_ends_live_session_and_robot_cannot_reconnect(fleet: E2EFleet, sim_nao1):
+    wait_for("nao1 connected", connected(fleet, "nao1"), CONNECT_TIMEOUT)
+    robot = sim_nao1["container"]
+    vpn_ip = fleet.plan()["nao1"]["clone_vpn_ip"]
+    master = f"http://{vpn_ip}:11311"
+    assert master_probe(robot, [master])[master].startswith("master "), "nao1 cannot reach its master"
+
+    t0, wall0 = time.monotonic(), time.time()
+    proc = fleet.inv("vpn", "revoke", "--robot", "nao1", "--json")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert [r["revoked"] for r in json.loads(proc.stdout)] == [True], proc.stdout
+
+    def gone():
+        row = fleet.status()["nao1"]
+        return not row["vpn_connected"], row
+    wait_for("nao1's live VPN session ended after `vpn revoke` (does revoke push the CRL to the running "
+             "clone and kill the session?)", gone, REVOKE_TIMEOUT, since=t0)
+
+    # Make the robot try again right now instead of at its next timer; the clone must refuse it.
+    rc, out = exec_in(robot, ["systemctl", "restart", "ccrp-vpn.service"])
+    assert rc == 0, out
+    restarted = time.time()
+    def refused():
+        log = server_log(fleet, "nao1", wall0)
+        return "certificate revoked" in log, log[-1500:]
+    wait_for("the clone refusing nao1's revoked certificate", refused, 20)
+    deadline = time.monotonic() + 12
+    while time.monotonic() < deadline:  # and it stays out
+        row = fleet.status()["nao1"]
+        assert not row["vpn_connected"], f"revoked robot nao1 reconnected: {row}"
+        time.sleep(2)
+    rc, log = exec_in(robot, ["journalctl", "-u", "ccrp-vpn", "--no-pager", "-o", "cat", f"--since=@{int(restarted)}"])
+    assert COMPLETED not in log, f"revoked robot nao1 got a tunnel again:\n{log[-2000:]}"
+    seen = master_probe(robot, [master])
+    assert not seen[master].startswith("master "), f"revoked robot nao1 still reaches its master: {seen}"
+
+
+# -- 7. down -------------------------------------------------------------------------------------------
+
+
+def test_fleet_down_leaves_nothing(fleet: E2EFleet, up):
+    proc = fleet.inv("fleet", "down", "--json")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    removed = json.loads(proc.stdout)["removed"]
+    assert any("cri-nao1" in r for r in removed), removed
+    by_label = {"label": [f"{FLEET_LABEL}={fleet.name}"]}
+    left = (
+        [c.name for c in fleet.client.containers.list(all=True, filters=by_label)]
+        + [n.name for n in fleet.client.networks.list(filters=by_label)]
+        + [v.name for v in fleet.client.volumes.list(filters=by_label)]
+    )
+    assert left == [], f"fleet down left {left}"
+    fleet.client.images.get(fleet.snapshot_image())  # snapshots outlive `fleet down`
+
+
+# -- 8. crash midway -------------------------------------------------------------------------------
+
+
+def assert_converged(fleet: E2EFleet, results: list[dict]) -> None:
+    assert {r["robot"] for r in results} == set(ROBOTS), results
+    assert all(r["action"] in ("created", "reused") for r in results), results
+    clones = fleet.containers(role="clone")
+    assert sorted(c.labels["ccrp-robot"] for c in clones) == sorted(ROBOTS), [c.name for c in clones]
+    assert len(fleet.client.networks.list(filters=fleet.labelled(role="network"))) == 2
+    rows = fleet.status()
+    bad = {r: row for r, row in rows.items()
+           if not (row["status"] == "running" and row["phase"] == "ready" and row["master_reachable"])}
+    assert not bad, f"not serving after convergence: {bad}"
+
+
+def test_fleet_up_killed_midway_converges_on_next_run(fleet: E2EFleet):
+    fleet.inv("fleet", "down", check=True)
+    proc = subprocess.Popen([sys.executable, "-m", "ccrp_cli", "fleet", "up", "-i", str(fleet.inventory)],
+                            cwd=ROOT, env=fleet.env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        time.sleep(3)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == -signal.SIGKILL, f"fleet up ended on its own before the kill: {err.decode()[-1500:]}"
+    fleet.log.append("killed `fleet up` after 3 s; left: "
+                     + ", ".join(f"{c.name}={c.status}" for c in fleet.containers()))
+
+    again = fleet.inv("fleet", "up", "--json")
+    assert again.returncode == 0, f"{again.stdout}\n{again.stderr[-3000:]}"
+    assert_converged(fleet, json.loads(again.stdout))
+
+
+# -- 9. a container an interrupted attempt created but never started -------------------------------
+
+
+def test_unstarted_leftover_clone_is_replaced(fleet: E2EFleet):
+    """An attempt killed between creating a clone container and starting it leaves a container
+    without its NoCloud seed and off the common network; the next run must not boot that."""
+    fleet.inv("clone", "delete", "--robot", "turtlebot1", check=True)
+    labels = {"ccrp-managed": "true", FLEET_LABEL: fleet.name, "ccrp-role": "clone", "ccrp-robot": "turtlebot1"}
+    leftover = fleet.client.containers.create(
+        fleet.snapshot_image(), name=f"ccrp-{fleet.name}-cri-turtlebot1", hostname="cri-turtlebot1",
+        labels=labels, network=f"{fleet.name}-public", detach=True,
+    )
+    proc = fleet.inv("fleet", "up", "--json")
+    assert proc.returncode == 0, f"{proc.stdout}\n{proc.stderr[-3000:]}"
+    results = json.loads(proc.stdout)
+    assert {r["robot"]: r["action"] for r in results}["turtlebot1"] == "created", results
+    assert fleet.container("clone", "turtlebot1").id != leftover.id
+    assert_converged(fleet, results)
