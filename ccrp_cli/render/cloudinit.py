@@ -12,7 +12,7 @@ from . import network, openvpn
 from .templates import static
 from .view import CCRP_ETC, CCRP_LIB, VPN_DIR, CloneView
 
-PRIVATE_KEY_MARKERS = ("PRIVATE KEY-----", "OpenVPN Static key")
+PRIVATE_KEY_MARKERS = ("PRIVATE KEY", "OpenVPN Static key")
 
 
 def _file(path: str, content: str, mode: str = "0644") -> dict[str, Any]:
