@@ -34,10 +34,8 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     if bare:
         tag = f"ccrp/base-bare:{inv.ros.distro}"
         images.build_base_image(client, tag, images.BASE_PACKAGES + ["cloud-init"], progress)
-        return provider._snapshot_record(client.images.get(tag))
-    try:
-        client.images.get(base)
-    except provider._NotFound:
+        return provider.snapshot_record(client.images.get(tag))
+    if not provider.has_image(base):
         if base != images.DEFAULT_BASE:
             progress(f"pulling base image {base}")
             try:
@@ -51,7 +49,7 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     progress(f"building snapshot {tag} from {base}")
     labels = owner_labels(fleet.name, "snapshot") | {"ccrp-distro": inv.ros.distro}
     images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat), labels, progress)
-    record = provider._snapshot_record(client.images.get(tag))
+    record = provider.snapshot_record(client.images.get(tag))
     _use(fleet, record)
     return record
 

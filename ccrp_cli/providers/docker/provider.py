@@ -162,6 +162,13 @@ class DockerProvider:
             raise
         return self._record(c, created=True)
 
+    def has_image(self, image: str) -> bool:
+        try:
+            self.client.images.get(image)
+            return True
+        except self._NotFound:
+            return False
+
     def _ensure_image(self, image: str) -> None:
         try:
             self.client.images.get(image)
@@ -255,9 +262,9 @@ class DockerProvider:
         repo, _, tag = name.rpartition(":")
         image = c.commit(repository=repo, tag=tag, changes=[f"LABEL {k}={v}" for k, v in
                                                             owner_labels(self.fleet, "snapshot", robot).items()])
-        return self._snapshot_record(image)
+        return self.snapshot_record(image)
 
-    def _snapshot_record(self, image) -> SnapshotRecord:
+    def snapshot_record(self, image) -> SnapshotRecord:
         return SnapshotRecord(
             id=image.id.removeprefix("sha256:")[:12],
             name=(image.tags or ["<untagged>"])[0],
@@ -268,7 +275,7 @@ class DockerProvider:
 
     def list_snapshots(self) -> list[SnapshotRecord]:
         images = self.client.images.list(filters=self._filters("snapshot"))
-        return sorted((self._snapshot_record(i) for i in images), key=lambda s: s.created)
+        return sorted((self.snapshot_record(i) for i in images), key=lambda s: s.created)
 
     def delete_snapshot(self, snapshot_id: str) -> None:
         try:
