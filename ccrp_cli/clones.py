@@ -28,10 +28,10 @@ class StateWriter:
     """Thread-safe read-modify-save of the fleet state (the caller holds the fleet lock)."""
 
     def __init__(self, fleet: Fleet, state: FleetState) -> None:
-        self.fleet, self.state, self._lock = fleet, state, threading.Lock()
+        self.fleet, self.state, self.lock = fleet, state, threading.Lock()
 
     def update(self, robot: str, **fields) -> None:
-        with self._lock:
+        with self.lock:
             rec = self.state.robots[robot]
             for k, v in fields.items():
                 setattr(rec, k, v)
@@ -100,10 +100,9 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     t0 = time.monotonic()
     state = writer.state
     view = clone_view(fleet, state, robot)
-    # Clones are ensured in parallel threads, and issue_robot is a read-modify-write of the PKI
-    # index (whose temp file is named per process): serialise it, or one thread's certificates
-    # vanish from the index (or its temp file is renamed away under it).
-    with writer._lock:
+    # Clones are ensured in parallel threads and issue_robot is a read-modify-write of the PKI
+    # index: serialise it, or one thread's certificates vanish from the index.
+    with writer.lock:
         fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
     user_data = cloudinit.user_data(view, default_user=False)
     fit_user_data(provider.kind, user_data)
@@ -143,11 +142,10 @@ def delete_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     if robot in writer.state.robots:
         writer.update(robot, phase="deleting")
     provider.terminate(robot)  # the clone and its secrets volume
-    with writer._lock:
+    with writer.lock:
         if forget:
             writer.state.robots.pop(robot, None)
         elif robot in writer.state.robots:
-            r = writer.state.robots[robot]
-            r.phase, r.provider_id, r.public_endpoint, r.addresses = "planned", None, None, {}
+            writer.state.robots[robot].clear_clone()
         fleet.store.save_state(writer.state)
     return CloneResult(robot, "deleted", "", time.monotonic() - t0)

@@ -113,7 +113,7 @@ def down(fleet: Fleet, provider, progress: Progress) -> list[str]:
         raise CcrpError(f"fleet down left {len(left)} resources: {', '.join(left[:5])}", hint="run `ccrp fleet down` again")
     state = fleet.store.load_state()
     for rec in state.robots.values():
-        rec.phase, rec.provider_id, rec.public_endpoint, rec.addresses = "planned", None, None, {}
+        rec.clear_clone()
     fleet.store.save_state(state)
     progress(f"fleet {fleet.name!r} is down: removed {len(removed)} resources, none left")
     return removed

@@ -16,8 +16,9 @@ def validate(inventory: options.Inventory, as_json: options.Json = False) -> Non
     """Check an inventory and show the fleet's address plan. Changes nothing."""
     fleet = options.open_fleet(inventory)
     inv = fleet.inventory
-    plan = fleet.plan(fleet.store.load_state())
-    robots = {r.name: r for r in fleet.members(fleet.store.load_state())}
+    state = fleet.store.load_state()
+    plan = fleet.plan(state)
+    robots = {r.name: r for r in fleet.members(state)}
     data = {
         "fleet": inv.fleet,
         "provider": inv.provider.kind,

@@ -28,10 +28,9 @@ def build(
     fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
         current = (fleet.store.load_state().snapshot or {}).get("image")
-        existing = {s.name: s for s in provider.list_snapshots()}
-        if if_missing and current in existing:
+        if if_missing and current and provider.has_image(current):
             output.info(f"snapshot {current} exists; new clones start from it")
-            _show([existing[current]], as_json)
+            _show([provider.snapshot_record(provider.client.images.get(current))], as_json)
             return
         from .. import snapshots
 

@@ -23,6 +23,10 @@ class RobotRecord(BaseModel):
     public_endpoint: str | None = None
     addresses: dict[str, str] = {}
 
+    def clear_clone(self) -> None:
+        """The clone is gone; the robot keeps its slot (and so its addresses)."""
+        self.phase, self.provider_id, self.public_endpoint, self.addresses = "planned", None, None, {}
+
 
 class FleetState(BaseModel):
     model_config = ConfigDict(extra="forbid")
