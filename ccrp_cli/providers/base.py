@@ -50,6 +50,15 @@ class SnapshotRecord(BaseModel):
     size_mb: float | None = None
 
 
+class OwnedResource(BaseModel):
+    """Anything in the cloud carrying the fleet's ownership labels (what `ccrp gc` looks at)."""
+
+    kind: str  # instance | volume | floating_ip | security_group | network | subnet | router | key_pair | image | route | container | ...
+    id: str
+    name: str = ""
+    robot: str | None = None
+
+
 class Provider(Protocol):
     kind: str
 
@@ -64,3 +73,6 @@ class Provider(Protocol):
     def list_snapshots(self) -> list[SnapshotRecord]: ...
     def delete_snapshot(self, snapshot_id: str) -> None: ...
     def teardown(self) -> list[str]: ...
+    # Every resource carrying this fleet's labels, and deleting one of them (gc of leaks).
+    def list_owned(self) -> list[OwnedResource]: ...
+    def delete_owned(self, resource: OwnedResource) -> None: ...
