@@ -25,6 +25,28 @@ class CloudProvider:
         # workdir = the fleet's store root (.ccrp/<fleet>): operator SSH key, pinned host keys.
         self.inv, self.fleet, self.workdir = inv, inv.fleet, Path(workdir)
 
+    # -- operator SSH key (ed25519, 0600 in the fleet store; only the public half leaves) ----------
+    @property
+    def ssh_key_path(self) -> Path:
+        return self.workdir / "ssh" / "id_ed25519"
+
+    def operator_public_key(self) -> str:
+        """The fleet's operator key, created on first use: "ssh-ed25519 AAAA... ccrp-<fleet>"."""
+        from cryptography.hazmat.primitives import serialization
+        from cryptography.hazmat.primitives.asymmetric import ed25519
+
+        from ..store import atomic_write, ensure_dir
+
+        key_path = self.ssh_key_path
+        if not key_path.exists():
+            ensure_dir(key_path.parent)
+            key = ed25519.Ed25519PrivateKey.generate()
+            atomic_write(key_path, key.private_bytes(
+                serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption()))
+        key = serialization.load_ssh_private_key(key_path.read_bytes(), password=None)
+        pub = key.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH)
+        return f"{pub.decode()} ccrp-{self.fleet}"
+
     # -- retries (one place) -----------------------------------------------------------------
     def classify_error(self, exc: BaseException) -> ErrorClass:  # cloud: per SDK
         raise NotImplementedError

@@ -56,6 +56,9 @@ class Harness(Protocol):
         """From now on, fail this fraction of API calls with HTTP 429/503 (or the SDK's throttling
         error) BEFORE they reach the fake."""
 
+    def delay(self, seconds: float) -> None:
+        """From now on, every API call takes this much longer (benchmarks: 200 ms per call)."""
+
     def instances_for(self, robot: str) -> int:
         """How many instances the fake holds for robot (idempotency: must stay 1)."""
 
