@@ -112,6 +112,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     spec = CloneSpec(
         robot=robot, hostname=view.addr.clone_host, image=image, user_data=user_data,
         instance_id=f"{fleet.name}-{robot}-{rec.index}", common_ip=str(view.addr.common_ip),
+        vpn_subnet=str(view.addr.vpn_subnet),
     )
     progress(f"[{robot}] clone {view.addr.clone_host}: starting from {image}")
     record = provider.run_instance(spec)

@@ -29,6 +29,9 @@ class CloneSpec(BaseModel):
     user_data: str
     instance_id: str
     common_ip: str
+    # The clone's VPN subnet (addressing plan): clouds route it to the instance so clones reach
+    # each other's robots.
+    vpn_subnet: str | None = None
 
 
 class CloneRecord(BaseModel):
