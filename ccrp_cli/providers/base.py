@@ -10,7 +10,7 @@ from pydantic import BaseModel
 LABEL_MANAGED = "ccrp-managed"
 LABEL_FLEET = "ccrp-fleet"
 LABEL_ROBOT = "ccrp-robot"
-LABEL_ROLE = "ccrp-role"  # clone | robot-sim | snapshot | network | secrets
+LABEL_ROLE = "ccrp-role"  # clone | builder | robot-sim | snapshot | network | secrets
 
 
 def owner_labels(fleet: str, role: str, robot: str | None = None) -> dict[str, str]:
@@ -32,6 +32,9 @@ class CloneSpec(BaseModel):
     # The clone's VPN subnet (addressing plan): clouds route it to the instance so clones reach
     # each other's robots.
     vpn_subnet: str | None = None
+    # Goes into the ccrp-role label: "clone", or "builder" for the instance `snapshot bake` boots
+    # (query() lists clones only; terminate/console_output/create_snapshot find it by robot label).
+    role: str = "clone"
 
 
 class CloneRecord(BaseModel):
