@@ -7,14 +7,23 @@ push_files / exec / wait_ready then work the same way on every cloud.
 
 from __future__ import annotations
 
+import math
+import os
+import threading
+import time
 from pathlib import Path
 
+from ..errors import CcrpError
 from ..models.inventory import Inventory
 from ..retry import Backoff, ErrorClass, call
 from .base import CloneRecord, CloneSpec, OwnedResource, SnapshotRecord
 
 # Login user of the snapshot images (Ubuntu cloud images); cloud-init creates it.
 SSH_USER = "ubuntu"
+# Trust on first use when the console shows no host keys: only when asked for explicitly.
+TOFU_ENV = "CCRP_SSH_TOFU"
+CONSOLE_POLL = 5.0  # seconds between console reads while an instance boots
+TOFU_CONSOLE_WAIT = 180.0  # with TOFU allowed, how long the console gets to show the keys first
 
 
 class CloudProvider:
@@ -24,6 +33,10 @@ class CloudProvider:
     def __init__(self, inv: Inventory, workdir: Path) -> None:
         # workdir = the fleet's store root (.ccrp/<fleet>): operator SSH key, pinned host keys.
         self.inv, self.fleet, self.workdir = inv, inv.fleet, Path(workdir)
+        self.trust_on_first_use = os.environ.get(TOFU_ENV, "") == "1"
+        self._ssh: dict[str, object] = {}  # robot -> live SshTransport, reused by exec/push_files
+        self._ssh_lock = threading.Lock()
+        self._robot_locks: dict[str, threading.Lock] = {}
 
     # -- operator SSH key (ed25519, 0600 in the fleet store; only the public half leaves) ----------
     @property
@@ -69,6 +82,109 @@ class CloudProvider:
     def delete_owned(self, resource: OwnedResource) -> None: ...
 
     # -- shared: SSH transport (transport/ssh.py) ------------------------------------------------
-    def wait_ready(self, robot: str, timeout: float = 600) -> None: ...
-    def push_files(self, robot: str, files: list, restart: list[str] = ()) -> None: ...
-    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]: ...
+    @property
+    def known_hosts_path(self) -> Path:
+        return self.workdir / "known_hosts"
+
+    def _clone(self, robot: str) -> CloneRecord:
+        rec = self.query().get(robot)
+        if rec is None:
+            raise CcrpError(f"no {self.kind} instance for robot {robot!r}", hint=f"ccrp clone create --robot {robot}")
+        if not rec.public_ip:
+            raise CcrpError(f"the instance of robot {robot!r} ({rec.provider_id}) has no public IP yet")
+        return rec
+
+    def _wait_for_host_keys(self, robot: str, deadline: float) -> tuple[CloneRecord, frozenset[str]]:
+        """Poll the serial console until cloud-init has printed the host keys (and the instance
+        has its public IP). With TOFU allowed, give up on the console after TOFU_CONSOLE_WAIT."""
+        from ..transport.ssh import fingerprints_from_console
+
+        give_up = min(deadline, time.monotonic() + TOFU_CONSOLE_WAIT) if self.trust_on_first_use else deadline
+        while True:
+            rec = self.query().get(robot)
+            pins = fingerprints_from_console(self.console_output(robot) or "") if rec else frozenset()
+            if pins and rec is not None and rec.public_ip:
+                return rec, pins
+            if time.monotonic() >= give_up:
+                if self.trust_on_first_use and rec is not None and rec.public_ip:
+                    return rec, frozenset()
+                why = ("not found" if rec is None else "no public IP" if not rec.public_ip
+                       else "cloud-init printed no SSH host keys on its console")
+                raise CcrpError(
+                    f"{self.kind} instance of robot {robot!r}: {why} in time",
+                    hint=f"check the instance's console log; set {TOFU_ENV}=1 to trust its SSH key on first use instead",
+                )
+            time.sleep(CONSOLE_POLL)
+
+    def _session(self, robot: str, rec: CloneRecord | None = None, pins: frozenset[str] | None = None):
+        """The robot's SSH connection, opened on first use and reused while it stays up. Keys not
+        in known_hosts yet are pinned from the console output."""
+        from ..transport.ssh import KnownHosts, SshTransport, fingerprints_from_console
+
+        with self._ssh_lock:
+            lock = self._robot_locks.setdefault(robot, threading.Lock())
+        with lock:
+            ssh = self._ssh.get(robot)
+            if ssh is not None and ssh.active and (rec is None or (ssh.host, ssh.alias) == (rec.public_ip, rec.provider_id)):
+                return ssh
+            if ssh is not None:
+                ssh.close()
+            rec = rec or self._clone(robot)
+            known = KnownHosts(self.known_hosts_path)
+            if pins is None:
+                pins = frozenset() if known.keys(rec.provider_id) else fingerprints_from_console(self.console_output(robot) or "")
+            self.operator_public_key()  # creates the key on first use
+            ssh = SshTransport(rec.public_ip, SSH_USER, self.ssh_key_path, pins, known_hosts=known,
+                               host_alias=rec.provider_id, trust_on_first_use=self.trust_on_first_use).connect()
+            self._ssh[robot] = ssh
+            return ssh
+
+    def close(self) -> None:
+        """Close every SSH connection this provider opened."""
+        with self._ssh_lock:
+            sessions, self._ssh = list(self._ssh.values()), {}
+        for ssh in sessions:
+            ssh.close()
+
+    def wait_ready(self, robot: str, timeout: float = 600) -> None:
+        """Until cloud-init has finished on the instance: pin its host keys from the console (unless
+        known_hosts has them under its instance id), SSH in, `cloud-init status --wait`."""
+        from ..transport.ssh import KnownHosts
+
+        deadline = time.monotonic() + timeout
+        rec = self.query().get(robot)
+        if rec is not None and rec.public_ip and KnownHosts(self.known_hosts_path).keys(rec.provider_id):
+            ssh = self._session(robot, rec)
+        else:
+            rec, pins = self._wait_for_host_keys(robot, deadline)
+            ssh = self._session(robot, rec, pins)
+        left = max(1, math.ceil(deadline - time.monotonic()))
+        rc, out = ssh.exec([*ssh.sudo, "timeout", str(left), "cloud-init", "status", "--wait", "--long"], timeout=left + 30)
+        if rc == 124:
+            raise CcrpError(f"clone cri-{robot}: cloud-init did not finish within {timeout:.0f} s")
+        if rc not in (0, 2):  # 2: finished with recoverable errors (cloud-init >= 23.4)
+            detail = " ".join(line.strip() for line in out.splitlines() if line.strip().startswith(("status", "detail", "(")))
+            raise CcrpError(f"clone cri-{robot}: cloud-init failed: {detail[:300] or out.strip()[-300:]}",
+                            hint=f"ccrp clone exec --robot {robot} -- cloud-init status --long")
+
+    def _run(self, robot: str, fn):
+        """fn(session); once more on a fresh connection if the cached one broke before starting."""
+        from ..transport.ssh import ChannelOpenError
+
+        try:
+            return fn(self._session(robot))
+        except ChannelOpenError:
+            return fn(self._session(robot))
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
+        """argv as root on the clone (like a command in the Docker clone), ended by `timeout`."""
+        limit = str(max(1, math.ceil(timeout)))
+        return self._run(robot, lambda ssh: ssh.exec([*ssh.sudo, "timeout", limit, *argv], timeout=timeout + 30))
+
+    def push_files(self, robot: str, files: list, restart: list[str] = ()) -> None:
+        def push(ssh) -> None:
+            ssh.put_files(files)
+            for unit in restart:
+                ssh.check([*ssh.sudo, "systemctl", "restart", unit], timeout=120)
+
+        self._run(robot, push)
