@@ -104,7 +104,9 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     # index: serialise it, or one thread's certificates vanish from the index.
     with writer.lock:
         fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
-    user_data = cloudinit.user_data(view, default_user=False)
+    # A bare snapshot gets the recipe's packages from cloud-init at first boot.
+    bare = bool(state.snapshot and state.snapshot.get("bare"))
+    user_data = cloudinit.user_data(view, default_user=False, install_packages=bare)
     fit_user_data(provider.kind, user_data)
     image = snapshot_image(state)
     rec = state.robots[robot]
@@ -117,7 +119,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     progress(f"[{robot}] clone {view.addr.clone_host}: starting from {image}")
     record = provider.run_instance(spec)
     try:
-        provider.wait_ready(robot)
+        provider.wait_ready(robot, timeout=1200 if bare else 300)
         secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
         if not _secrets_current(provider, robot, secrets):
             provider.push_files(robot, secrets, restart=["ccrp-openvpn.service"])

@@ -21,8 +21,9 @@ def image_repo(fleet: Fleet) -> str:
 
 
 def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> SnapshotRecord:
-    """Build the golden clone image (docker). `bare` builds the base without the recipe's
-    packages instead, for clones that install everything at boot (benchmarks)."""
+    """Build the golden clone image (docker) and record it for new clones. A `bare` snapshot has
+    only systemd and cloud-init: its clones install the recipe's packages at boot, as a clone
+    started from a stock cloud image would (slower: the reason for snapshots, see bench/)."""
     from .providers.base import owner_labels
     from .providers.docker import images
     from .recipes import platform
@@ -32,10 +33,10 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     base = inv.provider.base_image  # type: ignore[union-attr]
     client = provider.client
     if bare:
-        tag = f"ccrp/base-bare:{inv.ros.distro}"
-        images.build_base_image(client, tag, images.BASE_PACKAGES + ["cloud-init"], progress)
-        return provider.snapshot_record(client.images.get(tag))
-    if not provider.has_image(base):
+        base, plat = f"ccrp/base-bare:{inv.ros.distro}", plat.model_copy(update={"packages": images.BARE_PACKAGES})
+        if not provider.has_image(base):
+            images.build_base_image(client, base, images.BASE_PACKAGES + images.BARE_PACKAGES, progress)
+    elif not provider.has_image(base):
         if base != images.DEFAULT_BASE:
             progress(f"pulling base image {base}")
             try:
@@ -45,18 +46,20 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
         else:
             # ccrp's own base: Debian packages only, with the recipe's packages already in.
             images.build_base_image(client, base, sorted(set(images.BASE_PACKAGES + plat.packages)), progress)
-    tag = f"{image_repo(fleet)}:{_stamp()}"
+    tag = f"{image_repo(fleet)}:{'bare-' if bare else ''}{_stamp()}"
     progress(f"building snapshot {tag} from {base}")
-    labels = owner_labels(fleet.name, "snapshot") | {"ccrp-distro": inv.ros.distro}
+    labels = owner_labels(fleet.name, "snapshot") | {"ccrp-distro": inv.ros.distro, "ccrp-bare": str(bare).lower()}
     images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat), labels, progress)
     record = provider.snapshot_record(client.images.get(tag))
-    _use(fleet, record)
+    _use(fleet, record, bare)
     return record
 
 
-def _use(fleet: Fleet, record: SnapshotRecord) -> None:
+def _use(fleet: Fleet, record: SnapshotRecord, bare: bool = False) -> None:
     state = fleet.store.load_state()
     state.snapshot = {"image": record.name, "id": record.id, "source": record.source}
+    if bare:
+        state.snapshot["bare"] = "true"
     fleet.store.save_state(state)
 
 

@@ -2,11 +2,34 @@
 
 from __future__ import annotations
 
+import time
 from concurrent.futures import ThreadPoolExecutor
 from urllib.parse import urlparse
 
 from .clones import health
+from .errors import CcrpError
 from .fleet import Fleet
+
+
+def robot_link(h: dict, robot: str) -> tuple[dict | None, list[str]]:
+    """From a clone's health: the robot's VPN client entry (or None) and its nodes on the master."""
+    client = next((c for c in h["vpn"]["clients"] if c["cn"] == robot), None)
+    # A robot node advertises an XML-RPC URI on the robot's own hostname.
+    nodes = sorted(n for n, uri in h["master"]["nodes"].items() if urlparse(uri).hostname == robot)
+    return client, nodes
+
+
+def wait_connected(provider, robot: str, timeout: float) -> dict:
+    """Until the robot's VPN session is up and at least one of its nodes is on its clone's master."""
+    t0 = time.monotonic()
+    while True:
+        client, nodes = robot_link(health(provider, robot), robot)
+        if client and nodes:
+            return {"robot": robot, "seconds": round(time.monotonic() - t0, 2), "address": client["real_address"], "nodes": nodes}
+        if time.monotonic() - t0 > timeout:
+            raise CcrpError(f"robot {robot!r} did not connect to its clone within {timeout:.0f} s",
+                            hint=f"ccrp clone exec --robot {robot} -- journalctl -u ccrp-openvpn -n 50")
+        time.sleep(0.25)
 
 
 def fleet_status(fleet: Fleet, provider) -> list[dict]:
@@ -32,12 +55,10 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
         }
         if rec and rec.status == "running":
             h = health(provider, robot)
-            client = next((c for c in h["vpn"]["clients"] if c["cn"] == robot), None)
+            client, row["robot_nodes"] = robot_link(h, robot)
             row["vpn_connected"] = client is not None
             row["robot_address"] = client["real_address"] if client else None
             row["master_reachable"] = h["master"]["reachable"]
-            # A robot node advertises an XML-RPC URI on the robot's own hostname.
-            row["robot_nodes"] = sorted(n for n, uri in h["master"]["nodes"].items() if urlparse(uri).hostname == robot)
         return row
 
     robots = list(plan)

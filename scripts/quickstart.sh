@@ -14,11 +14,7 @@ $ccrp vpn init -i "$inv"
 $ccrp snapshot build -i "$inv" --if-missing >/dev/null
 $ccrp fleet up -i "$inv"
 for robot in nao1 nao2 turtlebot1; do
-  $ccrp robot sim -i "$inv" --robot "$robot"
-done
-echo "ccrp: waiting for the robots' nodes to register on their clones" >&2
-for _ in $(seq 1 30); do
-  [ "$($ccrp status -i "$inv" --json | grep -c '"vpn_connected": true')" = 3 ] && break
-  sleep 1
+  # --wait: until the robot's VPN is up and its node is registered on its clone's master
+  $ccrp robot sim -i "$inv" --robot "$robot" --wait 60
 done
 $ccrp status -i "$inv"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -33,6 +34,8 @@ def sim(
     inventory: options.Inventory,
     robot: options.Robot,
     stop: Annotated[bool, typer.Option("--stop", help="Stop and remove the simulated robot.")] = False,
+    wait: Annotated[float, typer.Option("--wait", help="Seconds to wait until the robot's VPN is up and its node is on its clone's master (0: don't wait).")] = 0,
+    as_json: options.Json = False,
 ) -> None:
     """Run a simulated robot (container on the public network) with exactly its edge bundle."""
     from ..providers import get_provider
@@ -55,5 +58,15 @@ def sim(
     from ..clones import snapshot_image
 
     files, endpoint = edge_files(fleet, robot)
+    t0 = time.monotonic()
     cid = sims.start(provider, robot, snapshot_image(state), files, static("edge/ccrp-demo-node"))
     output.info(f"simulated robot {robot!r} ({cid}) installed its bundle and dials {endpoint}")
+    result = {"robot": robot, "container": cid, "endpoint": endpoint}
+    if wait > 0:
+        from ..status import wait_connected
+
+        result |= wait_connected(provider, robot, wait)
+        result["seconds"] = round(time.monotonic() - t0, 2)  # from container start to node registered
+        output.info(f"robot {robot!r} connected in {result['seconds']:.1f} s; nodes on its clone: {', '.join(result['nodes'])}")
+    if as_json:
+        output.emit_json(result)

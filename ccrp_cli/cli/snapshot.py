@@ -22,19 +22,21 @@ def _show(records, as_json: bool) -> None:
 def build(
     inventory: options.Inventory,
     if_missing: Annotated[bool, typer.Option("--if-missing", help="Keep the recorded snapshot if its image exists.")] = False,
+    bare: Annotated[bool, typer.Option("--bare", help="Only systemd + cloud-init: clones install the recipe at boot (slow; for comparison).")] = False,
     as_json: options.Json = False,
 ) -> None:
     """Build the golden clone image from the recipe in snapshots/ and record it for new clones."""
     fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
-        current = (fleet.store.load_state().snapshot or {}).get("image")
-        if if_missing and current and provider.has_image(current):
+        recorded = fleet.store.load_state().snapshot or {}
+        current = recorded.get("image")
+        if if_missing and current and provider.has_image(current) and bool(recorded.get("bare")) == bare:
             output.info(f"snapshot {current} exists; new clones start from it")
             _show([provider.snapshot_record(provider.client.images.get(current))], as_json)
             return
         from .. import snapshots
 
-        record = snapshots.build(fleet, provider, output.info)
+        record = snapshots.build(fleet, provider, output.info, bare=bare)
     output.info(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
     _show([record], as_json)
 

@@ -17,6 +17,8 @@ from ...render.templates import render
 DEFAULT_BASE = "ccrp/base:bookworm"
 # Enough for systemd to boot and apt to work; the recipe adds the rest at `snapshot build`.
 BASE_PACKAGES = ["ca-certificates", "systemd", "systemd-sysv"]
+# A bare snapshot: just enough to boot cloud-init, which then installs the recipe at first boot.
+BARE_PACKAGES = ["cloud-init", "locales"]
 
 
 def build_base_image(client, tag: str, packages: list[str], progress=lambda msg: None) -> None:

@@ -177,7 +177,7 @@ class DockerProvider:
 
     def wait_ready(self, robot: str, timeout: float = 300) -> None:
         """Wait for cloud-init to finish inside the clone; fail with its own error detail."""
-        rc, out = self.exec(robot, ["timeout", str(int(timeout)), "cloud-init", "status", "--wait", "--long"])
+        rc, out = self.exec(robot, ["cloud-init", "status", "--wait", "--long"], timeout=timeout)
         if rc == 124:
             raise CcrpError(f"clone cri-{robot}: cloud-init did not finish within {timeout:.0f} s")
         if rc not in (0, 2):  # 2: finished with recoverable errors (cloud-init >= 23.4)
