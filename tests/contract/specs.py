@@ -1,0 +1,37 @@
+"""What every harness builds the same way: fleet "ct" with five robots, and CloneSpecs with the
+real rendered user-data of each clone (as clones.ensure_clone does)."""
+
+from __future__ import annotations
+
+from ccrp_cli.addressing import addresses
+from ccrp_cli.models.inventory import Inventory
+from ccrp_cli.providers.base import CloneSpec
+from ccrp_cli.retry import Backoff
+
+from .harness import FLEET
+
+ROBOTS = [f"robot{i}" for i in range(1, 6)]
+OPERATOR_CIDR = "198.51.100.0/24"
+# Tiny delays keep the throttling tests fast; the attempts stay as in production.
+FAST = Backoff(attempts=8, base=0.001, cap=0.01)
+
+
+def inventory(provider: dict) -> Inventory:
+    return Inventory.model_validate({
+        "fleet": FLEET,
+        "provider": provider,
+        "robots": [{"name": r, "exports": [f"/{r}/odom"]} for r in ROBOTS],
+    })
+
+
+def clone_spec(inv: Inventory, robot: str, index: int, image: str) -> CloneSpec:
+    from ccrp_cli.render import cloudinit
+    from ccrp_cli.render.view import CloneView
+
+    addr = addresses(inv, robot, index)
+    peers = tuple(addresses(inv, r, i) for i, r in enumerate(ROBOTS, 1) if r != robot)
+    view = CloneView(inv, inv.robot(robot), addr, peers)
+    return CloneSpec(
+        robot=robot, hostname=addr.clone_host, image=image, user_data=cloudinit.user_data(view, default_user=False),
+        instance_id=f"{inv.fleet}-{robot}-{index}", common_ip=str(addr.common_ip), vpn_subnet=str(addr.vpn_subnet),
+    )
