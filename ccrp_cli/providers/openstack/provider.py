@@ -1,0 +1,413 @@
+"""OpenStack provider: a clone is a Nova server on the fleet's common network (Neutron port
+with a fixed IP and the clone's VPN subnet as an allowed address pair) with a floating IP from
+the external network. Credentials come from clouds.yaml / OS_CLOUD through openstack.connect;
+ccrp never reads them. Every SDK call goes through self.api (retries in ccrp_cli/retry.py)."""
+
+from __future__ import annotations
+
+import base64
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+from ...errors import CcrpError
+from ...models.inventory import Inventory, OpenStackProvider as Settings
+from ...retry import across_zones
+from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource,
+                    SnapshotRecord, owner_labels)
+from ..cloud import CloudProvider
+from . import errors, network
+
+# teardown / gc order: what depends on something is deleted before it.
+ORDER = ("instance", "floating_ip", "port", "router", "subnet", "network", "security_group", "key_pair", "image")
+NEUTRON = {  # OwnedResource.kind -> Neutron collection (openstack.network proxy: list / get / delete)
+    "floating_ip": ("ips", "get_ip", "delete_ip"),
+    "port": ("ports", "get_port", "delete_port"),
+    "router": ("routers", "get_router", "delete_router"),
+    "subnet": ("subnets", "get_subnet", "delete_subnet"),
+    "network": ("networks", "get_network", "delete_network"),
+    "security_group": ("security_groups", "get_security_group", "delete_security_group"),
+}
+
+
+def _connect(cloud: str):
+    try:
+        import openstack
+    except ImportError:
+        raise CcrpError("openstacksdk is not installed", hint="pip install 'ccrp[openstack]'") from None
+    from openstack.exceptions import ConfigException
+
+    try:
+        return openstack.connect(cloud=cloud)
+    except ConfigException as exc:
+        raise CcrpError(f"cloud {cloud!r} is not configured: {errors.message_of(exc)}",
+                        hint="add it to clouds.yaml (or set OS_CLOUD / OS_CLIENT_CONFIG_FILE)") from None
+
+
+class OpenStackProvider(CloudProvider):
+    kind = "openstack"
+    poll_interval = 2.0  # seconds between status checks of a booting server / saving image
+    boot_timeout = 900
+    image_timeout = 1800
+
+    def __init__(self, inv: Inventory, workdir: Path) -> None:
+        super().__init__(inv, workdir)
+        self.settings: Settings = inv.provider  # type: ignore[assignment]
+        self.conn = _connect(self.settings.cloud)
+        self._lock = threading.Lock()
+        self._cache: dict[str, object] = {}  # shared lookups (network, flavor...) for parallel clones
+
+    # -- names, tags, listings ------------------------------------------------------------------
+    def name(self, *parts: str) -> str:
+        return "-".join(("ccrp", self.fleet, *parts))
+
+    def server_name(self, robot: str, role: str = "clone") -> str:
+        return self.name("cri" if role == "clone" else role, robot)
+
+    def tags(self, role: str, robot: str | None = None) -> list[str]:
+        return [f"{k}={v}" for k, v in owner_labels(self.fleet, role, robot).items()]
+
+    def classify_error(self, exc: BaseException):
+        return errors.classify(exc)
+
+    def listing(self, what: str, fn, **query) -> list:
+        """A list call (the SDK returns a lazy generator: the requests happen inside api())."""
+        return self.api(f"list {what}", lambda: list(fn(**query)))
+
+    def owned(self, collection: str, role: str | None = None, robot: str | None = None) -> list:
+        """Neutron resources carrying this fleet's tags (all of them must match)."""
+        tags = [f"{LABEL_MANAGED}=true", f"{LABEL_FLEET}={self.fleet}"]
+        tags += [f"{LABEL_ROLE}={role}"] if role else []
+        tags += [f"{LABEL_ROBOT}={robot}"] if robot else []
+        method = {"security_groups": "security_groups", "fips": "ips"}.get(collection, collection)
+        return self.listing(collection, getattr(self.conn.network, method), tags=",".join(tags))
+
+    def _is_owned(self, labels: dict | None, robot: str | None = None) -> bool:
+        labels = labels or {}
+        return (labels.get(LABEL_MANAGED) == "true" and labels.get(LABEL_FLEET) == self.fleet
+                and (robot is None or labels.get(LABEL_ROBOT) == robot))
+
+    def servers(self, robot: str | None = None) -> list:
+        """This fleet's servers: Nova has no idempotency token, so name AND metadata identify them."""
+        pattern = f"^{self.name()}-"
+        found = self.listing("servers", self.conn.compute.servers, name=pattern)
+        return [s for s in found if s.name.startswith(pattern[1:]) and self._is_owned(s.metadata, robot)]
+
+    def _server(self, robot: str, role: str | None = None):
+        found = [s for s in self.servers(robot) if role is None or s.metadata.get(LABEL_ROLE) == role]
+        if len(found) > 1:
+            raise CcrpError(f"robot {robot!r} has {len(found)} servers on cloud {self.settings.cloud!r}",
+                            hint=f"delete the extra ones: `ccrp clone delete --robot {robot}` then recreate")
+        return found[0] if found else None
+
+    def _running_server(self, robot: str):
+        server = self._server(robot)
+        if server is None:
+            raise CcrpError(f"robot {robot!r} has no clone on cloud {self.settings.cloud!r}",
+                            hint=f"ccrp clone create --robot {robot}")
+        return server
+
+    def _cached(self, key: str, make):
+        with self._lock:
+            if key not in self._cache:
+                self._cache[key] = make()
+            return self._cache[key]
+
+    @contextmanager
+    def _errors(self, what: str):
+        """SDK failures leave a public method as one-line CcrpErrors with a hint."""
+        try:
+            yield
+        except CcrpError:
+            raise
+        except Exception as exc:
+            if not errors.is_sdk_error(exc):
+                raise
+            raise errors.to_ccrp(what, self.settings.cloud, exc) from None
+
+    # -- bootstrap ------------------------------------------------------------------------------
+    def bootstrap(self) -> None:
+        with self._errors(f"bootstrap of fleet {self.fleet}"):
+            ext = network.external_network(self)
+            net, subnet = network.common_network(self, create=True)
+            if not self.settings.network:  # a named network is the operator's, already routed
+                network.router(self, subnet, ext)
+            sg = network.security_group(self)
+            network.key_pair(self)
+            with self._lock:
+                self._cache.update(ext=ext, net=(net, subnet), sg=sg)
+
+    def _fleet_resources(self):
+        ext = self._cached("ext", lambda: network.external_network(self))
+        net, subnet = self._cached("net", lambda: network.common_network(self, create=False))
+        sg = self._cached("sg", lambda: next(iter(self.owned("security_groups", "network")), None))
+        if sg is None:
+            raise CcrpError(f"fleet {self.fleet!r} has no security group yet", hint="run `ccrp fleet up`")
+        return ext, net, subnet, sg
+
+    # -- clones ---------------------------------------------------------------------------------
+    def run_instance(self, spec: CloneSpec) -> CloneRecord:
+        """Create the clone or reuse what exists of it; roll back only what this attempt created."""
+        from ...render.limits import fit_user_data
+
+        payload, _gzipped = fit_user_data("openstack", spec.user_data)  # cloud-init inflates gzip itself
+        user_data = base64.b64encode(payload).decode()
+        created: list[tuple[str, object]] = []
+        with self._errors(f"clone of {spec.robot}"):
+            try:
+                ext, net, subnet, sg = self._fleet_resources()
+                server = self._server(spec.robot, spec.role)
+                port = self._port(spec, server, net, subnet, sg, created)
+                if server is None:
+                    server = across_zones(self._zones(spec.robot), lambda z: self._boot(spec, port, user_data, z, created),
+                                          classify=self.classify_error, what=f"server for {spec.robot}")
+                fip = self._floating_ip(spec.robot, port, ext, created)
+            except BaseException as exc:
+                left = self._rollback(created)
+                if left and isinstance(exc, CcrpError):
+                    exc.message += f" (rollback left {', '.join(left)}: `ccrp gc` removes them)"
+                raise
+        return CloneRecord(robot=spec.robot, provider_id=server.id, status=server.status or "BUILD",
+                           public_ip=fip.floating_ip_address, common_ip=port.fixed_ips[0]["ip_address"],
+                           created=any(kind == "instance" for kind, _ in created))
+
+    def _zones(self, robot: str) -> list[str]:
+        pinned = getattr(self.inv.robot(robot), "zone", None)
+        return [pinned] if pinned else (self.settings.zones or [""])  # "": Nova picks the zone
+
+    def _port(self, spec: CloneSpec, server, net, subnet, sg, created: list):
+        """The clone's port on the common network: its fixed IP, and the clone's VPN subnet as an
+        allowed address pair (so other clones route to its robot through it)."""
+        mine = self.owned("ports", spec.role, spec.robot)
+        port = next((p for p in mine if server is not None and p.device_id == server.id), None) or \
+            next((p for p in mine if not p.device_id), None)  # left by an attempt that died before the server
+        if port is not None:
+            return port
+        pairs = [{"ip_address": spec.vpn_subnet}] if spec.vpn_subnet else []
+        port = self.api("create port", self.conn.network.create_port, name=self.server_name(spec.robot, spec.role),
+                        network_id=net.id, fixed_ips=[{"subnet_id": subnet.id, "ip_address": spec.common_ip}],
+                        allowed_address_pairs=pairs, security_group_ids=[sg.id], tags=self.tags(spec.role, spec.robot))
+        created.append(("port", port))
+        return port
+
+    def _boot(self, spec: CloneSpec, port, user_data: str, zone: str, created: list):
+        """One server in one zone, until ACTIVE. A server the scheduler could not place goes to
+        ERROR: delete it and raise ServerFault so across_zones tries the next zone."""
+        flavor_name = getattr(self.inv.robot(spec.robot), "instance_type", None) or self.settings.flavor
+        flavor = self._cached(f"flavor:{flavor_name}", lambda: self._find("flavor", flavor_name, self.conn.compute.find_flavor,
+                                                                          "provider.flavor: `openstack flavor list`"))
+        image = self._find("image", spec.image, self.conn.image.find_image, "ccrp snapshot list / ccrp snapshot build")
+        extra = {"availability_zone": zone} if zone else {}
+        server = self.api("create server", self.conn.compute.create_server, name=self.server_name(spec.robot, spec.role),
+                          image_id=image.id, flavor_id=flavor.id, networks=[{"port": port.id}], user_data=user_data,
+                          config_drive=True, key_name=self.name(), metadata=owner_labels(self.fleet, spec.role, spec.robot),
+                          **extra)
+        created.append(("instance", server))
+        from openstack.exceptions import ResourceFailure
+
+        try:
+            return self.api("wait for server", self.conn.compute.wait_for_server, server, status="ACTIVE",
+                            failures=["ERROR"], interval=self.poll_interval, wait=self.boot_timeout)
+        except ResourceFailure:
+            failed = self.api("get server", self.conn.compute.get_server, server.id)
+            fault = (failed.fault or {}).get("message") or "no fault reported"
+            self._delete_server(server)
+            created.remove(("instance", server))
+            raise errors.ServerFault(f"server {server.name} failed in zone {zone or 'default'}: {fault}") from None
+
+    def _find(self, what: str, name_or_id: str, fn, hint: str):
+        found = self.api(f"find {what}", fn, name_or_id, ignore_missing=True)
+        if found is None:
+            raise CcrpError(f"{what} {name_or_id!r} not found on cloud {self.settings.cloud!r}", hint=hint)
+        return found
+
+    def _floating_ip(self, robot: str, port, ext, created: list):
+        attached = self.listing("floating IPs", self.conn.network.ips, port_id=port.id)
+        if attached:
+            return attached[0]
+        free = next((f for f in self.owned("fips", None, robot) if not f.port_id), None)
+        if free is not None:  # allocated by an attempt that died before attaching it
+            return self.api("attach floating IP", self.conn.network.update_ip, free, port_id=port.id)
+        fip = self.api("create floating IP", self.conn.network.create_ip, floating_network_id=ext.id, port_id=port.id,
+                       tags=self.tags("clone", robot), description=f"ccrp fleet {self.fleet}: clone of {robot}")
+        created.append(("floating_ip", fip))
+        return fip
+
+    def _rollback(self, created: list) -> list[str]:
+        """Delete what this attempt created, newest first; what could not go is reported."""
+        left = []
+        for kind, res in reversed(created):
+            try:
+                self._delete(OwnedResource(kind=kind, id=res.id, name=res.name or ""), wait=True)
+            except Exception:  # noqa: BLE001 - best effort: report, never mask the real failure
+                left.append(f"{kind} {res.id}")
+        return left
+
+    def _delete_server(self, server) -> None:
+        """Delete a server (a Server or an id) and wait until Nova has let go of its port."""
+        from openstack.compute.v2.server import Server
+
+        server_id = getattr(server, "id", server)
+        self.api("delete server", self.conn.compute.delete_server, server_id, ignore_missing=True)
+        self.api("wait for deletion", self.conn.compute.wait_for_delete, Server(id=server_id),
+                 interval=self.poll_interval, wait=self.boot_timeout)
+
+    def _record(self, server) -> CloneRecord:
+        public = common = None
+        for addrs in (server.addresses or {}).values():
+            for a in addrs:
+                if a.get("OS-EXT-IPS:type") == "floating":
+                    public = a["addr"]
+                elif a.get("OS-EXT-IPS:type") == "fixed":
+                    common = a["addr"]
+        return CloneRecord(robot=server.metadata.get(LABEL_ROBOT, ""), provider_id=server.id, status=server.status,
+                           public_ip=public, common_ip=common)
+
+    def query(self) -> dict[str, CloneRecord]:
+        with self._errors("list clones"):
+            return {r.robot: r for r in (self._record(s) for s in self.servers()
+                                         if s.metadata.get(LABEL_ROLE) == "clone")}
+
+    def terminate(self, robot: str) -> bool:
+        """The robot's server(s), floating IP and port: owned ones only."""
+        with self._errors(f"delete clone of {robot}"):
+            servers = self.servers(robot)
+            for server in servers:
+                self._delete_server(server)
+            for kind, collection in (("floating_ip", "fips"), ("port", "ports")):
+                for res in self.owned(collection, None, robot):
+                    self._delete(OwnedResource(kind=kind, id=res.id, name=res.name or "", robot=robot))
+            return bool(servers)
+
+    def console_output(self, robot: str) -> str:
+        with self._errors(f"console of {robot}"):
+            server = self._running_server(robot)
+            out = self.api("console output", self.conn.compute.get_server_console_output, server)
+            return (out or {}).get("output") or ""
+
+    # -- snapshots ------------------------------------------------------------------------------
+    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
+        """A Glance image of the clone's server, with the labels as properties and tags."""
+        labels = owner_labels(self.fleet, "snapshot", robot)
+        with self._errors(f"snapshot of {robot}"):
+            server = self._running_server(robot)
+            image = self.api("create server image", self.conn.compute.create_server_image, server, name, metadata=labels)
+            try:
+                for tag in self.tags("snapshot", robot):
+                    self.api("tag image", self.conn.image.add_tag, image, tag)
+                image = self.api("wait for image", self.conn.image.wait_for_status, image, status="active",
+                                 failures=["killed", "deleted", "deactivated"], interval=self.poll_interval,
+                                 wait=self.image_timeout)
+            except BaseException:
+                self._rollback([("image", image)])
+                raise
+            return self._snapshot_record(image)
+
+    def _snapshot_record(self, image) -> SnapshotRecord:
+        props = image.properties or {}
+        return SnapshotRecord(id=image.id, name=image.name or "", created=(image.created_at or "")[:19],
+                              source=props.get(LABEL_ROBOT) or "build",
+                              size_mb=round(image.size / 1e6, 1) if image.size else None)
+
+    def _images(self) -> list:
+        found = self.listing("images", self.conn.image.images, tag=f"{LABEL_FLEET}={self.fleet}")
+        return [i for i in found if self._is_owned(i.properties)]
+
+    def list_snapshots(self) -> list[SnapshotRecord]:
+        with self._errors("list snapshots"):
+            return sorted((self._snapshot_record(i) for i in self._images()), key=lambda s: s.created)
+
+    def delete_snapshot(self, snapshot_id: str) -> None:
+        with self._errors(f"delete snapshot {snapshot_id}"):
+            image = self.api("find image", self.conn.image.find_image, snapshot_id, ignore_missing=True)
+            if image is None:
+                raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list")
+            if not self._is_owned(image.properties):
+                raise CcrpError(f"image {snapshot_id} is not a snapshot of fleet {self.fleet!r}")
+            self.api("delete image", self.conn.image.delete_image, image)
+
+    # -- whole fleet, gc ------------------------------------------------------------------------
+    def list_owned(self) -> list[OwnedResource]:
+        """Everything carrying the fleet's labels, in deletion order."""
+        with self._errors("list owned resources"):
+            found = [OwnedResource(kind="instance", id=s.id, name=s.name, robot=s.metadata.get(LABEL_ROBOT))
+                     for s in self.servers()]
+            for kind, (collection, _get, _delete) in NEUTRON.items():
+                for res in self.owned("fips" if collection == "ips" else collection):
+                    robot = next((t.split("=", 1)[1] for t in res.tags if t.startswith(f"{LABEL_ROBOT}=")), None)
+                    name = res.name if kind != "floating_ip" else res.floating_ip_address
+                    found.append(OwnedResource(kind=kind, id=res.id, name=name or "", robot=robot))
+            kp = self.api("find key pair", self.conn.compute.find_keypair, self.name())
+            if kp is not None and network.same_key(kp.public_key, self.operator_public_key()):
+                found.append(OwnedResource(kind="key_pair", id=kp.name, name=kp.name))
+            found += [OwnedResource(kind="image", id=i.id, name=i.name or "", robot=i.properties.get(LABEL_ROBOT))
+                      for i in self._images()]
+            return sorted(found, key=lambda r: ORDER.index(r.kind))
+
+    def delete_owned(self, resource: OwnedResource) -> None:
+        """Delete one resource after checking, on the cloud, that it is this fleet's."""
+        with self._errors(f"delete {resource.kind} {resource.id}"):
+            if resource.kind == "instance":
+                server = self.api("get server", self.conn.compute.get_server, resource.id)
+                owned = self._is_owned(server.metadata)
+            elif resource.kind in NEUTRON:
+                getter = getattr(self.conn.network, NEUTRON[resource.kind][1])
+                labels = dict(t.split("=", 1) for t in self.api(f"get {resource.kind}", getter, resource.id).tags if "=" in t)
+                owned = self._is_owned(labels)
+            elif resource.kind == "key_pair":
+                kp = self.api("find key pair", self.conn.compute.find_keypair, resource.id)
+                owned = kp is not None and resource.id == self.name() and network.same_key(kp.public_key, self.operator_public_key())
+            elif resource.kind == "image":
+                return self.delete_snapshot(resource.id)
+            else:
+                raise CcrpError(f"unknown resource kind {resource.kind!r}")
+            if not owned:
+                raise CcrpError(f"{resource.kind} {resource.id} is not fleet {self.fleet!r}'s; not deleting it")
+            self._delete(resource, wait=True)
+
+    def _delete(self, resource: OwnedResource, wait: bool = True) -> None:
+        kind = resource.kind
+        if kind == "instance":
+            if wait:
+                return self._delete_server(resource.id)
+            return self.api("delete server", self.conn.compute.delete_server, resource.id, ignore_missing=True)
+        if kind == "key_pair":
+            return self.api("delete key pair", self.conn.compute.delete_keypair, resource.id, ignore_missing=True)
+        if kind == "image":
+            return self.api("delete image", self.conn.image.delete_image, resource.id, ignore_missing=True)
+        if kind == "router":  # Neutron refuses to delete a router that still has interfaces
+            for subnet_id in network.router_subnets(self, resource):
+                self.api("remove router interface", self.conn.network.remove_interface_from_router, resource.id,
+                         subnet_id=subnet_id)
+        delete = getattr(self.conn.network, NEUTRON[kind][2])
+        self.api(f"delete {kind}", delete, resource.id, ignore_missing=True)
+
+    def teardown(self) -> list[str]:
+        """Every owned resource but the snapshots (they outlive the fleet's clones), servers first."""
+        with self._errors(f"teardown of fleet {self.fleet}"):
+            doomed = [r for r in self.list_owned() if r.kind != "image"]
+            servers = [r for r in doomed if r.kind == "instance"]
+            for r in servers:  # all deletions first, then one wait each: servers go in parallel
+                self._delete(r, wait=False)
+            for r in servers:
+                self._delete_server(r)
+            for r in doomed:
+                if r.kind != "instance":
+                    self._delete(r)
+            with self._lock:
+                self._cache.clear()
+            return [f"{r.kind} {r.name or r.id}" for r in doomed]
+
+    # -- doctor ---------------------------------------------------------------------------------
+    def check_credentials(self) -> str:
+        """Authenticate (a token from Keystone): what `ccrp doctor` reports."""
+        with self._errors(f"cloud {self.settings.cloud}"):
+            self.api("authenticate", self.conn.authorize)
+            return f"cloud {self.settings.cloud!r}: authenticated, project {self.conn.current_project_id}"
+
+    def quotas(self) -> dict[str, tuple[int, int]]:
+        """(used, limit) of the compute quotas a fleet consumes."""
+        with self._errors("compute limits"):
+            a = self.api("compute limits", self.conn.compute.get_limits).absolute
+            return {"instances": (a.instances_used, a.instances), "cores": (a.total_cores_used, a.total_cores),
+                    "ram_mb": (a.total_ram_used, a.total_ram)}

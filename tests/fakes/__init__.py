@@ -1,0 +1,1 @@
+"""In-memory fakes of cloud APIs for the provider tests."""
