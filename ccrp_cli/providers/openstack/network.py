@@ -16,7 +16,7 @@ ROUTER_INTERFACE = "network:router_interface"
 
 def external_network(p: "OpenStackProvider"):
     name = p.settings.external_network
-    net = p.api("find external network", p.conn.network.find_network, name)
+    net = p.find("external network", p.conn.network.find_network, name)
     if net is None or not net.is_router_external:
         raise CcrpError(f"external network {name!r} not found on cloud {p.settings.cloud!r}",
                         hint="set provider.external_network to one of `openstack network list --external`")
@@ -27,7 +27,7 @@ def common_network(p: "OpenStackProvider", create: bool):
     """(network, subnet) of the common network: the inventory's named one, or the fleet's own."""
     cidr = str(p.inv.common.cidr)
     if p.settings.network:
-        net = p.api("find common network", p.conn.network.find_network, p.settings.network)
+        net = p.find("common network", p.conn.network.find_network, p.settings.network)
         if net is None:
             raise CcrpError(f"network {p.settings.network!r} (provider.network) not found on cloud {p.settings.cloud!r}",
                             hint="create it, or drop provider.network to let ccrp create one")
@@ -55,7 +55,8 @@ def router(p: "OpenStackProvider", subnet, ext) -> None:
         r = p.api("create router", p.conn.network.create_router, name=p.name("router"), tags=p.tags("network"),
                   external_gateway_info={"network_id": ext.id})
     if subnet.id not in router_subnets(p, r):
-        p.api("add router interface", p.conn.network.add_interface_to_router, r, subnet_id=subnet.id)
+        # positional: the keyword is subnet_id in openstacksdk 3, subnet in 4
+        p.api("add router interface", p.conn.network.add_interface_to_router, r, subnet.id)
 
 
 def router_subnets(p: "OpenStackProvider", r) -> list[str]:
@@ -93,7 +94,7 @@ def security_group(p: "OpenStackProvider"):
 def key_pair(p: "OpenStackProvider") -> str:
     """The operator's key pair (Nova key pairs carry no tags: the name and key identify it)."""
     name, public = p.name(), p.operator_public_key()
-    kp = p.api("find key pair", p.conn.compute.find_keypair, name)
+    kp = p.find("key pair", p.conn.compute.find_keypair, name)
     if kp is not None and not same_key(kp.public_key, public):
         raise CcrpError(f"key pair {name!r} exists on cloud {p.settings.cloud!r} with another key",
                         hint="delete it (`openstack keypair delete`) if it is a stale ccrp key, or rename the fleet")

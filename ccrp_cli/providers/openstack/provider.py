@@ -215,8 +215,17 @@ class OpenStackProvider(CloudProvider):
             created.remove(("instance", server))
             raise errors.ServerFault(f"server {server.name} failed in zone {zone or 'default'}: {fault}") from None
 
+    def find(self, what: str, fn, name_or_id: str):
+        """A find_* call; None when the cloud has no such resource."""
+        from openstack.exceptions import NotFoundException
+
+        try:
+            return self.api(f"find {what}", fn, name_or_id, ignore_missing=False)
+        except NotFoundException:
+            return None
+
     def _find(self, what: str, name_or_id: str, fn, hint: str):
-        found = self.api(f"find {what}", fn, name_or_id, ignore_missing=True)
+        found = self.find(what, fn, name_or_id)
         if found is None:
             raise CcrpError(f"{what} {name_or_id!r} not found on cloud {self.settings.cloud!r}", hint=hint)
         return found
@@ -319,7 +328,7 @@ class OpenStackProvider(CloudProvider):
 
     def delete_snapshot(self, snapshot_id: str) -> None:
         with self._errors(f"delete snapshot {snapshot_id}"):
-            image = self.api("find image", self.conn.image.find_image, snapshot_id, ignore_missing=True)
+            image = self.find("image", self.conn.image.find_image, snapshot_id)
             if image is None:
                 raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list")
             if not self._is_owned(image.properties):
@@ -337,7 +346,7 @@ class OpenStackProvider(CloudProvider):
                     robot = next((t.split("=", 1)[1] for t in res.tags if t.startswith(f"{LABEL_ROBOT}=")), None)
                     name = res.name if kind != "floating_ip" else res.floating_ip_address
                     found.append(OwnedResource(kind=kind, id=res.id, name=name or "", robot=robot))
-            kp = self.api("find key pair", self.conn.compute.find_keypair, self.name())
+            kp = self.find("key pair", self.conn.compute.find_keypair, self.name())
             if kp is not None and network.same_key(kp.public_key, self.operator_public_key()):
                 found.append(OwnedResource(kind="key_pair", id=kp.name, name=kp.name))
             found += [OwnedResource(kind="image", id=i.id, name=i.name or "", robot=i.properties.get(LABEL_ROBOT))
@@ -355,7 +364,7 @@ class OpenStackProvider(CloudProvider):
                 labels = dict(t.split("=", 1) for t in self.api(f"get {resource.kind}", getter, resource.id).tags if "=" in t)
                 owned = self._is_owned(labels)
             elif resource.kind == "key_pair":
-                kp = self.api("find key pair", self.conn.compute.find_keypair, resource.id)
+                kp = self.find("key pair", self.conn.compute.find_keypair, resource.id)
                 owned = kp is not None and resource.id == self.name() and network.same_key(kp.public_key, self.operator_public_key())
             elif resource.kind == "image":
                 return self.delete_snapshot(resource.id)
@@ -377,8 +386,8 @@ class OpenStackProvider(CloudProvider):
             return self.api("delete image", self.conn.image.delete_image, resource.id, ignore_missing=True)
         if kind == "router":  # Neutron refuses to delete a router that still has interfaces
             for subnet_id in network.router_subnets(self, resource):
-                self.api("remove router interface", self.conn.network.remove_interface_from_router, resource.id,
-                         subnet_id=subnet_id)
+                # positional: the keyword is subnet_id in openstacksdk 3, subnet in 4
+                self.api("remove router interface", self.conn.network.remove_interface_from_router, resource.id, subnet_id)
         delete = getattr(self.conn.network, NEUTRON[kind][2])
         self.api(f"delete {kind}", delete, resource.id, ignore_missing=True)
 

@@ -1,0 +1,249 @@
+"""OpenStack provider against the in-memory OpenStack (openstacksdk's own request building and
+parsing, requests-mock transport): what only OpenStack has — ports with allowed address pairs,
+floating IPs, Nova's scheduler faults, quota errors, no idempotency token."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import sys
+
+import pytest
+
+from ccrp_cli.errors import CcrpError
+from ccrp_cli.providers.base import LABEL_FLEET, LABEL_ROBOT
+from ccrp_cli.retry import ErrorClass
+from tests.contract.harness_openstack import make_harness
+from tests.fakes.openstack_cloud import NO_VALID_HOST
+
+pytest.importorskip("openstack")
+
+
+@pytest.fixture
+def h(tmp_path):
+    with make_harness(tmp_path) as harness:
+        yield harness
+
+
+def ports_of(h, robot):
+    return [p for p in h.fake.ports.values() if f"{LABEL_ROBOT}={robot}" in p["tags"]]
+
+
+def fips_of(h, robot):
+    return [f for f in h.fake.fips.values() if f"{LABEL_ROBOT}={robot}" in f["tags"]]
+
+
+def test_port_carries_fixed_ip_vpn_subnet_pair_and_fleet_security_group(h):
+    spec = h.spec("robot1", 1)
+    rec = h.provider.run_instance(spec)
+    [port] = ports_of(h, "robot1")
+    assert port["fixed_ips"][0]["ip_address"] == spec.common_ip == rec.common_ip
+    assert port["allowed_address_pairs"] == [{"ip_address": spec.vpn_subnet}]
+    assert port["device_id"] == rec.provider_id
+    [sg] = [s for s in h.fake.sgs.values() if f"{LABEL_FLEET}=ct" in s["tags"]]
+    assert port["security_groups"] == [sg["id"]]
+    server = h.fake.servers[rec.provider_id]
+    assert server["metadata"] == {"ccrp-managed": "true", "ccrp-fleet": "ct", "ccrp-role": "clone", "ccrp-robot": "robot1"}
+    assert server["config_drive"] and server["key_name"] == "ccrp-ct"
+    assert h.user_data_sent("robot1") == spec.user_data.encode()
+
+
+def test_floating_ip_is_tagged_and_released_on_terminate(h):
+    rec = h.provider.run_instance(h.spec("robot1", 1))
+    [fip] = fips_of(h, "robot1")
+    assert rec.public_ip == fip["floating_ip_address"]
+    assert {"ccrp-managed=true", "ccrp-fleet=ct", "ccrp-robot=robot1"} <= set(fip["tags"])
+    assert fip["port_id"] == ports_of(h, "robot1")[0]["id"]
+    assert h.provider.terminate("robot1") is True
+    assert fips_of(h, "robot1") == [] and ports_of(h, "robot1") == [] and h.instances_for("robot1") == 0
+    assert h.provider.terminate("robot1") is False  # nothing left: still fine
+
+
+def test_zone_fallback_after_no_valid_host(h):
+    h.fake.no_capacity = {"az1"}
+    rec = h.provider.run_instance(h.spec("robot1", 1))
+    server = h.fake.servers[rec.provider_id]
+    assert server["OS-EXT-AZ:availability_zone"] == "az2" and server["status"] == "ACTIVE"
+    assert rec.created and h.instances_for("robot1") == 1  # the ERROR server in az1 was deleted
+    assert len(ports_of(h, "robot1")) == 1  # the port was kept for the next zone
+    assert h.api_calls()["POST compute:/v2.1/servers"] == 2
+
+
+def test_no_capacity_anywhere_rolls_back_and_says_so(h):
+    h.fake.no_capacity = {"az1", "az2"}
+    before = h.owned_ids()
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(h.spec("robot1", 1))
+    assert "no capacity in zones az1, az2" in err.value.one_line() and "provider.zones" in err.value.one_line()
+    assert h.owned_ids() == before
+
+
+def test_quota_is_one_line_error_with_hint_and_nothing_left(h):
+    h.fake.max_instances = 0
+    before = h.owned_ids()
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(h.spec("robot1", 1))
+    line = err.value.one_line()
+    assert "\n" not in line and "quota exceeded" in line and "Quota exceeded for instances" in line
+    assert "openstack quota show" in err.value.hint
+    assert h.owned_ids() == before
+    assert h.api_calls()["POST compute:/v2.1/servers"] == 1  # REGION class: no retry, no other zone
+
+
+def test_lookup_by_name_and_metadata_prevents_duplicates_after_a_crash(h, tmp_path):
+    """ccrp created the server and died before saving state: the next run (a new process, a new
+    provider) finds it by name + metadata instead of booting a second one."""
+    from ccrp_cli.providers.openstack import OpenStackProvider
+
+    first = h.provider.run_instance(h.spec("robot1", 1))
+    again = OpenStackProvider(h.provider.inv, tmp_path / "store")
+    again.backoff, again.poll_interval = h.provider.backoff, 0.01
+    rec = again.run_instance(h.spec("robot1", 1))
+    assert rec.provider_id == first.provider_id and not rec.created
+    assert rec.public_ip == first.public_ip
+    assert h.instances_for("robot1") == 1 and len(ports_of(h, "robot1")) == 1 and len(fips_of(h, "robot1")) == 1
+
+
+def test_a_port_left_by_a_crash_before_the_server_is_reused(h):
+    spec = h.spec("robot1", 1)
+    p = h.provider
+    ext, net, subnet, sg = p._fleet_resources()
+    p._port(spec, None, net, subnet, sg, [])  # the attempt died right after this
+    rec = p.run_instance(spec)
+    assert rec.created and len(ports_of(h, "robot1")) == 1 and rec.common_ip == spec.common_ip
+
+
+def test_foreign_server_with_the_clone_name_is_neither_reused_nor_deleted(h):
+    foreign = h.add_foreign()  # named ccrp-ct-cri-robot1, another fleet's metadata
+    rec = h.provider.run_instance(h.spec("robot1", 1))
+    assert rec.provider_id != foreign and rec.created
+    h.provider.teardown()
+    assert h.exists(foreign)
+    with pytest.raises(CcrpError, match="not fleet 'ct'"):
+        from ccrp_cli.providers.base import OwnedResource
+
+        h.provider.delete_owned(OwnedResource(kind="instance", id=foreign))
+
+
+def test_failure_after_server_rolls_back_server_port_and_keeps_reused(h):
+    h.provider.run_instance(h.spec("robot1", 1))
+    before = h.owned_ids()
+    h.fail_create_after_instance("robot2")
+    with pytest.raises(CcrpError, match="not reachable"):
+        h.provider.run_instance(h.spec("robot2", 2))
+    assert h.owned_ids() == before and h.instances_for("robot2") == 0
+
+
+def test_teardown_in_dependency_order_keeps_snapshots(h):
+    h.provider.run_instance(h.spec("robot1", 1))
+    snap = h.provider.create_snapshot("robot1", "golden")
+    removed = h.provider.teardown()
+    kinds = [r.split()[0] for r in removed]
+    assert kinds == ["instance", "floating_ip", "port", "router", "subnet", "network", "security_group", "key_pair"]
+    assert h.owned_ids() == {snap.id}
+    assert [s.id for s in h.provider.list_snapshots()] == [snap.id]
+    h.provider.delete_snapshot(snap.id)
+    assert h.owned_ids() == set()
+
+
+def test_security_group_drops_a_stale_operator_rule(h):
+    inv = h.provider.inv
+    h.provider.inv = inv.model_copy(update={"provider": inv.provider.model_copy(update={"operator_cidr": "192.0.2.0/24"})})
+    h.provider.settings = h.provider.inv.provider
+    h.provider.bootstrap()
+    assert h.public_ingress() == {("udp", 1194, "0.0.0.0/0"), ("tcp", 22, "192.0.2.0/24")}
+
+
+def test_key_pair_with_another_key_is_not_taken_over(h):
+    h.fake.keypairs["ccrp-ct"]["public_key"] = "ssh-ed25519 AAAAsomeoneelse x"
+    with pytest.raises(CcrpError, match="exists .* with another key"):
+        h.provider.bootstrap()
+
+
+def test_user_data_over_the_limit_fails_before_any_call(h):
+    calls = sum(h.api_calls().values())
+    noise = base64.b64encode(os.urandom(300_000)).decode()  # does not gzip below the limit
+    spec = h.spec("robot1", 1).model_copy(update={"user_data": "#cloud-config\n# " + noise})
+    with pytest.raises(CcrpError, match="over openstack's limit"):
+        h.provider.run_instance(spec)
+    assert sum(h.api_calls().values()) == calls
+
+
+def test_gc_lists_a_leak_and_deletes_it(h):
+    leak = h.add_leak()
+    found = [r for r in h.provider.list_owned() if r.id == leak]
+    assert [(r.kind, r.robot) for r in found] == [("floating_ip", "ghost")]
+    h.provider.delete_owned(found[0])
+    assert not h.exists(leak)
+
+
+def test_throttling_converges(h):
+    h.throttle(0.3)
+    rec = h.provider.run_instance(h.spec("robot1", 1))
+    h.throttle(0)
+    assert rec.created and h.instances_for("robot1") == 1
+
+
+def test_classify_error():
+    import requests
+    from keystoneauth1 import exceptions as ksa
+    from openstack import exceptions as exc
+
+    from ccrp_cli.providers.openstack import errors
+
+    def http(status, message):  # the exception openstacksdk raises for such a response
+        response = requests.Response()
+        response.status_code, response.reason = status, "x"
+        response.headers["Content-Type"] = "application/json"
+        response._content = json.dumps({"error": {"code": status, "message": message}}).encode()
+        try:
+            exc.raise_from_response(response)
+        except exc.HttpException as err:
+            return err
+
+    assert errors.classify(http(429, "Rate limit")) is ErrorClass.RETRYABLE
+    assert errors.classify(http(503, "Service Unavailable")) is ErrorClass.RETRYABLE
+    assert errors.classify(ksa.ConnectFailure("reset")) is ErrorClass.RETRYABLE
+    assert errors.classify(http(403, "Quota exceeded for instances")) is ErrorClass.REGION
+    assert errors.classify(http(409, "Quota exceeded for resources: ['floatingip'].")) is ErrorClass.REGION
+    assert errors.classify(errors.ServerFault(NO_VALID_HOST)) is ErrorClass.ZONE
+    assert errors.classify(errors.ServerFault("Build of instance aborted: image broken")) is ErrorClass.FATAL
+    assert errors.classify(http(400, "Invalid key_name provided.")) is ErrorClass.FATAL
+    assert errors.classify(http(401, "The request you have made requires authentication.")) is ErrorClass.FATAL
+
+
+def test_console_output_and_credentials(h):
+    h.provider.run_instance(h.spec("robot1", 1))
+    assert "BEGIN SSH HOST KEY FINGERPRINTS" in h.provider.console_output("robot1")
+    assert "authenticated" in h.provider.check_credentials()
+    assert h.provider.quotas()["instances"] == (1, 100)
+
+
+def test_missing_sdk_names_the_extra(monkeypatch, tmp_path):
+    from ccrp_cli.providers.openstack.provider import _connect
+
+    monkeypatch.setitem(sys.modules, "openstack", None)
+    with pytest.raises(CcrpError) as err:
+        _connect("x")
+    assert err.value.hint == "pip install 'ccrp[openstack]'"
+
+
+def test_unknown_cloud_is_one_line(tmp_path, monkeypatch):
+    from ccrp_cli.providers.openstack.provider import _connect
+
+    (tmp_path / "clouds.yaml").write_text("clouds: {}\n")
+    monkeypatch.setenv("OS_CLIENT_CONFIG_FILE", str(tmp_path / "clouds.yaml"))
+    with pytest.raises(CcrpError, match="cloud 'nowhere' is not configured"):
+        _connect("nowhere")
+
+
+def test_parallel_clones_get_their_own_servers_ports_and_addresses(h):
+    from concurrent.futures import ThreadPoolExecutor
+
+    robots = [f"robot{i}" for i in range(1, 6)]
+    with ThreadPoolExecutor(max_workers=5) as pool:
+        recs = list(pool.map(lambda ir: h.provider.run_instance(h.spec(ir[1], ir[0])), enumerate(robots, 1)))
+    assert all(r.created for r in recs) and len({r.provider_id for r in recs}) == 5
+    assert len({r.public_ip for r in recs}) == 5 and len({r.common_ip for r in recs}) == 5
+    assert set(h.provider.query()) == set(robots)
