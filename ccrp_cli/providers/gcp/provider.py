@@ -1,0 +1,514 @@
+"""GCE clones: one VM per robot on the fleet's VPC subnetwork (the common network), reachable
+from the internet only on the VPN port (and SSH from the operator's CIDR), forwarding its robot's
+VPN subnet through a route whose next hop is the instance.
+
+Every SDK call goes through self.api (retry.call, the SDK's own retry switched off), every
+mutation waits for its ExtendedOperation, and every SDK failure leaves as a one-line CcrpError.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import logging
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+from ...errors import CcrpError
+from ...models.inventory import Inventory
+from ...render.limits import fit_user_data
+from ...retry import ErrorClass, across_zones
+from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord, owner_labels
+from ..cloud import SSH_USER, CloudProvider
+from .clients import Clients, sdk
+from .errors import as_ccrp_error, classify
+from .ownership import Names, description_marks, gce_name, request_id, same_resource, tail
+
+log = logging.getLogger(__name__)
+
+# Teardown order: what points at an instance goes first, the network it lives on last.
+TEARDOWN_ORDER = ("route", "instance", "firewall", "subnetwork", "network")
+SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images do
+
+
+class GcpProvider(CloudProvider):
+    kind = "gcp"
+    op_timeout = 600.0  # seconds to wait for one GCE operation
+
+    def __init__(self, inv: Inventory, workdir: Path, clients: Clients | None = None) -> None:
+        super().__init__(inv, workdir)
+        self.compute = sdk()
+        from google.api_core import exceptions
+
+        self._NotFound, self._Conflict = exceptions.NotFound, exceptions.Conflict
+        self.settings = inv.provider
+        self.project, self.region = self.settings.project, self.settings.region  # type: ignore[union-attr]
+        self.names = Names(self.fleet)
+        self._clients = clients
+        self._lock = threading.Lock()
+        self._network_link: str | None = None
+        self._subnet_link: str | None = None
+
+    @property
+    def c(self) -> Clients:
+        with self._lock:  # clones are created from parallel threads
+            if self._clients is None:
+                self._clients = Clients.connect()
+            return self._clients
+
+    # -- calls ------------------------------------------------------------------------------
+    def classify_error(self, exc: BaseException) -> ErrorClass:
+        return classify(exc)
+
+    def _call(self, what: str, method, *args, **kwargs):
+        """One SDK call through retry.call; the SDK's own retry is off so there is one policy."""
+        return self.api(what, method, *args, retry=None, **kwargs)
+
+    def _list(self, what: str, method, *args, **kwargs) -> list:
+        """Every item of a paged list: later pages are fetched inside the retried call too."""
+        return self.api(what, lambda: list(method(*args, retry=None, **kwargs)))
+
+    def _get(self, what: str, method, **kwargs):
+        try:
+            return self._call(f"get {what}", method, **kwargs)
+        except self._NotFound:
+            return None
+
+    def _wait(self, op, what: str) -> None:
+        """Until the operation is done. result() raises its error (classified by the caller);
+        warnings (e.g. a disk larger than its image) are logged, not fatal."""
+        op.result(timeout=self.op_timeout)
+        if op.error_code:  # result() raises for these; kept as a guard if a future SDK does not
+            raise CcrpError(f"{what}: operation {op.name} failed ({op.error_code} {op.error_message})")
+        for warning in getattr(op, "warnings", None) or []:
+            log.warning("%s: %s %s", what, warning.code, warning.message)
+
+    def _mutate(self, what: str, method, *args, **kwargs):
+        op = self._call(what, method, *args, **kwargs)
+        self._wait(op, what)
+        return op
+
+    def _insert(self, what: str, method, **kwargs) -> bool:
+        """Create a resource named by the caller; False when it exists already (a retried call
+        that had gone through, or a parallel run)."""
+        try:
+            self._mutate(f"create {what}", method, **kwargs)
+            return True
+        except self._Conflict:
+            return False
+
+    def _delete(self, what: str, method, **kwargs):
+        """Start a delete; None when the resource is already gone. The caller waits."""
+        try:
+            return self._call(f"delete {what}", method, **kwargs)
+        except self._NotFound:
+            return None
+
+    def _wait_all(self, ops: list[tuple[str, object]]) -> None:
+        for what, op in ops:
+            if op is not None:
+                try:
+                    self._wait(op, what)
+                except self._NotFound:
+                    pass
+
+    @contextmanager
+    def _errors(self, what: str):
+        """SDK failures leave the provider as one-line CcrpErrors with a hint."""
+        try:
+            yield
+        except CcrpError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - every SDK error class
+            raise as_ccrp_error(what, exc, self.region) from exc
+
+    # -- network ----------------------------------------------------------------------------
+    def bootstrap(self) -> None:
+        """The VPC network and its subnetwork in the region (the common network), and the
+        fleet's firewall rules: create what is missing, reuse what exists."""
+        with self._errors(f"bootstrap of fleet {self.fleet} in {self.project}"):
+            network = self._ensure_network()
+            self._subnet_link = self._ensure_subnetwork(network)
+            for rule in self.firewall_rules(network.self_link):
+                self._ensure_firewall(rule)
+            self._network_link = network.self_link
+
+    def _ensure_network(self):
+        named = self.settings.network  # type: ignore[union-attr]
+        name = named or self.names.network
+        network = self._get("network", self.c.networks.get, project=self.project, network=name)
+        if network is None and named:
+            raise CcrpError(f"network {named!r} not found in project {self.project}",
+                            hint="create it, or drop provider.network so ccrp creates its own")
+        if network is None:
+            self._insert(f"network {name}", self.c.networks.insert, project=self.project,
+                         network_resource=self.compute.Network(
+                             name=name, auto_create_subnetworks=False, description=self.names.describe("network")))
+            network = self._call("get network", self.c.networks.get, project=self.project, network=name)
+        elif not named and not self.names.owns_unlabelled(network.name, network.description):
+            raise CcrpError(f"network {name} exists but is not ccrp's", hint="name it in provider.network to use it")
+        return network
+
+    def _ensure_subnetwork(self, network) -> str:
+        """A subnetwork of `network` in the region holding common.cidr: an existing one of a named
+        network, else ccrp's own."""
+        cidr = self.inv.common.cidr
+        subnets = self._list("subnetworks", self.c.subnetworks.list, project=self.project, region=self.region)
+        for subnet in subnets:
+            if tail(subnet.network) == network.name and cidr.subnet_of(ipaddress.ip_network(subnet.ip_cidr_range)):
+                return subnet.self_link
+        name = self.names.subnetwork
+        self._insert(f"subnetwork {name}", self.c.subnetworks.insert, project=self.project, region=self.region,
+                     subnetwork_resource=self.compute.Subnetwork(
+                         name=name, network=network.self_link, ip_cidr_range=str(cidr), region=self.region,
+                         description=self.names.describe("network")))
+        subnet = self._call("get subnetwork", self.c.subnetworks.get, project=self.project, region=self.region,
+                            subnetwork=name)
+        if subnet.ip_cidr_range != str(cidr) or not self.names.owns_unlabelled(subnet.name, subnet.description):
+            raise CcrpError(f"subnetwork {name} exists with range {subnet.ip_cidr_range}, not common.cidr {cidr}",
+                            hint="delete it (`ccrp fleet down`) or set common.cidr to its range")
+        return subnet.self_link
+
+    def firewall_rules(self, network_link: str) -> list:
+        """Ingress to the fleet's instances (network tag ccrp-<fleet>): the VPN port from anywhere,
+        SSH from the operator's CIDR, anything from the common network. Nothing else: GCE denies
+        other ingress by default, so the ROS master port is never public."""
+        vpn, fw = self.inv.vpn, self.compute
+
+        def rule(purpose: str, protocol: str, ports: list[str], source: str):
+            return fw.Firewall(
+                name=self.names.firewall(purpose), network=network_link, direction="INGRESS", priority=1000,
+                allowed=[fw.Allowed(I_p_protocol=protocol, ports=ports)], source_ranges=[source],
+                target_tags=[self.names.tag], description=self.names.describe("network"))
+
+        return [
+            rule("vpn", vpn.proto, [str(vpn.port)], "0.0.0.0/0"),
+            rule("ssh", "tcp", ["22"], str(self.settings.operator_cidr)),  # type: ignore[union-attr]
+            rule("common", "all", [], str(self.inv.common.cidr)),
+        ]
+
+    @staticmethod
+    def _rule_shape(rule) -> tuple:
+        return (rule.direction, tail(rule.network), sorted(rule.source_ranges), sorted(rule.target_tags),
+                sorted((a.I_p_protocol, tuple(a.ports)) for a in rule.allowed))
+
+    def _ensure_firewall(self, want) -> None:
+        have = self._get("firewall", self.c.firewalls.get, project=self.project, firewall=want.name)
+        if have is None:
+            if self._insert(f"firewall {want.name}", self.c.firewalls.insert, project=self.project,
+                            firewall_resource=want):
+                return
+            have = self._call("get firewall", self.c.firewalls.get, project=self.project, firewall=want.name)
+        if not self.names.owns_unlabelled(have.name, have.description):
+            raise CcrpError(f"firewall rule {want.name} exists but is not ccrp's", hint="rename or remove it")
+        if self._rule_shape(have) != self._rule_shape(want):  # e.g. vpn.port or operator_cidr changed
+            self._mutate(f"update firewall {want.name}", self.c.firewalls.update, project=self.project,
+                         firewall=want.name, firewall_resource=want)
+
+    def _subnetwork(self) -> str:
+        """The common subnetwork's link (bootstrap resolves it; another process may not have)."""
+        if self._subnet_link is None:
+            self.bootstrap()
+        return self._subnet_link  # type: ignore[return-value]
+
+    # -- instances --------------------------------------------------------------------------
+    def _zones(self, robot: str) -> list[str]:
+        override = self.inv.robot(robot)
+        return [override.zone] if override and override.zone else list(self.settings.zones)  # type: ignore[union-attr]
+
+    def _machine_type(self, robot: str) -> str:
+        override = self.inv.robot(robot)
+        return (override and override.instance_type) or self.settings.machine_type  # type: ignore[union-attr]
+
+    def _instances(self, role: str | None = None, robot: str | None = None) -> list[tuple[str, object]]:
+        """(zone, instance) of every instance carrying the fleet's labels (and role / robot)."""
+        request = self.compute.AggregatedListInstancesRequest(
+            project=self.project, filter=self.names.label_filter(role, robot))
+        found = []
+        for _scope, scoped in self._list("instances", self.c.instances.aggregated_list, request=request):
+            for inst in scoped.instances:
+                labels = dict(inst.labels)
+                if self.names.owns_labels(labels) and (robot is None or labels.get(LABEL_ROBOT) == robot):
+                    found.append((tail(inst.zone), inst))
+        return found
+
+    def _find(self, robot: str):
+        return next(iter(self._instances("clone", robot)), None)
+
+    def _image_source(self, image: str) -> dict:
+        """spec.image as the insert request needs it: a machine image, an image URL/path
+        (projects/ubuntu-os-cloud/global/images/family/ubuntu-2004-lts) or an image of the project."""
+        if image.startswith("machineImages/"):
+            return {"source_machine_image": f"projects/{self.project}/global/{image}"}
+        if "/machineImages/" in image:
+            return {"source_machine_image": image}
+        return {"source_image": image if "/" in image else f"projects/{self.project}/global/images/{image}"}
+
+    def instance_resource(self, spec: CloneSpec, zone: str, user_data: str):
+        c = self.compute
+        labels = owner_labels(self.fleet, "clone", spec.robot)
+        source = self._image_source(spec.image)
+        disks = [] if "source_machine_image" in source else [c.AttachedDisk(
+            boot=True, auto_delete=True,
+            initialize_params=c.AttachedDiskInitializeParams(source_image=source["source_image"], labels=labels))]
+        metadata = {
+            "user-data": user_data,
+            "ssh-keys": f"{SSH_USER}:{self.operator_public_key()}",
+            # ssh-keys metadata is ignored under OS Login; ccrp logs in with its own fleet key.
+            "enable-oslogin": "FALSE",
+        }
+        return c.Instance(
+            name=self.names.instance(spec.robot),
+            machine_type=f"zones/{zone}/machineTypes/{self._machine_type(spec.robot)}",
+            labels=labels,
+            tags=c.Tags(items=[self.names.tag]),
+            can_ip_forward=True,  # the clone routes its robot's VPN subnet
+            metadata=c.Metadata(items=[c.Items(key=k, value=v) for k, v in metadata.items()]),
+            network_interfaces=[c.NetworkInterface(
+                subnetwork=self._subnetwork(), network_i_p=spec.common_ip,
+                access_configs=[c.AccessConfig(name="public", type_="ONE_TO_ONE_NAT")])],
+            disks=disks,
+            # No service account: nothing on a clone needs the GCP API.
+        )
+
+    def run_instance(self, spec: CloneSpec) -> CloneRecord:
+        """Create (or reuse) the robot's clone and its VPN route; on failure after the instance
+        exists, delete what this attempt created."""
+        payload, _ = fit_user_data("gcp", spec.user_data)  # before any API call
+        name = self.names.instance(spec.robot)
+        with self._errors(f"clone {name}"):
+            found = self._find(spec.robot)
+            if found is not None:
+                return self._complete(spec, found[0], found[1].name, created=False)
+            zone, inst = across_zones(self._zones(spec.robot),
+                                      lambda z: self._create_instance(spec, z, payload.decode()),
+                                      classify=self.classify_error, what=f"create clone {name}")
+            return self._complete(spec, zone, inst, created=True)
+
+    def _create_instance(self, spec: CloneSpec, zone: str, user_data: str):
+        resource = self.instance_resource(spec, zone, user_data)
+        source = self._image_source(spec.image)
+        request = self.compute.InsertInstanceRequest(
+            project=self.project, zone=zone, instance_resource=resource,
+            source_machine_image=source.get("source_machine_image", ""),
+            request_id=request_id(spec.instance_id, zone))
+        what = f"create instance {resource.name} in {zone}"
+        op = self._mutate(what, self.c.instances.insert, request=request)
+        try:
+            if self._get("instance", self.c.instances.get, project=self.project, zone=zone,
+                         instance=resource.name) is None:
+                # GCE remembers request ids for about an hour: a clone deleted and re-created in
+                # that time gets the earlier (done) operation back and no instance. Send it again
+                # under an id derived from that operation (still stable if this call is retried).
+                request.request_id = request_id(spec.instance_id, zone, op.name)
+                self._mutate(what, self.c.instances.insert, request=request)
+        except BaseException:
+            self._rollback(spec.robot, zone, resource.name, route=False)
+            raise
+        return zone, resource.name
+
+    def _complete(self, spec: CloneSpec, zone: str, name: str, created: bool) -> CloneRecord:
+        route_created = False
+        try:
+            inst = self._call("get instance", self.c.instances.get, project=self.project, zone=zone, instance=name)
+            if inst.status in ("TERMINATED", "STOPPED", "SUSPENDED"):  # a reused clone someone stopped
+                self._mutate(f"start instance {name}", self.c.instances.start, project=self.project, zone=zone,
+                             instance=name)
+            route_created = self._ensure_route(spec, inst)
+            inst = self._call("get instance", self.c.instances.get, project=self.project, zone=zone, instance=name)
+        except BaseException as exc:
+            self._rollback(spec.robot, zone, name if created else None, route_created)
+            if isinstance(exc, Exception):
+                raise as_ccrp_error(f"clone {name}", exc, self.region) from exc
+            raise
+        return self._record(spec.robot, inst, created)
+
+    def _rollback(self, robot: str, zone: str, instance: str | None, route: bool) -> None:
+        """Delete what one failed attempt created; a failure here is logged, never masks the cause."""
+        try:
+            ops = []
+            if route:
+                ops.append(("delete route", self._delete("route", self.c.routes.delete, project=self.project,
+                                                         route=self.names.route(robot))))
+            if instance:
+                ops.append(("delete instance", self._delete("instance", self.c.instances.delete, project=self.project,
+                                                            zone=zone, instance=instance)))
+            self._wait_all(ops)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("rollback of clone %s incomplete (%s); `ccrp gc` will find the leftovers", robot, exc)
+
+    def _ensure_route(self, spec: CloneSpec, inst) -> bool:
+        """Route the robot's VPN subnet to its clone; True when this call created the route."""
+        if not spec.vpn_subnet:
+            return False
+        name = self.names.route(spec.robot)
+        have = self._get("route", self.c.routes.get, project=self.project, route=name)
+        if have is not None:
+            if not self.names.owns_unlabelled(have.name, have.description):
+                raise CcrpError(f"route {name} exists but is not ccrp's", hint="rename or remove it")
+            if have.dest_range == spec.vpn_subnet and same_resource(have.next_hop_instance, inst.self_link):
+                return False
+            # Left by an earlier clone of this robot (other zone / subnet): replace it.
+            self._wait_all([("delete route", self._delete("route", self.c.routes.delete, project=self.project,
+                                                           route=name))])
+        route = self.compute.Route(
+            name=name, network=inst.network_interfaces[0].network, dest_range=spec.vpn_subnet,
+            next_hop_instance=inst.self_link, priority=1000, description=self.names.describe("route", spec.robot))
+        return self._insert(f"route {name}", self.c.routes.insert, project=self.project, route_resource=route)
+
+    def _record(self, robot: str, inst, created: bool = False) -> CloneRecord:
+        nic = inst.network_interfaces[0] if inst.network_interfaces else None
+        public = nic.access_configs[0].nat_i_p if nic and nic.access_configs else ""
+        return CloneRecord(robot=robot, provider_id=str(inst.id), status=inst.status, public_ip=public or None,
+                           common_ip=(nic.network_i_p if nic else "") or None, created=created)
+
+    def query(self) -> dict[str, CloneRecord]:
+        with self._errors("list clones"):
+            clones = ((dict(inst.labels).get(LABEL_ROBOT), inst) for _zone, inst in self._instances("clone"))
+            return {robot: self._record(robot, inst) for robot, inst in clones if robot}
+
+    def terminate(self, robot: str) -> bool:
+        """Delete the robot's clone and its route (owned only); False when there was no clone."""
+        with self._errors(f"delete clone of {robot}"):
+            route = self._get("route", self.c.routes.get, project=self.project, route=self.names.route(robot))
+            ops = []
+            if route is not None and self.names.owns_unlabelled(route.name, route.description):
+                ops.append(("delete route", self._delete("route", self.c.routes.delete, project=self.project,
+                                                         route=route.name)))
+            found = self._find(robot)
+            if found is not None:
+                zone, inst = found
+                ops.append(("delete instance", self._delete("instance", self.c.instances.delete,
+                                                            project=self.project, zone=zone, instance=inst.name)))
+            self._wait_all(ops)
+            return found is not None
+
+    def console_output(self, robot: str) -> str:
+        with self._errors(f"console of clone {robot}"):
+            zone, inst = self._require(robot)
+            out = self._call("get serial port output", self.c.instances.get_serial_port_output,
+                             project=self.project, zone=zone, instance=inst.name)
+            return out.contents
+
+    def _require(self, robot: str):
+        found = self._find(robot)
+        if found is None:
+            raise CcrpError(f"robot {robot!r} has no clone in fleet {self.fleet}", hint=f"ccrp clone create --robot {robot}")
+        return found
+
+    # -- snapshots --------------------------------------------------------------------------
+    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
+        """An image of the clone's boot disk (taken while it runs), labelled as the fleet's snapshot."""
+        with self._errors(f"snapshot of clone {robot}"):
+            _zone, inst = self._require(robot)
+            disk = next(d.source for d in inst.disks if d.boot)
+            image = self.compute.Image(name=gce_name(name), source_disk=disk,
+                                       labels=owner_labels(self.fleet, "snapshot", robot))
+            self._mutate(f"create image {image.name}", self.c.images.insert, request=self.compute.InsertImageRequest(
+                project=self.project, image_resource=image, force_create=True,
+                request_id=request_id(self.fleet, "image", image.name)))
+            return self._snapshot_record(self._call("get image", self.c.images.get, project=self.project,
+                                                    image=image.name))
+
+    @staticmethod
+    def _snapshot_record(image) -> SnapshotRecord:
+        return SnapshotRecord(
+            id=str(image.id), name=image.name, created=image.creation_timestamp[:19],
+            source=dict(image.labels).get(LABEL_ROBOT) or "build",
+            size_mb=round(image.archive_size_bytes / 1e6, 1) if image.archive_size_bytes else None)
+
+    def _images(self) -> list:
+        request = self.compute.ListImagesRequest(project=self.project, filter=self.names.label_filter("snapshot"))
+        return [i for i in self._list("images", self.c.images.list, request=request)
+                if self.names.owns_labels(i.labels)]
+
+    def list_snapshots(self) -> list[SnapshotRecord]:
+        with self._errors("list snapshots"):
+            return sorted((self._snapshot_record(i) for i in self._images()), key=lambda s: s.created)
+
+    def delete_snapshot(self, snapshot_id: str) -> None:
+        with self._errors(f"delete snapshot {snapshot_id}"):
+            image = next((i for i in self._images() if snapshot_id in (str(i.id), i.name)), None)
+            if image is None:
+                raise CcrpError(f"no snapshot {snapshot_id} of fleet {self.fleet} in {self.project}",
+                                hint="ccrp snapshot list")
+            self._wait_all([("delete image", self._delete("image", self.c.images.delete, project=self.project,
+                                                          image=image.name))])
+
+    # -- everything owned (fleet down, gc) --------------------------------------------------
+    def _owned(self) -> list[tuple[OwnedResource, str | None]]:
+        """(resource, zone) for everything carrying the fleet's marks."""
+        owned: list[tuple[OwnedResource, str | None]] = []
+        for zone, inst in self._instances():
+            owned.append((OwnedResource(kind="instance", id=str(inst.id), name=inst.name,
+                                        robot=dict(inst.labels).get(LABEL_ROBOT)), zone))
+        for image in self._images():
+            owned.append((OwnedResource(kind="image", id=str(image.id), name=image.name,
+                                        robot=dict(image.labels).get(LABEL_ROBOT)), None))
+        unlabelled = (
+            ("route", self.c.routes.list, {}),
+            ("firewall", self.c.firewalls.list, {}),
+            ("subnetwork", self.c.subnetworks.list, {"region": self.region}),
+            ("network", self.c.networks.list, {}),
+        )
+        for kind, method, where in unlabelled:
+            for item in self._list(f"{kind}s", method, project=self.project, **where):
+                if self.names.owns_unlabelled(item.name, item.description):
+                    robot = description_marks(item.description).get(LABEL_ROBOT)
+                    owned.append((OwnedResource(kind=kind, id=str(item.id), name=item.name, robot=robot), None))
+        return owned
+
+    def list_owned(self) -> list[OwnedResource]:
+        with self._errors("list owned resources"):
+            return [res for res, _zone in self._owned()]
+
+    def _start_delete(self, res: OwnedResource, zone: str | None):
+        where = {
+            "route": (self.c.routes.delete, {"route": res.name}),
+            "instance": (self.c.instances.delete, {"zone": zone, "instance": res.name}),
+            "firewall": (self.c.firewalls.delete, {"firewall": res.name}),
+            "subnetwork": (self.c.subnetworks.delete, {"region": self.region, "subnetwork": res.name}),
+            "network": (self.c.networks.delete, {"network": res.name}),
+            "image": (self.c.images.delete, {"image": res.name}),
+        }
+        method, args = where[res.kind]
+        return (f"delete {res.kind} {res.name}", self._delete(f"{res.kind} {res.name}", method,
+                                                              project=self.project, **args))
+
+    def delete_owned(self, resource: OwnedResource) -> None:
+        """Delete one owned resource; it is looked up again so nothing unowned is ever touched."""
+        with self._errors(f"delete {resource.kind} {resource.name}"):
+            match = next(((r, z) for r, z in self._owned() if (r.kind, r.id) == (resource.kind, resource.id)), None)
+            if match is None:
+                raise CcrpError(f"{resource.kind} {resource.name or resource.id} is not owned by fleet {self.fleet}")
+            self._wait_all([self._start_delete(*match)])
+
+    def teardown(self) -> list[str]:
+        """Delete everything the fleet owns except its snapshots, in dependency order; deletes of
+        one kind run together (a GCE delete takes tens of seconds)."""
+        removed: list[str] = []
+        with self._errors(f"teardown of fleet {self.fleet}"):
+            owned = self._owned()
+            for kind in TEARDOWN_ORDER:
+                batch = [(r, z) for r, z in owned if r.kind == kind]
+                self._wait_all([self._start_delete(r, z) for r, z in batch])
+                removed += [f"{r.kind} {r.name}" for r, _z in batch]
+        self._network_link = self._subnet_link = None
+        return removed
+
+    def leftovers(self) -> list[str]:
+        """What `fleet down` should have removed and did not."""
+        return [f"{r.kind} {r.name}" for r in self.list_owned() if r.kind not in SNAPSHOT_KINDS]
+
+    # -- doctor -----------------------------------------------------------------------------
+    def check_credentials(self) -> str:
+        """ADC resolve and one cheap read of the fleet's region."""
+        with self._errors(f"check access to project {self.project}"):
+            region = self._call("get region", self.c.regions.get, project=self.project, region=self.region)
+            return f"project {self.project}, region {region.name}: {region.status}"
+
+    def quotas(self) -> dict[str, tuple[float, float]]:
+        """Regional quotas: metric -> (usage, limit)."""
+        with self._errors(f"quotas of {self.region}"):
+            region = self._call("get region", self.c.regions.get, project=self.project, region=self.region)
+            return {q.metric: (q.usage, q.limit) for q in region.quotas}
