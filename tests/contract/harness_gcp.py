@@ -32,14 +32,13 @@ from ccrp_cli.providers.base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, Clo
 from ccrp_cli.providers.gcp import GcpProvider
 from ccrp_cli.providers.gcp.clients import Clients
 from ccrp_cli.providers.gcp.ownership import description_marks, tail
-from ccrp_cli.retry import Backoff
 
+from . import specs
 from .harness import FLEET
 
 PROJECT, REGION = "ccrp-test", "europe-west2"
 ZONES = [f"{REGION}-a", f"{REGION}-b", f"{REGION}-c"]
 BASE = "https://www.googleapis.com/compute/v1/"
-OPERATOR_CIDR = "203.0.113.0/24"
 PUBLIC_IMAGE = "projects/ubuntu-os-cloud/global/images/ubuntu-2004-focal-v20240307"
 PAGE = 3
 NAME = re.compile(r"^[a-z]([-a-z0-9]{0,61}[a-z0-9])?$")
@@ -62,13 +61,8 @@ class FakeOperation(ExtendedOperation):
 
 
 def inventory(zones: list[str] | None = None, **provider) -> Inventory:
-    return Inventory.model_validate({
-        "fleet": FLEET,
-        "provider": {"kind": "gcp", "project": PROJECT, "region": REGION, "zones": zones or ZONES[:2],
-                     "operator_cidr": OPERATOR_CIDR, **provider},
-        "vpn": {"port": 1194, "proto": "udp", "pool": "10.80.0.0/16"},
-        "common": {"cidr": "10.90.0.0/24"},
-    })
+    return specs.inventory({"kind": "gcp", "project": PROJECT, "region": REGION, "zones": zones or ZONES[:2],
+                            "operator_cidr": specs.OPERATOR_CIDR, **provider})
 
 
 def _copy(message):
@@ -260,7 +254,7 @@ class FakeProject:
                                    "available to fulfill the request.  Try a different zone, or try again later.")
         nic.network = subnet.network
         for access in nic.access_configs:
-            access.nat_i_p = f"198.51.100.{len(self.instances) % 250 + 2}"  # TEST-NET-2, never contacted
+            access.nat_i_p = f"192.0.2.{len(self.instances) % 250 + 2}"  # TEST-NET-1, never contacted
         inst.machine_type = self._link(inst.machine_type)
         boot[0].source = self._link(f"zones/{req.zone}/disks/{inst.name}")
         boot[0].initialize_params = c.AttachedDiskInitializeParams()  # GCE does not echo these
@@ -486,7 +480,7 @@ class FakeProject:
             yield "instance", str(inst.id), dict(inst.labels)
         for image in self.images.values():
             yield "image", str(image.id), dict(image.labels)
-        for kind, store in (("network", self.networks), ("subnetwork", self.subnetworks),
+        for kind, store in (("network", self.networks), ("subnet", self.subnetworks),
                             ("firewall", self.firewalls), ("route", self.routes)):
             for item in store.values():
                 yield kind, str(item.id), description_marks(item.description)
@@ -499,17 +493,10 @@ class GcpHarness:
         self.fake = fake or FakeProject()
         self.inv = inv or inventory()
         self.provider = GcpProvider(self.inv, tmp_path / "store", clients=self.fake.clients)
-        # Same policy as production, without the waiting: throttling tests stay fast.
-        self.provider.backoff = Backoff(attempts=8, base=0.001, cap=0.01)
+        self.provider.backoff = specs.FAST
 
     def spec(self, robot: str, index: int) -> CloneSpec:
-        return CloneSpec(
-            robot=robot, hostname=f"cri-{robot}", image=PUBLIC_IMAGE,
-            user_data=f"#cloud-config\nhostname: cri-{robot}\nruncmd:\n  - [echo, ccrp {robot} {index}]\n",
-            instance_id=f"{FLEET}-{robot}-{index}",
-            common_ip=str(self.inv.common.cidr.network_address + self.inv.common.first_host + index - 1),
-            vpn_subnet=str(list(self.inv.vpn.pool.subnets(new_prefix=self.inv.vpn.subnet_prefix))[index]),
-        )
+        return specs.clone_spec(self.inv, robot, index, PUBLIC_IMAGE)
 
     def fail_create_after_instance(self, robot: str) -> None:
         self.fake.fail_route_for.add(robot)  # the instance is up, its VPN route is refused

@@ -27,7 +27,7 @@ from .ownership import Names, description_marks, gce_name, request_id, same_reso
 log = logging.getLogger(__name__)
 
 # Teardown order: what points at an instance goes first, the network it lives on last.
-TEARDOWN_ORDER = ("route", "instance", "firewall", "subnetwork", "network")
+TEARDOWN_ORDER = ("route", "instance", "firewall", "subnet", "network")
 SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images do
 
 
@@ -448,7 +448,7 @@ class GcpProvider(CloudProvider):
         unlabelled = (
             ("route", self.c.routes.list, {}),
             ("firewall", self.c.firewalls.list, {}),
-            ("subnetwork", self.c.subnetworks.list, {"region": self.region}),
+            ("subnet", self.c.subnetworks.list, {"region": self.region}),
             ("network", self.c.networks.list, {}),
         )
         for kind, method, where in unlabelled:
@@ -467,7 +467,7 @@ class GcpProvider(CloudProvider):
             "route": (self.c.routes.delete, {"route": res.name}),
             "instance": (self.c.instances.delete, {"zone": zone, "instance": res.name}),
             "firewall": (self.c.firewalls.delete, {"firewall": res.name}),
-            "subnetwork": (self.c.subnetworks.delete, {"region": self.region, "subnetwork": res.name}),
+            "subnet": (self.c.subnetworks.delete, {"region": self.region, "subnetwork": res.name}),
             "network": (self.c.networks.delete, {"network": res.name}),
             "image": (self.c.images.delete, {"image": res.name}),
         }
