@@ -17,6 +17,7 @@ from __future__ import annotations
 import base64
 import ipaddress
 import json
+import os
 import re
 import threading
 import time
@@ -258,7 +259,7 @@ class FakeOpenStack:
                 server["status"] = "ACTIVE"
                 server["console"] = (
                     f"Cloud-init v. 22.4 running 'modules:final'\n-----BEGIN SSH HOST KEY FINGERPRINTS-----\n"
-                    f"256 SHA256:{uuid.uuid4().hex} root@{server['name']} (ED25519)\n"
+                    f"256 SHA256:{base64.b64encode(os.urandom(32)).decode().rstrip('=')} root@{server['name']} (ED25519)\n"
                     f"-----END SSH HOST KEY FINGERPRINTS-----\n")
         shown = {k: v for k, v in server.items() if k not in ("user_data", "console")}
         addresses: dict[str, list] = {}
@@ -283,6 +284,12 @@ class FakeOpenStack:
     def _server_action(self, server, body, context):
         if "os-getConsoleOutput" in body:
             return {"output": server["console"]}
+        if "os-start" in body or "os-stop" in body:
+            if server["status"] != ("SHUTOFF" if "os-start" in body else "ACTIVE"):
+                raise ApiError(409, f"Cannot '{next(iter(body))}' instance {server['id']} while it is {server['status']}")
+            server["status"] = "ACTIVE" if "os-start" in body else "SHUTOFF"
+            context.status_code = 202
+            return None
         if "createImage" in body:
             req = body["createImage"]
             image = self.add_image(req["name"], visibility="private", **(req.get("metadata") or {}))

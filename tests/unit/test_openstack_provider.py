@@ -247,3 +247,21 @@ def test_parallel_clones_get_their_own_servers_ports_and_addresses(h):
     assert all(r.created for r in recs) and len({r.provider_id for r in recs}) == 5
     assert len({r.public_ip for r in recs}) == 5 and len({r.common_ip for r in recs}) == 5
     assert set(h.provider.query()) == set(robots)
+
+
+def test_a_stopped_clone_is_started_and_an_errored_one_is_left_for_the_operator(h):
+    first = h.provider.run_instance(h.spec("robot1", 1))
+    h.fake.servers[first.provider_id]["status"] = "SHUTOFF"
+    rec = h.provider.run_instance(h.spec("robot1", 1))
+    assert rec.provider_id == first.provider_id and rec.status == "ACTIVE" and not rec.created
+    h.fake.servers[first.provider_id].update(status="ERROR", fault={"message": "disk failure"})
+    with pytest.raises(CcrpError, match="is in ERROR .disk failure"):
+        h.provider.run_instance(h.spec("robot1", 1))
+    assert h.exists(first.provider_id) and h.instances_for("robot1") == 1
+
+
+def test_console_fingerprints_parse_as_ssh_pins(h):
+    from ccrp_cli.transport.ssh import fingerprints_from_console
+
+    h.provider.run_instance(h.spec("robot1", 1))
+    assert len(fingerprints_from_console(h.provider.console_output("robot1"))) == 1

@@ -46,6 +46,10 @@ def classify(exc: BaseException) -> ErrorClass:
             return ErrorClass.RETRYABLE
     except ImportError:  # pragma: no cover - requests comes with openstacksdk
         pass
+    if "does not have any supported versions" in str(exc):
+        # Version discovery was throttled or failed (keystoneauth only logs that): the next
+        # attribute access discovers again. A cloud truly without the service fails after the retries.
+        return ErrorClass.RETRYABLE
     status = status_of(exc)
     text = f"{exc} {getattr(exc, 'details', '') or ''}"
     if status in RETRYABLE_STATUS and not CAPACITY.search(text):

@@ -16,7 +16,7 @@ from ...retry import across_zones
 from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource,
                     SnapshotRecord, owner_labels)
 from ..cloud import CloudProvider
-from . import errors, network
+from . import errors, shared
 
 # teardown / gc order: what depends on something is deleted before it.
 ORDER = ("instance", "floating_ip", "port", "router", "subnet", "network", "security_group", "key_pair", "image")
@@ -57,6 +57,19 @@ class OpenStackProvider(CloudProvider):
         self._lock = threading.Lock()
         self._cache: dict[str, object] = {}  # shared lookups (network, flavor...) for parallel clones
 
+    # -- services: the first use discovers versions over HTTP, so it is an API call too ---------
+    @property
+    def compute(self):
+        return self.api("compute service discovery", getattr, self.conn, "compute")
+
+    @property
+    def network(self):
+        return self.api("network service discovery", getattr, self.conn, "network")
+
+    @property
+    def image(self):
+        return self.api("image service discovery", getattr, self.conn, "image")
+
     # -- names, tags, listings ------------------------------------------------------------------
     def name(self, *parts: str) -> str:
         return "-".join(("ccrp", self.fleet, *parts))
@@ -80,7 +93,7 @@ class OpenStackProvider(CloudProvider):
         tags += [f"{LABEL_ROLE}={role}"] if role else []
         tags += [f"{LABEL_ROBOT}={robot}"] if robot else []
         method = {"security_groups": "security_groups", "fips": "ips"}.get(collection, collection)
-        return self.listing(collection, getattr(self.conn.network, method), tags=",".join(tags))
+        return self.listing(collection, getattr(self.network, method), tags=",".join(tags))
 
     def _is_owned(self, labels: dict | None, robot: str | None = None) -> bool:
         labels = labels or {}
@@ -90,7 +103,7 @@ class OpenStackProvider(CloudProvider):
     def servers(self, robot: str | None = None) -> list:
         """This fleet's servers: Nova has no idempotency token, so name AND metadata identify them."""
         pattern = f"^{self.name()}-"
-        found = self.listing("servers", self.conn.compute.servers, name=pattern)
+        found = self.listing("servers", self.compute.servers, name=pattern)
         return [s for s in found if s.name.startswith(pattern[1:]) and self._is_owned(s.metadata, robot)]
 
     def _server(self, robot: str, role: str | None = None):
@@ -128,18 +141,18 @@ class OpenStackProvider(CloudProvider):
     # -- bootstrap ------------------------------------------------------------------------------
     def bootstrap(self) -> None:
         with self._errors(f"bootstrap of fleet {self.fleet}"):
-            ext = network.external_network(self)
-            net, subnet = network.common_network(self, create=True)
+            ext = shared.external_network(self)
+            net, subnet = shared.common_network(self, create=True)
             if not self.settings.network:  # a named network is the operator's, already routed
-                network.router(self, subnet, ext)
-            sg = network.security_group(self)
-            network.key_pair(self)
+                shared.router(self, subnet, ext)
+            sg = shared.security_group(self)
+            shared.key_pair(self)
             with self._lock:
                 self._cache.update(ext=ext, net=(net, subnet), sg=sg)
 
     def _fleet_resources(self):
-        ext = self._cached("ext", lambda: network.external_network(self))
-        net, subnet = self._cached("net", lambda: network.common_network(self, create=False))
+        ext = self._cached("ext", lambda: shared.external_network(self))
+        net, subnet = self._cached("net", lambda: shared.common_network(self, create=False))
         sg = self._cached("sg", lambda: next(iter(self.owned("security_groups", "network")), None))
         if sg is None:
             raise CcrpError(f"fleet {self.fleet!r} has no security group yet", hint="run `ccrp fleet up`")
@@ -157,6 +170,8 @@ class OpenStackProvider(CloudProvider):
             try:
                 ext, net, subnet, sg = self._fleet_resources()
                 server = self._server(spec.robot, spec.role)
+                if server is not None:
+                    server = self._revive(server)
                 port = self._port(spec, server, net, subnet, sg, created)
                 if server is None:
                     server = across_zones(self._zones(spec.robot), lambda z: self._boot(spec, port, user_data, z, created),
@@ -171,6 +186,19 @@ class OpenStackProvider(CloudProvider):
                            public_ip=fip.floating_ip_address, common_ip=port.fixed_ips[0]["ip_address"],
                            created=any(kind == "instance" for kind, _ in created))
 
+    def _revive(self, server):
+        """A reused server must run: start a stopped one; an ERROR one is not ours to replace
+        silently (it may hold what the operator wants to look at)."""
+        if server.status == "ERROR":
+            fault = (server.fault or {}).get("message") or "no fault reported"
+            raise CcrpError(f"server {server.name} is in ERROR ({fault})",
+                            hint=f"ccrp clone delete --robot {server.metadata.get(LABEL_ROBOT)} and create it again")
+        if server.status == "SHUTOFF":
+            self.api("start server", self.compute.start_server, server)
+            server = self.api("wait for server", self.compute.wait_for_server, server, status="ACTIVE",
+                              failures=["ERROR"], interval=self.poll_interval, wait=self.boot_timeout)
+        return server
+
     def _zones(self, robot: str) -> list[str]:
         pinned = getattr(self.inv.robot(robot), "zone", None)
         return [pinned] if pinned else (self.settings.zones or [""])  # "": Nova picks the zone
@@ -184,7 +212,7 @@ class OpenStackProvider(CloudProvider):
         if port is not None:
             return port
         pairs = [{"ip_address": spec.vpn_subnet}] if spec.vpn_subnet else []
-        port = self.api("create port", self.conn.network.create_port, name=self.server_name(spec.robot, spec.role),
+        port = self.api("create port", self.network.create_port, name=self.server_name(spec.robot, spec.role),
                         network_id=net.id, fixed_ips=[{"subnet_id": subnet.id, "ip_address": spec.common_ip}],
                         allowed_address_pairs=pairs, security_group_ids=[sg.id], tags=self.tags(spec.role, spec.robot))
         created.append(("port", port))
@@ -194,11 +222,11 @@ class OpenStackProvider(CloudProvider):
         """One server in one zone, until ACTIVE. A server the scheduler could not place goes to
         ERROR: delete it and raise ServerFault so across_zones tries the next zone."""
         flavor_name = getattr(self.inv.robot(spec.robot), "instance_type", None) or self.settings.flavor
-        flavor = self._cached(f"flavor:{flavor_name}", lambda: self._find("flavor", flavor_name, self.conn.compute.find_flavor,
+        flavor = self._cached(f"flavor:{flavor_name}", lambda: self._find("flavor", flavor_name, self.compute.find_flavor,
                                                                           "provider.flavor: `openstack flavor list`"))
-        image = self._find("image", spec.image, self.conn.image.find_image, "ccrp snapshot list / ccrp snapshot build")
+        image = self._find("image", spec.image, self.image.find_image, "ccrp snapshot list / ccrp snapshot build")
         extra = {"availability_zone": zone} if zone else {}
-        server = self.api("create server", self.conn.compute.create_server, name=self.server_name(spec.robot, spec.role),
+        server = self.api("create server", self.compute.create_server, name=self.server_name(spec.robot, spec.role),
                           image_id=image.id, flavor_id=flavor.id, networks=[{"port": port.id}], user_data=user_data,
                           config_drive=True, key_name=self.name(), metadata=owner_labels(self.fleet, spec.role, spec.robot),
                           **extra)
@@ -206,10 +234,10 @@ class OpenStackProvider(CloudProvider):
         from openstack.exceptions import ResourceFailure
 
         try:
-            return self.api("wait for server", self.conn.compute.wait_for_server, server, status="ACTIVE",
+            return self.api("wait for server", self.compute.wait_for_server, server, status="ACTIVE",
                             failures=["ERROR"], interval=self.poll_interval, wait=self.boot_timeout)
         except ResourceFailure:
-            failed = self.api("get server", self.conn.compute.get_server, server.id)
+            failed = self.api("get server", self.compute.get_server, server.id)
             fault = (failed.fault or {}).get("message") or "no fault reported"
             self._delete_server(server)
             created.remove(("instance", server))
@@ -231,13 +259,13 @@ class OpenStackProvider(CloudProvider):
         return found
 
     def _floating_ip(self, robot: str, port, ext, created: list):
-        attached = self.listing("floating IPs", self.conn.network.ips, port_id=port.id)
+        attached = self.listing("floating IPs", self.network.ips, port_id=port.id)
         if attached:
             return attached[0]
         free = next((f for f in self.owned("fips", None, robot) if not f.port_id), None)
         if free is not None:  # allocated by an attempt that died before attaching it
-            return self.api("attach floating IP", self.conn.network.update_ip, free, port_id=port.id)
-        fip = self.api("create floating IP", self.conn.network.create_ip, floating_network_id=ext.id, port_id=port.id,
+            return self.api("attach floating IP", self.network.update_ip, free, port_id=port.id)
+        fip = self.api("create floating IP", self.network.create_ip, floating_network_id=ext.id, port_id=port.id,
                        tags=self.tags("clone", robot), description=f"ccrp fleet {self.fleet}: clone of {robot}")
         created.append(("floating_ip", fip))
         return fip
@@ -257,8 +285,8 @@ class OpenStackProvider(CloudProvider):
         from openstack.compute.v2.server import Server
 
         server_id = getattr(server, "id", server)
-        self.api("delete server", self.conn.compute.delete_server, server_id, ignore_missing=True)
-        self.api("wait for deletion", self.conn.compute.wait_for_delete, Server(id=server_id),
+        self.api("delete server", self.compute.delete_server, server_id, ignore_missing=True)
+        self.api("wait for deletion", self.compute.wait_for_delete, Server(id=server_id),
                  interval=self.poll_interval, wait=self.boot_timeout)
 
     def _record(self, server) -> CloneRecord:
@@ -291,7 +319,7 @@ class OpenStackProvider(CloudProvider):
     def console_output(self, robot: str) -> str:
         with self._errors(f"console of {robot}"):
             server = self._running_server(robot)
-            out = self.api("console output", self.conn.compute.get_server_console_output, server)
+            out = self.api("console output", self.compute.get_server_console_output, server)
             return (out or {}).get("output") or ""
 
     # -- snapshots ------------------------------------------------------------------------------
@@ -300,11 +328,11 @@ class OpenStackProvider(CloudProvider):
         labels = owner_labels(self.fleet, "snapshot", robot)
         with self._errors(f"snapshot of {robot}"):
             server = self._running_server(robot)
-            image = self.api("create server image", self.conn.compute.create_server_image, server, name, metadata=labels)
+            image = self.api("create server image", self.compute.create_server_image, server, name, metadata=labels)
             try:
                 for tag in self.tags("snapshot", robot):
-                    self.api("tag image", self.conn.image.add_tag, image, tag)
-                image = self.api("wait for image", self.conn.image.wait_for_status, image, status="active",
+                    self.api("tag image", self.image.add_tag, image, tag)
+                image = self.api("wait for image", self.image.wait_for_status, image, status="active",
                                  failures=["killed", "deleted", "deactivated"], interval=self.poll_interval,
                                  wait=self.image_timeout)
             except BaseException:
@@ -319,7 +347,7 @@ class OpenStackProvider(CloudProvider):
                               size_mb=round(image.size / 1e6, 1) if image.size else None)
 
     def _images(self) -> list:
-        found = self.listing("images", self.conn.image.images, tag=f"{LABEL_FLEET}={self.fleet}")
+        found = self.listing("images", self.image.images, tag=f"{LABEL_FLEET}={self.fleet}")
         return [i for i in found if self._is_owned(i.properties)]
 
     def list_snapshots(self) -> list[SnapshotRecord]:
@@ -328,12 +356,12 @@ class OpenStackProvider(CloudProvider):
 
     def delete_snapshot(self, snapshot_id: str) -> None:
         with self._errors(f"delete snapshot {snapshot_id}"):
-            image = self.find("image", self.conn.image.find_image, snapshot_id)
+            image = self.find("image", self.image.find_image, snapshot_id)
             if image is None:
                 raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list")
             if not self._is_owned(image.properties):
                 raise CcrpError(f"image {snapshot_id} is not a snapshot of fleet {self.fleet!r}")
-            self.api("delete image", self.conn.image.delete_image, image)
+            self.api("delete image", self.image.delete_image, image)
 
     # -- whole fleet, gc ------------------------------------------------------------------------
     def list_owned(self) -> list[OwnedResource]:
@@ -346,8 +374,8 @@ class OpenStackProvider(CloudProvider):
                     robot = next((t.split("=", 1)[1] for t in res.tags if t.startswith(f"{LABEL_ROBOT}=")), None)
                     name = res.name if kind != "floating_ip" else res.floating_ip_address
                     found.append(OwnedResource(kind=kind, id=res.id, name=name or "", robot=robot))
-            kp = self.find("key pair", self.conn.compute.find_keypair, self.name())
-            if kp is not None and network.same_key(kp.public_key, self.operator_public_key()):
+            kp = self.find("key pair", self.compute.find_keypair, self.name())
+            if kp is not None and shared.same_key(kp.public_key, self.operator_public_key()):
                 found.append(OwnedResource(kind="key_pair", id=kp.name, name=kp.name))
             found += [OwnedResource(kind="image", id=i.id, name=i.name or "", robot=i.properties.get(LABEL_ROBOT))
                       for i in self._images()]
@@ -357,15 +385,15 @@ class OpenStackProvider(CloudProvider):
         """Delete one resource after checking, on the cloud, that it is this fleet's."""
         with self._errors(f"delete {resource.kind} {resource.id}"):
             if resource.kind == "instance":
-                server = self.api("get server", self.conn.compute.get_server, resource.id)
+                server = self.api("get server", self.compute.get_server, resource.id)
                 owned = self._is_owned(server.metadata)
             elif resource.kind in NEUTRON:
-                getter = getattr(self.conn.network, NEUTRON[resource.kind][1])
+                getter = getattr(self.network, NEUTRON[resource.kind][1])
                 labels = dict(t.split("=", 1) for t in self.api(f"get {resource.kind}", getter, resource.id).tags if "=" in t)
                 owned = self._is_owned(labels)
             elif resource.kind == "key_pair":
-                kp = self.find("key pair", self.conn.compute.find_keypair, resource.id)
-                owned = kp is not None and resource.id == self.name() and network.same_key(kp.public_key, self.operator_public_key())
+                kp = self.find("key pair", self.compute.find_keypair, resource.id)
+                owned = kp is not None and resource.id == self.name() and shared.same_key(kp.public_key, self.operator_public_key())
             elif resource.kind == "image":
                 return self.delete_snapshot(resource.id)
             else:
@@ -379,16 +407,16 @@ class OpenStackProvider(CloudProvider):
         if kind == "instance":
             if wait:
                 return self._delete_server(resource.id)
-            return self.api("delete server", self.conn.compute.delete_server, resource.id, ignore_missing=True)
+            return self.api("delete server", self.compute.delete_server, resource.id, ignore_missing=True)
         if kind == "key_pair":
-            return self.api("delete key pair", self.conn.compute.delete_keypair, resource.id, ignore_missing=True)
+            return self.api("delete key pair", self.compute.delete_keypair, resource.id, ignore_missing=True)
         if kind == "image":
-            return self.api("delete image", self.conn.image.delete_image, resource.id, ignore_missing=True)
+            return self.api("delete image", self.image.delete_image, resource.id, ignore_missing=True)
         if kind == "router":  # Neutron refuses to delete a router that still has interfaces
-            for subnet_id in network.router_subnets(self, resource):
+            for subnet_id in shared.router_subnets(self, resource):
                 # positional: the keyword is subnet_id in openstacksdk 3, subnet in 4
-                self.api("remove router interface", self.conn.network.remove_interface_from_router, resource.id, subnet_id)
-        delete = getattr(self.conn.network, NEUTRON[kind][2])
+                self.api("remove router interface", self.network.remove_interface_from_router, resource.id, subnet_id)
+        delete = getattr(self.network, NEUTRON[kind][2])
         self.api(f"delete {kind}", delete, resource.id, ignore_missing=True)
 
     def teardown(self) -> list[str]:
@@ -417,6 +445,6 @@ class OpenStackProvider(CloudProvider):
     def quotas(self) -> dict[str, tuple[int, int]]:
         """(used, limit) of the compute quotas a fleet consumes."""
         with self._errors("compute limits"):
-            a = self.api("compute limits", self.conn.compute.get_limits).absolute
+            a = self.api("compute limits", self.compute.get_limits).absolute
             return {"instances": (a.instances_used, a.instances), "cores": (a.total_cores_used, a.total_cores),
                     "ram_mb": (a.total_ram_used, a.total_ram)}

@@ -16,7 +16,7 @@ ROUTER_INTERFACE = "network:router_interface"
 
 def external_network(p: "OpenStackProvider"):
     name = p.settings.external_network
-    net = p.find("external network", p.conn.network.find_network, name)
+    net = p.find("external network", p.network.find_network, name)
     if net is None or not net.is_router_external:
         raise CcrpError(f"external network {name!r} not found on cloud {p.settings.cloud!r}",
                         hint="set provider.external_network to one of `openstack network list --external`")
@@ -27,7 +27,7 @@ def common_network(p: "OpenStackProvider", create: bool):
     """(network, subnet) of the common network: the inventory's named one, or the fleet's own."""
     cidr = str(p.inv.common.cidr)
     if p.settings.network:
-        net = p.find("common network", p.conn.network.find_network, p.settings.network)
+        net = p.find("common network", p.network.find_network, p.settings.network)
         if net is None:
             raise CcrpError(f"network {p.settings.network!r} (provider.network) not found on cloud {p.settings.cloud!r}",
                             hint="create it, or drop provider.network to let ccrp create one")
@@ -36,14 +36,14 @@ def common_network(p: "OpenStackProvider", create: bool):
         if net is None and not create:
             raise CcrpError(f"fleet {p.fleet!r} has no common network yet", hint="run `ccrp fleet up` (it bootstraps the network)")
         if net is None:
-            net = p.api("create network", p.conn.network.create_network, name=p.name("common"),
+            net = p.api("create network", p.network.create_network, name=p.name("common"),
                         tags=p.tags("network"), description=f"ccrp fleet {p.fleet}: common network")
-    subnet = next((s for s in p.listing("subnets", p.conn.network.subnets, network_id=net.id) if s.cidr == cidr), None)
+    subnet = next((s for s in p.listing("subnets", p.network.subnets, network_id=net.id) if s.cidr == cidr), None)
     if subnet is None and p.settings.network:
         raise CcrpError(f"network {p.settings.network!r} has no subnet {cidr} (common.cidr)",
                         hint="set common.cidr to that network's subnet")
     if subnet is None:
-        subnet = p.api("create subnet", p.conn.network.create_subnet, name=p.name("common"), network_id=net.id,
+        subnet = p.api("create subnet", p.network.create_subnet, name=p.name("common"), network_id=net.id,
                        ip_version=4, cidr=cidr, tags=p.tags("network"))
     return net, subnet
 
@@ -52,15 +52,15 @@ def router(p: "OpenStackProvider", subnet, ext) -> None:
     """The fleet's router from its own common subnet to the external network (floating IPs)."""
     r = next(iter(p.owned("routers", "network")), None)
     if r is None:
-        r = p.api("create router", p.conn.network.create_router, name=p.name("router"), tags=p.tags("network"),
+        r = p.api("create router", p.network.create_router, name=p.name("router"), tags=p.tags("network"),
                   external_gateway_info={"network_id": ext.id})
     if subnet.id not in router_subnets(p, r):
         # positional: the keyword is subnet_id in openstacksdk 3, subnet in 4
-        p.api("add router interface", p.conn.network.add_interface_to_router, r, subnet.id)
+        p.api("add router interface", p.network.add_interface_to_router, r, subnet.id)
 
 
 def router_subnets(p: "OpenStackProvider", r) -> list[str]:
-    ports = p.listing("router ports", p.conn.network.ports, device_id=r.id, device_owner=ROUTER_INTERFACE)
+    ports = p.listing("router ports", p.network.ports, device_id=r.id, device_owner=ROUTER_INTERFACE)
     return [ip["subnet_id"] for port in ports for ip in port.fixed_ips]
 
 
@@ -69,7 +69,7 @@ def security_group(p: "OpenStackProvider"):
     from the common network (topic sharing). Stale ingress rules (an old operator CIDR) go."""
     sg = next(iter(p.owned("security_groups", "network")), None)
     if sg is None:
-        sg = p.api("create security group", p.conn.network.create_security_group, name=p.name("clones"),
+        sg = p.api("create security group", p.network.create_security_group, name=p.name("clones"),
                    tags=p.tags("network"), description=f"ccrp fleet {p.fleet}: clones")
     vpn = p.inv.vpn
     wanted = {
@@ -78,14 +78,14 @@ def security_group(p: "OpenStackProvider"):
         (None, None, None, str(p.inv.common.cidr)),
     }
     have = {}
-    for rule in p.listing("security group rules", p.conn.network.security_group_rules, security_group_id=sg.id):
+    for rule in p.listing("security group rules", p.network.security_group_rules, security_group_id=sg.id):
         if rule.direction == "ingress":
             have[(rule.protocol, rule.port_range_min, rule.port_range_max, rule.remote_ip_prefix)] = rule
     for key, rule in have.items():
         if key not in wanted:
-            p.api("delete stale rule", p.conn.network.delete_security_group_rule, rule)
+            p.api("delete stale rule", p.network.delete_security_group_rule, rule)
     for proto, lo, hi, prefix in wanted - have.keys():
-        p.api("create security group rule", p.conn.network.create_security_group_rule, security_group_id=sg.id,
+        p.api("create security group rule", p.network.create_security_group_rule, security_group_id=sg.id,
               direction="ingress", ethertype="IPv4", protocol=proto, port_range_min=lo, port_range_max=hi,
               remote_ip_prefix=prefix, description=f"ccrp fleet {p.fleet}")
     return sg
@@ -94,12 +94,12 @@ def security_group(p: "OpenStackProvider"):
 def key_pair(p: "OpenStackProvider") -> str:
     """The operator's key pair (Nova key pairs carry no tags: the name and key identify it)."""
     name, public = p.name(), p.operator_public_key()
-    kp = p.find("key pair", p.conn.compute.find_keypair, name)
+    kp = p.find("key pair", p.compute.find_keypair, name)
     if kp is not None and not same_key(kp.public_key, public):
         raise CcrpError(f"key pair {name!r} exists on cloud {p.settings.cloud!r} with another key",
                         hint="delete it (`openstack keypair delete`) if it is a stale ccrp key, or rename the fleet")
     if kp is None:
-        p.api("create key pair", p.conn.compute.create_keypair, name=name, public_key=public)
+        p.api("create key pair", p.compute.create_keypair, name=name, public_key=public)
     return name
 
 
