@@ -31,7 +31,10 @@ class AwsHarness:
         from botocore.awsrequest import AWSResponse
 
         self.provider, self.raw, self._AWSResponse = provider, raw, AWSResponse
-        self.image = raw.describe_images(Owners=["amazon"])["Images"][0]["ImageId"]
+        # The image clones start from: registered in the fake, not the fleet's (no tags), so
+        # teardown and gc must leave it alone.
+        self.image = raw.register_image(Name="ubuntu-20.04-ros-noetic", RootDeviceName="/dev/sda1",
+                                        Architecture="x86_64")["ImageId"]
         self.calls: Counter = Counter()
         self._lock = threading.Lock()
         self._fraction, self._delay, self._n = 0.0, 0.0, 0

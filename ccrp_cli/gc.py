@@ -1,0 +1,73 @@
+"""Garbage collection: resources carrying the fleet's ownership labels that state does not know.
+
+Known are: the clones state records (a robot's provider_id, or any clone of a robot whose
+creation is in flight: the next `fleet up` reuses it), what belongs to a known robot (its public
+IP, volumes, routes), the bootstrap resources (network, firewall, key pair), and the fleet's
+snapshots (`ccrp snapshot delete` manages those). Everything else owned is a leak: left by a crash,
+an interrupted rollback or a hand-made copy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+from .errors import CcrpError
+from .models.state import FleetState
+from .providers.base import OwnedResource, SnapshotRecord
+
+# One per fleet, created or reused by bootstrap.
+BOOTSTRAP_KINDS = {"network", "vpc", "subnet", "router", "route_table", "internet_gateway", "security_group",
+                   "firewall", "key_pair"}
+INSTANCE_KINDS = {"instance", "server", "container"}
+IMAGE_KINDS = {"image", "machine_image"}
+# Started by hand for a robot (`ccrp robot sim`), not recorded as a clone.
+ROBOT_KINDS = {"robot_sim"}
+
+
+@dataclass
+class GcResult:
+    resource: OwnedResource
+    action: str  # leak (dry run) | deleted | failed
+    detail: str = ""
+
+    def as_dict(self) -> dict:
+        return {**self.resource.model_dump(), "action": self.action, "detail": self.detail}
+
+
+def find_leaks(state: FleetState, owned: list[OwnedResource], snapshots: list[SnapshotRecord]) -> list[OwnedResource]:
+    clones = {rec.provider_id for rec in state.robots.values() if rec.provider_id}
+    # A robot whose clone exists or is being created: what carries its name is in use.
+    live = {name for name, rec in state.robots.items() if rec.provider_id or rec.phase == "creating"}
+    in_flight = {name for name, rec in state.robots.items() if rec.phase == "creating"}
+    images = {s.id for s in snapshots} | {s.name for s in snapshots} | set((state.snapshot or {}).values())
+
+    def known(r: OwnedResource) -> bool:
+        if r.kind in BOOTSTRAP_KINDS:
+            return True
+        if r.kind in INSTANCE_KINDS:
+            return r.id in clones or r.robot in in_flight
+        if r.kind in IMAGE_KINDS:
+            return r.id in images or r.name in images
+        if r.kind in ROBOT_KINDS:
+            return r.robot in state.robots
+        return r.robot in live
+
+    return [r for r in owned if not known(r)]
+
+
+def collect(state: FleetState, provider, dry_run: bool, progress: Callable[[str], None] = lambda m: None) -> list[GcResult]:
+    """Find the fleet's leaks; unless dry_run, delete them (instances first: the rest may hang on them)."""
+    leaks = find_leaks(state, provider.list_owned(), provider.list_snapshots())
+    leaks.sort(key=lambda r: r.kind not in INSTANCE_KINDS)
+    if dry_run:
+        return [GcResult(r, "leak") for r in leaks]
+    results = []
+    for r in leaks:
+        try:
+            provider.delete_owned(r)
+            progress(f"deleted {r.kind} {r.name or r.id}")
+            results.append(GcResult(r, "deleted"))
+        except CcrpError as exc:
+            results.append(GcResult(r, "failed", exc.one_line()))
+    return results

@@ -1,0 +1,117 @@
+"""The provider contract: what every backend guarantees, driven only through the Provider
+protocol and checked in the backend's fake (or real engine) through its harness."""
+
+from __future__ import annotations
+
+import gzip
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from ccrp_cli.errors import CcrpError
+from ccrp_cli.gc import find_leaks
+from ccrp_cli.models.inventory import USER_DATA_LIMITS
+from ccrp_cli.models.state import FleetState, RobotRecord
+
+from .harness import FLEET
+from .specs import OPERATOR_CIDR, ROBOTS
+
+
+def create(harness, robot: str):
+    return harness.provider.run_instance(harness.spec(robot, ROBOTS.index(robot) + 1))
+
+
+def test_create_is_idempotent(harness):
+    first = create(harness, "robot1")
+    again = create(harness, "robot1")
+    assert first.created and not again.created
+    assert again.provider_id == first.provider_id
+    assert harness.instances_for("robot1") == 1
+    assert harness.provider.query()["robot1"].provider_id == first.provider_id
+
+
+def test_delete_touches_only_owned_resources(harness):
+    foreign = harness.add_foreign()
+    create(harness, "robot1")
+    assert harness.provider.terminate("robot1") is True
+    assert harness.instances_for("robot1") == 0
+    assert harness.exists(foreign)
+    assert harness.provider.terminate("robot1") is False  # nothing left of it: still no foreign harm
+    create(harness, "robot2")
+    harness.provider.teardown()
+    assert harness.exists(foreign)
+    assert harness.owned_ids() == set()
+
+
+def test_failed_create_rolls_back_only_that_robot(harness):
+    harness.fail_create_after_instance("robot3")
+    failed = []
+    for robot in ROBOTS:
+        try:
+            create(harness, robot)
+        except CcrpError:
+            failed.append(robot)
+    assert failed == ["robot3"]
+    assert harness.owned_ids("robot3") == set()
+    for robot in ROBOTS:
+        assert harness.instances_for(robot) == (0 if robot == "robot3" else 1)
+    # The fault was one attempt's: the next run creates robot3 and leaves the others alone.
+    assert create(harness, "robot3").created
+    assert all(harness.instances_for(r) == 1 for r in ROBOTS)
+
+
+def test_snapshot_round_trip(harness):
+    create(harness, "robot1")
+    snap = harness.provider.create_snapshot("robot1", f"ccrp/{FLEET}-clone:robot1-contract")
+    assert snap.source == "robot1"
+    assert snap.id in {s.id for s in harness.provider.list_snapshots()}
+    assert harness.exists(snap.id)
+    harness.provider.delete_snapshot(snap.id)
+    assert snap.id not in {s.id for s in harness.provider.list_snapshots()}
+    assert not harness.exists(snap.id)
+
+
+def test_gc_finds_and_deletes_an_injected_leak(harness):
+    clone = create(harness, "robot1")
+    state = FleetState(fleet=FLEET, robots={"robot1": RobotRecord(index=1, phase="ready", provider_id=clone.provider_id)})
+    leak = harness.add_leak()
+    owned = harness.provider.list_owned()
+    assert leak in {r.id for r in owned}
+    leaks = find_leaks(state, owned, harness.provider.list_snapshots())
+    assert [r.id for r in leaks] == [leak]  # the clone, its extras and the network are known
+    for r in leaks:
+        harness.provider.delete_owned(r)
+    assert not harness.exists(leak)
+    assert harness.exists(clone.provider_id)
+
+
+def test_public_ingress_is_vpn_and_operator_ssh_only(harness):
+    create(harness, "robot1")
+    vpn = harness.provider.inv.vpn
+    expected = {(vpn.proto, vpn.port, "0.0.0.0/0")}
+    if harness.kind != "docker":  # clouds reach clones over SSH from the operator; Docker over its API
+        expected.add(("tcp", 22, OPERATOR_CIDR))
+    assert harness.public_ingress() == expected
+
+
+def test_user_data_carries_no_key_and_fits(harness):
+    spec = harness.spec("robot1", 1)
+    harness.provider.run_instance(spec)
+    sent = harness.user_data_sent("robot1")
+    limit, gzip_ok = USER_DATA_LIMITS[harness.kind]
+    assert len(sent) <= limit
+    text = (gzip.decompress(sent) if sent[:2] == b"\x1f\x8b" else sent).decode()
+    assert sent[:2] != b"\x1f\x8b" or gzip_ok
+    assert text.startswith("#cloud-config") and f"hostname: {spec.hostname}" in text
+    assert "PRIVATE KEY" not in text
+
+
+def test_throttling_storm_creates_every_clone_once(harness):
+    harness.throttle(1 / 3)
+    with ThreadPoolExecutor(max_workers=len(ROBOTS)) as pool:
+        records = list(pool.map(lambda r: create(harness, r), ROBOTS))
+    assert all(r.created for r in records)
+    assert len({r.provider_id for r in records}) == len(ROBOTS)
+    harness.throttle(0)
+    assert all(harness.instances_for(r) == 1 for r in ROBOTS)
+    assert sum(harness.api_calls().values()) >= 3 * len(ROBOTS)
