@@ -29,17 +29,12 @@ from urllib.parse import parse_qs, urlparse
 import requests_mock
 from openstack.fixture.connection import ConnectionFixture
 
+from .openstack_neutron import ApiError, NeutronApi, new_id, now
+
 NO_VALID_HOST = "No valid host was found. There are not enough hosts available."
 MAX_USER_DATA_B64 = 65_535  # Nova's limit on the base64 text
 FIP_POOL = ipaddress.IPv4Network("203.0.113.0/24")  # TEST-NET-3: never contacted
 HOSTS = ("identity", "compute", "network", "image")
-
-
-class ApiError(Exception):
-    def __init__(self, status: int, message: str, kind: str = "") -> None:
-        super().__init__(message)
-        self.status, self.message, self.kind = status, message, kind or {
-            400: "BadRequest", 403: "Forbidden", 404: "NotFound", 409: "Conflict", 413: "OverLimit"}.get(status, "Error")
 
 
 # Path segments that name one resource: after these collections, or anything that is a UUID.
@@ -55,15 +50,7 @@ def _template(path: str) -> str:
     return "/".join(out)
 
 
-def _now() -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-
-
-def _new_id() -> str:
-    return str(uuid.uuid4())
-
-
-class FakeOpenStack:
+class FakeOpenStack(NeutronApi):
     def __init__(self) -> None:
         self.fixture = ConnectionFixture()  # openstacksdk's own catalog + token
         self.project_id = self.fixture.project_id
@@ -95,8 +82,8 @@ class FakeOpenStack:
     # -- seeding --------------------------------------------------------------------------------
     def add(self, collection: str, body: dict) -> dict:
         """A Neutron-style resource with the defaults the API fills in."""
-        res = {"id": _new_id(), "name": "", "tags": [], "project_id": self.project_id,
-               "tenant_id": self.project_id, "description": "", "created_at": _now(), **body}
+        res = {"id": new_id(), "name": "", "tags": [], "project_id": self.project_id,
+               "tenant_id": self.project_id, "description": "", "created_at": now(), **body}
         if collection == "networks":
             res.setdefault("router:external", False)
             res.setdefault("subnets", [])
@@ -105,14 +92,14 @@ class FakeOpenStack:
         return res
 
     def add_flavor(self, name: str) -> dict:
-        flavor = {"id": _new_id(), "name": name, "vcpus": 2, "ram": 4096, "disk": 20,
+        flavor = {"id": new_id(), "name": name, "vcpus": 2, "ram": 4096, "disk": 20,
                   "os-flavor-access:is_public": True, "OS-FLV-EXT-DATA:ephemeral": 0, "swap": 0}
         self.flavors[flavor["id"]] = flavor
         return flavor
 
     def add_image(self, name: str, **props) -> dict:
-        image = {"id": _new_id(), "name": name, "status": "active", "visibility": "public", "tags": [],
-                 "created_at": _now(), "updated_at": _now(), "size": 2_000_000_000, "owner": self.project_id,
+        image = {"id": new_id(), "name": name, "status": "active", "visibility": "public", "tags": [],
+                 "created_at": now(), "updated_at": now(), "size": 2_000_000_000, "owner": self.project_id,
                  "disk_format": "qcow2", "container_format": "bare", **props}
         self.images[image["id"]] = image
         return image
@@ -228,7 +215,7 @@ class FakeOpenStack:
         self._get(self.images, req.get("imageRef", ""), "image")
         self._get(self.flavors, req.get("flavorRef", ""), "flavor")
         if req.get("key_name") and req["key_name"] not in self.keypairs:
-            raise ApiError(400, f"Invalid key_name provided.")
+            raise ApiError(400, "Invalid key_name provided.")
         user_data = req.get("user_data") or ""
         if len(user_data) > MAX_USER_DATA_B64:
             raise ApiError(400, "User data too large. User data must be no larger than 65535 bytes once base64 encoded.")
@@ -239,11 +226,11 @@ class FakeOpenStack:
             if port["device_id"]:
                 raise ApiError(409, f"Port {port['id']} is still in use.")
             ports.append(port)
-        server = {"id": _new_id(), "name": req["name"], "status": "BUILD", "metadata": req.get("metadata") or {},
+        server = {"id": new_id(), "name": req["name"], "status": "BUILD", "metadata": req.get("metadata") or {},
                   "OS-EXT-AZ:availability_zone": req.get("availability_zone") or "nova",
                   "image": {"id": req["imageRef"]}, "flavor": {"id": req["flavorRef"]},
                   "key_name": req.get("key_name"), "config_drive": "True" if req.get("config_drive") else "",
-                  "user_data": user_data, "created": _now(), "updated": _now(), "tenant_id": self.project_id,
+                  "user_data": user_data, "created": now(), "updated": now(), "tenant_id": self.project_id,
                   "user_id": "u", "hostId": "", "addresses": {}, "links": [], "console": ""}
         for port in ports:
             port.update(device_id=server["id"], device_owner=f"compute:{server['OS-EXT-AZ:availability_zone']}")
@@ -254,7 +241,7 @@ class FakeOpenStack:
     def _show_server(self, server: dict) -> dict:
         if server["status"] == "BUILD":  # the scheduler decides on the first look
             if server["OS-EXT-AZ:availability_zone"] in self.no_capacity:
-                server.update(status="ERROR", fault={"code": 500, "message": NO_VALID_HOST, "created": _now()})
+                server.update(status="ERROR", fault={"code": 500, "message": NO_VALID_HOST, "created": now()})
             else:
                 server["status"] = "ACTIVE"
                 server["console"] = (
@@ -297,193 +284,6 @@ class FakeOpenStack:
             context.status_code = 202
             return {"image_id": image["id"]}
         raise ApiError(400, f"unsupported action {list(body)}")
-
-    # -- Neutron --------------------------------------------------------------------------------
-    def _network(self, method, path, query, body, context):
-        if path == "/":
-            return {"versions": [{"id": "v2.0", "status": "CURRENT", "links": [
-                {"href": "https://network.example.com/v2.0/", "rel": "self"}]}]}
-        parts = path.removeprefix("/v2.0").strip("/").split("/")
-        kind = parts[0]
-        collection = {"networks": "networks", "subnets": "subnets", "routers": "routers", "ports": "ports",
-                      "floatingips": "fips", "security-groups": "sgs", "security-group-rules": None}.get(kind, "")
-        if collection == "":
-            raise ApiError(404, f"network {path} not found")
-        singular = {"floatingips": "floatingip", "security-groups": "security_group",
-                    "security-group-rules": "security_group_rule"}.get(kind, kind[:-1])
-        if collection is None:
-            return self._sg_rules(method, parts[1:], query, body, context)
-        store = getattr(self, collection)
-        if not parts[1:]:
-            if method == "POST":
-                context.status_code = 201
-                return {singular: getattr(self, f"_create_{collection}")(body[singular])}
-            return {kind.replace("-", "_"): [r for r in store.values() if self._matches(r, query)]}
-        res = self._get(store, parts[1], singular)
-        if parts[2:] == ["tags"] and method == "PUT":
-            res["tags"] = list(body["tags"])
-            return {"tags": res["tags"]}
-        if parts[2:] in (["add_router_interface"], ["remove_router_interface"]):
-            return self._router_interface(res, parts[2], body)
-        if method == "DELETE":
-            getattr(self, f"_check_delete_{collection}", lambda r: None)(res)
-            del store[res["id"]]
-            context.status_code = 204
-            return None
-        if method == "PUT":
-            res.update(body[singular])
-        return {singular: res}
-
-    @staticmethod
-    def _matches(res: dict, query: dict) -> bool:
-        for key, values in query.items():
-            if key in ("fields", "limit", "marker", "sort_key", "sort_dir"):
-                continue
-            if key == "tags":
-                wanted = {t for v in values for t in v.split(",")}
-                if not wanted <= set(res.get("tags", [])):
-                    return False
-                continue
-            have = res.get(key)
-            if str(have).lower() not in {v.lower() for v in values}:
-                return False
-        return True
-
-    def _create_networks(self, req: dict) -> dict:
-        return self.add("networks", {**req, "router:external": False})
-
-    def _create_subnets(self, req: dict) -> dict:
-        net = self._get(self.networks, req["network_id"], "network")
-        cidr = ipaddress.IPv4Network(req["cidr"])
-        gateway = req.get("gateway_ip") or str(next(cidr.hosts()))
-        subnet = self.add("subnets", {**req, "cidr": str(cidr), "gateway_ip": gateway, "ip_version": 4})
-        net["subnets"].append(subnet["id"])
-        return subnet
-
-    def _create_routers(self, req: dict) -> dict:
-        gw = req.get("external_gateway_info")
-        if gw:
-            ext = self._get(self.networks, gw["network_id"], "network")
-            if not ext["router:external"]:
-                raise ApiError(400, f"Network {ext['id']} is not an external network")
-        return self.add("routers", {**req, "status": "ACTIVE", "interfaces": []})
-
-    def _router_interface(self, router: dict, action: str, req: dict) -> dict:
-        subnet = self._get(self.subnets, req["subnet_id"], "subnet")
-        if action == "add_router_interface":
-            if subnet["id"] in router["interfaces"]:
-                raise ApiError(400, f"Router already has a port on subnet {subnet['id']}")
-            port = self.add("ports", {"network_id": subnet["network_id"], "device_id": router["id"],
-                                      "device_owner": "network:router_interface", "allowed_address_pairs": [],
-                                      "fixed_ips": [{"subnet_id": subnet["id"], "ip_address": subnet["gateway_ip"]}]})
-            router["interfaces"].append(subnet["id"])
-        else:
-            if subnet["id"] not in router["interfaces"]:
-                raise ApiError(404, f"Router {router['id']} has no interface on subnet {subnet['id']}")
-            router["interfaces"].remove(subnet["id"])
-            port = next(p for p in self.ports.values() if p["device_id"] == router["id"]
-                        and p["fixed_ips"][0]["subnet_id"] == subnet["id"])
-            del self.ports[port["id"]]
-        return {"id": router["id"], "subnet_id": subnet["id"], "port_id": port["id"], "tenant_id": self.project_id}
-
-    def _create_ports(self, req: dict) -> dict:
-        net = self._get(self.networks, req["network_id"], "network")
-        fixed = []
-        for ip in req.get("fixed_ips") or [{"subnet_id": net["subnets"][0]}]:
-            subnet = self._get(self.subnets, ip["subnet_id"], "subnet")
-            addr = ip.get("ip_address") or self._free_ip(subnet)
-            if ipaddress.IPv4Address(addr) not in ipaddress.IPv4Network(subnet["cidr"]):
-                raise ApiError(400, f"IP address {addr} is not a valid IP for the specified subnet.")
-            if any(f["ip_address"] == addr for p in self.ports.values() for f in p["fixed_ips"]):
-                raise ApiError(409, f"IP address {addr} already allocated in subnet {subnet['id']}",
-                               "IpAddressAlreadyAllocated")
-            fixed.append({"subnet_id": subnet["id"], "ip_address": addr})
-        for sg in req.get("security_groups") or []:
-            self._get(self.sgs, sg, "security_group")
-        return self.add("ports", {"allowed_address_pairs": [], "device_id": "", "device_owner": "",
-                                  "security_groups": [], "port_security_enabled": True, "status": "DOWN",
-                                  **req, "fixed_ips": fixed})
-
-    def _free_ip(self, subnet: dict) -> str:
-        used = {f["ip_address"] for p in self.ports.values() for f in p["fixed_ips"]} | {subnet["gateway_ip"]}
-        return str(next(h for h in ipaddress.IPv4Network(subnet["cidr"]).hosts() if str(h) not in used))
-
-    def _create_fips(self, req: dict) -> dict:
-        ext = self._get(self.networks, req["floating_network_id"], "network")
-        if not ext["router:external"]:
-            raise ApiError(400, f"Network {ext['id']} is not a valid external network")
-        fixed = None
-        if req.get("port_id"):
-            port = self._get(self.ports, req["port_id"], "port")
-            robot = self.servers.get(port["device_id"], {}).get("metadata", {}).get("ccrp-robot")
-            if robot in self.fail_fip_for:
-                self.fail_fip_for.discard(robot)
-                raise ApiError(400, f"External network {ext['id']} is not reachable from subnet of port {port['id']}")
-            fixed = port["fixed_ips"][0]["ip_address"]
-        return self.add("fips", {"status": "DOWN", **req, "port_id": req.get("port_id"), "fixed_ip_address": fixed,
-                                 "floating_ip_address": str(next(self._fip_hosts)), "router_id": None})
-
-    def _create_sgs(self, req: dict) -> dict:
-        sg = self.add("sgs", {**req, "security_group_rules": []})
-        for ethertype in ("IPv4", "IPv6"):  # Neutron's default egress rules
-            self._add_rule({"security_group_id": sg["id"], "direction": "egress", "ethertype": ethertype})
-        return sg
-
-    def _add_rule(self, req: dict) -> dict:
-        sg = self._get(self.sgs, req["security_group_id"], "security_group")
-        rule = {"id": _new_id(), "protocol": None, "port_range_min": None, "port_range_max": None,
-                "remote_ip_prefix": None, "remote_group_id": None, "ethertype": "IPv4", "description": "",
-                "tags": [], "project_id": self.project_id, "tenant_id": self.project_id, **req}
-        key = ("direction", "ethertype", "protocol", "port_range_min", "port_range_max", "remote_ip_prefix", "remote_group_id")
-        if any(all(r.get(k) == rule.get(k) for k in key) for r in sg["security_group_rules"]):
-            raise ApiError(409, "Security group rule already exists.", "SecurityGroupRuleExists")
-        sg["security_group_rules"].append(rule)
-        return rule
-
-    def _sg_rules(self, method, parts, query, body, context):
-        if method == "POST":
-            context.status_code = 201
-            return {"security_group_rule": self._add_rule(body["security_group_rule"])}
-        rules = [r for sg in self.sgs.values() for r in sg["security_group_rules"]]
-        if not parts:
-            return {"security_group_rules": [r for r in rules if self._matches(r, query)]}
-        rule = next((r for r in rules if r["id"] == parts[0]), None)
-        if rule is None:
-            raise ApiError(404, f"Security group rule {parts[0]} could not be found.")
-        if method == "DELETE":
-            self.sgs[rule["security_group_id"]]["security_group_rules"].remove(rule)
-            context.status_code = 204
-            return None
-        return {"security_group_rule": rule}
-
-    # What Neutron refuses to delete while something still depends on it.
-    def _check_delete_routers(self, router: dict) -> None:
-        if router["interfaces"]:
-            raise ApiError(409, f"Router {router['id']} still has ports", "RouterInUse")
-
-    def _check_delete_subnets(self, subnet: dict) -> None:
-        if any(f["subnet_id"] == subnet["id"] for p in self.ports.values() for f in p["fixed_ips"]):
-            raise ApiError(409, f"Unable to complete operation on subnet {subnet['id']}: one or more ports "
-                                "have an IP allocation from this subnet.", "SubnetInUse")
-
-    def _check_delete_networks(self, net: dict) -> None:
-        if any(p["network_id"] == net["id"] for p in self.ports.values()):
-            raise ApiError(409, f"Unable to complete operation on network {net['id']}. There are one or more "
-                                "ports still in use on the network.", "NetworkInUse")
-        for subnet_id in net["subnets"]:
-            self.subnets.pop(subnet_id, None)
-
-    def _check_delete_ports(self, port: dict) -> None:
-        if port["device_owner"] == "network:router_interface":
-            raise ApiError(409, f"Port {port['id']} cannot be deleted directly via the port API: has device "
-                                "owner network:router_interface.", "L3PortInUse")
-        for fip in self.fips.values():  # Neutron disassociates floating IPs of a deleted port
-            if fip["port_id"] == port["id"]:
-                fip.update(port_id=None, fixed_ip_address=None)
-
-    def _check_delete_sgs(self, sg: dict) -> None:
-        if any(sg["id"] in p["security_groups"] for p in self.ports.values()):
-            raise ApiError(409, f"Security Group {sg['id']} in use.", "SecurityGroupInUse")
 
     # -- Glance ---------------------------------------------------------------------------------
     def _image(self, method, path, query, body, context):

@@ -265,3 +265,23 @@ def test_console_fingerprints_parse_as_ssh_pins(h):
 
     h.provider.run_instance(h.spec("robot1", 1))
     assert len(fingerprints_from_console(h.provider.console_output("robot1"))) == 1
+
+
+def test_a_named_network_is_used_not_routed_and_never_deleted(h, tmp_path):
+    from ccrp_cli.providers.openstack import OpenStackProvider
+
+    lab = h.fake.add("networks", {"name": "labnet"})
+    h.fake._create_subnets({"network_id": lab["id"], "cidr": "10.90.0.0/24"})
+    h.provider.teardown()  # the harness's own network goes first
+    inv = h.provider.inv
+    inv = inv.model_copy(update={"provider": inv.provider.model_copy(update={"network": "labnet"})})
+    p = OpenStackProvider(inv, tmp_path / "store")
+    p.backoff, p.poll_interval = h.provider.backoff, 0.01
+    p.bootstrap()
+    assert not h.fake.routers  # the operator's network is routed already
+    rec = p.run_instance(h.spec("robot1", 1))
+    [port] = ports_of(h, "robot1")
+    assert port["network_id"] == lab["id"]
+    assert rec.public_ip
+    p.teardown()
+    assert lab["id"] in h.fake.networks and h.owned_ids() == set()

@@ -92,7 +92,7 @@ class OpenStackProvider(CloudProvider):
         tags = [f"{LABEL_MANAGED}=true", f"{LABEL_FLEET}={self.fleet}"]
         tags += [f"{LABEL_ROLE}={role}"] if role else []
         tags += [f"{LABEL_ROBOT}={robot}"] if robot else []
-        method = {"security_groups": "security_groups", "fips": "ips"}.get(collection, collection)
+        method = "ips" if collection == "fips" else collection
         return self.listing(collection, getattr(self.network, method), tags=",".join(tags))
 
     def _is_owned(self, labels: dict | None, robot: str | None = None) -> bool:
