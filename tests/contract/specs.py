@@ -16,11 +16,12 @@ OPERATOR_CIDR = "198.51.100.0/24"
 FAST = Backoff(attempts=8, base=0.001, cap=0.01)
 
 
-def inventory(provider: dict) -> Inventory:
+def inventory(provider: dict, **extra) -> Inventory:
     return Inventory.model_validate({
         "fleet": FLEET,
         "provider": provider,
         "robots": [{"name": r, "exports": [f"/{r}/odom"]} for r in ROBOTS],
+        **extra,
     })
 
 

@@ -11,7 +11,8 @@ from typing import Any
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...render.view import VPN_DIR
-from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, SnapshotRecord, owner_labels
+from ...retry import Backoff, ErrorClass, call
+from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord, owner_labels
 from .archive import tar_files
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
@@ -34,8 +35,17 @@ def _client():
     return client
 
 
+class _EngineBusy(Exception):
+    """The engine (or a proxy in front of it) shed load: 429 / 503."""
+
+
+def _classify(exc: BaseException) -> ErrorClass:
+    return ErrorClass.RETRYABLE if isinstance(exc, _EngineBusy) else ErrorClass.FATAL
+
+
 class DockerProvider:
     kind = "docker"
+    backoff = Backoff()
 
     def __init__(self, inv: Inventory) -> None:
         self.inv = inv
@@ -44,6 +54,24 @@ class DockerProvider:
         from docker.errors import APIError, NotFound
 
         self._NotFound, self._APIError = NotFound, APIError
+        self._retry_busy()
+
+    def _retry_busy(self) -> None:
+        """Every Docker API request goes through retry.call: 429/503 answers are retried like a
+        cloud's throttling. Other errors (404, 409, 500) are real answers and pass through."""
+        api, send = self.client.api, self.client.api.send
+
+        def once(request, **kwargs):
+            response = send(request, **kwargs)
+            if response.status_code in (429, 503):
+                raise _EngineBusy(f"HTTP {response.status_code}")
+            return response
+
+        def retried(request, **kwargs):
+            what = f"Docker API {request.method} {request.path_url.split('?')[0]}"
+            return call(once, request, classify=_classify, what=what, backoff=self.backoff, **kwargs)
+
+        api.send = retried  # requests.Session.send: under every docker-py call
 
     # -- names ------------------------------------------------------------------------------
     @property
@@ -156,9 +184,11 @@ class DockerProvider:
             c.put_archive("/", seed)
             c.start()
             c.reload()
-        except BaseException:
+        except BaseException as exc:
             # Roll back only what this call created.
             self._remove(c, volume)
+            if isinstance(exc, self._APIError):
+                raise CcrpError(f"clone {spec.hostname}: {exc.explanation or exc}; rolled back its container and volume") from exc
             raise
         return self._record(c, created=True)
 
@@ -300,6 +330,38 @@ class DockerProvider:
             n.remove()
             removed.append(f"network {n.name}")
         return removed
+
+    # -- everything owned (gc) -------------------------------------------------------------------
+    def list_owned(self) -> list[OwnedResource]:
+        label = {"label": [f"{LABEL_FLEET}={self.fleet}"]}
+        owned = [
+            OwnedResource(kind="container" if c.labels.get(LABEL_ROLE) == "clone" else "robot_sim", id=c.id[:12],
+                          name=c.name, robot=c.labels.get(LABEL_ROBOT))
+            for c in self.client.containers.list(all=True, filters=label)
+        ]
+        owned += [OwnedResource(kind="volume", id=v.name, name=v.name, robot=(v.attrs.get("Labels") or {}).get(LABEL_ROBOT))
+                  for v in self.client.volumes.list(filters=label)]
+        owned += [OwnedResource(kind="network", id=n.name, name=n.name) for n in self.client.networks.list(filters=label)]
+        owned += [OwnedResource(kind="image", id=s.id, name=s.name, robot=None if s.source == "build" else s.source)
+                  for s in self.list_snapshots()]
+        return owned
+
+    def delete_owned(self, resource: OwnedResource) -> None:
+        getter = {"container": self.client.containers, "robot_sim": self.client.containers, "volume": self.client.volumes,
+                  "network": self.client.networks, "image": self.client.images}[resource.kind]
+        try:
+            obj = getter.get(resource.id)
+        except self._NotFound:
+            raise CcrpError(f"{resource.kind} {resource.id} is gone") from None
+        labels = obj.labels if resource.kind in ("container", "robot_sim", "image") else obj.attrs.get("Labels") or {}
+        if labels.get(LABEL_FLEET) != self.fleet:  # checked again: never remove what is not ours
+            raise CcrpError(f"{resource.kind} {resource.id} is not owned by fleet {self.fleet!r}")
+        if resource.kind == "image":
+            self.client.images.remove(obj.id, force=True)
+        elif resource.kind == "network":
+            obj.remove()
+        else:
+            obj.remove(force=True, **({"v": True} if resource.kind != "volume" else {}))
 
     def leftovers(self) -> list[str]:
         label = {"label": [f"{LABEL_FLEET}={self.fleet}"]}
