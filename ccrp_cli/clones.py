@@ -63,9 +63,9 @@ def health(provider: Provider, robot: str) -> dict:
         return {"vpn": {"up": False, "clients": []}, "master": {"reachable": False, "nodes": {}}, "error": out[-200:]}
 
 
-def _secrets_current(provider: Provider, robot: str, files: list) -> bool:
-    """True when the clone already holds exactly these secrets: re-running `fleet up` then
-    leaves OpenVPN (and the robot's live session) alone."""
+def files_current(provider: Provider, robot: str, files: list) -> bool:
+    """True when the clone already holds exactly these files: re-running `fleet up` then leaves
+    OpenVPN (and the robot's live session) and the relay alone."""
     rc, out = provider.exec(robot, ["sha256sum", *(f.dest for f in files)], timeout=20)
     if rc != 0:
         return False
@@ -102,8 +102,11 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     view = clone_view(fleet, state, robot)
     # Clones are ensured in parallel threads and issue_robot is a read-modify-write of the PKI
     # index: serialise it, or one thread's certificates vanish from the index.
+    relay = fleet.inventory.sharing.engine == "relay"
     with writer.lock:
         fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
+        if relay:
+            fleet.pki.issue_relay(robot, str(view.addr.common_ip), fleet.inventory.vpn.cert_days)
     # A bare snapshot gets the recipe's packages from cloud-init at first boot.
     bare = bool(state.snapshot and state.snapshot.get("bare"))
     user_data = cloudinit.user_data(view, default_user=False, install_packages=bare)
@@ -121,9 +124,12 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     try:
         provider.wait_ready(robot, timeout=1200 if bare else 300)
         secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
-        if not _secrets_current(provider, robot, secrets):
-            provider.push_files(robot, secrets, restart=["ccrp-openvpn.service"])
+        if not files_current(provider, robot, secrets):
+            restart = ["ccrp-openvpn.service"] + (["ccrp-relay.service"] if relay else [])
+            provider.push_files(robot, secrets, restart=restart)
         wait_serving(provider, robot)
+        if relay:
+            push_relay_config(fleet, provider, state, robot)
     except BaseException:
         writer.update(robot, phase="failed", provider_id=record.provider_id)
         if record.created:
@@ -138,6 +144,20 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     took = time.monotonic() - t0
     progress(f"[{robot}] clone {view.addr.clone_host} ready in {took:.1f}s ({endpoint})")
     return CloneResult(robot, "created" if record.created else "reused", endpoint or "", took)
+
+
+def push_relay_config(fleet: Fleet, provider: Provider, state: FleetState, robot: str) -> bool:
+    """Give robot's clone its current relay.json; the agent picks it up without a restart.
+    Returns True when the file changed."""
+    from .render.bundles import BundleFile
+    from .render.view import CCRP_ETC
+    from .sharing import relay_config_text
+
+    files = [BundleFile("relay.json", relay_config_text(fleet, state, robot), 0o644, f"{CCRP_ETC}/relay.json")]
+    if files_current(provider, robot, files):
+        return False
+    provider.push_files(robot, files, restart=[])
+    return True
 
 
 def delete_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, forget: bool) -> CloneResult:

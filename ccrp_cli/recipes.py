@@ -21,6 +21,8 @@ class Platform(BaseModel):
     model_config = ConfigDict(extra="forbid")
     packages: list[str]
     apt_sources: list[AptSource] = []
+    # Python packages for the clone's agents (the relay's Zenoh), installed with the system pip.
+    pip: list[str] = []
     ros_setup: str | None = None
 
 

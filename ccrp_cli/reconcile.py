@@ -6,7 +6,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 from .addressing import allocate
-from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone
+from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
 from .errors import CcrpError, InputError
 from .fleet import Fleet
 from .models.state import RobotRecord
@@ -66,7 +66,27 @@ def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None
     if only is None:
         strays = [name for name in provider.query() if name not in members]
         results += _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), strays, progress)
+    reshare(fleet, provider, progress)
     return results
+
+
+def reshare(fleet: Fleet, provider, progress: Progress) -> list[str]:
+    """Push the current relay config to every clone that is up; agents apply it without a
+    restart. Returns the robots whose config changed."""
+    if fleet.inventory.sharing.engine != "relay":
+        return []
+    state = fleet.store.load_state()
+    ready = [n for n, rec in state.robots.items() if rec.phase == "ready"]
+
+    def one(robot: str) -> CloneResult:
+        changed = push_relay_config(fleet, provider, state, robot)
+        return CloneResult(robot, "reconfigured" if changed else "unchanged")
+
+    results = _fan_out(one, ready, progress)
+    changed = [r.robot for r in results if r.action == "reconfigured"]
+    if changed:
+        progress(f"topic sharing reconfigured on {', '.join(changed)}")
+    return changed
 
 
 def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneResult]:

@@ -33,7 +33,7 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     base = inv.provider.base_image  # type: ignore[union-attr]
     client = provider.client
     if bare:
-        base, plat = f"ccrp/base-bare:{inv.ros.distro}", plat.model_copy(update={"packages": images.BARE_PACKAGES})
+        base, plat = f"ccrp/base-bare:{inv.ros.distro}", plat.model_copy(update={"packages": images.BARE_PACKAGES, "pip": []})
         if not provider.has_image(base):
             images.build_base_image(client, base, images.BASE_PACKAGES + images.BARE_PACKAGES, progress)
     elif not provider.has_image(base):
@@ -49,7 +49,8 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     tag = f"{image_repo(fleet)}:{'bare-' if bare else ''}{_stamp()}"
     progress(f"building snapshot {tag} from {base}")
     labels = owner_labels(fleet.name, "snapshot") | {"ccrp-distro": inv.ros.distro, "ccrp-bare": str(bare).lower()}
-    images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat), labels, progress)
+    images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat), labels, progress,
+                             images.build_context(plat, progress))
     record = provider.snapshot_record(client.images.get(tag))
     _use(fleet, record, bare)
     return record

@@ -52,6 +52,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             "robot_address": None,
             "master_reachable": False,
             "robot_nodes": [],
+            "relay_peers": {},
         }
         if rec and rec.status == "running":
             h = health(provider, robot)
@@ -59,6 +60,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             row["vpn_connected"] = client is not None
             row["robot_address"] = client["real_address"] if client else None
             row["master_reachable"] = h["master"]["reachable"]
+            row["relay_peers"] = h.get("relay", {}).get("peers", {})
         return row
 
     robots = list(plan)

@@ -4,6 +4,7 @@ the ROS master (XML-RPC). Run on the clone: `python3 health.py [kill <robot>]`. 
 import json
 import socket
 import sys
+import time
 import xmlrpc.client
 
 MGMT = "/etc/openvpn/server/ccrp/mgmt.sock"
@@ -58,6 +59,17 @@ def master():
         return {"reachable": False, "error": str(exc), "nodes": {}, "published_topics": []}
 
 
+def relay():
+    """The relay agent's own report (written every second), or why there is none."""
+    try:
+        with open("/run/ccrp-relay/status.json") as fh:
+            data = json.load(fh)
+    except (OSError, ValueError) as exc:
+        return {"running": False, "error": type(exc).__name__, "peers": {}}
+    data["running"] = time.time() - data.get("time", 0) < 10
+    return data
+
+
 def main():
     if len(sys.argv) == 3 and sys.argv[1] == "kill":
         # `client-kill <id>` pushes a connection reset to the robot before dropping its instance,
@@ -72,7 +84,7 @@ def main():
             lines += [line for line in reply.splitlines() if line.startswith(("SUCCESS", "ERROR"))]
         print(json.dumps({"kill": lines}))
         return
-    print(json.dumps({"vpn": vpn(), "master": master()}))
+    print(json.dumps({"vpn": vpn(), "master": master(), "relay": relay()}))
 
 
 if __name__ == "__main__":

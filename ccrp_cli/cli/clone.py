@@ -36,6 +36,9 @@ def delete(inventory: options.Inventory, robot: options.Robot, as_json: options.
         item = clones.delete_clone(fleet, provider, clones.StateWriter(fleet, state), robot, forget=False)
         if not existed:
             item.action = "absent"
+        from ..reconcile import reshare
+
+        reshare(fleet, provider, output.info)  # the other clones drop it
     raise typer.Exit(output.results([item], as_json))
 
 

@@ -9,7 +9,7 @@ import typer
 
 from .. import __version__
 from ..errors import BAD_INPUT, CcrpError
-from . import clone, fleet, render, robot, snapshot, status, vpn
+from . import clone, doctor, fleet, gc, render, robot, snapshot, status, topics, vpn
 
 app = typer.Typer(
     name="ccrp",
@@ -27,6 +27,9 @@ app.add_typer(vpn.app, name="vpn")
 app.add_typer(snapshot.app, name="snapshot")
 app.add_typer(render.app, name="render")
 app.command("status")(status.status)
+app.command("gc")(gc.gc)
+app.command("doctor")(doctor.doctor)
+app.command("topics")(topics.topics)
 
 
 def _version(value: bool) -> None:

@@ -15,8 +15,16 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
     yes = lambda b: "yes" if b else "no"  # noqa: E731
     output.emit(
         rows, as_json,
-        ["ROBOT", "CLONE", "STATE", "PUBLIC IP", "COMMON IP", "VPN", "MASTER", "ROBOT NODES"],
+        ["ROBOT", "CLONE", "STATE", "PUBLIC IP", "COMMON IP", "VPN", "MASTER", "ROBOT NODES", "RELAY PEERS"],
         [(r["robot"], r["clone"], r["status"], r["public_ip"], r["common_ip"],
           f"connected {r['robot_address']}" if r["vpn_connected"] else "no", yes(r["master_reachable"]),
-          ", ".join(r["robot_nodes"])) for r in rows],
+          ", ".join(r["robot_nodes"]), relay_peers(r["relay_peers"])) for r in rows],
     )
+
+
+def relay_peers(peers: dict[str, bool]) -> str:
+    """"2/2" when every relay peer is connected; names the missing ones otherwise."""
+    if not peers:
+        return "-"
+    down = sorted(p for p, up in peers.items() if not up)
+    return f"{len(peers) - len(down)}/{len(peers)}" + (f" (down: {', '.join(down)})" if down else "")

@@ -22,6 +22,11 @@ def clone_host(robot: str) -> str:
     return f"cri-{robot}"
 
 
+def relay_name(robot: str) -> str:
+    """Common name of the certificate of a clone's topic relay."""
+    return f"relay-{robot}"
+
+
 def check_name(value: str, what: str = "robot name") -> str:
     from ..errors import InputError
 

@@ -12,7 +12,8 @@ from cryptography.hazmat.primitives.asymmetric import ec, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 KeyType = Literal["ecdsa-p256", "rsa3072"]
-Profile = Literal["server", "client"]
+# relay: a clone's topic relay, both ends of mutual TLS on the common network.
+Profile = Literal["server", "client", "relay"]
 PrivateKey = ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey
 
 # Back-date notBefore a little: a robot whose clock lags must still accept a fresh cert.
@@ -82,7 +83,10 @@ def build_leaf(
     ca_cert: x509.Certificate,
     ca_key: PrivateKey,
     days: int,
+    ips: tuple[str, ...] = (),
 ) -> x509.Certificate:
+    import ipaddress
+
     now = _now()
     is_ec = isinstance(key, ec.EllipticCurvePrivateKey)
     usage = x509.KeyUsage(
@@ -90,7 +94,12 @@ def build_leaf(
         data_encipherment=False, key_agreement=is_ec, key_cert_sign=False, crl_sign=False,
         encipher_only=False, decipher_only=False,
     )
-    eku = ExtendedKeyUsageOID.SERVER_AUTH if profile == "server" else ExtendedKeyUsageOID.CLIENT_AUTH
+    eku = {
+        "server": [ExtendedKeyUsageOID.SERVER_AUTH],
+        "client": [ExtendedKeyUsageOID.CLIENT_AUTH],
+        "relay": [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
+    }[profile]
+    san = [x509.DNSName(cn), *(x509.IPAddress(ipaddress.ip_address(ip)) for ip in ips)]
     ca_ski = ca_cert.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
     return (
         x509.CertificateBuilder()
@@ -102,8 +111,8 @@ def build_leaf(
         .not_valid_after(min(now + dt.timedelta(days=days), ca_cert.not_valid_after_utc))
         .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
         .add_extension(usage, critical=True)
-        .add_extension(x509.ExtendedKeyUsage([eku]), critical=False)
-        .add_extension(x509.SubjectAlternativeName([x509.DNSName(cn)]), critical=False)
+        .add_extension(x509.ExtendedKeyUsage(eku), critical=False)
+        .add_extension(x509.SubjectAlternativeName(san), critical=False)
         .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
         .add_extension(x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(ca_ski), critical=False)
         .sign(ca_key, hashes.SHA256())

@@ -20,7 +20,7 @@ from cryptography.hazmat.primitives import serialization
 from pydantic import BaseModel, ConfigDict
 
 from ..errors import CcrpError
-from ..models.names import clone_host
+from ..models.names import clone_host, relay_name
 from ..store import atomic_write, ensure_dir
 from . import profiles
 from .secrets import hash_password, new_password, tls_crypt_key
@@ -33,7 +33,7 @@ class CertRecord(BaseModel):
 
     serial: str  # hex, as openssl prints it
     cn: str
-    profile: Literal["ca", "server", "client"]
+    profile: Literal["ca", "server", "client", "relay"]
     robot: str | None = None
     not_after: dt.datetime
     cert_path: str
@@ -67,6 +67,9 @@ class RobotCredentials(BaseModel):
     tls_crypt_key: str
     password: str
     password_hash: str
+    # The clone's relay certificate (topic sharing over the common network), when issued.
+    relay_cert_pem: str | None = None
+    relay_key_pem: str | None = None
 
 
 def _now() -> dt.datetime:
@@ -148,10 +151,11 @@ class PkiStore:
         valid = [c for c in index.certs if c.cn == cn and not c.revoked and c.not_after > now]
         return valid[-1] if valid else None
 
-    def _issue(self, index: PkiIndex, profile: profiles.Profile, cn: str, robot: str, days: int) -> CertRecord:
+    def _issue(self, index: PkiIndex, profile: profiles.Profile, cn: str, robot: str, days: int,
+               ips: tuple[str, ...] = ()) -> CertRecord:
         ca_cert, ca_key = self._ca()
         key = profiles.generate_key(index.key_type)
-        cert = profiles.build_leaf(profile, cn, key, ca_cert, ca_key, days)
+        cert = profiles.build_leaf(profile, cn, key, ca_cert, ca_key, days, ips)
         serial = format(cert.serial_number, "X")
         stem = f"{cn}-{serial[:16]}"
         rec = CertRecord(
@@ -183,6 +187,21 @@ class PkiStore:
             atomic_write(hashed, hash_password(password) + "\n")
             atomic_write(txt, password + "\n")
         return out
+
+    def issue_relay(self, robot: str, common_ip: str, days: int) -> bool:
+        """Ensure the relay certificate of robot's clone, valid for its common-network address.
+        Returns True when one was issued (none yet, or the address changed)."""
+        index = self.load_index()
+        cn = relay_name(robot)
+        rec = self.current(index, cn)
+        if rec is not None:
+            cert = x509.load_pem_x509_certificate((self.root / rec.cert_path).read_bytes())
+            ips = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value.get_values_for_type(x509.IPAddress)
+            if [str(ip) for ip in ips] == [common_ip]:
+                return False
+        self._issue(index, "relay", cn, robot, days, (common_ip,))
+        self._save_index(index)
+        return True
 
     def revoke_robot(self, robot: str, crl_days: int) -> list[CertRecord]:
         """Revoke every valid client certificate of `robot` and re-issue the CRL."""
@@ -216,6 +235,7 @@ class PkiStore:
     def credentials(self, robot: str) -> RobotCredentials:
         index = self.load_index()
         client, server = self.current(index, robot), self.current(index, clone_host(robot))
+        relay = self.current(index, relay_name(robot))
         if client is None or server is None:
             raise CcrpError(
                 f"robot {robot!r} has no valid certificate",
@@ -234,4 +254,6 @@ class PkiStore:
             tls_crypt_key=self._tls_crypt_path(robot).read_text(),
             password=txt.read_text().strip(),
             password_hash=hashed.read_text().strip(),
+            relay_cert_pem=read(relay.cert_path) if relay else None,
+            relay_key_pem=read(relay.key_path) if relay else None,
         )

@@ -12,7 +12,7 @@ from ..pki.store import RobotCredentials
 from ..store import atomic_write, ensure_dir
 from . import network, openvpn
 from .templates import render, static
-from .view import VPN_DIR, CloneView
+from .view import RELAY_USER, VPN_DIR, CloneView
 
 
 @dataclass(frozen=True)
@@ -34,6 +34,16 @@ def clone_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
         BundleFile("tc.key", creds.tls_crypt_key, 0o600, f"{VPN_DIR}/tc.key"),
         # Read by ccrp-auth after OpenVPN dropped to the openvpn user.
         BundleFile("passwd", f"{view.name}:{creds.password_hash}\n", 0o640, f"{VPN_DIR}/passwd", "openvpn"),
+    ] + relay_secrets(view, creds)
+
+
+def relay_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
+    """The relay's mutual-TLS certificate and key (verified against the fleet CA, ca.crt)."""
+    if view.inv.sharing.engine != "relay" or not creds.relay_cert_pem or not creds.relay_key_pem:
+        return []
+    return [
+        BundleFile("relay.crt", creds.relay_cert_pem, 0o644, f"{VPN_DIR}/relay.crt"),
+        BundleFile("relay.key", creds.relay_key_pem, 0o640, f"{VPN_DIR}/relay.key", RELAY_USER),
     ]
 
 

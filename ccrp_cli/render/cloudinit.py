@@ -10,7 +10,14 @@ from ..errors import CcrpError
 from ..recipes import platform
 from . import network, openvpn
 from .templates import static
-from .view import CCRP_ETC, CCRP_LIB, VPN_DIR, CloneView
+from .view import CCRP_ETC, CCRP_LIB, RELAY_USER, VPN_DIR, CloneView
+
+
+def agent_source(name: str) -> str:
+    """Code that runs on a clone (ccrp_cli/agent/<name>.py), shipped as a file."""
+    from pathlib import Path
+
+    return (Path(__file__).resolve().parent.parent / "agent" / f"{name}.py").read_text()
 
 PRIVATE_KEY_MARKERS = ("PRIVATE KEY", "OpenVPN Static key")
 
@@ -28,7 +35,9 @@ def user_data_dict(
 ) -> dict[str, Any]:
     a = view.addr
     fw4, fw6 = network.firewall_rules(view)
+    relay = view.inv.sharing.engine == "relay"
     units = ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-rosmaster.service"]
+    units += ["ccrp-relay.service"] if relay else []
     files = [
         _file("/etc/hosts", network.clone_hosts_file(view)),
         _file(f"{CCRP_ETC}/ros.env", network.ros_env(view, "clone")),
@@ -48,6 +57,9 @@ def user_data_dict(
         {"name": "openvpn", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
         {"name": "ros", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "homedir": "/var/lib/ros"},
     ]
+    if relay:
+        users.append({"name": RELAY_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True,
+                      "no_create_home": True})
     data: dict[str, Any] = {
         "hostname": a.clone_host,
         "preserve_hostname": False,
@@ -55,7 +67,8 @@ def user_data_dict(
         "users": users,
         "write_files": files,
         "runcmd": [
-            ["install", "-d", "-m", "0750", "-o", "root", "-g", "openvpn", VPN_DIR],
+            # 0751: the relay user may open relay.key by name; nobody else may list the secrets.
+            ["install", "-d", "-m", "0751" if relay else "0750", "-o", "root", "-g", "openvpn", VPN_DIR],
             ["install", "-d", "-m", "0755", "-o", "ros", "-g", "ros", "/var/lib/ros"],
             ["systemctl", "daemon-reload"],
             ["systemctl", "enable", "--now", *units],
@@ -72,6 +85,11 @@ def user_data_dict(
             data["apt"] = {"sources": {f"ccrp{i}.list": s.model_dump() for i, s in enumerate(plat.apt_sources)}}
         data["package_update"] = True
         data["packages"] = [p for p in plat.packages if p not in ("cloud-init",)]
+        if relay:
+            # What `snapshot build` puts in the image: the relay agent and its Zenoh (cloud-init
+            # runs package installs before runcmd, so pip3 exists by then).
+            files.append(_file(f"{CCRP_LIB}/relay.py", agent_source("relay"), "0755"))
+            data["runcmd"][:0] = [["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip]]
     return data
 
 

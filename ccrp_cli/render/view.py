@@ -11,6 +11,8 @@ from ..models.inventory import Inventory, Robot
 VPN_DIR = "/etc/openvpn/server/ccrp"
 CCRP_ETC = "/etc/ccrp"
 CCRP_LIB = "/usr/local/lib/ccrp"
+# The topic relay runs as its own user: it reads only relay.key and ca.crt in VPN_DIR.
+RELAY_USER = "ccrp-relay"
 
 
 @dataclass(frozen=True)

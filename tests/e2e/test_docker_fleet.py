@@ -659,6 +659,35 @@ def test_revoke_ends_live_session_and_robot_cannot_reconnect(fleet: E2EFleet, si
     assert not seen[master].startswith("master "), f"revoked robot nao1 still reaches its master: {seen}"
 
 
+# -- 6b. scale -------------------------------------------------------------------------------------
+
+
+def clone_robots(fleet: E2EFleet) -> list[str]:
+    return sorted(c.labels["ccrp-robot"] for c in fleet.containers(role="clone"))
+
+
+def test_fleet_scale_adds_and_removes_only_template_robots(fleet: E2EFleet, up):
+    grown = {r["robot"]: r["action"] for r in fleet.json("fleet", "scale", "5")}
+    assert grown == {"nao1": "reused", "nao2": "reused", "turtlebot1": "reused",
+                     "robot1": "created", "robot2": "created"}, grown
+    assert clone_robots(fleet) == sorted([*ROBOTS, "robot1", "robot2"])
+    rows = fleet.status()
+    assert rows["robot2"]["master_reachable"] and rows["robot2"]["phase"] == "ready", rows["robot2"]
+
+    shrunk = {r["robot"]: r["action"] for r in fleet.json("fleet", "scale", "4")}
+    assert shrunk["robot2"] == "deleted" and shrunk["robot1"] == "reused", shrunk  # newest goes first
+    assert clone_robots(fleet) == sorted([*ROBOTS, "robot1"])
+
+    below = fleet.inv("fleet", "scale", "2")  # would remove robots the inventory names
+    assert below.returncode == 2 and "names 3 robots" in below.stderr, below.stderr
+    assert "Traceback" not in below.stderr
+    assert clone_robots(fleet) == sorted([*ROBOTS, "robot1"])
+
+    fleet.inv("fleet", "scale", "3", check=True)
+    assert clone_robots(fleet) == sorted(ROBOTS)
+    assert set(fleet.status()) == set(ROBOTS)  # template robots are forgotten, not just stopped
+
+
 # -- 7. down -------------------------------------------------------------------------------------------
 
 

@@ -6,13 +6,14 @@ from __future__ import annotations
 import io
 import shutil
 import subprocess
-import tarfile
+import sys
 import tempfile
 from pathlib import Path
 
 from ...errors import CcrpError
 from ...recipes import Platform
 from ...render.templates import render
+from .archive import tar_files
 
 DEFAULT_BASE = "ccrp/base:bookworm"
 # Enough for systemd to boot and apt to work; the recipe adds the rest at `snapshot build`.
@@ -43,18 +44,36 @@ def build_base_image(client, tag: str, packages: list[str], progress=lambda msg:
 
 
 def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform) -> str:
-    return render("docker/Dockerfile.j2", fleet=fleet, distro=distro, base_image=base_image, packages=plat.packages)
+    return render("docker/Dockerfile.j2", fleet=fleet, distro=distro, base_image=base_image, packages=plat.packages,
+                  pip=plat.pip)
 
 
-def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progress=lambda msg: None) -> str:
-    """docker build from an in-memory context holding only the Dockerfile."""
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w") as tar:
-        data = text.encode()
-        info = tarfile.TarInfo("Dockerfile")
-        info.size = len(data)
-        tar.addfile(info, io.BytesIO(data))
-    buf.seek(0)
+def build_context(plat: Platform, progress=lambda msg: None) -> dict[str, bytes]:
+    """Files the Dockerfile copies: the relay agent and the wheels of the recipe's pip packages,
+    downloaded here for the image's python (bookworm: 3.11) so the build needs no index."""
+    from ...render.cloudinit import agent_source
+
+    if not plat.pip:
+        return {}
+    files = {"relay.py": agent_source("relay").encode()}
+    with tempfile.TemporaryDirectory() as tmp:
+        progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
+        argv = [sys.executable, "-m", "pip", "download", "--quiet", "--only-binary=:all:", "--python-version", "3.11",
+                "--platform", "manylinux2014_x86_64", "--implementation", "cp", "--dest", tmp, *plat.pip]
+        proc = subprocess.run(argv, capture_output=True, text=True)
+        if proc.returncode != 0:
+            last = ([ln for ln in proc.stderr.splitlines() if not ln.startswith("WARNING")] or ["?"])[-1]
+            raise CcrpError(f"cannot download {', '.join(plat.pip)}: {last}", hint="check that PyPI (or your pip index) is reachable")
+        for wheel in Path(tmp).glob("*.whl"):
+            files[f"wheels/{wheel.name}"] = wheel.read_bytes()
+    return files
+
+
+def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progress=lambda msg: None,
+                      files: dict[str, bytes] | None = None) -> str:
+    """docker build from an in-memory context: the Dockerfile and `files`."""
+    entries = [("Dockerfile", text.encode(), 0o644), *((name, data, 0o644) for name, data in (files or {}).items())]
+    buf = io.BytesIO(tar_files(entries))
     image_id = None
     for chunk in client.api.build(fileobj=buf, custom_context=True, tag=tag, labels=labels, rm=True,
                                   forcerm=True, decode=True):

@@ -1,0 +1,209 @@
+#!/usr/bin/python3
+"""ccrp relay agent: runs ON a clone (system python3 + rospy + zenoh, nothing from ccrp).
+
+Exports: subscribes to this clone's exported ROS topics as rospy.AnyMsg (raw bytes, any type,
+no generated code) and puts each message on Zenoh key ccrp/<fleet>/<robot>/<topic> with its
+type, md5sum, definition and a sequence number in the attachment.
+Imports: subscribes to the Zenoh keys of the topics this clone imports and republishes each as
+/<source><topic> with a message class made at run time from the type, md5sum and definition.
+
+Peers are listed explicitly (no scouting) and reached over TLS with certificates from the fleet
+CA (mutual). The config file is re-read when it changes, so a fleet change adds or drops imports
+without a restart; Zenoh re-dials a listed peer whose clone restarted. The agent writes its view
+(peers connected, messages relayed, gaps seen) to a status file every second for `ccrp status`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import sys
+import threading
+import time
+
+import rosgraph
+import rospy
+import zenoh
+
+DEFAULT_CONFIG = "/etc/ccrp/relay.json"
+# How long a new ROS publisher waits for the subscribers the master knows to connect before it
+# sends its first message (otherwise that message would go to nobody).
+CONNECT_GRACE = 2.0
+
+
+def log(msg: str) -> None:
+    print(f"ccrp-relay: {msg}", file=sys.stderr, flush=True)
+
+
+def zenoh_config(cfg: dict) -> "zenoh.Config":
+    c = zenoh.Config()
+    c.insert_json5("id", json.dumps(cfg["id"]))
+    c.insert_json5("mode", '"peer"')
+    # Clouds have no multicast; peers come from the config only.
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("scouting/gossip/enabled", "false")
+    c.insert_json5("listen/endpoints", json.dumps([cfg["listen"]]))
+    c.insert_json5("connect/endpoints", json.dumps(sorted(p["endpoint"] for p in cfg["peers"].values())))
+    tls = cfg["tls"]
+    c.insert_json5("transport/link/tls", json.dumps({
+        "root_ca_certificate": tls["ca"], "enable_mtls": True,
+        "listen_private_key": tls["key"], "listen_certificate": tls["cert"],
+        "connect_private_key": tls["key"], "connect_certificate": tls["cert"],
+    }))
+    return c
+
+
+def raw_class(msg_type: str, md5: str, definition: str):
+    """A message class that publishes pre-serialized bytes under a given type."""
+    return type(
+        "Raw_" + msg_type.replace("/", "_"), (rospy.AnyMsg,),
+        {"_type": msg_type, "_md5sum": md5, "_full_text": definition, "_has_header": False, "__slots__": ()},
+    )
+
+
+class Export:
+    def __init__(self, relay: "Relay", topic: str) -> None:
+        self.topic, self.count = topic, 0
+        self.publisher = relay.session.declare_publisher(relay.key(relay.cfg["robot"], topic))
+        self.sub = rospy.Subscriber(topic, rospy.AnyMsg, self.forward, queue_size=100, tcp_nodelay=True)
+
+    def forward(self, msg) -> None:
+        header = msg._connection_header
+        self.count += 1
+        meta = {"t": header["type"], "m": header["md5sum"], "d": header.get("message_definition", ""), "s": self.count}
+        self.publisher.put(bytes(msg._buff), attachment=json.dumps(meta).encode())
+
+    def close(self) -> None:
+        self.sub.unregister()
+        self.publisher.undeclare()
+
+
+class Import:
+    """One imported topic: Zenoh samples queued in order, republished by one thread."""
+
+    def __init__(self, relay: "Relay", source: str, topic: str, local: str) -> None:
+        self.local, self.count, self.gaps, self.last_seq = local, 0, 0, 0
+        self.pub = None
+        self.queue: queue.Queue = queue.Queue(maxsize=1000)
+        self.thread = threading.Thread(target=self.run, name=f"import {local}", daemon=True)
+        self.thread.start()
+        self.sub = relay.session.declare_subscriber(relay.key(source, topic), self.queue.put)
+
+    def _publisher(self, meta: dict):
+        if self.pub is None or self.pub.data_class._md5sum != meta["m"]:
+            if self.pub is not None:
+                self.pub.unregister()
+            self.pub = rospy.Publisher(self.local, raw_class(meta["t"], meta["m"], meta["d"]), queue_size=100,
+                                       tcp_nodelay=True)
+            self._await_subscribers()
+        return self.pub
+
+    def _await_subscribers(self) -> None:
+        try:
+            subs = {t: n for t, n in rosgraph.Master("/ccrp_relay").getSystemState()[1]}.get(self.local, [])
+        except Exception:  # noqa: BLE001 - the master may be restarting; don't hold the topic up
+            return
+        deadline = time.monotonic() + CONNECT_GRACE
+        while self.pub.get_num_connections() < len(subs) and time.monotonic() < deadline:
+            time.sleep(0.02)
+
+    def run(self) -> None:
+        while True:
+            sample = self.queue.get()
+            if sample is None:
+                return
+            try:
+                meta = json.loads(sample.attachment.to_bytes())
+                msg = self._publisher(meta).data_class()
+                msg._buff = sample.payload.to_bytes()
+                if self.last_seq and meta["s"] > self.last_seq + 1:
+                    self.gaps += meta["s"] - self.last_seq - 1
+                self.last_seq = meta["s"]
+                self.pub.publish(msg)
+                self.count += 1
+            except Exception as exc:  # noqa: BLE001 - one bad sample must not stop the topic
+                log(f"{self.local}: dropped a sample: {exc}")
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.queue.put(None)
+        if self.pub is not None:
+            self.pub.unregister()
+
+
+class Relay:
+    def __init__(self, cfg: dict) -> None:
+        self.cfg = cfg
+        self.session = zenoh.open(zenoh_config(cfg))
+        self.exports: dict[str, Export] = {}
+        self.imports: dict[str, Import] = {}
+        self.apply(cfg)
+
+    def key(self, source: str, topic: str) -> str:
+        return f"ccrp/{self.cfg['fleet']}/{source}/{topic.strip('/')}"
+
+    def apply(self, cfg: dict) -> None:
+        """Bring exports and imports in line with cfg; untouched ones keep running."""
+        self.cfg = cfg
+        want_exports = set(cfg["exports"])
+        want_imports = {i["as"]: i for i in cfg["imports"]}
+        for topic in set(self.exports) - want_exports:
+            self.exports.pop(topic).close()
+        for topic in sorted(want_exports - set(self.exports)):
+            self.exports[topic] = Export(self, topic)
+        for local in set(self.imports) - set(want_imports):
+            self.imports.pop(local).close()
+        for local in sorted(set(want_imports) - set(self.imports)):
+            i = want_imports[local]
+            self.imports[local] = Import(self, i["source"], i["topic"], local)
+        log(f"exports {sorted(self.exports)}; imports {sorted(self.imports)}; peers {sorted(cfg['peers'])}")
+
+    def status(self) -> dict:
+        connected = {str(z) for z in self.session.info.peers_zid()}
+        return {
+            "time": time.time(),
+            "peers": {name: p["id"] in connected for name, p in self.cfg["peers"].items()},
+            "exports": {t: e.count for t, e in self.exports.items()},
+            "imports": {t: {"received": i.count, "gaps": i.gaps} for t, i in self.imports.items()},
+        }
+
+
+def write_atomic(path: str, text: str) -> None:
+    tmp = f"{path}.tmp"
+    with open(tmp, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+
+
+def wait_for_files(cfg: dict) -> None:
+    """The clone's TLS files arrive after boot (never in user-data): wait for them."""
+    while not all(os.access(cfg["tls"][k], os.R_OK) for k in ("ca", "cert", "key")):
+        time.sleep(1)
+
+
+def main() -> None:
+    path = sys.argv[1] if len(sys.argv) > 1 else DEFAULT_CONFIG
+    while not os.path.exists(path):
+        time.sleep(1)
+    mtime = os.stat(path).st_mtime
+    with open(path) as fh:
+        cfg = json.load(fh)
+    wait_for_files(cfg)
+    rospy.init_node("ccrp_relay", anonymous=False, disable_signals=True)
+    relay = Relay(cfg)
+    log(f"{cfg['robot']}: listening on {cfg['listen']}")
+    while not rospy.is_shutdown():
+        try:
+            if os.stat(path).st_mtime != mtime:
+                mtime = os.stat(path).st_mtime
+                with open(path) as fh:
+                    relay.apply(json.load(fh))
+            write_atomic(cfg["status"], json.dumps(relay.status()))
+        except Exception as exc:  # noqa: BLE001 - keep relaying; report and retry next second
+            log(f"{type(exc).__name__}: {exc}")
+        time.sleep(1)
+
+
+if __name__ == "__main__":
+    main()

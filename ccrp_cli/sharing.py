@@ -1,0 +1,95 @@
+"""Topic sharing between clones: the effective policy and what each clone's engine needs.
+
+A route is (source robot, topic, destination robot): the source's clone exports `topic`, the
+destination's clone imports it and sees it as /<source><topic>, so two robots' identical topic
+names never collide. Relays and fkie filters are both rendered from these routes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+
+from .fleet import Fleet
+from .models.inventory import Robot
+from .models.state import FleetState
+
+
+@dataclass(frozen=True, order=True)
+class Route:
+    source: str
+    topic: str
+    dest: str
+
+    @property
+    def local_name(self) -> str:
+        """The topic's name on the destination clone."""
+        return f"/{self.source}{self.topic}"
+
+
+def routes(members: list[Robot]) -> list[Route]:
+    """Every (source, topic, destination) the policy allows; imports of robots not (or no longer)
+    in the fleet are dropped, and so are imports the source does not export."""
+    exports = {r.name: set(r.exports) for r in members}
+    out = [
+        Route(source, topic, r.name)
+        for r in members
+        for source, topics in r.imports.items()
+        for topic in topics
+        if source != r.name and topic in exports.get(source, ())
+    ]
+    return sorted(set(out))
+
+
+def key_expr(fleet: str, source: str, topic: str) -> str:
+    """Zenoh key of a topic exported by `source`: ccrp/<fleet>/<source>/<topic path>."""
+    return f"ccrp/{fleet}/{source}/{topic.strip('/')}"
+
+
+def zenoh_id(fleet: str, robot: str) -> str:
+    """A stable Zenoh id per clone, so `ccrp status` can name the peers an agent sees."""
+    return "c" + hashlib.sha256(f"{fleet}/{robot}".encode()).hexdigest()[:31]
+
+
+def relay_config(fleet: Fleet, state: FleetState, robot: str) -> dict:
+    """/etc/ccrp/relay.json of robot's clone. Not secret: the TLS files it names come as secrets."""
+    from .render.view import CCRP_ETC, VPN_DIR
+
+    inv = fleet.inventory
+    plan = fleet.plan(state)
+    # Only clones that are up take part: a deleted clone drops out of every other's config.
+    live = {n for n, rec in state.robots.items() if rec.phase == "ready"} | {robot}
+    members = [m for m in fleet.members(state) if m.name in plan and m.name in live]
+    me = next(m for m in members if m.name == robot)
+    port = inv.sharing.relay_port
+    all_routes = routes(members)
+    # Only clones that exchange something with this one are peers: fewer links, same result.
+    partners = sorted({r.dest for r in all_routes if r.source == robot} | {r.source for r in all_routes if r.dest == robot})
+    return {
+        "fleet": inv.fleet,
+        "robot": robot,
+        "id": zenoh_id(inv.fleet, robot),
+        "listen": f"tls/{plan[robot].common_ip}:{port}",
+        "peers": {p: {"endpoint": f"tls/{plan[p].common_ip}:{port}", "id": zenoh_id(inv.fleet, p)} for p in partners},
+        "exports": sorted(t for t in me.exports if any(r.source == robot and r.topic == t for r in all_routes)),
+        "imports": [asdict(r) | {"as": r.local_name} for r in all_routes if r.dest == robot],
+        "tls": {"ca": f"{VPN_DIR}/ca.crt", "cert": f"{VPN_DIR}/relay.crt", "key": f"{VPN_DIR}/relay.key"},
+        "status": "/run/ccrp-relay/status.json",
+        "config": f"{CCRP_ETC}/relay.json",
+    }
+
+
+def relay_config_text(fleet: Fleet, state: FleetState, robot: str) -> str:
+    return json.dumps(relay_config(fleet, state, robot), indent=1, sort_keys=True) + "\n"
+
+
+def matrix(fleet: Fleet, state: FleetState) -> list[dict]:
+    """`ccrp topics`: who exports what to whom, as rows."""
+    members = fleet.members(state)
+    rows = [{"source": r.source, "topic": r.topic, "dest": r.dest, "as": r.local_name} for r in routes(members)]
+    exported = {(r["source"], r["topic"]) for r in rows}
+    # Exports nobody imports yet: shown so the operator sees what is offered.
+    rows += [{"source": m.name, "topic": t, "dest": None, "as": None}
+             for m in members for t in m.exports if (m.name, t) not in exported]
+    return sorted(rows, key=lambda r: (r["source"], r["topic"], r["dest"] or ""))
