@@ -300,8 +300,8 @@ class GcpProvider(CloudProvider):
                 # GCE remembers request ids for about an hour: a clone deleted and re-created in
                 # that time gets the earlier (done) operation back and no instance. Send it again
                 # under an id derived from that operation (still stable if this call is retried).
-                request.request_id = request_id(spec.instance_id, zone, op.name)
-                self._mutate(what, self.c.instances.insert, request=request)
+                again = self.compute.InsertInstanceRequest(request, request_id=request_id(spec.instance_id, zone, op.name))
+                self._mutate(what, self.c.instances.insert, request=again)
         except BaseException:
             self._rollback(spec.robot, zone, resource.name, route=False)
             raise

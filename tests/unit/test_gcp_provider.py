@@ -1,0 +1,281 @@
+"""GCP provider behaviour on the autospecced fake project (tests/contract/harness_gcp.py):
+zone fallback, quota errors, firewall contents, VPN routes, rollback, idempotency details."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("google.cloud.compute_v1")
+
+from google.api_core import exceptions  # noqa: E402
+
+from ccrp_cli.errors import CcrpError  # noqa: E402
+from ccrp_cli.providers.base import CloneSpec  # noqa: E402
+from ccrp_cli.providers.gcp.errors import classify  # noqa: E402
+from ccrp_cli.retry import ErrorClass  # noqa: E402
+from tests.contract.harness_gcp import PUBLIC_IMAGE, ZONES, FakeProject, GcpHarness, inventory  # noqa: E402
+
+
+def spec(robot: str, index: int, **over) -> CloneSpec:
+    fields = dict(robot=robot, hostname=f"cri-{robot}", image=PUBLIC_IMAGE,
+                  user_data=f"#cloud-config\nhostname: cri-{robot}\n", instance_id=f"ct-{robot}-{index}",
+                  common_ip=f"10.90.0.{9 + index}", vpn_subnet=f"10.80.{index}.0/24")
+    return CloneSpec(**(fields | over))
+
+
+@pytest.fixture
+def h(tmp_path) -> GcpHarness:
+    return GcpHarness(tmp_path)
+
+
+def inserts(h: GcpHarness) -> list:
+    return [call.kwargs["request"] for call in h.fake.clients.instances.insert.call_args_list]
+
+
+def test_zone_fallback_on_resource_pool_exhausted(h):
+    h.fake.exhausted.add(ZONES[0])
+    record = h.provider.run_instance(spec("robot1", 1))
+    assert record.created
+    assert [r.zone for r in inserts(h)] == ZONES[:2]
+    assert [zone for zone, _name in h.fake.instances] == [ZONES[1]]
+    # Each zone has its own request id: a stock-out's failed operation is not replayed elsewhere.
+    assert len({r.request_id for r in inserts(h)}) == 2
+
+
+def test_every_zone_exhausted_is_one_line(h):
+    h.fake.exhausted.update(ZONES)
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(spec("robot1", 1))
+    line = err.value.one_line()
+    assert "no capacity in zones europe-west2-a, europe-west2-b" in line and "hint: add zones" in line
+    assert "\n" not in line and h.fake.instances == {}
+
+
+def test_quota_is_a_region_error_with_a_hint_and_no_zone_hopping(tmp_path):
+    h = GcpHarness(tmp_path, FakeProject(cpu_quota=2))
+    h.provider.run_instance(spec("robot1", 1))
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(spec("robot2", 2))
+    line = err.value.one_line()
+    assert line.startswith("clone ccrp-ct-cri-robot2: GCE quota exceeded in europe-west2")
+    assert "Quota 'CPUS' exceeded" in line and "hint: request more quota for europe-west2" in line
+    assert "\n" not in line
+    assert [r.zone for r in inserts(h) if r.instance_resource.name.endswith("robot2")] == [ZONES[0]]
+    assert h.instances_for("robot2") == 0
+    assert h.provider.quotas()["CPUS"] == (2.0, 2.0)
+
+
+def test_firewall_rules_are_the_vpn_port_operator_ssh_and_the_common_network(h):
+    h.provider.bootstrap()
+    rules = {r.name: r for r in h.fake.firewalls.values()}
+    assert set(rules) == {"ccrp-ct-vpn", "ccrp-ct-ssh", "ccrp-ct-common"}
+    shape = {name: (r.direction, [(a.I_p_protocol, list(a.ports)) for a in r.allowed], list(r.source_ranges),
+                    list(r.target_tags)) for name, r in rules.items()}
+    assert shape == {
+        "ccrp-ct-vpn": ("INGRESS", [("udp", ["1194"])], ["0.0.0.0/0"], ["ccrp-ct"]),
+        "ccrp-ct-ssh": ("INGRESS", [("tcp", ["22"])], ["198.51.100.0/24"], ["ccrp-ct"]),
+        "ccrp-ct-common": ("INGRESS", [("all", [])], ["10.90.0.0/24"], ["ccrp-ct"]),
+    }
+    assert all(r.description == "ccrp: ccrp-managed=true ccrp-fleet=ct ccrp-role=network" for r in rules.values())
+    h.provider.run_instance(spec("robot1", 1))
+    (inst,) = h.fake.instances.values()
+    assert list(inst.tags.items) == ["ccrp-ct"]  # the rules apply to clones through this tag
+
+
+def test_changed_vpn_port_updates_the_rule_and_nothing_else(tmp_path):
+    fake = FakeProject()
+    GcpHarness(tmp_path, fake).provider.bootstrap()
+    inv = inventory()
+    inv.vpn.port = 443
+    h = GcpHarness(tmp_path, fake, inv)
+    h.provider.bootstrap()
+    assert h.fake.firewalls["ccrp-ct-vpn"].allowed[0].ports == ["443"]
+    assert [c.kwargs["firewall"] for c in fake.clients.firewalls.update.call_args_list] == ["ccrp-ct-vpn"]
+    assert fake.calls["networks.insert"] == 1 and fake.calls["subnetworks.insert"] == 1
+
+
+def test_route_follows_the_clone(h):
+    record = h.provider.run_instance(spec("robot1", 1))
+    route = h.fake.routes["ccrp-ct-vpn-robot1"]
+    (inst,) = h.fake.instances.values()
+    assert inst.can_ip_forward and route.next_hop_instance == inst.self_link
+    assert route.dest_range == "10.80.1.0/24" and route.network == inst.network_interfaces[0].network
+    assert route.description == "ccrp: ccrp-managed=true ccrp-fleet=ct ccrp-role=route ccrp-robot=robot1"
+    assert record.common_ip == "10.90.0.10"
+    assert h.provider.terminate("robot1") is True
+    assert h.fake.routes == {} and h.fake.instances == {}
+
+
+def test_stale_route_of_an_earlier_clone_is_replaced(h):
+    h.provider.run_instance(spec("robot1", 1))
+    h.fake.instances.clear()  # the clone vanished behind ccrp's back; its route stayed
+    h.provider.run_instance(spec("robot1", 1, vpn_subnet="10.80.9.0/24"))
+    (inst,) = h.fake.instances.values()
+    assert h.fake.routes["ccrp-ct-vpn-robot1"].next_hop_instance == inst.self_link
+    assert h.fake.routes["ccrp-ct-vpn-robot1"].dest_range == "10.80.9.0/24"
+
+
+def test_rollback_deletes_only_what_the_attempt_created(h):
+    h.provider.run_instance(spec("robot1", 1))
+    kept = dict(h.fake.routes), {k: v.id for k, v in h.fake.instances.items()}
+    h.fail_create_after_instance("robot2")
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(spec("robot2", 2))
+    assert err.value.one_line().startswith("clone ccrp-ct-cri-robot2: BadRequest")
+    assert h.instances_for("robot2") == 0 and h.owned_ids("robot2") == set()
+    assert (dict(h.fake.routes), {k: v.id for k, v in h.fake.instances.items()}) == kept
+
+
+def test_reused_clone_survives_a_failed_route(h):
+    first = h.provider.run_instance(spec("robot1", 1))
+    h.fake.routes.clear()
+    h.fail_create_after_instance("robot1")
+    with pytest.raises(CcrpError):
+        h.provider.run_instance(spec("robot1", 1))
+    assert h.instances_for("robot1") == 1  # not this attempt's: never rolled back
+    again = h.provider.run_instance(spec("robot1", 1))
+    assert not again.created and again.provider_id == first.provider_id
+    assert "ccrp-ct-vpn-robot1" in h.fake.routes
+
+
+def test_throttled_insert_keeps_its_request_id(h):
+    h.provider.bootstrap()
+    h.throttle(0.6)
+    h.provider.run_instance(spec("robot1", 1))
+    h.throttle(0)
+    sent = inserts(h)
+    assert len(sent) >= 1 and len({r.request_id for r in sent}) == 1
+    assert h.instances_for("robot1") == 1
+
+
+def test_recreate_within_the_request_id_window(h):
+    """GCE replays a remembered requestId's operation without creating anything: a clone deleted
+    and created again within the hour must still come back."""
+    first = h.provider.run_instance(spec("robot1", 1))
+    assert h.provider.terminate("robot1")
+    again = h.provider.run_instance(spec("robot1", 1))
+    assert again.created and again.provider_id != first.provider_id
+    assert h.instances_for("robot1") == 1
+    ids = [r.request_id for r in inserts(h)]
+    assert ids[0] == ids[1] != ids[2]
+
+
+def test_stopped_clone_is_started_and_reused(h):
+    first = h.provider.run_instance(spec("robot1", 1))
+    (inst,) = h.fake.instances.values()
+    inst.status = "TERMINATED"
+    again = h.provider.run_instance(spec("robot1", 1))
+    assert not again.created and again.provider_id == first.provider_id and again.status == "RUNNING"
+
+
+def test_foreign_instance_with_the_clone_name_is_refused_and_untouched(h):
+    foreign = h.add_foreign()
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(spec("foreign", 1))
+    assert "name taken" in err.value.one_line()
+    assert h.provider.terminate("foreign") is False
+    h.provider.teardown()
+    assert h.exists(foreign)
+
+
+def test_named_network_is_used_not_owned(tmp_path):
+    from google.cloud import compute_v1 as c
+
+    fake = FakeProject()
+    fake.clients.networks.insert(network_resource=c.Network(name="lab", auto_create_subnetworks=False), project="p")
+    fake.clients.subnetworks.insert(project="p", region="europe-west2", subnetwork_resource=c.Subnetwork(
+        name="lab-eu", network="global/networks/lab", ip_cidr_range="10.90.0.0/16"))
+    h = GcpHarness(tmp_path, fake, inventory(network="lab"))
+    h.provider.run_instance(spec("robot1", 1))
+    (inst,) = fake.instances.values()
+    assert inst.network_interfaces[0].subnetwork.endswith("/subnetworks/lab-eu")
+    assert set(fake.firewalls) == {"ccrp-ct-vpn", "ccrp-ct-ssh", "ccrp-ct-common"}
+    h.provider.teardown()
+    assert set(fake.networks) == {"lab"} and set(fake.subnetworks) == {"lab-eu"} and fake.firewalls == {}
+
+
+def test_missing_named_network_is_one_line(tmp_path):
+    h = GcpHarness(tmp_path, inv=inventory(network="nope"))
+    with pytest.raises(CcrpError, match="network 'nope' not found in project ccrp-test"):
+        h.provider.bootstrap()
+
+
+def test_oversized_user_data_fails_before_any_call(h):
+    with pytest.raises(CcrpError, match="over gcp's limit of 262144 bytes"):
+        h.provider.run_instance(spec("robot1", 1, user_data="#cloud-config\n" + "x" * 262_144))
+    assert sum(h.api_calls().values()) == 0
+
+
+def test_teardown_order_and_snapshots_kept(h):
+    for i, robot in enumerate(["robot1", "robot2"], 1):
+        h.provider.run_instance(spec(robot, i))
+    snap = h.provider.create_snapshot("robot1", "ccrp/ct-clone:robot1-20260101")
+    assert snap.name == "ccrp-ct-clone-robot1-20260101"
+    removed = h.provider.teardown()  # the fake refuses to delete a network still in use
+    assert [r.split()[0] for r in removed] == ["route"] * 2 + ["instance"] * 2 + ["firewall"] * 3 + ["subnet", "network"]
+    assert h.owned_ids() == {snap.id} and h.provider.leftovers() == []
+
+
+@pytest.mark.parametrize("exc, expected", [
+    (exceptions.TooManyRequests("Rate Limit Exceeded"), ErrorClass.RETRYABLE),
+    (exceptions.ServiceUnavailable("Backend Error"), ErrorClass.RETRYABLE),
+    (exceptions.InternalServerError("oops"), ErrorClass.RETRYABLE),
+    (exceptions.Forbidden("Rate Limit Exceeded", errors=[{"reason": "rateLimitExceeded"}]), ErrorClass.RETRYABLE),
+    (exceptions.Forbidden("Quota 'CPUS' exceeded", errors=[{"reason": "quotaExceeded"}]), ErrorClass.REGION),
+    (exceptions.ServiceUnavailable("SERVICE UNAVAILABLE", errors=[{"code": "ZONE_RESOURCE_POOL_EXHAUSTED"}]),
+     ErrorClass.ZONE),
+    (exceptions.BadRequest("The zone 'projects/p/zones/z' does not have enough resources available"), ErrorClass.ZONE),
+    (exceptions.Forbidden("Required 'compute.instances.create' permission"), ErrorClass.FATAL),
+    (exceptions.BadRequest("Invalid value for field 'resource.machineType'"), ErrorClass.FATAL),
+    (exceptions.NotFound("The resource was not found"), ErrorClass.FATAL),
+])
+def test_classify(exc, expected):
+    assert classify(exc) is expected
+
+
+def test_transport_errors_are_retried():
+    import requests
+
+    assert classify(requests.exceptions.ConnectionError("reset")) is ErrorClass.RETRYABLE
+
+
+def test_no_credentials_is_one_line(tmp_path, monkeypatch):
+    import google.auth
+    from google.auth.exceptions import DefaultCredentialsError
+
+    from ccrp_cli.providers.gcp import GcpProvider
+
+    def no_adc(**_kw):
+        raise DefaultCredentialsError("Your default credentials were not found. To set up ADC, see ...")
+
+    monkeypatch.setattr(google.auth, "default", no_adc)
+    provider = GcpProvider(inventory(), tmp_path)  # constructing needs no credentials yet
+    with pytest.raises(CcrpError) as err:
+        provider.check_credentials()
+    assert "no Google Cloud credentials found" in err.value.one_line()
+    assert "gcloud auth application-default login" in err.value.one_line()
+
+
+def test_check_credentials_reads_the_region(h):
+    assert h.provider.check_credentials() == "project ccrp-test, region europe-west2: UP"
+
+
+def test_missing_sdk_names_the_extra(tmp_path, monkeypatch):
+    import google.cloud
+
+    from ccrp_cli.providers.gcp import GcpProvider
+
+    monkeypatch.delattr(google.cloud, "compute_v1")
+    monkeypatch.setitem(sys.modules, "google.cloud.compute_v1", None)  # as if never installed
+    with pytest.raises(CcrpError) as err:
+        GcpProvider(inventory(), tmp_path)
+    assert "pip install 'ccrp[gcp]'" in err.value.one_line()
+
+
+def test_importing_the_backend_does_not_import_the_sdk():
+    code = ("import sys, ccrp_cli.providers.gcp; "
+            "assert 'google.cloud.compute_v1' not in sys.modules and 'google.auth' not in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)
