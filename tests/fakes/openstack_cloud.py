@@ -9,7 +9,7 @@ refuses: a fixed IP used twice, a router with interfaces, a subnet or network st
 user-data over Nova's limit, and servers the scheduler cannot place ("No valid host was found").
 
 Knobs for tests: `throttle(fraction)` (429/503 before the fake), `delay(seconds)`, `no_capacity`
-zones, `max_instances`, `fail_fip_for` robots; `calls` counts (METHOD, path template).
+zones, `max_instances`, `fail_fip_for` robots, `fail_next` operations; `calls` counts (METHOD, path template).
 """
 
 from __future__ import annotations
@@ -62,6 +62,7 @@ class FakeOpenStack(NeutronApi):
         self.no_capacity: set[str] = set()  # zones where the scheduler finds no host
         self.max_instances = 100
         self.fail_fip_for: set[str] = set()  # robots whose next floating IP request fails
+        self.fail_next: dict[tuple[str, str], tuple[int, str]] = {}  # (METHOD, "host:/template") -> one error
         # name -> resource dict, per collection (Neutron/Glance/Nova shapes, as on the wire)
         self.servers: dict[str, dict] = {}
         self.networks: dict[str, dict] = {}
@@ -127,6 +128,8 @@ class FakeOpenStack(NeutronApi):
                 return {"message": "Rate limit exceeded" if context.status_code == 429 else "Service Unavailable"}
             body = request.json() if request.body else {}
             try:
+                if op in self.fail_next:
+                    raise ApiError(*self.fail_next.pop(op))
                 return getattr(self, f"_{host}")(request.method, path, query, body, context)
             except ApiError as err:
                 context.status_code = err.status

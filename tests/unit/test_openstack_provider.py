@@ -285,3 +285,16 @@ def test_a_named_network_is_used_not_routed_and_never_deleted(h, tmp_path):
     assert rec.public_ip
     p.teardown()
     assert lab["id"] in h.fake.networks and h.owned_ids() == set()
+
+
+def test_what_rollback_cannot_delete_is_named_and_left_for_gc(h):
+    h.fail_create_after_instance("robot1")
+    h.fake.fail_next[("DELETE", "network:/v2.0/ports/{id}")] = (409, "Port is busy")
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(h.spec("robot1", 1))
+    [port] = ports_of(h, "robot1")
+    assert f"rollback left port {port['id']}" in err.value.one_line() and "not reachable" in err.value.one_line()
+    assert h.instances_for("robot1") == 0  # the server went; only the port stayed
+    [leak] = [r for r in h.provider.list_owned() if r.kind == "port"]
+    h.provider.delete_owned(leak)
+    assert ports_of(h, "robot1") == []

@@ -166,7 +166,8 @@ class OpenStackProvider(CloudProvider):
         payload, _gzipped = fit_user_data("openstack", spec.user_data)  # cloud-init inflates gzip itself
         user_data = base64.b64encode(payload).decode()
         created: list[tuple[str, object]] = []
-        with self._errors(f"clone of {spec.robot}"):
+        what = f"clone of {spec.robot}"
+        with self._errors(what):
             try:
                 ext, net, subnet, sg = self._fleet_resources()
                 server = self._server(spec.robot, spec.role)
@@ -176,12 +177,14 @@ class OpenStackProvider(CloudProvider):
                 if server is None:
                     server = across_zones(self._zones(spec.robot), lambda z: self._boot(spec, port, user_data, z, created),
                                           classify=self.classify_error, what=f"server for {spec.robot}")
-                fip = self._floating_ip(spec.robot, port, ext, created)
-            except BaseException as exc:
+                fip = self._floating_ip(spec, port, ext, created)
+            except BaseException as exc:  # Ctrl-C too: what this attempt made must not linger
                 left = self._rollback(created)
-                if left and isinstance(exc, CcrpError):
-                    exc.message += f" (rollback left {', '.join(left)}: `ccrp gc` removes them)"
-                raise
+                if not left or not (isinstance(exc, CcrpError) or errors.is_sdk_error(exc)):
+                    raise
+                err = exc if isinstance(exc, CcrpError) else errors.to_ccrp(what, self.settings.cloud, exc)
+                err.message += f" (rollback left {', '.join(left)}: `ccrp gc` removes them)"
+                raise err from None
         return CloneRecord(robot=spec.robot, provider_id=server.id, status=server.status or "BUILD",
                            public_ip=fip.floating_ip_address, common_ip=port.fixed_ips[0]["ip_address"],
                            created=any(kind == "instance" for kind, _ in created))
@@ -258,15 +261,16 @@ class OpenStackProvider(CloudProvider):
             raise CcrpError(f"{what} {name_or_id!r} not found on cloud {self.settings.cloud!r}", hint=hint)
         return found
 
-    def _floating_ip(self, robot: str, port, ext, created: list):
+    def _floating_ip(self, spec: CloneSpec, port, ext, created: list):
         attached = self.listing("floating IPs", self.network.ips, port_id=port.id)
         if attached:
             return attached[0]
-        free = next((f for f in self.owned("fips", None, robot) if not f.port_id), None)
+        robot = spec.robot
+        free = next((f for f in self.owned("fips", spec.role, robot) if not f.port_id), None)
         if free is not None:  # allocated by an attempt that died before attaching it
             return self.api("attach floating IP", self.network.update_ip, free, port_id=port.id)
         fip = self.api("create floating IP", self.network.create_ip, floating_network_id=ext.id, port_id=port.id,
-                       tags=self.tags("clone", robot), description=f"ccrp fleet {self.fleet}: clone of {robot}")
+                       tags=self.tags(spec.role, robot), description=f"ccrp fleet {self.fleet}: clone of {robot}")
         created.append(("floating_ip", fip))
         return fip
 
