@@ -45,12 +45,13 @@ def classify(exc: BaseException) -> ErrorClass:
         return ErrorClass.RETRYABLE  # connection reset / timeouts before an answer
     if isinstance(exc, (ClientError, WaiterError)):
         code = error_code(exc)
-        if code in RETRYABLE or _status(exc) >= 500:
-            return ErrorClass.RETRYABLE
+        # Capacity errors come with HTTP 500 ("server error codes"): name before status.
         if code in ZONE or (code == "Unsupported" and "Availability Zone" in str(exc)):
             return ErrorClass.ZONE
         if code in REGION:
             return ErrorClass.REGION
+        if code in RETRYABLE or _status(exc) >= 500:
+            return ErrorClass.RETRYABLE
     return ErrorClass.FATAL
 
 
@@ -70,4 +71,6 @@ def as_ccrp(what: str, exc: BaseException) -> CcrpError:
         hint = "AWS has no capacity for this instance type now: retry later or change provider.instance_type"
     else:
         hint = None
-    return CcrpError(f"AWS {what}: {message}", hint=hint)
+    err = CcrpError(f"AWS {what}: {message}", hint=hint)
+    err.__cause__ = exc
+    return err

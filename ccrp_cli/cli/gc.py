@@ -1,0 +1,30 @@
+"""ccrp gc."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from . import options, output
+
+
+def gc(
+    inventory: options.Inventory,
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="Only list the leaks.")] = False,
+    as_json: options.Json = False,
+) -> None:
+    """Delete resources carrying the fleet's labels that ccrp's state does not know (leaks).
+
+    Known: recorded clones, their public IPs/volumes/routes, the fleet's network, firewall and key
+    pair, and its snapshots. Run with --dry-run first to see what would go."""
+    from ..gc import collect
+
+    fleet, provider = options.open_provider(inventory)
+    with fleet.store.lock():  # no `fleet up` may create clones while we decide what is a leak
+        results = collect(fleet.store.load_state(), provider, dry_run, output.info)
+    output.emit([r.as_dict() for r in results], as_json, ["KIND", "ID", "NAME", "ROBOT", "RESULT", "DETAIL"],
+                [(r.resource.kind, r.resource.id, r.resource.name, r.resource.robot, r.action, r.detail) for r in results])
+    if not as_json:
+        output.info(f"fleet {fleet.name!r}: {len(results)} leaked resources" + (" (dry run: nothing deleted)" if dry_run else ""))
+    raise typer.Exit(1 if any(r.action == "failed" for r in results) else 0)

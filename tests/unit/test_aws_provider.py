@@ -1,0 +1,163 @@
+"""What the AWS provider does beyond the shared contract: error classes, the security group
+converging to exactly the public rules, an existing VPC left alone, gzip of large user-data,
+zone fallback for the common subnet."""
+
+from __future__ import annotations
+
+import base64
+import gzip
+
+import pytest
+
+from ccrp_cli.errors import CcrpError
+from ccrp_cli.retry import ErrorClass
+from tests.contract.specs import FAST, clone_spec, inventory
+
+from .aws_fakes import REGION, aws_env, inject_error  # noqa: F401 - fixture
+
+PROVIDER = {"kind": "aws", "region": REGION, "zones": ["us-east-1a", "us-east-1b"], "operator_cidr": "198.51.100.0/24"}
+
+
+@pytest.fixture
+def mocked(aws_env):  # noqa: F811
+    from moto import mock_aws
+
+    with mock_aws():
+        yield
+
+
+def make(tmp_path, bootstrap: bool = True, **settings):
+    from ccrp_cli.providers.aws import AwsProvider
+
+    p = AwsProvider(inventory(PROVIDER | settings), tmp_path / "store")
+    p.backoff = FAST
+    if bootstrap:
+        p.bootstrap()
+    return p
+
+
+def image(p) -> str:
+    return p.ec2.register_image(Name="base", RootDeviceName="/dev/sda1", Architecture="x86_64")["ImageId"]
+
+
+@pytest.mark.parametrize("code,status,expected", [
+    ("RequestLimitExceeded", 503, ErrorClass.RETRYABLE),
+    ("Throttling", 400, ErrorClass.RETRYABLE),
+    ("InternalError", 500, ErrorClass.RETRYABLE),
+    ("SomethingNew", 502, ErrorClass.RETRYABLE),
+    ("InsufficientInstanceCapacity", 500, ErrorClass.ZONE),
+    ("InstanceLimitExceeded", 400, ErrorClass.REGION),
+    ("VcpuLimitExceeded", 400, ErrorClass.REGION),
+    ("InvalidAMIID.NotFound", 400, ErrorClass.FATAL),
+    ("UnauthorizedOperation", 403, ErrorClass.FATAL),
+])
+def test_classify(code, status, expected):
+    from botocore.exceptions import ClientError, EndpointConnectionError
+
+    from ccrp_cli.providers.aws.errors import as_ccrp, classify
+
+    exc = ClientError({"Error": {"Code": code, "Message": "m"}, "ResponseMetadata": {"HTTPStatusCode": status}}, "RunInstances")
+    assert classify(exc) is expected
+    assert classify(as_ccrp("launch", exc)) is expected  # the one-line error keeps its class
+    assert classify(EndpointConnectionError(endpoint_url="https://ec2")) is ErrorClass.RETRYABLE
+
+
+def test_unsupported_zone_is_a_zone_error():
+    from botocore.exceptions import ClientError
+
+    from ccrp_cli.providers.aws.errors import classify
+
+    msg = "Your requested instance type is not supported in your requested Availability Zone (us-east-1e)."
+    exc = ClientError({"Error": {"Code": "Unsupported", "Message": msg}}, "RunInstances")
+    assert classify(exc) is ErrorClass.ZONE
+    assert classify(ClientError({"Error": {"Code": "Unsupported", "Message": "other"}}, "X")) is ErrorClass.FATAL
+
+
+def test_bootstrap_converges_security_group_and_is_idempotent(mocked, tmp_path):
+    p = make(tmp_path)
+    net = p.network
+    # Someone opens the ROS master to the world by hand: the next bootstrap closes it.
+    p.ec2.authorize_security_group_ingress(GroupId=net.security_group_id, IpPermissions=[
+        {"IpProtocol": "tcp", "FromPort": 11311, "ToPort": 11311, "IpRanges": [{"CidrIp": "0.0.0.0/0"}]}])
+    p.bootstrap()
+    from ccrp_cli.providers.aws import network
+
+    sg = p.ec2.describe_security_groups(GroupIds=[net.security_group_id])["SecurityGroups"][0]
+    assert {(r[0], r[1], r[3]) for r in network.ingress_rules(sg)} == {
+        ("udp", 1194, "0.0.0.0/0"), ("tcp", 22, "198.51.100.0/24"), ("-1", -1, "10.90.0.0/24")}
+    assert p.network == net
+    assert len(p.ec2.describe_vpcs(Filters=[{"Name": "tag:ccrp-fleet", "Values": ["ct"]}])["Vpcs"]) == 1
+    key = p.ec2.describe_key_pairs(KeyNames=["ccrp-ct"], IncludePublicKey=True)["KeyPairs"][0]
+    assert key["PublicKey"].split()[:2] == p.operator_public_key().split()[:2]
+
+
+def test_existing_vpc_is_used_and_left_alone(mocked, tmp_path):
+    import boto3
+
+    ec2 = boto3.client("ec2", region_name=REGION)
+    vpc = ec2.create_vpc(CidrBlock="10.90.0.0/16")["Vpc"]["VpcId"]
+    igw = ec2.create_internet_gateway()["InternetGateway"]["InternetGatewayId"]
+    ec2.attach_internet_gateway(InternetGatewayId=igw, VpcId=vpc)
+    p = make(tmp_path, vpc_id=vpc)
+    assert p.network.vpc_id == vpc
+    removed = p.teardown()
+    assert any(r.startswith("subnet") for r in removed) and not any(r.startswith(("vpc", "internet_gateway")) for r in removed)
+    assert ec2.describe_vpcs(VpcIds=[vpc])["Vpcs"]
+    assert ec2.describe_internet_gateways(InternetGatewayIds=[igw])["InternetGateways"][0]["Attachments"]
+
+
+def test_vpc_without_internet_gateway_is_refused(mocked, tmp_path):
+    import boto3
+
+    vpc = boto3.client("ec2", region_name=REGION).create_vpc(CidrBlock="10.90.0.0/16")["Vpc"]["VpcId"]
+    with pytest.raises(CcrpError, match="no internet gateway"):
+        make(tmp_path, vpc_id=vpc)
+
+
+def test_common_subnet_falls_back_to_the_next_zone(mocked, tmp_path):
+    p = make(tmp_path, bootstrap=False)
+    inject_error(p.ec2, "CreateSubnet", "Unsupported",
+                 "The requested Availability Zone us-east-1a is currently constrained",
+                 when=lambda body: body.get("AvailabilityZone") == "us-east-1a")
+    p.bootstrap()
+    assert p.network.zone == "us-east-1b"
+
+
+def test_large_user_data_is_gzipped_within_the_limit(mocked, tmp_path):
+    p = make(tmp_path)
+    spec = clone_spec(p.inv, "robot1", 1, image(p))
+    spec.user_data += "".join(f"# padding line {i}: the same words again and again\n" for i in range(600))
+    assert len(spec.user_data.encode()) > 16_384
+    rec = p.run_instance(spec)
+    sent = base64.b64decode(p.ec2.describe_instance_attribute(InstanceId=rec.provider_id, Attribute="userData")["UserData"]["Value"])
+    assert len(sent) <= 16_384 and gzip.decompress(sent).decode() == spec.user_data
+
+
+def test_capacity_error_at_launch_leaves_nothing(mocked, tmp_path):
+    p = make(tmp_path)
+    inject_error(p.ec2, "RunInstances", "InsufficientInstanceCapacity", "We currently do not have sufficient t3.medium capacity")
+    with pytest.raises(CcrpError) as err:
+        p.run_instance(clone_spec(p.inv, "robot1", 1, image(p)))
+    assert "capacity" in err.value.one_line() and "instance_type" in (err.value.hint or "")
+    assert p.query() == {} and not p.ec2.describe_addresses()["Addresses"]
+
+
+def test_throttling_gives_up_with_one_line(mocked, tmp_path):
+    p = make(tmp_path)
+    for _ in range(FAST.attempts):
+        inject_error(p.ec2, "DescribeInstances", "RequestLimitExceeded", "Request limit exceeded.", status=503)
+    with pytest.raises(CcrpError, match="still failing after 8 attempts"):
+        p.query()
+
+
+def test_clone_route_and_source_dest_check(mocked, tmp_path):
+    p = make(tmp_path)
+    rec = p.run_instance(clone_spec(p.inv, "robot2", 2, image(p)))
+    rt = p.ec2.describe_route_tables(RouteTableIds=[p.network.route_table_id])["RouteTables"][0]
+    assert {"10.80.2.0/24": rec.provider_id} == {r["DestinationCidrBlock"]: r["InstanceId"] for r in rt["Routes"] if r.get("InstanceId")}
+    attr = p.ec2.describe_instance_attribute(InstanceId=rec.provider_id, Attribute="sourceDestCheck")
+    assert attr["SourceDestCheck"]["Value"] is False
+    assert rec.common_ip == "10.90.0.11" and rec.public_ip
+    p.terminate("robot2")
+    rt = p.ec2.describe_route_tables(RouteTableIds=[p.network.route_table_id])["RouteTables"][0]
+    assert not [r for r in rt["Routes"] if r.get("InstanceId")]
