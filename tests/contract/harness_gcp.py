@@ -45,7 +45,6 @@ NAME = re.compile(r"^[a-z]([-a-z0-9]{0,61}[a-z0-9])?$")
 LABEL = re.compile(r"^[a-z0-9_-]{0,63}$")
 METADATA_VALUE_MAX = 256 * 1024
 VCPUS = {"e2-micro": 2, "e2-small": 2, "e2-medium": 2, "e2-standard-4": 4}
-SAFE_CALLS = {"regions.get"}
 
 
 class FakeOperation(ExtendedOperation):
@@ -122,6 +121,7 @@ class FakeProject:
             "routes": ("RoutesClient", ["insert", "get", "delete", "list"]),
             "images": ("ImagesClient", ["insert", "get", "delete", "list"]),
             "regions": ("RegionsClient", ["get"]),
+            "machine_types": ("MachineTypesClient", ["get"]),
         }
         built = {}
         for service, (cls, methods) in handlers.items():
@@ -136,7 +136,7 @@ class FakeProject:
         def call(*args, **kwargs):
             with self.lock:
                 self.calls[name] += 1
-                throttled = name not in SAFE_CALLS and self.rng.random() < self.throttled
+                throttled = self.rng.random() < self.throttled
             if self.latency:
                 time.sleep(self.latency)
             if throttled:
@@ -472,6 +472,14 @@ class FakeProject:
                         zones=[self._link(f"zones/{z}") for z in ZONES],
                         quotas=[c.Quota(metric="CPUS", limit=self.cpu_quota, usage=self._vcpus()),
                                 c.Quota(metric="IN_USE_ADDRESSES", limit=8, usage=len(self.instances))])
+
+    def _machine_types_get(self, request=None, **kw):
+        req = _request(c.GetMachineTypeRequest, request, kw)
+        self._check_zone(req.zone)
+        if req.machine_type not in VCPUS:
+            raise _not_found(self._link(f"zones/{req.zone}/machineTypes/{req.machine_type}"))
+        return c.MachineType(name=req.machine_type, guest_cpus=VCPUS[req.machine_type],
+                             self_link=self._link(f"zones/{req.zone}/machineTypes/{req.machine_type}"))
 
     # -- inspection (not through the API) -------------------------------------------------------
     def marks(self):

@@ -29,8 +29,8 @@ def default_credentials():
     try:
         credentials, _project = google.auth.default(scopes=["https://www.googleapis.com/auth/compute"])
     except DefaultCredentialsError as exc:
-        raise CcrpError(f"no Google Cloud credentials found ({str(exc).splitlines()[0][:120]})",
-                        hint=LOGIN_HINT) from None
+        first_sentence = str(exc).split(". ")[0].strip().rstrip(".")
+        raise CcrpError(f"no Google Cloud credentials found ({first_sentence[:160]})", hint=LOGIN_HINT) from None
     return credentials
 
 
@@ -43,6 +43,7 @@ class Clients:
     routes: Any
     images: Any
     regions: Any
+    machine_types: Any
 
     @classmethod
     def connect(cls, credentials=None, client_options: dict | None = None) -> "Clients":
@@ -52,5 +53,5 @@ class Clients:
             instances=compute_v1.InstancesClient(**kw), networks=compute_v1.NetworksClient(**kw),
             subnetworks=compute_v1.SubnetworksClient(**kw), firewalls=compute_v1.FirewallsClient(**kw),
             routes=compute_v1.RoutesClient(**kw), images=compute_v1.ImagesClient(**kw),
-            regions=compute_v1.RegionsClient(**kw),
+            regions=compute_v1.RegionsClient(**kw), machine_types=compute_v1.MachineTypesClient(**kw),
         )

@@ -507,8 +507,19 @@ class GcpProvider(CloudProvider):
             region = self._call("get region", self.c.regions.get, project=self.project, region=self.region)
             return f"project {self.project}, region {region.name}: {region.status}"
 
-    def quotas(self) -> dict[str, tuple[float, float]]:
-        """Regional quotas: metric -> (usage, limit)."""
+    def quotas(self) -> list[tuple[str, float, float]]:
+        """(quota, limit, what the fleet needs) for `ccrp doctor`: the region's current usage plus
+        what the clones not yet created will add."""
         with self._errors(f"quotas of {self.region}"):
             region = self._call("get region", self.c.regions.get, project=self.project, region=self.region)
-            return {q.metric: (q.usage, q.limit) for q in region.quotas}
+            missing = [r.name for r in self.inv.robots if r.name not in self.query()]
+            adds = {"CPUS": sum(self._vcpus(self._machine_type(r)) for r in missing),
+                    "IN_USE_ADDRESSES": len(missing), "INSTANCES": len(missing)}
+            return [(f"{q.metric} in {self.region}", q.limit, q.usage + adds[q.metric])
+                    for q in region.quotas if q.metric in adds]
+
+    def _vcpus(self, machine_type: str) -> int:
+        zone = self.settings.zones[0]  # type: ignore[union-attr]
+        found = self._call("get machine type", self.c.machine_types.get, project=self.project, zone=zone,
+                           machine_type=machine_type)
+        return found.guest_cpus
