@@ -20,7 +20,13 @@ def gc(
     pair, and its snapshots. Run with --dry-run first to see what would go."""
     from ..gc import collect
 
+    from ..errors import CcrpError
+
     fleet, provider = options.open_provider(inventory)
+    if not dry_run and not fleet.store.state_path.exists():
+        # Without state every owned resource looks leaked: a wrong CCRP_HOME would wipe the fleet.
+        raise CcrpError(f"no state for fleet {fleet.name!r} in {fleet.store.root}: everything would count as a leak",
+                        hint="run where the fleet's state lives (CCRP_HOME), `ccrp gc --dry-run` to look, or `ccrp fleet down`")
     with fleet.store.lock():  # no `fleet up` may create clones while we decide what is a leak
         results = collect(fleet.store.load_state(), provider, dry_run, output.info)
     output.emit([r.as_dict() for r in results], as_json, ["KIND", "ID", "NAME", "ROBOT", "RESULT", "DETAIL"],
