@@ -33,6 +33,16 @@ class OpenStackHarness:
     def __init__(self, fake: FakeOpenStack, provider) -> None:
         self.fake, self.provider = fake, provider
 
+    def new_provider(self, inv, workdir):
+        """An OpenStackProvider (a fresh process, as far as ccrp knows) wired to this fake."""
+        from ccrp_cli.providers.openstack import OpenStackProvider
+
+        provider = OpenStackProvider(inv, workdir)
+        self.fake.attach(provider.conn)
+        provider.backoff = FAST
+        provider.poll_interval = 0.01
+        return provider
+
     # -- knobs ----------------------------------------------------------------------------------
     def spec(self, robot: str, index: int):
         return clone_spec(self.provider.inv, robot, index, BASE_IMAGE)
@@ -126,20 +136,14 @@ def _isolated_env(**values: str):
 
 @contextmanager
 def make_harness(tmp_path):
-    import requests_mock
-
-    from ccrp_cli.providers.openstack import OpenStackProvider
-
     fake = FakeOpenStack()
     config = fake.clouds_yaml(tmp_path, CLOUD)
     inv = inventory({"kind": "openstack", "cloud": CLOUD, "flavor": "m1.small", "external_network": "public",
                      "operator_cidr": OPERATOR_CIDR, "zones": ["az1", "az2"]})
     env = {"OS_CLIENT_CONFIG_FILE": str(config), "OS_CLIENT_SECURE_FILE": str(tmp_path / "no-secure.yaml")}
-    with _isolated_env(**env), requests_mock.Mocker() as mocker:
-        fake.install(mocker)
-        provider = OpenStackProvider(inv, tmp_path / "store")
-        provider.backoff = FAST
-        provider.poll_interval = 0.01
-        provider.bootstrap()
-        yield OpenStackHarness(fake, provider)
-    # The fake lives in memory only: leaving the block discards it and the mocked transport.
+    with _isolated_env(**env):
+        h = OpenStackHarness(fake, None)
+        h.provider = h.new_provider(inv, tmp_path / "store")
+        h.provider.bootstrap()
+        yield h
+    # The fake lives in memory only, reached through the provider's own session: nothing to stop.

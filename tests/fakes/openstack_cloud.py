@@ -75,6 +75,7 @@ class FakeOpenStack(NeutronApi):
         self.flavors: dict[str, dict] = {}
         self.keypairs: dict[str, dict] = {}
         self._fip_hosts = iter(FIP_POOL.hosts())
+        self.adapter = self._routes()
         ext = self.add("networks", {"name": "public", "router:external": True})
         self.add("subnets", {"network_id": ext["id"], "cidr": str(FIP_POOL), "name": "public-v4"})
         self.add_flavor("m1.small")
@@ -106,10 +107,19 @@ class FakeOpenStack(NeutronApi):
         return image
 
     # -- requests-mock wiring -------------------------------------------------------------------
-    def install(self, mocker: requests_mock.Mocker) -> None:
+    def attach(self, conn) -> None:
+        """Route an openstack.Connection's HTTP to the fake: requests-mock's transport adapter
+        mounted on its keystoneauth session (unmatched URLs raise NoMockAddress). Not
+        requests_mock.Mocker: that serialises every request in the process behind one lock (10 s
+        timeout), which would hide the concurrency of parallel clones and break slow benchmarks."""
+        for prefix in ("https://", "http://"):
+            conn.session.session.mount(prefix, self.adapter)
+
+    def _routes(self) -> requests_mock.Adapter:
+        adapter = requests_mock.Adapter()
         for host in HOSTS:
-            mocker.register_uri(requests_mock.ANY, re.compile(rf"https://{host}\.example\.com(/|$)"),
-                                json=self._respond)
+            adapter.register_uri(requests_mock.ANY, re.compile(rf"https://{host}\.example\.com(/|$)"), json=self._respond)
+        return adapter
 
     def _respond(self, request, context):
         host = urlparse(request.url).hostname.split(".")[0]

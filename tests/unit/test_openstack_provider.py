@@ -94,11 +94,8 @@ def test_quota_is_one_line_error_with_hint_and_nothing_left(h):
 def test_lookup_by_name_and_metadata_prevents_duplicates_after_a_crash(h, tmp_path):
     """ccrp created the server and died before saving state: the next run (a new process, a new
     provider) finds it by name + metadata instead of booting a second one."""
-    from ccrp_cli.providers.openstack import OpenStackProvider
-
     first = h.provider.run_instance(h.spec("robot1", 1))
-    again = OpenStackProvider(h.provider.inv, tmp_path / "store")
-    again.backoff, again.poll_interval = h.provider.backoff, 0.01
+    again = h.new_provider(h.provider.inv, tmp_path / "store")
     rec = again.run_instance(h.spec("robot1", 1))
     assert rec.provider_id == first.provider_id and not rec.created
     assert rec.public_ip == first.public_ip
@@ -268,15 +265,12 @@ def test_console_fingerprints_parse_as_ssh_pins(h):
 
 
 def test_a_named_network_is_used_not_routed_and_never_deleted(h, tmp_path):
-    from ccrp_cli.providers.openstack import OpenStackProvider
-
     lab = h.fake.add("networks", {"name": "labnet"})
     h.fake._create_subnets({"network_id": lab["id"], "cidr": "10.90.0.0/24"})
     h.provider.teardown()  # the harness's own network goes first
     inv = h.provider.inv
     inv = inv.model_copy(update={"provider": inv.provider.model_copy(update={"network": "labnet"})})
-    p = OpenStackProvider(inv, tmp_path / "store")
-    p.backoff, p.poll_interval = h.provider.backoff, 0.01
+    p = h.new_provider(inv, tmp_path / "store")
     p.bootstrap()
     assert not h.fake.routers  # the operator's network is routed already
     rec = p.run_instance(h.spec("robot1", 1))
