@@ -46,7 +46,6 @@ class GcpProvider(CloudProvider):
         self.names = Names(self.fleet)
         self._clients = clients
         self._lock = threading.Lock()
-        self._network_link: str | None = None
         self._subnet_link: str | None = None
 
     @property
@@ -131,7 +130,6 @@ class GcpProvider(CloudProvider):
             self._subnet_link = self._ensure_subnetwork(network)
             for rule in self.firewall_rules(network.self_link):
                 self._ensure_firewall(rule)
-            self._network_link = network.self_link
 
     def _ensure_network(self):
         named = self.settings.network  # type: ignore[union-attr]
@@ -311,7 +309,7 @@ class GcpProvider(CloudProvider):
         route_created = False
         try:
             inst = self._call("get instance", self.c.instances.get, project=self.project, zone=zone, instance=name)
-            if inst.status in ("TERMINATED", "STOPPED", "SUSPENDED"):  # a reused clone someone stopped
+            if inst.status == "TERMINATED":  # GCE's word for stopped: a reused clone someone stopped
                 self._mutate(f"start instance {name}", self.c.instances.start, project=self.project, zone=zone,
                              instance=name)
             route_created = self._ensure_route(spec, inst)
@@ -493,7 +491,7 @@ class GcpProvider(CloudProvider):
                 batch = [(r, z) for r, z in owned if r.kind == kind]
                 self._wait_all([self._start_delete(r, z) for r, z in batch])
                 removed += [f"{r.kind} {r.name}" for r, _z in batch]
-        self._network_link = self._subnet_link = None
+        self._subnet_link = None
         return removed
 
     def leftovers(self) -> list[str]:
