@@ -56,12 +56,119 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     return record
 
 
-def _use(fleet: Fleet, record: SnapshotRecord, bare: bool = False) -> None:
+def _use(fleet: Fleet, record: SnapshotRecord, bare: bool = False, image: str | None = None, **extra: str) -> None:
     state = fleet.store.load_state()
-    state.snapshot = {"image": record.name, "id": record.id, "source": record.source}
+    state.snapshot = {"image": image or record.name, "id": record.id, "source": record.source, **extra}
     if bare:
         state.snapshot["bare"] = "true"
     fleet.store.save_state(state)
+
+
+# -- clouds: bake a snapshot on a builder instance ----------------------------------------------------
+
+BUILDER = "snapshot-builder"  # its robot label: the hyphen keeps it out of robot names' alphabet
+# Base images clouds publish under a stable name (Ubuntu 20.04, the recipes' ubuntu-focal).
+DEFAULT_BASE = {"gcp": "projects/ubuntu-os-cloud/global/images/family/ubuntu-2004-lts"}
+BASE_HINT = {
+    "openstack": "the name or id of an Ubuntu 20.04 image in Glance (`openstack image list`)",
+    "aws": "an Ubuntu 20.04 AMI id of the region, e.g. from `aws ssm get-parameter --name "
+           "/aws/service/canonical/ubuntu/server/20.04/stable/current/amd64/hvm/ebs-gp2/ami-id`",
+}
+
+
+def _builder_common_ip(inv) -> str:
+    """Just below the clones' range; near the top of the subnet when that would hit the addresses
+    clouds keep for gateways and DHCP (AWS keeps .1-.3, GCP the second-to-last)."""
+    net, first = inv.common.cidr, inv.common.first_host
+    return str(net.network_address + first - 1 if first - 1 >= 4 else net.broadcast_address - 2)
+
+
+def _region(inv) -> str:
+    p = inv.provider
+    return getattr(p, "region", None) or getattr(p, "cloud", "")
+
+
+def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = None, timeout: float = 1800,
+         poll: float = 10) -> SnapshotRecord:
+    """Boot a builder instance from an Ubuntu base image with user-data that installs the recipe,
+    wait until its console proves the install finished, capture it, and record the snapshot for
+    new clones. The builder is terminated in every case (failure, timeout, Ctrl-C)."""
+    import secrets
+
+    from .errors import InputError
+    from .providers.base import CloneSpec
+    from .render.cloudinit import bake_proofs, builder_user_data
+    from .render.limits import fit_user_data
+
+    inv = fleet.inventory
+    kind = inv.provider.kind
+    if kind == "docker":
+        raise InputError("snapshot bake boots a cloud instance", hint="on docker use `ccrp snapshot build`")
+    base = base_image or getattr(inv.provider, "image", None) or DEFAULT_BASE.get(kind)
+    if not base:
+        raise InputError(f"no base image to bake the {kind} snapshot from", hint=f"pass --base-image: {BASE_HINT[kind]}")
+    token = secrets.token_hex(8)
+    user_data = builder_user_data(inv, token)
+    fit_user_data(kind, user_data)
+    spec = CloneSpec(robot=BUILDER, hostname="ccrp-builder", image=base, user_data=user_data,
+                     instance_id=f"{fleet.name}-builder-{token}", common_ip=_builder_common_ip(inv), role="builder")
+    provider.bootstrap()
+    progress(f"booting the builder from {base}; it installs ROS {inv.ros.distro} and the recipe (10-20 min)")
+    try:
+        provider.run_instance(spec)
+        _wait_baked(provider, token, bake_proofs(inv), timeout, poll, progress)
+        name = f"ccrp-{fleet.name}-{inv.ros.distro}-{_stamp()}"
+        progress(f"capturing snapshot {name}")
+        record = provider.create_snapshot(BUILDER, name)
+    except BaseException:
+        _terminate_builder(provider, progress, failing=True)
+        raise
+    _terminate_builder(provider, progress, failing=False)
+    # What run_instance is given: GCE boots from an image's name, AWS and OpenStack from its id
+    # (Glance names need not be unique).
+    image = record.name if kind == "gcp" else record.id
+    _use(fleet, record, image=image, region=_region(inv), base=base, name=record.name)
+    return record
+
+
+def _wait_baked(provider, token: str, proofs: list[str], timeout: float, poll: float, progress: Progress) -> None:
+    """Until the builder's console shows cloud-init's final message; then every install proof must be there."""
+    import re
+    import time
+
+    # "$UPTIME" stays literal in the user-data: only cloud-init's own line has a number there.
+    final = re.compile(rf"ccrp-bake {token} finished after [0-9.]+ s")
+    t0 = time.monotonic()
+    last_note = t0
+    while True:
+        console = provider.console_output(BUILDER) or ""
+        if final.search(console):
+            missing = [p for p in proofs if f"ccrp-bake {token} {p}-ok" not in console]
+            if missing:
+                tail = " | ".join(console.strip().splitlines()[-5:])[-300:]
+                raise CcrpError(f"the builder finished but its {' and '.join(missing)} install failed: {tail}",
+                                hint="check that the base image is Ubuntu 20.04 and can reach its package mirrors")
+            progress(f"builder finished installing after {time.monotonic() - t0:.0f} s")
+            return
+        if time.monotonic() - t0 > timeout:
+            raise CcrpError(f"the builder did not finish within {timeout:.0f} s",
+                            hint="look at its console output; a larger --timeout helps on slow mirrors")
+        if time.monotonic() - last_note >= 60:
+            progress(f"builder still installing ({time.monotonic() - t0:.0f} s)")
+            last_note = time.monotonic()
+        time.sleep(poll)
+
+
+def _terminate_builder(provider, progress: Progress, failing: bool) -> None:
+    try:
+        provider.terminate(BUILDER)
+        progress("builder terminated")
+    except Exception as exc:  # noqa: BLE001 - reported, and gc finds the instance by its labels
+        message = f"could not terminate the builder instance ({exc})"
+        if not failing:
+            raise CcrpError(message, hint="`ccrp gc -i INVENTORY` removes it") from None
+        # Keep the error that brought us here; this one is only reported.
+        progress(f"warning: {message}; `ccrp gc -i INVENTORY` removes it")
 
 
 def create(fleet: Fleet, provider, robot: str, use: bool) -> SnapshotRecord:

@@ -42,6 +42,23 @@ def build(
 
 
 @app.command()
+def bake(
+    inventory: options.Inventory,
+    base_image: Annotated[str | None, typer.Option("--base-image", help="Ubuntu 20.04 image to start from (Glance name/id, GCE image path, AMI id).")] = None,
+    timeout: Annotated[float, typer.Option(help="Seconds the builder may take to install the recipe.", min=60)] = 1800,
+    as_json: options.Json = False,
+) -> None:
+    """Bake the cloud snapshot: a builder instance installs the recipe, is captured, then terminated."""
+    fleet, provider = options.open_provider(inventory)
+    with fleet.store.lock():
+        from .. import snapshots
+
+        record = snapshots.bake(fleet, provider, output.info, base_image=base_image, timeout=timeout)
+    output.info(f"snapshot {record.name} ({record.id}) recorded: new clones of fleet {fleet.name!r} start from it")
+    _show([record], as_json)
+
+
+@app.command()
 def create(
     inventory: options.Inventory,
     robot: options.Robot,

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import yaml
 
 from ..errors import CcrpError
+from ..models.inventory import Inventory
 from ..recipes import platform
 from . import network, openvpn
 from .templates import static
@@ -80,17 +82,63 @@ def user_data_dict(
         data["ssh_authorized_keys"] = list(ssh_authorized_keys)
     if install_packages:
         # A bare base image: install at boot what a snapshot would already contain.
-        plat = platform(view.inv.ros.distro, view.inv.provider.kind)
-        if plat.apt_sources:
-            data["apt"] = {"sources": {f"ccrp{i}.list": s.model_dump() for i, s in enumerate(plat.apt_sources)}}
-        data["package_update"] = True
-        data["packages"] = [p for p in plat.packages if p not in ("cloud-init",)]
-        if relay:
-            # What `snapshot build` puts in the image: the relay agent and its Zenoh (cloud-init
-            # runs package installs before runcmd, so pip3 exists by then).
-            files.append(_file(f"{CCRP_LIB}/relay.py", agent_source("relay"), "0755"))
-            data["runcmd"][:0] = [["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip]]
+        image = image_config(view.inv)
+        files += image.pop("write_files")
+        data["runcmd"][:0] = image.pop("runcmd")
+        data.update(image)
     return data
+
+
+def image_config(inv: Inventory) -> dict[str, Any]:
+    """What a snapshot holds beyond its base image, as cloud-config: the recipe's apt sources and
+    packages and, for the relay, its agent and Zenoh. A clone of a bare image runs it at first
+    boot; `snapshot bake` runs it once on a builder instance."""
+    plat = platform(inv.ros.distro, inv.provider.kind)
+    data: dict[str, Any] = {}
+    if plat.apt_sources:
+        data["apt"] = {"sources": {f"ccrp{i}.list": s.model_dump() for i, s in enumerate(plat.apt_sources)}}
+    data["package_update"] = True
+    data["packages"] = [p for p in plat.packages if p not in ("cloud-init",)]
+    data["write_files"], data["runcmd"] = [], []
+    if inv.sharing.engine == "relay":
+        # The relay agent and its Zenoh (cloud-init installs packages before runcmd, so pip3
+        # exists by then).
+        data["write_files"].append(_file(f"{CCRP_LIB}/relay.py", agent_source("relay"), "0755"))
+        data["runcmd"].append(["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip])
+    return data
+
+
+def _proof(token: str, what: str, argv: list[str]) -> list[str]:
+    """A runcmd entry that prints "ccrp-bake <token> <what>-ok" on the console only if argv
+    succeeds. The token is an argument ($0), so that line never appears in the user-data itself."""
+    # tee: cloud-final's stdout reaches the console on cloud images; /dev/console makes sure.
+    script = f'"$@" >/dev/null 2>&1 && echo "ccrp-bake $0 {what}-ok" | tee /dev/console'
+    return ["sh", "-c", script, token, *argv]
+
+
+def bake_proofs(inv: Inventory) -> list[str]:
+    """What a builder's console must show (as "ccrp-bake <token> <what>-ok") before it is captured."""
+    return ["apt"] + (["pip"] if image_config(inv)["runcmd"] else [])
+
+
+def builder_user_data(inv: Inventory, token: str) -> str:
+    """User-data of the instance `snapshot bake` captures: the image config, a proof on the console
+    per install step, and a final message carrying the token. No fleet, robot or key in it."""
+    plat = platform(inv.ros.distro, inv.provider.kind)
+    data = image_config(inv)
+    pip_names = [re.split(r"[=<>!~;\[ ]", p, maxsplit=1)[0] for p in plat.pip]
+    data["runcmd"] += [_proof(token, "apt", ["dpkg-query", "-W", *data["packages"]])]
+    if "pip" in bake_proofs(inv):
+        data["runcmd"] += [_proof(token, "pip", ["python3", "-m", "pip", "show", *pip_names])]
+    data["runcmd"] += [
+        ["apt-get", "clean"],
+        # Every clone must get its own machine-id on first boot (DHCP client ids derive from it).
+        ["truncate", "-s", "0", "/etc/machine-id"],
+    ]
+    if not data["write_files"]:
+        del data["write_files"]
+    data["final_message"] = f"ccrp-bake {token} finished after $UPTIME s"
+    return dump(data)
 
 
 class _Dumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):  # libyaml when available: ~10x faster

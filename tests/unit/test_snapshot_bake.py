@@ -1,0 +1,193 @@
+"""`snapshot bake` orchestration over an in-memory provider: what the builder gets, when it is
+captured, and that it is terminated in every case. The builder's user-data is checked by
+cloud-init's own validator."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import pytest
+
+from ccrp_cli import snapshots
+from ccrp_cli.errors import CcrpError, InputError
+from ccrp_cli.fleet import Fleet
+from ccrp_cli.providers.base import CloneRecord, SnapshotRecord
+from ccrp_cli.render.cloudinit import PRIVATE_KEY_MARKERS
+from tests.conftest import ROOT
+
+INVENTORIES = {k: ROOT / "inventories" / f"{k}.yaml" for k in ("openstack", "gcp", "aws")}
+
+
+class FakeCloud:
+    """The Provider protocol's calls bake makes, kept in memory. `boot` lists the consoles the
+    builder shows on successive reads (the last one repeats)."""
+
+    def __init__(self, kind: str, boot: list[str] | None = None) -> None:
+        self.kind = kind
+        self.boot = boot
+        self.instances: dict[str, object] = {}
+        self.specs: list = []  # every spec run_instance was given
+        self.calls: list[str] = []
+        self.snapshots: list[SnapshotRecord] = []
+        self.fail: dict[str, BaseException] = {}
+
+    def _maybe_fail(self, what: str) -> None:
+        self.calls.append(what)
+        if what in self.fail:
+            raise self.fail[what]
+
+    def bootstrap(self) -> None:
+        self._maybe_fail("bootstrap")
+
+    def run_instance(self, spec):
+        self.instances[spec.robot] = spec  # created before anything can fail, as on a cloud
+        self.specs.append(spec)
+        self._maybe_fail("run_instance")
+        return CloneRecord(robot=spec.robot, provider_id="i-builder", status="running", created=True)
+
+    def console_output(self, robot: str) -> str:
+        self._maybe_fail("console_output")
+        spec = self.instances[robot]
+        token = re.search(r"ccrp-bake (\w+) finished", spec.user_data).group(1)
+        text = self.boot.pop(0) if len(self.boot) > 1 else self.boot[0]
+        return text.replace("TOKEN", token)
+
+    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
+        self._maybe_fail("create_snapshot")
+        assert robot in self.instances
+        rec = SnapshotRecord(id=f"img-{len(self.snapshots)}", name=name, created="2025-01-01T00:00:00", source=robot)
+        self.snapshots.append(rec)
+        return rec
+
+    def terminate(self, robot: str) -> bool:
+        self._maybe_fail("terminate")
+        return self.instances.pop(robot, None) is not None
+
+
+DONE = ("[  612.1] cloud-init[1502]: ccrp-bake TOKEN apt-ok\n"
+        "[  640.9] cloud-init[1502]: ccrp-bake TOKEN pip-ok\n"
+        "[  641.0] cloud-init[1502]: ccrp-bake TOKEN finished after 640.95 s\n")
+
+
+@pytest.fixture
+def fleet(ccrp_home):
+    return Fleet.open(INVENTORIES["openstack"])
+
+
+def _bake(fleet, provider, **kw):
+    notes: list[str] = []
+    kw.setdefault("base_image", "ubuntu-20.04")
+    record = snapshots.bake(fleet, provider, notes.append, poll=0, **kw)
+    return record, notes
+
+
+def test_bake_captures_terminates_and_records(fleet):
+    cloud = FakeCloud("openstack", ["", "booting...\n", DONE])
+    record, notes = _bake(fleet, cloud)
+    assert cloud.calls == ["bootstrap", "run_instance", "console_output", "console_output", "console_output",
+                           "create_snapshot", "terminate"]
+    assert cloud.instances == {}  # the builder is gone
+    assert record.name.startswith("ccrp-labos-noetic-")
+    snap = fleet.store.load_state().snapshot
+    assert snap == {"image": "img-0", "id": "img-0", "source": "snapshot-builder", "region": "mycloud",
+                    "base": "ubuntu-20.04", "name": record.name}
+    assert any("builder terminated" in n for n in notes)
+
+
+def test_builder_spec_and_user_data(fleet, tmp_path):
+    cloud = FakeCloud("openstack", [DONE])
+    _bake(fleet, cloud)
+    spec, = cloud.specs
+    assert spec.role == "builder" and spec.image == "ubuntu-20.04"
+    ud = spec.user_data
+    token = re.search(r"ccrp-bake (\w+) finished after \$UPTIME s", ud).group(1)
+    assert "ros-noetic-ros-base" in ud and "packages.ros.org" in ud and "eclipse-zenoh" in ud
+    # The proofs are printed with the token as an argument: the user-data itself cannot satisfy them.
+    assert f"ccrp-bake {token} apt-ok" not in ud and f"ccrp-bake {token} pip-ok" not in ud
+    assert not any(m in ud for m in PRIVATE_KEY_MARKERS)
+    assert "nao1" not in ud and "labos" not in ud  # nothing of the fleet's clones in the image
+    assert "- /etc/machine-id" in ud  # emptied, so each clone gets its own
+    if shutil.which("cloud-init"):
+        f = tmp_path / "builder.yaml"
+        f.write_text(ud)
+        proc = subprocess.run(["cloud-init", "schema", "--config-file", str(f)], capture_output=True, text=True)
+        assert proc.returncode == 0 and "Valid cloud-config" in proc.stdout, proc.stdout + proc.stderr
+
+
+def test_missing_install_proof_fails_and_terminates(fleet):
+    no_pip = DONE.replace("ccrp-bake TOKEN pip-ok\n", "pip: error: no matching distribution\n")
+    cloud = FakeCloud("openstack", [no_pip])
+    with pytest.raises(CcrpError, match="its pip install failed"):
+        _bake(fleet, cloud)
+    assert cloud.calls[-1] == "terminate" and cloud.instances == {}
+    assert "create_snapshot" not in cloud.calls
+    assert fleet.store.load_state().snapshot is None
+
+
+@pytest.mark.parametrize("where", ["run_instance", "console_output", "create_snapshot"])
+def test_failure_anywhere_terminates_the_builder(fleet, where):
+    cloud = FakeCloud("openstack", [DONE])
+    cloud.fail[where] = CcrpError(f"{where} broke")
+    with pytest.raises(CcrpError, match=f"{where} broke"):
+        _bake(fleet, cloud)
+    assert cloud.calls[-1] == "terminate" and cloud.instances == {}
+    assert fleet.store.load_state().snapshot is None
+
+
+def test_ctrl_c_while_waiting_terminates_the_builder(fleet):
+    cloud = FakeCloud("openstack", ["booting...\n"])
+    cloud.fail["console_output"] = KeyboardInterrupt()
+    with pytest.raises(KeyboardInterrupt):
+        _bake(fleet, cloud)
+    assert cloud.calls[-1] == "terminate" and cloud.instances == {}
+
+
+def test_timeout_terminates_the_builder(fleet):
+    cloud = FakeCloud("openstack", ["still installing...\n"])
+    with pytest.raises(CcrpError, match="did not finish within 0 s"):
+        _bake(fleet, cloud, timeout=0)
+    assert cloud.calls[-1] == "terminate" and cloud.instances == {}
+
+
+def test_a_failed_terminate_keeps_the_original_error(fleet):
+    cloud = FakeCloud("openstack", [DONE])
+    cloud.fail["create_snapshot"] = CcrpError("quota exceeded")
+    cloud.fail["terminate"] = RuntimeError("API down")
+    with pytest.raises(CcrpError, match="quota exceeded"):
+        _bake(fleet, cloud)
+    assert cloud.calls[-1] == "terminate"
+
+
+def test_a_failed_terminate_after_success_is_an_error(fleet):
+    cloud = FakeCloud("openstack", [DONE])
+    cloud.fail["terminate"] = RuntimeError("API down")
+    with pytest.raises(CcrpError, match="could not terminate the builder") as err:
+        _bake(fleet, cloud)
+    assert "ccrp gc" in err.value.hint
+    assert fleet.store.load_state().snapshot is None  # not recorded: the operator has to look first
+
+
+def test_base_image_required_where_the_cloud_has_no_default(ccrp_home):
+    aws = Fleet.open(INVENTORIES["aws"])
+    cloud = FakeCloud("aws", [DONE])
+    with pytest.raises(InputError, match="no base image") as err:
+        snapshots.bake(aws, cloud, lambda m: None)
+    assert "ami" in err.value.hint.lower() and cloud.calls == []
+
+
+def test_gcp_defaults_to_ubuntu_focal_and_records_the_image_name(ccrp_home):
+    gcp = Fleet.open(INVENTORIES["gcp"])
+    cloud = FakeCloud("gcp", [DONE.replace("ccrp-bake TOKEN pip-ok\n", "")])  # fkie fleet: no relay, no pip
+    record, _ = _bake(gcp, cloud, base_image=None)
+    assert cloud.specs[0].image == snapshots.DEFAULT_BASE["gcp"]
+    snap = gcp.store.load_state().snapshot
+    assert snap["image"] == record.name and snap["region"] == "europe-west2"
+
+
+def test_docker_is_refused(ccrp_home):
+    lab = Fleet.open(ROOT / "inventories" / "lab.yaml")
+    with pytest.raises(InputError, match="boots a cloud instance") as err:
+        snapshots.bake(lab, FakeCloud("docker", [DONE]), lambda m: None)
+    assert "snapshot build" in err.value.hint
