@@ -6,7 +6,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 from .addressing import allocate
-from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
+from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_fkie_config, push_relay_config
 from .errors import CcrpError, InputError
 from .fleet import Fleet
 from .models.state import RobotRecord
@@ -71,15 +71,14 @@ def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None
 
 
 def reshare(fleet: Fleet, provider, progress: Progress) -> list[str]:
-    """Push the current relay config to every clone that is up; agents apply it without a
-    restart. Returns the robots whose config changed."""
-    if fleet.inventory.sharing.engine != "relay":
-        return []
+    """Push the current sharing config to every clone that is up (relay: agents apply it without a
+    restart; fkie: launch file, hosts and routes). Returns the robots whose config changed."""
     state = fleet.store.load_state()
     ready = [n for n, rec in state.robots.items() if rec.phase == "ready"]
+    push = push_relay_config if fleet.inventory.sharing.engine == "relay" else push_fkie_config
 
     def one(robot: str) -> CloneResult:
-        changed = push_relay_config(fleet, provider, state, robot)
+        changed = push(fleet, provider, state, robot)
         return CloneResult(robot, "reconfigured" if changed else "unchanged")
 
     results = _fan_out(one, ready, progress)

@@ -10,7 +10,11 @@ fleet it brings up is shared by the tests, which run in file order:
   3. from the public network only the VPN port answers; ROS is reachable through the VPN
   4. a wrong password, another robot's bundle and a leaked tls-crypt key are all refused
   5. no private key in any image layer, label, environment variable or container log
+  5b. topic sharing: robot nao1's /faces reaches robot nao2 as /nao1/faces through both clones,
+     unexported topics stay home, the common network carries no clear text, a foreign
+     certificate cannot join, a scaled-in clone gets its imports without restarting the others
   6. `vpn revoke` ends the robot's live session and it cannot come back
+  6b. fleet scale adds and removes template robots only
   7. fleet down leaves nothing labelled with the fleet
   8. a `fleet up` killed midway is finished by the next one
   9. a clone container an interrupted run created but never started is replaced
@@ -617,6 +621,192 @@ def test_no_private_key_in_images_labels_env_or_logs(fleet: E2EFleet, sim_nao1):
             assert rc == 0 and seed.startswith("#cloud-config"), seed[:200]
             findings += [f"{c.name} user-data: {h}" for h in _hits(seed, needles, True)]
     assert not findings, "secrets where they must not be:\n" + "\n".join(findings)
+
+
+# -- 5b. topic sharing between clones (relay engine) ----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def sim_nao2(fleet: E2EFleet, up) -> dict:
+    fleet.inv("robot", "sim", "--robot", "nao2", "--wait", str(CONNECT_TIMEOUT), check=True)
+    return {"container": fleet.container("robot-sim", "nao2")}
+
+
+def ros_sh(container, script: str, timeout: int = 30) -> tuple[int, str]:
+    """A fixed shell snippet (no names from input) in the container's ROS environment."""
+    return exec_in(container, ["bash", "-c", f"set -a; . /etc/ccrp/ros.env; set +a; {script}"], timeout)
+
+
+def relay_through(sender, topic: str, receiver, seen_as: str, marker: str, timeout: int = 20) -> tuple[int, str]:
+    """Publish `marker` on `topic` in sender until one arrives on `seen_as` in receiver."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        echo = pool.submit(ros_sh, receiver, f"rostopic echo -n 1 {seen_as}", timeout)
+        time.sleep(1)
+        pool.submit(ros_sh, sender, f"rostopic pub -r 5 {topic} std_msgs/String 'data: {marker}'", timeout - 2)
+        return echo.result()
+
+
+def relay_invocations(fleet: E2EFleet, robots) -> dict[str, str]:
+    out = {}
+    for robot in robots:
+        rc, inv = exec_in(fleet.container("clone", robot), ["systemctl", "show", "-p", "InvocationID", "--value",
+                                                            "ccrp-relay.service"])
+        assert rc == 0 and inv.strip(), inv
+        out[robot] = inv.strip()
+    return out
+
+
+def test_topics_matrix(fleet: E2EFleet):
+    rows = fleet.json("topics")
+    pairs = {(r["source"], r["topic"], r["dest"], r["as"]) for r in rows}
+    assert ("nao1", "/faces", "nao2", "/nao1/faces") in pairs and ("nao2", "/faces", "nao1", "/nao2/faces") in pairs
+    assert ("turtlebot1", "/map", None, None) in pairs  # offered, imported by nobody
+
+
+def test_robot_topic_reaches_other_robot_only_through_both_clones(fleet: E2EFleet, sim_nao1, sim_nao2):
+    wait_for("nao1 connected", connected(fleet, "nao1"), CONNECT_TIMEOUT, since=sim_nao1["started"])
+    nao1, nao2 = sim_nao1["container"], sim_nao2["container"]
+    marker = "face-" + secrets.token_hex(6)
+    rc, out = relay_through(nao1, "/faces", nao2, "/nao1/faces", marker)
+    assert rc == 0 and marker in out, f"/faces of robot nao1 never reached robot nao2 as /nao1/faces: {out[-800:]}"
+    # ... and the other way round, with nao2's identical topic name kept apart as /nao2/faces.
+    rc, out = relay_through(nao2, "/faces", nao1, "/nao2/faces", marker + "b")
+    assert rc == 0 and marker + "b" in out, out[-800:]
+
+    # The robots cannot reach each other's VPN addresses, nor the other clone's master by any address.
+    plan = fleet.plan()
+    other = fleet.container("clone", "nao1")
+    other.reload()
+    nets = other.attrs["NetworkSettings"]["Networks"]
+    targets = [f"http://{plan['nao1']['robot_vpn_ip']}:11311", f"http://{plan['nao1']['clone_vpn_ip']}:11311",
+               f"http://{nets[f'{fleet.name}-public']['IPAddress']}:11311", f"http://{plan['nao1']['common_ip']}:11311"]
+    seen = master_probe(nao2, targets)
+    assert not [t for t, r in seen.items() if r.startswith("master ")], f"robot nao2 reaches nao1's side directly: {seen}"
+    rows = fleet.status()
+    assert rows["nao2"]["relay_peers"] == {"nao1": True}, rows["nao2"]
+    assert rows["nao1"]["relay_peers"] == {"nao2": True, "turtlebot1": True}, rows["nao1"]
+
+
+def test_unexported_topic_is_never_received_elsewhere(fleet: E2EFleet, sim_nao1, sim_nao2):
+    # The demo node on robot nao1 publishes /chatter and /camera/image_raw: neither is exported.
+    for robot in ("nao2", "turtlebot1"):
+        rc, topics = ros_sh(fleet.container("clone", robot), "rostopic list")
+        assert rc == 0, topics
+        leaked = [t for t in topics.split() if t.startswith("/nao1/") and t != "/nao1/faces"]
+        assert not leaked, f"clone of {robot} sees topics nao1 does not export: {leaked}"
+    # The agents relay exactly the policy: nao1 exports /faces and nothing else.
+    rc, status = exec_in(fleet.container("clone", "nao1"), ["cat", "/run/ccrp-relay/status.json"])
+    assert rc == 0 and set(json.loads(status)["exports"]) == {"/faces"}, status
+
+
+CAPTURE = r"""
+import socket, subprocess, sys, time
+ip, seconds, marker = sys.argv[1], float(sys.argv[2]), sys.argv[3].encode()
+iface = next(l.split()[1] for l in subprocess.run(["ip", "-o", "-4", "addr", "show"], capture_output=True,
+                                                  text=True).stdout.splitlines() if f" {ip}/" in l)
+sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x0003))
+sock.bind((iface, 0))
+sock.settimeout(0.2)
+seen, found, deadline = 0, False, time.monotonic() + seconds
+while time.monotonic() < deadline:
+    try:
+        frame = sock.recv(65535)
+    except socket.timeout:
+        continue
+    seen += len(frame)
+    found = found or marker in frame
+print(iface, seen, found)
+"""
+
+
+def test_relay_traffic_is_encrypted_on_the_common_network(fleet: E2EFleet, sim_nao1, sim_nao2):
+    """A capture on nao2's clone's common-network interface (where nao1's relay traffic arrives)
+    while nao1 publishes a marker that robot nao2 then receives: the marker never appears."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    marker = "MARKER-" + secrets.token_hex(8)
+    common_ip = fleet.plan()["nao2"]["common_ip"]
+    with ThreadPoolExecutor(1) as pool:
+        seen = pool.submit(exec_in, fleet.container("clone", "nao2"),
+                           ["python3", "-c", CAPTURE, common_ip, "12", marker], 40)
+        time.sleep(1)
+        rc, out = relay_through(sim_nao1["container"], "/faces", sim_nao2["container"], "/nao1/faces", marker, 10)
+        crc, captured = seen.result()
+    assert rc == 0 and marker in out, f"the marker did not go through: {out[-500:]}"
+    assert crc == 0, captured[-800:]
+    iface, nbytes, found = captured.split()[-3:]
+    assert int(nbytes) > 1000, f"almost nothing captured on {iface}: {captured}"
+    assert found == "False", f"the relayed message crossed the common network ({iface}) in clear text"
+
+
+ROGUE = r"""
+import json, sys, time, zenoh
+c = zenoh.Config()
+c.insert_json5("mode", '"peer"')
+c.insert_json5("scouting/multicast/enabled", "false")
+c.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
+c.insert_json5("transport/link/tls", json.dumps({"root_ca_certificate": "/rogue/ca.crt", "enable_mtls": True,
+    "connect_private_key": "/rogue/key.pem", "connect_certificate": "/rogue/cert.pem"}))
+s = zenoh.open(c)
+got = []
+sub = s.declare_subscriber(sys.argv[2], lambda x: got.append(x))
+time.sleep(float(sys.argv[3]))
+print(json.dumps({"peers": len(list(s.info.peers_zid())), "received": len(got)}))
+"""
+
+
+def test_clone_without_fleet_certificate_cannot_join(fleet: E2EFleet, sim_nao1):
+    """A container on the common network with a certificate from another CA (even one named like
+    the fleet's) and the fleet's own CA cert as its trust root gets no session and no data."""
+    from cryptography.hazmat.primitives import serialization
+
+    from ccrp_cli.pki import profiles
+
+    key = profiles.generate_key("ecdsa-p256")
+    ca = profiles.build_ca(fleet.name, key)  # same name as the fleet's CA, different key
+    leaf_key = profiles.generate_key("ecdsa-p256")
+    leaf = profiles.build_leaf("relay", "relay-nao1", leaf_key, ca, key, 30, ("127.0.0.1",))
+    fleet_ca = (fleet.home / fleet.name / "pki" / "ca.crt").read_bytes()
+    files = [("ca.crt", fleet_ca, 0o644), ("cert.pem", profiles.cert_pem(leaf), 0o644),
+             ("key.pem", leaf_key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                                serialization.NoEncryption()), 0o600)]
+    plan = fleet.plan()
+    rogue = fleet.client.containers.create(
+        fleet.snapshot_image(), ["sleep", "60"], entrypoint=[], network=f"{fleet.name}-common",
+        labels={FLEET_LABEL: fleet.name, "ccrp-role": "test-rogue"}, name=f"{fleet.name}-rogue")
+    try:
+        rogue.put_archive("/", tar_files([(f"rogue/{n}", d, m) for n, d, m in files]))
+        rogue.start()
+        endpoint = f"tls/{plan['nao1']['common_ip']}:7447"
+        rc, out = exec_in(rogue, ["python3", "-c", ROGUE, endpoint, f"ccrp/{fleet.name}/**", "8"], timeout=40)
+        assert rc == 0, out[-1000:]
+        result = json.loads(out.strip().splitlines()[-1])
+        assert result == {"peers": 0, "received": 0}, result
+    finally:
+        rogue.remove(force=True)
+    assert fleet.status()["nao1"]["relay_peers"] == {"nao2": True, "turtlebot1": True}
+
+
+def test_scaled_clone_receives_its_imports_without_restarting_the_others(fleet: E2EFleet, sim_nao1):
+    before = relay_invocations(fleet, ROBOTS)
+    fleet.inv("fleet", "scale", "4", check=True)  # robot1 (template: imports nao1's /faces)
+    t_scaled = time.monotonic()
+    marker = "scale-" + secrets.token_hex(6)
+    rc, out = relay_through(fleet.container("clone", "nao1"), "/faces", fleet.container("clone", "robot1"),
+                            "/nao1/faces", marker, timeout=10)
+    took = time.monotonic() - t_scaled
+    assert rc == 0 and marker in out, f"robot1's clone did not get /nao1/faces within 10 s: {out[-600:]}"
+    fleet.log.append(f"robot1 received its import {took:.1f} s after `fleet scale` returned")
+    assert relay_invocations(fleet, ROBOTS) == before, "an existing clone's relay agent was restarted"
+    assert fleet.status()["nao1"]["relay_peers"].get("robot1") is True
+
+    fleet.inv("clone", "delete", "--robot", "robot1", check=True)
+    peers = wait_for("the others drop robot1", lambda: (
+        "robot1" not in (p := fleet.status()["nao1"]["relay_peers"]), p), 15)
+    assert peers == {"nao2": True, "turtlebot1": True}, peers
+    fleet.inv("fleet", "scale", "3", check=True)
 
 
 # -- 6. revocation -----------------------------------------------------------------------------------

@@ -1,0 +1,100 @@
+"""Topic-sharing policy: routes, relay configs, `ccrp topics`, fkie launch files (parsed by roslaunch)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import pytest
+import yaml
+
+from ccrp_cli.fleet import Fleet
+from ccrp_cli.render import fkie
+from ccrp_cli.sharing import relay_config, routes
+from tests.conftest import LAB
+
+
+@pytest.fixture
+def lab_up(ccrp_home):
+    """The lab fleet with every clone recorded as ready."""
+    fleet = Fleet.open(LAB)
+    state = fleet.load_allocated()
+    for rec in state.robots.values():
+        rec.phase = "ready"
+    fleet.store.save_state(state)
+    return fleet, state
+
+
+def test_routes_follow_exports_and_imports(lab_up):
+    fleet, state = lab_up
+    got = {(r.source, r.topic, r.dest, r.local_name) for r in routes(fleet.members(state))}
+    assert got == {("nao1", "/faces", "nao2", "/nao1/faces"), ("nao2", "/faces", "nao1", "/nao2/faces"),
+                   ("nao1", "/faces", "turtlebot1", "/nao1/faces")}
+
+
+def test_relay_config_lists_partners_only_and_drops_clones_that_are_down(lab_up):
+    fleet, state = lab_up
+    cfg = relay_config(fleet, state, "nao1")
+    assert sorted(cfg["peers"]) == ["nao2", "turtlebot1"]
+    assert cfg["exports"] == ["/faces"]
+    assert [i["as"] for i in cfg["imports"]] == ["/nao2/faces"]
+    assert cfg["listen"] == "tls/10.90.0.10:7447" and cfg["peers"]["nao2"]["endpoint"] == "tls/10.90.0.11:7447"
+    assert "PRIVATE KEY" not in json.dumps(cfg)
+    # turtlebot1 exports /map, which nobody imports: its relay exports nothing and talks to nao1 only.
+    tb = relay_config(fleet, state, "turtlebot1")
+    assert tb["exports"] == [] and sorted(tb["peers"]) == ["nao1"]
+
+    state.robots["nao2"].clear_clone()  # nao2's clone deleted
+    cfg = relay_config(fleet, state, "nao1")
+    assert sorted(cfg["peers"]) == ["turtlebot1"] and cfg["imports"] == []
+
+
+def test_topics_command_json(lab_up, ccrp):
+    proc = ccrp("topics", "-i", str(LAB), "--json", check=True)
+    rows = json.loads(proc.stdout)
+    assert {"source": "turtlebot1", "topic": "/map", "dest": None, "as": None} in rows
+    assert {"source": "nao1", "topic": "/faces", "dest": "nao2", "as": "/nao1/faces"} in rows
+
+
+def test_validate_rejects_import_nobody_exports(tmp_path, ccrp):
+    data = yaml.safe_load(LAB.read_text())
+    data["robots"][2]["imports"] = {"nao2": ["/map"]}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(data))
+    proc = ccrp("fleet", "validate", "-i", str(bad))
+    assert proc.returncode == 2 and "does not export it" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_validate_rejects_reexport_loop(tmp_path, ccrp):
+    data = yaml.safe_load(LAB.read_text())
+    data["robots"][1]["exports"] = ["/faces", "/nao1/faces"]  # nao2 re-exporting what it imports from nao1
+    bad = tmp_path / "loop.yaml"
+    bad.write_text(yaml.safe_dump(data))
+    proc = ccrp("fleet", "validate", "-i", str(bad))
+    assert proc.returncode == 2 and "namespace" in proc.stderr
+
+
+@pytest.mark.skipif(shutil.which("roslaunch") is None, reason="roslaunch (apt: python3-roslaunch) is not installed")
+def test_fkie_launch_parses_with_roslaunch(lab_up, tmp_path):
+    fleet, state = lab_up
+    path = tmp_path / "nao2.launch"
+    path.write_text(fkie.launch(fleet, state, "nao2"))
+    params = subprocess.run(["roslaunch", "--dump-params", str(path)], capture_output=True, text=True, timeout=60)
+    assert params.returncode == 0, params.stderr
+    p = yaml.safe_load(params.stdout)
+    assert p["/master_discovery/robot_hosts"] == ["cri-nao1", "cri-turtlebot1"]
+    assert p["/master_discovery/send_mcast"] is False and p["/master_discovery/listen_mcast"] is False
+    assert p["/master_sync/sync_hosts"] == ["cri-nao1"]
+    assert p["/master_sync/sync_topics"] == [{"cri-nao1": ["/nao1/faces"]}]  # filtered on the receiving side
+    nodes = subprocess.run(["roslaunch", "--nodes", str(path)], capture_output=True, text=True, timeout=60)
+    assert nodes.stdout.split() == ["/master_discovery", "/master_sync", "/ccrp_export1"], nodes.stdout + nodes.stderr
+    assert 'args="/faces /nao2/faces"' in path.read_text()
+
+
+def test_fkie_network_routes_each_other_clones_vpn_subnet_via_its_common_ip(lab_up):
+    fleet, state = lab_up
+    hosts, cmds = fkie.network(fleet, state, "nao2")
+    assert "10.90.0.10 cri-nao1" in hosts and "10.80.1.2 nao1" in hosts
+    assert ["ip", "route", "replace", "10.80.1.0/24", "via", "10.90.0.10"] in cmds
+    assert not any("10.80.2.0/24" in c for c in cmds)  # never a route to its own subnet
