@@ -161,3 +161,13 @@ def test_clone_route_and_source_dest_check(mocked, tmp_path):
     p.terminate("robot2")
     rt = p.ec2.describe_route_tables(RouteTableIds=[p.network.route_table_id])["RouteTables"][0]
     assert not [r for r in rt["Routes"] if r.get("InstanceId")]
+
+
+def test_console_output_falls_back_when_latest_is_unsupported(mocked, tmp_path):
+    p = make(tmp_path)
+    p.run_instance(clone_spec(p.inv, "robot1", 1, image(p)))
+    inject_error(p.ec2, "GetConsoleOutput", "UnsupportedOperation", "Latest is only supported on Nitro instances",
+                 when=lambda body: body.get("Latest") in ("true", True))
+    assert "Linux version" in p.console_output("robot1")  # moto's console text, decoded from base64
+    with pytest.raises(CcrpError, match="no clone"):
+        p.console_output("robot2")

@@ -22,7 +22,7 @@ from ...render.limits import fit_user_data
 from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord
 from ..cloud import CloudProvider
 from . import network, tags
-from .errors import INSTALL_HINT, as_ccrp, classify
+from .errors import INSTALL_HINT, as_ccrp, classify, error_code
 
 LIVE = ["pending", "running", "stopping", "stopped"]
 GONE = ["shutting-down", "terminated"]
@@ -259,8 +259,14 @@ class AwsProvider(CloudProvider):
         instances = self._instances(robot)
         if not instances:
             raise CcrpError(f"robot {robot!r} has no clone on AWS", hint=f"ccrp clone create --robot {robot}")
-        out = self.api("get console output", self.ec2.get_console_output, InstanceId=instances[0]["InstanceId"],
-                       Latest=True).get("Output") or ""
+        iid = instances[0]["InstanceId"]
+        try:  # the live buffer (Nitro instances) shows cloud-init's host keys minutes sooner
+            out = self.api("get console output", self.ec2.get_console_output, InstanceId=iid, Latest=True)
+        except CcrpError as exc:
+            if error_code(exc.__cause__) != "UnsupportedOperation":
+                raise
+            out = self.api("get console output", self.ec2.get_console_output, InstanceId=iid)
+        out = out.get("Output") or ""
         try:  # the API returns it base64-encoded
             return base64.b64decode(out, validate=True).decode(errors="replace")
         except ValueError:
