@@ -92,9 +92,18 @@ def wait_serving(provider: Provider, robot: str, timeout: float = 60) -> dict:
         time.sleep(0.5)
 
 
+def clone_user_data(view, provider: Provider, bare: bool) -> str:
+    """A cloud clone keeps the image's login user (ubuntu) with the fleet's operator key: the SSH
+    transport logs in as it. A Docker clone has no login user; its transport is the Docker API."""
+    from .render import cloudinit
+
+    login = [provider.operator_public_key()] if hasattr(provider, "operator_public_key") else None
+    return cloudinit.user_data(view, default_user=bool(login), ssh_authorized_keys=login, install_packages=bare)
+
+
 def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress) -> CloneResult:
     """Create or reuse the clone of `robot`, push its secrets, wait until it serves."""
-    from .render import bundles, cloudinit
+    from .render import bundles
     from .render.limits import fit_user_data
 
     t0 = time.monotonic()
@@ -109,7 +118,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
             fleet.pki.issue_relay(robot, str(view.addr.common_ip), fleet.inventory.vpn.cert_days)
     # A bare snapshot gets the recipe's packages from cloud-init at first boot.
     bare = bool(state.snapshot and state.snapshot.get("bare"))
-    user_data = cloudinit.user_data(view, default_user=False, install_packages=bare)
+    user_data = clone_user_data(view, provider, bare)
     fit_user_data(provider.kind, user_data)
     image = snapshot_image(state)
     rec = state.robots[robot]

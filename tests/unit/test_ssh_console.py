@@ -196,3 +196,30 @@ def test_connect_errors_worth_a_retry():
     assert classify_connect(paramiko.AuthenticationException()) is ErrorClass.FATAL
     assert classify_connect(paramiko.BadHostKeyException("h", _server_key(), _server_key())) is ErrorClass.FATAL
     assert classify_connect(CcrpError("pin mismatch")) is ErrorClass.FATAL
+
+
+# -- what a cloud clone's user-data gives the SSH transport ----------------------------------------
+
+
+def test_cloud_clone_user_data_keeps_the_login_user_with_the_operator_key(ccrp_home, tmp_path):
+    import yaml
+
+    from ccrp_cli import vpn
+    from ccrp_cli.clones import clone_user_data
+    from ccrp_cli.fleet import Fleet, clone_view
+    from ccrp_cli.providers.cloud import CloudProvider
+    from tests.conftest import ROOT
+
+    fleet = Fleet.open(ROOT / "inventories" / "openstack.yaml")
+    vpn.init(fleet)
+    view = clone_view(fleet, fleet.load_allocated(), "nao1")
+    provider = CloudProvider(fleet.inventory, tmp_path / "store")
+    data = yaml.safe_load(clone_user_data(view, provider, bare=False))
+    assert data["users"][0] == "default"  # the image's ubuntu user, which SSH_USER names
+    assert data["ssh_authorized_keys"] == [provider.operator_public_key()]
+
+    class DockerLike:  # no operator key: its transport is the Docker API
+        kind = "docker"
+
+    data = yaml.safe_load(clone_user_data(view, DockerLike(), bare=False))
+    assert "default" not in data["users"] and "ssh_authorized_keys" not in data
