@@ -340,7 +340,7 @@ def fresh_vm(client, image, operator_key):
     vm.container.remove(force=True, v=True)
 
 
-def test_cloud_provider_wait_ready_push_exec(lab, fresh_vm, operator_key, tmp_path, monkeypatch):
+def test_cloud_provider_wait_ready_push_exec(lab, fresh_vm, operator_key, monkeypatch):
     monkeypatch.setattr(cloud, "CONSOLE_POLL", 0.5)
     inv = load_inventory(ROOT / "inventories" / "openstack.yaml")
     workdir = operator_key[0].parent.parent  # the store holding the operator key
@@ -387,7 +387,7 @@ def test_cloud_provider_wait_ready_push_exec(lab, fresh_vm, operator_key, tmp_pa
     print(f"wait_ready from container start: {took:.1f} s")
 
 
-def test_cloud_provider_refuses_a_console_of_another_instance(vm, fresh_vm, operator_key, tmp_path, monkeypatch):
+def test_cloud_provider_refuses_a_console_of_another_instance(vm, fresh_vm, operator_key, monkeypatch):
     """The address answers with keys other than those the instance's console printed (a recycled
     IP, a man in the middle): wait_ready refuses and records nothing."""
     monkeypatch.setattr(cloud, "CONSOLE_POLL", 0.5)
