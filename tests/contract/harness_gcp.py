@@ -102,6 +102,7 @@ class FakeProject:
         self.replies: dict[str, c.Operation] = {}  # requestId -> the operation GCE answered with
         self.calls: Counter = Counter()
         self.throttled = 0.0
+        self._debt, self._refusals = 0.0, 0
         self.latency = 0.0
         self.cpu_quota = cpu_quota
         self.exhausted: set[str] = set()  # zones without capacity
@@ -136,11 +137,17 @@ class FakeProject:
         def call(*args, **kwargs):
             with self.lock:
                 self.calls[name] += 1
-                throttled = self.rng.random() < self.throttled
+                # Exactly `throttled` of all calls fail, spread evenly (not at random): a random
+                # draw fails one call 8 times running (retry.call's limit) in ~1 of 150 storms.
+                self._debt += self.throttled
+                throttled = self._debt >= 1
+                if throttled:
+                    self._debt -= 1
+                    self._refusals += 1
             if self.latency:
                 time.sleep(self.latency)
             if throttled:
-                if self.rng.random() < 0.5:
+                if self._refusals % 2:
                     raise exceptions.TooManyRequests("Rate Limit Exceeded", errors=[{"reason": "rateLimitExceeded"}])
                 raise exceptions.ServiceUnavailable("Backend Error", errors=[{"reason": "backendError"}])
             with self.lock:

@@ -147,8 +147,8 @@ def test_throttled_insert_keeps_its_request_id(h):
     h.throttle(0.6)
     h.provider.run_instance(spec("robot1", 1))
     h.throttle(0)
-    sent = inserts(h)
-    assert len(sent) >= 1 and len({r.request_id for r in sent}) == 1
+    sent = inserts(h)  # every attempt, the throttled ones included
+    assert len(sent) >= 2 and len({r.request_id for r in sent}) == 1
     assert h.instances_for("robot1") == 1
 
 
@@ -280,3 +280,16 @@ def test_importing_the_backend_does_not_import_the_sdk():
     code = ("import sys, ccrp_cli.providers.gcp; "
             "assert 'google.cloud.compute_v1' not in sys.modules and 'google.auth' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_snapshot_builder_is_not_a_clone(h):
+    """`snapshot bake` boots a builder (role builder, no VPN subnet), images it and deletes it."""
+    builder = spec("snapshot-builder", 1, role="builder", vpn_subnet=None, common_ip="10.90.0.9")
+    h.provider.run_instance(builder)
+    (inst,) = h.fake.instances.values()
+    assert inst.name == "ccrp-ct-builder-snapshot-builder" and inst.labels["ccrp-role"] == "builder"
+    assert h.provider.query() == {} and h.fake.routes == {}
+    assert "booting ccrp-ct-builder-snapshot-builder" in h.provider.console_output("snapshot-builder")
+    snap = h.provider.create_snapshot("snapshot-builder", "ccrp-ct-noetic-20260101")
+    assert snap.source == "build" and "ccrp-robot" not in h.fake.images[snap.name].labels
+    assert h.provider.terminate("snapshot-builder") is True and h.fake.instances == {}

@@ -59,8 +59,8 @@ class Names:
         self.network = f"{self.prefix}net"
         self.subnetwork = f"{self.prefix}common"
 
-    def instance(self, robot: str) -> str:
-        return gce_name(f"{self.prefix}cri-{robot}")
+    def instance(self, robot: str, role: str = "clone") -> str:
+        return gce_name(f"{self.prefix}{'cri' if role == 'clone' else role}-{robot}")
 
     def route(self, robot: str) -> str:
         return gce_name(f"{self.prefix}vpn-{robot}")

@@ -18,7 +18,7 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...render.limits import fit_user_data
 from ...retry import ErrorClass, across_zones
-from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord, owner_labels
+from ..base import LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord, owner_labels
 from ..cloud import SSH_USER, CloudProvider
 from .clients import Clients, sdk
 from .errors import as_ccrp_error, classify
@@ -230,8 +230,9 @@ class GcpProvider(CloudProvider):
                     found.append((tail(inst.zone), inst))
         return found
 
-    def _find(self, robot: str):
-        return next(iter(self._instances("clone", robot)), None)
+    def _find(self, robot: str, role: str | None = "clone"):
+        """The robot's instance; role None finds the builder of `snapshot bake` too."""
+        return next(iter(self._instances(role, robot)), None)
 
     def _image_source(self, image: str) -> dict:
         """spec.image as the insert request needs it: a machine image, an image URL/path
@@ -244,7 +245,7 @@ class GcpProvider(CloudProvider):
 
     def instance_resource(self, spec: CloneSpec, zone: str, user_data: str):
         c = self.compute
-        labels = owner_labels(self.fleet, "clone", spec.robot)
+        labels = owner_labels(self.fleet, spec.role, spec.robot)
         source = self._image_source(spec.image)
         disks = [] if "source_machine_image" in source else [c.AttachedDisk(
             boot=True, auto_delete=True,
@@ -256,7 +257,7 @@ class GcpProvider(CloudProvider):
             "enable-oslogin": "FALSE",
         }
         return c.Instance(
-            name=self.names.instance(spec.robot),
+            name=self.names.instance(spec.robot, spec.role),
             machine_type=f"zones/{zone}/machineTypes/{self._machine_type(spec.robot)}",
             labels=labels,
             tags=c.Tags(items=[self.names.tag]),
@@ -273,9 +274,9 @@ class GcpProvider(CloudProvider):
         """Create (or reuse) the robot's clone and its VPN route; on failure after the instance
         exists, delete what this attempt created."""
         payload, _ = fit_user_data("gcp", spec.user_data)  # before any API call
-        name = self.names.instance(spec.robot)
+        name = self.names.instance(spec.robot, spec.role)
         with self._errors(f"clone {name}"):
-            found = self._find(spec.robot)
+            found = self._find(spec.robot, spec.role)
             if found is not None:
                 return self._complete(spec, found[0], found[1].name, created=False)
             zone, inst = across_zones(self._zones(spec.robot),
@@ -373,7 +374,7 @@ class GcpProvider(CloudProvider):
             if route is not None and self.names.owns_unlabelled(route.name, route.description):
                 ops.append(("delete route", self._delete("route", self.c.routes.delete, project=self.project,
                                                          route=route.name)))
-            found = self._find(robot)
+            found = self._find(robot, role=None)
             if found is not None:
                 zone, inst = found
                 ops.append(("delete instance", self._delete("instance", self.c.instances.delete,
@@ -389,7 +390,7 @@ class GcpProvider(CloudProvider):
             return out.contents
 
     def _require(self, robot: str):
-        found = self._find(robot)
+        found = self._find(robot, role=None)
         if found is None:
             raise CcrpError(f"robot {robot!r} has no clone in fleet {self.fleet}", hint=f"ccrp clone create --robot {robot}")
         return found
@@ -400,8 +401,10 @@ class GcpProvider(CloudProvider):
         with self._errors(f"snapshot of clone {robot}"):
             _zone, inst = self._require(robot)
             disk = next(d.source for d in inst.disks if d.boot)
+            # A builder's image is a build, not a robot's clone: no robot label, source "build".
+            source = robot if inst.labels.get(LABEL_ROLE) == "clone" else None
             image = self.compute.Image(name=gce_name(name), source_disk=disk,
-                                       labels=owner_labels(self.fleet, "snapshot", robot))
+                                       labels=owner_labels(self.fleet, "snapshot", source))
             self._mutate(f"create image {image.name}", self.c.images.insert, request=self.compute.InsertImageRequest(
                 project=self.project, image_resource=image, force_create=True,
                 request_id=request_id(self.fleet, "image", image.name)))
