@@ -84,12 +84,12 @@ def one_clone(cli: Cli) -> dict:
     return {"wall_s": round(wall, 2), "clone_s": rows[0]["seconds"]}
 
 
-def cleanup() -> None:
-    """Everything labelled with the bench fleet, whatever state the run ended in."""
+def cleanup_fleet(fleet: str) -> None:
+    """Everything labelled with a bench fleet, whatever state the run ended in."""
     import docker
 
     client = docker.from_env()
-    flt = {"label": f"ccrp-fleet={FLEET}"}
+    flt = {"label": f"ccrp-fleet={fleet}"}
     for c in client.containers.list(all=True, filters=flt):
         c.remove(force=True, v=True)
     for n in client.networks.list(filters=flt):
@@ -181,7 +181,7 @@ def main() -> None:
             try:
                 cli("fleet", "down")
             finally:
-                cleanup()
+                cleanup_fleet(FLEET)
 
     med = lambda xs: round(statistics.median(xs), 2)  # noqa: E731
     one = med(scale[str(sizes[0])])

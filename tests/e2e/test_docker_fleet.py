@@ -742,7 +742,7 @@ def test_relay_traffic_is_encrypted_on_the_common_network(fleet: E2EFleet, sim_n
 
 
 ROGUE = r"""
-import json, sys, time, zenoh
+import json, os, sys, time, zenoh
 c = zenoh.Config()
 c.insert_json5("mode", '"peer"')
 c.insert_json5("scouting/multicast/enabled", "false")
@@ -753,7 +753,8 @@ s = zenoh.open(c)
 got = []
 sub = s.declare_subscriber(sys.argv[2], lambda x: got.append(x))
 time.sleep(float(sys.argv[3]))
-print(json.dumps({"peers": len(list(s.info.peers_zid())), "received": len(got)}))
+print(json.dumps({"peers": len(list(s.info.peers_zid())), "received": len(got)}), flush=True)
+os._exit(0)  # a session still re-dialling its refused peer would keep the interpreter alive
 """
 
 

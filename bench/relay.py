@@ -1,0 +1,204 @@
+"""Topic relay between clones on Docker (issue 4's benchmark), measured inside the clones.
+
+  latency     a small message (std_msgs/Header, send time inside) published at 20 Hz on bot1's
+              clone: received by a subscriber on the same master (direct) and, through the relay,
+              on bot2's clone as /bot1/probe. p50/p95 of both, side by side in the same run.
+  throughput  10 clones, each publishing a 320x240 rgb8 sensor_msgs/Image at 5 Hz and importing
+              the next clone's (a ring: bot(k+1) sees /bot(k)/camera/image_raw): per stream,
+              messages lost (sequence gaps) and p50/p95 latency (target: 0 loss, p95 < 50 ms).
+
+All clones run on this host, so the senders' and receivers' clocks are the same clock. The
+benchmark brings up its own fleet (own subnets and CCRP_HOME) and removes everything at the end.
+
+Run: .venv/bin/python bench/relay.py [--clones 10] [--seconds 30]
+Writes bench/results/relay.json and bench/results/relay.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from docker_fleet import RESULTS, Cli, cleanup_fleet  # noqa: E402
+
+FLEET = "relaybench"
+
+PROBE = r"""
+import json, sys, threading, time
+import rospy
+from sensor_msgs.msg import Image
+from std_msgs.msg import Header
+spec = json.loads(sys.argv[1])
+rospy.init_node("ccrp_bench", anonymous=True, disable_signals=True)
+seen = {t: {} for t in spec["subscribe"]}
+def on(topic):
+    def cb(msg):
+        h = msg.header if hasattr(msg, "header") else msg
+        seen[topic][int(h.frame_id)] = (time.time() - h.stamp.to_sec()) * 1000.0
+    return cb
+cls = {"image": Image, "probe": Header}
+subs = [rospy.Subscriber(t, cls[k], on(t), queue_size=100, tcp_nodelay=True) for t, k in spec["subscribe"].items()]
+pub = rospy.Publisher(spec["publish"]["topic"], cls[spec["publish"]["kind"]], queue_size=100, tcp_nodelay=True) if spec.get("publish") else None
+time.sleep(spec["settle"])  # publishers, subscribers and relays find each other
+data = bytes(320 * 240 * 3)
+n, period, end = 0, 1.0 / (spec["publish"]["hz"] if pub else 1), time.time() + spec["seconds"]
+nxt = time.time()
+while time.time() < end:
+    if pub:
+        n += 1
+        h = Header(frame_id=str(n), stamp=rospy.Time.from_sec(time.time()))
+        pub.publish(Image(header=h, height=240, width=320, encoding="rgb8", step=960, data=data)
+                    if spec["publish"]["kind"] == "image" else h)
+    nxt += period
+    time.sleep(max(0.0, nxt - time.time()))
+time.sleep(2)  # in-flight messages
+print(json.dumps({"sent": n, "seen": {t: {str(k): v for k, v in s.items()} for t, s in seen.items()}}))
+"""
+
+
+def inventory(clones: int) -> dict:
+    robots = []
+    for k in range(1, clones + 1):
+        prev = f"bot{(k - 2) % clones + 1}"
+        imports = {prev: ["/camera/image_raw"]}
+        if k == 2:
+            imports[prev].append("/probe")
+        robots.append({"name": f"bot{k}", "exports": ["/camera/image_raw", "/probe"], "imports": imports})
+    return {"fleet": FLEET, "provider": {"kind": "docker", "public_cidr": "172.27.0.0/24"},
+            "vpn": {"pool": "10.85.0.0/16"}, "common": {"cidr": "10.95.0.0/24"}, "robots": robots}
+
+
+def probe(client, robot: str, spec: dict) -> dict:
+    c = client.containers.get(f"ccrp-{FLEET}-cri-{robot}")
+    argv = ["bash", "-c", 'set -a; . /etc/ccrp/ros.env; set +a; exec python3 -c "$0" "$1"', PROBE, json.dumps(spec)]
+    res = c.exec_run(argv)
+    out = res.output.decode(errors="replace")
+    if res.exit_code != 0:
+        raise SystemExit(f"probe on {robot} failed: {out[-800:]}")
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def stream_stats(sent: int, seen: dict[str, float], warmup: int) -> dict:
+    """Loss over the messages sent after the warm-up ones; latency of those received."""
+    window = range(warmup + 1, sent + 1)
+    got = [seen[str(i)] for i in window if str(i) in seen]
+    lat = sorted(got)
+    q = lambda p: round(lat[min(len(lat) - 1, int(p * len(lat)))], 2) if lat else None  # noqa: E731
+    return {"sent": len(window), "received": len(got), "lost": len(window) - len(got),
+            "p50_ms": q(0.50), "p95_ms": q(0.95), "max_ms": round(lat[-1], 2) if lat else None}
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    lat = result["latency"]
+    names = ["same master", "relay (clone to clone)"]
+    for i, key in enumerate(("direct", "relay")):
+        ax1.bar([i - 0.2], [lat[key]["p50_ms"]], 0.4, color="tab:blue", label="p50" if i == 0 else None)
+        ax1.bar([i + 0.2], [lat[key]["p95_ms"]], 0.4, color="tab:orange", label="p95" if i == 0 else None)
+    ax1.set_xticks([0, 1], names)
+    ax1.set_ylabel("latency (ms)")
+    ax1.set_title("small message (std_msgs/Header), 20 Hz")
+    ax1.legend()
+    streams = result["throughput"]["streams"]
+    keys = sorted(streams, key=lambda s: int(s.split("/")[1][3:]))
+    ax2.bar(range(len(keys)), [streams[k]["p95_ms"] for k in keys], color="tab:orange", label="p95")
+    ax2.bar(range(len(keys)), [streams[k]["p50_ms"] for k in keys], color="tab:blue", label="p50")
+    ax2.axhline(50, color="red", ls="--", label="target p95 50 ms")
+    ax2.set_xticks(range(len(keys)), [k.split("/")[1] for k in keys], rotation=45)
+    ax2.set_ylabel("latency (ms)")
+    lost = sum(s["lost"] for s in streams.values())
+    ax2.set_title(f"{len(keys)} image streams 320x240 rgb8 at 5 Hz (lost: {lost})")
+    ax2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--clones", type=int, default=10)
+    ap.add_argument("--seconds", type=float, default=30)
+    args = ap.parse_args()
+    import docker
+
+    client = docker.from_env(timeout=600)
+    warmup_s = 3
+    with tempfile.TemporaryDirectory() as tmp:
+        home, inv = Path(tmp) / "home", Path(tmp) / "relay.yaml"
+        inv.write_text(yaml.safe_dump(inventory(args.clones), sort_keys=False))
+        cli = Cli(home, inv)
+        try:
+            cli("vpn", "init")
+            cli("snapshot", "build")
+            wall, _ = cli("fleet", "up", "--json")
+            print(f"bench: {args.clones} clones up in {wall:.1f} s", file=sys.stderr)
+            robots = [f"bot{k}" for k in range(1, args.clones + 1)]
+            specs = {}
+            for k, robot in enumerate(robots, 1):
+                nxt = f"bot{k % args.clones + 1}"  # its image goes to the next clone
+                subs = {f"/bot{(k - 2) % args.clones + 1}/camera/image_raw": "image"}
+                if robot == "bot1":
+                    subs["/probe"] = "probe"  # direct: same master as the publisher below
+                if robot == "bot2":
+                    subs["/bot1/probe"] = "probe"  # through the relay
+                specs[robot] = {"publish": {"topic": "/camera/image_raw", "kind": "image", "hz": 5},
+                                "subscribe": subs, "seconds": args.seconds, "settle": 6, "next": nxt}
+            # bot1 publishes the probe as well, from a second process so the image loop stays at 5 Hz.
+            probe_spec = {"publish": {"topic": "/probe", "kind": "probe", "hz": 20}, "subscribe": {},
+                          "seconds": args.seconds, "settle": 6}
+            with ThreadPoolExecutor(len(robots) + 1) as pool:
+                futures = {r: pool.submit(probe, client, r, specs[r]) for r in robots}
+                probe_sender = pool.submit(probe, client, "bot1", probe_spec)
+                out = {r: f.result() for r, f in futures.items()}
+                sent_probe = probe_sender.result()["sent"]
+        finally:
+            try:
+                cli("fleet", "down")
+            finally:
+                cleanup_fleet(FLEET)
+
+    streams = {}
+    for k, robot in enumerate(robots, 1):
+        src = f"bot{(k - 2) % args.clones + 1}"
+        topic = f"/{src}/camera/image_raw"
+        streams[f"{robot}/{src}"] = stream_stats(out[src]["sent"], out[robot]["seen"][topic], warmup_s * 5)
+    result = {
+        "benchmark": "relay",
+        "when": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "kernel": platform.release()},
+        "seconds": args.seconds,
+        "clones_up_s": round(wall, 1),
+        "latency": {
+            "direct": stream_stats(sent_probe, out["bot1"]["seen"]["/probe"], warmup_s * 20),
+            "relay": stream_stats(sent_probe, out["bot2"]["seen"]["/bot1/probe"], warmup_s * 20),
+        },
+        "throughput": {"clones": args.clones, "image": "320x240 rgb8", "hz": 5, "streams": streams},
+    }
+    t = result["throughput"]
+    t["lost_total"] = sum(s["lost"] for s in streams.values())
+    t["p95_ms_worst"] = max(s["p95_ms"] or 0 for s in streams.values())
+    t["p95_ms_median"] = statistics.median(s["p95_ms"] or 0 for s in streams.values())
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "relay.json").write_text(json.dumps(result, indent=2) + "\n")
+    plot(result, RESULTS / "relay.png")
+    print(json.dumps({"latency": result["latency"], "lost_total": t["lost_total"],
+                      "p95_ms_worst": t["p95_ms_worst"], "p95_ms_median": t["p95_ms_median"]}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
