@@ -158,7 +158,13 @@ def make_harness(tmp_path):
     try:
         raw.images.get(BASE)
     except docker.errors.ImageNotFound:
-        pytest.skip(f"{BASE} is not built here (ccrp snapshot build builds it)")
+        # A fresh machine (CI): build ccrp's base image exactly as `snapshot build` would, once;
+        # the end-to-end tests then reuse it.
+        from ccrp_cli.providers.docker import images
+        from ccrp_cli.recipes import platform
+
+        pkgs = sorted(set(images.BASE_PACKAGES + platform("noetic", "docker").packages))
+        images.build_base_image(raw, BASE, pkgs)
     built = _tiny_image(raw)
     from ccrp_cli.providers.docker import DockerProvider
 
