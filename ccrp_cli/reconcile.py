@@ -11,7 +11,7 @@ from .errors import CcrpError, InputError
 from .fleet import Fleet
 from .models.state import RobotRecord
 
-MAX_WORKERS = 8
+MAX_WORKERS = 8  # when the provider names no max_parallel of its own
 
 
 def plan(fleet: Fleet, provider) -> list[dict]:
@@ -37,7 +37,9 @@ def plan(fleet: Fleet, provider) -> list[dict]:
     return rows
 
 
-def _fan_out(fn, robots: list[str], progress: Progress) -> list[CloneResult]:
+def _fan_out(fn, robots: list[str], progress: Progress, provider=None) -> list[CloneResult]:
+    """fn(robot) for every robot on a pool bounded by the provider: its max_parallel says how many
+    clones it can create at once (CPU-bound local containers vs API-latency-bound clouds)."""
     def run(robot: str) -> CloneResult:
         t0 = time.monotonic()
         try:
@@ -51,7 +53,7 @@ def _fan_out(fn, robots: list[str], progress: Progress) -> list[CloneResult]:
 
     if not robots:
         return []
-    with ThreadPoolExecutor(max_workers=min(MAX_WORKERS, len(robots))) as pool:
+    with ThreadPoolExecutor(max_workers=min(getattr(provider, "max_parallel", MAX_WORKERS), len(robots))) as pool:
         return list(pool.map(run, robots))
 
 
@@ -62,10 +64,10 @@ def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None
     provider.bootstrap()
     members = [r.name for r in fleet.members(state)]
     targets = [r for r in members if only is None or r in only]
-    results = _fan_out(lambda r: ensure_clone(fleet, provider, writer, r, progress), targets, progress)
+    results = _fan_out(lambda r: ensure_clone(fleet, provider, writer, r, progress), targets, progress, provider)
     if only is None:
         strays = [name for name in provider.query() if name not in members]
-        results += _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), strays, progress)
+        results += _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), strays, progress, provider)
     reshare(fleet, provider, progress)
     return results
 
@@ -81,7 +83,7 @@ def reshare(fleet: Fleet, provider, progress: Progress) -> list[str]:
         changed = push(fleet, provider, state, robot)
         return CloneResult(robot, "reconfigured" if changed else "unchanged")
 
-    results = _fan_out(one, ready, progress)
+    results = _fan_out(one, ready, progress, provider)
     changed = [r.robot for r in results if r.action == "reconfigured"]
     if changed:
         progress(f"topic sharing reconfigured on {', '.join(changed)}")
@@ -120,7 +122,7 @@ def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneRe
             state.robots[name] = RobotRecord(index=slots[name], origin="template")
         fleet.store.save_state(state)
     writer = StateWriter(fleet, state)
-    results = _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), removed, progress)
+    results = _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), removed, progress, provider)
     return results + up(fleet, provider, progress)
 
 

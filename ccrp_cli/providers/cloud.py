@@ -29,6 +29,9 @@ TOFU_CONSOLE_WAIT = 180.0  # with TOFU allowed, how long the console gets to sho
 class CloudProvider:
     kind = "cloud"
     backoff = Backoff()
+    # `fleet up` creates this many clones at once: cloud calls wait on the API, not on this host's
+    # CPU, so a wide pool keeps 100 clones near one clone's time (bench/provision_clouds.py).
+    max_parallel = 32
 
     def __init__(self, inv: Inventory, workdir: Path) -> None:
         # workdir = the fleet's store root (.ccrp/<fleet>): operator SSH key, pinned host keys.

@@ -41,8 +41,15 @@ class AwsHarness:
         self._fail_robots: set[str] = set()
         self._doomed: set[str] = set()  # instances whose Elastic IP association will fail
         self._subnets: dict[str, str] = {}
+        # moto's backend is not thread-safe (its dicts change size under a concurrent describe):
+        # one request at a time inside moto, the injected delay still overlapping outside it, as
+        # on EC2. Held from before-call to after-call(-error) by the thread that took it.
+        self._moto = threading.Lock()
+        self._holding = threading.local()
         events = provider.ec2.meta.events
         events.register("before-call.ec2", self._before_call)
+        events.register("after-call.ec2", self._release)
+        events.register("after-call-error.ec2", self._release)
         events.register("after-call.ec2.RunInstances", self._after_run)
 
     # -- fault injection -------------------------------------------------------------------------
@@ -63,7 +70,14 @@ class AwsHarness:
         if model.name == "AssociateAddress" and isinstance(body, dict) and body.get("InstanceId") in self._doomed:
             self._doomed.discard(body["InstanceId"])
             return self._error(403, "UnauthorizedOperation", "You are not authorized to perform this operation.")
+        self._moto.acquire()
+        self._holding.lock = True
         return None
+
+    def _release(self, **_):
+        if getattr(self._holding, "lock", False):
+            self._holding.lock = False
+            self._moto.release()
 
     def _after_run(self, parsed, **_):
         for inst in parsed.get("Instances", []):

@@ -46,6 +46,7 @@ def _classify(exc: BaseException) -> ErrorClass:
 class DockerProvider:
     kind = "docker"
     backoff = Backoff()
+    max_parallel = 8  # clones at once in `fleet up`: containers boot on this host's CPUs
 
     def __init__(self, inv: Inventory) -> None:
         self.inv = inv

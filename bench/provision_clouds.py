@@ -1,0 +1,200 @@
+"""Provisioning a fleet on the cloud fakes with 200 ms per API call (issue 5's benchmark).
+
+For each cloud provider (aws on moto, openstack on the in-memory Nova/Neutron/Glance behind
+requests-mock, gcp on autospecced compute_v1 clients), driven by the real provider code through
+the contract harnesses (tests/contract/harness_<kind>.py):
+
+  bootstrap  from an empty fleet (network, security group / firewall, key pair, routes), then
+             again as every later `fleet up` runs it (reuse: reads only);
+  fan-out    run_instance for every robot on the bounded pool of `fleet up` (reconcile._fan_out,
+             provider.max_parallel workers), for 1, N/4, N/2 and N clones, each on a fresh fake:
+             wall time, API calls (total and per clone), ratio to one clone, and that every robot
+             ends up with exactly one instance; N once more with no latency, to show what the
+             fake itself costs in CPU on this host.
+
+Targets: wall(N) within 10x of wall(1); calls per clone flat in N (no call count worse than
+linear in the fleet size). Clone specs (rendered user-data) are built before the clock starts:
+they are local work, not API calls. The delay is injected by each harness before a call reaches
+the fake, outside any fake lock, so concurrent calls overlap as on a real cloud.
+
+Run: .venv/bin/python bench/provision_clouds.py [--clones 100] [--delay 0.2] [--providers aws,openstack,gcp]
+Writes bench/results/provision_clouds.json and bench/results/provision_clouds.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import importlib
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # the harnesses live in tests/contract
+
+from ccrp_cli.clones import CloneResult  # noqa: E402
+from ccrp_cli.models.inventory import Inventory  # noqa: E402
+from ccrp_cli.reconcile import _fan_out  # noqa: E402
+from tests.contract.specs import clone_spec  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results"
+PROVIDERS = ["aws", "openstack", "gcp"]
+TARGET_RATIO = 10
+
+
+def progress(msg: str) -> None:
+    print(f"bench: {msg}", file=sys.stderr, flush=True)
+
+
+def fleet_specs(harness, n: int) -> dict:
+    """CloneSpecs of robot1..robotN: the harness's inventory (fleet "ct") with N robots, the
+    harness's own base image, user-data rendered as clones.ensure_clone renders it."""
+    data = harness.provider.inv.model_dump(mode="json")
+    data["robots"] = [{"name": f"robot{i}", "exports": [f"/robot{i}/odom"]} for i in range(1, n + 1)]
+    inv = Inventory.model_validate(data)
+    image = harness.spec("robot1", 1).image
+    return {f"robot{i}": clone_spec(inv, f"robot{i}", i, image) for i in range(1, n + 1)}
+
+
+def make_room(harness, n: int) -> None:
+    """The fakes enforce quotas (OpenStack 100 instances, GCE 24 vCPUs): give the project N
+    clones' worth, as an operator would ask the cloud for before a fleet of N."""
+    fake = getattr(harness, "fake", None)
+    if hasattr(fake, "max_instances"):
+        fake.max_instances = max(fake.max_instances, n)
+    if hasattr(fake, "cpu_quota"):
+        fake.cpu_quota = max(fake.cpu_quota, 4 * n)
+
+
+def timed(harness, fn) -> tuple[float, Counter, object]:
+    before = harness.api_calls()
+    t0 = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t0, harness.api_calls() - before, out
+
+
+def run(kind: str, n: int, delay: float) -> dict:
+    """One fresh fake: bootstrap from empty, bootstrap again, then N clones on the fan-out pool."""
+    mod = importlib.import_module(f"tests.contract.harness_{kind}")
+    with tempfile.TemporaryDirectory() as tmp, mod.make_harness(Path(tmp)) as h:
+        make_room(h, n)
+        specs = fleet_specs(h, n)
+        h.provider.teardown()  # the harness bootstrapped without latency: start from no network
+        h.delay(delay)
+        boot_s, boot_calls, _ = timed(h, h.provider.bootstrap)
+        reuse_s, reuse_calls, _ = timed(h, h.provider.bootstrap)
+        wall, calls, results = timed(h, lambda: _fan_out(
+            lambda r: h.provider.run_instance(specs[r]), list(specs), progress, h.provider))
+        h.delay(0)  # checks below read the fake, not the benchmark
+        failed = {r.robot: r.detail for r in results if isinstance(r, CloneResult)}
+        instances = Counter(h.instances_for(r) for r in specs)
+        total = sum(calls.values())
+        return {
+            "clones": n,
+            "workers": min(h.provider.max_parallel, n),
+            "wall_s": round(wall, 2),
+            "calls": total,
+            "calls_per_clone": round(total / n, 2),
+            "calls_by_operation": dict(sorted(calls.items(), key=str)),
+            "failed": failed,
+            "exactly_one_instance": instances == Counter({1: n}),
+            "instances_per_robot": {str(k): v for k, v in sorted(instances.items())},
+            "bootstrap": {"wall_s": round(boot_s, 2), "calls": sum(boot_calls.values()),
+                          "reuse_wall_s": round(reuse_s, 2), "reuse_calls": sum(reuse_calls.values())},
+        }
+
+
+def bench_provider(kind: str, n: int, delay: float) -> dict:
+    sizes = sorted({1, max(1, n // 4), max(1, n // 2), n})
+    runs = {}
+    for size in sizes:
+        runs[size] = run(kind, size, delay)
+        r = runs[size]
+        progress(f"{kind}: {size} clones in {r['wall_s']:.1f} s, {r['calls']} calls "
+                 f"({r['calls_per_clone']}/clone), {len(r['failed'])} failed, one instance each: "
+                 f"{r['exactly_one_instance']}")
+    # The same N with no injected latency: what the fake and the SDK cost in CPU on this host,
+    # which a real cloud spends on its own servers instead.
+    cpu = run(kind, n, 0.0)
+    progress(f"{kind}: {n} clones with no latency in {cpu['wall_s']:.1f} s")
+    one = runs[1]["wall_s"]
+    for r in runs.values():
+        r["ratio_to_1"] = round(r["wall_s"] / one, 2)
+    per_clone = [runs[s]["calls_per_clone"] for s in sizes]
+    full = runs[n]
+    return {
+        "max_parallel": full["workers"] if n > 1 else None,
+        "bootstrap": full["bootstrap"],
+        "runs": {str(s): r for s, r in runs.items()},
+        "no_latency": {"clones": n, "wall_s": cpu["wall_s"], "calls": cpu["calls"], "failed": cpu["failed"]},
+        "ratio_n_to_1": full["ratio_to_1"],
+        "within_10x": full["ratio_to_1"] <= TARGET_RATIO,
+        # Linear (or better): no size costs more calls per clone than one clone alone (5% slack).
+        # Per-fleet reads cached by the provider (flavor, image) make larger fleets cheaper per clone.
+        "calls_linear": max(per_clone) <= 1.05 * per_clone[0],
+        "all_ok": all(not r["failed"] and r["exactly_one_instance"] for r in [*runs.values(), cpu]),
+    }
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for i, (kind, res) in enumerate(result["providers"].items()):
+        color = f"C{i}"
+        sizes = [int(s) for s in res["runs"]]
+        walls = [res["runs"][str(s)]["wall_s"] for s in sizes]
+        ax1.plot(sizes, walls, "o-", color=color, label=f"{kind} ({res['max_parallel']} workers)")
+        ax1.axhline(TARGET_RATIO * res["runs"]["1"]["wall_s"], color=color, ls="--", lw=1,
+                    label=f"{kind}: 10x one clone")
+        ax2.plot(sizes, [res["runs"][str(s)]["calls_per_clone"] for s in sizes], "o-", color=color, label=kind)
+    ax1.set_xlabel("clones")
+    ax1.set_ylabel("wall time (s)")
+    ax1.set_title(f"run_instance fan-out, {result['delay_s'] * 1000:.0f} ms per API call")
+    ax1.set_ylim(bottom=0)
+    ax1.legend(fontsize=7)
+    ax2.set_xlabel("clones")
+    ax2.set_ylabel("API calls per clone")
+    ax2.set_title("API calls per clone (flat = linear in fleet size)")
+    ax2.set_ylim(bottom=0)
+    ax2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--clones", type=int, default=100)
+    ap.add_argument("--delay", type=float, default=0.2, help="seconds added to every API call")
+    ap.add_argument("--providers", default=",".join(PROVIDERS))
+    args = ap.parse_args()
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    result = {
+        "benchmark": "provision_clouds",
+        "when": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "kernel": platform.release()},
+        "clones": args.clones,
+        "delay_s": args.delay,
+        "target_ratio": TARGET_RATIO,
+        "providers": {kind: bench_provider(kind, args.clones, args.delay) for kind in args.providers.split(",")},
+    }
+    (RESULTS / "provision_clouds.json").write_text(json.dumps(result, indent=2) + "\n")
+    plot(result, RESULTS / "provision_clouds.png")
+    for kind, res in result["providers"].items():
+        progress(f"{kind}: {args.clones} clones at {res['ratio_n_to_1']}x one clone "
+                 f"(within 10x: {res['within_10x']}), calls linear: {res['calls_linear']}, all ok: {res['all_ok']}")
+    if not all(r["all_ok"] for r in result["providers"].values()):
+        raise SystemExit("some clones failed or were duplicated: see bench/results/provision_clouds.json")
+
+
+if __name__ == "__main__":
+    main()
