@@ -80,8 +80,14 @@ def recorded_snapshot(home: Path) -> dict:
 
 
 def one_clone(cli: Cli) -> dict:
+    """`fleet scale 1` from zero, and the CPU time the clone's container used to get ready (from
+    its cgroup): what N clones booting at once must share on this machine's cores."""
+    import docker
+
     wall, rows = cli("fleet", "scale", "1", "--json")
-    return {"wall_s": round(wall, 2), "clone_s": rows[0]["seconds"]}
+    stats = docker.from_env().containers.get(f"ccrp-{FLEET}-cri-{rows[0]['robot']}").stats(stream=False)
+    cpu = stats["cpu_stats"]["cpu_usage"]["total_usage"] / 1e9
+    return {"wall_s": round(wall, 2), "clone_s": rows[0]["seconds"], "clone_cpu_s": round(cpu, 2)}
 
 
 def cleanup_fleet(fleet: str) -> None:
@@ -199,6 +205,12 @@ def main() -> None:
         "connect": {"median_s": med([c["seconds"] for c in connect]), "samples": connect},
         "scale": {str(n): {"median_s": med(scale[str(n)]), "ratio_to_1": round(med(scale[str(n)]) / one, 2),
                            "samples": scale[str(n)]} for n in sizes},
+    }
+    cpu = med([s["clone_cpu_s"] for s in ready["snapshot"]])
+    result["cpu_floor"] = {
+        "clone_cpu_s": cpu,
+        "note": "CPU seconds one clone's container uses to get ready; N clones need at least N * that / cores",
+        **{str(n): round(n * cpu / (os.cpu_count() or 1), 1) for n in sizes},
     }
     result["ready"]["bare_over_snapshot"] = round(result["ready"]["bare"]["median_s"] / result["ready"]["snapshot"]["median_s"], 1)
     (RESULTS / "docker_fleet.json").write_text(json.dumps(result, indent=2) + "\n")
