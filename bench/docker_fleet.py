@@ -125,6 +125,9 @@ def plot(result: dict, path: Path) -> None:
     walls = [result["scale"][str(n)]["median_s"] for n in sizes]
     ax2.plot(sizes, walls, "o-", label="ccrp fleet scale N (median)")
     ax2.plot(sizes, [walls[0] * n for n in sizes], ":", color="grey", label="N x one clone (serial)")
+    if "cpu_floor" in result:
+        ax2.plot(sizes, [result["cpu_floor"][str(n)] for n in sizes], "--", color="tab:red",
+                 label="CPU floor: N x one clone's CPU / cores")
     ax2.axhline(3 * walls[0], color="tab:orange", ls="--", label="target for N=10: 3x one clone")
     ax2.set_ylim(0, max(walls) * 1.6)
     ax2.set_xlabel("clones")
