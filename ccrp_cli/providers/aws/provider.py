@@ -284,6 +284,9 @@ class AwsProvider(CloudProvider):
             Description=f"ccrp fleet {self.fleet}: clone of {robot}",
             TagSpecifications=tags.spec(["image"], self.fleet, "snapshot", robot, name=ami_name),
         )["ImageId"]
+        # `snapshot bake` deletes the builder right after this returns: wait until the AMI is usable.
+        self.api("wait for image", self.ec2.get_waiter("image_available").wait, ImageIds=[image_id],
+                 WaiterConfig={"Delay": 10, "MaxAttempts": 180})
         image = self._describe("image", [{"Name": "image-id", "Values": [image_id]}])[0]
         # The EBS snapshots get the tags too (gc finds them if their image is ever lost). Tagged
         # afterwards rather than in CreateImage's TagSpecifications, which moto does not model.
