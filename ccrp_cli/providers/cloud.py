@@ -16,7 +16,7 @@ from pathlib import Path
 from ..errors import CcrpError
 from ..models.inventory import Inventory
 from ..retry import Backoff, ErrorClass, call
-from .base import CloneRecord, CloneSpec, OwnedResource, SnapshotRecord
+from .base import CloneRecord
 
 # Login user of the snapshot images (Ubuntu cloud images); cloud-init creates it.
 SSH_USER = "ubuntu"
@@ -71,18 +71,12 @@ class CloudProvider:
         """Every SDK call goes through here: retried on throttling / 5xx, classified otherwise."""
         return call(fn, *args, classify=self.classify_error, what=what, backoff=self.backoff, **kwargs)
 
-    # -- cloud primitives ------------------------------------------------------------------
-    def bootstrap(self) -> None: ...  # cloud: network, security groups, key pair, routes (create or reuse)
-    def run_instance(self, spec: CloneSpec) -> CloneRecord: ...  # cloud: idempotent, rolls back own partials
-    def query(self) -> dict[str, CloneRecord]: ...  # cloud: instances with the fleet's labels
-    def terminate(self, robot: str) -> bool: ...  # cloud: owned only; with its public IP / volumes
-    def console_output(self, robot: str) -> str: ...  # cloud: serial console text
-    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord: ...
-    def list_snapshots(self) -> list[SnapshotRecord]: ...
-    def delete_snapshot(self, snapshot_id: str) -> None: ...
-    def teardown(self) -> list[str]: ...
-    def list_owned(self) -> list[OwnedResource]: ...
-    def delete_owned(self, resource: OwnedResource) -> None: ...
+    # -- cloud primitives: each cloud implements the rest of base.Provider (bootstrap,
+    # run_instance, query, terminate, snapshots, teardown, list_owned/delete_owned) and this one,
+    # which the shared SSH code below needs.
+    def console_output(self, robot: str) -> str:
+        """The instance's serial console text (cloud-init prints the SSH host keys there)."""
+        raise NotImplementedError
 
     # -- shared: SSH transport (transport/ssh.py) ------------------------------------------------
     @property
