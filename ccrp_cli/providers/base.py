@@ -20,6 +20,19 @@ def owner_labels(fleet: str, role: str, robot: str | None = None) -> dict[str, s
     return labels
 
 
+def check_cloud_init(robot: str, rc: int, out: str, timeout: float) -> None:
+    """Judge `cloud-init status --wait --long` run on a clone (any transport): a one-line error
+    with cloud-init's own detail unless it finished."""
+    from ..errors import CcrpError
+
+    if rc == 124:
+        raise CcrpError(f"clone cri-{robot}: cloud-init did not finish within {timeout:.0f} s")
+    if rc not in (0, 2):  # 2: finished with recoverable errors (cloud-init >= 23.4)
+        detail = " ".join(line.strip() for line in out.splitlines() if line.strip().startswith(("status", "detail", "(")))
+        raise CcrpError(f"clone cri-{robot}: cloud-init failed: {detail[:300] or out.strip()[-300:]}",
+                        hint=f"ccrp clone exec --robot {robot} -- cloud-init status --long")
+
+
 class CloneSpec(BaseModel):
     """What to create for one robot."""
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from ..errors import CcrpError
 from ..models.inventory import Inventory
 from ..retry import Backoff, ErrorClass, call
-from .base import CloneRecord
+from .base import CloneRecord, check_cloud_init
 
 # Login user of the snapshot images (Ubuntu cloud images); cloud-init creates it.
 SSH_USER = "ubuntu"
@@ -157,12 +157,7 @@ class CloudProvider:
             ssh = self._session(robot, rec, pins)
         left = max(1, math.ceil(deadline - time.monotonic()))
         rc, out = ssh.exec([*ssh.sudo, "timeout", str(left), "cloud-init", "status", "--wait", "--long"], timeout=left + 30)
-        if rc == 124:
-            raise CcrpError(f"clone cri-{robot}: cloud-init did not finish within {timeout:.0f} s")
-        if rc not in (0, 2):  # 2: finished with recoverable errors (cloud-init >= 23.4)
-            detail = " ".join(line.strip() for line in out.splitlines() if line.strip().startswith(("status", "detail", "(")))
-            raise CcrpError(f"clone cri-{robot}: cloud-init failed: {detail[:300] or out.strip()[-300:]}",
-                            hint=f"ccrp clone exec --robot {robot} -- cloud-init status --long")
+        check_cloud_init(robot, rc, out, timeout)
 
     def _run(self, robot: str, fn):
         """fn(session); once more on a fresh connection if the cached one broke before starting."""

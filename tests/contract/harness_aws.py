@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from ccrp_cli.providers.base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE
 
 from .harness import FLEET
-from .specs import FAST, OPERATOR_CIDR, clone_spec, inventory
+from .specs import FAST, OPERATOR_CIDR, Knobs, clone_spec, inventory
 
 REGION = "us-east-1"
 LIVE = ["pending", "running", "stopping", "stopped"]
@@ -24,7 +24,7 @@ def _owned_filters(robot: str | None = None) -> list[dict]:
     return f + ([{"Name": f"tag:{LABEL_ROBOT}", "Values": [robot]}] if robot else [])
 
 
-class AwsHarness:
+class AwsHarness(Knobs):
     kind = "aws"
 
     def __init__(self, provider, raw) -> None:
@@ -85,18 +85,6 @@ class AwsHarness:
             if robot in self._fail_robots:
                 self._fail_robots.discard(robot)
                 self._doomed.add(inst["InstanceId"])
-
-    def throttle(self, fraction: float) -> None:
-        self._fraction = fraction
-
-    def delay(self, seconds: float) -> None:
-        self._delay = seconds
-
-    def fail_create_after_instance(self, robot: str) -> None:
-        self._fail_robots.add(robot)
-
-    def api_calls(self) -> Counter:
-        return Counter(self.calls)
 
     # -- the fake's contents, read around the provider ---------------------------------------
     def spec(self, robot: str, index: int):

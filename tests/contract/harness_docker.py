@@ -18,7 +18,7 @@ import pytest
 from ccrp_cli.providers.base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE
 
 from .harness import FLEET
-from .specs import FAST, clone_spec, inventory
+from .specs import FAST, Knobs, clone_spec, inventory
 
 BASE = "ccrp/base:bookworm"
 TINY = "ccrp/contract-tiny:latest"
@@ -37,7 +37,7 @@ def _fake_response(request, status: int, message: str):
     return r
 
 
-class DockerHarness:
+class DockerHarness(Knobs):
     kind = "docker"
 
     def __init__(self, provider) -> None:
@@ -71,18 +71,6 @@ class DockerHarness:
             self._fail_robots.discard(robot[1])
             self._doomed.add(response.json()["Id"])
         return response
-
-    def throttle(self, fraction: float) -> None:
-        self._fraction = fraction
-
-    def delay(self, seconds: float) -> None:
-        self._delay = seconds
-
-    def fail_create_after_instance(self, robot: str) -> None:
-        self._fail_robots.add(robot)
-
-    def api_calls(self) -> Counter:
-        return Counter(self.calls)
 
     def spec(self, robot: str, index: int):
         return clone_spec(self.provider.inv, robot, index, TINY)

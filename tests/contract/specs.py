@@ -37,3 +37,22 @@ def clone_spec(inv: Inventory, robot: str, index: int, image: str) -> CloneSpec:
         robot=robot, hostname=addr.clone_host, image=image, user_data=cloudinit.user_data(view, default_user=False),
         instance_id=f"{inv.fleet}-{robot}-{index}", common_ip=str(addr.common_ip), vpn_subnet=str(addr.vpn_subnet),
     )
+
+
+class Knobs:
+    """The Harness knobs of fakes that count calls in `calls` and read `_fraction`, `_delay` and
+    `_fail_robots` themselves (the AWS and Docker harnesses)."""
+
+    def throttle(self, fraction: float) -> None:
+        self._fraction = fraction
+
+    def delay(self, seconds: float) -> None:
+        self._delay = seconds
+
+    def fail_create_after_instance(self, robot: str) -> None:
+        self._fail_robots.add(robot)
+
+    def api_calls(self):
+        from collections import Counter
+
+        return Counter(self.calls)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import gzip
 from concurrent.futures import ThreadPoolExecutor
 
-import pytest
 
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.gc import find_leaks

@@ -12,7 +12,9 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...render.view import VPN_DIR
 from ...retry import Backoff, ErrorClass, call
-from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord, owner_labels
+from ..base import (
+    LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord, check_cloud_init, owner_labels,
+)
 from .archive import tar_files
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
@@ -209,12 +211,7 @@ class DockerProvider:
     def wait_ready(self, robot: str, timeout: float = 300) -> None:
         """Wait for cloud-init to finish inside the clone; fail with its own error detail."""
         rc, out = self.exec(robot, ["cloud-init", "status", "--wait", "--long"], timeout=timeout)
-        if rc == 124:
-            raise CcrpError(f"clone cri-{robot}: cloud-init did not finish within {timeout:.0f} s")
-        if rc not in (0, 2):  # 2: finished with recoverable errors (cloud-init >= 23.4)
-            detail = " ".join(line.strip() for line in out.splitlines() if line.strip().startswith(("status", "detail", "(")))
-            raise CcrpError(f"clone cri-{robot}: cloud-init failed: {detail[:300]}",
-                            hint=f"ccrp clone exec --robot {robot} -- cloud-init status --long")
+        check_cloud_init(robot, rc, out, timeout)
 
     def query(self) -> dict[str, CloneRecord]:
         return {
