@@ -73,6 +73,28 @@ def files_current(provider: Provider, robot: str, files: list) -> bool:
     return all(have.get(f.dest) == hashlib.sha256(f.content.encode()).hexdigest() for f in files)
 
 
+# Hands the secrets directory to the openvpn group ($1 = mode) and prints the device of / and of
+# the directory: they must differ, or the keys would land on the disk that snapshots capture.
+SECRETS_DIR_SH = 'install -d -m "$1" -o root -g openvpn "$0" && stat -c %d / "$0"'
+
+
+def prepare_secrets_dir(provider: Provider, robot: str, relay: bool) -> None:
+    from .render.view import SECRETS_DIR
+
+    # 0751 with the relay: its user opens relay.key by name but cannot list the directory.
+    rc, out = provider.exec(robot, ["sh", "-c", SECRETS_DIR_SH, SECRETS_DIR, "0751" if relay else "0750"], timeout=30)
+    devices = out.split()[-2:]  # after anything sudo may warn about first
+    if rc != 0 or len(devices) != 2 or not all(d.isdigit() for d in devices):
+        raise CcrpError(f"cannot prepare {SECRETS_DIR} on {clone_host(robot)}: {out.strip()[-200:]}")
+    if devices[0] == devices[1]:
+        raise CcrpError(
+            f"refusing to push secrets to {clone_host(robot)}: {SECRETS_DIR} is on its root disk, where a snapshot "
+            "would capture them",
+            hint=f"the clone's user-data mounts a tmpfs there at boot; recreate the clone: ccrp clone delete -i INVENTORY "
+                 f"--robot {robot}, then ccrp clone create -i INVENTORY --robot {robot}",
+        )
+
+
 def kill_session(provider: Provider, robot: str) -> None:
     """End the robot's live VPN session (management interface `kill <cn>`)."""
     rc, out = provider.exec(robot, ["python3", "-c", HEALTH_SCRIPT(), "kill", robot], timeout=20)
@@ -142,6 +164,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         provider.wait_ready(robot, timeout=1200 if bare else 300)
         secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
         if not files_current(provider, robot, secrets):
+            prepare_secrets_dir(provider, robot, relay)
             restart = ["ccrp-openvpn.service"] + (["ccrp-relay.service"] if relay else [])
             provider.push_files(robot, secrets, restart=restart)
         wait_serving(provider, robot, fleet.inventory.ros.master_port)

@@ -54,7 +54,7 @@ def zenoh_id(fleet: str, robot: str) -> str:
 
 def relay_config(fleet: Fleet, state: FleetState, robot: str) -> dict:
     """/etc/ccrp/relay.json of robot's clone. Not secret: the TLS files it names come as secrets."""
-    from .render.view import CCRP_ETC, VPN_DIR
+    from .render.view import CCRP_ETC, SECRETS_DIR
 
     inv = fleet.inventory
     plan = fleet.plan(state)
@@ -74,7 +74,7 @@ def relay_config(fleet: Fleet, state: FleetState, robot: str) -> dict:
         "peers": {p: {"endpoint": f"tls/{plan[p].common_ip}:{port}", "id": zenoh_id(inv.fleet, p)} for p in partners},
         "exports": sorted(t for t in me.exports if any(r.source == robot and r.topic == t for r in all_routes)),
         "imports": [asdict(r) | {"as": r.local_name} for r in all_routes if r.dest == robot],
-        "tls": {"ca": f"{VPN_DIR}/ca.crt", "cert": f"{VPN_DIR}/relay.crt", "key": f"{VPN_DIR}/relay.key"},
+        "tls": {"ca": f"{SECRETS_DIR}/ca.crt", "cert": f"{SECRETS_DIR}/relay.crt", "key": f"{SECRETS_DIR}/relay.key"},
         "status": "/run/ccrp-relay/status.json",
         "config": f"{CCRP_ETC}/relay.json",
     }

@@ -49,6 +49,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             "common_ip": str(a.common_ip),
             "vpn_subnet": str(a.vpn_subnet),
             "vpn_connected": False,
+            "secrets": None,
             "robot_address": None,
             "master_reachable": False,
             "robot_nodes": [],
@@ -58,6 +59,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             h = health(provider, robot)
             client, row["robot_nodes"] = robot_link(h, robot)
             row["vpn_connected"] = client is not None
+            row["secrets"] = h.get("secrets")
             row["robot_address"] = client["real_address"] if client else None
             row["master_reachable"] = h["master"]["reachable"]
             row["relay_peers"] = h.get("relay", {}).get("peers", {})

@@ -43,10 +43,10 @@ def _push_crl(fleet: Fleet, clones: list[str], robot: str, progress: Callable[[s
     from .clones import kill_session
     from .providers import get_provider
     from .render.bundles import BundleFile
-    from .render.view import VPN_DIR
+    from .render.view import SECRETS_DIR
 
     provider = get_provider(fleet.inventory)
-    crl = BundleFile("crl.pem", fleet.pki.crl_path.read_text(), 0o644, f"{VPN_DIR}/crl.pem")
+    crl = BundleFile("crl.pem", fleet.pki.crl_path.read_text(), 0o644, f"{SECRETS_DIR}/crl.pem")
     failed = []
     for name in clones:
         try:

@@ -2,12 +2,15 @@
 the ROS master (XML-RPC). Run on the clone: `python3 health.py [kill <robot>]`. Stdlib only."""
 
 import json
+import os
 import socket
 import sys
 import time
 import xmlrpc.client
 
 MGMT = "/etc/openvpn/server/ccrp/mgmt.sock"
+# In memory on cloud clones: gone after a reboot until ccrp pushes them again.
+SERVER_KEY = "/etc/openvpn/server/ccrp/keys/server.key"
 MASTER = "http://127.0.0.1:11311"
 
 
@@ -84,7 +87,7 @@ def main():
             lines += [line for line in reply.splitlines() if line.startswith(("SUCCESS", "ERROR"))]
         print(json.dumps({"kill": lines}))
         return
-    print(json.dumps({"vpn": vpn(), "master": master(), "relay": relay()}))
+    print(json.dumps({"vpn": vpn(), "secrets": os.path.exists(SERVER_KEY), "master": master(), "relay": relay()}))
 
 
 if __name__ == "__main__":

@@ -17,9 +17,16 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
         rows, as_json,
         ["ROBOT", "CLONE", "STATE", "PUBLIC IP", "COMMON IP", "VPN", "MASTER", "ROBOT NODES", "RELAY PEERS"],
         [(r["robot"], r["clone"], r["status"], r["public_ip"], r["common_ip"],
-          f"connected {r['robot_address']}" if r["vpn_connected"] else "no", yes(r["master_reachable"]),
+          vpn_cell(r), yes(r["master_reachable"]),
           ", ".join(r["robot_nodes"]), relay_peers(r["relay_peers"])) for r in rows],
     )
+
+
+def vpn_cell(row: dict) -> str:
+    if row["vpn_connected"]:
+        return f"connected {row['robot_address']}"
+    # A rebooted cloud clone: its keys lived in memory (docs/security.md).
+    return "no (keys gone: run fleet up)" if row["secrets"] is False else "no"
 
 
 def relay_peers(peers: dict[str, bool]) -> str:

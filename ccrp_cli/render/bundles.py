@@ -12,7 +12,7 @@ from ..pki.store import RobotCredentials
 from ..store import atomic_write, ensure_dir
 from . import network, openvpn
 from .templates import render, static
-from .view import RELAY_USER, VPN_DIR, CloneView
+from .view import RELAY_USER, SECRETS_DIR, CloneView
 
 
 @dataclass(frozen=True)
@@ -27,13 +27,13 @@ class BundleFile:
 def clone_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
     """What the clone needs but user-data must never carry."""
     return [
-        BundleFile("ca.crt", creds.ca_pem, 0o644, f"{VPN_DIR}/ca.crt"),
-        BundleFile("crl.pem", creds.crl_pem, 0o644, f"{VPN_DIR}/crl.pem"),
-        BundleFile("server.crt", creds.server_cert_pem, 0o644, f"{VPN_DIR}/server.crt"),
-        BundleFile("server.key", creds.server_key_pem, 0o600, f"{VPN_DIR}/server.key"),
-        BundleFile("tc.key", creds.tls_crypt_key, 0o600, f"{VPN_DIR}/tc.key"),
+        BundleFile("ca.crt", creds.ca_pem, 0o644, f"{SECRETS_DIR}/ca.crt"),
+        BundleFile("crl.pem", creds.crl_pem, 0o644, f"{SECRETS_DIR}/crl.pem"),
+        BundleFile("server.crt", creds.server_cert_pem, 0o644, f"{SECRETS_DIR}/server.crt"),
+        BundleFile("server.key", creds.server_key_pem, 0o600, f"{SECRETS_DIR}/server.key"),
+        BundleFile("tc.key", creds.tls_crypt_key, 0o600, f"{SECRETS_DIR}/tc.key"),
         # Read by ccrp-auth after OpenVPN dropped to the openvpn user.
-        BundleFile("passwd", f"{view.name}:{creds.password_hash}\n", 0o640, f"{VPN_DIR}/passwd", "openvpn"),
+        BundleFile("passwd", f"{view.name}:{creds.password_hash}\n", 0o640, f"{SECRETS_DIR}/passwd", "openvpn"),
     ] + relay_secrets(view, creds)
 
 
@@ -42,8 +42,8 @@ def relay_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
     if view.inv.sharing.engine != "relay" or not creds.relay_cert_pem or not creds.relay_key_pem:
         return []
     return [
-        BundleFile("relay.crt", creds.relay_cert_pem, 0o644, f"{VPN_DIR}/relay.crt"),
-        BundleFile("relay.key", creds.relay_key_pem, 0o640, f"{VPN_DIR}/relay.key", RELAY_USER),
+        BundleFile("relay.crt", creds.relay_cert_pem, 0o644, f"{SECRETS_DIR}/relay.crt"),
+        BundleFile("relay.key", creds.relay_key_pem, 0o640, f"{SECRETS_DIR}/relay.key", RELAY_USER),
     ]
 
 

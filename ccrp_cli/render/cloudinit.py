@@ -12,7 +12,7 @@ from ..models.inventory import Inventory
 from ..recipes import platform
 from . import network, openvpn
 from .templates import static
-from .view import CCRP_ETC, CCRP_LIB, RELAY_USER, VPN_DIR, CloneView
+from .view import CCRP_ETC, CCRP_LIB, RELAY_USER, SECRETS_DIR, VPN_DIR, CloneView
 
 
 def agent_source(name: str) -> str:
@@ -78,6 +78,10 @@ def user_data_dict(
         ],
         "final_message": f"ccrp clone {a.clone_host} of fleet {view.fleet} configured after $UPTIME s",
     }
+    if view.inv.provider.kind != "docker":
+        # bootcmd runs at every boot, before sshd: ccrp can only push into memory. After a
+        # reboot the keys are gone and `ccrp fleet up` pushes them again.
+        data["bootcmd"] = secrets_tmpfs_bootcmd()
     if ssh_authorized_keys:
         data["ssh_authorized_keys"] = list(ssh_authorized_keys)
     if install_packages:
@@ -87,6 +91,16 @@ def user_data_dict(
         data["runcmd"][:0] = image.pop("runcmd")
         data.update(image)
     return data
+
+
+def secrets_tmpfs_bootcmd() -> list[list[str]]:
+    """Mount a small tmpfs on SECRETS_DIR unless something (a volume) is mounted there already.
+    Root-only until ccrp hands it to the openvpn group just before pushing."""
+    return [
+        ["mkdir", "-p", SECRETS_DIR],
+        ["sh", "-c", 'mountpoint -q "$0" || mount -t tmpfs -o mode=0700,size=4m,nosuid,nodev,noexec ccrp-keys "$0"',
+         SECRETS_DIR],
+    ]
 
 
 def image_config(inv: Inventory) -> dict[str, Any]:

@@ -9,9 +9,13 @@ from ..models.inventory import Inventory, Robot
 
 # Paths on the clone.
 VPN_DIR = "/etc/openvpn/server/ccrp"
+# What ccrp pushes after boot (keys, certificates, CRL, password hash), never on the clone's root
+# disk, so no snapshot of any kind can capture it: a tmpfs on clouds (mounted at every boot by
+# the user-data's bootcmd), the clone's own volume on Docker (which `docker commit` leaves out).
+SECRETS_DIR = f"{VPN_DIR}/keys"
 CCRP_ETC = "/etc/ccrp"
 CCRP_LIB = "/usr/local/lib/ccrp"
-# The topic relay runs as its own user: it reads only relay.key and ca.crt in VPN_DIR.
+# The topic relay runs as its own user: it reads only relay.key and ca.crt in SECRETS_DIR.
 RELAY_USER = "ccrp-relay"
 
 
@@ -48,5 +52,6 @@ class CloneView:
             "common_cidr": self.inv.common.cidr,
             "operator_cidr": self.operator_cidr,
             "vpn_dir": VPN_DIR,
+            "secrets_dir": SECRETS_DIR,
             **extra,
         }

@@ -296,10 +296,11 @@ class SshTransport:
 
     def put_files(self, files: list) -> None:
         """Install bundle files (render.bundles.BundleFile: dest, content, mode, group) as root:
-        uploaded over SFTP into a fresh 0700 directory of the login user, then `sudo install
+        uploaded over SFTP into a fresh 0700 directory of the login user in /dev/shm (memory: a
+        key must not touch the disk even while staged), then `sudo install
         -m MODE -o root -g GROUP` to their destination; the directory is removed in any case."""
-        tmp = self.check(["mktemp", "-d", "/tmp/ccrp-push.XXXXXXXXXX"]).strip()
-        if not re.fullmatch(r"/tmp/ccrp-push\.[A-Za-z0-9]{10}", tmp):
+        tmp = self.check(["mktemp", "-d", "/dev/shm/ccrp-push.XXXXXXXXXX"]).strip()
+        if not re.fullmatch(r"/dev/shm/ccrp-push\.[A-Za-z0-9]{10}", tmp):
             raise CcrpError(f"mktemp on {self.host} returned an unexpected path: {tmp[:100]!r}")
         try:
             sftp = self._client.open_sftp()

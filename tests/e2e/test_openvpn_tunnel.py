@@ -237,8 +237,9 @@ def clone(lab: Lab, namespaces: None, tmp_path_factory: pytest.TempPathFactory) 
     server: OpenVPNProcess | None = None
     try:
         vpn_dir.chmod(0o755)
-        write_bundle(vpn_dir, clone_secrets(view, creds), {"kind": "clone-secrets", "robot": view.name})
-        os.chown(vpn_dir / "passwd", 0, 65534)  # root:nogroup 0640, as root:openvpn on the clone
+        write_bundle(vpn_dir / "keys", clone_secrets(view, creds), {"kind": "clone-secrets", "robot": view.name})
+        (vpn_dir / "keys").chmod(0o755)
+        os.chown(vpn_dir / "keys" / "passwd", 0, 65534)  # root:nogroup 0640, as root:openvpn on the clone
         (vpn_dir / "server.conf").write_text(openvpn.server_conf(view, user="nobody", group="nogroup"))
         (vpn_dir / "ccd").mkdir(mode=0o755)
         (vpn_dir / "ccd" / view.name).write_text(openvpn.ccd_entry(view))
@@ -392,7 +393,7 @@ def test_refused(lab: Lab, clone: Clone, robot: Robot, case: Callable[[Lab, Path
 def test_revoked_cert_refused(lab: Lab, clone: Clone, robot: Robot) -> None:
     # Rendered while nao1's certificate was still valid, as on a robot that is then revoked.
     bundle = write_edge_bundle(robot.tmp / "edge", lab.views["nao1"], lab.creds["nao1"])
-    served_crl = clone.dir / "crl.pem"
+    served_crl = clone.dir / "keys" / "crl.pem"
     original = robot.tmp / "crl.before.pem"
     shutil.copyfile(served_crl, original)
     try:

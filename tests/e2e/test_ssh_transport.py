@@ -41,9 +41,9 @@ from ccrp_cli.loader import load_inventory  # noqa: E402
 from ccrp_cli.providers import cloud  # noqa: E402
 from ccrp_cli.providers.base import CloneRecord  # noqa: E402
 from ccrp_cli.providers.docker.archive import tar_files  # noqa: E402
-from ccrp_cli.render import bundles  # noqa: E402
+from ccrp_cli.render import bundles, cloudinit, openvpn  # noqa: E402
 from ccrp_cli.render.bundles import BundleFile  # noqa: E402
-from ccrp_cli.render.view import VPN_DIR  # noqa: E402
+from ccrp_cli.render.view import SECRETS_DIR, VPN_DIR  # noqa: E402
 from ccrp_cli.transport.ssh import KnownHosts, SshTransport, fingerprint, fingerprints_from_console  # noqa: E402
 
 RUN = secrets.token_hex(4)
@@ -141,10 +141,13 @@ def operator_key(tmp_path_factory) -> tuple[Path, str]:
 def _user_data(public_key: str) -> str:
     data = {
         "locale": "C.UTF-8",
+        # The hostname takes (SYS_ADMIN): sudo must resolve it, as a clone's own /etc/hosts does.
+        "manage_etc_hosts": True,
         "groups": ["openvpn"],
         "users": [{"name": "ubuntu", "shell": "/bin/bash", "sudo": "ALL=(ALL) NOPASSWD:ALL", "lock_passwd": True,
                    "ssh_authorized_keys": [public_key]}],
-        # As a clone's user-data does: the secrets directory exists before anything is pushed.
+        # As a cloud clone's user-data does: a tmpfs for the keys at every boot, the VPN directory.
+        "bootcmd": cloudinit.secrets_tmpfs_bootcmd(),
         "runcmd": [["install", "-d", "-m", "0750", "-o", "root", "-g", "openvpn", VPN_DIR]],
     }
     return "#cloud-config\n" + yaml.safe_dump(data, sort_keys=False)
@@ -154,7 +157,9 @@ class Vm:
     """One booted container: its address and console."""
 
     def __init__(self, client, image: str, public_key: str, wait: bool = True) -> None:
-        self.container = client.containers.create(image, labels=LABELS, detach=True)
+        # SYS_ADMIN and no seccomp/AppArmor filter: bootcmd mounts the secrets tmpfs, as on a VM.
+        self.container = client.containers.create(image, labels=LABELS, detach=True, cap_add=["SYS_ADMIN"],
+                                                  security_opt=["seccomp=unconfined", "apparmor=unconfined"])
         meta = f"instance-id: i-{secrets.token_hex(8)}\nlocal-hostname: cri-nao1\n"
         self.container.put_archive("/", tar_files([(f"{SEED}/meta-data", meta.encode(), 0o600),
                                                    (f"{SEED}/user-data", _user_data(public_key).encode(), 0o600)],
@@ -165,12 +170,28 @@ class Vm:
         if wait:
             self.wait_sshd()
 
+    def reboot(self) -> None:
+        boots = self.console().count("Server listening on 0.0.0.0 port 22")
+        self.container.restart(timeout=5)
+        self.container.reload()
+        self.ip = self.container.attrs["NetworkSettings"]["IPAddress"]
+        self.wait_sshd(boots + 1)
+
+    def disk_files(self, path: str) -> dict[str, bytes]:
+        """The files under `path` as the container's disk holds them: Docker reads the root
+        filesystem from outside, so what a process mounted inside (a tmpfs) is not there, just
+        as a cloud snapshot of the boot disk would not hold it."""
+        stream, _ = self.container.get_archive(path)
+        with tarfile.open(fileobj=io.BytesIO(b"".join(stream))) as tar:
+            return {m.name: tar.extractfile(m).read() for m in tar.getmembers() if m.isfile()}
+
     def console(self) -> str:
         return self.container.logs().decode(errors="replace")
 
-    def wait_sshd(self) -> None:
+    def wait_sshd(self, boots: int = 1) -> None:
+        """Until sshd has started `boots` times (a reboot starts it once more)."""
         deadline = time.monotonic() + BOOT_TIMEOUT
-        while "Server listening on 0.0.0.0 port 22" not in self.console():
+        while self.console().count("Server listening on 0.0.0.0 port 22") < boots:
             assert time.monotonic() < deadline, f"sshd did not start:\n{self.console()[-3000:]}"
             time.sleep(0.2)
 
@@ -368,7 +389,7 @@ def test_cloud_provider_wait_ready_push_exec(lab, fresh_vm, operator_key, monkey
         assert clones.files_current(provider, "nao1", files)
         for f in files:
             assert fresh_vm.sh("stat", "-c", "%a %G", f.dest).split() == [f"{f.mode:o}", f.group]
-        assert fresh_vm.sh("sh", "-c", "ls -A /tmp | grep ccrp-push || true") == ""
+        assert fresh_vm.sh("sh", "-c", "ls -A /tmp /dev/shm | grep ccrp-push || true") == ""
         # A unit that cannot restart (no systemd in this container) is an error, not a shrug.
         with pytest.raises(CcrpError, match="systemctl restart ccrp-openvpn.service"):
             provider.push_files("nao1", files[:1], restart=["ccrp-openvpn.service"])
@@ -385,6 +406,55 @@ def test_cloud_provider_wait_ready_push_exec(lab, fresh_vm, operator_key, monkey
     finally:
         provider.close()
     print(f"wait_ready from container start: {took:.1f} s")
+
+
+def test_secrets_are_in_memory_never_on_the_disk_and_come_back_after_a_reboot(lab, fresh_vm, operator_key, monkeypatch):
+    monkeypatch.setattr(cloud, "CONSOLE_POLL", 0.5)
+    inv = load_inventory(ROOT / "inventories" / "openstack.yaml")
+    workdir = operator_key[0].parent.parent
+    view = clone_view(lab, lab.load_allocated(), "nao1")
+    files = bundles.clone_secrets(view, lab.pki.credentials("nao1"))
+    key = next(f for f in files if f.name == "server.key").content.encode()
+
+    def push(provider) -> None:
+        clones.prepare_secrets_dir(provider, "nao1", relay=True)
+        provider.push_files("nao1", files)
+        assert clones.files_current(provider, "nao1", files)
+
+    provider = ContainerCloud(inv, workdir, {"nao1": fresh_vm})
+    try:
+        provider.wait_ready("nao1", timeout=BOOT_TIMEOUT)
+        # Beside the keys, as a clone's user-data writes it: the server config, on the disk.
+        provider.push_files("nao1", [BundleFile("server.conf", openvpn.server_conf(view), 0o644, f"{VPN_DIR}/server.conf")])
+        push(provider)
+        assert fresh_vm.sh("stat", "-f", "-c", "%T", SECRETS_DIR).strip() == "tmpfs"
+        assert fresh_vm.sh("stat", "-c", "%a %U %G", SECRETS_DIR).split() == ["751", "root", "openvpn"]
+        assert fresh_vm.sh("cat", f"{SECRETS_DIR}/server.key").encode() == key
+        assert clones.health(provider, "nao1")["secrets"] is True
+        # What a snapshot of the disk would capture: the VPN directory without a single key.
+        on_disk = fresh_vm.disk_files(VPN_DIR)
+        assert "ccrp/server.conf" in on_disk, sorted(on_disk)
+        assert not any(name.startswith("ccrp/keys/") for name in on_disk), sorted(on_disk)
+        assert not any(key in content for content in on_disk.values())
+    finally:
+        provider.close()
+
+    fresh_vm.reboot()
+    provider = ContainerCloud(inv, workdir, {"nao1": fresh_vm})
+    try:
+        # bootcmd mounted a fresh, empty tmpfs; the next `fleet up` sees that and pushes again.
+        assert fresh_vm.sh("stat", "-f", "-c", "%T", SECRETS_DIR).strip() == "tmpfs"
+        assert fresh_vm.sh("ls", "-A", SECRETS_DIR) == ""
+        assert clones.health(provider, "nao1")["secrets"] is False
+        assert not clones.files_current(provider, "nao1", files)
+        push(provider)
+        # No tmpfs there (an image or user-data from elsewhere): refused before any key is sent.
+        fresh_vm.sh("umount", SECRETS_DIR)
+        with pytest.raises(CcrpError, match="on its root disk"):
+            clones.prepare_secrets_dir(provider, "nao1", relay=True)
+        assert fresh_vm.sh("ls", "-A", SECRETS_DIR) == ""
+    finally:
+        provider.close()
 
 
 def test_cloud_provider_refuses_a_console_of_another_instance(vm, fresh_vm, operator_key, monkeypatch):

@@ -137,7 +137,8 @@ def test_password_hash_and_the_clone_auth_script(tmp_path):
     # The clone's auth script (stdlib only, run by OpenVPN) agrees with the operator side.
     script = tmp_path / "ccrp-auth"
     shutil.copy(ROOT / "templates" / "clone" / "ccrp-auth", script)
-    (tmp_path / "passwd").write_text(f"nao1:{encoded}\n")
+    (tmp_path / "keys").mkdir()
+    (tmp_path / "keys" / "passwd").write_text(f"nao1:{encoded}\n")
     def auth(user, password, cn="nao1"):
         via = tmp_path / "via"
         via.write_text(f"{user}\n{password}\n")

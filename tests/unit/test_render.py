@@ -20,6 +20,7 @@ from ccrp_cli.errors import CcrpError
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.render import bundles, cloudinit, network, openvpn
 from ccrp_cli.render.limits import fit_user_data
+from ccrp_cli.render.view import SECRETS_DIR
 from tests.conftest import INVENTORIES, ROOT
 
 GOLDEN = ROOT / "tests" / "golden"
@@ -75,8 +76,8 @@ def test_client_profile_carries_its_own_material(lab, view):
 def test_vpn_configs_follow_the_design(view):
     conf = openvpn.server_conf(view)
     for line in (
-        "tls-version-min 1.2", "data-ciphers AES-256-GCM:CHACHA20-POLY1305", "tls-crypt tc.key",
-        "remote-cert-tls client", "verify-x509-name nao1 name", "crl-verify crl.pem",
+        "tls-version-min 1.2", "data-ciphers AES-256-GCM:CHACHA20-POLY1305", "tls-crypt keys/tc.key",
+        "remote-cert-tls client", "verify-x509-name nao1 name", "crl-verify keys/crl.pem",
         "auth-user-pass-verify ccrp-auth via-file", "user openvpn", "persist-key", "persist-tun",
         "topology subnet", "allow-compression no",
     ):
@@ -124,6 +125,26 @@ def test_every_user_data_passes_cloud_init_schema(ccrp_home, tmp_path):
     assert checked >= 2 * 9
 
 
+def test_cloud_clones_keep_their_keys_in_memory(ccrp_home):
+    """Cloud user-data mounts a tmpfs on the keys directory at every boot (bootcmd); a Docker
+    clone has its secrets volume there instead."""
+    kinds = set()
+    for _stem, view in _all_views(ccrp_home):
+        data = cloudinit.user_data_dict(view)
+        kinds.add(view.inv.provider.kind)
+        if view.inv.provider.kind == "docker":
+            assert "bootcmd" not in data
+            continue
+        mkdir, mount = data["bootcmd"]
+        assert mkdir == ["mkdir", "-p", SECRETS_DIR]
+        assert mount[-1] == SECRETS_DIR and "mount -t tmpfs -o mode=0700" in mount[2]
+    assert kinds == {"docker", "openstack", "gcp", "aws"}
+    # The server config names every key under keys/; nothing else of OpenVPN's lives there.
+    conf = openvpn.server_conf(view)
+    assert {line.split()[1] for line in conf.splitlines() if line.startswith(("ca ", "cert ", "key ", "tls-crypt ", "crl-verify "))} == {
+        "keys/ca.crt", "keys/server.crt", "keys/server.key", "keys/tc.key", "keys/crl.pem"}
+
+
 def test_user_data_never_carries_key_material(view, monkeypatch):
     data = cloudinit.user_data_dict(view)
     data["write_files"].append({"path": "/x", "content": "-----BEGIN PRIVATE KEY-----\n"})
@@ -153,7 +174,7 @@ def test_clone_secrets_bundle(lab, view, tmp_path):
                      "passwd": 0o640, "manifest.json": 0o644}
     assert stat.S_IMODE(out.stat().st_mode) == 0o700
     manifest = yaml.safe_load((out / "manifest.json").read_text())
-    assert {f["dest"] for f in manifest["files"]} >= {"/etc/openvpn/server/ccrp/server.key"}
+    assert {f["dest"] for f in manifest["files"]} >= {"/etc/openvpn/server/ccrp/keys/server.key"}
     assert (out / "passwd").read_text().startswith("nao1:$scrypt$")
     assert lab.pki.credentials("nao1").password not in (out / "passwd").read_text()
 
