@@ -59,6 +59,9 @@ class Harness(Protocol):
     def delay(self, seconds: float) -> None:
         """From now on, every API call takes this much longer (benchmarks: 200 ms per call)."""
 
+    def instance_roles(self, robot: str) -> list[str]:
+        """The ccrp-role label of each instance the fake holds for robot, read from the fake."""
+
     def instances_for(self, robot: str) -> int:
         """How many instances the fake holds for robot (idempotency: must stay 1)."""
 

@@ -96,6 +96,9 @@ class AwsHarness(Knobs):
         f = _owned_filters(robot) + [{"Name": "instance-state-name", "Values": LIVE}]
         return [i for r in self.raw.describe_instances(Filters=f)["Reservations"] for i in r["Instances"]]
 
+    def instance_roles(self, robot: str) -> list[str]:
+        return [{t["Key"]: t["Value"] for t in i.get("Tags", [])}.get(LABEL_ROLE, "") for i in self._instances(robot)]
+
     def instances_for(self, robot: str) -> int:
         return len(self._instances(robot))
 

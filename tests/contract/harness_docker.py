@@ -85,6 +85,9 @@ class DockerHarness(Knobs):
         f["label"].append(f"{LABEL_ROLE}=clone")
         return self.raw.containers.list(all=True, filters=f)
 
+    def instance_roles(self, robot: str) -> list[str]:
+        return [c.labels.get(LABEL_ROLE, "") for c in self.raw.containers.list(all=True, filters=self._labelled(robot))]
+
     def instances_for(self, robot: str) -> int:
         return len(self._clones(robot))
 

@@ -28,7 +28,7 @@ from google.api_core.extended_operation import ExtendedOperation
 from google.cloud import compute_v1 as c
 
 from ccrp_cli.models.inventory import Inventory
-from ccrp_cli.providers.base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, CloneSpec, owner_labels
+from ccrp_cli.providers.base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneSpec, owner_labels
 from ccrp_cli.providers.gcp import GcpProvider
 from ccrp_cli.providers.gcp.clients import Clients
 from ccrp_cli.providers.gcp.ownership import description_marks, tail
@@ -569,6 +569,11 @@ class GcpHarness:
 
     def delay(self, seconds: float) -> None:
         self.fake.latency = seconds
+
+    def instance_roles(self, robot: str) -> list[str]:
+        with self.fake.lock:
+            return [i.labels.get(LABEL_ROLE, "") for i in self.fake.instances.values()
+                    if i.labels.get(LABEL_FLEET) == FLEET and i.labels.get(LABEL_ROBOT) == robot]
 
     def instances_for(self, robot: str) -> int:
         with self.fake.lock:

@@ -112,6 +112,9 @@ class OpenStackHarness:
     def user_data_sent(self, robot: str) -> bytes:
         return base64.b64decode(self._servers(robot)[0]["user_data"])
 
+    def instance_roles(self, robot: str) -> list[str]:
+        return [s["metadata"].get(LABEL_ROLE, "") for s in self._servers(robot)]
+
     def instances_for(self, robot: str) -> int:
         return len(self._servers(robot))
 

@@ -7,10 +7,13 @@ import gzip
 from concurrent.futures import ThreadPoolExecutor
 
 
+import pytest
+
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.gc import find_leaks
 from ccrp_cli.models.inventory import USER_DATA_LIMITS
 from ccrp_cli.models.state import FleetState, RobotRecord
+from ccrp_cli.snapshots import BUILDER
 
 from .harness import FLEET
 from .specs import OPERATOR_CIDR, ROBOTS
@@ -68,6 +71,27 @@ def test_snapshot_round_trip(harness):
     harness.provider.delete_snapshot(snap.id)
     assert snap.id not in {s.id for s in harness.provider.list_snapshots()}
     assert not harness.exists(snap.id)
+
+
+def test_builder_is_labelled_as_such_and_never_taken_for_a_clone(harness):
+    """`snapshot bake`'s builder: role "builder" in the cloud, not in query(); its snapshot is a
+    build (no robot); terminating it leaves the clones alone."""
+    if harness.kind == "docker":
+        pytest.skip("Docker builds snapshots with `snapshot build`, without a builder instance")
+    create(harness, "robot1")
+    spec = harness.spec("robot1", 1).model_copy(
+        update={"robot": BUILDER, "hostname": "ccrp-builder", "role": "builder", "vpn_subnet": None,
+                "instance_id": f"{FLEET}-builder-contract", "common_ip": harness.spec("robot2", 2).common_ip})
+    assert harness.provider.run_instance(spec).created
+    assert not harness.provider.run_instance(spec).created  # idempotent as a clone's create
+    assert harness.instance_roles(BUILDER) == ["builder"]
+    assert set(harness.provider.query()) == {"robot1"}
+    snap = harness.provider.create_snapshot(BUILDER, f"ccrp-{FLEET}-noetic-contract")
+    assert snap.source == "build"
+    assert harness.provider.terminate(BUILDER) is True
+    assert harness.instances_for(BUILDER) == 0 and harness.owned_ids(BUILDER) == set()
+    assert harness.instance_roles("robot1") == ["clone"]
+    harness.provider.delete_snapshot(snap.id)
 
 
 def test_gc_finds_and_deletes_an_injected_leak(harness):

@@ -19,7 +19,7 @@ from pathlib import Path
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...render.limits import fit_user_data
-from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord
+from ..base import LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord
 from ..cloud import CloudProvider
 from . import network, tags
 from .errors import INSTALL_HINT, as_ccrp, classify, error_code
@@ -127,7 +127,7 @@ class AwsProvider(CloudProvider):
         """Reuse the robot's owned instance, or launch one; then converge its route and Elastic IP.
         On failure, remove only what this call created."""
         net = self.network
-        existing = self._instances(spec.robot)
+        existing = self._instances(spec.robot, spec.role)
         if existing:
             inst = existing[0]
             if inst["State"]["Name"] == "stopped":
@@ -142,7 +142,7 @@ class AwsProvider(CloudProvider):
         # ClientToken makes a retried RunInstances (lost answer, throttling) return the same
         # instance. A token stays bound to its instance after termination, so a relaunch after
         # a rollback takes the next generation.
-        generation = len(self._instances(spec.robot, states=GONE))
+        generation = len(self._instances(spec.robot, spec.role, states=GONE))
         for _ in range(3):
             token = hashlib.sha256(f"{spec.instance_id}/{generation}".encode()).hexdigest()[:64]
             inst = self.api(
@@ -154,7 +154,7 @@ class AwsProvider(CloudProvider):
                                     "DeleteOnTermination": True}],
                 # IMDSv2 only: the metadata service (user-data) needs a session token.
                 MetadataOptions={"HttpTokens": "required", "HttpEndpoint": "enabled"},
-                TagSpecifications=tags.spec(["instance", "volume", "network-interface"], self.fleet, "clone",
+                TagSpecifications=tags.spec(["instance", "volume", "network-interface"], self.fleet, spec.role,
                                             spec.robot, name=spec.hostname),
             )["Instances"][0]
             if inst["State"]["Name"] not in GONE:
@@ -175,7 +175,7 @@ class AwsProvider(CloudProvider):
             step = "wait until running"
             self._wait("instance_running", [iid])  # an Elastic IP attaches only to a running instance
             step = "allocate the Elastic IP"
-            eip, made = self._eip(spec.robot)
+            eip, made = self._eip(spec.robot, spec.role)
             new_eip = eip if made else None
             if eip.get("InstanceId") != iid:
                 step = "associate the Elastic IP"
@@ -224,13 +224,13 @@ class AwsProvider(CloudProvider):
                     self.api("delete route", self.ec2.delete_route, RouteTableId=rt["RouteTableId"],
                              DestinationCidrBlock=r["DestinationCidrBlock"])
 
-    def _eip(self, robot: str) -> tuple[dict, bool]:
+    def _eip(self, robot: str, role: str) -> tuple[dict, bool]:
         """The robot's Elastic IP (kept across re-runs), allocated when missing."""
-        found = self.api("describe Elastic IPs", self.ec2.describe_addresses, Filters=tags.filters(self.fleet, "clone", robot))["Addresses"]
+        found = self.api("describe Elastic IPs", self.ec2.describe_addresses, Filters=tags.filters(self.fleet, role, robot))["Addresses"]
         if found:
             return found[0], False
         eip = self.api("allocate Elastic IP", self.ec2.allocate_address, Domain="vpc",
-                       TagSpecifications=tags.spec(["elastic-ip"], self.fleet, "clone", robot))
+                       TagSpecifications=tags.spec(["elastic-ip"], self.fleet, role, robot))
         return eip, True
 
     def _release(self, eip: dict) -> None:
@@ -247,16 +247,17 @@ class AwsProvider(CloudProvider):
         return {r.robot: r for r in map(self._record, self._instances())}
 
     def terminate(self, robot: str) -> bool:
-        """The robot's owned instances and its Elastic IP; nothing without the fleet's tags."""
-        instances = [i["InstanceId"] for i in self._instances(robot)]
-        for eip in self._describe("elastic_ip", tags.filters(self.fleet, "clone", robot)):
+        """The robot's owned instances and its Elastic IP (clone or `snapshot bake` builder);
+        nothing without the fleet's tags."""
+        instances = [i["InstanceId"] for i in self._instances(robot, role=None)]
+        for eip in self._describe("elastic_ip", tags.filters(self.fleet, None, robot)):
             self._release(eip)
         if instances:
             self._terminate_ids(instances)
         return bool(instances)
 
     def console_output(self, robot: str) -> str:
-        instances = self._instances(robot)
+        instances = self._instances(robot, role=None)
         if not instances:
             raise CcrpError(f"robot {robot!r} has no clone on AWS", hint=f"ccrp clone create --robot {robot}")
         iid = instances[0]["InstanceId"]
@@ -274,15 +275,17 @@ class AwsProvider(CloudProvider):
 
     # -- snapshots ---------------------------------------------------------------------------
     def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        instances = self._instances(robot)
+        instances = self._instances(robot, role=None)
         if not instances:
             raise CcrpError(f"robot {robot!r} has no clone to capture", hint=f"ccrp clone create --robot {robot}")
+        # A builder's AMI is a build, not a robot's clone: no robot tag, source "build".
+        source = robot if tags.as_dict(instances[0]).get(LABEL_ROLE) == "clone" else None
         # AMI names allow letters, digits and ()[] ./-'@_ only.
         ami_name = "".join(c if c.isalnum() or c in "()[] ./-'@_" else "-" for c in name)[:128]
         image_id = self.api(
             "create image", self.ec2.create_image, InstanceId=instances[0]["InstanceId"], Name=ami_name,
-            Description=f"ccrp fleet {self.fleet}: clone of {robot}",
-            TagSpecifications=tags.spec(["image"], self.fleet, "snapshot", robot, name=ami_name),
+            Description=f"ccrp fleet {self.fleet}: " + (f"clone of {robot}" if source else "baked by snapshot bake"),
+            TagSpecifications=tags.spec(["image"], self.fleet, "snapshot", source, name=ami_name),
         )["ImageId"]
         # `snapshot bake` deletes the builder right after this returns: wait until the AMI is usable.
         self.api("wait for image", self.ec2.get_waiter("image_available").wait, ImageIds=[image_id],
@@ -293,7 +296,7 @@ class AwsProvider(CloudProvider):
         snaps = _backing(image)
         if snaps:
             self.api("tag snapshots", self.ec2.create_tags, Resources=sorted(snaps),
-                     Tags=tags.tags(self.fleet, "snapshot", robot, name=ami_name))
+                     Tags=tags.tags(self.fleet, "snapshot", source, name=ami_name))
         return self._snapshot_record(image)
 
     def _snapshot_record(self, image: dict) -> SnapshotRecord:

@@ -329,12 +329,14 @@ class OpenStackProvider(CloudProvider):
     # -- snapshots ------------------------------------------------------------------------------
     def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
         """A Glance image of the clone's server, with the labels as properties and tags."""
-        labels = owner_labels(self.fleet, "snapshot", robot)
         with self._errors(f"snapshot of {robot}"):
             server = self._running_server(robot)
+            # A builder's image is a build, not a robot's clone: no robot label, source "build".
+            source = robot if (server.metadata or {}).get(LABEL_ROLE) == "clone" else None
+            labels = owner_labels(self.fleet, "snapshot", source)
             image = self.api("create server image", self.compute.create_server_image, server, name, metadata=labels)
             try:
-                for tag in self.tags("snapshot", robot):
+                for tag in self.tags("snapshot", source):
                     self.api("tag image", self.image.add_tag, image, tag)
                 image = self.api("wait for image", self.image.wait_for_status, image, status="active",
                                  failures=["killed", "deleted", "deactivated"], interval=self.poll_interval,
