@@ -67,9 +67,9 @@ class CloudProvider:
     def classify_error(self, exc: BaseException) -> ErrorClass:  # cloud: per SDK
         raise NotImplementedError
 
-    def api(self, what: str, fn, *args, **kwargs):
+    def api(self, what: str, fn, *args, classify=None, **kwargs):
         """Every SDK call goes through here: retried on throttling / 5xx, classified otherwise."""
-        return call(fn, *args, classify=self.classify_error, what=what, backoff=self.backoff, **kwargs)
+        return call(fn, *args, classify=classify or self.classify_error, what=what, backoff=self.backoff, **kwargs)
 
     # -- cloud primitives: each cloud implements the rest of base.Provider (bootstrap,
     # run_instance, query, terminate, snapshots, teardown, list_owned/delete_owned) and this one,

@@ -229,6 +229,13 @@ def test_teardown_order_and_snapshots_kept(h):
     (exceptions.ServiceUnavailable("SERVICE UNAVAILABLE", errors=[{"code": "ZONE_RESOURCE_POOL_EXHAUSTED"}]),
      ErrorClass.ZONE),
     (exceptions.BadRequest("The zone 'projects/p/zones/z' does not have enough resources available"), ErrorClass.ZONE),
+    (exceptions.ServiceUnavailable("A e2-medium VM instance is currently unavailable in the europe-west2-a zone."),
+     ErrorClass.ZONE),
+    (exceptions.Forbidden("Quota exceeded", errors=[{"reason": "CONCURRENT_OPERATIONS_QUOTA_EXCEEDED"}]),
+     ErrorClass.RETRYABLE),
+    (exceptions.BadRequest("The resource 'projects/p/global/networks/n' is not ready",
+                           errors=[{"reason": "resourceNotReady"}]), ErrorClass.RETRYABLE),
+    (exceptions.ServiceUnavailable("no capacity", errors=[{"code": "REGION_RESOURCE_POOL_EXHAUSTED"}]), ErrorClass.REGION),
     (exceptions.Forbidden("Required 'compute.instances.create' permission"), ErrorClass.FATAL),
     (exceptions.BadRequest("Invalid value for field 'resource.machineType'"), ErrorClass.FATAL),
     (exceptions.NotFound("The resource was not found"), ErrorClass.FATAL),
@@ -293,3 +300,45 @@ def test_snapshot_builder_is_not_a_clone(h):
     snap = h.provider.create_snapshot("snapshot-builder", "ccrp-ct-noetic-20260101")
     assert snap.source == "build" and "ccrp-robot" not in h.fake.images[snap.name].labels
     assert h.provider.terminate("snapshot-builder") is True and h.fake.instances == {}
+
+
+def _operation(*steps):
+    """An operation as compute_v1 returns it, RUNNING at first; each poll takes the next step:
+    an Operation to report or an exception to raise."""
+    from google.cloud import compute_v1 as c
+
+    from tests.contract.harness_gcp import FakeOperation
+
+    polls = []
+
+    def refresh(retry=None):
+        step = steps[min(len(polls), len(steps) - 1)]
+        polls.append(step)
+        if isinstance(step, Exception):
+            raise step
+        return step
+
+    running = c.Operation(name="operation-1", status=c.Operation.Status.RUNNING)
+    return FakeOperation.make(refresh, lambda: None, running), polls
+
+
+def test_failed_polls_of_an_operation_are_retried(h):
+    from google.cloud import compute_v1 as c
+
+    done = c.Operation(name="operation-1", status=c.Operation.Status.DONE)
+    op, polls = _operation(exceptions.ServiceUnavailable("Backend Error"), exceptions.TooManyRequests("slow down"), done)
+    h.provider._wait(op, "create instance cri-robot1")
+    assert len(polls) == 3
+
+
+def test_an_operations_own_error_is_not_polled_again(h):
+    from google.cloud import compute_v1 as c
+
+    failed = c.Operation(name="operation-1", status=c.Operation.Status.DONE, http_error_status_code=503,
+                         http_error_message="SERVICE UNAVAILABLE",
+                         error=c.Error(errors=[c.Errors(code="ZONE_RESOURCE_POOL_EXHAUSTED", message="stock-out")]))
+    op, polls = _operation(failed)
+    with pytest.raises(exceptions.GoogleAPICallError) as err:
+        h.provider._wait(op, "create instance cri-robot1")
+    assert len(polls) == 1
+    assert classify(err.value) is ErrorClass.ZONE  # the caller moves to the next zone

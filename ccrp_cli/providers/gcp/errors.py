@@ -9,13 +9,19 @@ from ...errors import CcrpError
 from ...retry import ErrorClass
 
 # Codes GCE puts in operation errors (error.errors[].code) or HTTP errors (errors[].reason).
+# Stock-outs and their messages: "Troubleshoot resource availability errors" in the Compute
+# Engine docs (the zone's pool of that machine shape is empty; another zone may have it).
 ZONE_CODES = {
-    "ZONE_RESOURCE_POOL_EXHAUSTED", "ZONE_RESOURCE_POOL_EXHAUSTED_WITH_DETAILS",
-    "RESOURCE_POOL_EXHAUSTED", "ZONE_UNAVAILABLE", "resourceNotReady",
+    "ZONE_RESOURCE_POOL_EXHAUSTED", "ZONE_RESOURCE_POOL_EXHAUSTED_WITH_DETAILS", "RESOURCE_POOL_EXHAUSTED",
+    "GPU_STOCKOUT", "insufficientCapacity",
 }
-ZONE_TEXT = re.compile(r"does not have enough resources available|zone \S+ is (currently )?unavailable", re.I)
-RATE_CODES = {"rateLimitExceeded", "userRateLimitExceeded", "RATE_LIMIT_EXCEEDED"}
-QUOTA_CODES = {"QUOTA_EXCEEDED", "quotaExceeded"}
+ZONE_TEXT = re.compile(r"does not have enough resources available|is currently unavailable in the \S+ zone", re.I)
+# Transient: rate limits, the per-project limit on operations in flight, and a resource that
+# another operation is still changing (e.g. the network while a route is added).
+RATE_CODES = {"rateLimitExceeded", "userRateLimitExceeded", "RATE_LIMIT_EXCEEDED",
+              "CONCURRENT_OPERATIONS_QUOTA_EXCEEDED", "resourceNotReady", "RESOURCE_NOT_READY"}
+# Quotas are per region (CPUS, IN_USE_ADDRESSES...) or per project: no zone helps.
+QUOTA_CODES = {"QUOTA_EXCEEDED", "quotaExceeded", "REGION_RESOURCE_POOL_EXHAUSTED"}
 # HTTP status classes worth the same call again (api_core exception class names).
 RETRYABLE_TYPES = ("TooManyRequests", "ServiceUnavailable", "InternalServerError", "ServerError",
                    "GatewayTimeout", "DeadlineExceeded", "BadGateway")
@@ -50,7 +56,7 @@ def classify(exc: BaseException) -> ErrorClass:
     codes = reasons(exc)
     if codes & ZONE_CODES or ZONE_TEXT.search(str(exc)):
         return ErrorClass.ZONE
-    if codes & RATE_CODES:
+    if codes & RATE_CODES:  # before quotas: the operations limit is called a quota too
         return ErrorClass.RETRYABLE
     if codes & QUOTA_CODES:
         return ErrorClass.REGION

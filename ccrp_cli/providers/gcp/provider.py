@@ -74,9 +74,11 @@ class GcpProvider(CloudProvider):
             return None
 
     def _wait(self, op, what: str) -> None:
-        """Until the operation is done. result() raises its error (classified by the caller);
-        warnings (e.g. a disk larger than its image) are logged, not fatal."""
-        op.result(timeout=self.op_timeout)
+        """Until the operation is done. A failed poll (503, connection reset) polls again under
+        retry.call; the operation's own error is raised as it is, for the caller to classify
+        (zone fallback, rollback). Warnings (e.g. a disk larger than its image) are logged."""
+        self.api(f"wait for {what}", op.result, timeout=self.op_timeout,
+                 classify=lambda exc: ErrorClass.FATAL if op.error_code else classify(exc))
         if op.error_code:  # result() raises for these; kept as a guard if a future SDK does not
             raise CcrpError(f"{what}: operation {op.name} failed ({op.error_code} {op.error_message})")
         for warning in getattr(op, "warnings", None) or []:
