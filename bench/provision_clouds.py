@@ -4,6 +4,12 @@ For each cloud provider (aws on moto, openstack on the in-memory Nova/Neutron/Gl
 requests-mock, gcp on autospecced compute_v1 clients), driven by the real provider code through
 the contract harnesses (tests/contract/harness_<kind>.py):
 
+  aws         moto in this process (mock_aws), one request at a time inside moto (its lock);
+  aws-server  the same AwsProvider against `python -m moto.server`, a process of its own on
+              127.0.0.1 (tests/contract/harness_aws_server.py: AWS_ENDPOINT_URL, no lock on the
+              client side; werkzeug serves each connection on a thread of its own);
+  aws-server-serial  the same, the server serving one request at a time (werkzeug unthreaded).
+
   bootstrap  from an empty fleet (network, security group / firewall, key pair, routes), then
              again as every later `fleet up` runs it (reuse: reads only);
   fan-out    run_instance for every robot on the bounded pool of `fleet up` (reconcile._fan_out,
@@ -11,13 +17,17 @@ the contract harnesses (tests/contract/harness_<kind>.py):
              wall time, API calls (total and per clone), ratio to one clone, and that every robot
              ends up with exactly one instance; N once more with no latency, to show what the
              fake itself costs in CPU on this host.
+  CPU        seconds of CPU during the fan-out, of this process (ccrp, the SDK, and the fakes that
+             run in it) and of the moto server's process for the aws-server variants, which also
+             count the server's responses with a 5xx status (harness_aws_server.py says which
+             ccrp retries; a retry is counted as a call) and keep its request log's statuses.
 
 Targets: wall(N) within 10x of wall(1); calls per clone flat in N (no call count worse than
 linear in the fleet size). Clone specs (rendered user-data) are built before the clock starts:
 they are local work, not API calls. The delay is injected by each harness before a call reaches
 the fake, outside any fake lock, so concurrent calls overlap as on a real cloud.
 
-Run: .venv/bin/python bench/provision_clouds.py [--clones 100] [--delay 0.2] [--providers aws,openstack,gcp]
+Run: .venv/bin/python bench/provision_clouds.py [--clones 100] [--delay 0.2] [--providers aws,aws-server,openstack,gcp]
 Writes bench/results/provision_clouds.json and bench/results/provision_clouds.png.
 """
 
@@ -44,7 +54,10 @@ from ccrp_cli.reconcile import _fan_out  # noqa: E402
 from tests.contract.specs import clone_spec  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
-PROVIDERS = ["aws", "openstack", "gcp"]
+PROVIDERS = ["aws", "aws-server", "openstack", "gcp"]
+# kind -> (harness module in tests/contract, make_harness keywords); otherwise harness_<kind>.
+HARNESSES = {"aws-server": ("harness_aws_server", {}),
+             "aws-server-serial": ("harness_aws_server", {"threaded": False})}
 TARGET_RATIO = 10
 
 
@@ -72,6 +85,11 @@ def make_room(harness, n: int) -> None:
         fake.cpu_quota = max(fake.cpu_quota, 4 * n)
 
 
+def fake_cpu(harness) -> float | None:
+    """CPU seconds used so far by a fake in a process of its own (None: the fake is in this one)."""
+    return harness.fake_cpu() if hasattr(harness, "fake_cpu") else None
+
+
 def timed(harness, fn) -> tuple[float, Counter, object]:
     before = harness.api_calls()
     t0 = time.perf_counter()
@@ -79,21 +97,35 @@ def timed(harness, fn) -> tuple[float, Counter, object]:
     return time.perf_counter() - t0, harness.api_calls() - before, out
 
 
+def server_errors(harness) -> dict | None:
+    errors = getattr(harness, "server_errors", None)
+    return None if errors is None else dict(sorted(errors.items()))
+
+
 def run(kind: str, n: int, delay: float) -> dict:
     """One fresh fake: bootstrap from empty, bootstrap again, then N clones on the fan-out pool."""
-    mod = importlib.import_module(f"tests.contract.harness_{kind}")
-    with tempfile.TemporaryDirectory() as tmp, mod.make_harness(Path(tmp)) as h:
+    module, kwargs = HARNESSES.get(kind, (f"harness_{kind}", {}))
+    mod = importlib.import_module(f"tests.contract.{module}")
+    with tempfile.TemporaryDirectory() as tmp, mod.make_harness(Path(tmp), **kwargs) as h:
         make_room(h, n)
         specs = fleet_specs(h, n)
         h.provider.teardown()  # the harness bootstrapped without latency: start from no network
         h.delay(delay)
         boot_s, boot_calls, _ = timed(h, h.provider.bootstrap)
         reuse_s, reuse_calls, _ = timed(h, h.provider.bootstrap)
+        errors_before = server_errors(h) or {}
+        cpu0, fake0 = time.process_time(), fake_cpu(h)
         wall, calls, results = timed(h, lambda: _fan_out(
             lambda r: h.provider.run_instance(specs[r]), list(specs), progress, h.provider))
+        cpu, fake = time.process_time() - cpu0, fake_cpu(h)
+        errors = server_errors(h)
+        if errors is not None:
+            errors = {k: v - errors_before.get(k, 0) for k, v in errors.items() if v - errors_before.get(k, 0)}
         h.delay(0)  # checks below read the fake, not the benchmark
         failed = {r.robot: r.detail for r in results if isinstance(r, CloneResult)}
         instances = Counter(h.instances_for(r) for r in specs)
+        server = getattr(h, "server", None)  # the aws-server variants: every response in its log
+        statuses = None if server is None else dict(sorted(server.status_counts().items()))
         total = sum(calls.values())
         return {
             "clones": n,
@@ -102,6 +134,11 @@ def run(kind: str, n: int, delay: float) -> dict:
             "calls": total,
             "calls_per_clone": round(total / n, 2),
             "calls_by_operation": dict(sorted(calls.items(), key=str)),
+            # CPU seconds during the fan-out: this process (all threads), the fake's own process.
+            "cpu_s": round(cpu, 2),
+            "fake_process_cpu_s": None if fake is None else round(fake - fake0, 2),
+            "server_5xx": errors,
+            "server_log_statuses": statuses,
             "failed": failed,
             "exactly_one_instance": instances == Counter({1: n}),
             "instances_per_robot": {str(k): v for k, v in sorted(instances.items())},
@@ -118,11 +155,13 @@ def bench_provider(kind: str, n: int, delay: float) -> dict:
         r = runs[size]
         progress(f"{kind}: {size} clones in {r['wall_s']:.1f} s, {r['calls']} calls "
                  f"({r['calls_per_clone']}/clone), {len(r['failed'])} failed, one instance each: "
-                 f"{r['exactly_one_instance']}")
+                 f"{r['exactly_one_instance']}, CPU {r['cpu_s']} s here, {r['fake_process_cpu_s']} s in the "
+                 f"fake's process, 5xx: {r['server_5xx']}")
     # The same N with no injected latency: what the fake and the SDK cost in CPU on this host,
     # which a real cloud spends on its own servers instead.
     cpu = run(kind, n, 0.0)
-    progress(f"{kind}: {n} clones with no latency in {cpu['wall_s']:.1f} s")
+    progress(f"{kind}: {n} clones with no latency in {cpu['wall_s']:.1f} s, CPU {cpu['cpu_s']} s here, "
+             f"{cpu['fake_process_cpu_s']} s in the fake's process, 5xx: {cpu['server_5xx']}")
     one = runs[1]["wall_s"]
     for r in runs.values():
         r["ratio_to_1"] = round(r["wall_s"] / one, 2)
@@ -132,7 +171,8 @@ def bench_provider(kind: str, n: int, delay: float) -> dict:
         "max_parallel": full["workers"] if n > 1 else None,
         "bootstrap": full["bootstrap"],
         "runs": {str(s): r for s, r in runs.items()},
-        "no_latency": {"clones": n, "wall_s": cpu["wall_s"], "calls": cpu["calls"], "failed": cpu["failed"]},
+        "no_latency": {k: cpu[k] for k in ("clones", "wall_s", "calls", "cpu_s", "fake_process_cpu_s",
+                                            "server_5xx", "failed")},
         "ratio_n_to_1": full["ratio_to_1"],
         "within_10x": full["ratio_to_1"] <= TARGET_RATIO,
         # Linear (or better): no size costs more calls per clone than one clone alone (5% slack).
