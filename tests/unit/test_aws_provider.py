@@ -60,6 +60,9 @@ def test_classify(code, status, expected):
     assert classify(exc) is expected
     assert classify(as_ccrp("launch", exc)) is expected  # the one-line error keeps its class
     assert classify(EndpointConnectionError(endpoint_url="https://ec2")) is ErrorClass.RETRYABLE
+    from botocore.parsers import ResponseParserError
+
+    assert classify(ResponseParserError("Unable to parse response (syntax error), invalid XML received: <html>")) is ErrorClass.RETRYABLE
 
 
 def test_unsupported_zone_is_a_zone_error():

@@ -38,11 +38,14 @@ def _status(exc: BaseException) -> int:
 
 def classify(exc: BaseException) -> ErrorClass:
     from botocore.exceptions import ClientError, ConnectionError, HTTPClientError, WaiterError
+    from botocore.parsers import ResponseParserError
 
     if isinstance(exc, CcrpError) and exc.__cause__ is not None:
         return classify(exc.__cause__)  # a translated SDK error keeps its class
     if isinstance(exc, (ConnectionError, HTTPClientError)):
         return ErrorClass.RETRYABLE  # connection reset / timeouts before an answer
+    if isinstance(exc, ResponseParserError):
+        return ErrorClass.RETRYABLE  # an answer that is not EC2's XML: a proxy's or gateway's 5xx page
     if isinstance(exc, (ClientError, WaiterError)):
         code = error_code(exc)
         # Capacity errors come with HTTP 500 ("server error codes"): name before status.
