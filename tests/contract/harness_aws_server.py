@@ -10,8 +10,7 @@ hooks, client-side, before a request leaves; only the harness's lock around moto
 the fake is now another process. Responses with a 5xx status are counted in `server_errors`: an
 EC2 error (XML, InternalError and the like) is retried by ccrp's retry.call, every retry counted
 in `calls` like any call; a 500 from an exception inside moto comes as an HTML page, which
-botocore cannot parse, and ccrp's AWS error classes (providers/aws/errors.py) treat that
-ResponseParserError as fatal: the clone fails, and the benchmark reports it.
+botocore cannot parse (ResponseParserError): ccrp retries that too (providers/aws/errors.py).
 
 `threaded`: moto.server's stock werkzeug server takes each connection on a thread of its own;
 threaded=False serves one request at a time (the fake serialised in its own process only).
