@@ -11,13 +11,6 @@ from .errors import CcrpError
 from .fleet import Fleet
 
 OK, FAIL, WARN, SKIP = "ok", "fail", "warn", "skip"
-# Import name -> pip extra, per provider kind. paramiko: the SSH transport of every cloud.
-SDKS = {
-    "docker": [("docker", "docker")],
-    "aws": [("boto3", "aws"), ("paramiko", "aws")],
-    "openstack": [("openstack", "openstack"), ("paramiko", "openstack")],
-    "gcp": [("google.cloud.compute_v1", "gcp"), ("paramiko", "gcp")],
-}
 # Not needed by ccrp itself; handy for checking its work by hand.
 OPTIONAL_TOOLS = {
     "openssl": "inspect and verify the fleet's certificates (openssl verify -crl_check)",
@@ -48,8 +41,11 @@ def run(fleet: Fleet) -> list[Check]:
     inv = fleet.inventory
     kind = inv.provider.kind
     checks = []
-    missing = [(m, extra) for m, extra in SDKS[kind] if not _installed(m)]
-    for module, extra in SDKS[kind]:
+    from .providers import info
+
+    sdks = info(kind).sdk_modules  # paramiko: the SSH transport of every cloud
+    missing = [(m, extra) for m, extra in sdks if not _installed(m)]
+    for module, extra in sdks:
         if (module, extra) in missing:
             checks.append(Check(f"sdk {module}", FAIL, "not installed", f"pip install 'ccrp[{extra}]'"))
         else:
@@ -80,35 +76,32 @@ def _provider(fleet: Fleet):
     except CcrpError as exc:
         return None, _failed(name, exc)
     if kind == "docker":
-        version = provider.client.version()
-        return provider, Check(name, OK, f"Docker {version.get('Version', '?')} (API {version.get('ApiVersion', '?')})")
-    return provider, Check(name, OK, f"region/cloud {getattr(fleet.inventory.provider, 'region', '') or getattr(fleet.inventory.provider, 'cloud', '')}".strip())
+        return provider, Check(name, OK, provider.check_credentials())
+    settings = fleet.inventory.provider
+    return provider, Check(name, OK, f"region/cloud {getattr(settings, 'region', '') or getattr(settings, 'cloud', '')}".strip())
 
 
 def _credentials(provider) -> list[Check]:
-    probe = getattr(provider, "check_credentials", None)
     if provider.kind == "docker":
-        return []  # the engine answering is the credential
-    if probe is None:
-        return [Check("credentials", SKIP, f"the {provider.kind} provider cannot check credentials")]
+        return []  # the engine answering (checked above) is the credential
     try:
-        return [Check("credentials", OK, probe())]
+        return [Check("credentials", OK, provider.check_credentials())]
     except CcrpError as exc:
         return [_failed("credentials", exc)]
 
 
+QUOTA_HINT = {"aws": "the Service Quotas console", "gcp": "IAM & Admin > Quotas", "openstack": "your cloud's admin"}
+
+
 def _quotas(provider) -> list[Check]:
-    probe = getattr(provider, "quotas", None)
-    if probe is None:
-        return []
     try:
-        quotas = probe()
+        quotas = provider.quotas()
     except CcrpError as exc:
         return [Check("quotas", WARN, exc.message, exc.hint or "grant read access to quotas to see them")]
     return [
-        Check(f"quota {name}", OK if need <= limit else FAIL, f"limit {limit:g}, fleet needs {need}",
-              "" if need <= limit else "raise the quota (AWS: Service Quotas console) or shrink the fleet")
-        for name, limit, need in quotas
+        Check(f"quota {q.name}", OK if q.need <= q.limit else FAIL, f"limit {q.limit:g}, fleet needs {q.need:g}",
+              "" if q.need <= q.limit else f"raise the quota ({QUOTA_HINT.get(provider.kind, 'your cloud')}) or shrink the fleet")
+        for q in quotas
     ]
 
 
@@ -116,15 +109,20 @@ def _snapshot(fleet: Fleet, provider) -> Check:
     recorded = (fleet.store.load_state().snapshot or {}).get("image")
     if not recorded:
         return Check("snapshot", FAIL, "no snapshot recorded for new clones",
-                     "ccrp snapshot build -i INVENTORY (or snapshot create --use from a configured clone)")
+                     f"ccrp {_build_command(provider)} -i INVENTORY (or snapshot create --use from a configured clone)")
     try:
-        has = getattr(provider, "has_image", None)
-        present = has(recorded) if has else any(recorded in (s.id, s.name) for s in provider.list_snapshots())
+        present = provider.has_image(recorded)
     except CcrpError as exc:
         return _failed("snapshot", exc)
     if present:
         return Check("snapshot", OK, recorded)
-    return Check("snapshot", FAIL, f"{recorded} is recorded but gone", "ccrp snapshot build -i INVENTORY")
+    return Check("snapshot", FAIL, f"{recorded} is recorded but gone", f"ccrp {_build_command(provider)} -i INVENTORY")
+
+
+def _build_command(provider) -> str:
+    from .providers.base import Ability
+
+    return "snapshot build" if Ability.LOCAL_BUILD in provider.abilities else "snapshot bake"
 
 
 def as_dicts(checks: list[Check]) -> list[dict]:

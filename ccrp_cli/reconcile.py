@@ -6,12 +6,11 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 from .addressing import allocate
-from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_fkie_config, push_relay_config
+from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
 from .errors import CcrpError, InputError
 from .fleet import Fleet
 from .models.state import RobotRecord
-
-MAX_WORKERS = 8  # when the provider names no max_parallel of its own
+from .providers.base import CloneState
 
 
 def plan(fleet: Fleet, provider) -> list[dict]:
@@ -24,7 +23,7 @@ def plan(fleet: Fleet, provider) -> list[dict]:
         rec = actual.get(name)
         if rec is None:
             action = "create"
-        elif rec.status != "running":
+        elif rec.state is not CloneState.RUNNING:
             action = f"start ({rec.status})"
         elif state.robots.get(name) and state.robots[name].phase == "ready":
             action = "keep"
@@ -37,7 +36,7 @@ def plan(fleet: Fleet, provider) -> list[dict]:
     return rows
 
 
-def _fan_out(fn, robots: list[str], progress: Progress, provider=None) -> list[CloneResult]:
+def _fan_out(fn, robots: list[str], progress: Progress, provider) -> list[CloneResult]:
     """fn(robot) for every robot on a pool bounded by the provider: its max_parallel says how many
     clones it can create at once (CPU-bound local containers vs API-latency-bound clouds)."""
     def run(robot: str) -> CloneResult:
@@ -53,7 +52,7 @@ def _fan_out(fn, robots: list[str], progress: Progress, provider=None) -> list[C
 
     if not robots:
         return []
-    with ThreadPoolExecutor(max_workers=min(getattr(provider, "max_parallel", MAX_WORKERS), len(robots))) as pool:
+    with ThreadPoolExecutor(max_workers=min(provider.max_parallel, len(robots))) as pool:
         return list(pool.map(run, robots))
 
 
@@ -73,14 +72,13 @@ def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None
 
 
 def reshare(fleet: Fleet, provider, progress: Progress) -> list[str]:
-    """Push the current sharing config to every clone that is up (relay: agents apply it without a
-    restart; fkie: launch file, hosts and routes). Returns the robots whose config changed."""
+    """Push the current relay config to every clone that is up (the agents apply it without a
+    restart). Returns the robots whose config changed."""
     state = fleet.store.load_state()
     ready = [n for n, rec in state.robots.items() if rec.phase == "ready"]
-    push = push_relay_config if fleet.inventory.sharing.engine == "relay" else push_fkie_config
 
     def one(robot: str) -> CloneResult:
-        changed = push(fleet, provider, state, robot)
+        changed = push_relay_config(fleet, provider, state, robot)
         return CloneResult(robot, "reconfigured" if changed else "unchanged")
 
     results = _fan_out(one, ready, progress, provider)

@@ -96,14 +96,14 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     import secrets
 
     from .errors import InputError
+    from .providers import Ability, require
     from .providers.base import CloneSpec
     from .render.cloudinit import bake_proofs, builder_user_data
     from .render.limits import fit_user_data
 
     inv = fleet.inventory
     kind = inv.provider.kind
-    if kind == "docker":
-        raise InputError("snapshot bake boots a cloud instance", hint="on docker use `ccrp snapshot build`")
+    require(kind, Ability.BAKE, hint=f"on {kind} the golden image is built locally: `ccrp snapshot build`")
     base = base_image or getattr(inv.provider, "image", None) or DEFAULT_BASE.get(kind)
     if not base:
         raise InputError(f"no base image to bake the {kind} snapshot from", hint=f"pass --base-image: {BASE_HINT[kind]}")

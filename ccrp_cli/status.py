@@ -9,6 +9,7 @@ from urllib.parse import urlparse
 from .clones import health
 from .errors import CcrpError
 from .fleet import Fleet
+from .providers.base import CloneState
 
 
 def robot_link(h: dict, robot: str) -> tuple[dict | None, list[str]]:
@@ -55,7 +56,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             "robot_nodes": [],
             "relay_peers": {},
         }
-        if rec and rec.status == "running":
+        if rec and rec.state is CloneState.RUNNING:
             h = health(provider, robot)
             client, row["robot_nodes"] = robot_link(h, robot)
             row["vpn_connected"] = client is not None

@@ -24,8 +24,12 @@ def open_fleet(inventory: Path):
     return Fleet.open(inventory)
 
 
-def open_provider(inventory: Path):
-    from ..providers import get_provider
+def open_provider(inventory: Path, needs=None, otherwise: str = ""):
+    """The fleet and its provider; with `needs` (an Ability), exit 2 first when the backend lacks it."""
+    from ..providers import get_provider, require
 
     fleet = open_fleet(inventory)
+    if needs is not None:
+        kind = fleet.inventory.provider.kind
+        require(kind, needs, hint=f"on {kind}, {otherwise}")
     return fleet, get_provider(fleet.inventory)

@@ -26,7 +26,9 @@ def build(
     as_json: options.Json = False,
 ) -> None:
     """Build the golden clone image from the recipe in snapshots/ and record it for new clones."""
-    fleet, provider = options.open_provider(inventory)
+    from ..providers import Ability
+
+    fleet, provider = options.open_provider(inventory, Ability.LOCAL_BUILD, "the golden image is baked in the cloud: `ccrp snapshot bake`")
     with fleet.store.lock():
         recorded = fleet.store.load_state().snapshot or {}
         current = recorded.get("image")
@@ -49,7 +51,9 @@ def bake(
     as_json: options.Json = False,
 ) -> None:
     """Bake the cloud snapshot: a builder instance installs the recipe, is captured, then terminated."""
-    fleet, provider = options.open_provider(inventory)
+    from ..providers import Ability
+
+    fleet, provider = options.open_provider(inventory, Ability.BAKE, "the golden image is built on this host: `ccrp snapshot build`")
     with fleet.store.lock():
         from .. import snapshots
 

@@ -41,7 +41,7 @@ class RobotTemplate(Strict):
 
 
 class RosSettings(Strict):
-    # ROS 1 Noetic is the first target (DESIGN.md §7); ROS 2 distros come later.
+    # ROS 1 Noetic is the first target (snapshots/noetic.yaml); ROS 2 distros come later.
     distro: Literal["noetic"] = "noetic"
     master_port: Port = 11311
 
@@ -70,9 +70,22 @@ class CommonNetwork(Strict):
     first_host: Annotated[int, Field(ge=2)] = 10
 
 
+# multimaster_fkie is not packaged by Debian, and every clone runs Debian 12 (recipes.PROVIDER_PLATFORM).
+FKIE_REFUSED = ("fkie needs multimaster_fkie, available only for ROS 1 on Ubuntu 20.04 from packages.ros.org; "
+                "ccrp's clones run Debian 12, which does not package it: use engine: relay")
+
+
 class Sharing(Strict):
-    engine: Literal["relay", "fkie"] = "relay"
+    # Topic sharing between clones is ccrp's relay agent (docs/sharing.md).
+    engine: Literal["relay"] = "relay"
     relay_port: Port = 7447
+
+    @field_validator("engine", mode="before")
+    @classmethod
+    def _no_fkie(cls, engine: object) -> object:
+        if engine == "fkie":
+            raise ValueError(FKIE_REFUSED)
+        return engine
 
 
 class DockerProvider(Strict):
@@ -118,15 +131,6 @@ class AwsProvider(Strict):
 Provider = Annotated[
     Union[DockerProvider, OpenStackProvider, GcpProvider, AwsProvider], Field(discriminator="kind")
 ]
-
-# User-data limits per provider (DESIGN.md §4): raw bytes accepted, and whether gzip is allowed.
-USER_DATA_LIMITS: dict[str, tuple[int, bool]] = {
-    "aws": (16_384, True),
-    "openstack": (49_149, True),  # 65,535 bytes after base64
-    "gcp": (262_144, False),
-    "docker": (262_144, False),
-}
-
 
 class Inventory(Strict):
     fleet: Name

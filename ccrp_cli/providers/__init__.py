@@ -1,5 +1,6 @@
-"""Backends behind one lifecycle interface (base.Provider). SDKs are imported lazily: each
-provider package imports its SDK only when constructed, with an install hint when missing."""
+"""Backends behind one lifecycle interface (base.Provider). Each package declares a ProviderInfo
+(abilities, user-data limit, SDK modules, platform) that costs no SDK import; the provider class,
+and its SDK, are imported only when a provider is made, with an install hint when missing."""
 
 from __future__ import annotations
 
@@ -7,21 +8,33 @@ import importlib
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .aws import INFO as _AWS
+from .base import Ability, ProviderInfo
+from .docker import INFO as _DOCKER
+from .gcp import INFO as _GCP
+from .openstack import INFO as _OPENSTACK
+
 if TYPE_CHECKING:
     from ..models.inventory import Inventory
     from .base import Provider
 
-# kind -> (module, class); the clouds take the fleet's store root (SSH key, pinned host keys).
-_BACKENDS = {
-    "docker": ("docker", "DockerProvider"),
-    "openstack": ("openstack", "OpenStackProvider"),
-    "gcp": ("gcp", "GcpProvider"),
-    "aws": ("aws", "AwsProvider"),
-}
+REGISTRY: dict[str, ProviderInfo] = {i.kind: i for i in (_DOCKER, _OPENSTACK, _GCP, _AWS)}
+
+
+def info(kind: str) -> ProviderInfo:
+    return REGISTRY[kind]
+
+
+def require(kind: str, ability: Ability, hint: str) -> None:
+    """Exit 2 with one line, before any SDK is loaded, when the backend cannot do what a command needs."""
+    from ..errors import InputError
+
+    if ability not in REGISTRY[kind].abilities:
+        raise InputError(f"the {kind} provider cannot do {ability.value}", hint=hint)
 
 
 def get_provider(inv: "Inventory", workdir: Path | None = None) -> "Provider":
-    module, cls = _BACKENDS[inv.provider.kind]
+    module, cls = REGISTRY[inv.provider.kind].factory.split(":")
     backend = getattr(importlib.import_module(f"{__name__}.{module}"), cls)
     if inv.provider.kind == "docker":
         return backend(inv)

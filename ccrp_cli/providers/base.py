@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Protocol
+from dataclasses import dataclass
+from enum import Enum
+from typing import Literal, Protocol
 
 from pydantic import BaseModel
 
@@ -50,12 +52,29 @@ class CloneSpec(BaseModel):
     role: str = "clone"
 
 
+class CloneState(str, Enum):
+    """A clone's lifecycle in ccrp's words; each provider maps its own (ACTIVE, RUNNING, exited...)."""
+
+    PENDING = "pending"  # being created, booting, rebooting
+    RUNNING = "running"
+    STOPPING = "stopping"
+    STOPPED = "stopped"  # exists, can be started again
+    DELETING = "deleting"  # on its way out: never reused
+    ERROR = "error"
+    UNKNOWN = "unknown"  # a word this version of ccrp does not know
+
+    @classmethod
+    def of(cls, word: str, table: dict[str, "CloneState"]) -> "CloneState":
+        return table.get(word, cls.UNKNOWN)
+
+
 class CloneRecord(BaseModel):
     """What exists for one robot, as the provider sees it."""
 
     robot: str
     provider_id: str
-    status: str  # provider's own word (running, exited, ACTIVE...)
+    state: CloneState
+    status: str  # the provider's own word, kept for messages (running, exited, ACTIVE...)
     public_ip: str | None = None
     common_ip: str | None = None
     created: bool = False  # this call created it (rollback only touches these)
@@ -69,17 +88,59 @@ class SnapshotRecord(BaseModel):
     size_mb: float | None = None
 
 
+# Every kind of resource a provider creates and lists as owned (what `ccrp gc` and `fleet down` see).
+ResourceKind = Literal[
+    "instance", "container", "robot_sim", "volume", "image", "snapshot", "key_pair",  # compute, images
+    "network", "subnet", "router", "port", "floating_ip", "security_group",  # OpenStack / Docker networks
+    "vpc", "route_table", "internet_gateway", "elastic_ip",  # AWS
+    "route", "firewall",  # GCP
+]
+
+
 class OwnedResource(BaseModel):
     """Anything in the cloud carrying the fleet's ownership labels (what `ccrp gc` looks at)."""
 
-    kind: str  # instance | volume | floating_ip | security_group | network | subnet | router | key_pair | image | route | container | ...
+    kind: ResourceKind
     id: str
     name: str = ""
     robot: str | None = None
 
 
+class Quota(BaseModel):
+    """One quota a fleet consumes, for `ccrp doctor`."""
+
+    name: str
+    limit: float
+    need: float  # current usage plus what the clones not created yet will add
+
+
+class Ability(str, Enum):
+    """What a backend can do beyond the common lifecycle; commands check these up front."""
+
+    LOCAL_BUILD = "snapshot build"  # build the golden image on this host (Docker)
+    BAKE = "snapshot bake"  # a builder instance in the cloud installs the recipe and is captured
+    CONSOLE = "console output"  # serial console text (host-key pinning)
+    ROBOT_SIM = "robot sim on its public network"  # simulated robots attach to the fleet's own public network
+
+
+@dataclass(frozen=True)
+class ProviderInfo:
+    """What a backend declares about itself without importing its SDK; the registry in
+    providers/__init__.py collects one per package."""
+
+    kind: str
+    factory: str  # "module:Class" under ccrp_cli.providers, imported when the provider is made
+    abilities: frozenset[Ability]
+    user_data_limit: int  # raw bytes the cloud accepts
+    user_data_gzip: bool  # whether cloud-init's gzip payload is accepted
+    sdk_modules: tuple[tuple[str, str], ...]  # (import name, pip extra) `ccrp doctor` checks
+    platform: str = "debian-bookworm"  # the snapshot recipe's platform its clones run (snapshots/*.yaml)
+
+
 class Provider(Protocol):
     kind: str
+    abilities: frozenset[Ability]
+    max_parallel: int  # clones `fleet up` creates at once
 
     def bootstrap(self) -> None: ...
     def run_instance(self, spec: CloneSpec) -> CloneRecord: ...
@@ -95,3 +156,10 @@ class Provider(Protocol):
     # Every resource carrying this fleet's labels, and deleting one of them (gc of leaks).
     def list_owned(self) -> list[OwnedResource]: ...
     def delete_owned(self, resource: OwnedResource) -> None: ...
+    # What `fleet down` should have removed and did not ("kind name" each).
+    def leftovers(self) -> list[str]: ...
+    def has_image(self, image: str) -> bool: ...
+    def check_credentials(self) -> str: ...
+    def quotas(self) -> list[Quota]: ...
+    def close(self) -> None: ...
+

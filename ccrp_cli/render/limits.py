@@ -1,16 +1,16 @@
-"""User-data size limits per provider, checked before any API call (DESIGN.md §4)."""
+"""User-data size limits per provider (each provider's ProviderInfo), checked before any API call."""
 
 from __future__ import annotations
 
 import gzip
 
 from ..errors import CcrpError
-from ..models.inventory import USER_DATA_LIMITS
+from ..providers import info
 
 
 def fit_user_data(provider: str, text: str) -> tuple[bytes, bool]:
     """The payload to send and whether it is gzipped; an error when it cannot fit."""
-    limit, gzip_ok = USER_DATA_LIMITS[provider]
+    limit, gzip_ok = info(provider).user_data_limit, info(provider).user_data_gzip
     raw = text.encode()
     if len(raw) <= limit:
         return raw, False

@@ -11,7 +11,7 @@ import pytest
 
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.gc import find_leaks
-from ccrp_cli.models.inventory import USER_DATA_LIMITS
+from ccrp_cli.providers import info
 from ccrp_cli.models.state import FleetState, RobotRecord
 from ccrp_cli.snapshots import BUILDER
 
@@ -121,7 +121,7 @@ def test_user_data_carries_no_key_and_fits(harness):
     spec = harness.spec("robot1", 1)
     harness.provider.run_instance(spec)
     sent = harness.user_data_sent("robot1")
-    limit, gzip_ok = USER_DATA_LIMITS[harness.kind]
+    limit, gzip_ok = info(harness.kind).user_data_limit, info(harness.kind).user_data_gzip
     assert len(sent) <= limit
     text = (gzip.decompress(sent) if sent[:2] == b"\x1f\x8b" else sent).decode()
     assert sent[:2] != b"\x1f\x8b" or gzip_ok

@@ -112,7 +112,7 @@ def test_doctor_cli_on_moto(fleet_on_moto, ccrp, ccrp_home):
     assert rows["sdk boto3"]["status"] == "ok" and rows["credentials"]["status"] == "ok"
     assert "123456789012" in rows["credentials"]["detail"]  # moto's account
     assert rows["quota Elastic IPs (one per clone)"]["status"] == "ok"
-    assert rows["snapshot"]["status"] == "fail" and "snapshot build" in rows["snapshot"]["hint"]
+    assert rows["snapshot"]["status"] == "fail" and "snapshot bake" in rows["snapshot"]["hint"]
 
     from ccrp_cli.fleet import Fleet
 

@@ -19,13 +19,17 @@ from pathlib import Path
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...render.limits import fit_user_data
-from ..base import LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord
+from ..base import LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, OwnedResource, Quota, SnapshotRecord
+from . import INFO
 from ..cloud import CloudProvider
 from . import network, tags
 from .errors import INSTALL_HINT, as_ccrp, classify, error_code
 
 LIVE = ["pending", "running", "stopping", "stopped"]
 GONE = ["shutting-down", "terminated"]
+# EC2's instance states in ccrp's words.
+STATES = {"pending": CloneState.PENDING, "running": CloneState.RUNNING, "stopping": CloneState.STOPPING,
+          "stopped": CloneState.STOPPED, "shutting-down": CloneState.DELETING, "terminated": CloneState.DELETING}
 
 # kind -> (describe call, result key, id filter, id field, extra describe args)
 KINDS: dict[str, tuple[str, str, str, str, dict]] = {
@@ -50,6 +54,7 @@ TEARDOWN = ["instance", "elastic_ip", "volume", "security_group", "key_pair", "r
 
 class AwsProvider(CloudProvider):
     kind = "aws"
+    abilities = INFO.abilities
 
     def __init__(self, inv: Inventory, workdir: Path) -> None:
         super().__init__(inv, workdir)
@@ -115,7 +120,7 @@ class AwsProvider(CloudProvider):
     def _record(self, inst: dict, created: bool = False, public_ip: str | None = None) -> CloneRecord:
         return CloneRecord(
             robot=tags.as_dict(inst).get(LABEL_ROBOT, ""), provider_id=inst["InstanceId"],
-            status=inst["State"]["Name"], public_ip=public_ip or inst.get("PublicIpAddress"),
+            state=CloneState.of(inst["State"]["Name"], STATES), status=inst["State"]["Name"], public_ip=public_ip or inst.get("PublicIpAddress"),
             common_ip=inst.get("PrivateIpAddress"), created=created,
         )
 
@@ -402,21 +407,21 @@ class AwsProvider(CloudProvider):
         ident = self.api("get caller identity", sts.get_caller_identity)
         return f"account {ident['Account']} as {ident['Arn']}"
 
-    def quotas(self) -> list[tuple[str, float, int]]:
+    def quotas(self) -> list[Quota]:
         """(quota, limit, what the fleet needs) where the API tells the limit."""
         robots = max(len(self.inv.robots), 1)
         attrs = self.api("describe account attributes", self.ec2.describe_account_attributes)["AccountAttributes"]
         values = {a["AttributeName"]: a["AttributeValues"][0]["AttributeValue"] for a in attrs if a.get("AttributeValues")}
-        found: list[tuple[str, float, int]] = []
+        found: list[Quota] = []
         if values.get("vpc-max-elastic-ips", "").isdigit():
-            found.append(("Elastic IPs (one per clone)", float(values["vpc-max-elastic-ips"]), robots))
+            found.append(Quota(name="Elastic IPs (one per clone)", limit=float(values["vpc-max-elastic-ips"]), need=robots))
         vcpus = self._vcpu_quota()
         if vcpus is not None:
             per_clone = self.api("describe instance types", self.ec2.describe_instance_types,
                                  InstanceTypes=[self.settings.instance_type])["InstanceTypes"][0]["VCpuInfo"]["DefaultVCpus"]
-            found.append(("running on-demand standard vCPUs", vcpus, robots * per_clone))
+            found.append(Quota(name="running on-demand standard vCPUs", limit=vcpus, need=robots * per_clone))
         elif values.get("max-instances", "").isdigit():
-            found.append(("running instances", float(values["max-instances"]), robots))
+            found.append(Quota(name="running instances", limit=float(values["max-instances"]), need=robots))
         return found
 
     def _vcpu_quota(self) -> float | None:

@@ -1,5 +1,21 @@
 """The local Docker backend: a clone is a systemd container booted by cloud-init (NoCloud)."""
 
-from .provider import DockerProvider
+from ..base import Ability, ProviderInfo
 
-__all__ = ["DockerProvider"]
+INFO = ProviderInfo(
+    kind="docker",
+    factory="docker.provider:DockerProvider",
+    abilities=frozenset({Ability.LOCAL_BUILD, Ability.ROBOT_SIM}),
+    user_data_limit=262_144,  # the NoCloud seed: kept at GCE's size
+    user_data_gzip=False,
+    sdk_modules=(("docker", "docker"),),
+)
+
+
+def __getattr__(name: str):
+    # The provider class (and with it the SDK glue) only when asked for by name.
+    if name == "DockerProvider":
+        from .provider import DockerProvider
+
+        return DockerProvider
+    raise AttributeError(name)

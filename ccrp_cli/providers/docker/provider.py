@@ -13,11 +13,17 @@ from ...models.inventory import Inventory
 from ...render.view import VPN_DIR
 from ...retry import Backoff, ErrorClass, call
 from ..base import (
-    LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord, check_cloud_init, owner_labels,
+    LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, OwnedResource, Quota, SnapshotRecord,
+    check_cloud_init, owner_labels,
 )
+from . import INFO
 from .archive import tar_files
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
+# Docker's container states in ccrp's words.
+STATES = {"created": CloneState.PENDING, "restarting": CloneState.PENDING, "running": CloneState.RUNNING,
+          "paused": CloneState.STOPPED, "exited": CloneState.STOPPED, "removing": CloneState.DELETING,
+          "dead": CloneState.ERROR}
 
 
 def _client():
@@ -47,6 +53,7 @@ def _classify(exc: BaseException) -> ErrorClass:
 
 class DockerProvider:
     kind = "docker"
+    abilities = INFO.abilities
     backoff = Backoff()
     max_parallel = 8  # clones at once in `fleet up`: containers boot on this host's CPUs
 
@@ -134,6 +141,7 @@ class DockerProvider:
         return CloneRecord(
             robot=c.labels.get(LABEL_ROBOT, ""),
             provider_id=c.id[:12],
+            state=CloneState.of(c.status, STATES),
             status=c.status,
             public_ip=(nets.get(self.public_net) or {}).get("IPAddress") or None,
             common_ip=(nets.get(self.common_net) or {}).get("IPAddress") or None,
@@ -194,6 +202,16 @@ class DockerProvider:
                 raise CcrpError(f"clone {spec.hostname}: {exc.explanation or exc}; rolled back its container and volume") from exc
             raise
         return self._record(c, created=True)
+
+    def check_credentials(self) -> str:
+        version = self.client.version()  # the engine answering is the credential
+        return f"Docker {version.get('Version', '?')} (API {version.get('ApiVersion', '?')})"
+
+    def quotas(self) -> list[Quota]:
+        return []  # this host's CPUs and memory are the limit: see `fleet scale` in docs/benchmarks.md
+
+    def close(self) -> None:
+        self.client.close()
 
     def has_image(self, image: str) -> bool:
         try:

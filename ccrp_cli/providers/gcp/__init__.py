@@ -2,6 +2,22 @@
 
 The SDK is imported when the provider is constructed, never at `ccrp` start-up (~1.5 s)."""
 
-from .provider import GcpProvider
+from ..base import Ability, ProviderInfo
 
-__all__ = ["GcpProvider"]
+INFO = ProviderInfo(
+    kind="gcp",
+    factory="gcp.provider:GcpProvider",
+    abilities=frozenset({Ability.BAKE, Ability.CONSOLE}),
+    user_data_limit=262_144,  # GCE: 256 KiB per metadata value
+    user_data_gzip=False,
+    sdk_modules=(("google.cloud.compute_v1", "gcp"), ("paramiko", "gcp")),
+)
+
+
+def __getattr__(name: str):
+    # The provider class (and with it the SDK glue) only when asked for by name.
+    if name == "GcpProvider":
+        from .provider import GcpProvider
+
+        return GcpProvider
+    raise AttributeError(name)

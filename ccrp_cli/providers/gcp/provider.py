@@ -18,7 +18,9 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...render.limits import fit_user_data
 from ...retry import ErrorClass, across_zones
-from ..base import LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource, SnapshotRecord, owner_labels
+from ..base import (LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, OwnedResource, Quota,
+                    SnapshotRecord, owner_labels)
+from . import INFO
 from ..cloud import SSH_USER, CloudProvider
 from .clients import Clients, sdk
 from .errors import as_ccrp_error, classify
@@ -29,10 +31,15 @@ log = logging.getLogger(__name__)
 # Teardown order: what points at an instance goes first, the network it lives on last.
 TEARDOWN_ORDER = ("route", "instance", "firewall", "subnet", "network")
 SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images do
+# GCE's instance states in ccrp's words (TERMINATED is GCE's "stopped").
+STATES = {"PROVISIONING": CloneState.PENDING, "STAGING": CloneState.PENDING, "REPAIRING": CloneState.PENDING,
+          "RUNNING": CloneState.RUNNING, "STOPPING": CloneState.STOPPING, "SUSPENDING": CloneState.STOPPING,
+          "STOPPED": CloneState.STOPPED, "SUSPENDED": CloneState.STOPPED, "TERMINATED": CloneState.STOPPED}
 
 
 class GcpProvider(CloudProvider):
     kind = "gcp"
+    abilities = INFO.abilities
     op_timeout = 600.0  # seconds to wait for one GCE operation
 
     def __init__(self, inv: Inventory, workdir: Path, clients: Clients | None = None) -> None:
@@ -360,7 +367,8 @@ class GcpProvider(CloudProvider):
     def _record(self, robot: str, inst, created: bool = False) -> CloneRecord:
         nic = inst.network_interfaces[0] if inst.network_interfaces else None
         public = nic.access_configs[0].nat_i_p if nic and nic.access_configs else ""
-        return CloneRecord(robot=robot, provider_id=str(inst.id), status=inst.status, public_ip=public or None,
+        return CloneRecord(robot=robot, provider_id=str(inst.id), state=CloneState.of(inst.status, STATES),
+                           status=inst.status, public_ip=public or None,
                            common_ip=(nic.network_i_p if nic else "") or None, created=created)
 
     def query(self) -> dict[str, CloneRecord]:
@@ -428,6 +436,20 @@ class GcpProvider(CloudProvider):
     def list_snapshots(self) -> list[SnapshotRecord]:
         with self._errors("list snapshots"):
             return sorted((self._snapshot_record(i) for i in self._images()), key=lambda s: s.created)
+
+    def has_image(self, image: str) -> bool:
+        """A snapshot of the fleet by name or id, or an image path GCE resolves (a public family)."""
+        if any(image in (s.id, s.name) for s in self.list_snapshots()):
+            return True
+        project, _, rest = image.partition("projects/")[2].partition("/global/images/")
+        if not (project and rest):
+            return False
+        with self._errors(f"look up image {image}"):
+            if rest.startswith("family/"):
+                found = self._get("image family", self.c.images.get_from_family, project=project, family=rest[7:])
+            else:
+                found = self._get("image", self.c.images.get, project=project, image=rest)
+        return found is not None
 
     def delete_snapshot(self, snapshot_id: str) -> None:
         with self._errors(f"delete snapshot {snapshot_id}"):
@@ -510,7 +532,7 @@ class GcpProvider(CloudProvider):
             region = self._call("get region", self.c.regions.get, project=self.project, region=self.region)
             return f"project {self.project}, region {region.name}: {region.status}"
 
-    def quotas(self) -> list[tuple[str, float, float]]:
+    def quotas(self) -> list[Quota]:
         """(quota, limit, what the fleet needs) for `ccrp doctor`: the region's current usage plus
         what the clones not yet created will add."""
         with self._errors(f"quotas of {self.region}"):
@@ -518,7 +540,7 @@ class GcpProvider(CloudProvider):
             missing = [r.name for r in self.inv.robots if r.name not in self.query()]
             adds = {"CPUS": sum(self._vcpus(self._machine_type(r)) for r in missing),
                     "IN_USE_ADDRESSES": len(missing), "INSTANCES": len(missing)}
-            return [(f"{q.metric} in {self.region}", q.limit, q.usage + adds[q.metric])
+            return [Quota(name=f"{q.metric} in {self.region}", limit=q.limit, need=q.usage + adds[q.metric])
                     for q in region.quotas if q.metric in adds]
 
     def _vcpus(self, machine_type: str) -> int:

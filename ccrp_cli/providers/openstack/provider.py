@@ -13,8 +13,9 @@ from pathlib import Path
 from ...errors import CcrpError
 from ...models.inventory import Inventory, OpenStackProvider as Settings
 from ...retry import across_zones
-from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, OwnedResource,
-                    SnapshotRecord, owner_labels)
+from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState,
+                    OwnedResource, Quota, SnapshotRecord, owner_labels)
+from . import INFO
 from ..cloud import CloudProvider
 from . import errors, shared
 
@@ -28,6 +29,14 @@ NEUTRON = {  # OwnedResource.kind -> Neutron collection (openstack.network proxy
     "network": ("networks", "get_network", "delete_network"),
     "security_group": ("security_groups", "get_security_group", "delete_security_group"),
 }
+
+# Nova's server states in ccrp's words.
+STATES = {"BUILD": CloneState.PENDING, "REBUILD": CloneState.PENDING, "REBOOT": CloneState.PENDING,
+          "HARD_REBOOT": CloneState.PENDING, "RESIZE": CloneState.PENDING, "VERIFY_RESIZE": CloneState.PENDING,
+          "MIGRATING": CloneState.PENDING, "ACTIVE": CloneState.RUNNING, "SHUTOFF": CloneState.STOPPED,
+          "SUSPENDED": CloneState.STOPPED, "PAUSED": CloneState.STOPPED, "SHELVED": CloneState.STOPPED,
+          "SHELVED_OFFLOADED": CloneState.STOPPED, "DELETED": CloneState.DELETING, "SOFT_DELETED": CloneState.DELETING,
+          "ERROR": CloneState.ERROR}
 
 
 def _connect(cloud: str):
@@ -46,6 +55,7 @@ def _connect(cloud: str):
 
 class OpenStackProvider(CloudProvider):
     kind = "openstack"
+    abilities = INFO.abilities
     poll_interval = 2.0  # seconds between status checks of a booting server / saving image
     boot_timeout = 900
     image_timeout = 1800
@@ -185,7 +195,8 @@ class OpenStackProvider(CloudProvider):
                 err = exc if isinstance(exc, CcrpError) else errors.to_ccrp(what, self.settings.cloud, exc)
                 err.message += f" (rollback left {', '.join(left)}: `ccrp gc` removes them)"
                 raise err from None
-        return CloneRecord(robot=spec.robot, provider_id=server.id, status=server.status or "BUILD",
+        word = server.status or "BUILD"
+        return CloneRecord(robot=spec.robot, provider_id=server.id, state=CloneState.of(word, STATES), status=word,
                            public_ip=fip.floating_ip_address, common_ip=port.fixed_ips[0]["ip_address"],
                            created=any(kind == "instance" for kind, _ in created))
 
@@ -301,7 +312,8 @@ class OpenStackProvider(CloudProvider):
                     public = a["addr"]
                 elif a.get("OS-EXT-IPS:type") == "fixed":
                     common = a["addr"]
-        return CloneRecord(robot=server.metadata.get(LABEL_ROBOT, ""), provider_id=server.id, status=server.status,
+        return CloneRecord(robot=server.metadata.get(LABEL_ROBOT, ""), provider_id=server.id,
+                           state=CloneState.of(server.status, STATES), status=server.status,
                            public_ip=public, common_ip=common)
 
     def query(self) -> dict[str, CloneRecord]:
@@ -448,9 +460,25 @@ class OpenStackProvider(CloudProvider):
             self.api("authenticate", self.conn.authorize)
             return f"cloud {self.settings.cloud!r}: authenticated, project {self.conn.current_project_id}"
 
-    def quotas(self) -> dict[str, tuple[int, int]]:
-        """(used, limit) of the compute quotas a fleet consumes."""
+    def quotas(self) -> list[Quota]:
+        """The compute quotas a fleet consumes: current usage plus the clones not created yet."""
         with self._errors("compute limits"):
             a = self.api("compute limits", self.compute.get_limits).absolute
-            return {"instances": (a.instances_used, a.instances), "cores": (a.total_cores_used, a.total_cores),
-                    "ram_mb": (a.total_ram_used, a.total_ram)}
+            existing = self.query()
+            flavors = [getattr(r, "instance_type", None) or self.settings.flavor
+                       for r in self.inv.robots if r.name not in existing]
+            vcpus = ram = 0
+            for name in flavors:
+                flavor = self._cached(f"flavor:{name}", lambda n=name: self._find(
+                    "flavor", n, self.compute.find_flavor, "provider.flavor: `openstack flavor list`"))
+                vcpus, ram = vcpus + flavor.vcpus, ram + flavor.ram
+            return [Quota(name="instances", limit=a.instances, need=a.instances_used + len(flavors)),
+                    Quota(name="cores", limit=a.total_cores, need=a.total_cores_used + vcpus),
+                    Quota(name="RAM (MB)", limit=a.total_ram, need=a.total_ram_used + ram)]
+
+    def leftovers(self) -> list[str]:
+        """What `fleet down` should have removed and did not (snapshots stay on purpose)."""
+        return [f"{r.kind} {r.name or r.id}" for r in self.list_owned() if r.kind != "image"]
+
+    def has_image(self, image: str) -> bool:
+        return self.find("image", self.image.find_image, image) is not None
