@@ -10,6 +10,27 @@ user-data over Nova's limit, and servers the scheduler cannot place ("No valid h
 
 Knobs for tests: `throttle(fraction)` (429/503 before the fake), `delay(seconds)`, `no_capacity`
 zones, `max_instances`, `fail_fip_for` robots, `fail_next` operations; `calls` counts (METHOD, path template).
+
+Two transports share one request handler (`handle`): requests-mock mounted on a Connection's
+session in this process (`attach`), or a real HTTP server on 127.0.0.1 for other processes
+(openstack_http.py), whose Keystone catalog and version documents carry the served URLs.
+
+Servers that really boot (opt-in: `FakeOpenStack(boot=CloudBoot())`, see cloudboot.py): each
+server is a systemd container booted from its Glance image's Docker image with the user-data Nova
+received (NoCloud seed; the key pair's public key in the meta-data), BUILD until the container
+runs, then ACTIVE. Each Neutron subnet a server's port is on is a Docker network with the
+subnet's CIDR and gateway (the host holds the gateway address, as the router would), and the
+container's interface has the port's fixed IP. The external network's floating-IP pool is a
+Docker network the fake claims (a free /24 of 172.29.0.0/16 unless `fip_cidr` is given; its .1 is
+the host): associating a floating IP connects the container to it with that address, so the host
+(ccrp) and simulated robots on that network reach the server's public IP. The console is the
+container's console; os-stop/os-start stop and start it; delete removes it; createImage commits
+it into a Docker image recorded in Glance, which servers boot from. Glance has a public
+`debian-12-genericcloud-amd64` image (cloudboot.DEBIAN_12); images without a Docker image of their
+own (ubuntu-20.04) cannot boot: such a server goes to ERROR.
+Not enforced when booting: security groups (every container port is open to the host and to the
+other containers on its networks), allowed-address pairs and port security, quotas beyond the
+instance count, routers (every network reaches the outside through Docker's NAT, router or not).
 """
 
 from __future__ import annotations
@@ -24,6 +45,7 @@ import time
 import uuid
 from collections import Counter
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import parse_qs, urlparse
 
 import requests_mock
@@ -31,9 +53,14 @@ from openstack.fixture.connection import ConnectionFixture
 
 from .openstack_neutron import ApiError, NeutronApi, new_id, now
 
+if TYPE_CHECKING:
+    from .cloudboot import CloudBoot
+
 NO_VALID_HOST = "No valid host was found. There are not enough hosts available."
 MAX_USER_DATA_B64 = 65_535  # Nova's limit on the base64 text
 FIP_POOL = ipaddress.IPv4Network("203.0.113.0/24")  # TEST-NET-3: never contacted
+BOOT_FIP_RANGE = "172.29.0.0/16"  # booting: the floating-IP pool is a free /24 of it, a Docker network
+BOOT_IMAGE = "debian-12-genericcloud-amd64"  # booting: the public image of cloudboot.DEBIAN_12
 HOSTS = ("identity", "compute", "network", "image")
 
 
@@ -50,8 +77,16 @@ def _template(path: str) -> str:
     return "/".join(out)
 
 
-class FakeOpenStack(NeutronApi):
+class Context:
+    """What a handler sets on its response, as requests-mock's context has it."""
+
     def __init__(self) -> None:
+        self.status_code = 200
+        self.headers: dict[str, str] = {}
+
+
+class FakeOpenStack(NeutronApi):
+    def __init__(self, boot: CloudBoot | None = None, fip_cidr: str | None = None) -> None:
         self.fixture = ConnectionFixture()  # openstacksdk's own catalog + token
         self.project_id = self.fixture.project_id
         self.lock = threading.RLock()
@@ -74,12 +109,37 @@ class FakeOpenStack(NeutronApi):
         self.images: dict[str, dict] = {}
         self.flavors: dict[str, dict] = {}
         self.keypairs: dict[str, dict] = {}
-        self._fip_hosts = iter(FIP_POOL.hosts())
+        self._local = threading.local()  # the served root URL of the request being handled
+        self.boot = boot
+        if boot is None:
+            self._fip_hosts = iter(FIP_POOL.hosts())
+        else:
+            self._init_boot(fip_cidr)
         self.adapter = self._routes()
         ext = self.add("networks", {"name": "public", "router:external": True})
-        self.add("subnets", {"network_id": ext["id"], "cidr": str(FIP_POOL), "name": "public-v4"})
+        self.add("subnets", {"network_id": ext["id"], "cidr": str(FIP_POOL) if boot is None else self.fip_cidr,
+                             "name": "public-v4", **({} if boot is None else {"gateway_ip": self.fip_gateway})})
         self.add_flavor("m1.small")
         self.add_image("ubuntu-20.04")
+        if boot is not None:
+            from .cloudboot import DEBIAN_12
+
+            image = self.add_image(BOOT_IMAGE, os_distro="debian", os_version="12", owner="debian-cloud-team")
+            self.docker_images[image["id"]] = DEBIAN_12
+
+    def _init_boot(self, fip_cidr: str | None) -> None:
+        """Booting: the floating-IP pool as a Docker network of the fake's own; bookkeeping."""
+        boot = self.boot
+        if fip_cidr:
+            self.fip_network, self.fip_cidr = boot.ensure_network("public", fip_cidr), fip_cidr
+        else:
+            self.fip_network, self.fip_cidr = boot.claim_network("public", BOOT_FIP_RANGE)
+        pool = ipaddress.IPv4Network(self.fip_cidr)
+        self.fip_gateway = str(next(pool.hosts()))  # the host's address on it
+        self._fip_hosts = (h for h in pool.hosts() if str(h) != self.fip_gateway)
+        self.docker_images: dict[str, str] = {}  # Glance image id -> Docker image
+        self._subnet_nets: dict[str, str] = {}   # Neutron subnet id -> Docker network
+        self._threads: dict[str, threading.Thread] = {}  # server id -> its boot
 
     # -- seeding --------------------------------------------------------------------------------
     def add(self, collection: str, body: dict) -> dict:
@@ -122,11 +182,21 @@ class FakeOpenStack(NeutronApi):
         return adapter
 
     def _respond(self, request, context):
-        host = urlparse(request.url).hostname.split(".")[0]
-        path = request.path.rstrip("/") or "/"
-        query = {k: v for k, v in parse_qs(urlparse(request.url).query, keep_blank_values=True).items()}
+        """requests-mock's callback: https://<service>.example.com/<path>."""
+        url = urlparse(request.url)
+        return self.handle(request.method, url.hostname.split(".")[0], request.path, url.query, request.body, context)
+
+    def handle(self, method: str, host: str, path: str, query_string: str, body: bytes | str | None, context,
+               root: str | None = None):
+        """One API request, whatever carried it: `host` is the service (identity, compute, network,
+        image), `path` the path under it; sets context.status_code/headers and returns the JSON
+        body (None: no body). `root` is the served base URL (http://127.0.0.1:PORT) when the
+        request came over HTTP: the catalog and version documents then point there."""
+        self._local.root = root
+        path = path.rstrip("/") or "/"
+        query = {k: v for k, v in parse_qs(query_string, keep_blank_values=True).items()}
         template = _template(path)
-        op = (request.method, f"{host}:{template}")
+        op = (method, f"{host}:{template}")
         if self.delay_s:
             time.sleep(self.delay_s)  # outside the lock: concurrent callers overlap as on a real cloud
         context.headers["Content-Type"] = "application/json"
@@ -136,11 +206,14 @@ class FakeOpenStack(NeutronApi):
                 context.status_code = 429 if self._n % 2 else 503
                 context.headers["Retry-After"] = "0"
                 return {"message": "Rate limit exceeded" if context.status_code == 429 else "Service Unavailable"}
-            body = request.json() if request.body else {}
+            body = json.loads(body) if body else {}
             try:
                 if op in self.fail_next:
                     raise ApiError(*self.fail_next.pop(op))
-                return getattr(self, f"_{host}")(request.method, path, query, body, context)
+                answer = getattr(self, f"_{host}")(method, path, query, body, context)
+                if self.boot is not None and host == "network" and method != "GET":
+                    self._rewire()  # a port or floating IP may have moved
+                return answer
             except ApiError as err:
                 context.status_code = err.status
                 if host == "network":
@@ -158,18 +231,37 @@ class FakeOpenStack(NeutronApi):
         if method == "POST" and path == "/v3/auth/tokens":
             context.status_code = 201
             context.headers["X-Subject-Token"] = uuid.uuid4().hex
-            return self.fixture.v3_token
+            root = getattr(self._local, "root", None)
+            return self.fixture.v3_token if root is None else self._served_token(root)
         if path == "/":
             return {"versions": {"values": [{"id": "v3.14", "status": "stable", "links": [
-                {"href": "https://identity.example.com/v3/", "rel": "self"}]}]}}
+                {"href": self._href("identity", "/v3/"), "rel": "self"}]}]}}
         raise ApiError(404, f"identity {path} not found")
+
+    def _href(self, service: str, suffix: str) -> str:
+        """A service URL as the client reached the fake: served (root/service) or in-process."""
+        root = getattr(self._local, "root", None)
+        return f"{root}/{service}{suffix}" if root else f"https://{service}.example.com{suffix}"
+
+    def _served_token(self, root: str) -> dict:
+        """A Keystone v3 token like ConnectionFixture's (same project), with a catalog of the four
+        services this fake serves under `root`, fresh (its expiry an hour from now) every time."""
+        from keystoneauth1.fixture import v3
+
+        token = v3.Token(project_id=self.project_id)
+        for service, name, suffix in (("identity", "keystone", ""), ("compute", "nova", "/v2.1/"),
+                                      ("network", "neutron", ""), ("image", "glance", "")):
+            url = f"{root}/{service}{suffix}"
+            token.add_service(service, name=name).add_standard_endpoints(
+                public=url, internal=url, admin=url, region="RegionOne")
+        return token
 
     # -- Nova -----------------------------------------------------------------------------------
     def _compute(self, method, path, query, body, context):
         parts = path.removeprefix("/v2.1").strip("/").split("/")
         if parts == [""]:
             return {"version": {"id": "v2.1", "status": "CURRENT", "version": "2.90", "min_version": "2.1",
-                                "links": [{"href": "https://compute.example.com/v2.1/", "rel": "self"}]}}
+                                "links": [{"href": self._href("compute", "/v2.1/"), "rel": "self"}]}}
         head = parts[0]
         if head == "servers":
             return self._servers(method, parts[1:], query, body, context)
@@ -214,7 +306,10 @@ class FakeOpenStack(NeutronApi):
             return {"servers": [self._show_server(s) for s in found]}
         server = self._get(self.servers, parts[0], "server")
         if method == "DELETE":
-            self._delete_server(server)
+            if self.boot is None:
+                self._delete_server(server)
+            else:  # Nova answers at once and deletes in the background; GET shows it until then
+                self._in_background(server, "deleting", self._boot_delete)
             context.status_code = 204
             return None
         if parts[1:] == ["action"]:
@@ -244,10 +339,13 @@ class FakeOpenStack(NeutronApi):
                   "image": {"id": req["imageRef"]}, "flavor": {"id": req["flavorRef"]},
                   "key_name": req.get("key_name"), "config_drive": "True" if req.get("config_drive") else "",
                   "user_data": user_data, "created": now(), "updated": now(), "tenant_id": self.project_id,
-                  "user_id": "u", "hostId": "", "addresses": {}, "links": [], "console": ""}
+                  "user_id": "u", "hostId": "", "addresses": {}, "links": [], "console": "",
+                  "OS-EXT-STS:task_state": None}
         for port in ports:
             port.update(device_id=server["id"], device_owner=f"compute:{server['OS-EXT-AZ:availability_zone']}")
         self.servers[server["id"]] = server
+        if self.boot is not None and server["OS-EXT-AZ:availability_zone"] not in self.no_capacity:
+            self._in_background(server, "spawning", self._boot_server)
         return {"id": server["id"], "links": [], "adminPass": "x", "OS-DCF:diskConfig": "MANUAL",
                 "security_groups": [{"name": "default"}]}
 
@@ -255,12 +353,15 @@ class FakeOpenStack(NeutronApi):
         if server["status"] == "BUILD":  # the scheduler decides on the first look
             if server["OS-EXT-AZ:availability_zone"] in self.no_capacity:
                 server.update(status="ERROR", fault={"code": 500, "message": NO_VALID_HOST, "created": now()})
-            else:
+            elif self.boot is None:  # booting: ACTIVE once the container runs (_boot_server)
                 server["status"] = "ACTIVE"
                 server["console"] = (
                     f"Cloud-init v. 22.4 running 'modules:final'\n-----BEGIN SSH HOST KEY FINGERPRINTS-----\n"
                     f"256 SHA256:{base64.b64encode(os.urandom(32)).decode().rstrip('=')} root@{server['name']} (ED25519)\n"
                     f"-----END SSH HOST KEY FINGERPRINTS-----\n")
+        elif (self.boot is not None and server["status"] == "ACTIVE" and not server["OS-EXT-STS:task_state"]
+              and self.boot.has(server["id"]) and self.boot.state(server["id"]) != "running"):
+            server.update(status="SHUTOFF", updated=now())  # powered off from inside (Nova's power-state sync)
         shown = {k: v for k, v in server.items() if k not in ("user_data", "console")}
         addresses: dict[str, list] = {}
         for port in self.ports.values():
@@ -283,26 +384,155 @@ class FakeOpenStack(NeutronApi):
 
     def _server_action(self, server, body, context):
         if "os-getConsoleOutput" in body:
-            return {"output": server["console"]}
+            if self.boot is None:
+                return {"output": server["console"]}
+            return {"output": self._boot_console(server, (body["os-getConsoleOutput"] or {}).get("length"))}
         if "os-start" in body or "os-stop" in body:
-            if server["status"] != ("SHUTOFF" if "os-start" in body else "ACTIVE"):
+            if server["status"] != ("SHUTOFF" if "os-start" in body else "ACTIVE") or server["OS-EXT-STS:task_state"]:
                 raise ApiError(409, f"Cannot '{next(iter(body))}' instance {server['id']} while it is {server['status']}")
-            server["status"] = "ACTIVE" if "os-start" in body else "SHUTOFF"
+            if self.boot is None:
+                server["status"] = "ACTIVE" if "os-start" in body else "SHUTOFF"
+            elif "os-stop" in body:
+                self._in_background(server, "powering-off", self._boot_power, False)
+            else:
+                self._in_background(server, "powering-on", self._boot_power, True)
             context.status_code = 202
             return None
         if "createImage" in body:
             req = body["createImage"]
             image = self.add_image(req["name"], visibility="private", **(req.get("metadata") or {}))
             image["status"] = "active"
+            if self.boot is not None:  # saving until the container is committed
+                if server["id"] not in self._threads and not self.boot.has(server["id"]):
+                    del self.images[image["id"]]
+                    raise ApiError(409, f"Cannot 'createImage' instance {server['id']}: it has no disk yet")
+                image.update(status="queued", size=None)
+                self._in_background(server, "image_snapshot", self._boot_capture, image)
             context.status_code = 202
             return {"image_id": image["id"]}
         raise ApiError(400, f"unsupported action {list(body)}")
+
+    # -- booting (self.boot set) ----------------------------------------------------------------
+    def _in_background(self, server: dict, task: str, work, *args) -> None:
+        """Run work(server_id, *args) in a thread of the server's own (one task at a time, as
+        Nova's task_state), the server showing `task` until it is done."""
+        server["OS-EXT-STS:task_state"] = task
+        before = self._threads.get(server["id"])
+
+        def run() -> None:
+            if before is not None:
+                before.join()
+            try:
+                work(server["id"], *args)
+            except Exception as exc:  # noqa: BLE001 - the server records what went wrong
+                with self.lock:
+                    if server["id"] in self.servers:
+                        server.update(status="ERROR", fault={"code": 500, "message": f"{task}: {exc}", "created": now()})
+            finally:
+                with self.lock:
+                    server["OS-EXT-STS:task_state"] = None
+                    if self._threads.get(server["id"]) is threading.current_thread():
+                        del self._threads[server["id"]]
+
+        thread = threading.Thread(target=run, name=f"fake-nova-{task}-{server['id'][:8]}", daemon=True)
+        self._threads[server["id"]] = thread
+        thread.start()
+
+    def _boot_server(self, server_id: str) -> None:
+        with self.lock:
+            server = self.servers[server_id]
+            image_id = server["image"]["id"]
+            if image_id not in self.docker_images:
+                raise RuntimeError(f"image {image_id} ({self.images.get(image_id, {}).get('name')}) has no disk in "
+                                   f"this fake: boot from {BOOT_IMAGE} or a snapshot")
+            image = self.docker_images[image_id]
+            keys = [self.keypairs[server["key_name"]]["public_key"]] if server.get("key_name") in self.keypairs else []
+            user_data = base64.b64decode(server["user_data"] or "")
+            networks = self._wanted_networks(server_id)
+        self.boot.boot(server_id, server["name"], image, user_data, list(networks.items()), keys)
+        with self.lock:
+            self._rewire(server_id)  # floating IPs associated while the container was created
+            server.update(status="ACTIVE", updated=now())
+
+    def _wanted_networks(self, server_id: str) -> dict[str, str]:
+        """The server's interfaces as Neutron has them: docker network -> address (fixed IPs
+        first, then floating IPs). Creates the Docker networks of subnets seen first here."""
+        wanted: dict[str, str] = {}
+        for port in self.ports.values():
+            if port["device_id"] != server_id:
+                continue
+            for ip in port["fixed_ips"]:
+                subnet = self.subnets[ip["subnet_id"]]
+                if subnet["id"] not in self._subnet_nets:
+                    net = self.networks.get(subnet["network_id"], {})
+                    self._subnet_nets[subnet["id"]] = self.boot.ensure_network(
+                        f"{net.get('name') or 'net'}-{subnet['id'][:8]}", subnet["cidr"], subnet.get("gateway_ip"))
+                wanted[self._subnet_nets[subnet["id"]]] = ip["ip_address"]
+        for fip in self.fips.values():
+            port = self.ports.get(fip["port_id"] or "")
+            if port is not None and port["device_id"] == server_id:
+                wanted[self.fip_network] = fip["floating_ip_address"]
+        return wanted
+
+    def _rewire(self, server_id: str | None = None) -> None:
+        """Make the containers' interfaces what Neutron says (a floating IP associated, moved or
+        released; a port deleted); drop the Docker networks of deleted subnets."""
+        for sid in [server_id] if server_id else list(self.servers):
+            if not self.boot.has(sid):
+                continue  # not created yet: _boot_server wires it once it is
+            wanted, have = self._wanted_networks(sid), self.boot.attachments(sid)
+            for net in have.keys() - wanted.keys():
+                self.boot.detach(sid, net)
+            for net, ip in wanted.items():
+                if have.get(net) != ip:
+                    self.boot.attach(sid, net, ip)
+        for subnet_id in [s for s in self._subnet_nets if s not in self.subnets]:
+            name = self._subnet_nets.pop(subnet_id)
+            try:
+                self.boot.networks[name].remove()
+                self.boot.networks.pop(name, None)
+            except Exception:  # noqa: BLE001 - still in use: the run's cleanup removes it
+                pass
+
+    def _boot_console(self, server: dict, length: int | str | None) -> str:
+        if not self.boot.has(server["id"]):
+            return ""
+        text = self.boot.console(server["id"]).replace("\r\n", "\n")
+        if length is not None and int(length) >= 0:
+            text = "".join(text.splitlines(keepends=True)[-int(length):]) if int(length) else ""
+        return text
+
+    def _boot_power(self, server_id: str, on: bool) -> None:
+        (self.boot.start if on else self.boot.stop)(server_id)
+        with self.lock:
+            self.servers[server_id].update(status="ACTIVE" if on else "SHUTOFF", updated=now())
+
+    def _boot_capture(self, server_id: str, image: dict) -> None:
+        with self.lock:
+            image["status"] = "saving"
+        try:
+            ref = self.boot.capture(server_id, image["name"])
+        except Exception:
+            with self.lock:
+                image["status"] = "killed"
+            raise
+        with self.lock:
+            size = self.boot.client.images.get(ref).attrs.get("Size")
+            self.docker_images[image["id"]] = ref
+            image.update(status="active", size=size, updated_at=now())
+
+    def _boot_delete(self, server_id: str) -> None:
+        self.boot.delete(server_id)
+        with self.lock:
+            server = self.servers.get(server_id)
+            if server is not None:
+                self._delete_server(server)
 
     # -- Glance ---------------------------------------------------------------------------------
     def _image(self, method, path, query, body, context):
         if path == "/":
             return {"versions": [{"id": "v2.15", "status": "CURRENT", "links": [
-                {"href": "https://image.example.com/v2/", "rel": "self"}]}]}
+                {"href": self._href("image", "/v2/"), "rel": "self"}]}]}
         parts = path.removeprefix("/v2").strip("/").split("/")
         if parts == ["images"]:
             found = [i for i in self.images.values()
@@ -319,6 +549,10 @@ class FakeOpenStack(NeutronApi):
             return None
         if method == "DELETE":
             del self.images[image["id"]]
+            if self.boot is not None and image["id"] in self.docker_images:
+                ref = self.docker_images.pop(image["id"])
+                if ref in self.boot.images:  # captured by this run: the disk goes with the image
+                    self.boot.remove_image(ref)
             context.status_code = 204
             return None
         return image

@@ -32,7 +32,7 @@ class NeutronApi:
     def _network(self, method, path, query, body, context):
         if path == "/":
             return {"versions": [{"id": "v2.0", "status": "CURRENT", "links": [
-                {"href": "https://network.example.com/v2.0/", "rel": "self"}]}]}
+                {"href": self._href("network", "/v2.0/"), "rel": "self"}]}]}
         parts = path.removeprefix("/v2.0").strip("/").split("/")
         kind = parts[0]
         collection = {"networks": "networks", "subnets": "subnets", "routers": "routers", "ports": "ports",

@@ -1,0 +1,112 @@
+"""A FakeOpenStack served over real HTTP on 127.0.0.1, for clients in other processes (the ccrp
+CLI run as a subprocess, plain openstacksdk).
+
+Each service lives under a path of the served root: http://127.0.0.1:PORT/identity (Keystone v3),
+/compute/v2.1/ (Nova), /network (Neutron), /image (Glance). Keystone's token carries a catalog of
+those URLs (built like openstacksdk's ConnectionFixture builds its own, for the served root), and
+the version documents point there too. Requests go to the same handler as the in-process
+requests-mock transport (FakeOpenStack.handle). One thread per connection (ThreadingHTTPServer),
+HTTP/1.1 keep-alive.
+
+    with OpenStackHttp(FakeOpenStack(boot=CloudBoot())) as served:
+        config = served.clouds_yaml(tmp_path, "fake")   # OS_CLIENT_CONFIG_FILE=config
+        ...
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from .openstack_cloud import HOSTS, Context, FakeOpenStack
+
+
+class _Handler(BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.1"
+    server_version = "ccrp-fake-openstack"
+    fake: FakeOpenStack
+    root: str
+
+    def _serve(self) -> None:
+        url = urlsplit(self.path)
+        service, _, rest = url.path.lstrip("/").partition("/")
+        length = int(self.headers.get("Content-Length") or 0)
+        body = self.rfile.read(length) if length else b""
+        context = Context()
+        if service not in HOSTS:
+            context.status_code, answer = 404, {"error": {"code": 404, "message": f"no service at {url.path}"}}
+        else:
+            try:
+                answer = self.fake.handle(self.command, service, "/" + rest, url.query, body, context, root=self.root)
+            except Exception as exc:  # noqa: BLE001 - a fake's bug is a 500 for the client, not a dead socket
+                context.status_code, answer = 500, {"error": {"code": 500, "message": f"{type(exc).__name__}: {exc}"}}
+        data = b"" if answer is None or context.status_code == 204 else json.dumps(answer).encode()
+        self.send_response(context.status_code)
+        for key, value in context.headers.items():
+            if key.lower() != "content-length":
+                self.send_header(key, value)
+        if "Content-Type" not in context.headers:
+            self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(data)
+
+    do_GET = do_POST = do_PUT = do_DELETE = do_PATCH = do_HEAD = _serve
+
+    def log_message(self, format, *args) -> None:  # noqa: A002 - the base class's name
+        pass  # quiet: FakeOpenStack.calls counts what was asked
+
+
+class OpenStackHttp:
+    """Serve `fake` on 127.0.0.1 (a free port unless given) in a thread of this process."""
+
+    def __init__(self, fake: FakeOpenStack, port: int = 0) -> None:
+        self.fake = fake
+        handler = type("Handler", (_Handler,), {"fake": fake})
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", port), handler)
+        self.httpd.daemon_threads = True
+        self.port = self.httpd.server_address[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        handler.root = self.url
+        self._thread: threading.Thread | None = None
+
+    @property
+    def auth_url(self) -> str:
+        return f"{self.url}/identity"
+
+    def start(self) -> OpenStackHttp:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.2},
+                                            name=f"fake-openstack-http-{self.port}", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        if self._thread is not None:
+            self.httpd.shutdown()
+            self._thread.join()
+            self._thread = None
+        self.httpd.server_close()
+
+    def __enter__(self) -> OpenStackHttp:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def cloud_config(self) -> dict:
+        """One clouds.yaml entry for this server (password auth; the fake accepts any)."""
+        return {"auth": {"auth_url": self.auth_url, "username": "admin", "password": "password",
+                         "project_name": "admin", "user_domain_name": "default", "project_domain_name": "default"},
+                "region_name": "RegionOne", "identity_api_version": "3", "interface": "public"}
+
+    def clouds_yaml(self, directory: Path, cloud: str) -> Path:
+        """directory/clouds.yaml with `cloud` pointing here: OS_CLIENT_CONFIG_FILE=<it> and
+        `openstack.connect(cloud=...)` or `ccrp` with provider.cloud = `cloud`."""
+        path = Path(directory) / "clouds.yaml"
+        path.write_text(json.dumps({"clouds": {cloud: self.cloud_config()}}, indent=2) + "\n")
+        return path
