@@ -138,3 +138,23 @@ def test_throttling_storm_creates_every_clone_once(harness):
     harness.throttle(0)
     assert all(harness.instances_for(r) == 1 for r in ROBOTS)
     assert sum(harness.api_calls().values()) >= 3 * len(ROBOTS)
+
+
+# -- contract v2: typed states, the calls every caller makes, declared abilities ------------------
+
+
+def test_states_are_ccrp_words_and_every_declared_call_answers(harness):
+    from ccrp_cli.providers.base import Ability, CloneState, Provider, Quota
+
+    created = create(harness, "robot1")
+    rec = harness.provider.query()["robot1"]
+    assert rec.state is CloneState.RUNNING, f"{harness.kind} maps {rec.status!r} to {rec.state}"
+    assert created.state in (CloneState.PENDING, CloneState.RUNNING)
+    assert harness.provider.abilities == info(harness.kind).abilities
+    assert (Ability.LOCAL_BUILD in harness.provider.abilities) != (Ability.BAKE in harness.provider.abilities)
+    for name in [n for n in dir(Provider) if not n.startswith("_")]:
+        assert hasattr(harness.provider, name), f"{harness.kind} lacks {name}"
+    assert harness.provider.has_image("no-such-image-of-this-fleet") is False
+    assert all(isinstance(q, Quota) and q.limit >= 0 for q in harness.provider.quotas())
+    harness.provider.teardown()
+    assert harness.provider.leftovers() == []

@@ -6,6 +6,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from ccrp_cli import __version__
 from tests.conftest import LAB
 
@@ -71,3 +73,17 @@ def test_cli_import_pulls_no_cloud_sdk():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+@pytest.mark.parametrize("args, wanted", [
+    (("snapshot", "build", "-i", "inventories/aws.yaml"), "snapshot bake"),
+    (("snapshot", "build", "-i", "inventories/openstack.yaml"), "snapshot bake"),
+    (("snapshot", "bake", "-i", "inventories/lab.yaml"), "snapshot build"),
+])
+def test_a_command_the_backend_cannot_do_is_one_line_exit_2(ccrp, ccrp_home, args, wanted):
+    # Checked from the provider's declared abilities, before any SDK or credential is touched.
+    proc = ccrp(*args)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr and wanted in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) <= 2  # the error and its hint
+    assert not ccrp_home.exists() or not any(ccrp_home.rglob("state.json"))
