@@ -35,37 +35,46 @@ def sim(
     robot: options.Robot,
     stop: Annotated[bool, typer.Option("--stop", help="Stop and remove the simulated robot.")] = False,
     wait: Annotated[float, typer.Option("--wait", help="Seconds to wait until the robot's VPN is up and its node is on its clone's master (0: don't wait).")] = 0,
+    network: Annotated[str | None, typer.Option("--network", help="Docker network of this host the robot runs on (cloud fleets; default `bridge`). Docker fleets: always <fleet>-public.")] = None,
     as_json: options.Json = False,
 ) -> None:
-    """Run a simulated robot (container on the public network) with exactly its edge bundle."""
-    from ..providers import get_provider
+    """Run a simulated robot (a container on this host) with exactly its edge bundle; it dials its
+    clone over the public network as a real robot would."""
+    from ..errors import InputError
+    from ..providers import Ability, get_provider, info
     from ..providers.docker import robots as sims
+    from ..providers.docker.host import DockerHost
     from ..render.templates import static
     from ..robots import edge_files
 
     fleet = options.open_fleet(inventory)
-    from ..errors import InputError
-
-    if fleet.inventory.provider.kind != "docker":
-        raise InputError("simulated robots run on the docker provider only")
-    provider = get_provider(fleet.inventory)
+    kind = fleet.inventory.provider.kind
+    own_network = Ability.ROBOT_SIM in info(kind).abilities  # the Docker fleet's own public network
+    if own_network and network:
+        raise InputError("--network is for cloud fleets", hint="simulated robots of a Docker fleet sit on <fleet>-public")
     state = fleet.store.load_state()
     fleet.robot(state, robot)
+    host = get_provider(fleet.inventory) if own_network else DockerHost(fleet.name)
     if stop:
-        removed = sims.stop(provider, robot)
+        removed = sims.stop(host, robot)
         output.info(f"simulated robot {robot!r} {'removed' if removed else 'was not running'}")
         return
     from ..clones import snapshot_image
 
     files, endpoint = edge_files(fleet, robot)
+    if own_network:
+        image, net = snapshot_image(state), host.public_net
+    else:
+        image, net = sims.sim_image(host, fleet.inventory.ros.distro, output.info), network or "bridge"
     t0 = time.monotonic()
-    cid = sims.start(provider, robot, snapshot_image(state), files, static("edge/ccrp-demo-node"))
+    cid = sims.start(host, robot, image, files, static("edge/ccrp-demo-node"), net)
     output.info(f"simulated robot {robot!r} ({cid}) installed its bundle and dials {endpoint}")
-    result = {"robot": robot, "container": cid, "endpoint": endpoint}
+    result = {"robot": robot, "container": cid, "endpoint": endpoint, "network": net}
     if wait > 0:
         from ..status import wait_connected
 
-        result |= wait_connected(provider, robot, wait)
+        clone_side = host if own_network else get_provider(fleet.inventory)
+        result |= wait_connected(clone_side, robot, wait)
         result["seconds"] = round(time.monotonic() - t0, 2)  # from container start to node registered
         output.info(f"robot {robot!r} connected in {result['seconds']:.1f} s; nodes on its clone: {', '.join(result['nodes'])}")
     if as_json:

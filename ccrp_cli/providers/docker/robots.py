@@ -1,18 +1,44 @@
-"""Simulated robots on the Docker backend: a container on <fleet>-public only that installs the
-robot's edge bundle exactly as a real robot would, then runs a demo ROS node."""
+"""Simulated robots: a container on this host that installs the robot's edge bundle exactly as a
+real robot would, then runs a demo ROS node. On a Docker fleet it sits on <fleet>-public only; on
+a cloud fleet it dials its clone's public IP from a Docker network of this host (default: the
+engine's `bridge`, NATed like a robot on the internet)."""
 
 from __future__ import annotations
 
 from ...errors import CcrpError
 from ..base import owner_labels
 from .archive import tar_files
-from .provider import DockerProvider
+from .host import DockerHost
 
 BUNDLE_DIR = "opt/ccrp-bundle"
+# The robot image of cloud fleets: the same recipe as a Docker clone (openvpn, ROS 1), built here once.
+SIM_IMAGE = "ccrp/robot-sim:{distro}"
 
 
-def start(provider: DockerProvider, robot: str, image: str, bundle: list, demo_node: str) -> str:
-    """(Re)create the simulated robot and install `bundle` in it. Returns the container id."""
+def sim_image(host: DockerHost, distro: str, progress=lambda msg: None) -> str:
+    """The local image simulated robots of a cloud fleet run, built from the recipe if missing."""
+    from ...recipes import platform
+    from . import images
+
+    tag = SIM_IMAGE.format(distro=distro)
+    try:
+        host.client.images.get(tag)
+        return tag
+    except host._NotFound:
+        pass
+    plat = platform(distro, "docker")
+    try:
+        host.client.images.get(images.DEFAULT_BASE)
+    except host._NotFound:
+        images.build_base_image(host.client, images.DEFAULT_BASE, sorted(set(images.BASE_PACKAGES + plat.packages)), progress)
+    progress(f"building the simulated robots' image {tag} (once)")
+    images.build_clone_image(host.client, tag, images.dockerfile("robot-sim", distro, images.DEFAULT_BASE, plat),
+                             {"ccrp-managed": "true", "ccrp-role": "robot-image"}, progress, images.build_context(plat, progress))
+    return tag
+
+
+def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node: str, network: str) -> str:
+    """(Re)create the simulated robot on `network` and install `bundle` in it. Returns the container id."""
     stop(provider, robot)
     c = provider.client.containers.create(
         image,
@@ -20,7 +46,7 @@ def start(provider: DockerProvider, robot: str, image: str, bundle: list, demo_n
         hostname=robot,
         labels=owner_labels(provider.fleet, "robot-sim", robot),
         detach=True,
-        network=provider.public_net,  # never the common network: robots reach only their clone
+        network=network,  # never the common network: robots reach only their clone
         cap_add=["NET_ADMIN", "SYS_ADMIN"],
         devices=["/dev/net/tun:/dev/net/tun:rwm"],
         tmpfs={"/run": "", "/run/lock": "", "/tmp": ""},
@@ -51,7 +77,7 @@ def start(provider: DockerProvider, robot: str, image: str, bundle: list, demo_n
     return c.id[:12]
 
 
-def stop(provider: DockerProvider, robot: str) -> bool:
+def stop(provider: DockerHost, robot: str) -> bool:
     c = provider._container(robot, role="robot-sim")
     if c is None:
         return False
@@ -59,7 +85,7 @@ def stop(provider: DockerProvider, robot: str) -> bool:
     return True
 
 
-def vpn_state(provider: DockerProvider, robot: str) -> dict:
+def vpn_state(provider: DockerHost, robot: str) -> dict:
     """The simulated robot's view: tunnel address and watchdog state."""
     c = provider._container(robot, role="robot-sim")
     if c is None or c.status != "running":

@@ -1,0 +1,135 @@
+"""The Docker engine on this host, for a fleet: the client (every request retried on 429/503),
+names and labels, and running commands in ccrp's systemd containers (clones and simulated
+robots). DockerProvider builds the clone lifecycle on it; simulated robots of cloud fleets use it
+alone (they run here, whatever cloud their clones are on)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from ...errors import CcrpError
+from ...retry import Backoff, ErrorClass, call
+from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE
+from .archive import tar_files
+
+
+def _client():
+    try:
+        import docker
+        from docker.errors import DockerException
+    except ImportError:  # pragma: no cover - docker is a core dependency
+        raise CcrpError("the Docker SDK is not installed", hint="pip install 'ccrp[docker]'") from None
+    try:
+        client = docker.from_env(timeout=300)
+        client.ping()
+    except DockerException as exc:
+        raise CcrpError(
+            f"cannot reach the Docker engine ({type(exc).__name__})",
+            hint="start it (`systemctl start docker` or `dockerd &`) and check DOCKER_HOST",
+        ) from None
+    return client
+
+
+class _EngineBusy(Exception):
+    """The engine (or a proxy in front of it) shed load: 429 / 503."""
+
+
+def _classify(exc: BaseException) -> ErrorClass:
+    return ErrorClass.RETRYABLE if isinstance(exc, _EngineBusy) else ErrorClass.FATAL
+
+class DockerHost:
+    backoff = Backoff()
+
+    def __init__(self, fleet: str) -> None:
+        self.fleet = fleet
+        self.client = _client()
+        from docker.errors import APIError, NotFound
+
+        self._NotFound, self._APIError = NotFound, APIError
+        self._retry_busy()
+
+    def _retry_busy(self) -> None:
+        """Every Docker API request goes through retry.call: 429/503 answers are retried like a
+        cloud's throttling. Other errors (404, 409, 500) are real answers and pass through."""
+        api, send = self.client.api, self.client.api.send
+
+        def once(request, **kwargs):
+            response = send(request, **kwargs)
+            if response.status_code in (429, 503):
+                raise _EngineBusy(f"HTTP {response.status_code}")
+            return response
+
+        def retried(request, **kwargs):
+            what = f"Docker API {request.method} {request.path_url.split('?')[0]}"
+            return call(once, request, classify=_classify, what=what, backoff=self.backoff, **kwargs)
+
+        api.send = retried  # requests.Session.send: under every docker-py call
+    # -- names ------------------------------------------------------------------------------
+    @property
+    def public_net(self) -> str:
+        return f"{self.fleet}-public"
+
+    @property
+    def common_net(self) -> str:
+        return f"{self.fleet}-common"
+
+    def container_name(self, robot: str, role: str = "clone") -> str:
+        return f"ccrp-{self.fleet}-{'cri-' if role == 'clone' else ''}{robot}"
+
+    def volume_name(self, robot: str) -> str:
+        return f"ccrp-{self.fleet}-cri-{robot}-vpn"
+
+    def _filters(self, role: str, robot: str | None = None) -> dict[str, Any]:
+        labels = [f"{LABEL_FLEET}={self.fleet}", f"{LABEL_ROLE}={role}"]
+        if robot:
+            labels.append(f"{LABEL_ROBOT}={robot}")
+        return {"label": labels}
+    def _container(self, robot: str, role: str = "clone"):
+        found = self.client.containers.list(all=True, filters=self._filters(role, robot))
+        return found[0] if found else None
+
+    # -- transport ----------------------------------------------------------------------------
+    def _running(self, robot: str, role: str = "clone"):
+        c = self._container(robot, role)
+        if c is None or c.status != "running":
+            what = "clone" if role == "clone" else "simulated robot"
+            raise CcrpError(f"{what} of robot {robot!r} is not running", hint=f"ccrp {'clone create' if role == 'clone' else 'robot sim'} --robot {robot}")
+        return c
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60, role: str = "clone") -> tuple[int, str]:
+        c = self._running(robot, role)
+        result = c.exec_run(["timeout", str(int(timeout)), *argv], demux=False)
+        return result.exit_code, (result.output or b"").decode(errors="replace")
+
+    def wait_systemd(self, robot: str, role: str = "clone", timeout: float = 60) -> None:
+        """Until systemd inside the container has finished booting."""
+        deadline = time.monotonic() + timeout
+        while True:
+            rc, out = self.exec(robot, ["systemctl", "is-system-running", "--wait"], timeout=timeout, role=role)
+            if out.strip() in ("running", "degraded"):
+                return
+            if time.monotonic() > deadline:
+                raise CcrpError(f"systemd did not come up in {self.container_name(robot, role)}: {out.strip()[:200]}")
+            time.sleep(0.2)
+
+    def push_files(self, robot: str, files: list, restart: list[str] = (), role: str = "clone") -> None:
+        """Copy bundle files to their `dest` with their modes; chgrp where a group is named."""
+        c = self._running(robot, role)
+        by_dir: dict[str, list] = {}
+        for f in files:
+            directory, _, name = f.dest.rpartition("/")
+            by_dir.setdefault(directory, []).append((name, f.content.encode(), f.mode))
+        for directory, entries in by_dir.items():
+            c.put_archive(directory, tar_files(entries))
+        for f in files:
+            if f.group != "root":
+                self._check(c, ["chgrp", f.group, f.dest])
+        for unit in restart:
+            self._check(c, ["systemctl", "restart", unit])
+
+    def _check(self, c, argv: list[str]) -> str:
+        result = c.exec_run(argv)
+        if result.exit_code != 0:
+            raise CcrpError(f"{' '.join(argv)} failed in {c.name}: {result.output.decode(errors='replace').strip()[:200]}")
+        return result.output.decode(errors="replace")
