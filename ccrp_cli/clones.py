@@ -200,27 +200,6 @@ def push_relay_config(fleet: Fleet, provider: Provider, state: FleetState, robot
     return True
 
 
-def push_fkie_config(fleet: Fleet, provider: Provider, state: FleetState, robot: str) -> bool:
-    """fkie engine: the clone's sharing launch file and hosts entries, and its routes to the other
-    clones' VPN subnets (so synced publishers on robots are reachable)."""
-    from .render import fkie
-    from .render.bundles import BundleFile
-    from .render.view import CCRP_ETC
-
-    hosts, route_cmds = fkie.network(fleet, state, robot)
-    files = [BundleFile("sharing.launch", fkie.launch(fleet, state, robot), 0o644, f"{CCRP_ETC}/fkie/sharing.launch"),
-             BundleFile("hosts", hosts, 0o644, f"{CCRP_ETC}/fkie/hosts")]
-    changed = not files_current(provider, robot, files)
-    if changed:
-        provider.exec(robot, ["mkdir", "-p", f"{CCRP_ETC}/fkie"])
-        provider.push_files(robot, files, restart=[])
-    for argv in route_cmds:  # idempotent (`ip route replace`); a restarted clone gets them back
-        rc, out = provider.exec(robot, argv)
-        if rc != 0:
-            raise CcrpError(f"{' '.join(argv)} failed on {clone_host(robot)}: {out.strip()[:200]}")
-    return changed
-
-
 def delete_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, forget: bool) -> CloneResult:
     t0 = time.monotonic()
     if robot in writer.state.robots:

@@ -9,6 +9,7 @@ from urllib.parse import urlparse
 from .clones import health
 from .errors import CcrpError
 from .fleet import Fleet
+from .sharing import relay_config
 from .providers.base import CloneState
 
 
@@ -18,6 +19,17 @@ def robot_link(h: dict, robot: str) -> tuple[dict | None, list[str]]:
     # A robot node advertises an XML-RPC URI on the robot's own hostname.
     nodes = sorted(n for n, uri in h["master"]["nodes"].items() if urlparse(uri).hostname == robot)
     return client, nodes
+
+
+def relay_link(h: dict, expected: list[str]) -> tuple[bool, dict[str, bool]]:
+    """From a clone's health: whether its relay agent runs, and its peers (name -> connected). The
+    agent's own report counts only while it runs (health.py: a status file under 10 s old); the
+    last report of a stopped agent would show sharing that no longer happens, so then every peer
+    ccrp configured (`expected`) is down."""
+    relay = h.get("relay") or {}
+    if relay.get("running"):
+        return True, dict(relay.get("peers") or {})
+    return False, dict.fromkeys(sorted(expected), False)
 
 
 def wait_connected(provider, robot: str, timeout: float) -> dict:
@@ -54,6 +66,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             "robot_address": None,
             "master_reachable": False,
             "robot_nodes": [],
+            "relay_running": False,
             "relay_peers": {},
         }
         if rec and rec.state is CloneState.RUNNING:
@@ -63,7 +76,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             row["secrets"] = h.get("secrets")
             row["robot_address"] = client["real_address"] if client else None
             row["master_reachable"] = h["master"]["reachable"]
-            row["relay_peers"] = h.get("relay", {}).get("peers", {})
+            row["relay_running"], row["relay_peers"] = relay_link(h, list(relay_config(fleet, state, robot)["peers"]))
         return row
 
     robots = list(plan)

@@ -18,7 +18,7 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
         ["ROBOT", "CLONE", "STATE", "PUBLIC IP", "COMMON IP", "VPN", "MASTER", "ROBOT NODES", "RELAY PEERS"],
         [(r["robot"], r["clone"], r["status"], r["public_ip"], r["common_ip"],
           vpn_cell(r), yes(r["master_reachable"]),
-          ", ".join(r["robot_nodes"]), relay_peers(r["relay_peers"])) for r in rows],
+          ", ".join(r["robot_nodes"]), relay_peers(r["relay_peers"], r["relay_running"])) for r in rows],
     )
 
 
@@ -29,9 +29,12 @@ def vpn_cell(row: dict) -> str:
     return "no (keys gone: run fleet up)" if row["secrets"] is False else "no"
 
 
-def relay_peers(peers: dict[str, bool]) -> str:
-    """"2/2" when every relay peer is connected; names the missing ones otherwise."""
+def relay_peers(peers: dict[str, bool], running: bool = True) -> str:
+    """"2/2" when every relay peer is connected; names the missing ones otherwise, and says so when
+    the relay agent itself is not running (then nothing is shared)."""
     if not peers:
         return "-"
     down = sorted(p for p, up in peers.items() if not up)
+    if not running:
+        return f"0/{len(peers)} (relay not running)"
     return f"{len(peers) - len(down)}/{len(peers)}" + (f" (down: {', '.join(down)})" if down else "")

@@ -1,7 +1,13 @@
 """The fkie engine (multimaster_fkie, as in the thesis): per clone, a launch file with
 master_discovery in unicast mode and master_sync filtering on the receiving side, the exports
 republished under the robot's namespace, and the hosts entries and routes that make synced
-publishers reachable over the common network."""
+publishers reachable over the common network.
+
+No command renders or pushes these: multimaster_fkie exists only for ROS 1 on Ubuntu 20.04
+(packages.ros.org), every clone runs Debian 12, and inventories with `sharing.engine: fkie` are
+refused (models/inventory.py). The renderer stays, tested against roslaunch's own parser
+(tests/unit/test_sharing.py), as the record of the thesis's sharing set-up (docs/sharing.md).
+"""
 
 from __future__ import annotations
 

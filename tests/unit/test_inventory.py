@@ -43,6 +43,8 @@ BAD = {
         "room for 1",
     ),
     "bad-port": (LAB_TEXT.replace("port: 1194", "port: 70000"), "vpn.port"),
+    "fkie-engine": (LAB_TEXT.replace("engine: relay", "engine: fkie"), "sharing.engine: fkie needs multimaster_fkie"),
+    "unknown-engine": (LAB_TEXT.replace("engine: relay", "engine: zenoh"), "sharing.engine"),
 }
 
 
@@ -72,3 +74,19 @@ def test_load_inventory_raises_input_error(tmp_path):
     p.write_text("fleet: 9lab\nprovider: {kind: docker}\n")
     with pytest.raises(InputError, match=r"fleet: '9lab' does not match"):
         load_inventory(p)
+
+
+def test_fkie_is_refused_by_every_command_in_one_line(tmp_path):
+    """multimaster_fkie is not in Debian, which every clone runs: no command accepts the engine, and
+    the one line says where fkie exists and what to use instead."""
+    inv = tmp_path / "fleet.yaml"
+    inv.write_text(LAB_TEXT.replace("engine: relay", "engine: fkie"))
+    home = tmp_path / "home"
+    for args in (["fleet", "validate"], ["fleet", "up"], ["status"], ["topics"], ["snapshot", "build"]):
+        proc = run_ccrp(*args, "-i", str(inv), home=home)
+        assert proc.returncode == 2, (args, proc.stderr)
+        line, = proc.stderr.splitlines()
+        assert line == (f"ccrp: error: {inv}: sharing.engine: fkie needs multimaster_fkie, available only for ROS 1 "
+                        "on Ubuntu 20.04 from packages.ros.org; ccrp's clones run Debian 12, which does not package "
+                        "it: use engine: relay"), line
+    assert not home.exists()

@@ -98,3 +98,23 @@ def test_fkie_network_routes_each_other_clones_vpn_subnet_via_its_common_ip(lab_
     assert "10.90.0.10 cri-nao1" in hosts and "10.80.1.2 nao1" in hosts
     assert ["ip", "route", "replace", "10.80.1.0/24", "via", "10.90.0.10"] in cmds
     assert not any("10.80.2.0/24" in c for c in cmds)  # never a route to its own subnet
+
+
+def test_status_shows_no_sharing_that_is_not_running(lab_up):
+    """The relay agent's last report counts only while the agent runs: a stopped agent's stale
+    "connected" peers are shown as down, and an agent that never reported still has its peers down."""
+    from ccrp_cli.cli.status import relay_peers
+    from ccrp_cli.status import relay_link
+
+    fleet, state = lab_up
+    expected = list(relay_config(fleet, state, "nao1")["peers"])
+    live = {"relay": {"running": True, "peers": {"nao2": True, "turtlebot1": False}}}
+    assert relay_link(live, expected) == (True, {"nao2": True, "turtlebot1": False})
+    assert relay_peers(relay_link(live, expected)[1], True) == "1/2 (down: turtlebot1)"
+    stale = {"relay": {"running": False, "time": 0, "peers": {"nao2": True, "turtlebot1": True}}}
+    never = {"relay": {"running": False, "error": "FileNotFoundError", "peers": {}}}
+    for health in (stale, never, {}):
+        running, peers = relay_link(health, expected)
+        assert (running, peers) == (False, {"nao2": False, "turtlebot1": False})
+        assert relay_peers(peers, running) == "0/2 (relay not running)"
+    assert relay_peers({}, False) == "-"  # nothing to share with
