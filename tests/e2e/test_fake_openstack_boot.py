@@ -36,7 +36,7 @@ docker = pytest.importorskip("docker")
 paramiko = pytest.importorskip("paramiko")
 openstack = pytest.importorskip("openstack")
 
-from tests.fakes.cloudboot import CloudBoot  # noqa: E402
+from tests.fakes.cloudboot import CloudBoot, vendor_data_default_user  # noqa: E402
 from tests.fakes.openstack_cloud import BOOT_IMAGE, FakeOpenStack  # noqa: E402
 from tests.fakes.openstack_http import OpenStackHttp  # noqa: E402
 
@@ -234,6 +234,8 @@ def test_servers_boot_console_ssh_snapshot_and_go(served):
     image = conn.image.wait_for_status(image, status="active", failures=["killed"], interval=0.5, wait=120)
     timings["snapshot"] = time.monotonic() - t1
     assert fake.docker_images[image.id] in boot.images
+    # From now on the cloud's vendor-data names the default user as Ubuntu images do.
+    fake.vendor_data = vendor_data_default_user("ubuntu")
     second, port2, fip2 = _boot(conn, "vm-two", image.id, net, subnet, ext, user_key, "operator")
     assert port2.fixed_ips[0]["ip_address"] == "10.213.47.3"
     second = conn.compute.wait_for_server(second, status="ACTIVE", interval=0.5, wait=BOOT_TIMEOUT)
@@ -246,6 +248,9 @@ def test_servers_boot_console_ssh_snapshot_and_go(served):
         assert _run(ssh, "ls -A /srv/keys") == ""  # the tmpfs was not on the disk
         # The two servers reach each other on the tenant network.
         assert _run(ssh, f"timeout 5 bash -c 'echo >/dev/tcp/{fixed}/22' && echo ok") == "ok\n"
+        assert _run(ssh, "cloud-init status --wait").strip().endswith("done")
+    with _ssh(fip2.floating_ip_address, "ubuntu", pair_key, pins2) as ssh:
+        assert _run(ssh, "sudo -n id -un").strip() == "root"
 
     # -- stop and start ------------------------------------------------------------------------
     t2 = time.monotonic()

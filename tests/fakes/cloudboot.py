@@ -73,6 +73,15 @@ CMD ["/lib/systemd/systemd"]
 """
 
 
+def vendor_data_default_user(name: str) -> bytes:
+    """Vendor-data (what a cloud's operator adds beside the user's user-data; lower priority)
+    renaming the image's default user, with the official images' sudo rights: `ubuntu` makes
+    "default" in user-data the login user of an Ubuntu cloud image while the image stays Debian's."""
+    return (f"#cloud-config\nsystem_info:\n  default_user:\n    name: {name}\n    lock_passwd: true\n"
+            f"    gecos: {name.capitalize()}\n    groups: [adm, sudo]\n    sudo: ['ALL=(ALL) NOPASSWD:ALL']\n"
+            f"    shell: /bin/bash\n").encode()
+
+
 def docker_available() -> str | None:
     """None when a Docker engine answers; else why not (for a skip reason)."""
     try:
@@ -84,6 +93,29 @@ def docker_available() -> str | None:
     except Exception as exc:  # noqa: BLE001 - any failure means "no engine here"
         return str(exc) or type(exc).__name__
     return None
+
+
+def host_ranges() -> dict[str, str]:
+    """What a fake network must not shadow on this machine: the host's own routes (not the
+    default one) and its DNS servers: range -> what it is. Docker refuses overlaps with its own
+    networks by itself, but not with these, and a bridge on them would cut the host off."""
+    ranges: dict[str, str] = {}
+    try:
+        for line in Path("/proc/net/route").read_text().splitlines()[1:]:
+            f = line.split()
+            dest, mask = (ipaddress.IPv4Address(int(x, 16).to_bytes(4, "little")) for x in (f[1], f[7]))
+            if int(mask):
+                ranges[str(ipaddress.IPv4Network(f"{dest}/{mask}", strict=False))] = f"route via {f[0]}"
+    except OSError:
+        pass
+    try:
+        for line in Path("/etc/resolv.conf").read_text().splitlines():
+            f = line.split()
+            if len(f) >= 2 and f[0] == "nameserver" and ":" not in f[1]:
+                ranges[f"{f[1]}/32"] = "DNS server"
+    except OSError:
+        pass
+    return ranges
 
 
 def _tar(files: list[tuple[str, bytes, int]]) -> bytes:
@@ -177,6 +209,11 @@ class CloudBoot:
             if net_name in self.networks:
                 return net_name
             subnet = ipaddress.IPv4Network(cidr)
+            ours = {f"br-{n.id[:12]}" for n in self.networks.values()}  # Docker's names of its bridges
+            for other, what in host_ranges().items():
+                if subnet.overlaps(ipaddress.IPv4Network(other)) and what.removeprefix("route via ") not in ours:
+                    raise RuntimeError(f"network {name}: {cidr} overlaps {other} ({what}) of this machine; "
+                                       f"pick another range")
             gw = gateway or str(next(subnet.hosts()))
             ipam = docker.types.IPAMConfig(pool_configs=[docker.types.IPAMPool(subnet=str(subnet), gateway=gw)])
             self.networks[net_name] = self.client.networks.create(
@@ -190,6 +227,7 @@ class CloudBoot:
         taken = [ipaddress.IPv4Network(c["Subnet"]) for n in self.client.networks.list()
                  for c in ((self.client.api.inspect_network(n.id).get("IPAM") or {}).get("Config") or [])
                  if "Subnet" in c and ":" not in c["Subnet"]]
+        taken += [ipaddress.IPv4Network(r) for r in host_ranges()]
         for candidate in ipaddress.IPv4Network(within).subnets(new_prefix=prefix):
             if any(candidate.overlaps(t) for t in taken):
                 continue
@@ -212,10 +250,10 @@ class CloudBoot:
 
     # -- servers --------------------------------------------------------------------------------
     def boot(self, server_id: str, name: str, image: str, user_data: bytes,
-             networks: list[tuple[str, str]], public_keys: list[str] = ()) -> None:
+             networks: list[tuple[str, str]], public_keys: list[str] = (), vendor_data: bytes | None = None) -> None:
         """Create and start the server's container: the NoCloud seed (user-data; meta-data with
-        instance-id = server id, local-hostname = name, the key pair's public keys), then one
-        interface per (docker network name, ip), the first one at create time."""
+        instance-id = server id, local-hostname = name, the key pair's public keys; vendor-data
+        if given), then one interface per (docker network name, ip), the first one at create time."""
         if image == DEBIAN_12:
             self.base_image()
         hostname = "".join(c if c.isalnum() or c == "-" else "-" for c in name)[:63].strip("-") or "server"
@@ -241,8 +279,9 @@ class CloudBoot:
         meta = f"instance-id: {server_id}\nlocal-hostname: {hostname}\n"
         if public_keys:
             meta += "public-keys:\n" + "".join(f"  - {k.strip()}\n" for k in public_keys)
-        container.put_archive("/", _tar([(f"{SEED_DIR}/meta-data", meta.encode(), 0o600),
-                                         (f"{SEED_DIR}/user-data", user_data, 0o600)]))
+        seed = [(f"{SEED_DIR}/meta-data", meta.encode(), 0o600), (f"{SEED_DIR}/user-data", user_data, 0o600),
+                (f"{SEED_DIR}/vendor-data", vendor_data or b"", 0o600)]  # empty: none (a snapshot's is replaced)
+        container.put_archive("/", _tar(seed))
         container.start()
 
     def _container(self, server_id: str):
@@ -364,3 +403,32 @@ class CloudBoot:
 
     def __exit__(self, *exc) -> None:
         self.cleanup()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """python -m tests.fakes.cloudboot [--list | --cleanup RUN...]: what runs left behind."""
+    import argparse
+    from collections import Counter
+
+    parser = argparse.ArgumentParser(prog="python -m tests.fakes.cloudboot")
+    parser.add_argument("--cleanup", nargs="+", metavar="RUN", help="remove everything of these runs")
+    args = parser.parse_args(argv)
+    client = docker.from_env(timeout=120)
+    if args.cleanup:
+        for run in args.cleanup:
+            boot = CloudBoot(run, client)
+            boot.cleanup()
+            print(f"run {run}: left {boot.leftovers() or 'nothing'}")
+        return 0
+    runs: Counter = Counter()
+    for kind in (client.containers.list(all=True, filters={"label": LABEL}), client.networks.list(filters={"label": LABEL}),
+                 client.images.list(filters={"label": LABEL})):
+        for obj in kind:
+            runs[(obj.attrs.get("Config") or obj.attrs).get("Labels", {}).get(LABEL)] += 1
+    for run, n in sorted(runs.items()):
+        print(f"run {run}: {n} container(s)/network(s)/image(s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -27,7 +27,9 @@ the host): associating a floating IP connects the container to it with that addr
 container's console; os-stop/os-start stop and start it; delete removes it; createImage commits
 it into a Docker image recorded in Glance, which servers boot from. Glance has a public
 `debian-12-genericcloud-amd64` image (cloudboot.DEBIAN_12); images without a Docker image of their
-own (ubuntu-20.04) cannot boot: such a server goes to ERROR.
+own (ubuntu-20.04) cannot boot: such a server goes to ERROR. The image's default user is `debian`;
+`vendor_data=cloudboot.vendor_data_default_user("ubuntu")` renames it as an operator's vendor-data
+could (ccrp logs in as `ubuntu`, the Ubuntu images' user).
 Not enforced when booting: security groups (every container port is open to the host and to the
 other containers on its networks), allowed-address pairs and port security, quotas beyond the
 instance count, routers (every network reaches the outside through Docker's NAT, router or not).
@@ -86,7 +88,8 @@ class Context:
 
 
 class FakeOpenStack(NeutronApi):
-    def __init__(self, boot: CloudBoot | None = None, fip_cidr: str | None = None) -> None:
+    def __init__(self, boot: CloudBoot | None = None, fip_cidr: str | None = None,
+                 vendor_data: bytes | None = None) -> None:
         self.fixture = ConnectionFixture()  # openstacksdk's own catalog + token
         self.project_id = self.fixture.project_id
         self.lock = threading.RLock()
@@ -111,6 +114,7 @@ class FakeOpenStack(NeutronApi):
         self.keypairs: dict[str, dict] = {}
         self._local = threading.local()  # the served root URL of the request being handled
         self.boot = boot
+        self.vendor_data = vendor_data  # booting: given to every server (cloudboot.vendor_data_default_user)
         if boot is None:
             self._fip_hosts = iter(FIP_POOL.hosts())
         else:
@@ -449,7 +453,7 @@ class FakeOpenStack(NeutronApi):
             keys = [self.keypairs[server["key_name"]]["public_key"]] if server.get("key_name") in self.keypairs else []
             user_data = base64.b64decode(server["user_data"] or "")
             networks = self._wanted_networks(server_id)
-        self.boot.boot(server_id, server["name"], image, user_data, list(networks.items()), keys)
+        self.boot.boot(server_id, server["name"], image, user_data, list(networks.items()), keys, self.vendor_data)
         with self.lock:
             self._rewire(server_id)  # floating IPs associated while the container was created
             server.update(status="ACTIVE", updated=now())
