@@ -36,9 +36,9 @@ docker = pytest.importorskip("docker")
 paramiko = pytest.importorskip("paramiko")
 openstack = pytest.importorskip("openstack")
 
-from tests.fakes.cloudboot import CloudBoot, vendor_data_default_user  # noqa: E402
-from tests.fakes.openstack_cloud import BOOT_IMAGE, FakeOpenStack  # noqa: E402
-from tests.fakes.openstack_http import OpenStackHttp  # noqa: E402
+from tests.fakes.cloudboot import vendor_data_default_user  # noqa: E402
+from tests.fakes.openstack_cloud import BOOT_IMAGE  # noqa: E402
+from tests.fakes.openstack_http import booting_cloud  # noqa: E402
 
 CLOUD = "fake-boot"
 CIDR = "10.213.47.0/24"   # the tenant network; a Docker network of the run while a server is on it
@@ -49,41 +49,42 @@ FP_BLOCK = re.compile(r"-----BEGIN SSH HOST KEY FINGERPRINTS-----(.*?)-----END S
 def _image_buildable() -> bool:
     if shutil.which("mmdebstrap"):
         return True
+    client = docker.from_env(timeout=30)
     try:
-        with docker.from_env(timeout=30) as client:
-            client.images.get(DEBIAN_12)
+        client.images.get(DEBIAN_12)
         return True
     except docker.errors.DockerException:
         return False
+    finally:
+        client.close()
 
 
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
-    """(openstacksdk connection, fake, boot) for one fake cloud served over HTTP."""
+    """(openstacksdk connection, fake, boot, http server) for one fake cloud served over HTTP."""
     if not _image_buildable():
         pytest.skip(f"{DEBIAN_12} is missing and mmdebstrap is not installed to build it")
-    boot = CloudBoot()
-    try:
-        t0 = time.monotonic()
-        boot.base_image()
+    t0 = time.monotonic()
+    with booting_cloud(tmp_path_factory.mktemp("os"), CLOUD) as http:
         print(f"base image ready in {time.monotonic() - t0:.1f} s")
-        fake = FakeOpenStack(boot=boot)
-        with OpenStackHttp(fake) as http:
-            config = http.clouds_yaml(tmp_path_factory.mktemp("os"), CLOUD)
-            saved = {k: os.environ.pop(k) for k in [k for k in os.environ if k.startswith("OS_")]}
-            os.environ.update(OS_CLIENT_CONFIG_FILE=str(config), OS_CLIENT_SECURE_FILE=str(config.parent / "none.yaml"))
-            try:
-                conn = openstack.connect(cloud=CLOUD)
-                yield conn, fake, boot, http
-                conn.close()
-            finally:
-                for k in [k for k in os.environ if k.startswith("OS_")]:
-                    del os.environ[k]
-                os.environ.update(saved)
+        boot = http.fake.boot
+        saved = {k: os.environ.pop(k) for k in [k for k in os.environ if k.startswith("OS_")]}
+        os.environ.update({k: v for k, v in http.environ().items() if v})
+        try:
+            conn = openstack.connect(cloud=CLOUD)
+            yield conn, http.fake, boot, http
+            conn.close()
+        finally:
+            for k in [k for k in os.environ if k.startswith("OS_")]:
+                del os.environ[k]
+            os.environ.update(saved)
+    client = docker.from_env(timeout=60)  # booting_cloud's cleanup left nothing of the run
+    run = {"label": f"ccrp-fake={boot.run}"}
+    try:
+        assert (client.containers.list(all=True, filters=run), client.networks.list(filters=run),
+                client.images.list(filters=run)) == ([], [], [])
     finally:
-        boot.cleanup()
-        assert boot.leftovers() == []
-        boot.client.close()
+        client.close()
 
 
 def _key() -> paramiko.Ed25519Key:

@@ -11,12 +11,20 @@ HTTP/1.1 keep-alive.
     with OpenStackHttp(FakeOpenStack(boot=CloudBoot())) as served:
         config = served.clouds_yaml(tmp_path, "fake")   # OS_CLIENT_CONFIG_FILE=config
         ...
+
+or, servers booting and everything of the run removed at the end (`booting_cloud`):
+
+    with booting_cloud(tmp_path, "fake") as served:
+        subprocess.run(["ccrp", "fleet", "up", "-i", inventory], env={**os.environ, **served.environ()})
 """
 
 from __future__ import annotations
 
 import json
+import os
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -73,6 +81,7 @@ class OpenStackHttp:
         self.url = f"http://127.0.0.1:{self.port}"
         handler.root = self.url
         self._thread: threading.Thread | None = None
+        self.config_path: Path | None = None
 
     @property
     def auth_url(self) -> str:
@@ -109,4 +118,33 @@ class OpenStackHttp:
         `openstack.connect(cloud=...)` or `ccrp` with provider.cloud = `cloud`."""
         path = Path(directory) / "clouds.yaml"
         path.write_text(json.dumps({"clouds": {cloud: self.cloud_config()}}, indent=2) + "\n")
+        self.config_path = path
         return path
+
+    def environ(self) -> dict[str, str]:
+        """The environment for a client process: the clouds.yaml written last, no secure.yaml,
+        and every OS_* variable of this process blanked (openstacksdk would merge them in)."""
+        env = {k: "" for k in os.environ if k.startswith("OS_")}
+        env["OS_CLIENT_CONFIG_FILE"] = str(self.config_path)
+        env["OS_CLIENT_SECURE_FILE"] = str(self.config_path.parent / "no-secure.yaml")
+        return env
+
+
+@contextmanager
+def booting_cloud(directory: Path, cloud: str = "ccrp-fake", run_id: str | None = None,
+                  **fake_options) -> Iterator[OpenStackHttp]:
+    """A FakeOpenStack whose servers boot (cloudboot), served on 127.0.0.1, its clouds.yaml in
+    `directory` for `cloud`; on exit the server stops and every container, network and image of
+    the run is removed, whatever happened. `fake_options`: FakeOpenStack's (fip_cidr, vendor_data).
+    The served object has .fake (fip_network, fip_cidr, servers...) and .fake.boot (CloudBoot)."""
+    from .cloudboot import CloudBoot
+
+    boot = CloudBoot(run_id)
+    try:
+        boot.base_image()  # built once per machine (about a minute), before any client waits on it
+        with OpenStackHttp(FakeOpenStack(boot=boot, **fake_options)) as served:
+            served.clouds_yaml(directory, cloud)
+            yield served
+    finally:
+        boot.cleanup()
+        boot.client.close()
