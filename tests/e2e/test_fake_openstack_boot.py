@@ -283,3 +283,25 @@ def test_servers_boot_console_ssh_snapshot_and_go(served):
     assert client.images.list(filters=run) == []
     assert [n.name for n in client.networks.list(filters=run)] == [fake.fip_network]  # the fake's own, until cleanup
     print("timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()))
+
+
+def test_a_run_abandoned_mid_boot_leaves_nothing(tmp_path):
+    """The client goes away while servers boot and a snapshot is being taken (a failed test):
+    leaving booting_cloud removes every container, network and image of the run all the same."""
+    if not _image_buildable():
+        pytest.skip(f"{DEBIAN_12} is missing and mmdebstrap is not installed to build it")
+    with booting_cloud(tmp_path, CLOUD) as http:
+        fake, boot = http.fake, http.fake.boot
+        conn = openstack.connect(auth_url=http.auth_url, username="u", password="p", project_name="p",
+                                 user_domain_name="default", project_domain_name="default", region_name="RegionOne")
+        ext = conn.network.find_network("public", ignore_missing=False)
+        net = conn.network.create_network(name="n")
+        subnet = conn.network.create_subnet(network_id=net.id, cidr="10.213.48.0/24", ip_version=4)
+        base = conn.image.find_image(BOOT_IMAGE, ignore_missing=False)
+        first, _, _ = _boot(conn, "a", base.id, net, subnet, ext, _key(), None)
+        conn.compute.wait_for_server(first, status="ACTIVE", interval=0.2, wait=BOOT_TIMEOUT)
+        conn.compute.create_server_image(first, "a-snap", wait=False)
+        _boot(conn, "b", base.id, net, subnet, ext, _key(), None)  # still in BUILD when we leave
+        conn.close()
+    assert boot.leftovers() == []
+    assert fake.wait_idle(0)

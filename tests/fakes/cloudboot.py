@@ -189,6 +189,7 @@ class CloudBoot:
         self.attached: dict[str, dict[str, str]] = {}  # server id -> {docker network name: ip}
         self.images: set[str] = set()               # image refs captured by this run
         self._base_lock = threading.Lock()
+        self.closed = False  # set by cleanup(): what a late thread creates is removed at once
 
     # -- images ---------------------------------------------------------------------------------
     def base_image(self) -> str:
@@ -208,6 +209,7 @@ class CloudBoot:
         with self.lock:
             if net_name in self.networks:
                 return net_name
+            self._check_open()
             subnet = ipaddress.IPv4Network(cidr)
             ours = {f"br-{n.id[:12]}" for n in self.networks.values()}  # Docker's names of its bridges
             for other, what in host_ranges().items():
@@ -272,6 +274,9 @@ class CloudBoot:
             networking_config=self.client.api.create_networking_config(endpoints) if endpoints else None)
         container = self.client.containers.get(created["Id"])
         with self.lock:
+            if self.closed:  # cleaned up while this was being created
+                container.remove(force=True, v=True)
+                self._check_open()
             self.containers[server_id] = container
             self.attached[server_id] = dict(networks[:1])
         for net, ip in networks[1:]:
@@ -283,6 +288,10 @@ class CloudBoot:
                 (f"{SEED_DIR}/vendor-data", vendor_data or b"", 0o600)]  # empty: none (a snapshot's is replaced)
         container.put_archive("/", _tar(seed))
         container.start()
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise RuntimeError(f"cloudboot run {self.run} was cleaned up")
 
     def _container(self, server_id: str):
         with self.lock:
@@ -354,6 +363,9 @@ class CloudBoot:
         container.commit(repository=repo, tag=tag, conf={"Labels": {**self.labels}})
         ref = f"{repo}:{tag}"
         with self.lock:
+            if self.closed:
+                self.client.images.remove(ref, force=True)
+                self._check_open()
             self.images.add(ref)
         return ref
 
@@ -376,6 +388,8 @@ class CloudBoot:
     def cleanup(self) -> None:
         """Remove every container, network and image labelled with this run, even ones this
         object lost track of (a crash between create and bookkeeping)."""
+        with self.lock:
+            self.closed = True
         f = {"label": f"{LABEL}={self.run}"}
         for c in self.client.containers.list(all=True, filters=f):
             try:

@@ -442,6 +442,21 @@ class FakeOpenStack(NeutronApi):
         self._threads[server["id"]] = thread
         thread.start()
 
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Wait for the servers' background tasks (boot, stop, capture, delete) to end; False
+        when some still run after `timeout` seconds."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self.lock:
+                threads = list(getattr(self, "_threads", {}).values())
+            if not threads:
+                return True
+            for t in threads:
+                t.join(max(0.0, deadline - time.monotonic()))
+            if time.monotonic() >= deadline:
+                with self.lock:
+                    return not any(t.is_alive() for t in getattr(self, "_threads", {}).values())
+
     def _boot_server(self, server_id: str) -> None:
         with self.lock:
             server = self.servers[server_id]

@@ -140,11 +140,15 @@ def booting_cloud(directory: Path, cloud: str = "ccrp-fake", run_id: str | None 
     from .cloudboot import CloudBoot
 
     boot = CloudBoot(run_id)
+    fake = None
     try:
         boot.base_image()  # built once per machine (about a minute), before any client waits on it
-        with OpenStackHttp(FakeOpenStack(boot=boot, **fake_options)) as served:
+        fake = FakeOpenStack(boot=boot, **fake_options)
+        with OpenStackHttp(fake) as served:
             served.clouds_yaml(directory, cloud)
             yield served
     finally:
-        boot.cleanup()
+        if fake is not None:
+            fake.wait_idle(30)  # a boot under way finishes (or fails) before the sweep
+        boot.cleanup()          # and whatever a thread still creates after it is removed at once
         boot.client.close()
