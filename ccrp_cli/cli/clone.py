@@ -59,7 +59,10 @@ def exec_(
     timeout: Annotated[float, typer.Option(help="Seconds before the command is killed.")] = 600,
 ) -> None:
     """Run a command inside the robot's clone: ccrp clone exec -i INV --robot nao1 -- rostopic list"""
-    fleet, provider = options.open_provider(inventory)
-    rc, out = provider.exec(robot, command, timeout=timeout)
+    fleet = options.open_fleet(inventory)
+    fleet.robot(fleet.store.load_state(), robot)  # a robot the fleet does not have is bad input
+    from ..providers import get_provider
+
+    rc, out = get_provider(fleet.inventory).exec(robot, command, timeout=timeout)
     typer.echo(out, nl=False)
     raise typer.Exit(rc)

@@ -1,0 +1,226 @@
+"""One user's script, run against every backend: Docker for real, and OpenStack, GCP and AWS
+through their fakes, whose servers really boot (tests/fakes/cloudboot.py).
+
+The commands are the ones a user types, in the order a user types them. Each must exit with its
+documented code (0 ok, 1 failed, 2 bad input, 3 partial failure) and never print a traceback; at the
+end the backend holds nothing carrying the fleet's labels. Tests of a backend run in order and
+share its fleet (module-scoped); a failed step skips the steps that need it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import secrets
+import subprocess
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from tests.e2e.test_docker_fleet import _NO_DOCKER
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
+]
+
+BACKENDS = ["docker", "openstack", "gcp", "aws"]
+CONNECT = 120  # seconds a simulated robot gets to install its bundle and connect
+ROBOTS = ["nao1", "nao2"]
+
+
+class Run:
+    """A backend plus the steps done so far (a step that needs a failed one is skipped)."""
+
+    def __init__(self, backend, fleet: str) -> None:
+        self.b, self.fleet, self.done = backend, fleet, set()
+
+    def ccrp(self, *args: str, code: int = 0, timeout: float = 1200) -> subprocess.CompletedProcess:
+        argv = [*args, "-i", str(self.b.inventory)] if args[0] not in ("--help",) else list(args)
+        if "--" in args:  # options go before the command of `clone exec ... -- CMD`
+            cut = args.index("--")
+            argv = [*args[:cut], "-i", str(self.b.inventory), *args[cut:]]
+        proc = self.b.ccrp(*argv, timeout=timeout)
+        assert "Traceback" not in proc.stderr, f"ccrp {' '.join(args)} printed a traceback:\n{proc.stderr[-3000:]}"
+        assert proc.returncode == code, (f"ccrp {' '.join(args)} exited {proc.returncode}, wanted {code}\n"
+                                         f"stderr: {proc.stderr[-3000:]}\nstdout: {proc.stdout[-1000:]}")
+        return proc
+
+    def json(self, *args: str, code: int = 0):
+        return json.loads(self.ccrp(*args, "--json", code=code).stdout)
+
+    def status(self) -> dict[str, dict]:
+        return {r["robot"]: r for r in self.json("status")}
+
+    def needs(self, *steps: str) -> None:
+        missing = [s for s in steps if s not in self.done]
+        if missing:
+            pytest.skip(f"needs the earlier step(s) {', '.join(missing)}")
+
+
+@pytest.fixture(scope="module", params=BACKENDS)
+def run(request, tmp_path_factory):
+    kind = request.param
+    try:
+        module = importlib.import_module(f"tests.scenarios.backend_{kind}")
+    except ModuleNotFoundError as exc:
+        pytest.skip(f"no scenario backend for {kind} ({exc})")
+    fleet = f"sc{kind[:2]}{secrets.token_hex(2)}"
+    with module.open_backend(tmp_path_factory.mktemp(f"scenario-{kind}"), fleet) as backend:
+        r = Run(backend, fleet)
+        yield r
+        # Whatever failed, nothing of the fleet may stay: fleet down once more if a step did not.
+        if "down" not in r.done:
+            r.b.ccrp("robot", "sim", "--robot", "nao1", "--stop", "-i", str(backend.inventory))
+            r.b.ccrp("robot", "sim", "--robot", "nao2", "--stop", "-i", str(backend.inventory))
+            r.b.ccrp("fleet", "down", "-i", str(backend.inventory))
+
+
+def test_validate_and_vpn_init(run):
+    plan = run.json("fleet", "validate")
+    assert plan["provider"] == run.b.kind and [r["name"] for r in plan["robots"]] == ROBOTS, plan
+    run.ccrp("vpn", "init")
+    run.ccrp("vpn", "init")  # idempotent
+    run.done.add("pki")
+
+
+def test_snapshot(run):
+    run.needs("pki")
+    if run.b.kind == "docker":
+        run.ccrp("snapshot", "bake", code=2)  # the cloud's way: one line, nothing changed
+        run.ccrp("snapshot", "build", "--if-missing")
+    else:
+        run.ccrp("snapshot", "build", code=2)  # Docker's way
+        run.ccrp("snapshot", "bake", timeout=1800)
+    snaps = run.json("snapshot", "list")
+    assert len(snaps) == 1, snaps
+    run.done.add("snapshot")
+
+
+def test_fleet_plan_then_up_twice(run):
+    run.needs("snapshot")
+    assert {r["robot"]: r["action"] for r in run.json("fleet", "plan")} == {r: "create" for r in ROBOTS}
+    run.ccrp("fleet", "up")
+    again = run.json("fleet", "up")  # nothing to do: every clone reused
+    assert {r["robot"]: r["action"] for r in again} == {r: "reused" for r in ROBOTS}, again
+    assert {r["robot"]: r["action"] for r in run.json("fleet", "plan")} == {r: "keep" for r in ROBOTS}
+    run.done.add("up")
+
+
+def test_status_shows_every_clone_running_with_its_master(run):
+    run.needs("up")
+    rows = run.status()
+    for robot in ROBOTS:
+        assert rows[robot]["status"] and rows[robot]["phase"] == "ready", rows[robot]
+        assert rows[robot]["master_reachable"] is True, rows[robot]
+        assert rows[robot]["public_ip"], rows[robot]
+
+
+def test_clone_exec(run):
+    run.needs("up")
+    assert run.ccrp("clone", "exec", "--robot", "nao1", "--", "hostname").stdout.strip() == "cri-nao1"
+    run.ccrp("clone", "exec", "--robot", "nao1", "--", "sh", "-c", "exit 7", code=7)
+    run.ccrp("clone", "exec", "--robot", "nobody", "--", "true", code=2)
+
+
+def _sim(run, robot: str) -> dict:
+    extra = ["--network", run.b.sim_network] if run.b.sim_network else []
+    return run.json("robot", "sim", "--robot", robot, "--wait", str(CONNECT), *extra)
+
+
+def test_simulated_robot_connects_through_its_clone(run):
+    """The robot side for real: the edge bundle installed in a container of this host, OpenVPN
+    with certificate + password to its clone's public IP, its node on the clone's master."""
+    run.needs("up")
+    result = _sim(run, "nao1")
+    assert result["nodes"] == ["/nao1_demo"], result
+    row = run.status()["nao1"]
+    assert row["vpn_connected"] and "/nao1_demo" in row["robot_nodes"], row
+    run.done.add("robot")
+
+
+def _ros(container, script: str, timeout: int) -> tuple[int, str]:
+    res = container.exec_run(["timeout", str(timeout), "bash", "-c", f"set -a; . /etc/ccrp/ros.env; set +a; {script}"])
+    return res.exit_code, res.output.decode(errors="replace")
+
+
+def test_topic_of_robot_nao1_reaches_robot_nao2_through_both_clones(run):
+    run.needs("robot")
+    import docker
+
+    _sim(run, "nao2")
+    client = docker.from_env()
+    try:
+        nao1, nao2 = (client.containers.get(f"ccrp-{run.fleet}-{r}") for r in ROBOTS)
+        marker = "face-" + secrets.token_hex(6)
+        with ThreadPoolExecutor(2) as pool:
+            echo = pool.submit(_ros, nao2, "rostopic echo -n 1 /nao1/faces", 60)
+            time.sleep(2)
+            pool.submit(_ros, nao1, f"rostopic pub -r 5 /faces std_msgs/String 'data: {marker}'", 55)
+            rc, out = echo.result()
+    finally:
+        client.close()
+    assert rc == 0 and marker in out, f"/faces of robot nao1 never reached robot nao2 as /nao1/faces: {out[-800:]}"
+    assert run.status()["nao2"]["relay_peers"] == {"nao1": True}
+
+
+def test_topics_matrix(run):
+    pairs = {(r["source"], r["topic"], r["dest"], r["as"]) for r in run.json("topics")}
+    assert ("nao1", "/faces", "nao2", "/nao1/faces") in pairs
+
+
+def test_clone_delete_and_create(run):
+    run.needs("up")
+    run.ccrp("robot", "sim", "--robot", "nao2", "--stop")
+    run.ccrp("clone", "delete", "--robot", "nao2")
+    assert run.status()["nao2"]["status"] == "absent"
+    run.ccrp("clone", "create", "--robot", "nao2")
+    assert run.status()["nao2"]["master_reachable"] is True
+
+
+def test_fleet_scale_up_and_down(run):
+    run.needs("up")
+    run.ccrp("fleet", "scale", "3")
+    assert run.status()["robot1"]["master_reachable"] is True
+    run.ccrp("fleet", "scale", "2")
+    assert "robot1" not in run.status()
+    run.ccrp("fleet", "scale", "1", code=2)  # below the inventory's robots: refused, nothing changed
+    assert sorted(run.status()) == ROBOTS
+
+
+@pytest.mark.parametrize("fault", ["quota", "zone", "storm"])
+def test_cloud_faults_give_per_robot_results_and_a_rerun_converges(run, fault):
+    run.needs("up")
+    if fault not in run.b.faults:
+        pytest.skip(f"{run.b.kind} has no {fault} fault to inject")
+    with run.b.faults[fault]():
+        proc = run.b.ccrp("fleet", "scale", "3", "--json", "-i", str(run.b.inventory), timeout=1200)
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    if fault == "quota":  # robot1 could not be created: the others are untouched
+        assert proc.returncode == 3, proc.stderr[-2000:]
+        rows = {r["robot"]: r for r in json.loads(proc.stdout)}
+        assert rows["robot1"]["action"] == "failed" and "quota" in rows["robot1"]["detail"].lower(), rows
+        assert rows["nao1"]["action"] == "reused", rows
+    else:  # the next zone, or retries, absorb it
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    run.ccrp("fleet", "scale", "3")  # converges once the fault is gone
+    assert run.status()["robot1"]["master_reachable"] is True
+    run.ccrp("fleet", "scale", "2")
+
+
+def test_doctor(run):
+    run.needs("snapshot")
+    checks = {c["check"]: c for c in run.json("doctor")}
+    assert checks["snapshot"]["status"] == "ok", checks
+    assert not [c for c in checks.values() if c["status"] == "fail"], checks
+
+
+def test_fleet_down_leaves_nothing(run):
+    run.needs("pki")
+    run.ccrp("robot", "sim", "--robot", "nao1", "--stop")
+    run.ccrp("fleet", "down")
+    run.done.add("down")
+    assert run.json("gc", "--dry-run") == []
+    assert run.b.owned() == [], f"{run.b.kind} still holds the fleet's: {run.b.owned()}"
+    run.ccrp("fleet", "down")  # again: nothing to do, still fine
