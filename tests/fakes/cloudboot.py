@@ -42,7 +42,7 @@ import docker.errors
 
 LABEL = "ccrp-fake"               # = run id, on everything a run creates
 IMAGE_LABEL = "ccrp-fake-image"   # on the base images, kept between runs
-DEBIAN_12 = "ccrp-fake/debian-12-genericcloud:latest"
+DEBIAN_12 = "ccrp-fake/debian-12-genericcloud:2"  # 2: trusts this machine's egress CAs
 DEBIAN_12_ROOTFS = "ccrp-fake/debian-12-rootfs:latest"
 SEED_DIR = "var/lib/cloud/seed/nocloud"
 
@@ -55,10 +55,14 @@ PACKAGES = ["systemd", "systemd-sysv", "dbus", "cloud-init", "openssh-server", "
 # The layer over the rootfs: NoCloud only (no metadata service to probe for), no network
 # configuration by cloud-init, no baked host keys, cloud-init's units and sshd enabled, consoles
 # without a getty (the console is the log), en_US.UTF-8 generated once here (cloud-init's locale
-# module would run locale-gen at every first boot otherwise).
+# module would run locale-gen at every first boot otherwise). The CAs this machine adds for its
+# egress (/usr/local/share/ca-certificates) are trusted too: the fake cloud's servers reach PyPI
+# through the same network as the host, as a cloud's servers reach the internet.
 DOCKERFILE = """FROM {rootfs}
 ENV container=docker
-RUN printf 'datasource_list: [ NoCloud, None ]\\n' > /etc/cloud/cloud.cfg.d/90-ccrp-fake-datasource.cfg \\
+COPY extra-ca/ /usr/local/share/ca-certificates/
+RUN update-ca-certificates >/dev/null \
+ && printf 'datasource_list: [ NoCloud, None ]\\n' > /etc/cloud/cloud.cfg.d/90-ccrp-fake-datasource.cfg \\
  && printf 'network:\\n  config: disabled\\n' > /etc/cloud/cloud.cfg.d/99-ccrp-fake-network.cfg \\
  && rm -f /etc/ssh/ssh_host_* \\
  && mkdir -p /{seed} \\
@@ -165,7 +169,9 @@ def build_debian_12(client, progress=print, force: bool = False) -> str:
                 client.api.import_image_from_data(fh, repository=repo, tag=tag, changes=[
                     'CMD ["/lib/systemd/systemd"]', f"LABEL {IMAGE_LABEL}=debian-12-rootfs"])
     progress(f"cloudboot: building {DEBIAN_12}")
-    context = _tar([("Dockerfile", DOCKERFILE.format(rootfs=DEBIAN_12_ROOTFS, seed=SEED_DIR).encode(), 0o644)])
+    extra_ca = [(f"extra-ca/{p.name}", p.read_bytes(), 0o644) for p in sorted(Path("/usr/local/share/ca-certificates").glob("*.crt"))]
+    context = _tar([("Dockerfile", DOCKERFILE.format(rootfs=DEBIAN_12_ROOTFS, seed=SEED_DIR).encode(), 0o644),
+                    ("extra-ca/.keep", b"", 0o644), *extra_ca])
     for chunk in client.api.build(fileobj=io.BytesIO(context), custom_context=True, tag=DEBIAN_12, rm=True,
                                   forcerm=True, decode=True, labels={IMAGE_LABEL: "debian-12-genericcloud"}):
         if "error" in chunk:
