@@ -58,7 +58,7 @@ def run_once(robots: int) -> dict[str, float]:
         for name in names:
             view = clone_view(fleet, state, name)
             creds = fleet.pki.credentials(name)
-            cloudinit.user_data(view, default_user=False)
+            cloudinit.user_data(view)
             rendered.append((name, bundles.clone_secrets(view, creds), bundles.edge_bundle(view, creds, "203.0.113.10")))
         t3 = time.perf_counter()
         for name, secret_files, edge_files in rendered:

@@ -123,12 +123,12 @@ def wait_serving(provider: Provider, robot: str, master_port: int, timeout: floa
 
 
 def clone_user_data(view, provider: Provider, bare: bool) -> str:
-    """A cloud clone keeps the image's login user (ubuntu) with the fleet's operator key: the SSH
-    transport logs in as it. A Docker clone has no login user; its transport is the Docker API."""
+    """A cloud clone gets ccrp's login user (render/view.py LOGIN_USER) with the fleet's operator key:
+    the SSH transport logs in as it. A Docker clone has no login user; its transport is the Docker API."""
     from .render import cloudinit
 
     login = [provider.operator_public_key()] if hasattr(provider, "operator_public_key") else None
-    return cloudinit.user_data(view, default_user=bool(login), ssh_authorized_keys=login, install_packages=bare)
+    return cloudinit.user_data(view, login_keys=login, install_packages=bare)
 
 
 def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress) -> CloneResult:

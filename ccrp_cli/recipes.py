@@ -8,22 +8,18 @@ import yaml
 from pydantic import BaseModel, ConfigDict
 
 from .errors import InputError
+from .providers import REGISTRY
 from .resources import data_dir
 
 
-class AptSource(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    source: str
-    keyid: str
-
-
 class Platform(BaseModel):
+    """What a clone image holds beyond its base: packages from the distribution's own archive
+    (no third-party apt source) and the clone agents' Python packages."""
+
     model_config = ConfigDict(extra="forbid")
     packages: list[str]
-    apt_sources: list[AptSource] = []
     # Python packages for the clone's agents (the relay's Zenoh), installed with the system pip.
     pip: list[str] = []
-    ros_setup: str | None = None
 
 
 class Recipe(BaseModel):
@@ -32,8 +28,11 @@ class Recipe(BaseModel):
     platforms: dict[str, Platform]
 
 
-# Which platform each provider's clones run.
-PROVIDER_PLATFORM = {"docker": "debian-bookworm", "openstack": "ubuntu-focal", "gcp": "ubuntu-focal", "aws": "ubuntu-focal"}
+# Which platform each provider's clones run, as each backend declares it (ProviderInfo.platform):
+# debian-bookworm on all four, so a clone behaves the same on every backend. Debian 12 ships
+# OpenVPN 2.6, which the rendered server.conf needs (data-ciphers); Ubuntu 20.04's OpenVPN 2.4
+# refuses it, which is why no focal platform exists any more.
+PROVIDER_PLATFORM = {kind: info.platform for kind, info in REGISTRY.items()}
 
 
 @cache

@@ -67,12 +67,24 @@ def _use(fleet: Fleet, record: SnapshotRecord, bare: bool = False, image: str | 
 # -- clouds: bake a snapshot on a builder instance ----------------------------------------------------
 
 BUILDER = "snapshot-builder"  # its robot label: the hyphen keeps it out of robot names' alphabet
-# Base images clouds publish under a stable name (Ubuntu 20.04, the recipes' ubuntu-focal).
-DEFAULT_BASE = {"gcp": "projects/ubuntu-os-cloud/global/images/family/ubuntu-2004-lts"}
+# The stock Debian 12 (bookworm) cloud image each cloud's builder starts from, the recipes'
+# debian-bookworm platform. GCP: Debian's public image family. AWS: the public SSM parameter Debian
+# publishes its current AMI under, resolved by the AWS provider (resolve_image). OpenStack: Debian's
+# generic cloud image, uploaded to Glance under the name of its file. --base-image and the
+# inventory's provider.image (OpenStack) override them.
+DEFAULT_BASE = {
+    "gcp": "projects/debian-cloud/global/images/family/debian-12",
+    "aws": "/aws/service/debian/release/bookworm/latest/amd64",
+    "openstack": "debian-12-genericcloud-amd64",
+}
 BASE_HINT = {
-    "openstack": "the name or id of an Ubuntu 20.04 image in Glance (`openstack image list`)",
-    "aws": "an Ubuntu 20.04 AMI id of the region, e.g. from `aws ssm get-parameter --name "
-           "/aws/service/canonical/ubuntu/server/20.04/stable/current/amd64/hvm/ebs-gp2/ami-id`",
+    "openstack": "upload Debian 12's generic cloud image to Glance under that name: `openstack image create --disk-format "
+                 "qcow2 --file debian-12-genericcloud-amd64.qcow2 debian-12-genericcloud-amd64` (from "
+                 "https://cloud.debian.org/images/cloud/bookworm/latest/), or name another Debian 12 image in "
+                 "provider.image or --base-image",
+    "gcp": "pass --base-image projects/debian-cloud/global/images/family/debian-12 or another Debian 12 image",
+    "aws": "pass --base-image with a Debian 12 AMI id of the region: `aws ssm get-parameter --name "
+           "/aws/service/debian/release/bookworm/latest/amd64`",
 }
 
 
@@ -90,9 +102,9 @@ def _region(inv) -> str:
 
 def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = None, timeout: float = 1800,
          poll: float = 10) -> SnapshotRecord:
-    """Boot a builder instance from an Ubuntu base image with user-data that installs the recipe,
-    wait until its console proves the install finished, capture it, and record the snapshot for
-    new clones. The builder is terminated in every case (failure, timeout, Ctrl-C)."""
+    """Boot a builder instance from a stock Debian 12 cloud image with user-data that installs the
+    recipe, wait until its console proves the install finished, capture it, and record the snapshot
+    for new clones. The builder is terminated in every case (failure, timeout, Ctrl-C)."""
     import secrets
 
     from .errors import InputError
@@ -104,9 +116,12 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     inv = fleet.inventory
     kind = inv.provider.kind
     require(kind, Ability.BAKE, hint=f"on {kind} the golden image is built locally: `ccrp snapshot build`")
-    base = base_image or getattr(inv.provider, "image", None) or DEFAULT_BASE.get(kind)
-    if not base:
-        raise InputError(f"no base image to bake the {kind} snapshot from", hint=f"pass --base-image: {BASE_HINT[kind]}")
+    base = base_image or getattr(inv.provider, "image", None) or DEFAULT_BASE[kind]
+    # A cloud may name its images indirectly (AWS: an SSM parameter): the state records what was used.
+    resolve = getattr(provider, "resolve_image", None)
+    base = resolve(base) if resolve else base
+    if not provider.has_image(base):
+        raise InputError(f"base image {base} not found on {kind}", hint=BASE_HINT[kind])
     token = secrets.token_hex(8)
     user_data = builder_user_data(inv, token)
     fit_user_data(kind, user_data)
@@ -147,7 +162,7 @@ def _wait_baked(provider, token: str, proofs: list[str], timeout: float, poll: f
             if missing:
                 tail = " | ".join(console.strip().splitlines()[-5:])[-300:]
                 raise CcrpError(f"the builder finished but its {' and '.join(missing)} install failed: {tail}",
-                                hint="check that the base image is Ubuntu 20.04 and can reach its package mirrors")
+                                hint="check that the base image is Debian 12 and can reach deb.debian.org and PyPI")
             progress(f"builder finished installing after {time.monotonic() - t0:.0f} s")
             return
         if time.monotonic() - t0 > timeout:

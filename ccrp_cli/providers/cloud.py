@@ -15,11 +15,13 @@ from pathlib import Path
 
 from ..errors import CcrpError
 from ..models.inventory import Inventory
+from ..render.view import LOGIN_USER
 from ..retry import Backoff, ErrorClass, call
 from .base import CloneRecord, check_cloud_init
 
-# Login user of the snapshot images (Ubuntu cloud images); cloud-init creates it.
-SSH_USER = "ubuntu"
+# The login on every cloud clone: the clone's user-data creates it with the operator key
+# (render/cloudinit.py login_user), whatever user the base image has of its own.
+SSH_USER = LOGIN_USER
 # Trust on first use when the console shows no host keys: only when asked for explicitly.
 TOFU_ENV = "CCRP_SSH_TOFU"
 CONSOLE_POLL = 5.0  # seconds between console reads while an instance boots

@@ -12,7 +12,7 @@ from ..models.inventory import Inventory
 from ..recipes import platform
 from . import network, openvpn
 from .templates import static
-from .view import CCRP_ETC, CCRP_LIB, RELAY_USER, SECRETS_DIR, VPN_DIR, CloneView
+from .view import CCRP_ETC, CCRP_LIB, LOGIN_USER, RELAY_USER, SECRETS_DIR, VPN_DIR, CloneView
 
 
 def agent_source(name: str) -> str:
@@ -32,9 +32,10 @@ def user_data_dict(
     view: CloneView,
     *,
     install_packages: bool = False,
-    default_user: bool = True,
-    ssh_authorized_keys: list[str] | None = None,
+    login_keys: list[str] | None = None,
 ) -> dict[str, Any]:
+    """A cloud clone gets `login_keys` (the fleet's operator key) for LOGIN_USER, the one login ccrp's
+    SSH transport uses; without them (Docker) the clone has no login user at all."""
     a = view.addr
     fw4, fw6 = network.firewall_rules(view)
     relay = view.inv.sharing.engine == "relay"
@@ -53,8 +54,9 @@ def user_data_dict(
         _file(f"{CCRP_LIB}/ros-run", static("clone/ros-run"), "0755"),
     ] + [_file(f"/etc/systemd/system/{u}", static(f"systemd/{u}")) for u in units]
 
-    # "default" is the image's login user (ubuntu, debian...), which receives ssh_authorized_keys.
-    users: list[Any] = ["default"] if default_user else []
+    # No "default": the images' own login users differ per cloud, so ccrp defines its own and the
+    # image's is not created (keys from the cloud's key pair then go to root, with logins refused).
+    users: list[Any] = [login_user(login_keys)] if login_keys else []
     users += [
         {"name": "openvpn", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
         {"name": "ros", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "homedir": "/var/lib/ros"},
@@ -82,8 +84,6 @@ def user_data_dict(
         # bootcmd runs at every boot, before sshd: ccrp can only push into memory. After a
         # reboot the keys are gone and `ccrp fleet up` pushes them again.
         data["bootcmd"] = secrets_tmpfs_bootcmd()
-    if ssh_authorized_keys:
-        data["ssh_authorized_keys"] = list(ssh_authorized_keys)
     if install_packages:
         # A bare base image: install at boot what a snapshot would already contain.
         image = image_config(view.inv)
@@ -91,6 +91,11 @@ def user_data_dict(
         data["runcmd"][:0] = image.pop("runcmd")
         data.update(image)
     return data
+
+
+def login_user(keys: list[str]) -> dict[str, Any]:
+    return {"name": LOGIN_USER, "shell": "/bin/bash", "sudo": "ALL=(ALL) NOPASSWD:ALL", "lock_passwd": True,
+            "ssh_authorized_keys": list(keys)}
 
 
 def secrets_tmpfs_bootcmd() -> list[list[str]]:
@@ -103,21 +108,27 @@ def secrets_tmpfs_bootcmd() -> list[list[str]]:
     ]
 
 
+# The locale of every clone image, set as templates/docker/Dockerfile.j2 sets it (it renders this
+# same command): generated once in the image and recorded in /etc/default/locale, so cloud-init's
+# locale module finds it set and no clone runs locale-gen at boot (seconds of CPU each).
+LOCALE = "en_US.UTF-8"
+LOCALE_SETUP = (f"sed -i 's/^# *\\({LOCALE} UTF-8\\)/\\1/' /etc/locale.gen && locale-gen >/dev/null "
+                f"&& update-locale LANG={LOCALE}")
+
+
 def image_config(inv: Inventory) -> dict[str, Any]:
-    """What a snapshot holds beyond its base image, as cloud-config: the recipe's apt sources and
-    packages and, for the relay, its agent and Zenoh. A clone of a bare image runs it at first
-    boot; `snapshot bake` runs it once on a builder instance."""
+    """What a snapshot holds beyond its base image, as cloud-config: what the Docker snapshot holds
+    (templates/docker/Dockerfile.j2), installed on a stock Debian 12 cloud image. That is the
+    recipe's packages from Debian's archive, the relay agent and its pinned Zenoh from pip, and the
+    locale. A clone of a bare image runs it at first boot; `snapshot bake` runs it once on a builder
+    instance."""
     plat = platform(inv.ros.distro, inv.provider.kind)
-    data: dict[str, Any] = {}
-    if plat.apt_sources:
-        data["apt"] = {"sources": {f"ccrp{i}.list": s.model_dump() for i, s in enumerate(plat.apt_sources)}}
-    data["package_update"] = True
-    data["packages"] = [p for p in plat.packages if p not in ("cloud-init",)]
-    data["write_files"], data["runcmd"] = [], []
-    if inv.sharing.engine == "relay":
-        # The relay agent and its Zenoh (cloud-init installs packages before runcmd, so pip3
-        # exists by then).
+    data: dict[str, Any] = {"package_update": True, "packages": list(plat.packages)}
+    # cloud-init installs packages (final stage) before runcmd runs, so pip3 and locale-gen exist by then.
+    data["write_files"], data["runcmd"] = [], [["sh", "-c", LOCALE_SETUP]]
+    if plat.pip:
         data["write_files"].append(_file(f"{CCRP_LIB}/relay.py", agent_source("relay"), "0755"))
+        # Debian's python is externally managed (PEP 668): pip installs next to it only when told to.
         data["runcmd"].append(["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip])
     return data
 
@@ -130,9 +141,15 @@ def _proof(token: str, what: str, argv: list[str]) -> list[str]:
     return ["sh", "-c", script, token, *argv]
 
 
+# Each recipe package installed (dpkg's "install ok installed", as the Dockerfile checks), not merely known.
+INSTALLED_SH = 'for p; do dpkg-query -W -f="\\${Status}" "$p" | grep -q "install ok installed" || exit 1; done'
+# The locale generated and recorded (LOCALE_SETUP), so clones do not generate it at boot.
+LOCALE_SH = f'grep -qx "LANG={LOCALE}" /etc/default/locale && locale -a | grep -qix "{LOCALE.replace("-", "")}"'
+
+
 def bake_proofs(inv: Inventory) -> list[str]:
     """What a builder's console must show (as "ccrp-bake <token> <what>-ok") before it is captured."""
-    return ["apt"] + (["pip"] if image_config(inv)["runcmd"] else [])
+    return ["apt", "locale"] + (["pip"] if platform(inv.ros.distro, inv.provider.kind).pip else [])
 
 
 def builder_user_data(inv: Inventory, token: str) -> str:
@@ -141,7 +158,8 @@ def builder_user_data(inv: Inventory, token: str) -> str:
     plat = platform(inv.ros.distro, inv.provider.kind)
     data = image_config(inv)
     pip_names = [re.split(r"[=<>!~;\[ ]", p, maxsplit=1)[0] for p in plat.pip]
-    data["runcmd"] += [_proof(token, "apt", ["dpkg-query", "-W", *data["packages"]])]
+    data["runcmd"] += [_proof(token, "apt", ["sh", "-c", INSTALLED_SH, "installed", *data["packages"]]),
+                       _proof(token, "locale", ["sh", "-c", LOCALE_SH])]
     if "pip" in bake_proofs(inv):
         data["runcmd"] += [_proof(token, "pip", ["python3", "-m", "pip", "show", *pip_names])]
     data["runcmd"] += [
@@ -167,7 +185,7 @@ _Dumper.add_representer(
 
 def dump(data: dict[str, Any]) -> str:
     text = "#cloud-config\n" + yaml.dump(data, Dumper=_Dumper, sort_keys=False, width=1000)
-    # Secrets only ever travel through the transport after boot (DESIGN.md §5).
+    # Secrets only ever travel through the transport after boot (docs/security.md).
     for marker in PRIVATE_KEY_MARKERS:
         if marker in text:
             raise CcrpError("refusing to render user-data that contains key material")

@@ -17,6 +17,10 @@ CCRP_ETC = "/etc/ccrp"
 CCRP_LIB = "/usr/local/lib/ccrp"
 # The topic relay runs as its own user: it reads only relay.key and ca.crt in SECRETS_DIR.
 RELAY_USER = "ccrp-relay"
+# The operator's login on a cloud clone (sudo, the fleet's operator key), created by the clone's
+# user-data on every cloud: the base images' own users differ (admin on AWS, debian on OpenStack,
+# none on GCP). Docker clones have no login user.
+LOGIN_USER = "ccrp"
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ def clone_spec(inv: Inventory, robot: str, index: int, image: str) -> CloneSpec:
     peers = tuple(addresses(inv, r, i) for i, r in enumerate(ROBOTS, 1) if r != robot)
     view = CloneView(inv, inv.robot(robot), addr, peers)
     return CloneSpec(
-        robot=robot, hostname=addr.clone_host, image=image, user_data=cloudinit.user_data(view, default_user=False),
+        robot=robot, hostname=addr.clone_host, image=image, user_data=cloudinit.user_data(view),
         instance_id=f"{inv.fleet}-{robot}-{index}", common_ip=str(addr.common_ip), vpn_subnet=str(addr.vpn_subnet),
     )
 

@@ -1,10 +1,10 @@
 """The SSH transport for real, against OpenSSH in local containers booted like cloud VMs.
 
 Each container runs the real cloud-init (22.4, NoCloud seed) and then sshd: cloud-init creates the
-`ubuntu` login user with passwordless sudo and the operator key, generates fresh host keys and
-prints them on its console (`docker logs` here; the serial console on a cloud) exactly as it does
-on a VM: the FINGERPRINTS block through `logger -s`, the KEYS block on stdout. ccrp pins what it
-reads there. Nothing is faked between ccrp and sshd.
+`ccrp` login user (cloudinit.login_user, as every cloud clone's user-data does) with passwordless
+sudo and the operator key, generates fresh host keys and prints them on its console (`docker logs`
+here; the serial console on a cloud) exactly as it does on a VM: the FINGERPRINTS block through
+`logger -s`, the KEYS block on stdout. ccrp pins what it reads there. Nothing is faked between ccrp and sshd.
 
 Containers and the test image carry the labels ccrp-test=ssh-transport and ccrp-test-run=<run>;
 a finalizer removes them even when a test fails. Only the containers' own addresses are dialled.
@@ -39,7 +39,7 @@ from ccrp_cli.errors import CcrpError  # noqa: E402
 from ccrp_cli.fleet import clone_view  # noqa: E402
 from ccrp_cli.loader import load_inventory  # noqa: E402
 from ccrp_cli.providers import cloud  # noqa: E402
-from ccrp_cli.providers.base import CloneRecord  # noqa: E402
+from ccrp_cli.providers.base import CloneRecord, CloneState  # noqa: E402
 from ccrp_cli.providers.docker.archive import tar_files  # noqa: E402
 from ccrp_cli.render import bundles, cloudinit, openvpn  # noqa: E402
 from ccrp_cli.render.bundles import BundleFile  # noqa: E402
@@ -144,8 +144,7 @@ def _user_data(public_key: str) -> str:
         # The hostname takes (SYS_ADMIN): sudo must resolve it, as a clone's own /etc/hosts does.
         "manage_etc_hosts": True,
         "groups": ["openvpn"],
-        "users": [{"name": "ubuntu", "shell": "/bin/bash", "sudo": "ALL=(ALL) NOPASSWD:ALL", "lock_passwd": True,
-                   "ssh_authorized_keys": [public_key]}],
+        "users": [cloudinit.login_user([public_key])],
         # As a cloud clone's user-data does: a tmpfs for the keys at every boot, the VPN directory.
         "bootcmd": cloudinit.secrets_tmpfs_bootcmd(),
         "runcmd": [["install", "-d", "-m", "0750", "-o", "root", "-g", "openvpn", VPN_DIR]],
@@ -214,7 +213,7 @@ def vm(client, image, operator_key) -> Vm:
 
 
 def _ssh(vm: Vm, key: Path, pins=(), **kw) -> SshTransport:
-    return SshTransport(vm.ip, "ubuntu", key, pins, **kw)
+    return SshTransport(vm.ip, cloud.SSH_USER, key, pins, **kw)
 
 
 # -- host keys ------------------------------------------------------------------------------------
@@ -228,7 +227,7 @@ def test_pinned_key_accepted_and_recorded(vm, operator_key, tmp_path):
     known = KnownHosts(tmp_path / "known_hosts")
     pins = fingerprints_from_console(vm.console())
     with _ssh(vm, operator_key[0], pins, known_hosts=known, host_alias="i-pinned") as ssh:
-        assert ssh.exec(["id", "-un"]) == (0, "ubuntu\n")
+        assert ssh.exec(["id", "-un"]) == (0, "ccrp\n")
     (key_type, b64), = known.keys("i-pinned")
     assert fingerprint(base64.b64decode(b64)) in pins
     assert stat.S_IMODE((tmp_path / "known_hosts").stat().st_mode) == 0o600
@@ -347,7 +346,7 @@ class ContainerCloud(cloud.CloudProvider):
         self.vms, self.console_of = vms, console_of or vms
 
     def query(self) -> dict[str, CloneRecord]:
-        return {r: CloneRecord(robot=r, provider_id=v.container.id[:12], status="running", public_ip=v.ip)
+        return {r: CloneRecord(robot=r, provider_id=v.container.id[:12], state=CloneState.RUNNING, status="running", public_ip=v.ip)
                 for r, v in self.vms.items()}
 
     def console_output(self, robot: str) -> str:

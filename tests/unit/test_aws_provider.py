@@ -174,3 +174,34 @@ def test_console_output_falls_back_when_latest_is_unsupported(mocked, tmp_path):
     assert "Linux version" in p.console_output("robot1")  # moto's console text, decoded from base64
     with pytest.raises(CcrpError, match="no clone"):
         p.console_output("robot2")
+
+
+DEBIAN_12 = "/aws/service/debian/release/bookworm/latest/amd64"
+
+
+def _publish(name: str, ami: str) -> None:
+    """A public parameter as AWS publishes it (moto refuses /aws/ names from put_parameter, so it goes
+    into moto's store the way moto loads AWS's own public parameters)."""
+    import time
+
+    from moto.core import DEFAULT_ACCOUNT_ID
+    from moto.ssm.models import Parameter, ssm_backends
+
+    ssm_backends[DEFAULT_ACCOUNT_ID][REGION]._parameters[name].append(Parameter(
+        account_id=DEFAULT_ACCOUNT_ID, name=name, value=ami, parameter_type="String", description=None,
+        allowed_pattern=None, keyid=None, last_modified_date=time.time(), version=1, data_type="aws:ec2:image"))
+
+
+def test_debians_ssm_parameter_resolves_to_the_ami_it_names(mocked, tmp_path):
+    from ccrp_cli import snapshots
+
+    p = make(tmp_path, bootstrap=False)
+    ami = image(p)
+    _publish(DEBIAN_12, ami)
+    assert snapshots.DEFAULT_BASE["aws"] == DEBIAN_12
+    assert p.resolve_image(DEBIAN_12) == ami
+    assert p.resolve_image(f"resolve:ssm:{DEBIAN_12}") == ami  # EC2's own spelling of the same
+    assert p.resolve_image(ami) == ami and p.has_image(ami)
+    with pytest.raises(CcrpError, match=r"^AWS get SSM parameter /aws/service/debian/release/trixie/latest/amd64: .*not found") as err:
+        p.resolve_image("/aws/service/debian/release/trixie/latest/amd64")
+    assert "\n" not in err.value.one_line()

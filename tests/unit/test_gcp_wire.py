@@ -95,7 +95,9 @@ def test_run_instance_request_on_the_wire_and_a_429_retried_once(wire):
     assert body["machineType"] == f"zones/{ZONE}/machineTypes/e2-medium"
     metadata = {i["key"]: i["value"] for i in body["metadata"]["items"]}
     assert metadata["user-data"] == USER_DATA
-    assert metadata["ssh-keys"].startswith("ubuntu:ssh-ed25519 ") and metadata["ssh-keys"].endswith(" ccrp-ct")
+    assert metadata["ssh-keys"].startswith("ccrp:ssh-ed25519 ") and metadata["ssh-keys"].endswith(" ccrp-ct")
+    assert "startup-script" not in metadata  # a snapshot of the fleet: cloud-init is in it
+    assert not any("PRIVATE KEY" in v for v in metadata.values())
     nic = body["networkInterfaces"][0]
     assert nic["networkIP"] == "10.90.0.10"
     assert nic["subnetwork"] == f"{LINK}/regions/{REGION}/subnetworks/ccrp-ct-common"
@@ -110,6 +112,28 @@ def test_run_instance_request_on_the_wire_and_a_429_retried_once(wire):
     assert route["nextHopInstance"] == f"{LINK}/zones/{ZONE}/instances/{NAME}"
     assert route["network"] == f"{LINK}/global/networks/ccrp-ct-net"
     assert record.created and record.provider_id == "4242" and record.public_ip == "192.0.2.7"
+
+
+def test_debian_image_gets_the_startup_script_that_runs_cloud_init(wire):
+    """Debian's GCE images have no cloud-init: booted from one (the bake's builder, a bare clone), the
+    instance gets a startup-script that installs cloud-init and runs it on the same user-data."""
+    provider, m = wire
+    provider.bootstrap()
+    debian = "projects/debian-cloud/global/images/family/debian-12"
+    provider.run_instance(spec().model_copy(update={"image": debian}))
+    body = [r for r in m.request_history if r.method == "POST" and urlparse(r.url).path.endswith("/instances")][-1].json()
+    metadata = {i["key"]: i["value"] for i in body["metadata"]["items"]}
+    assert body["disks"][0]["initializeParams"]["sourceImage"] == debian
+    assert metadata["user-data"] == USER_DATA and metadata["ssh-keys"].startswith("ccrp:ssh-ed25519 ")
+    script = metadata["startup-script"]
+    assert script.startswith("#!/bin/sh\n")
+    assert "apt-get -q -y -o DPkg::Lock::Timeout=300 install cloud-init" in script
+    assert "datasource_list: [ GCE, None ]" in script  # the datasource that reads `user-data`
+    stages = [ln for ln in script.splitlines() if ln.startswith("cloud-init ")]
+    assert stages == ["cloud-init init", "cloud-init modules --mode config", "cloud-init modules --mode final"]
+    # Once cloud-init is installed, systemd runs it at every boot and the script steps aside.
+    assert "[ -e /run/cloud-init/enabled ] && exit 0" in script
+    assert "set_host_keys = false" in script  # the console's fingerprints stay the keys sshd serves
 
 
 def test_request_id_depends_only_on_the_clone_and_zone(wire, tmp_path):

@@ -113,7 +113,7 @@ def test_every_user_data_passes_cloud_init_schema(ccrp_home, tmp_path):
     for stem, view in _all_views(ccrp_home):
         for bare in (False, True):
             keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"] if stem != "lab" else None
-            text = cloudinit.user_data(view, install_packages=bare, ssh_authorized_keys=keys)
+            text = cloudinit.user_data(view, install_packages=bare, login_keys=keys)
             assert text.startswith("#cloud-config\n")
             assert "PRIVATE KEY" not in text and "Static key" not in text
             fit_user_data(view.inv.provider.kind, text)
@@ -242,3 +242,33 @@ def test_watchdog_switches_to_fallback_and_back(tmp_path):
         proc.kill()
         proc.wait()
         listener.close()
+
+
+def test_every_backend_runs_the_one_debian_platform():
+    """Docker and the three clouds run the same recipe platform: Debian 12 with Debian's own ROS 1
+    packages and OpenVPN 2.6 (the rendered server.conf's data-ciphers needs OpenVPN 2.5 or newer)."""
+    from ccrp_cli.recipes import PROVIDER_PLATFORM, recipe
+
+    assert PROVIDER_PLATFORM == dict.fromkeys(("docker", "openstack", "gcp", "aws"), "debian-bookworm")
+    assert list(recipe("noetic").platforms) == ["debian-bookworm"]
+
+
+def test_cloud_image_config_installs_what_the_docker_snapshot_has():
+    """The cloud-config a builder (or a bare clone) runs and the Dockerfile of the Docker snapshot:
+    the same packages, pip packages, relay agent and locale command."""
+    from ccrp_cli.providers.docker import images
+    from ccrp_cli.recipes import platform
+
+    from ccrp_cli.loader import load_inventory
+
+    docker_plat = platform("noetic", "docker")
+    dockerfile = images.dockerfile("lab", "noetic", images.DEFAULT_BASE, docker_plat)
+    for path in INVENTORIES:
+        inv = load_inventory(path)
+        data = cloudinit.image_config(inv)
+        assert data["packages"] == docker_plat.packages
+        assert f"for p in {' '.join(docker_plat.packages)}; do" in dockerfile
+        assert data["runcmd"][0] == ["sh", "-c", cloudinit.LOCALE_SETUP] and cloudinit.LOCALE_SETUP in dockerfile
+        assert data["runcmd"][1][-len(docker_plat.pip):] == docker_plat.pip and " ".join(docker_plat.pip) in dockerfile
+        assert [f["path"] for f in data["write_files"]] == ["/usr/local/lib/ccrp/relay.py"]
+        assert "COPY relay.py /usr/local/lib/ccrp/relay.py" in dockerfile

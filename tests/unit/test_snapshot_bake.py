@@ -9,12 +9,14 @@ import shutil
 import subprocess
 
 import pytest
+import yaml
 
 from ccrp_cli import snapshots
 from ccrp_cli.errors import CcrpError, InputError
 from ccrp_cli.fleet import Fleet
-from ccrp_cli.providers.base import CloneRecord, SnapshotRecord
-from ccrp_cli.render.cloudinit import PRIVATE_KEY_MARKERS
+from ccrp_cli.providers.base import CloneRecord, CloneState, SnapshotRecord
+from ccrp_cli.recipes import platform
+from ccrp_cli.render.cloudinit import LOCALE_SETUP, PRIVATE_KEY_MARKERS
 from tests.conftest import ROOT
 
 INVENTORIES = {k: ROOT / "inventories" / f"{k}.yaml" for k in ("openstack", "gcp", "aws")}
@@ -27,6 +29,11 @@ class FakeCloud:
     def __init__(self, kind: str, boot: list[str] | None = None) -> None:
         self.kind = kind
         self.boot = boot
+        # The stock Debian 12 images of each cloud (snapshots.DEFAULT_BASE), and AWS's public SSM
+        # parameter naming Debian's current AMI.
+        self.images = {"debian-12-genericcloud-amd64", "projects/debian-cloud/global/images/family/debian-12",
+                       "ami-0debian12"}
+        self.ssm = {"/aws/service/debian/release/bookworm/latest/amd64": "ami-0debian12"}
         self.instances: dict[str, object] = {}
         self.specs: list = []  # every spec run_instance was given
         self.calls: list[str] = []
@@ -38,6 +45,10 @@ class FakeCloud:
         if what in self.fail:
             raise self.fail[what]
 
+    def has_image(self, image: str) -> bool:
+        self._maybe_fail("has_image")
+        return image in self.images
+
     def bootstrap(self) -> None:
         self._maybe_fail("bootstrap")
 
@@ -45,7 +56,7 @@ class FakeCloud:
         self.instances[spec.robot] = spec  # created before anything can fail, as on a cloud
         self.specs.append(spec)
         self._maybe_fail("run_instance")
-        return CloneRecord(robot=spec.robot, provider_id="i-builder", status="running", created=True)
+        return CloneRecord(robot=spec.robot, provider_id="i-builder", state=CloneState.RUNNING, status="running", created=True)
 
     def console_output(self, robot: str) -> str:
         self._maybe_fail("console_output")
@@ -67,6 +78,7 @@ class FakeCloud:
 
 
 DONE = ("[  612.1] cloud-init[1502]: ccrp-bake TOKEN apt-ok\n"
+        "[  612.9] cloud-init[1502]: ccrp-bake TOKEN locale-ok\n"
         "[  640.9] cloud-init[1502]: ccrp-bake TOKEN pip-ok\n"
         "[  641.0] cloud-init[1502]: ccrp-bake TOKEN finished after 640.95 s\n")
 
@@ -78,7 +90,7 @@ def fleet(ccrp_home):
 
 def _bake(fleet, provider, **kw):
     notes: list[str] = []
-    kw.setdefault("base_image", "ubuntu-20.04")
+    kw.setdefault("base_image", "debian-12-genericcloud-amd64")
     record = snapshots.bake(fleet, provider, notes.append, poll=0, **kw)
     return record, notes
 
@@ -86,13 +98,13 @@ def _bake(fleet, provider, **kw):
 def test_bake_captures_terminates_and_records(fleet):
     cloud = FakeCloud("openstack", ["", "booting...\n", DONE])
     record, notes = _bake(fleet, cloud)
-    assert cloud.calls == ["bootstrap", "run_instance", "console_output", "console_output", "console_output",
-                           "create_snapshot", "terminate"]
+    assert cloud.calls == ["has_image", "bootstrap", "run_instance", "console_output", "console_output",
+                           "console_output", "create_snapshot", "terminate"]
     assert cloud.instances == {}  # the builder is gone
     assert record.name.startswith("ccrp-labos-noetic-")
     snap = fleet.store.load_state().snapshot
     assert snap == {"image": "img-0", "id": "img-0", "source": "snapshot-builder", "region": "mycloud",
-                    "base": "ubuntu-20.04", "name": record.name}
+                    "base": "debian-12-genericcloud-amd64", "name": record.name}
     assert any("builder terminated" in n for n in notes)
 
 
@@ -100,12 +112,18 @@ def test_builder_spec_and_user_data(fleet, tmp_path):
     cloud = FakeCloud("openstack", [DONE])
     _bake(fleet, cloud)
     spec, = cloud.specs
-    assert spec.role == "builder" and spec.image == "ubuntu-20.04"
+    assert spec.role == "builder" and spec.image == "debian-12-genericcloud-amd64"
     ud = spec.user_data
     token = re.search(r"ccrp-bake (\w+) finished after \$UPTIME s", ud).group(1)
-    assert "ros-noetic-ros-base" in ud and "packages.ros.org" in ud and "eclipse-zenoh" in ud
+    # What the Docker snapshot has, from Debian's archive only: no third-party apt source.
+    data = yaml.safe_load(ud)
+    assert data["packages"] == platform("noetic", "docker").packages and "apt" not in data
+    assert "packages.ros.org" not in ud and "ros-core" in data["packages"] and "openvpn" in data["packages"]
+    assert ["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", "eclipse-zenoh==1.10.2"] in data["runcmd"]
+    assert [f["path"] for f in data["write_files"]] == ["/usr/local/lib/ccrp/relay.py"]
+    assert ["sh", "-c", LOCALE_SETUP] in data["runcmd"]
     # The proofs are printed with the token as an argument: the user-data itself cannot satisfy them.
-    assert f"ccrp-bake {token} apt-ok" not in ud and f"ccrp-bake {token} pip-ok" not in ud
+    assert not any(f"ccrp-bake {token} {p}-ok" in ud for p in ("apt", "locale", "pip"))
     assert not any(m in ud for m in PRIVATE_KEY_MARKERS)
     assert "nao1" not in ud and "labos" not in ud  # nothing of the fleet's clones in the image
     assert "- /etc/machine-id" in ud  # emptied, so each clone gets its own
@@ -169,21 +187,47 @@ def test_a_failed_terminate_after_success_is_an_error(fleet):
     assert fleet.store.load_state().snapshot is None  # not recorded: the operator has to look first
 
 
-def test_base_image_required_where_the_cloud_has_no_default(ccrp_home):
+def test_aws_defaults_to_debians_ssm_parameter_resolved_to_its_ami(ccrp_home):
     aws = Fleet.open(INVENTORIES["aws"])
     cloud = FakeCloud("aws", [DONE])
-    with pytest.raises(InputError, match="no base image") as err:
-        snapshots.bake(aws, cloud, lambda m: None)
-    assert "ami" in err.value.hint.lower() and cloud.calls == []
+    cloud.resolve_image = lambda image: cloud.ssm.get(image, image)  # AwsProvider.resolve_image, in memory
+    _bake(aws, cloud, base_image=None)
+    assert snapshots.DEFAULT_BASE["aws"] == "/aws/service/debian/release/bookworm/latest/amd64"
+    assert cloud.specs[0].image == "ami-0debian12"  # booted from the AMI the parameter names today
+    assert aws.store.load_state().snapshot["base"] == "ami-0debian12"
 
 
-def test_gcp_defaults_to_ubuntu_focal_and_records_the_image_name(ccrp_home):
+def test_openstack_defaults_to_debians_generic_cloud_image_and_names_it_when_missing(fleet):
+    cloud = FakeCloud("openstack", [DONE])
+    _bake(fleet, cloud, base_image=None)
+    assert cloud.specs[0].image == snapshots.DEFAULT_BASE["openstack"] == "debian-12-genericcloud-amd64"
+    cloud = FakeCloud("openstack", [DONE])
+    cloud.images.clear()  # nobody uploaded it to this cloud's Glance
+    with pytest.raises(InputError, match="base image debian-12-genericcloud-amd64 not found on openstack") as err:
+        _bake(fleet, cloud, base_image=None)
+    assert "debian-12-genericcloud-amd64.qcow2" in err.value.hint and "provider.image" in err.value.hint
+    assert cloud.calls == ["has_image"]  # nothing created
+
+
+def test_gcp_defaults_to_debians_image_family_and_records_the_image_name(ccrp_home):
     gcp = Fleet.open(INVENTORIES["gcp"])
-    cloud = FakeCloud("gcp", [DONE.replace("ccrp-bake TOKEN pip-ok\n", "")])  # fkie fleet: no relay, no pip
+    cloud = FakeCloud("gcp", [DONE])
     record, _ = _bake(gcp, cloud, base_image=None)
-    assert cloud.specs[0].image == snapshots.DEFAULT_BASE["gcp"]
+    assert cloud.specs[0].image == snapshots.DEFAULT_BASE["gcp"] == "projects/debian-cloud/global/images/family/debian-12"
     snap = gcp.store.load_state().snapshot
     assert snap["image"] == record.name and snap["region"] == "europe-west2"
+
+
+@pytest.mark.skipif(shutil.which("cloud-init") is None, reason="cloud-init not installed (apt-get install cloud-init)")
+@pytest.mark.parametrize("kind", sorted(INVENTORIES))
+def test_every_clouds_builder_user_data_passes_cloud_init_schema(ccrp_home, tmp_path, kind):
+    from ccrp_cli.render.cloudinit import builder_user_data
+
+    inv = Fleet.open(INVENTORIES[kind]).inventory
+    f = tmp_path / "builder.yaml"
+    f.write_text(builder_user_data(inv, "0123456789abcdef"))
+    proc = subprocess.run(["cloud-init", "schema", "--config-file", str(f)], capture_output=True, text=True)
+    assert proc.returncode == 0 and "Valid cloud-config" in proc.stdout, proc.stdout + proc.stderr
 
 
 def test_docker_is_refused(ccrp_home):

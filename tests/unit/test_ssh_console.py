@@ -201,13 +201,13 @@ def test_connect_errors_worth_a_retry():
 # -- what a cloud clone's user-data gives the SSH transport ----------------------------------------
 
 
-def test_cloud_clone_user_data_keeps_the_login_user_with_the_operator_key(ccrp_home, tmp_path):
+def test_cloud_clone_user_data_creates_ccrps_login_user_with_the_operator_key(ccrp_home, tmp_path):
     import yaml
 
     from ccrp_cli import vpn
     from ccrp_cli.clones import clone_user_data
     from ccrp_cli.fleet import Fleet, clone_view
-    from ccrp_cli.providers.cloud import CloudProvider
+    from ccrp_cli.providers.cloud import SSH_USER, CloudProvider
     from tests.conftest import ROOT
 
     fleet = Fleet.open(ROOT / "inventories" / "openstack.yaml")
@@ -215,11 +215,16 @@ def test_cloud_clone_user_data_keeps_the_login_user_with_the_operator_key(ccrp_h
     view = clone_view(fleet, fleet.load_allocated(), "nao1")
     provider = CloudProvider(fleet.inventory, tmp_path / "store")
     data = yaml.safe_load(clone_user_data(view, provider, bare=False))
-    assert data["users"][0] == "default"  # the image's ubuntu user, which SSH_USER names
-    assert data["ssh_authorized_keys"] == [provider.operator_public_key()]
+    # ccrp's own login user, the one SSH_USER names, on every cloud; the image's default user (admin,
+    # debian...) is not created, and no key goes anywhere but to that user.
+    login = data["users"][0]
+    assert login == {"name": SSH_USER, "shell": "/bin/bash", "sudo": "ALL=(ALL) NOPASSWD:ALL", "lock_passwd": True,
+                     "ssh_authorized_keys": [provider.operator_public_key()]}
+    assert SSH_USER == "ccrp" and "default" not in data["users"] and "ssh_authorized_keys" not in data
 
     class DockerLike:  # no operator key: its transport is the Docker API
         kind = "docker"
 
     data = yaml.safe_load(clone_user_data(view, DockerLike(), bare=False))
-    assert "default" not in data["users"] and "ssh_authorized_keys" not in data
+    assert all(isinstance(u, dict) and u.get("system") for u in data["users"]), data["users"]  # no login user
+    assert "ssh_authorized_keys" not in data

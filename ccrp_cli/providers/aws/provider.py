@@ -70,7 +70,7 @@ class AwsProvider(CloudProvider):
         except BotoCoreError as exc:  # unknown profile
             raise as_ccrp("session", exc) from None
         # retry.call is the one place for retries: botocore's own are off.
-        config = Config(retries={"total_max_attempts": 1}, connect_timeout=10, read_timeout=60)
+        self._config = config = Config(retries={"total_max_attempts": 1}, connect_timeout=10, read_timeout=60)
         self.ec2 = self.session.client("ec2", config=config)
         self._net: network.Network | None = None
 
@@ -312,6 +312,16 @@ class AwsProvider(CloudProvider):
     def list_snapshots(self) -> list[SnapshotRecord]:
         images = self._describe("image", tags.filters(self.fleet, "snapshot"))
         return sorted(map(self._snapshot_record, images), key=lambda s: s.created)
+
+    def resolve_image(self, image: str) -> str:
+        """The AMI id an image names: an AMI id as is; an SSM parameter (Debian publishes its current
+        AMI as /aws/service/debian/release/bookworm/latest/amd64; EC2's `resolve:ssm:` form too) as
+        the id it holds now, so that the fleet's state records which AMI was booted."""
+        name = image.removeprefix("resolve:ssm:")
+        if not name.startswith("/"):
+            return image
+        ssm = self.session.client("ssm", config=self._config)
+        return self.api(f"get SSM parameter {name}", ssm.get_parameter, Name=name)["Parameter"]["Value"]
 
     def has_image(self, image: str) -> bool:
         key = "image-id" if image.startswith("ami-") else "name"

@@ -44,8 +44,10 @@ def build_base_image(client, tag: str, packages: list[str], progress=lambda msg:
 
 
 def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform) -> str:
+    from ...render.cloudinit import LOCALE_SETUP
+
     return render("docker/Dockerfile.j2", fleet=fleet, distro=distro, base_image=base_image, packages=plat.packages,
-                  pip=plat.pip)
+                  pip=plat.pip, locale_setup=LOCALE_SETUP)
 
 
 def build_context(plat: Platform, progress=lambda msg: None) -> dict[str, bytes]:

@@ -17,6 +17,7 @@ from pathlib import Path
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...render.limits import fit_user_data
+from ...render.templates import static
 from ...retry import ErrorClass, across_zones
 from ..base import (LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, OwnedResource, Quota,
                     SnapshotRecord, owner_labels)
@@ -31,6 +32,10 @@ log = logging.getLogger(__name__)
 # Teardown order: what points at an instance goes first, the network it lives on last.
 TEARDOWN_ORDER = ("route", "instance", "firewall", "subnet", "network")
 SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images do
+# Where Debian publishes its GCE images (the bake's default base, snapshots.DEFAULT_BASE). They run
+# the Google guest agent instead of cloud-init, so an instance booted from one gets a startup-script
+# (templates/gcp/startup-script) that installs cloud-init; a baked snapshot has it already.
+STOCK_IMAGES = "projects/debian-cloud/"
 # GCE's instance states in ccrp's words (TERMINATED is GCE's "stopped").
 STATES = {"PROVISIONING": CloneState.PENDING, "STAGING": CloneState.PENDING, "REPAIRING": CloneState.PENDING,
           "RUNNING": CloneState.RUNNING, "STOPPING": CloneState.STOPPING, "SUSPENDING": CloneState.STOPPING,
@@ -245,7 +250,7 @@ class GcpProvider(CloudProvider):
 
     def _image_source(self, image: str) -> dict:
         """spec.image as the insert request needs it: a machine image, an image URL/path
-        (projects/ubuntu-os-cloud/global/images/family/ubuntu-2004-lts) or an image of the project."""
+        (projects/debian-cloud/global/images/family/debian-12) or an image of the project."""
         if image.startswith("machineImages/"):
             return {"source_machine_image": f"projects/{self.project}/global/{image}"}
         if "/machineImages/" in image:
@@ -261,10 +266,15 @@ class GcpProvider(CloudProvider):
             initialize_params=c.AttachedDiskInitializeParams(source_image=source["source_image"], labels=labels))]
         metadata = {
             "user-data": user_data,
+            # The login user the user-data creates (SSH_USER), with the fleet's public key: the guest
+            # agent of Debian's GCE images reads this entry too. No private key in any metadata.
             "ssh-keys": f"{SSH_USER}:{self.operator_public_key()}",
             # ssh-keys metadata is ignored under OS Login; ccrp logs in with its own fleet key.
             "enable-oslogin": "FALSE",
         }
+        if STOCK_IMAGES in spec.image:
+            # Debian's GCE images have no cloud-init: this installs it and runs the user-data above.
+            metadata["startup-script"] = static("gcp/startup-script")
         return c.Instance(
             name=self.names.instance(spec.robot, spec.role),
             machine_type=f"zones/{zone}/machineTypes/{self._machine_type(spec.robot)}",
