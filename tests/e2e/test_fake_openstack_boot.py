@@ -43,7 +43,7 @@ from tests.fakes.openstack_http import booting_cloud  # noqa: E402
 CLOUD = "fake-boot"
 CIDR = "10.213.47.0/24"   # the tenant network; a Docker network of the run while a server is on it
 BOOT_TIMEOUT = 90.0
-FP_BLOCK = re.compile(r"-----BEGIN SSH HOST KEY FINGERPRINTS-----(.*?)-----END SSH HOST KEY FINGERPRINTS-----", re.S)
+FP_BLOCK = re.compile(r"-----BEGIN SSH HOST KEY FINGERPRINTS-----(.*?)-----END SSH HOST KEY FINGERPRINTS-----", re.DOTALL)
 
 
 def _image_buildable() -> bool:
@@ -184,7 +184,7 @@ def _boot(conn, name: str, image_id: str, net, subnet, ext, key, keypair: str):
 
 
 def test_servers_boot_console_ssh_snapshot_and_go(served):
-    conn, fake, boot, http = served
+    conn, fake, boot, _ = served
     timings: dict[str, float] = {}
     user_key, pair_key = _key(), _key()
     conn.compute.create_keypair(name="operator", public_key=_public(pair_key))
