@@ -123,8 +123,10 @@ def image_config(inv: Inventory) -> dict[str, Any]:
     locale. A clone of a bare image runs it at first boot; `snapshot bake` runs it once on a builder
     instance."""
     plat = platform(inv.ros.distro, inv.provider.kind)
-    data: dict[str, Any] = {"package_update": True, "packages": list(plat.packages)}
-    # cloud-init installs packages (final stage) before runcmd runs, so pip3 and locale-gen exist by then.
+    # cloud-init's locale module is off here: it runs (config stage) before the packages are
+    # installed (final stage) and fails where the image has not generated the locale yet. runcmd
+    # sets it after the packages, when locale-gen and pip3 exist.
+    data: dict[str, Any] = {"locale": "false", "package_update": True, "packages": list(plat.packages)}
     data["write_files"], data["runcmd"] = [], [["sh", "-c", LOCALE_SETUP]]
     if plat.pip:
         data["write_files"].append(_file(f"{CCRP_LIB}/relay.py", agent_source("relay"), "0755"))

@@ -122,6 +122,8 @@ def test_builder_spec_and_user_data(fleet, tmp_path):
     assert ["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", "eclipse-zenoh==1.10.2"] in data["runcmd"]
     assert [f["path"] for f in data["write_files"]] == ["/usr/local/lib/ccrp/relay.py"]
     assert ["sh", "-c", LOCALE_SETUP] in data["runcmd"]
+    # cloud-init's own locale module would run before the packages and fail on an image without the locale.
+    assert data["locale"] == "false"
     # The proofs are printed with the token as an argument: the user-data itself cannot satisfy them.
     assert not any(f"ccrp-bake {token} {p}-ok" in ud for p in ("apt", "locale", "pip"))
     assert not any(m in ud for m in PRIVATE_KEY_MARKERS)
