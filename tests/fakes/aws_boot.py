@@ -37,7 +37,7 @@ SSM backend directly).
 Faults, answered before a request reaches moto (a WSGI layer in front of moto's app; requests
 carrying BYPASS_HEADER pass untouched, for the test's own reads): `throttle(fraction)` answers that
 fraction of EC2 requests 503 RequestLimitExceeded; `refuse_robot(robot)` answers RunInstances
-tagged with that robot 400 InstanceLimitExceeded; `no_capacity(zone)` answers RunInstances into a
+tagged with that robot (every RunInstances without one) 400 InstanceLimitExceeded; `no_capacity(zone)` answers RunInstances into a
 subnet of that zone 500 InsufficientInstanceCapacity and CreateSubnet in that zone 400 Unsupported.
 The same layer lets one request at a time into moto (its backends are not thread-safe).
 
@@ -308,8 +308,9 @@ class AwsBoot:
             if action == "RunInstances":
                 tags = _tag_specs(params)
                 robot = tags.get("ccrp-robot")
-                if robot in self._refused_robots:
-                    return 400, self._refused_robots[robot], (
+                code = self._refused_robots.get(robot) or self._refused_robots.get(None)
+                if code:
+                    return 400, code, (
                         "You have requested more instances than your current instance limit allows for the "
                         "specified instance type. Please visit http://aws.amazon.com/contact-us/ec2-request to "
                         "request an adjustment to this limit.")
@@ -341,8 +342,9 @@ class AwsBoot:
                 self._throttle = before
 
     @contextmanager
-    def refuse_robot(self, robot: str, code: str = "InstanceLimitExceeded"):
-        """RunInstances tagged ccrp-robot=<robot> refused with an account quota error."""
+    def refuse_robot(self, robot: str | None = None, code: str = "InstanceLimitExceeded"):
+        """RunInstances tagged ccrp-robot=<robot> (any RunInstances: None) refused with an account
+        quota error, as when the account is at its instance limit."""
         with self.lock:
             self._refused_robots[robot] = code
         try:
