@@ -214,7 +214,11 @@ def test_console_output_and_credentials(h):
     h.provider.run_instance(h.spec("robot1", 1))
     assert "BEGIN SSH HOST KEY FINGERPRINTS" in h.provider.console_output("robot1")
     assert "authenticated" in h.provider.check_credentials()
-    assert h.provider.quotas()["instances"] == (1, 100)
+    quotas = {q.name: q for q in h.provider.quotas()}
+    assert (quotas["instances"].limit, quotas["cores"].limit) == (100, 200)
+    # one server exists; the inventory's robots not created yet each add one server and its flavor
+    missing = [r for r in h.provider.inv.robots if r.name not in h.provider.query()]
+    assert quotas["instances"].need == 1 + len(missing) and quotas["cores"].need == 2 * (1 + len(missing))
 
 
 def test_missing_sdk_names_the_extra(monkeypatch, tmp_path):
