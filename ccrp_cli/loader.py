@@ -10,6 +10,7 @@ from pydantic import ValidationError
 
 from .errors import InputError
 from .models.inventory import Inventory
+from .providers import REGISTRY
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -34,11 +35,11 @@ _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
 
 def _loc(loc: tuple[Any, ...]) -> str:
     out = ""
-    for part in loc:
+    for i, part in enumerate(loc):
         if isinstance(part, int):
             out += f"[{part}]"
-        elif part in {"DockerProvider", "OpenStackProvider", "GcpProvider", "AwsProvider"}:
-            continue
+        elif i and loc[i - 1] == "provider" and part in REGISTRY:
+            continue  # the union's tag (provider.docker.x): the user wrote provider.x
         else:
             out += f".{part}" if out else str(part)
     return out or "(top level)"

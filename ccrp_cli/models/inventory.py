@@ -5,13 +5,13 @@ from __future__ import annotations
 import ipaddress
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
+from ..providers import REGISTRY
 from .names import Name, Topic
+from .strict import Strict
 
 
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
 
 
 RobotType = Literal["nao", "turtlebot", "generic"]
@@ -88,49 +88,10 @@ class Sharing(Strict):
         return engine
 
 
-class DockerProvider(Strict):
-    kind: Literal["docker"]
-    # Subnet of the <fleet>-public Docker network (plays the clouds' public network).
-    public_cidr: ipaddress.IPv4Network = ipaddress.IPv4Network("172.30.0.0/24")
-    # Publish each clone's VPN port on the host so a real robot on the LAN can connect.
-    publish_vpn_ports: bool = False
-    base_image: str = "ccrp/base:bookworm"
+# Each backend's settings model lives in its own package (providers/<kind>/settings.py); the
+# registry collects them, so a new backend touches its package and one registry line.
+Provider = Annotated[Union[tuple(i.settings for i in REGISTRY.values())], Field(discriminator="kind")]  # type: ignore[valid-type]
 
-
-class OpenStackProvider(Strict):
-    kind: Literal["openstack"]
-    cloud: str  # entry in clouds.yaml (or OS_CLOUD); never parsed by ccrp
-    flavor: str
-    image: str | None = None
-    network: str | None = None  # existing common network; created when absent
-    external_network: str = "public"
-    operator_cidr: ipaddress.IPv4Network
-    zones: list[str] = []
-
-
-class GcpProvider(Strict):
-    kind: Literal["gcp"]
-    project: str
-    region: str
-    zones: list[str]
-    machine_type: str = "e2-medium"
-    network: str | None = None
-    operator_cidr: ipaddress.IPv4Network
-
-
-class AwsProvider(Strict):
-    kind: Literal["aws"]
-    region: str
-    profile: str | None = None
-    instance_type: str = "t3.medium"
-    vpc_id: str | None = None
-    zones: list[str] = []
-    operator_cidr: ipaddress.IPv4Network
-
-
-Provider = Annotated[
-    Union[DockerProvider, OpenStackProvider, GcpProvider, AwsProvider], Field(discriminator="kind")
-]
 
 class Inventory(Strict):
     fleet: Name
@@ -155,7 +116,7 @@ class Inventory(Strict):
     @model_validator(mode="after")
     def _networks_disjoint(self) -> "Inventory":
         nets = {"vpn.pool": self.vpn.pool, "common.cidr": self.common.cidr}
-        if isinstance(self.provider, DockerProvider):
+        if self.provider.kind == "docker":
             nets["provider.public_cidr"] = self.provider.public_cidr
         items = list(nets.items())
         for i, (name_a, a) in enumerate(items):

@@ -129,6 +129,7 @@ class ProviderInfo:
     providers/__init__.py collects one per package."""
 
     kind: str
+    settings: type[BaseModel]  # the inventory's `provider:` section for this backend
     factory: str  # "module:Class" under ccrp_cli.providers, imported when the provider is made
     abilities: frozenset[Ability]
     user_data_limit: int  # raw bytes the cloud accepts

@@ -66,7 +66,7 @@ def test_quota_is_a_region_error_with_a_hint_and_no_zone_hopping(tmp_path):
     assert [r.zone for r in inserts(h) if r.instance_resource.name.endswith("robot2")] == [ZONES[0]]
     assert h.instances_for("robot2") == 0
     # Five robots in the inventory, one clone up: 2 vCPUs used, 8 more needed, 2 allowed.
-    assert ("CPUS in europe-west2", 2.0, 10.0) in h.provider.quotas()
+    assert ("CPUS in europe-west2", 2.0, 10.0) in [(q.name, q.limit, q.need) for q in h.provider.quotas()]
 
 
 def test_firewall_rules_are_the_vpn_port_operator_ssh_and_the_common_network(h):

@@ -234,6 +234,6 @@ def test_every_clouds_builder_user_data_passes_cloud_init_schema(ccrp_home, tmp_
 
 def test_docker_is_refused(ccrp_home):
     lab = Fleet.open(ROOT / "inventories" / "lab.yaml")
-    with pytest.raises(InputError, match="boots a cloud instance") as err:
+    with pytest.raises(InputError, match="cannot do snapshot bake") as err:
         snapshots.bake(lab, FakeCloud("docker", [DONE]), lambda m: None)
     assert "snapshot build" in err.value.hint

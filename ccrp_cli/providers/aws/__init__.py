@@ -1,9 +1,11 @@
 """AWS backend (boto3): clones are EC2 instances in the fleet's VPC; see provider.py."""
 
 from ..base import Ability, ProviderInfo
+from .settings import AwsSettings
 
 INFO = ProviderInfo(
     kind="aws",
+    settings=AwsSettings,
     factory="aws.provider:AwsProvider",
     abilities=frozenset({Ability.BAKE, Ability.CONSOLE}),
     user_data_limit=16_384,  # EC2: 16 KiB before base64

@@ -1,9 +1,11 @@
 """The local Docker backend: a clone is a systemd container booted by cloud-init (NoCloud)."""
 
 from ..base import Ability, ProviderInfo
+from .settings import DockerSettings
 
 INFO = ProviderInfo(
     kind="docker",
+    settings=DockerSettings,
     factory="docker.provider:DockerProvider",
     abilities=frozenset({Ability.LOCAL_BUILD, Ability.ROBOT_SIM}),
     user_data_limit=262_144,  # the NoCloud seed: kept at GCE's size

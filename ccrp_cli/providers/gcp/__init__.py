@@ -3,9 +3,11 @@
 The SDK is imported when the provider is constructed, never at `ccrp` start-up (~1.5 s)."""
 
 from ..base import Ability, ProviderInfo
+from .settings import GcpSettings
 
 INFO = ProviderInfo(
     kind="gcp",
+    settings=GcpSettings,
     factory="gcp.provider:GcpProvider",
     abilities=frozenset({Ability.BAKE, Ability.CONSOLE}),
     user_data_limit=262_144,  # GCE: 256 KiB per metadata value

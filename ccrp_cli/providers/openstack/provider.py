@@ -11,11 +11,12 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from ...errors import CcrpError
-from ...models.inventory import Inventory, OpenStackProvider as Settings
+from ...models.inventory import Inventory
 from ...retry import across_zones
 from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState,
                     OwnedResource, Quota, SnapshotRecord, owner_labels)
 from . import INFO
+from .settings import OpenStackSettings
 from ..cloud import CloudProvider
 from . import errors, shared
 
@@ -62,7 +63,7 @@ class OpenStackProvider(CloudProvider):
 
     def __init__(self, inv: Inventory, workdir: Path) -> None:
         super().__init__(inv, workdir)
-        self.settings: Settings = inv.provider  # type: ignore[assignment]
+        self.settings: OpenStackSettings = inv.provider  # type: ignore[assignment]
         self.conn = _connect(self.settings.cloud)
         self._lock = threading.Lock()
         self._cache: dict[str, object] = {}  # shared lookups (network, flavor...) for parallel clones

@@ -1,0 +1,17 @@
+"""`provider:` of an inventory for The local Docker backend."""
+
+from __future__ import annotations
+
+import ipaddress
+from typing import Literal
+
+from ...models.strict import Strict
+
+
+class DockerSettings(Strict):
+    kind: Literal["docker"]
+    # Subnet of the <fleet>-public Docker network (plays the clouds' public network).
+    public_cidr: ipaddress.IPv4Network = ipaddress.IPv4Network("172.30.0.0/24")
+    # Publish each clone's VPN port on the host so a real robot on the LAN can connect.
+    publish_vpn_ports: bool = False
+    base_image: str = "ccrp/base:bookworm"
