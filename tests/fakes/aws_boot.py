@@ -479,7 +479,7 @@ class AwsBoot:
                 self.errors[instance.id] = f"{work.__name__}: {exc}\n{traceback.format_exc()}"
                 self.progress(f"{instance.id}: {work.__name__.strip('_')} failed: {exc}")
                 with self.lock:
-                    if work is self._boot_instance:
+                    if work == self._boot_instance:  # bound methods: equal, never identical
                         from moto.ec2.models.instances import StateReason
 
                         _set_state(instance, TERMINATED)
