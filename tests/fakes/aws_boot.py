@@ -65,8 +65,9 @@ import time
 import traceback
 import uuid
 from collections import Counter
+from collections.abc import Callable
 from contextlib import contextmanager
-from typing import Any, Callable
+from typing import Any
 from unittest import mock
 from urllib.parse import parse_qs
 
@@ -84,7 +85,7 @@ CONSOLE_BYTES = 64 * 1024        # EC2 keeps the most recent 64 KiB of an instan
 PENDING, RUNNING, SHUTTING_DOWN, TERMINATED, STOPPING, STOPPED = (
     ("pending", 0), ("running", 16), ("shutting-down", 32), ("terminated", 48), ("stopping", 64), ("stopped", 80))
 
-_active: list["AwsBoot"] = []
+_active: list[AwsBoot] = []
 
 
 def _free_port() -> int:
@@ -168,10 +169,12 @@ class AwsBoot:
 
         class Server(ThreadedMotoServer):
             def _server_entry(self) -> None:  # moto's own, with the fake's WSGI layer in front
+                from moto.moto_server.werkzeug_app import (
+                    DomainDispatcherApplication,
+                    MotoRequestHandler,
+                    create_backend_app,
+                )
                 from werkzeug.serving import make_server
-
-                from moto.moto_server.werkzeug_app import (DomainDispatcherApplication, MotoRequestHandler,
-                                                            create_backend_app)
 
                 class Quiet(MotoRequestHandler):
                     def log_request(self, *args) -> None:  # werkzeug's line per request: not wanted
@@ -252,10 +255,10 @@ class AwsBoot:
     def _register_debian(self) -> None:
         """A public Debian 12 AMI (Debian's account) booting cloudboot.DEBIAN_12, and the SSM
         parameter AWS publishes for the latest one."""
+        from moto.core.utils import utcnow
         from moto.ec2.models.amis import Ami
         from moto.ec2.utils import random_ami_id
         from moto.ssm.models import Parameter, ssm_backends
-        from moto.core.utils import utcnow
 
         with self.lock:
             backend = self.ec2

@@ -36,7 +36,7 @@ pytest.importorskip("boto3")
 pytest.importorskip("moto.server")
 pytest.importorskip("paramiko")
 
-from tests.scenarios.backend_aws import open_backend  # noqa: E402
+from tests.scenarios.backend_aws import open_backend
 
 FLEET = "awsboot"
 
