@@ -35,8 +35,10 @@ Not enforced when booting: firewall rules (every port of a container is open to 
 its networks' peers), routes (the robots' VPN subnets are not routed to the next-hop instance by
 Docker), network tags, service accounts, machine types beyond the CPU quota.
 
-Faults for scenarios: `quota_once(n)` answers the next n instance inserts QUOTA_EXCEEDED, and the
-harness's `exhausted` zones and `throttled` fraction work as in the contract suite.
+Faults for scenarios: `quota_once(n)` refuses the next n instance inserts with HTTP 403 quotaExceeded
+(Quota 'CPUS' exceeded: GCE's usual answer, no operation), and the harness's `exhausted` zones
+(ZONE_RESOURCE_POOL_EXHAUSTED operation errors) and `throttled` fraction work as in the contract
+suite. As there, a repeated requestId gets its first operation back, a failed one included.
 """
 
 from __future__ import annotations
@@ -259,7 +261,7 @@ class BootingProject(FakeProject):
 
     # -- instances ------------------------------------------------------------------------------
     def quota_once(self, n: int = 1) -> None:
-        """The next n instance inserts end in QUOTA_EXCEEDED (CPUS), as GCE reports a regional quota."""
+        """The next n instance inserts are refused over the regional CPUS quota (HTTP 403 quotaExceeded)."""
         with self.lock:
             self.quota_refusals += n
 
@@ -270,10 +272,11 @@ class BootingProject(FakeProject):
         boot_disks = [d for d in req.instance_resource.disks if d.boot]
         source = boot_disks[0].initialize_params.source_image if boot_disks else ""
         if self.quota_refusals and (req.zone, req.instance_resource.name) not in self.instances:
+            # GCE's usual answer to an insert over a regional quota: the request itself is refused
+            # (no operation, so its requestId is not spent).
             self.quota_refusals -= 1
-            return self._operation(self._link(f"zones/{req.zone}/instances/{req.instance_resource.name}"), "insert",
-                                   req.request_id, 403, "QUOTA_EXCEEDED",
-                                   f"Quota 'CPUS' exceeded.  Limit: {self.cpu_quota} in region {REGION}.")
+            raise exceptions.Forbidden(f"Quota 'CPUS' exceeded.  Limit: {self.cpu_quota} in region {REGION}.",
+                                       errors=[{"reason": "quotaExceeded", "domain": "usageLimits"}])
         op = super()._instances_insert(req)
         if op.error_code:
             return op

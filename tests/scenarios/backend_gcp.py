@@ -10,7 +10,8 @@ feed) answers the fake's clients. Everything else is the real path: inventory fi
 the provider's retries and waits, SSH to the instances' external IPs with host keys pinned from
 their serial console.
 
-Faults (each a context manager): "quota" answers the next instance insert QUOTA_EXCEEDED, "zone"
+Faults (each a context manager): "quota" refuses the next instance insert (HTTP 403 quotaExceeded,
+Quota 'CPUS' exceeded), "zone"
 exhausts the first zone (ZONE_RESOURCE_POOL_EXHAUSTED), "storm" answers a fifth of all calls
 (operation polls included) 429 or 503.
 """
