@@ -1,4 +1,4 @@
-"""Start-up cost of the `ccrp` CLI compared with importing openstacksdk (DESIGN.md §2).
+"""Start-up cost of the `ccrp` CLI compared with importing openstacksdk (docs/architecture.md: start-up cost).
 
 Measures, interleaved round by round so machine noise hits every command alike:
   ccrp_help        `ccrp --help` (the venv's console script)
@@ -34,7 +34,7 @@ COMMANDS: dict[str, list[str]] = {
     "import_openstack": [PYTHON, "-c", "import openstack"],
     "import_cli": [PYTHON, "-c", "import ccrp_cli.cli.main"],
 }
-# Must never be imported by `import ccrp_cli.cli.main` (DESIGN.md §2).
+# Must never be imported by `import ccrp_cli.cli.main` (docs/architecture.md: start-up cost).
 FORBIDDEN = ("openstack", "google.cloud", "boto3", "botocore", "docker", "paramiko")
 TARGET_RATIO = 0.5
 

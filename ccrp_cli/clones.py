@@ -111,15 +111,19 @@ def wait_serving(provider: Provider, robot: str, master_port: int, timeout: floa
     """Until the VPN server runs and the ROS master answers inside the clone."""
     from .render.view import VPN_DIR
 
+    from .retry import PollTimeout, poll
+
     deadline = time.monotonic() + timeout
     provider.exec(robot, ["sh", "-c", WAIT_SERVING_SH, f"{VPN_DIR}/mgmt.sock", str(master_port)], timeout=timeout)
-    while True:
+
+    def serving() -> tuple[bool, dict]:
         h = health(provider, robot)
-        if h["vpn"]["up"] and h["master"]["reachable"]:
-            return h
-        if time.monotonic() > deadline:
-            raise CcrpError(f"clone {clone_host(robot)} is not serving after {timeout:.0f} s: {json.dumps(h)[:300]}")
-        time.sleep(0.5)
+        return h["vpn"]["up"] and h["master"]["reachable"], h
+
+    try:
+        return poll(serving, timeout=max(0.0, deadline - time.monotonic()), interval=0.5)
+    except PollTimeout as late:
+        raise CcrpError(f"clone {clone_host(robot)} is not serving after {timeout:.0f} s: {json.dumps(late.last)[:300]}") from None
 
 
 def clone_user_data(view, provider: Provider, bare: bool) -> str:
@@ -127,8 +131,7 @@ def clone_user_data(view, provider: Provider, bare: bool) -> str:
     the SSH transport logs in as it. A Docker clone has no login user; its transport is the Docker API."""
     from .render import cloudinit
 
-    login = [provider.operator_public_key()] if hasattr(provider, "operator_public_key") else None
-    return cloudinit.user_data(view, login_keys=login, install_packages=bare)
+    return cloudinit.user_data(view, login_keys=provider.login_keys(), install_packages=bare)
 
 
 def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress) -> CloneResult:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-# Exit codes (DESIGN.md §9).
+# Exit codes (README: Commands).
 OK = 0
 FAILED = 1
 BAD_INPUT = 2

@@ -1,7 +1,8 @@
 """The one place for retries: bounded exponential backoff with full jitter, and zone fallback.
 
 Providers classify their SDK's exceptions (`classify(exc) -> ErrorClass`); this module decides
-what to do with each class. Nothing else in ccrp sleeps-and-retries an API call.
+what to do with each class. Nothing else in ccrp sleeps-and-retries an API call, and every
+wait-until-ready loop (a clone serving, host keys on a console, a robot connected) is `poll`.
 """
 
 from __future__ import annotations
@@ -77,3 +78,30 @@ def across_zones(zones: Iterable[str], fn: Callable[[str], T], *, classify: Clas
         f"{what}: no capacity in zones {', '.join(tried) or '(none listed)'} ({str(last)[:160]})",
         hint="add zones to the inventory's provider.zones or pick another instance type",
     ) from last
+
+
+class PollTimeout(Exception):
+    """poll() ran out of time; `last` is the probe's last answer, for the caller's message."""
+
+    def __init__(self, last: object, seconds: float) -> None:
+        super().__init__(f"not done after {seconds:.0f} s")
+        self.last, self.seconds = last, seconds
+
+
+def poll(probe: Callable[[], tuple[bool, T]], *, timeout: float, interval: float,
+         progress: Callable[[float], None] | None = None, every: float = 60.0, sleep=time.sleep) -> T:
+    """probe() every `interval` s until it says done; returns its answer. After `timeout` s it
+    raises PollTimeout with the last answer; `progress(elapsed)` is called every `every` s."""
+    t0 = time.monotonic()
+    noted = t0
+    while True:
+        done, last = probe()
+        if done:
+            return last
+        now = time.monotonic()
+        if now - t0 >= timeout:
+            raise PollTimeout(last, now - t0)
+        if progress and now - noted >= every:
+            progress(now - t0)
+            noted = now
+        sleep(interval)

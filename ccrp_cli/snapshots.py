@@ -118,8 +118,7 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     require(kind, Ability.BAKE, hint=f"on {kind} the golden image is built locally: `ccrp snapshot build`")
     base = base_image or getattr(inv.provider, "image", None) or DEFAULT_BASE[kind]
     # A cloud may name its images indirectly (AWS: an SSM parameter): the state records what was used.
-    resolve = getattr(provider, "resolve_image", None)
-    base = resolve(base) if resolve else base
+    base = provider.resolve_image(base)
     if not provider.has_image(base):
         raise InputError(f"base image {base} not found on {kind}", hint=BASE_HINT[kind])
     token = secrets.token_hex(8)
@@ -151,27 +150,29 @@ def _wait_baked(provider, token: str, proofs: list[str], timeout: float, poll: f
     import re
     import time
 
+    from .retry import PollTimeout
+    from .retry import poll as poll_until
+
     # "$UPTIME" stays literal in the user-data: only cloud-init's own line has a number there.
     final = re.compile(rf"ccrp-bake {token} finished after [0-9.]+ s")
-    t0 = time.monotonic()
-    last_note = t0
-    while True:
+
+    def finished() -> tuple[bool, str]:
         console = provider.console_output(BUILDER) or ""
-        if final.search(console):
-            missing = [p for p in proofs if f"ccrp-bake {token} {p}-ok" not in console]
-            if missing:
-                tail = " | ".join(console.strip().splitlines()[-5:])[-300:]
-                raise CcrpError(f"the builder finished but its {' and '.join(missing)} install failed: {tail}",
-                                hint="check that the base image is Debian 12 and can reach deb.debian.org and PyPI")
-            progress(f"builder finished installing after {time.monotonic() - t0:.0f} s")
-            return
-        if time.monotonic() - t0 > timeout:
-            raise CcrpError(f"the builder did not finish within {timeout:.0f} s",
-                            hint="look at its console output; a larger --timeout helps on slow mirrors")
-        if time.monotonic() - last_note >= 60:
-            progress(f"builder still installing ({time.monotonic() - t0:.0f} s)")
-            last_note = time.monotonic()
-        time.sleep(poll)
+        return bool(final.search(console)), console
+
+    t0 = time.monotonic()
+    try:
+        console = poll_until(finished, timeout=timeout, interval=poll,
+                             progress=lambda elapsed: progress(f"builder still installing ({elapsed:.0f} s)"))
+    except PollTimeout:
+        raise CcrpError(f"the builder did not finish within {timeout:.0f} s",
+                        hint="look at its console output; a larger --timeout helps on slow mirrors") from None
+    missing = [p for p in proofs if f"ccrp-bake {token} {p}-ok" not in console]
+    if missing:
+        tail = " | ".join(console.strip().splitlines()[-5:])[-300:]
+        raise CcrpError(f"the builder finished but its {' and '.join(missing)} install failed: {tail}",
+                        hint="check that the base image is Debian 12 and can reach deb.debian.org and PyPI")
+    progress(f"builder finished installing after {time.monotonic() - t0:.0f} s")
 
 
 def _terminate_builder(provider, progress: Progress, failing: bool) -> None:

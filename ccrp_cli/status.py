@@ -34,15 +34,19 @@ def relay_link(h: dict, expected: list[str]) -> tuple[bool, dict[str, bool]]:
 
 def wait_connected(provider, robot: str, timeout: float) -> dict:
     """Until the robot's VPN session is up and at least one of its nodes is on its clone's master."""
-    t0 = time.monotonic()
-    while True:
+    from .retry import PollTimeout, poll
+
+    def linked() -> tuple[bool, tuple]:
         client, nodes = robot_link(health(provider, robot), robot)
-        if client and nodes:
-            return {"robot": robot, "seconds": round(time.monotonic() - t0, 2), "address": client["real_address"], "nodes": nodes}
-        if time.monotonic() - t0 > timeout:
-            raise CcrpError(f"robot {robot!r} did not connect to its clone within {timeout:.0f} s",
-                            hint=f"ccrp clone exec --robot {robot} -- journalctl -u ccrp-openvpn -n 50")
-        time.sleep(0.25)
+        return bool(client and nodes), (client, nodes)
+
+    t0 = time.monotonic()
+    try:
+        client, nodes = poll(linked, timeout=timeout, interval=0.25)
+    except PollTimeout:
+        raise CcrpError(f"robot {robot!r} did not connect to its clone within {timeout:.0f} s",
+                        hint=f"ccrp clone exec --robot {robot} -- journalctl -u ccrp-openvpn -n 50") from None
+    return {"robot": robot, "seconds": round(time.monotonic() - t0, 2), "address": client["real_address"], "nodes": nodes}
 
 
 def fleet_status(fleet: Fleet, provider) -> list[dict]:

@@ -46,7 +46,7 @@ def build(
 @app.command()
 def bake(
     inventory: options.Inventory,
-    base_image: Annotated[str | None, typer.Option("--base-image", help="Ubuntu 20.04 image to start from (Glance name/id, GCE image path, AMI id).")] = None,
+    base_image: Annotated[str | None, typer.Option("--base-image", help="Debian 12 image to start from (Glance name/id, GCE image path, AMI id or SSM parameter); default: the cloud's stock Debian 12 image.")] = None,
     timeout: Annotated[float, typer.Option(help="Seconds the builder may take to install the recipe.", min=60)] = 1800,
     as_json: options.Json = False,
 ) -> None:

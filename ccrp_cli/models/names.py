@@ -7,7 +7,7 @@ from typing import Annotated
 
 from pydantic import StringConstraints
 
-# The one alphabet valid at once for GCE names, DNS labels and ROS names (DESIGN.md §3).
+# The one alphabet valid at once for GCE names, DNS labels and ROS names: see docs/inventory.md.
 NAME_PATTERN = r"^[a-z][a-z0-9]{0,30}$"
 NAME_RE = re.compile(NAME_PATTERN)
 # An absolute ROS graph name for a shared topic.
@@ -18,7 +18,7 @@ Topic = Annotated[str, StringConstraints(pattern=TOPIC_PATTERN)]
 
 
 def clone_host(robot: str) -> str:
-    """Hostname of a robot's clone (DESIGN.md §7)."""
+    """Hostname of a robot's clone (README: Concepts)."""
     return f"cri-{robot}"
 
 

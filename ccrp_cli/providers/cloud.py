@@ -65,6 +65,12 @@ class CloudProvider:
         pub = key.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH)
         return f"{pub.decode()} ccrp-{self.fleet}"
 
+    def login_keys(self) -> list[str]:
+        return [self.operator_public_key()]
+
+    def resolve_image(self, image: str) -> str:
+        return image  # clouds that name images indirectly override this
+
     # -- retries (one place) -----------------------------------------------------------------
     def classify_error(self, exc: BaseException) -> ErrorClass:  # cloud: per SDK
         raise NotImplementedError
@@ -98,22 +104,27 @@ class CloudProvider:
         has its public IP). With TOFU allowed, give up on the console after TOFU_CONSOLE_WAIT."""
         from ..transport.ssh import fingerprints_from_console
 
+        from ..retry import PollTimeout, poll
+
         give_up = min(deadline, time.monotonic() + TOFU_CONSOLE_WAIT) if self.trust_on_first_use else deadline
-        while True:
+
+        def keys_shown() -> tuple[bool, tuple]:
             rec = self.query().get(robot)
             pins = fingerprints_from_console(self.console_output(robot) or "") if rec else frozenset()
-            if pins and rec is not None and rec.public_ip:
-                return rec, pins
-            if time.monotonic() >= give_up:
-                if self.trust_on_first_use and rec is not None and rec.public_ip:
-                    return rec, frozenset()
-                why = ("not found" if rec is None else "no public IP" if not rec.public_ip
-                       else "cloud-init printed no SSH host keys on its console")
-                raise CcrpError(
-                    f"{self.kind} instance of robot {robot!r}: {why} in time",
-                    hint=f"check the instance's console log; set {TOFU_ENV}=1 to trust its SSH key on first use instead",
-                )
-            time.sleep(CONSOLE_POLL)
+            return bool(pins and rec is not None and rec.public_ip), (rec, pins)
+
+        try:
+            return poll(keys_shown, timeout=max(0.0, give_up - time.monotonic()), interval=CONSOLE_POLL)
+        except PollTimeout as late:
+            rec, _pins = late.last
+        if self.trust_on_first_use and rec is not None and rec.public_ip:
+            return rec, frozenset()
+        why = ("not found" if rec is None else "no public IP" if not rec.public_ip
+               else "cloud-init printed no SSH host keys on its console")
+        raise CcrpError(
+            f"{self.kind} instance of robot {robot!r}: {why} in time",
+            hint=f"check the instance's console log; set {TOFU_ENV}=1 to trust its SSH key on first use instead",
+        )
 
     def _session(self, robot: str, rec: CloneRecord | None = None, pins: frozenset[str] | None = None):
         """The robot's SSH connection, opened on first use and reused while it stays up. Keys not

@@ -85,7 +85,7 @@ def _stderr_warning(message: str) -> None:
 class KnownHosts:
     """known_hosts (OpenSSH format, 0600) in the fleet store; entries are keyed by a host alias.
 
-    `ssh -o UserKnownHostsFile=<file> -o HostKeyAlias=<alias> ubuntu@<ip>` uses the same file."""
+    `ssh -o UserKnownHostsFile=<file> -o HostKeyAlias=<alias> ccrp@<ip>` uses the same file."""
 
     _lock = threading.Lock()  # threads of one run (fleet up fan-out) record keys concurrently
 

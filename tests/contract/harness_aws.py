@@ -33,7 +33,7 @@ class AwsHarness(Knobs):
         self.provider, self.raw, self._AWSResponse = provider, raw, AWSResponse
         # The image clones start from: registered in the fake, not the fleet's (no tags), so
         # teardown and gc must leave it alone.
-        self.image = raw.register_image(Name="ubuntu-20.04-ros-noetic", RootDeviceName="/dev/sda1",
+        self.image = raw.register_image(Name="debian-12-amd64", RootDeviceName="/dev/sda1",
                                         Architecture="x86_64")["ImageId"]
         self.calls: Counter = Counter()
         self._lock = threading.Lock()

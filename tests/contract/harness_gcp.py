@@ -39,7 +39,7 @@ from .harness import FLEET
 PROJECT, REGION = "ccrp-test", "europe-west2"
 ZONES = [f"{REGION}-a", f"{REGION}-b", f"{REGION}-c"]
 BASE = "https://www.googleapis.com/compute/v1/"
-PUBLIC_IMAGE = "projects/ubuntu-os-cloud/global/images/ubuntu-2004-focal-v20240307"
+PUBLIC_IMAGE = "projects/debian-cloud/global/images/debian-12-bookworm-v20240312"
 PAGE = 3
 NAME = re.compile(r"^[a-z]([-a-z0-9]{0,61}[a-z0-9])?$")
 LABEL = re.compile(r"^[a-z0-9_-]{0,63}$")

@@ -3,7 +3,7 @@
 Two network namespaces made for this module ("clone" and "robot") are joined by a veth pair on
 192.168.250.0/30; nothing touches the host's own interfaces. One server runs for the whole
 module, laid out as a clone's /etc/openvpn/server/ccrp would be. The first test brings nao1's
-tunnel up; the others show the server refusing clients that must not get in (DESIGN.md §6).
+tunnel up; the others show the server refusing clients that must not get in (docs/security.md).
 """
 
 from __future__ import annotations

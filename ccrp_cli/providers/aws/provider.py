@@ -68,7 +68,7 @@ class AwsProvider(CloudProvider):
         try:
             self.session = boto3.Session(profile_name=self.settings.profile, region_name=self.settings.region)
         except BotoCoreError as exc:  # unknown profile
-            raise as_ccrp("session", exc) from None
+            raise as_ccrp("session", exc) from exc
         # retry.call is the one place for retries: botocore's own are off.
         self._config = config = Config(retries={"total_max_attempts": 1}, connect_timeout=10, read_timeout=60)
         self.ec2 = self.session.client("ec2", config=config)

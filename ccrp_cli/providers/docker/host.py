@@ -5,7 +5,6 @@ alone (they run here, whatever cloud their clones are on)."""
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 from ...errors import CcrpError
@@ -104,14 +103,16 @@ class DockerHost:
 
     def wait_systemd(self, robot: str, role: str = "clone", timeout: float = 60) -> None:
         """Until systemd inside the container has finished booting."""
-        deadline = time.monotonic() + timeout
-        while True:
-            rc, out = self.exec(robot, ["systemctl", "is-system-running", "--wait"], timeout=timeout, role=role)
-            if out.strip() in ("running", "degraded"):
-                return
-            if time.monotonic() > deadline:
-                raise CcrpError(f"systemd did not come up in {self.container_name(robot, role)}: {out.strip()[:200]}")
-            time.sleep(0.2)
+        from ...retry import PollTimeout, poll
+
+        def booted() -> tuple[bool, str]:
+            _rc, out = self.exec(robot, ["systemctl", "is-system-running", "--wait"], timeout=timeout, role=role)
+            return out.strip() in ("running", "degraded"), out.strip()
+
+        try:
+            poll(booted, timeout=timeout, interval=0.2)
+        except PollTimeout as late:
+            raise CcrpError(f"systemd did not come up in {self.container_name(robot, role)}: {str(late.last)[:200]}") from None
 
     def push_files(self, robot: str, files: list, restart: list[str] = (), role: str = "clone") -> None:
         """Copy bundle files to their `dest` with their modes; chgrp where a group is named."""

@@ -128,6 +128,12 @@ class DockerProvider(DockerHost):
             raise
         return self._record(c, created=True)
 
+    def login_keys(self) -> None:
+        return None  # the Docker API is the transport: no login user in the clone
+
+    def resolve_image(self, image: str) -> str:
+        return image
+
     def check_credentials(self) -> str:
         version = self.client.version()  # the engine answering is the credential
         return f"Docker {version.get('Version', '?')} (API {version.get('ApiVersion', '?')})"

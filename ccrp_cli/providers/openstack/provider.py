@@ -147,7 +147,7 @@ class OpenStackProvider(CloudProvider):
         except Exception as exc:
             if not errors.is_sdk_error(exc):
                 raise
-            raise errors.to_ccrp(what, self.settings.cloud, exc) from None
+            raise errors.to_ccrp(what, self.settings.cloud, exc) from exc
 
     # -- bootstrap ------------------------------------------------------------------------------
     def bootstrap(self) -> None:
@@ -195,7 +195,9 @@ class OpenStackProvider(CloudProvider):
                     raise
                 err = exc if isinstance(exc, CcrpError) else errors.to_ccrp(what, self.settings.cloud, exc)
                 err.message += f" (rollback left {', '.join(left)}: `ccrp gc` removes them)"
-                raise err from None
+                if err is exc:
+                    raise
+                raise err from exc
         word = server.status or "BUILD"
         return CloneRecord(robot=spec.robot, provider_id=server.id, state=CloneState.of(word, STATES), status=word,
                            public_ip=fip.floating_ip_address, common_ip=port.fixed_ips[0]["ip_address"],
