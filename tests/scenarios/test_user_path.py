@@ -197,13 +197,15 @@ def test_cloud_faults_give_per_robot_results_and_a_rerun_converges(run, fault):
     with run.b.faults[fault]():
         proc = run.b.ccrp("fleet", "scale", "3", "--json", "-i", str(run.b.inventory), timeout=1200)
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
-    if fault == "quota":  # robot1 could not be created: the others are untouched
-        assert proc.returncode == 3, proc.stderr[-2000:]
-        rows = {r["robot"]: r for r in json.loads(proc.stdout)}
-        assert rows["robot1"]["action"] == "failed" and "quota" in rows["robot1"]["detail"].lower(), rows
-        assert rows["nao1"]["action"] == "reused", rows
-    else:  # the next zone, or retries, absorb it
-        assert proc.returncode == 0, proc.stderr[-2000:]
+    # Quota: robot1 cannot be created. Zone: OpenStack and GCP place it in the next zone; AWS keeps
+    # a fleet in its one subnet's zone (docs/aws.md), so there robot1 fails with the capacity hint.
+    partial = fault == "quota" or (fault == "zone" and run.b.kind == "aws")
+    assert proc.returncode == (3 if partial else 0), proc.stderr[-2000:]
+    rows = {r["robot"]: r for r in json.loads(proc.stdout)}
+    assert rows["nao1"]["action"] == "reused" and rows["nao2"]["action"] == "reused", rows
+    if partial:  # one line per robot: the failed one says why, the others are untouched
+        assert rows["robot1"]["action"] == "failed", rows
+        assert ("quota" if fault == "quota" else "capacity") in rows["robot1"]["detail"].lower(), rows
     run.ccrp("fleet", "scale", "3")  # converges once the fault is gone
     assert run.status()["robot1"]["master_reachable"] is True
     run.ccrp("fleet", "scale", "2")
