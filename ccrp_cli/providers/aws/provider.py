@@ -19,40 +19,20 @@ from pathlib import Path
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...render.limits import fit_user_data
-from ..base import LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, OwnedResource, Quota, SnapshotRecord
-from . import INFO
+from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Quota
 from ..cloud import CloudProvider
-from . import network, tags
+from . import INFO, network, tags
 from .errors import INSTALL_HINT, as_ccrp, classify, error_code
+from .images import Images
+from .owned import KINDS, LIVE, Owned
 
-LIVE = ["pending", "running", "stopping", "stopped"]
 GONE = ["shutting-down", "terminated"]
 # EC2's instance states in ccrp's words.
 STATES = {"pending": CloneState.PENDING, "running": CloneState.RUNNING, "stopping": CloneState.STOPPING,
           "stopped": CloneState.STOPPED, "shutting-down": CloneState.DELETING, "terminated": CloneState.DELETING}
 
-# kind -> (describe call, result key, id filter, id field, extra describe args)
-KINDS: dict[str, tuple[str, str, str, str, dict]] = {
-    "instance": ("describe_instances", "Reservations", "instance-id", "InstanceId",
-                 {"Filters": [{"Name": "instance-state-name", "Values": LIVE}]}),
-    "elastic_ip": ("describe_addresses", "Addresses", "allocation-id", "AllocationId", {}),
-    "volume": ("describe_volumes", "Volumes", "volume-id", "VolumeId", {}),
-    "image": ("describe_images", "Images", "image-id", "ImageId", {"Owners": ["self"]}),
-    "snapshot": ("describe_snapshots", "Snapshots", "snapshot-id", "SnapshotId", {"OwnerIds": ["self"]}),
-    "security_group": ("describe_security_groups", "SecurityGroups", "group-id", "GroupId", {}),
-    "key_pair": ("describe_key_pairs", "KeyPairs", "key-pair-id", "KeyPairId", {}),
-    "route_table": ("describe_route_tables", "RouteTables", "route-table-id", "RouteTableId", {}),
-    "subnet": ("describe_subnets", "Subnets", "subnet-id", "SubnetId", {}),
-    "internet_gateway": ("describe_internet_gateways", "InternetGateways", "internet-gateway-id", "InternetGatewayId", {}),
-    "vpc": ("describe_vpcs", "Vpcs", "vpc-id", "VpcId", {}),
-}
-# Teardown order: what depends on something is removed before it. Snapshots outlive the fleet
-# (as on Docker): `ccrp snapshot delete` removes them.
-TEARDOWN = ["instance", "elastic_ip", "volume", "security_group", "key_pair", "route_table", "subnet",
-            "internet_gateway", "vpc"]
 
-
-class AwsProvider(CloudProvider):
+class AwsProvider(Images, Owned, CloudProvider):
     kind = "aws"
     abilities = INFO.abilities
 
@@ -278,139 +258,6 @@ class AwsProvider(CloudProvider):
         except ValueError:
             return out
 
-    # -- snapshots ---------------------------------------------------------------------------
-    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        instances = self._instances(robot, role=None)
-        if not instances:
-            raise CcrpError(f"robot {robot!r} has no clone to capture", hint=f"ccrp clone create --robot {robot}")
-        # A builder's AMI is a build, not a robot's clone: no robot tag, source "build".
-        source = robot if tags.as_dict(instances[0]).get(LABEL_ROLE) == "clone" else None
-        # AMI names allow letters, digits and ()[] ./-'@_ only.
-        ami_name = "".join(c if c.isalnum() or c in "()[] ./-'@_" else "-" for c in name)[:128]
-        image_id = self.api(
-            "create image", self.ec2.create_image, InstanceId=instances[0]["InstanceId"], Name=ami_name,
-            Description=f"ccrp fleet {self.fleet}: " + (f"clone of {robot}" if source else "baked by snapshot bake"),
-            TagSpecifications=tags.spec(["image"], self.fleet, "snapshot", source, name=ami_name),
-        )["ImageId"]
-        # `snapshot bake` deletes the builder right after this returns: wait until the AMI is usable.
-        self.api("wait for image", self.ec2.get_waiter("image_available").wait, ImageIds=[image_id],
-                 WaiterConfig={"Delay": 10, "MaxAttempts": 180})
-        image = self._describe("image", [{"Name": "image-id", "Values": [image_id]}])[0]
-        # The EBS snapshots get the tags too (gc finds them if their image is ever lost). Tagged
-        # afterwards rather than in CreateImage's TagSpecifications, which moto does not model.
-        snaps = _backing(image)
-        if snaps:
-            self.api("tag snapshots", self.ec2.create_tags, Resources=sorted(snaps),
-                     Tags=tags.tags(self.fleet, "snapshot", source, name=ami_name))
-        return self._snapshot_record(image)
-
-    def _snapshot_record(self, image: dict) -> SnapshotRecord:
-        gib = sum(m.get("Ebs", {}).get("VolumeSize", 0) for m in image.get("BlockDeviceMappings", []))
-        return SnapshotRecord(id=image["ImageId"], name=image.get("Name", ""), created=image.get("CreationDate", "")[:19],
-                              source=tags.as_dict(image).get(LABEL_ROBOT) or "build", size_mb=gib * 1024.0 or None)
-
-    def list_snapshots(self) -> list[SnapshotRecord]:
-        images = self._describe("image", tags.filters(self.fleet, "snapshot"))
-        return sorted(map(self._snapshot_record, images), key=lambda s: s.created)
-
-    def resolve_image(self, image: str) -> str:
-        """The AMI id an image names: an AMI id as is; an SSM parameter (Debian publishes its current
-        AMI as /aws/service/debian/release/bookworm/latest/amd64; EC2's `resolve:ssm:` form too) as
-        the id it holds now, so that the fleet's state records which AMI was booted."""
-        name = image.removeprefix("resolve:ssm:")
-        if not name.startswith("/"):
-            return image
-        ssm = self.session.client("ssm", config=self._config)
-        return self.api(f"get SSM parameter {name}", ssm.get_parameter, Name=name)["Parameter"]["Value"]
-
-    def has_image(self, image: str) -> bool:
-        key = "image-id" if image.startswith("ami-") else "name"
-        return bool(self.api("describe images", self.ec2.describe_images, Filters=[{"Name": key, "Values": [image]}])["Images"])
-
-    def delete_snapshot(self, snapshot_id: str) -> None:
-        key = "image-id" if snapshot_id.startswith("ami-") else "name"
-        found = self._describe("image", tags.filters(self.fleet, "snapshot") + [{"Name": key, "Values": [snapshot_id]}])
-        if not found:
-            raise CcrpError(f"snapshot {snapshot_id} is not an image of fleet {self.fleet!r}", hint="ccrp snapshot list")
-        self._delete("image", found[0]["ImageId"])
-
-    # -- everything owned (teardown, gc) -----------------------------------------------------
-    def list_owned(self) -> list[OwnedResource]:
-        owned: list[OwnedResource] = []
-        backing: set[str] = set()  # EBS snapshots of an owned image go with their image
-        for kind in KINDS:
-            for item in self._describe(kind, tags.filters(self.fleet)):
-                if kind == "image":
-                    backing |= _backing(item)
-                rid = item[KINDS[kind][3]]
-                if kind == "snapshot" and rid in backing:
-                    continue
-                t = tags.as_dict(item)
-                name = t.get("Name") or item.get("GroupName") or item.get("KeyName") or item.get("PublicIp") or ""
-                owned.append(OwnedResource(kind=kind, id=rid, name=name, robot=t.get(LABEL_ROBOT)))
-        return owned
-
-    def delete_owned(self, resource: OwnedResource) -> None:
-        if not self._delete(resource.kind, resource.id):
-            raise CcrpError(f"{resource.kind} {resource.id} is not owned by fleet {self.fleet!r} (or is gone)")
-
-    def _delete(self, kind: str, rid: str) -> bool:
-        """Delete one resource after checking, again, that it carries the fleet's tags.
-        False when there is no such owned resource (never touched)."""
-        if kind not in KINDS:
-            raise CcrpError(f"unknown AWS resource kind {kind!r}")
-        found = self._describe(kind, tags.filters(self.fleet) + [{"Name": KINDS[kind][2], "Values": [rid]}])
-        if not found:
-            return False
-        item, ec2 = found[0], self.ec2
-        if kind == "instance":
-            self._terminate_ids([rid])
-        elif kind == "elastic_ip":
-            self._release(item)
-        elif kind == "volume" and item["State"] != "available":
-            if item["State"] != "in-use":
-                return False  # deleting with its terminated instance
-            raise CcrpError(f"volume {rid} is attached to an instance", hint="delete the instance first")
-        elif kind == "image":
-            self.api("deregister image", ec2.deregister_image, ImageId=rid)
-            # Its EBS snapshots were made by CreateImage from the fleet's clone: they go with it.
-            for snap in sorted(_backing(item)):
-                self.api("delete snapshot", ec2.delete_snapshot, SnapshotId=snap)
-        elif kind == "route_table":
-            for a in item.get("Associations", []):
-                if not a.get("Main"):
-                    self.api("disassociate route table", ec2.disassociate_route_table, AssociationId=a["RouteTableAssociationId"])
-            self.api("delete route table", ec2.delete_route_table, RouteTableId=rid)
-        elif kind == "internet_gateway":
-            for a in item.get("Attachments", []):
-                self.api("detach internet gateway", ec2.detach_internet_gateway, InternetGatewayId=rid, VpcId=a["VpcId"])
-            self.api("delete internet gateway", ec2.delete_internet_gateway, InternetGatewayId=rid)
-        else:
-            op, arg = {"volume": ("delete_volume", "VolumeId"), "snapshot": ("delete_snapshot", "SnapshotId"),
-                       "security_group": ("delete_security_group", "GroupId"), "key_pair": ("delete_key_pair", "KeyName"),
-                       "subnet": ("delete_subnet", "SubnetId"), "vpc": ("delete_vpc", "VpcId")}[kind]
-            self.api(op.replace("_", " "), getattr(ec2, op), **{arg: item["KeyName"] if kind == "key_pair" else rid})
-        return True
-
-    def teardown(self) -> list[str]:
-        """Everything the fleet owns except its snapshots, dependents first."""
-        owned = sorted((r for r in self.list_owned() if r.kind in TEARDOWN), key=lambda r: TEARDOWN.index(r.kind))
-        removed: list[str] = []
-        instances = [r.id for r in owned if r.kind == "instance"]
-        if instances:
-            self._terminate_ids(instances)
-            # Security groups, subnets and volumes stay in use until the instances are really gone.
-            self._wait("instance_terminated", instances)
-            removed += [f"instance {r.name or r.id}" for r in owned if r.kind == "instance"]
-        for r in owned:
-            if r.kind != "instance" and self._delete(r.kind, r.id):
-                removed.append(f"{r.kind} {r.name or r.id}")
-        self._net = None
-        return removed
-
-    def leftovers(self) -> list[str]:
-        return [f"{r.kind} {r.name or r.id}" for r in self.list_owned() if r.kind in TEARDOWN]
-
     # -- doctor ------------------------------------------------------------------------------
     def check_credentials(self) -> str:
         sts = self.session.client("sts")
@@ -444,8 +291,3 @@ class AwsProvider(CloudProvider):
                                   QuotaCode="L-1216C47A")["Quota"]["Value"])
         except (CcrpError, BotoCoreError, ClientError):
             return None  # no permission, or not offered here: fall back to account attributes
-
-
-def _backing(image: dict) -> set[str]:
-    """The EBS snapshots an AMI is made of."""
-    return {m["Ebs"]["SnapshotId"] for m in image.get("BlockDeviceMappings", []) if m.get("Ebs", {}).get("SnapshotId")}
