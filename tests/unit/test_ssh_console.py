@@ -225,6 +225,9 @@ def test_cloud_clone_user_data_creates_ccrps_login_user_with_the_operator_key(cc
     class DockerLike:  # no operator key: its transport is the Docker API
         kind = "docker"
 
+        def login_keys(self) -> None:
+            return None
+
     data = yaml.safe_load(clone_user_data(view, DockerLike(), bare=False))
     assert all(isinstance(u, dict) and u.get("system") for u in data["users"]), data["users"]  # no login user
     assert "ssh_authorized_keys" not in data
