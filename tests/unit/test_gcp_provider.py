@@ -164,6 +164,20 @@ def test_recreate_within_the_request_id_window(h):
     assert ids[0] == ids[1] != ids[2]
 
 
+def test_recreate_several_times_within_the_request_id_window(h):
+    """Each re-creation within the hour leaves one more remembered operation on the clone's chain of
+    request ids: the third creation meets two earlier operations before GCE creates anything (it
+    used to stop after one and fail with the instance not found)."""
+    for _ in range(2):
+        h.provider.run_instance(spec("robot1", 1))
+        assert h.provider.terminate("robot1")
+    third = h.provider.run_instance(spec("robot1", 1))
+    assert third.created and h.instances_for("robot1") == 1
+    ids = [r.request_id for r in inserts(h)]
+    assert len(ids) == 1 + 2 + 3 and len(set(ids)) == 3  # the same chain of ids every time: deterministic
+    assert ids[:1] == ids[1:2] == ids[3:4] and ids[2] == ids[4]
+
+
 def test_stopped_clone_is_started_and_reused(h):
     first = h.provider.run_instance(spec("robot1", 1))
     (inst,) = h.fake.instances.values()

@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 # Teardown order: what points at an instance goes first, the network it lives on last.
 TEARDOWN_ORDER = ("route", "instance", "firewall", "subnet", "network")
 SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images do
+# Earlier operations an insert may meet under its request ids (one per re-creation of the clone
+# within GCE's hour of remembering them) before it sends one GCE has not seen.
+MAX_REPLAYS = 20
 # Where Debian publishes its GCE images (the bake's default base, snapshots.DEFAULT_BASE). They run
 # the Google guest agent instead of cloud-init, so an instance booted from one gets a startup-script
 # (templates/gcp/startup-script) that installs cloud-init; a baked snapshot has it already.
@@ -313,13 +316,19 @@ class GcpProvider(CloudProvider):
         what = f"create instance {resource.name} in {zone}"
         op = self._mutate(what, self.c.instances.insert, request=request)
         try:
-            if self._get("instance", self.c.instances.get, project=self.project, zone=zone,
-                         instance=resource.name) is None:
-                # GCE remembers request ids for about an hour: a clone deleted and re-created in
-                # that time gets the earlier (done) operation back and no instance. Send it again
-                # under an id derived from that operation (still stable if this call is retried).
+            # GCE remembers request ids for about an hour: a clone deleted and re-created in that
+            # time gets the earlier (done) operation back and no instance. Send it again under an
+            # id derived from that operation (still stable if this call is retried). A clone
+            # re-created more than once in the hour meets each earlier operation in turn.
+            replays = 0
+            while self._get("instance", self.c.instances.get, project=self.project, zone=zone,
+                            instance=resource.name) is None:
+                if replays == MAX_REPLAYS:
+                    raise CcrpError(f"{what}: GCE answered {replays} earlier operations and created no instance",
+                                    hint="wait an hour (GCE forgets request ids) or give the robot another name")
+                replays += 1
                 again = self.compute.InsertInstanceRequest(request, request_id=request_id(spec.instance_id, zone, op.name))
-                self._mutate(what, self.c.instances.insert, request=again)
+                op = self._mutate(what, self.c.instances.insert, request=again)
         except BaseException:
             self._rollback(spec.robot, zone, resource.name, route=False)
             raise
