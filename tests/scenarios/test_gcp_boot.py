@@ -199,8 +199,12 @@ def test_fake_instances_boot_stop_start_capture_and_go(tmp_path):
         first = gce.instances.get(project=PROJECT, zone=zone, instance="first")
         assert first.status == "RUNNING" and ipaddress.ip_address(nat("first")) in ipaddress.ip_network(fake.internet_cidr)
         pins = _console_pins(fake, zone, "first")
-        out = _ssh_run(nat("first"), key, pins, "cat /etc/gce-fake-marker; ip -4 -o addr show")
+        # cloud-init enabled by its generator: ccrp's startup-script for debian-cloud images (kept in the
+        # metadata, not run by this fake) would step aside here at once.
+        out = _ssh_run(nat("first"), key, pins, "cat /etc/gce-fake-marker; ip -4 -o addr show; "
+                                                "test -e /run/cloud-init/enabled && echo cloud-init-enabled")
         assert "written by the first boot" in out and f"{host.network_address + 10}/{host.prefixlen}" in out
+        assert "cloud-init-enabled" in out
         t["boot + ssh"] = time.monotonic() - t0
 
         before = nat("first")
