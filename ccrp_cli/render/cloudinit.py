@@ -171,6 +171,11 @@ def builder_user_data(inv: Inventory, token: str) -> str:
     ]
     if not data["write_files"]:
         del data["write_files"]
+    # Without a `users` entry cloud-init would create the image's default user (admin, debian...)
+    # with the cloud's key pair and sudo, and the snapshot would carry that login into every clone.
+    # The builder creates ccrp's login user instead, with no key and no sudo: a clone's user-data
+    # gives it both (cloud-init applies them to a user that exists).
+    data["users"] = [{"name": LOGIN_USER, "shell": "/bin/bash", "lock_passwd": True}]
     data["final_message"] = f"ccrp-bake {token} finished after $UPTIME s"
     return dump(data)
 

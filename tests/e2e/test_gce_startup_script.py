@@ -29,11 +29,13 @@ pytestmark = [
 docker = pytest.importorskip("docker")
 
 from ccrp_cli.loader import load_inventory  # noqa: E402
-from ccrp_cli.render.cloudinit import builder_user_data  # noqa: E402
+from ccrp_cli.render.cloudinit import builder_user_data, dump, login_user  # noqa: E402
 
-# Debian 12 minbase with systemd and CA certificates, and no cloud-init: kept between runs.
-IMAGE = "ccrp-test/debian-12-no-cloud-init:1"
+# Debian 12 minbase with what Debian's GCE image has and ccrp relies on (systemd, CA certificates,
+# sshd, sudo), and no cloud-init: kept between runs.
+IMAGE = "ccrp-test/debian-12-no-cloud-init:2"
 TOKEN = secrets.token_hex(8)
+KEY = "ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIKz9iKHWxQ7rTnGpOLtuJ6LZ1R0s6cE4lqbEe5vDzEbh"
 
 # The test's own steps around the script: this machine's egress CAs (PyPI through a proxy that
 # signs with them), the NoCloud seed, the script, then the checks.
@@ -58,6 +60,21 @@ openvpn --version | head -1
 dpkg-query -W -f='${Status} ${Package}\\n' ros-core python3-rospy cloud-init
 test -x /usr/local/lib/ccrp/relay.py && echo relay-agent-present
 echo "machine-id-bytes=$(wc -c < /etc/machine-id)"
+# The snapshot's users: ccrp's login user without key or sudo, not the image's default user.
+id -un ccrp && echo "builder-made-ccrp"
+getent passwd debian >/dev/null && echo "image-default-user-present"
+grep -rl ccrp /etc/sudoers.d/ && echo "ccrp-has-sudo-on-the-builder"
+grep -s "^ssh-" /home/ccrp/.ssh/authorized_keys && echo "ccrp-has-keys-on-the-builder"
+# A clone's first boot from that image: a new instance whose user-data gives the user its key and
+# sudo. All four stages, as systemd runs them at boot (the local one finds the new instance).
+rm -rf /run/cloud-init  # /run is empty at a boot
+printf 'instance-id: gce-startup-script-clone\nlocal-hostname: cri-nao1\n' > /var/lib/cloud/seed/nocloud/meta-data
+cp /t/clone-user-data /var/lib/cloud/seed/nocloud/user-data
+(cloud-init init --local && cloud-init init && cloud-init modules --mode config && cloud-init modules --mode final) \
+    > /t/clone.log 2>&1
+echo "clone-rc=$?"
+sudo -l -U ccrp | grep -q "NOPASSWD: ALL" && echo "clone-ccrp-sudo"
+grep -q "clone-test-key" /home/ccrp/.ssh/authorized_keys && echo "clone-ccrp-key"
 """
 
 
@@ -71,7 +88,7 @@ def image():
         pass
     if shutil.which("mmdebstrap") is None:
         pytest.skip(f"{IMAGE} is missing and mmdebstrap is not installed to build it")
-    deb = subprocess.Popen(["mmdebstrap", "--variant=minbase", "--include=ca-certificates,systemd,systemd-sysv",
+    deb = subprocess.Popen(["mmdebstrap", "--variant=minbase", "--include=ca-certificates,systemd,systemd-sysv,openssh-server,sudo",
                             "bookworm", "-"], stdout=subprocess.PIPE)
     imp = subprocess.run(["docker", "import", "--change", "LABEL ccrp-test=gce-startup-script", "-", IMAGE],
                          stdin=deb.stdout, capture_output=True, check=False)
@@ -85,6 +102,7 @@ def test_startup_script_installs_cloud_init_which_bakes_the_recipe(image, tmp_pa
     (tmp_path / "user-data").write_text(builder_user_data(inv, TOKEN))
     (tmp_path / "meta-data").write_text("instance-id: gce-startup-script-test\nlocal-hostname: ccrp-builder\n")
     shutil.copy(ROOT / "templates" / "gcp" / "startup-script", tmp_path / "startup-script")
+    (tmp_path / "clone-user-data").write_text(dump({"users": [login_user([f"{KEY} clone-test-key"])]}))
     (tmp_path / "harness").write_text(HARNESS)
     volumes = {str(tmp_path): {"bind": "/t", "mode": "rw"}}
     if Path("/usr/local/share/ca-certificates").is_dir():
@@ -112,3 +130,9 @@ def test_startup_script_installs_cloud_init_which_bakes_the_recipe(image, tmp_pa
     assert "machine-id-bytes=0" in out  # every clone of the snapshot gets its own
     # Once cloud-init runs at boot by itself, the script steps aside.
     assert "second-rc=0" in out and (tmp_path / "second.log").read_text() == ""
+    # The snapshot holds ccrp's user without key or sudo and no default user of the image; a clone's
+    # user-data then gives that user the operator key and sudo.
+    assert "builder-made-ccrp" in out and "image-default-user-present" not in out
+    assert "ccrp-has-sudo-on-the-builder" not in out and "ccrp-has-keys-on-the-builder" not in out
+    clone = (tmp_path / "clone.log").read_text(errors="replace")
+    assert "clone-rc=0" in out and "clone-ccrp-sudo" in out and "clone-ccrp-key" in out, out[-1500:] + clone[-1500:]

@@ -128,6 +128,8 @@ def test_builder_spec_and_user_data(fleet, tmp_path):
     assert ["sh", "-c", LOCALE_SETUP] in data["runcmd"]
     # cloud-init's own locale module would run before the packages and fail on an image without the locale.
     assert data["locale"] == "false"
+    # No image default user (admin, debian...) baked into the snapshot: only ccrp's, without key or sudo.
+    assert data["users"] == [{"name": "ccrp", "shell": "/bin/bash", "lock_passwd": True}]
     # The proofs are printed with the token as an argument: the user-data itself cannot satisfy them.
     assert not any(f"ccrp-bake {token} {p}-ok" in ud for p in ("apt", "locale", "pip"))
     assert not any(m in ud for m in PRIVATE_KEY_MARKERS)
