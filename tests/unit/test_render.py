@@ -15,7 +15,6 @@ from pathlib import Path
 import pytest
 import yaml
 
-from ccrp_cli import vpn
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.render import bundles, cloudinit, network, openvpn

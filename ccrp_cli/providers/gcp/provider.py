@@ -8,7 +8,6 @@ mutation waits for its ExtendedOperation, and every SDK failure leaves as a one-
 
 from __future__ import annotations
 
-import ipaddress
 import logging
 import threading
 from contextlib import contextmanager
@@ -19,19 +18,19 @@ from ...models.inventory import Inventory
 from ...render.limits import fit_user_data
 from ...render.templates import static
 from ...retry import ErrorClass, across_zones
-from ..base import (LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, OwnedResource, Quota,
-                    SnapshotRecord, owner_labels)
-from . import INFO
+from ..base import (LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Quota,
+                    owner_labels)
 from ..cloud import SSH_USER, CloudProvider
+from . import INFO
 from .clients import Clients, sdk
 from .errors import as_ccrp_error, classify
-from .ownership import Names, description_marks, gce_name, request_id, same_resource, tail
+from .images import Images
+from .network import Network
+from .owned import Owned
+from .ownership import Names, request_id, same_resource, tail
 
 log = logging.getLogger(__name__)
 
-# Teardown order: what points at an instance goes first, the network it lives on last.
-TEARDOWN_ORDER = ("route", "instance", "firewall", "subnet", "network")
-SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images do
 # Earlier operations an insert may meet under its request ids (one per re-creation of the clone
 # within GCE's hour of remembering them) before it sends one GCE has not seen.
 MAX_REPLAYS = 20
@@ -45,7 +44,7 @@ STATES = {"PROVISIONING": CloneState.PENDING, "STAGING": CloneState.PENDING, "RE
           "STOPPED": CloneState.STOPPED, "SUSPENDED": CloneState.STOPPED, "TERMINATED": CloneState.STOPPED}
 
 
-class GcpProvider(CloudProvider):
+class GcpProvider(Network, Images, Owned, CloudProvider):
     kind = "gcp"
     abilities = INFO.abilities
     op_timeout = 600.0  # seconds to wait for one GCE operation
@@ -137,94 +136,6 @@ class GcpProvider(CloudProvider):
             raise
         except Exception as exc:  # noqa: BLE001 - every SDK error class
             raise as_ccrp_error(what, exc, self.region) from exc
-
-    # -- network ----------------------------------------------------------------------------
-    def bootstrap(self) -> None:
-        """The VPC network and its subnetwork in the region (the common network), and the
-        fleet's firewall rules: create what is missing, reuse what exists."""
-        with self._errors(f"bootstrap of fleet {self.fleet} in {self.project}"):
-            network = self._ensure_network()
-            self._subnet_link = self._ensure_subnetwork(network)
-            for rule in self.firewall_rules(network.self_link):
-                self._ensure_firewall(rule)
-
-    def _ensure_network(self):
-        named = self.settings.network  # type: ignore[union-attr]
-        name = named or self.names.network
-        network = self._get("network", self.c.networks.get, project=self.project, network=name)
-        if network is None and named:
-            raise CcrpError(f"network {named!r} not found in project {self.project}",
-                            hint="create it, or drop provider.network so ccrp creates its own")
-        if network is None:
-            self._insert(f"network {name}", self.c.networks.insert, project=self.project,
-                         network_resource=self.compute.Network(
-                             name=name, auto_create_subnetworks=False, description=self.names.describe("network")))
-            network = self._call("get network", self.c.networks.get, project=self.project, network=name)
-        elif not named and not self.names.owns_unlabelled(network.name, network.description):
-            raise CcrpError(f"network {name} exists but is not ccrp's", hint="name it in provider.network to use it")
-        return network
-
-    def _ensure_subnetwork(self, network) -> str:
-        """A subnetwork of `network` in the region holding common.cidr: an existing one of a named
-        network, else ccrp's own."""
-        cidr = self.inv.common.cidr
-        subnets = self._list("subnetworks", self.c.subnetworks.list, project=self.project, region=self.region)
-        for subnet in subnets:
-            if tail(subnet.network) == network.name and cidr.subnet_of(ipaddress.ip_network(subnet.ip_cidr_range)):
-                return subnet.self_link
-        name = self.names.subnetwork
-        self._insert(f"subnetwork {name}", self.c.subnetworks.insert, project=self.project, region=self.region,
-                     subnetwork_resource=self.compute.Subnetwork(
-                         name=name, network=network.self_link, ip_cidr_range=str(cidr), region=self.region,
-                         description=self.names.describe("network")))
-        subnet = self._call("get subnetwork", self.c.subnetworks.get, project=self.project, region=self.region,
-                            subnetwork=name)
-        if subnet.ip_cidr_range != str(cidr) or not self.names.owns_unlabelled(subnet.name, subnet.description):
-            raise CcrpError(f"subnetwork {name} exists with range {subnet.ip_cidr_range}, not common.cidr {cidr}",
-                            hint="delete it (`ccrp fleet down`) or set common.cidr to its range")
-        return subnet.self_link
-
-    def firewall_rules(self, network_link: str) -> list:
-        """Ingress to the fleet's instances (network tag ccrp-<fleet>): the VPN port from anywhere,
-        SSH from the operator's CIDR, anything from the common network. Nothing else: GCE denies
-        other ingress by default, so the ROS master port is never public."""
-        vpn, fw = self.inv.vpn, self.compute
-
-        def rule(purpose: str, protocol: str, ports: list[str], source: str):
-            return fw.Firewall(
-                name=self.names.firewall(purpose), network=network_link, direction="INGRESS", priority=1000,
-                allowed=[fw.Allowed(I_p_protocol=protocol, ports=ports)], source_ranges=[source],
-                target_tags=[self.names.tag], description=self.names.describe("network"))
-
-        return [
-            rule("vpn", vpn.proto, [str(vpn.port)], "0.0.0.0/0"),
-            rule("ssh", "tcp", ["22"], str(self.settings.operator_cidr)),  # type: ignore[union-attr]
-            rule("common", "all", [], str(self.inv.common.cidr)),
-        ]
-
-    @staticmethod
-    def _rule_shape(rule) -> tuple:
-        return (rule.direction, tail(rule.network), sorted(rule.source_ranges), sorted(rule.target_tags),
-                sorted((a.I_p_protocol, tuple(a.ports)) for a in rule.allowed))
-
-    def _ensure_firewall(self, want) -> None:
-        have = self._get("firewall", self.c.firewalls.get, project=self.project, firewall=want.name)
-        if have is None:
-            if self._insert(f"firewall {want.name}", self.c.firewalls.insert, project=self.project,
-                            firewall_resource=want):
-                return
-            have = self._call("get firewall", self.c.firewalls.get, project=self.project, firewall=want.name)
-        if not self.names.owns_unlabelled(have.name, have.description):
-            raise CcrpError(f"firewall rule {want.name} exists but is not ccrp's", hint="rename or remove it")
-        if self._rule_shape(have) != self._rule_shape(want):  # e.g. vpn.port or operator_cidr changed
-            self._mutate(f"update firewall {want.name}", self.c.firewalls.update, project=self.project,
-                         firewall=want.name, firewall_resource=want)
-
-    def _subnetwork(self) -> str:
-        """The common subnetwork's link (bootstrap resolves it; another process may not have)."""
-        if self._subnet_link is None:
-            self.bootstrap()
-        return self._subnet_link  # type: ignore[return-value]
 
     # -- instances --------------------------------------------------------------------------
     def _zones(self, robot: str) -> list[str]:
@@ -423,126 +334,6 @@ class GcpProvider(CloudProvider):
         if found is None:
             raise CcrpError(f"robot {robot!r} has no clone in fleet {self.fleet}", hint=f"ccrp clone create --robot {robot}")
         return found
-
-    # -- snapshots --------------------------------------------------------------------------
-    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        """An image of the clone's boot disk (taken while it runs), labelled as the fleet's snapshot."""
-        with self._errors(f"snapshot of clone {robot}"):
-            _zone, inst = self._require(robot)
-            disk = next(d.source for d in inst.disks if d.boot)
-            # A builder's image is a build, not a robot's clone: no robot label, source "build".
-            source = robot if inst.labels.get(LABEL_ROLE) == "clone" else None
-            image = self.compute.Image(name=gce_name(name), source_disk=disk,
-                                       labels=owner_labels(self.fleet, "snapshot", source))
-            self._mutate(f"create image {image.name}", self.c.images.insert, request=self.compute.InsertImageRequest(
-                project=self.project, image_resource=image, force_create=True,
-                request_id=request_id(self.fleet, "image", image.name)))
-            return self._snapshot_record(self._call("get image", self.c.images.get, project=self.project,
-                                                    image=image.name))
-
-    @staticmethod
-    def _snapshot_record(image) -> SnapshotRecord:
-        return SnapshotRecord(
-            id=str(image.id), name=image.name, created=image.creation_timestamp[:19],
-            source=dict(image.labels).get(LABEL_ROBOT) or "build",
-            size_mb=round(image.archive_size_bytes / 1e6, 1) if image.archive_size_bytes else None)
-
-    def _images(self) -> list:
-        request = self.compute.ListImagesRequest(project=self.project, filter=self.names.label_filter("snapshot"))
-        return [i for i in self._list("images", self.c.images.list, request=request)
-                if self.names.owns_labels(i.labels)]
-
-    def list_snapshots(self) -> list[SnapshotRecord]:
-        with self._errors("list snapshots"):
-            return sorted((self._snapshot_record(i) for i in self._images()), key=lambda s: s.created)
-
-    def has_image(self, image: str) -> bool:
-        """A snapshot of the fleet by name or id, or an image path GCE resolves (a public family)."""
-        if any(image in (s.id, s.name) for s in self.list_snapshots()):
-            return True
-        project, _, rest = image.partition("projects/")[2].partition("/global/images/")
-        if not (project and rest):
-            return False
-        with self._errors(f"look up image {image}"):
-            if rest.startswith("family/"):
-                found = self._get("image family", self.c.images.get_from_family, project=project, family=rest[7:])
-            else:
-                found = self._get("image", self.c.images.get, project=project, image=rest)
-        return found is not None
-
-    def delete_snapshot(self, snapshot_id: str) -> None:
-        with self._errors(f"delete snapshot {snapshot_id}"):
-            image = next((i for i in self._images() if snapshot_id in (str(i.id), i.name)), None)
-            if image is None:
-                raise CcrpError(f"no snapshot {snapshot_id} of fleet {self.fleet} in {self.project}",
-                                hint="ccrp snapshot list")
-            self._wait_all([("delete image", self._delete("image", self.c.images.delete, project=self.project,
-                                                          image=image.name))])
-
-    # -- everything owned (fleet down, gc) --------------------------------------------------
-    def _owned(self) -> list[tuple[OwnedResource, str | None]]:
-        """(resource, zone) for everything carrying the fleet's marks."""
-        owned: list[tuple[OwnedResource, str | None]] = []
-        for zone, inst in self._instances():
-            owned.append((OwnedResource(kind="instance", id=str(inst.id), name=inst.name,
-                                        robot=dict(inst.labels).get(LABEL_ROBOT)), zone))
-        for image in self._images():
-            owned.append((OwnedResource(kind="image", id=str(image.id), name=image.name,
-                                        robot=dict(image.labels).get(LABEL_ROBOT)), None))
-        unlabelled = (
-            ("route", self.c.routes.list, {}),
-            ("firewall", self.c.firewalls.list, {}),
-            ("subnet", self.c.subnetworks.list, {"region": self.region}),
-            ("network", self.c.networks.list, {}),
-        )
-        for kind, method, where in unlabelled:
-            for item in self._list(f"{kind}s", method, project=self.project, **where):
-                if self.names.owns_unlabelled(item.name, item.description):
-                    robot = description_marks(item.description).get(LABEL_ROBOT)
-                    owned.append((OwnedResource(kind=kind, id=str(item.id), name=item.name, robot=robot), None))
-        return owned
-
-    def list_owned(self) -> list[OwnedResource]:
-        with self._errors("list owned resources"):
-            return [res for res, _zone in self._owned()]
-
-    def _start_delete(self, res: OwnedResource, zone: str | None):
-        where = {
-            "route": (self.c.routes.delete, {"route": res.name}),
-            "instance": (self.c.instances.delete, {"zone": zone, "instance": res.name}),
-            "firewall": (self.c.firewalls.delete, {"firewall": res.name}),
-            "subnet": (self.c.subnetworks.delete, {"region": self.region, "subnetwork": res.name}),
-            "network": (self.c.networks.delete, {"network": res.name}),
-            "image": (self.c.images.delete, {"image": res.name}),
-        }
-        method, args = where[res.kind]
-        return (f"delete {res.kind} {res.name}", self._delete(f"{res.kind} {res.name}", method,
-                                                              project=self.project, **args))
-
-    def delete_owned(self, resource: OwnedResource) -> None:
-        """Delete one owned resource; it is looked up again so nothing unowned is ever touched."""
-        with self._errors(f"delete {resource.kind} {resource.name}"):
-            match = next(((r, z) for r, z in self._owned() if (r.kind, r.id) == (resource.kind, resource.id)), None)
-            if match is None:
-                raise CcrpError(f"{resource.kind} {resource.name or resource.id} is not owned by fleet {self.fleet}")
-            self._wait_all([self._start_delete(*match)])
-
-    def teardown(self) -> list[str]:
-        """Delete everything the fleet owns except its snapshots, in dependency order; deletes of
-        one kind run together (a GCE delete takes tens of seconds)."""
-        removed: list[str] = []
-        with self._errors(f"teardown of fleet {self.fleet}"):
-            owned = self._owned()
-            for kind in TEARDOWN_ORDER:
-                batch = [(r, z) for r, z in owned if r.kind == kind]
-                self._wait_all([self._start_delete(r, z) for r, z in batch])
-                removed += [f"{r.kind} {r.name}" for r, _z in batch]
-        self._subnet_link = None
-        return removed
-
-    def leftovers(self) -> list[str]:
-        """What `fleet down` should have removed and did not."""
-        return [f"{r.kind} {r.name}" for r in self.list_owned() if r.kind not in SNAPSHOT_KINDS]
 
     # -- doctor -----------------------------------------------------------------------------
     def check_credentials(self) -> str:
