@@ -78,11 +78,11 @@ def files_current(provider: Provider, robot: str, files: list) -> bool:
 SECRETS_DIR_SH = 'install -d -m "$1" -o root -g openvpn "$0" && stat -c %d / "$0"'
 
 
-def prepare_secrets_dir(provider: Provider, robot: str, relay: bool) -> None:
+def prepare_secrets_dir(provider: Provider, robot: str) -> None:
     from .render.view import SECRETS_DIR
 
-    # 0751 with the relay: its user opens relay.key by name but cannot list the directory.
-    rc, out = provider.exec(robot, ["sh", "-c", SECRETS_DIR_SH, SECRETS_DIR, "0751" if relay else "0750"], timeout=30)
+    # 0751: the relay's user opens relay.key by name but cannot list the directory.
+    rc, out = provider.exec(robot, ["sh", "-c", SECRETS_DIR_SH, SECRETS_DIR, "0751"], timeout=30)
     devices = out.split()[-2:]  # after anything sudo may warn about first
     if rc != 0 or len(devices) != 2 or not all(d.isdigit() for d in devices):
         raise CcrpError(f"cannot prepare {SECRETS_DIR} on {clone_host(robot)}: {out.strip()[-200:]}")
@@ -144,11 +144,9 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     view = clone_view(fleet, state, robot)
     # Clones are ensured in parallel threads and issue_robot is a read-modify-write of the PKI
     # index: serialise it, or one thread's certificates vanish from the index.
-    relay = fleet.inventory.sharing.engine == "relay"
     with writer.lock:
         fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
-        if relay:
-            fleet.pki.issue_relay(robot, str(view.addr.common_ip), fleet.inventory.vpn.cert_days)
+        fleet.pki.issue_relay(robot, str(view.addr.common_ip), fleet.inventory.vpn.cert_days)
     # A bare snapshot gets the recipe's packages from cloud-init at first boot.
     bare = bool(state.snapshot and state.snapshot.get("bare"))
     user_data = clone_user_data(view, provider, bare)
@@ -167,12 +165,10 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         provider.wait_ready(robot, timeout=1200 if bare else 300)
         secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
         if not files_current(provider, robot, secrets):
-            prepare_secrets_dir(provider, robot, relay)
-            restart = ["ccrp-openvpn.service"] + (["ccrp-relay.service"] if relay else [])
-            provider.push_files(robot, secrets, restart=restart)
+            prepare_secrets_dir(provider, robot)
+            provider.push_files(robot, secrets, restart=["ccrp-openvpn.service", "ccrp-relay.service"])
         wait_serving(provider, robot, fleet.inventory.ros.master_port)
-        if relay:
-            push_relay_config(fleet, provider, state, robot)
+        push_relay_config(fleet, provider, state, robot)
     except BaseException:
         writer.update(robot, phase="failed", provider_id=record.provider_id)
         if record.created:

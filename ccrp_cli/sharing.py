@@ -2,7 +2,7 @@
 
 A route is (source robot, topic, destination robot): the source's clone exports `topic`, the
 destination's clone imports it and sees it as /<source><topic>, so two robots' identical topic
-names never collide. Relays and fkie filters are both rendered from these routes.
+names never collide. Each clone's relay config is rendered from these routes.
 """
 
 from __future__ import annotations

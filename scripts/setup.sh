@@ -12,7 +12,6 @@ APT_PACKAGES=(
   python3-venv
   docker.io          # the local default backend (Docker Hub is not needed)
   mmdebstrap         # builds the base image from Debian packages
-  python3-roslaunch  # parses the rendered fkie launch files in tests (roslaunch --dump-params)
 )
 
 missing=()

@@ -39,7 +39,7 @@ def clone_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
 
 def relay_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
     """The relay's mutual-TLS certificate and key (verified against the fleet CA, ca.crt)."""
-    if view.inv.sharing.engine != "relay" or not creds.relay_cert_pem or not creds.relay_key_pem:
+    if not creds.relay_cert_pem or not creds.relay_key_pem:
         return []
     return [
         BundleFile("relay.crt", creds.relay_cert_pem, 0o644, f"{SECRETS_DIR}/relay.crt"),

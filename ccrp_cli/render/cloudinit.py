@@ -38,9 +38,7 @@ def user_data_dict(
     SSH transport uses; without them (Docker) the clone has no login user at all."""
     a = view.addr
     fw4, fw6 = network.firewall_rules(view)
-    relay = view.inv.sharing.engine == "relay"
-    units = ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-rosmaster.service"]
-    units += ["ccrp-relay.service"] if relay else []
+    units = ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-rosmaster.service", "ccrp-relay.service"]
     files = [
         _file("/etc/hosts", network.clone_hosts_file(view)),
         _file(f"{CCRP_ETC}/ros.env", network.ros_env(view, "clone")),
@@ -60,10 +58,8 @@ def user_data_dict(
     users += [
         {"name": "openvpn", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
         {"name": "ros", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "homedir": "/var/lib/ros"},
+        {"name": RELAY_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
     ]
-    if relay:
-        users.append({"name": RELAY_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True,
-                      "no_create_home": True})
     data: dict[str, Any] = {
         "hostname": a.clone_host,
         "preserve_hostname": False,
@@ -72,7 +68,7 @@ def user_data_dict(
         "write_files": files,
         "runcmd": [
             # 0751: the relay user may open relay.key by name; nobody else may list the secrets.
-            ["install", "-d", "-m", "0751" if relay else "0750", "-o", "root", "-g", "openvpn", VPN_DIR],
+            ["install", "-d", "-m", "0751", "-o", "root", "-g", "openvpn", VPN_DIR],
             ["install", "-d", "-m", "0755", "-o", "ros", "-g", "ros", "/var/lib/ros"],
             ["systemctl", "daemon-reload"],
             ["systemctl", "enable", "--now", *units],

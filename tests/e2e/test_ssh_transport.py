@@ -416,7 +416,7 @@ def test_secrets_are_in_memory_never_on_the_disk_and_come_back_after_a_reboot(la
     key = next(f for f in files if f.name == "server.key").content.encode()
 
     def push(provider) -> None:
-        clones.prepare_secrets_dir(provider, "nao1", relay=True)
+        clones.prepare_secrets_dir(provider, "nao1")
         provider.push_files("nao1", files)
         assert clones.files_current(provider, "nao1", files)
 
@@ -450,7 +450,7 @@ def test_secrets_are_in_memory_never_on_the_disk_and_come_back_after_a_reboot(la
         # No tmpfs there (an image or user-data from elsewhere): refused before any key is sent.
         fresh_vm.sh("umount", SECRETS_DIR)
         with pytest.raises(CcrpError, match="on its root disk"):
-            clones.prepare_secrets_dir(provider, "nao1", relay=True)
+            clones.prepare_secrets_dir(provider, "nao1")
         assert fresh_vm.sh("ls", "-A", SECRETS_DIR) == ""
     finally:
         provider.close()

@@ -1,16 +1,13 @@
-"""Topic-sharing policy: routes, relay configs, `ccrp topics`, fkie launch files (parsed by roslaunch)."""
+"""Topic-sharing policy: routes, relay configs, `ccrp topics`."""
 
 from __future__ import annotations
 
 import json
-import shutil
-import subprocess
 
 import pytest
 import yaml
 
 from ccrp_cli.fleet import Fleet
-from ccrp_cli.render import fkie
 from ccrp_cli.sharing import relay_config, routes
 from tests.conftest import LAB
 
@@ -73,31 +70,6 @@ def test_validate_rejects_reexport_loop(tmp_path, ccrp):
     bad.write_text(yaml.safe_dump(data))
     proc = ccrp("fleet", "validate", "-i", str(bad))
     assert proc.returncode == 2 and "namespace" in proc.stderr
-
-
-@pytest.mark.skipif(shutil.which("roslaunch") is None, reason="roslaunch (apt: python3-roslaunch) is not installed")
-def test_fkie_launch_parses_with_roslaunch(lab_up, tmp_path):
-    fleet, state = lab_up
-    path = tmp_path / "nao2.launch"
-    path.write_text(fkie.launch(fleet, state, "nao2"))
-    params = subprocess.run(["roslaunch", "--dump-params", str(path)], capture_output=True, text=True, timeout=60)
-    assert params.returncode == 0, params.stderr
-    p = yaml.safe_load(params.stdout)
-    assert p["/master_discovery/robot_hosts"] == ["cri-nao1", "cri-turtlebot1"]
-    assert p["/master_discovery/send_mcast"] is False and p["/master_discovery/listen_mcast"] is False
-    assert p["/master_sync/sync_hosts"] == ["cri-nao1"]
-    assert p["/master_sync/sync_topics"] == [{"cri-nao1": ["/nao1/faces"]}]  # filtered on the receiving side
-    nodes = subprocess.run(["roslaunch", "--nodes", str(path)], capture_output=True, text=True, timeout=60)
-    assert nodes.stdout.split() == ["/master_discovery", "/master_sync", "/ccrp_export1"], nodes.stdout + nodes.stderr
-    assert 'args="/faces /nao2/faces"' in path.read_text()
-
-
-def test_fkie_network_routes_each_other_clones_vpn_subnet_via_its_common_ip(lab_up):
-    fleet, state = lab_up
-    hosts, cmds = fkie.network(fleet, state, "nao2")
-    assert "10.90.0.10 cri-nao1" in hosts and "10.80.1.2 nao1" in hosts
-    assert ["ip", "route", "replace", "10.80.1.0/24", "via", "10.90.0.10"] in cmds
-    assert not any("10.80.2.0/24" in c for c in cmds)  # never a route to its own subnet
 
 
 def test_status_shows_no_sharing_that_is_not_running(lab_up):
