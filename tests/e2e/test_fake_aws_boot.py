@@ -7,12 +7,11 @@ the errors ccrp classifies. The user's path with ccrp on it is tests/scenarios.
 from __future__ import annotations
 
 import ipaddress
-import shutil
 import time
 
 import pytest
 
-from tests.fakes.cloudboot import DEBIAN_12, docker_available
+from tests.fakes.cloudboot import DEBIAN_12, docker_available, image_buildable
 
 _NO_DOCKER = docker_available()
 
@@ -30,17 +29,6 @@ from tests.scenarios.backend_aws import open_backend
 
 
 
-def _image_buildable() -> bool:
-    if shutil.which("mmdebstrap"):
-        return True
-    try:
-        with docker.from_env(timeout=30) as client:
-            client.images.get(DEBIAN_12)
-        return True
-    except docker.errors.DockerException:
-        return False
-
-
 def test_fake_instances_boot_stop_start_capture_and_faults(tmp_path):
     """The fake itself through plain boto3 (no ccrp): gzip user-data reaches cloud-init, the Elastic
     IP answers on port 22 from this host, the console is EC2's base64 (botocore decodes it), stop and
@@ -56,7 +44,7 @@ def test_fake_instances_boot_stop_start_capture_and_faults(tmp_path):
     from ccrp_cli.retry import ErrorClass
     from tests.fakes.aws_boot import DEBIAN_SSM
 
-    if not _image_buildable():
+    if not image_buildable():
         pytest.skip(f"{DEBIAN_12} is missing and mmdebstrap is not installed to build it")
     with open_backend(tmp_path, "awsfake") as backend:
         fake = backend.fake

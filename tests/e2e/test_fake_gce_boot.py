@@ -11,12 +11,11 @@ import io
 import ipaddress
 import json
 import re
-import shutil
 import time
 
 import pytest
 
-from tests.fakes.cloudboot import DEBIAN_12, docker_available
+from tests.fakes.cloudboot import DEBIAN_12, docker_available, image_buildable
 
 _NO_DOCKER = docker_available()
 
@@ -31,17 +30,6 @@ paramiko = pytest.importorskip("paramiko")
 
 from tests.contract.harness_gcp import PROJECT, REGION, ZONES
 
-
-
-def _image_buildable() -> bool:
-    if shutil.which("mmdebstrap"):
-        return True
-    try:
-        with docker.from_env(timeout=30) as client:
-            client.images.get(DEBIAN_12)
-        return True
-    except docker.errors.DockerException:
-        return False
 
 
 FINGERPRINTS = re.compile(r"BEGIN SSH HOST KEY FINGERPRINTS-----(.*?)-----END SSH HOST KEY FINGERPRINTS", re.DOTALL)
@@ -92,7 +80,7 @@ def test_fake_instances_boot_stop_start_capture_and_go(tmp_path):
     ephemeral IP and start brings a new one; an image of its disk boots a second instance that keeps
     what the first wrote; an image without a disk here fails the insert's operation and leaves no
     instance; deletes leave no container, and deleting the image removes its Docker image."""
-    if not _image_buildable():
+    if not image_buildable():
         pytest.skip(f"{DEBIAN_12} is missing and mmdebstrap is not installed to build it")
     from cryptography.hazmat.primitives import serialization
     from cryptography.hazmat.primitives.asymmetric import ed25519

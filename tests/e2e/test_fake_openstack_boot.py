@@ -18,12 +18,11 @@ import hashlib
 import io
 import os
 import re
-import shutil
 import time
 
 import pytest
 
-from tests.fakes.cloudboot import DEBIAN_12, docker_available
+from tests.fakes.cloudboot import DEBIAN_12, docker_available, image_buildable
 
 _NO_DOCKER = docker_available()
 
@@ -46,23 +45,10 @@ BOOT_TIMEOUT = 90.0
 FP_BLOCK = re.compile(r"-----BEGIN SSH HOST KEY FINGERPRINTS-----(.*?)-----END SSH HOST KEY FINGERPRINTS-----", re.DOTALL)
 
 
-def _image_buildable() -> bool:
-    if shutil.which("mmdebstrap"):
-        return True
-    client = docker.from_env(timeout=30)
-    try:
-        client.images.get(DEBIAN_12)
-        return True
-    except docker.errors.DockerException:
-        return False
-    finally:
-        client.close()
-
-
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
     """(openstacksdk connection, fake, boot, http server) for one fake cloud served over HTTP."""
-    if not _image_buildable():
+    if not image_buildable():
         pytest.skip(f"{DEBIAN_12} is missing and mmdebstrap is not installed to build it")
     t0 = time.monotonic()
     with booting_cloud(tmp_path_factory.mktemp("os"), CLOUD) as http:
@@ -288,7 +274,7 @@ def test_servers_boot_console_ssh_snapshot_and_go(served):
 def test_a_run_abandoned_mid_boot_leaves_nothing(tmp_path):
     """The client goes away while servers boot and a snapshot is being taken (a failed test):
     leaving booting_cloud removes every container, network and image of the run all the same."""
-    if not _image_buildable():
+    if not image_buildable():
         pytest.skip(f"{DEBIAN_12} is missing and mmdebstrap is not installed to build it")
     with booting_cloud(tmp_path, CLOUD) as http:
         fake, boot = http.fake, http.fake.boot

@@ -86,6 +86,20 @@ def vendor_data_default_user(name: str) -> bytes:
             f"    shell: /bin/bash\n").encode()
 
 
+def image_buildable() -> bool:
+    """The Debian 12 cloud image is here, or mmdebstrap can build it."""
+    if shutil.which("mmdebstrap"):
+        return True
+    client = docker.from_env(timeout=30)
+    try:
+        client.images.get(DEBIAN_12)
+        return True
+    except docker.errors.DockerException:
+        return False
+    finally:
+        client.close()
+
+
 def docker_available() -> str | None:
     """None when a Docker engine answers; else why not (for a skip reason)."""
     try:
