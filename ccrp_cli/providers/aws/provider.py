@@ -112,22 +112,24 @@ class AwsProvider(Images, Owned, CloudProvider):
         """Reuse the robot's owned instance, or launch one; then converge its route and Elastic IP.
         On failure, remove only what this call created."""
         net = self.network
-        existing = self._instances(spec.robot, spec.role)
+        # One look at the robot's instances in every state: a live one is reused; the gone ones
+        # count the launches before (one call per clone fewer than asking for each apart).
+        seen = self._instances(spec.robot, spec.role, states=LIVE + GONE)
+        existing = [i for i in seen if i["State"]["Name"] in LIVE]
         if existing:
             inst = existing[0]
             if inst["State"]["Name"] == "stopped":
                 self.api("start instance", self.ec2.start_instances, InstanceIds=[inst["InstanceId"]])
             return self._complete(inst, spec, net, created=False)
         payload, _gzipped = fit_user_data("aws", spec.user_data)  # cloud-init detects gzip itself
-        return self._complete(self._launch(spec, net, payload), spec, net, created=True)
+        return self._complete(self._launch(spec, net, payload, generation=len(seen)), spec, net, created=True)
 
-    def _launch(self, spec: CloneSpec, net: network.Network, user_data: bytes) -> dict:
+    def _launch(self, spec: CloneSpec, net: network.Network, user_data: bytes, generation: int) -> dict:
         robot = self.inv.robot(spec.robot)
         instance_type = (robot.instance_type if robot and robot.instance_type else self.settings.instance_type)
         # ClientToken makes a retried RunInstances (lost answer, throttling) return the same
         # instance. A token stays bound to its instance after termination, so a relaunch after
-        # a rollback takes the next generation.
-        generation = len(self._instances(spec.robot, spec.role, states=GONE))
+        # a rollback takes the next generation (the count of its terminated predecessors).
         for _ in range(3):
             token = hashlib.sha256(f"{spec.instance_id}/{generation}".encode()).hexdigest()[:64]
             inst = self.api(
