@@ -134,17 +134,32 @@ class Import:
 
 class Relay:
     def __init__(self, cfg: dict) -> None:
-        self.cfg = cfg
-        self.session = zenoh.open(zenoh_config(cfg))
+        self.cfg, self.session, self.endpoints = cfg, None, None
         self.exports: dict[str, Export] = {}
         self.imports: dict[str, Import] = {}
         self.apply(cfg)
+
+    def _open(self, cfg: dict, endpoints: list[str]) -> None:
+        """A Zenoh session dials the peers its config names when it opens, and never others: a
+        partner added later (a clone that became ready after this one) is only reached through a
+        new session. Exports and imports are declared again on it by apply()."""
+        for topic in list(self.exports):
+            self.exports.pop(topic).close()
+        for local in list(self.imports):
+            self.imports.pop(local).close()
+        if self.session is not None:
+            self.session.close()
+        self.session, self.endpoints = zenoh.open(zenoh_config(cfg)), endpoints
 
     def key(self, source: str, topic: str) -> str:
         return f"ccrp/{self.cfg['fleet']}/{source}/{topic.strip('/')}"
 
     def apply(self, cfg: dict) -> None:
-        """Bring exports and imports in line with cfg; untouched ones keep running."""
+        """Bring exports and imports in line with cfg; untouched ones keep running unless the
+        peers changed (then the session is opened again, see _open)."""
+        endpoints = sorted(p["endpoint"] for p in cfg["peers"].values())
+        if endpoints != self.endpoints:
+            self._open(cfg, endpoints)
         self.cfg = cfg
         want_exports = set(cfg["exports"])
         want_imports = {i["as"]: i for i in cfg["imports"]}

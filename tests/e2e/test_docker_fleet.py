@@ -689,6 +689,37 @@ def test_robot_topic_reaches_other_robot_only_through_both_clones(fleet: E2EFlee
     assert rows["nao1"]["relay_peers"] == {"nao2": True, "turtlebot1": True}, rows["nao1"]
 
 
+def test_a_partner_that_became_ready_later_is_dialled(fleet: E2EFleet, up):
+    """Both agents start with configs that do not name each other, as when neither clone was ready
+    when the other's first relay.json was pushed; the full configs then arrive as on a fleet
+    change. A Zenoh session dials only the peers named when it opened, so the agent must open a
+    new one (relay.py Relay._open), or neither side ever dials and the peer stays down."""
+    from ccrp_cli.providers.docker.archive import tar_files
+
+    def put(robot: str, text: str) -> None:
+        c = fleet.container("clone", robot)
+        c.put_archive("/etc/ccrp", tar_files([("relay.json", text.encode(), 0o644)]))
+        assert exec_in(c, ["touch", "/etc/ccrp/relay.json"])[0] == 0  # a new mtime: the agent re-reads it
+
+    full = {}
+    for robot, other in (("nao1", "turtlebot1"), ("turtlebot1", "nao1")):
+        c = fleet.container("clone", robot)
+        rc, full[robot] = exec_in(c, ["cat", "/etc/ccrp/relay.json"])
+        assert rc == 0, full[robot]
+        cfg = json.loads(full[robot])
+        cfg["peers"].pop(other)
+        cfg["imports"] = [i for i in cfg["imports"] if i["source"] != other]
+        put(robot, json.dumps(cfg))
+        assert exec_in(c, ["systemctl", "restart", "ccrp-relay.service"])[0] == 0
+    wait_for("nao1's agent without turtlebot1", lambda: ("turtlebot1" not in (p := fleet.status()["nao1"]["relay_peers"]), p), 30)
+    time.sleep(1.5)  # the next write must carry a later mtime than the one just read
+    for robot in ("nao1", "turtlebot1"):
+        put(robot, full[robot])
+    peers = wait_for("nao1 and turtlebot1 dial each other", lambda: (
+        (p := fleet.status()["nao1"]["relay_peers"]).get("turtlebot1") is True, p), 30)
+    assert peers == {"nao2": True, "turtlebot1": True}, peers
+
+
 def test_unexported_topic_is_never_received_elsewhere(fleet: E2EFleet, sim_nao1, sim_nao2):
     # The demo node on robot nao1 publishes /chatter and /camera/image_raw: neither is exported.
     for robot in ("nao2", "turtlebot1"):
