@@ -8,7 +8,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict
 
 from .errors import InputError
-from .providers import REGISTRY
+from .providers import info
 from .resources import data_dir
 
 
@@ -28,13 +28,6 @@ class Recipe(BaseModel):
     platforms: dict[str, Platform]
 
 
-# Which platform each provider's clones run, as each backend declares it (ProviderInfo.platform):
-# debian-bookworm on all four, so a clone behaves the same on every backend. Debian 12 ships
-# OpenVPN 2.6, which the rendered server.conf needs (data-ciphers); Ubuntu 20.04's OpenVPN 2.4
-# refuses it, which is why no focal platform exists any more.
-PROVIDER_PLATFORM = {kind: info.platform for kind, info in REGISTRY.items()}
-
-
 @cache
 def recipe(distro: str) -> Recipe:
     path = data_dir("snapshots") / f"{distro}.yaml"
@@ -44,4 +37,7 @@ def recipe(distro: str) -> Recipe:
 
 
 def platform(distro: str, provider: str) -> Platform:
-    return recipe(distro).platforms[PROVIDER_PLATFORM[provider]]
+    """The recipe's platform a backend's clones run (its ProviderInfo.platform: debian-bookworm on
+    all four, so a clone behaves the same everywhere; Debian 12's OpenVPN 2.6 takes the rendered
+    server.conf, Ubuntu 20.04's 2.4 refused its data-ciphers)."""
+    return recipe(distro).platforms[info(provider).platform]

@@ -70,7 +70,7 @@ class CommonNetwork(Strict):
     first_host: Annotated[int, Field(ge=2)] = 10
 
 
-# multimaster_fkie is not packaged by Debian, and every clone runs Debian 12 (recipes.PROVIDER_PLATFORM).
+# multimaster_fkie is not packaged by Debian, and every clone runs Debian 12 (ProviderInfo.platform).
 FKIE_REFUSED = ("fkie needs multimaster_fkie, available only for ROS 1 on Ubuntu 20.04 from packages.ros.org; "
                 "ccrp's clones run Debian 12, which does not package it: use engine: relay")
 

@@ -119,7 +119,6 @@ class Ability(str, Enum):
 
     LOCAL_BUILD = "snapshot build"  # build the golden image on this host (Docker)
     BAKE = "snapshot bake"  # a builder instance in the cloud installs the recipe and is captured
-    CONSOLE = "console output"  # serial console text (host-key pinning)
     ROBOT_SIM = "robot sim on its public network"  # simulated robots attach to the fleet's own public network
 
 

@@ -177,7 +177,7 @@ def make_harness(tmp_path):
     import boto3
     from moto import mock_aws
 
-    from ccrp_cli.providers.aws import AwsProvider
+    from ccrp_cli.providers.aws.provider import AwsProvider
 
     inv = inventory({"kind": "aws", "region": REGION, "zones": ["us-east-1a", "us-east-1b"],
                      "instance_type": "t3.medium", "operator_cidr": OPERATOR_CIDR})

@@ -143,7 +143,7 @@ class MotoServer:
 def make_harness(tmp_path, threaded: bool = True):
     import boto3
 
-    from ccrp_cli.providers.aws import AwsProvider
+    from ccrp_cli.providers.aws.provider import AwsProvider
 
     inv = inventory({"kind": "aws", "region": REGION, "zones": ["us-east-1a", "us-east-1b"],
                      "instance_type": "t3.medium", "operator_cidr": OPERATOR_CIDR})

@@ -157,7 +157,7 @@ def make_harness(tmp_path):
         pkgs = sorted(set(images.BASE_PACKAGES + platform("noetic", "docker").packages))
         images.build_base_image(raw, BASE, pkgs)
     built = _tiny_image(raw)
-    from ccrp_cli.providers.docker import DockerProvider
+    from ccrp_cli.providers.docker.provider import DockerProvider
 
     inv = inventory({"kind": "docker", "public_cidr": PUBLIC_CIDR, "publish_vpn_ports": True},
                     common={"cidr": COMMON_CIDR})

@@ -29,7 +29,7 @@ from google.cloud import compute_v1 as c
 
 from ccrp_cli.models.inventory import Inventory
 from ccrp_cli.providers.base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneSpec, owner_labels
-from ccrp_cli.providers.gcp import GcpProvider
+from ccrp_cli.providers.gcp.provider import GcpProvider
 from ccrp_cli.providers.gcp.clients import Clients
 from ccrp_cli.providers.gcp.ownership import description_marks, tail
 

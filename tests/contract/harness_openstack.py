@@ -35,7 +35,7 @@ class OpenStackHarness:
 
     def new_provider(self, inv, workdir):
         """An OpenStackProvider (a fresh process, as far as ccrp knows) wired to this fake."""
-        from ccrp_cli.providers.openstack import OpenStackProvider
+        from ccrp_cli.providers.openstack.provider import OpenStackProvider
 
         provider = OpenStackProvider(inv, workdir)
         self.fake.attach(provider.conn)

@@ -27,7 +27,7 @@ def mocked(aws_env):  # noqa: F811
 
 
 def make(tmp_path, bootstrap: bool = True, **settings):
-    from ccrp_cli.providers.aws import AwsProvider
+    from ccrp_cli.providers.aws.provider import AwsProvider
 
     p = AwsProvider(inventory(PROVIDER | settings), tmp_path / "store")
     p.backoff = FAST

@@ -268,7 +268,7 @@ def test_no_credentials_is_one_line(tmp_path, monkeypatch):
     import google.auth
     from google.auth.exceptions import DefaultCredentialsError
 
-    from ccrp_cli.providers.gcp import GcpProvider
+    from ccrp_cli.providers.gcp.provider import GcpProvider
 
     def no_adc(**_kw):
         raise DefaultCredentialsError("Your default credentials were not found. To set up ADC, see ...")
@@ -288,7 +288,7 @@ def test_check_credentials_reads_the_region(h):
 def test_missing_sdk_names_the_extra(tmp_path, monkeypatch):
     import google.cloud
 
-    from ccrp_cli.providers.gcp import GcpProvider
+    from ccrp_cli.providers.gcp.provider import GcpProvider
 
     monkeypatch.delattr(google.cloud, "compute_v1")
     monkeypatch.setitem(sys.modules, "google.cloud.compute_v1", None)  # as if never installed

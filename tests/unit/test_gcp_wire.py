@@ -15,7 +15,7 @@ requests_mock = pytest.importorskip("requests_mock")
 from google.auth.credentials import AnonymousCredentials  # noqa: E402
 
 from ccrp_cli.providers.base import CloneSpec  # noqa: E402
-from ccrp_cli.providers.gcp import GcpProvider  # noqa: E402
+from ccrp_cli.providers.gcp.provider import GcpProvider  # noqa: E402
 from ccrp_cli.providers.gcp.clients import Clients  # noqa: E402
 from ccrp_cli.retry import Backoff  # noqa: E402
 from tests.contract.harness_gcp import PROJECT, REGION, ZONES, inventory  # noqa: E402

@@ -246,9 +246,10 @@ def test_watchdog_switches_to_fallback_and_back(tmp_path):
 def test_every_backend_runs_the_one_debian_platform():
     """Docker and the three clouds run the same recipe platform: Debian 12 with Debian's own ROS 1
     packages and OpenVPN 2.6 (the rendered server.conf's data-ciphers needs OpenVPN 2.5 or newer)."""
-    from ccrp_cli.recipes import PROVIDER_PLATFORM, recipe
+    from ccrp_cli.providers import REGISTRY
+    from ccrp_cli.recipes import recipe
 
-    assert PROVIDER_PLATFORM == dict.fromkeys(("docker", "openstack", "gcp", "aws"), "debian-bookworm")
+    assert {k: i.platform for k, i in REGISTRY.items()} == dict.fromkeys(("docker", "openstack", "gcp", "aws"), "debian-bookworm")
     assert list(recipe("noetic").platforms) == ["debian-bookworm"]
 
 

@@ -12,12 +12,3 @@ INFO = ProviderInfo(
     user_data_gzip=False,
     sdk_modules=(("docker", "docker"),),
 )
-
-
-def __getattr__(name: str):
-    # The provider class (and with it the SDK glue) only when asked for by name.
-    if name == "DockerProvider":
-        from .provider import DockerProvider
-
-        return DockerProvider
-    raise AttributeError(name)

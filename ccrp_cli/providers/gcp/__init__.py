@@ -9,17 +9,8 @@ INFO = ProviderInfo(
     kind="gcp",
     settings=GcpSettings,
     factory="gcp.provider:GcpProvider",
-    abilities=frozenset({Ability.BAKE, Ability.CONSOLE}),
+    abilities=frozenset({Ability.BAKE}),
     user_data_limit=262_144,  # GCE: 256 KiB per metadata value
     user_data_gzip=False,
     sdk_modules=(("google.cloud.compute_v1", "gcp"), ("paramiko", "gcp")),
 )
-
-
-def __getattr__(name: str):
-    # The provider class (and with it the SDK glue) only when asked for by name.
-    if name == "GcpProvider":
-        from .provider import GcpProvider
-
-        return GcpProvider
-    raise AttributeError(name)

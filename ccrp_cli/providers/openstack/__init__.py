@@ -7,17 +7,8 @@ INFO = ProviderInfo(
     kind="openstack",
     settings=OpenStackSettings,
     factory="openstack.provider:OpenStackProvider",
-    abilities=frozenset({Ability.BAKE, Ability.CONSOLE}),
+    abilities=frozenset({Ability.BAKE}),
     user_data_limit=49_149,  # Nova: 65,535 bytes once base64-encoded
     user_data_gzip=True,
     sdk_modules=(("openstack", "openstack"), ("paramiko", "openstack")),
 )
-
-
-def __getattr__(name: str):
-    # The provider class (and with it the SDK glue) only when asked for by name.
-    if name == "OpenStackProvider":
-        from .provider import OpenStackProvider
-
-        return OpenStackProvider
-    raise AttributeError(name)
