@@ -18,7 +18,8 @@ from .errors import CcrpError
 from .fleet import Fleet, clone_view
 from .models.names import clone_host
 from .models.state import FleetState
-from .providers.base import CloneSpec, Provider
+from .pki.store import RobotRevoked
+from .providers.base import CloneSpec, CloneState, Provider
 
 Progress = Callable[[str], None]
 HEALTH_SCRIPT = (Path(__file__).parent / "agent" / "health.py").read_text
@@ -145,7 +146,10 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     # Clones are ensured in parallel threads and issue_robot is a read-modify-write of the PKI
     # index: serialise it, or one thread's certificates vanish from the index.
     with writer.lock:
-        fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
+        try:
+            fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
+        except RobotRevoked as revoked:
+            return _left_revoked(fleet, provider, writer, robot, revoked, progress)
         fleet.pki.issue_relay(robot, str(view.addr.common_ip), fleet.inventory.vpn.cert_days)
     # A bare snapshot gets the recipe's packages from cloud-init at first boot.
     bare = bool(state.snapshot and state.snapshot.get("bare"))
@@ -164,9 +168,14 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     try:
         provider.wait_ready(robot, timeout=1200 if bare else 300)
         secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
-        if not files_current(provider, robot, secrets):
+        keys = [f for f in secrets if f.name != "crl.pem"]
+        if not files_current(provider, robot, keys):
             prepare_secrets_dir(provider, robot)
             provider.push_files(robot, secrets, restart=["ccrp-openvpn.service", "ccrp-relay.service"])
+        elif not files_current(provider, robot, secrets):
+            # Only the CRL changed (another robot was revoked): OpenVPN re-reads it, the robot's
+            # live session stays.
+            provider.push_files(robot, [f for f in secrets if f.name == "crl.pem"], restart=[])
         wait_serving(provider, robot, fleet.inventory.ros.master_port)
         push_relay_config(fleet, provider, state, robot)
     except BaseException:
@@ -183,6 +192,23 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     took = time.monotonic() - t0
     progress(f"[{robot}] clone {view.addr.clone_host} ready in {took:.1f}s ({endpoint})")
     return CloneResult(robot, "created" if record.created else "reused", endpoint or "", took)
+
+
+def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, revoked: CcrpError,
+                  progress: Progress) -> CloneResult:
+    """A revoked robot stays unenrolled: no certificate, no clone created or configured. A clone
+    of it that runs gets the current CRL (in case `vpn revoke` could not reach it)."""
+    from .render.bundles import BundleFile
+    from .render.view import SECRETS_DIR
+
+    writer.state.robots[robot].phase = "revoked"
+    writer.fleet.store.save_state(writer.state)  # the caller holds writer.lock
+    rec = provider.query().get(robot)
+    if rec is not None and rec.state is CloneState.RUNNING:
+        crl = BundleFile("crl.pem", fleet.pki.crl_path.read_text(), 0o644, f"{SECRETS_DIR}/crl.pem")
+        provider.push_files(robot, [crl], restart=[])
+    progress(f"[{robot}] {revoked.message}")
+    return CloneResult(robot, "revoked", revoked.message + f" ({revoked.hint})")
 
 
 def push_relay_config(fleet: Fleet, provider: Provider, state: FleetState, robot: str) -> bool:

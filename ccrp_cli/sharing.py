@@ -66,15 +66,20 @@ def relay_config(fleet: Fleet, state: FleetState, robot: str) -> dict:
     all_routes = routes(members)
     # Only clones that exchange something with this one are peers: fewer links, same result.
     partners = sorted({r.dest for r in all_routes if r.source == robot} | {r.source for r in all_routes if r.dest == robot})
+    # A partner is admitted by the CN of its current relay certificate (the agent's Zenoh access
+    # control): one without a valid certificate is left out until `fleet up` issues one.
+    cns = fleet.pki.relay_cns()
+    partners = [p for p in partners if p in cns]
     return {
         "fleet": inv.fleet,
         "robot": robot,
         "id": zenoh_id(inv.fleet, robot),
         "listen": f"tls/{plan[robot].common_ip}:{port}",
-        "peers": {p: {"endpoint": f"tls/{plan[p].common_ip}:{port}", "id": zenoh_id(inv.fleet, p)} for p in partners},
+        "peers": {p: {"endpoint": f"tls/{plan[p].common_ip}:{port}", "id": zenoh_id(inv.fleet, p), "cn": cns[p]}
+                  for p in partners},
         "exports": sorted(t for t in me.exports if any(r.source == robot and r.topic == t for r in all_routes)),
         "imports": [asdict(r) | {"as": r.local_name} for r in all_routes if r.dest == robot],
-        "tls": {"ca": f"{SECRETS_DIR}/ca.crt", "cert": f"{SECRETS_DIR}/relay.crt", "key": f"{SECRETS_DIR}/relay.key"},
+        "tls": {"ca": f"{SECRETS_DIR}/relay-ca.crt", "cert": f"{SECRETS_DIR}/relay.crt", "key": f"{SECRETS_DIR}/relay.key"},
         "status": "/run/ccrp-relay/status.json",
         "config": f"{CCRP_ETC}/relay.json",
     }

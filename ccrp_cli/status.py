@@ -54,6 +54,9 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
     actual = provider.query()
     plan = fleet.plan(state)
 
+    index = fleet.pki.load_index() if fleet.pki.exists() else None
+    revoked = {r: fleet.pki.revoked_since(r, index) for r in plan} if index else {}
+
     def one(robot: str) -> dict:
         rec = actual.get(robot)
         a = plan[robot]
@@ -72,6 +75,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             "robot_nodes": [],
             "relay_running": False,
             "relay_peers": {},
+            "revoked_at": revoked[robot].isoformat() if revoked.get(robot) else None,
         }
         if rec and rec.state is CloneState.RUNNING:
             h = health(provider, robot)

@@ -19,52 +19,108 @@ def init(fleet: Fleet) -> dict[str, Any]:
     return {"fleet": fleet.name, "created": created, "ca": str(pki.ca_path), "crl": str(pki.crl_path)}
 
 
-def issue(fleet: Fleet, robot: str, renew: bool = False) -> list[dict[str, Any]]:
+def issue(fleet: Fleet, robot: str, renew: bool = False,
+          progress: Callable[[str], None] = lambda m: None) -> list[dict[str, Any]]:
+    """Issue the robot's certificates on purpose: this also lets a revoked robot back in.
+
+    --renew revokes the current certificates and rotates the password and tls-crypt key; a clone
+    that runs gets the new set at once (OpenVPN restarts, the old session ends) and every other
+    clone the new CRL."""
     with fleet.store.lock():
         state = fleet.load_allocated()
         fleet.robot(state, robot)  # unknown robot: input error before anything is written
-        results = fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days, renew=renew)
+        vpn = fleet.inventory.vpn
+        results = fleet.pki.issue_robot(robot, vpn.cert_days, renew=renew, enroll=True, crl_days=vpn.crl_days)
+        if renew:
+            _renew_on_clones(fleet, robot, progress)
     return [_record(fleet, rec) | {"issued": new} for rec, new in results]
 
 
-def revoke(fleet: Fleet, robot: str, progress: Callable[[str], None] = lambda m: None) -> list[dict[str, Any]]:
-    """Revoke the robot's certificates, push the new CRL to every live clone, end its session."""
+CERT_KINDS = {"client": ("client",), "server": ("server",), "relay": ("relay",), "all": ("client", "server", "relay")}
+
+
+def revoke(fleet: Fleet, robot: str, cert: str = "client",
+           progress: Callable[[str], None] = lambda m: None) -> list[dict[str, Any]]:
+    """Revoke the robot's certificates (its client certificate by default), then at once: end its
+    live session on its clone, and give every running clone the new CRL, in parallel."""
     with fleet.store.lock():
         state = fleet.store.load_state()
         fleet.robot(state, robot)
-        revoked = fleet.pki.revoke_robot(robot, fleet.inventory.vpn.crl_days)
-        live = [name for name, rec in state.robots.items() if rec.phase == "ready"]
-        if live:
-            _push_crl(fleet, live, robot, progress)
+        kinds = CERT_KINDS[cert]
+        revoked = fleet.pki.revoke_robot(robot, fleet.inventory.vpn.crl_days, kinds)
+        if "client" in kinds and robot in state.robots:
+            state.robots[robot].phase = "revoked"  # left out of sharing and of `fleet up` until re-issued
+            fleet.store.save_state(state)
+        provider = _provider(fleet)
+        _push_crl(fleet, provider, robot, kill="client" in kinds, progress=progress)
+        if "relay" in kinds or "client" in kinds:
+            from .reconcile import reshare
+
+            reshare(fleet, provider, progress)  # partners stop admitting the revoked relay CN
+        if kinds != ("client",):
+            progress(f"run `ccrp fleet up -i INVENTORY` to give {robot}'s clone new certificates")
     return [_record(fleet, rec) for rec in revoked]
 
 
-def _push_crl(fleet: Fleet, clones: list[str], robot: str, progress: Callable[[str], None]) -> None:
-    from .clones import kill_session
+def _provider(fleet: Fleet):
     from .providers import get_provider
+
+    return get_provider(fleet.inventory)
+
+
+def _running(provider) -> list[str]:
+    from .providers.base import CloneState
+
+    return sorted(name for name, rec in provider.query().items() if rec.state is CloneState.RUNNING)
+
+
+def _renew_on_clones(fleet: Fleet, robot: str, progress: Callable[[str], None]) -> None:
+    from .reconcile import up
+
+    provider = _provider(fleet)
+    if robot in _running(provider):
+        failed = [r for r in up(fleet, provider, progress, only=[robot]) if r.action == "failed"]
+        if failed:
+            raise CcrpError(f"renewed, but clone of {robot!r} did not take the new credentials: {failed[0].detail}",
+                            hint="run `ccrp fleet up -i INVENTORY` to push them again")
+    _push_crl(fleet, provider, robot, kill=False, progress=progress)
+    progress(f"install the new robot bundle on {robot}: ccrp robot bundle -i INVENTORY {robot}")
+
+
+def _push_crl(fleet: Fleet, provider, robot: str, kill: bool, progress: Callable[[str], None]) -> None:
+    """The new CRL to every running clone, whatever its phase (a failed `fleet up` leaves clones
+    that serve), in parallel. The robot's own clone comes first and, with `kill`, ends the robot's
+    session right after taking the CRL: the reconnection then meets the new CRL."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .clones import kill_session
     from .render.bundles import BundleFile
     from .render.view import SECRETS_DIR
 
-    provider = get_provider(fleet.inventory)
     crl = BundleFile("crl.pem", fleet.pki.crl_path.read_text(), 0o644, f"{SECRETS_DIR}/crl.pem")
-    failed = []
-    for name in clones:
+    running = _running(provider)
+    order = sorted(running, key=lambda name: name != robot)
+
+    def one(name: str) -> str | None:
         try:
-            provider.push_files(name, [crl])  # OpenVPN re-reads crl-verify files when they change
+            provider.push_files(name, [crl], restart=[])  # OpenVPN re-reads crl-verify files when they change
+            if kill and name == robot:
+                kill_session(provider, robot)
+                progress(f"ended the live VPN session of robot {robot!r}")
         except CcrpError as exc:
-            failed.append(f"{name}: {exc.message}")
-    if robot in clones:
-        try:
-            kill_session(provider, robot)
-            progress(f"ended the live VPN session of robot {robot!r}")
-        except CcrpError as exc:
-            failed.append(f"{robot}: {exc.message}")
+            return f"{name}: {exc.message}"
+        return None
+
+    if not order:
+        return
+    with ThreadPoolExecutor(max_workers=min(provider.max_parallel, len(order))) as pool:
+        failed = [f for f in pool.map(one, order) if f]
     if failed:
         raise CcrpError(
             f"revoked, but the new CRL did not reach every clone ({'; '.join(failed)})",
             hint="run `ccrp fleet up -i INVENTORY` to push it again",
         )
-    progress(f"pushed the new CRL to {len(clones)} clone(s)")
+    progress(f"pushed the new CRL to {len(order)} running clone(s)")
 
 
 def list_certs(fleet: Fleet) -> list[dict[str, Any]]:

@@ -7,10 +7,11 @@ type, md5sum, definition and a sequence number in the attachment.
 Imports: subscribes to the Zenoh keys of the topics this clone imports and republishes each as
 /<source><topic> with a message class made at run time from the type, md5sum and definition.
 
-Peers are listed explicitly (no scouting) and reached over TLS with certificates from the fleet
-CA (mutual). The config file is re-read when it changes, so a fleet change adds or drops imports
-without a restart; Zenoh re-dials a listed peer whose clone restarted. The agent writes its view
-(peers connected, messages relayed, gaps seen) to a status file every second for `ccrp status`.
+Peers are listed explicitly (no scouting) and reached over mutual TLS with certificates from the
+fleet's relay CA, each admitted by its certificate's CN (Zenoh access control). The config file is
+re-read when it changes, so a fleet change adds or drops imports without a restart; Zenoh re-dials
+a listed peer whose clone restarted. The agent writes its view (peers connected, messages relayed,
+gaps seen) to a status file every second for `ccrp status`.
 """
 
 from __future__ import annotations
@@ -51,7 +52,26 @@ def zenoh_config(cfg: dict) -> "zenoh.Config":
         "listen_private_key": tls["key"], "listen_certificate": tls["cert"],
         "connect_private_key": tls["key"], "connect_certificate": tls["cert"],
     }))
+    # Only the fleet's current partner clones may exchange anything: admitted by the CN of their
+    # relay certificate (one per certificate issued), so a replaced or revoked one gets nothing.
+    acl: dict = {"enabled": True, "default_permission": "deny"}
+    cns = sorted(p["cn"] for p in cfg["peers"].values())
+    if cns:  # Zenoh refuses an empty subject: with no partner, everything stays denied
+        acl |= {
+            "rules": [{"id": "fleet", "permission": "allow", "flows": ["ingress", "egress"],
+                       "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                                    "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"],
+                       "key_exprs": [f"ccrp/{cfg['fleet']}/**"]}],
+            "subjects": [{"id": "partners", "cert_common_names": cns}],
+            "policies": [{"rules": ["fleet"], "subjects": ["partners"]}],
+        }
+    c.insert_json5("access_control", json.dumps(acl))
     return c
+
+
+def links(cfg: dict) -> list[tuple[str, str]]:
+    """What a session is opened for: the peers' endpoints and the CNs admitted."""
+    return sorted((p["endpoint"], p["cn"]) for p in cfg["peers"].values())
 
 
 def raw_class(msg_type: str, md5: str, definition: str):
@@ -157,7 +177,7 @@ class Relay:
     def apply(self, cfg: dict) -> None:
         """Bring exports and imports in line with cfg; untouched ones keep running unless the
         peers changed (then the session is opened again, see _open)."""
-        endpoints = sorted(p["endpoint"] for p in cfg["peers"].values())
+        endpoints = links(cfg)
         if endpoints != self.endpoints:
             self._open(cfg, endpoints)
         self.cfg = cfg

@@ -23,8 +23,11 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
 
 
 def vpn_cell(row: dict) -> str:
+    revoked = row.get("revoked_at")
     if row["vpn_connected"]:
-        return f"connected {row['robot_address']}"
+        return f"connected {row['robot_address']}" + (" (REVOKED: run vpn revoke again)" if revoked else "")
+    if revoked:
+        return f"revoked {revoked[:10]}"
     # A rebooted cloud clone: its keys lived in memory (docs/security.md).
     return "no (keys gone: run fleet up)" if row["secrets"] is False else "no"
 

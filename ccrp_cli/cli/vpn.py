@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 from typing import Annotated
 
 import typer
@@ -14,6 +15,13 @@ def _ops():
     from .. import vpn
 
     return vpn
+
+
+class CertKind(str, enum.Enum):
+    client = "client"
+    server = "server"
+    relay = "relay"
+    all = "all"
 
 
 CERT_COLUMNS = ["SERIAL", "CN", "PROFILE", "NOT AFTER", "REVOKED", "PATH"]
@@ -41,11 +49,15 @@ def init(inventory: options.Inventory, as_json: options.Json = False) -> None:
 def issue_cert(
     inventory: options.Inventory,
     robot: options.Robot,
-    renew: Annotated[bool, typer.Option(help="Issue new certificates even if valid ones exist.")] = False,
+    renew: Annotated[bool, typer.Option(
+        help="Replace valid certificates: the old ones are revoked, password and tls-crypt key rotated, "
+             "and a running clone takes the new set at once.")] = False,
     as_json: options.Json = False,
 ) -> None:
-    """Issue the robot's client certificate and its clone's server certificate."""
-    records = _ops().issue(options.open_fleet(inventory), robot, renew)
+    """Issue the robot's client certificate and its clone's server certificate.
+
+    Also the one way back in for a revoked robot (with a new password and tls-crypt key)."""
+    records = _ops().issue(options.open_fleet(inventory), robot, renew, output.info)
     if not as_json:
         for r in records:
             output.info(f"{'issued' if r['issued'] else 'kept valid'} {r['profile']} certificate {r['cn']} ({r['path']})")
@@ -53,9 +65,16 @@ def issue_cert(
 
 
 @app.command()
-def revoke(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
-    """Revoke the robot's client certificate(s) and re-issue the CRL."""
-    records = _ops().revoke(options.open_fleet(inventory), robot, output.info)
+def revoke(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    cert: Annotated[CertKind, typer.Option(
+        help="Which certificates: the robot's own (client, default: it stays out until `vpn issue-cert`), "
+             "its clone's VPN server, its clone's relay, or all.")] = CertKind.client,
+    as_json: options.Json = False,
+) -> None:
+    """Revoke the robot's certificates: its live session ends and every running clone gets the CRL."""
+    records = _ops().revoke(options.open_fleet(inventory), robot, cert.value, output.info)
     if not as_json:
         output.info(f"revoked {len(records)} certificate(s) of robot {robot!r}; CRL re-issued")
     output.emit(records, as_json, CERT_COLUMNS, _rows(records))

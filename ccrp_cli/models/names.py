@@ -22,9 +22,10 @@ def clone_host(robot: str) -> str:
     return f"cri-{robot}"
 
 
-def relay_name(robot: str) -> str:
-    """Common name of the certificate of a clone's topic relay."""
-    return f"relay-{robot}"
+def relay_name(robot: str, generation: int) -> str:
+    """Common name of a clone's topic relay certificate: one per certificate issued, so that the
+    agents can admit exactly the current ones."""
+    return f"relay-{robot}-{generation}"
 
 
 def check_name(value: str, what: str = "robot name") -> str:

@@ -8,7 +8,8 @@ from pydantic import BaseModel, ConfigDict
 
 SCHEMA_VERSION = 1
 
-Phase = Literal["planned", "creating", "ready", "failed", "deleting"]
+# revoked: the robot's certificate was revoked; its clone is left as it is, out of sharing.
+Phase = Literal["planned", "creating", "ready", "failed", "deleting", "revoked"]
 
 
 class RobotRecord(BaseModel):

@@ -49,9 +49,9 @@ def _now() -> dt.datetime:
     return dt.datetime.now(dt.timezone.utc).replace(microsecond=0)
 
 
-def build_ca(fleet: str, key: PrivateKey, days: int = 3650) -> x509.Certificate:
+def build_ca(fleet: str, key: PrivateKey, days: int = 3650, name: str | None = None) -> x509.Certificate:
     now = _now()
-    name = _name(f"ccrp {fleet} CA")
+    name = _name(name or f"ccrp {fleet} CA")
     ski = x509.SubjectKeyIdentifier.from_public_key(key.public_key())
     return (
         x509.CertificateBuilder()

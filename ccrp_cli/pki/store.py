@@ -1,7 +1,8 @@
 """The fleet PKI on disk: $CCRP_HOME/<fleet>/pki/.
 
     ca.crt  crl.pem  index.json
-    private/ca.key  private/<cn>-<serial>.key      (0600)
+    relay-ca.crt                                    (the relay links' own CA: see issue_relay)
+    private/ca.key  private/relay-ca.key  private/<cn>-<serial>.key      (0600)
     issued/<cn>-<serial>.crt
     tls-crypt/<robot>.key                           (0600, shared by a clone and its robot)
     passwords/<robot>.txt  passwords/<robot>.hash   (0600; only the hash reaches the clone)
@@ -33,7 +34,7 @@ class CertRecord(BaseModel):
 
     serial: str  # hex, as openssl prints it
     cn: str
-    profile: Literal["ca", "server", "client", "relay"]
+    profile: Literal["ca", "relay-ca", "server", "client", "relay"]
     robot: str | None = None
     not_after: dt.datetime
     cert_path: str
@@ -67,9 +68,14 @@ class RobotCredentials(BaseModel):
     tls_crypt_key: str
     password: str
     password_hash: str
-    # The clone's relay certificate (topic sharing over the common network), when issued.
+    # The clone's relay certificate and the relay CA (topic sharing over the common network).
     relay_cert_pem: str | None = None
     relay_key_pem: str | None = None
+    relay_ca_pem: str | None = None
+
+
+class RobotRevoked(CcrpError):
+    """The robot's client certificate was revoked and none was issued since: it stays out."""
 
 
 def _now() -> dt.datetime:
@@ -89,6 +95,10 @@ class PkiStore:
     @property
     def crl_path(self) -> Path:
         return self.root / "crl.pem"
+
+    @property
+    def relay_ca_path(self) -> Path:
+        return self.root / "relay-ca.crt"
 
     @property
     def index_path(self) -> Path:
@@ -115,10 +125,24 @@ class PkiStore:
     def _save_index(self, index: PkiIndex) -> None:
         atomic_write(self.index_path, index.model_dump_json(indent=2) + "\n")
 
-    def _ca(self) -> tuple[x509.Certificate, profiles.PrivateKey]:
-        ca_cert = x509.load_pem_x509_certificate(self.ca_path.read_bytes())
-        ca_key = serialization.load_pem_private_key((self.root / "private" / "ca.key").read_bytes(), None)
+    def _ca(self, name: str = "ca") -> tuple[x509.Certificate, profiles.PrivateKey]:
+        ca_cert = x509.load_pem_x509_certificate((self.root / f"{name}.crt").read_bytes())
+        ca_key = serialization.load_pem_private_key((self.root / "private" / f"{name}.key").read_bytes(), None)
         return ca_cert, ca_key  # type: ignore[return-value]
+
+    def _relay_ca(self, index: PkiIndex) -> tuple[x509.Certificate, profiles.PrivateKey]:
+        """The CA of relay certificates only, made on first use. Relay links trust it alone, so no
+        robot's VPN certificate (stolen or revoked) can open a relay session."""
+        if not any(c.profile == "relay-ca" for c in index.certs):
+            key = profiles.generate_key(index.key_type)
+            ca = profiles.build_ca(self.fleet, key, name=f"ccrp {self.fleet} relay CA")
+            atomic_write(self.root / "private" / "relay-ca.key", profiles.key_pem(key))
+            atomic_write(self.relay_ca_path, profiles.cert_pem(ca), mode=0o644)
+            index.certs.append(CertRecord(
+                serial=format(ca.serial_number, "X"), cn=f"ccrp {self.fleet} relay CA", profile="relay-ca",
+                not_after=ca.not_valid_after_utc, cert_path="relay-ca.crt", key_path="private/relay-ca.key",
+            ))
+        return self._ca("relay-ca")
 
     # -- operations ------------------------------------------------------------------------
     def init(self, key_type: profiles.KeyType, crl_days: int) -> bool:
@@ -151,9 +175,23 @@ class PkiStore:
         valid = [c for c in index.certs if c.cn == cn and not c.revoked and c.not_after > now]
         return valid[-1] if valid else None
 
+    def current_of(self, index: PkiIndex, profile: str, robot: str) -> CertRecord | None:
+        """The newest valid certificate of `profile` belonging to `robot`."""
+        now = _now()
+        valid = [c for c in index.certs
+                 if c.profile == profile and c.robot == robot and not c.revoked and c.not_after > now]
+        return valid[-1] if valid else None
+
+    def revoked_since(self, robot: str, index: PkiIndex | None = None) -> dt.datetime | None:
+        """When the robot was revoked, if it was and no client certificate was issued since."""
+        index = index or self.load_index()
+        issued = [c for c in index.certs if c.profile == "client" and c.cn == robot]
+        # The newest one decides: a renewal revokes the older ones but leaves the robot enrolled.
+        return issued[-1].revoked_at if issued else None
+
     def _issue(self, index: PkiIndex, profile: profiles.Profile, cn: str, robot: str, days: int,
                ips: tuple[str, ...] = ()) -> CertRecord:
-        ca_cert, ca_key = self._ca()
+        ca_cert, ca_key = self._relay_ca(index) if profile == "relay" else self._ca()
         key = profiles.generate_key(index.key_type)
         cert = profiles.build_leaf(profile, cn, key, ca_cert, ca_key, days, ips)
         serial = format(cert.serial_number, "X")
@@ -167,54 +205,81 @@ class PkiStore:
         index.certs.append(rec)
         return rec
 
-    def issue_robot(self, robot: str, days: int, renew: bool = False) -> list[tuple[CertRecord, bool]]:
+    def issue_robot(self, robot: str, days: int, renew: bool = False, enroll: bool = False,
+                    crl_days: int = 30) -> list[tuple[CertRecord, bool]]:
         """Ensure the robot's client cert, its clone's server cert, tls-crypt key and password.
 
-        Returns (record, newly_issued) for the client and the server certificate.
+        A revoked robot stays out: only `enroll` (the operator's `vpn issue-cert`) lets it back in,
+        with a new password and tls-crypt key, as the old ones went with the revoked certificate.
+        `renew` revokes the current certificates and rotates both secrets too, so that each old
+        credential fails alone. Returns (record, newly_issued) for the client and server certificate.
         """
         index = self.load_index()
-        out = []
+        since = self.revoked_since(robot, index)
+        if since is not None and not (enroll or renew):
+            raise RobotRevoked(
+                f"robot {robot!r} was revoked on {since:%Y-%m-%d %H:%M} UTC and stays unenrolled",
+                hint=f"to let it back in on purpose: ccrp vpn issue-cert -i INVENTORY --robot {robot}",
+            )
+        out, replaced = [], []
         for profile, cn in (("client", robot), ("server", clone_host(robot))):
-            rec = None if renew else self.current(index, cn)
+            rec = self.current(index, cn)
+            if rec and renew:
+                replaced.append(rec)
+                rec = None
             out.append((rec, False) if rec else (self._issue(index, profile, cn, robot, days), True))
-        self._save_index(index)
+        now = _now()
+        for rec in replaced:
+            rec.revoked_at = now
+        rotate = renew or since is not None
         tc = self._tls_crypt_path(robot)
-        if not tc.exists():
+        if rotate or not tc.exists():
             atomic_write(tc, tls_crypt_key())
         txt, hashed = self._password_paths(robot)
-        if not txt.exists() or not hashed.exists():
+        if rotate or not txt.exists() or not hashed.exists():
             password = new_password()
             atomic_write(hashed, hash_password(password) + "\n")
             atomic_write(txt, password + "\n")
+        # The index last: until it names the new certificates, a crash leaves the old set in force.
+        if replaced:
+            self._write_crl(index, crl_days)
+        else:
+            self._save_index(index)
         return out
 
     def issue_relay(self, robot: str, common_ip: str, days: int) -> bool:
         """Ensure the relay certificate of robot's clone, valid for its common-network address.
-        Returns True when one was issued (none yet, or the address changed)."""
+        Each one gets a CN of its own (relay-<robot>-<n>): the agents admit only the CNs of the
+        fleet's current relay certificates, so a replaced or revoked one is refused.
+        Returns True when one was issued (none yet, the address changed, or an old fleet's
+        certificate from the VPN CA)."""
         index = self.load_index()
-        cn = relay_name(robot)
-        rec = self.current(index, cn)
+        rec = self.current_of(index, "relay", robot)
         if rec is not None:
             cert = x509.load_pem_x509_certificate((self.root / rec.cert_path).read_bytes())
             ips = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value.get_values_for_type(x509.IPAddress)
-            if [str(ip) for ip in ips] == [common_ip]:
+            if [str(ip) for ip in ips] == [common_ip] and self.relay_ca_path.exists() and \
+                    cert.issuer == x509.load_pem_x509_certificate(self.relay_ca_path.read_bytes()).subject:
                 return False
-        self._issue(index, "relay", cn, robot, days, (common_ip,))
+        if rec is not None:
+            rec.revoked_at = _now()  # replaced: the agents stop admitting its CN
+        generation = 1 + sum(c.profile == "relay" and c.robot == robot for c in index.certs)
+        self._issue(index, "relay", relay_name(robot, generation), robot, days, (common_ip,))
         self._save_index(index)
         return True
 
-    def revoke_robot(self, robot: str, crl_days: int) -> list[CertRecord]:
-        """Revoke every valid client certificate of `robot` and re-issue the CRL."""
+    def revoke_robot(self, robot: str, crl_days: int, profiles_: tuple[str, ...] = ("client",)) -> list[CertRecord]:
+        """Revoke every valid certificate of `robot` of the given profiles and re-issue the CRL."""
         index = self.load_index()
         now = _now()
         revoked = []
         for rec in index.certs:
-            if rec.profile == "client" and rec.cn == robot and not rec.revoked:
+            if rec.profile in profiles_ and rec.robot == robot and not rec.revoked:
                 rec.revoked_at = now
                 revoked.append(rec)
         if not revoked:
             raise CcrpError(
-                f"robot {robot!r} has no certificate to revoke",
+                f"robot {robot!r} has no certificate to revoke ({'/'.join(profiles_)})",
                 hint="`ccrp vpn list -i INVENTORY` shows the issued certificates",
             )
         self._write_crl(index, crl_days)
@@ -223,7 +288,8 @@ class PkiStore:
     def _write_crl(self, index: PkiIndex, days: int) -> None:
         ca_cert, ca_key = self._ca()
         index.crl_number += 1
-        revoked = [(int(c.serial, 16), c.revoked_at) for c in index.certs if c.revoked_at]
+        # Relay certificates come from the relay CA; relay links admit them by CN, not by this CRL.
+        revoked = [(int(c.serial, 16), c.revoked_at) for c in index.certs if c.revoked_at and c.profile != "relay"]
         crl = profiles.build_crl(ca_cert, ca_key, revoked, index.crl_number, days)
         atomic_write(self.crl_path, crl.public_bytes(serialization.Encoding.PEM), mode=0o644)
         self._save_index(index)
@@ -235,7 +301,7 @@ class PkiStore:
     def credentials(self, robot: str) -> RobotCredentials:
         index = self.load_index()
         client, server = self.current(index, robot), self.current(index, clone_host(robot))
-        relay = self.current(index, relay_name(robot))
+        relay = self.current_of(index, "relay", robot)
         if client is None or server is None:
             raise CcrpError(
                 f"robot {robot!r} has no valid certificate",
@@ -256,4 +322,11 @@ class PkiStore:
             password_hash=hashed.read_text().strip(),
             relay_cert_pem=read(relay.cert_path) if relay else None,
             relay_key_pem=read(relay.key_path) if relay else None,
+            relay_ca_pem=self.relay_ca_path.read_text() if relay else None,
         )
+
+    def relay_cns(self) -> dict[str, str]:
+        """robot -> CN of its clone's current relay certificate."""
+        index = self.load_index()
+        robots = {c.robot for c in index.certs if c.profile == "relay" and c.robot}
+        return {r: rec.cn for r in sorted(robots) if (rec := self.current_of(index, "relay", r))}

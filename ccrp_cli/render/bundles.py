@@ -38,10 +38,12 @@ def clone_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
 
 
 def relay_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
-    """The relay's mutual-TLS certificate and key (verified against the fleet CA, ca.crt)."""
-    if not creds.relay_cert_pem or not creds.relay_key_pem:
+    """The relay's mutual-TLS certificate and key, and the relay CA that peers' certificates must
+    chain to (not the VPN's CA: robots' certificates come from that one)."""
+    if not creds.relay_cert_pem or not creds.relay_key_pem or not creds.relay_ca_pem:
         return []
     return [
+        BundleFile("relay-ca.crt", creds.relay_ca_pem, 0o644, f"{SECRETS_DIR}/relay-ca.crt"),
         BundleFile("relay.crt", creds.relay_cert_pem, 0o644, f"{SECRETS_DIR}/relay.crt"),
         BundleFile("relay.key", creds.relay_key_pem, 0o640, f"{SECRETS_DIR}/relay.key", RELAY_USER),
     ]

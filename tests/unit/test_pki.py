@@ -148,3 +148,62 @@ def test_password_hash_and_the_clone_auth_script(tmp_path):
     assert auth("nao1", "wrong") != 0
     assert auth("nao2", "s3cret") != 0
     assert auth("nao1", "s3cret", cn="nao2") != 0
+
+
+def test_a_revoked_robot_stays_out_until_the_operator_reissues(lab):
+    """`fleet up` (issue_robot without enroll) must not quietly re-enrol a revoked robot."""
+    from ccrp_cli.pki.store import RobotRevoked
+
+    days = lab.inventory.vpn.cert_days
+    old = lab.pki.credentials("nao2")
+    vpn.revoke(lab, "nao2")
+    assert lab.pki.revoked_since("nao2") is not None
+    with pytest.raises(RobotRevoked, match="stays unenrolled"):
+        lab.pki.issue_robot("nao2", days)
+    assert lab.pki.revoked_since("nao2") is not None  # nothing was issued
+    # The operator's `vpn issue-cert` lets it back in, with none of the old secrets.
+    vpn.issue(lab, "nao2")
+    assert lab.pki.revoked_since("nao2") is None
+    new = lab.pki.credentials("nao2")
+    assert new.password != old.password and new.tls_crypt_key != old.tls_crypt_key
+    assert new.client_cert_pem != old.client_cert_pem
+    lab.pki.issue_robot("nao2", days)  # and fleet up's ensure is quiet again
+    assert lab.pki.credentials("nao2") == new
+
+
+def test_renew_revokes_the_previous_certificates_and_rotates_both_secrets(lab):
+    pki = lab.pki.root
+    before = certs(lab)
+    old = lab.pki.credentials("nao1")
+    renewed = {r["profile"]: r for r in vpn.issue(lab, "nao1", renew=True)}
+    assert renewed["client"]["issued"] and renewed["server"]["issued"]
+    for cn in ("nao1", "cri-nao1"):
+        bad = openssl_verify(pki, before[cn]["path"], crl_check=True)
+        assert bad.returncode != 0 and "certificate revoked" in bad.stdout + bad.stderr, cn
+        assert openssl_verify(pki, renewed["client" if cn == "nao1" else "server"]["path"], crl_check=True).returncode == 0
+    new = lab.pki.credentials("nao1")
+    assert new.password != old.password and new.tls_crypt_key != old.tls_crypt_key
+    assert verify_password(new.password, new.password_hash) and not verify_password(old.password, new.password_hash)
+    assert lab.pki.revoked_since("nao1") is None  # renewed, not revoked
+
+
+def test_relay_certificates_come_from_their_own_ca_with_a_cn_per_certificate(lab):
+    """A robot's VPN certificate must never chain to what relay links trust, and each relay
+    certificate has its own CN so the agents can admit exactly the current ones."""
+    pki = lab.pki.root
+    assert lab.pki.issue_relay("nao1", "10.90.0.10", 30)
+    assert not lab.pki.issue_relay("nao1", "10.90.0.10", 30)  # idempotent
+    first = lab.pki.relay_cns()["nao1"]
+    assert lab.pki.issue_relay("nao1", "10.90.0.20", 30)  # address changed: a new one
+    second = lab.pki.relay_cns()["nao1"]
+    assert (first, second) == ("relay-nao1-1", "relay-nao1-2")
+    relay = certs(lab)[second]["path"]
+    relay_ca = ["openssl", "verify", "-CAfile", str(pki / "relay-ca.crt")]
+    assert subprocess.run([*relay_ca, relay], capture_output=True).returncode == 0
+    robot = subprocess.run([*relay_ca, certs(lab)["nao1"]["path"]], capture_output=True, text=True)
+    assert robot.returncode != 0, "a robot's VPN certificate chains to the relay CA"
+    assert openssl_verify(pki, relay).returncode != 0, "a relay certificate chains to the VPN CA"
+    revoked = vpn.revoke(lab, "nao1", cert="relay")
+    assert [r["cn"] for r in revoked] == [second]
+    assert "nao1" not in lab.pki.relay_cns()
+    assert lab.pki.revoked_since("nao1") is None  # the robot itself stays enrolled

@@ -15,10 +15,15 @@ from tests.conftest import LAB
 @pytest.fixture
 def lab_up(ccrp_home):
     """The lab fleet with every clone recorded as ready."""
+    from ccrp_cli import vpn
+
     fleet = Fleet.open(LAB)
+    vpn.init(fleet)
     state = fleet.load_allocated()
-    for rec in state.robots.values():
+    plan = fleet.plan(state)
+    for name, rec in state.robots.items():
         rec.phase = "ready"
+        fleet.pki.issue_relay(name, str(plan[name].common_ip), 30)  # as ensure_clone does
     fleet.store.save_state(state)
     return fleet, state
 
@@ -45,6 +50,19 @@ def test_relay_config_lists_partners_only_and_drops_clones_that_are_down(lab_up)
     state.robots["nao2"].clear_clone()  # nao2's clone deleted
     cfg = relay_config(fleet, state, "nao1")
     assert sorted(cfg["peers"]) == ["turtlebot1"] and cfg["imports"] == []
+
+
+def test_partners_are_admitted_by_the_cn_of_their_current_relay_certificate(lab_up):
+    """relay.json trusts the relay CA only and names each partner's certificate CN, which the
+    agent turns into Zenoh access control; a partner whose relay certificate was revoked drops out."""
+    from ccrp_cli import vpn
+
+    fleet, state = lab_up
+    cfg = relay_config(fleet, state, "nao1")
+    assert cfg["tls"]["ca"].endswith("/relay-ca.crt")
+    assert {p: v["cn"] for p, v in cfg["peers"].items()} == {"nao2": "relay-nao2-1", "turtlebot1": "relay-turtlebot1-1"}
+    vpn.revoke(fleet, "nao2", cert="relay")
+    assert sorted(relay_config(fleet, state, "nao1")["peers"]) == ["turtlebot1"]
 
 
 def test_topics_command_json(lab_up, ccrp):
