@@ -13,16 +13,18 @@ import json
 import os
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from pydantic import ValidationError
 
-from .errors import CcrpError
+from .errors import CcrpError, InputError
 from .models.state import SCHEMA_VERSION, FleetState
 
 FILE_MODE = 0o600
 DIR_MODE = 0o700
+LOCK_WAIT_ENV = "CCRP_LOCK_WAIT"
+DEFAULT_LOCK_WAIT = 600.0
 
 
 def ccrp_home() -> Path:
@@ -70,10 +72,53 @@ def atomic_write(path: Path, data: bytes | str, mode: int = FILE_MODE, durable: 
         os.close(dir_fd)
 
 
+def lock_wait() -> float:
+    """Seconds a run waits for another run's fleet lock: $CCRP_LOCK_WAIT, else 10 minutes (a
+    `fleet up` of many clones takes minutes)."""
+    raw = os.environ.get(LOCK_WAIT_ENV, "").strip()
+    if not raw:
+        return DEFAULT_LOCK_WAIT
+    try:
+        value = float(raw)
+    except ValueError:
+        value = -1.0
+    if not value >= 0:  # NaN too
+        raise InputError(f"{LOCK_WAIT_ENV}={raw!r} is not a number of seconds", hint=f"e.g. {LOCK_WAIT_ENV}=1800")
+    return value
+
+
+def _read_holder(fd: int) -> tuple[int | None, str]:
+    """(pid, command) from the lock file's first line; (None, "") while it names nobody."""
+    first = os.pread(fd, 256, 0).decode(errors="replace").split("\n", 1)[0]
+    pid, _, command = first.strip().partition(" ")
+    return (int(pid), command.strip()) if pid.isdigit() else (None, "")
+
+
+def _alive(pid: int | None) -> bool:
+    if pid is None:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _describe(pid: int | None, command: str) -> str:
+    return f"ccrp run pid {pid if pid is not None else '?'}" + (f" ({command})" if command else "")
+
+
 class FleetStore:
-    def __init__(self, fleet: str, home: Path | None = None) -> None:
+    def __init__(self, fleet: str, home: Path | None = None, command: str = "",
+                 on_wait: Callable[[str], None] = lambda message: None) -> None:
         self.fleet = fleet
         self.root = (home or ccrp_home()) / fleet
+        # What this run is (`fleet up`), written into the lock file for a second run to show,
+        # and where that second run says it waits: the CLI sets both (cli/options.py open_fleet).
+        self.command = command
+        self.on_wait = on_wait
 
     @property
     def pki_dir(self) -> Path:
@@ -84,11 +129,20 @@ class FleetStore:
         return self.root / "state.json"
 
     @contextlib.contextmanager
-    def lock(self, timeout: float = 30.0) -> Iterator[None]:
-        """Exclusive lock on the fleet; waits up to `timeout` seconds for another run."""
+    def lock(self, timeout: float | None = None) -> Iterator[None]:
+        """Exclusive lock on the fleet for this run's mutating command.
+
+        The lock is a flock on `.lock`: the kernel frees it when the holder exits, however it
+        ends (kill -9 included), and the descriptor is not inherited by child processes. The
+        file names the holder (`<pid> <command>`). A second run says once, through `on_wait`, whom
+        it waits for, then waits up to `timeout` seconds (default: $CCRP_LOCK_WAIT, else 10 min)
+        before failing in one line."""
+        if timeout is None:
+            timeout = lock_wait()
         ensure_dir(self.root)
         fd = os.open(self.root / ".lock", os.O_RDWR | os.O_CREAT, FILE_MODE)
-        deadline = time.monotonic() + timeout
+        started = time.monotonic()
+        told = False
         try:
             while True:
                 try:
@@ -97,15 +151,25 @@ class FleetStore:
                 except OSError as exc:
                     if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
                         raise
-                    if time.monotonic() >= deadline:
-                        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-                        raise CcrpError(
-                            f"fleet {self.fleet!r} is locked by another ccrp run (pid {holder})",
-                            hint="wait for it to finish; the lock is released when that process exits",
-                        ) from None
-                    time.sleep(0.1)
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, str(os.getpid()).encode(), 0)
+                waited = time.monotonic() - started
+                pid, command = _read_holder(fd)
+                if waited >= timeout:
+                    raise CcrpError(
+                        f"fleet {self.fleet!r} is still locked by {_describe(pid, command)} after waiting "
+                        f"{timeout:g} s",
+                        hint=f"let that run finish (or stop it: the lock goes with its process), then run this "
+                             f"again; {LOCK_WAIT_ENV}=SECONDS waits longer",
+                    ) from None
+                # The holder writes its name just after it takes the lock: until a live pid shows
+                # (or a second has passed), the file may still name the previous holder.
+                if not told and (_alive(pid) or waited >= 1.0):
+                    self.on_wait(f"waiting for {_describe(pid, command)} to finish with fleet {self.fleet!r}...")
+                    told = True
+                time.sleep(0.1)
+            # Written before truncating: a reader sees the first line whole at every moment.
+            holder = f"{os.getpid()} {self.command}".strip() + "\n"
+            os.pwrite(fd, holder.encode(), 0)
+            os.ftruncate(fd, len(holder.encode()))
             yield
         finally:
             os.close(fd)  # closing the descriptor releases the flock

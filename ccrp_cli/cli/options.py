@@ -19,9 +19,28 @@ OutDir = Annotated[Path, typer.Option("--out", "-o", help="Directory to write (c
 # The core (pydantic models, cryptography, yaml) is imported only when a command runs, so
 # `ccrp --help` and completion stay fast.
 def open_fleet(inventory: Path):
+    """The fleet; its store names this command in the fleet lock, and says on stderr when it
+    waits for another run's lock."""
     from ..fleet import Fleet
+    from . import output
 
-    return Fleet.open(inventory)
+    fleet = Fleet.open(inventory)
+    fleet.store.command = command_name()
+    fleet.store.on_wait = output.info
+    return fleet
+
+
+def command_name() -> str:
+    """The command as typed after the program name, up to its first option (`fleet scale 5`).
+    The console entry point (main.run) parses sys.argv, in-process runs included."""
+    import sys
+
+    words = []
+    for arg in sys.argv[1:4]:
+        if arg.startswith("-"):
+            break
+        words.append(arg)
+    return " ".join(words)
 
 
 def open_provider(inventory: Path, needs=None, otherwise: str = ""):

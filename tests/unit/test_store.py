@@ -1,14 +1,18 @@
+import contextlib
 import json
-import multiprocessing
 import os
+import signal
 import stat
+import subprocess
+import sys
 import time
 
 import pytest
 
-from ccrp_cli.errors import CcrpError
+from ccrp_cli.errors import CcrpError, InputError
 from ccrp_cli.models.state import FleetState, RobotRecord
-from ccrp_cli.store import FleetStore, atomic_write
+from ccrp_cli.store import FleetStore, atomic_write, lock_wait
+from tests.conftest import LAB, ROOT
 
 
 def mode(path):
@@ -42,31 +46,99 @@ def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path, monkeypatc
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.json"]
 
 
-def _hold_lock(home, ready, release):
-    store = FleetStore("lab", home=home)
-    with store.lock():
-        ready.set()
-        release.wait(10)
+# A real process holding the fleet lock as `ccrp fleet up` would: argv = home, seconds to hold,
+# and "child" to start a long-lived child process while holding it.
+HOLDER = r"""
+import pathlib, subprocess, sys, time
+from ccrp_cli.store import FleetStore
+with FleetStore("lab", home=pathlib.Path(sys.argv[1]), command="fleet up").lock(timeout=0):
+    # close_fds=False: the child inherits every descriptor that is inheritable.
+    child = subprocess.Popen(["sleep", "60"], close_fds=False) if "child" in sys.argv else None
+    print("locked", child.pid if child else "", flush=True)
+    time.sleep(float(sys.argv[2]))
+"""
 
 
-def test_lock_excludes_a_second_run(tmp_path):
-    ctx = multiprocessing.get_context("fork")
-    ready, release = ctx.Event(), ctx.Event()
-    holder = ctx.Process(target=_hold_lock, args=(tmp_path, ready, release))
-    holder.start()
+@contextlib.contextmanager
+def holder(home, seconds: float, *extra: str):
+    """A subprocess holding fleet 'lab''s lock for `seconds`; yields (process, its child's pid or None)."""
+    proc = subprocess.Popen([sys.executable, "-c", HOLDER, str(home), str(seconds), *extra],
+                            cwd=ROOT, stdout=subprocess.PIPE, text=True)
     try:
-        assert ready.wait(10)
-        store = FleetStore("lab", home=tmp_path)
-        t0 = time.monotonic()
-        with pytest.raises(CcrpError, match=rf"locked by another ccrp run \(pid {holder.pid}\)"):
-            with store.lock(timeout=0.5):
-                pass
-        assert time.monotonic() - t0 >= 0.5
+        words = proc.stdout.readline().split()
+        assert words and words[0] == "locked", f"the holder did not take the lock: {words}"
+        yield proc, int(words[1]) if len(words) > 1 else None
     finally:
-        release.set()
-        holder.join(10)
-    with store.lock(timeout=1):  # released when the holder exits
-        pass
+        proc.kill()
+        proc.wait(10)
+
+
+def ccrp_cli(home, *args, env=()):
+    return subprocess.run([sys.executable, "-m", "ccrp_cli", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=60, env={**os.environ, "CCRP_HOME": str(home), **dict(env)})
+
+
+def test_second_run_says_whom_it_waits_for_then_proceeds(tmp_path):
+    store = FleetStore("lab", home=tmp_path, command="vpn revoke", on_wait=(said := []).append)
+    with holder(tmp_path, 1.5) as (proc, _):
+        t0 = time.monotonic()
+        with store.lock(timeout=30):
+            waited = time.monotonic() - t0
+            assert (store.root / ".lock").read_text() == f"{os.getpid()} vpn revoke\n"
+        assert proc.wait(10) == 0  # the holder ended on its own, after its 1.5 s
+    assert said == [f"waiting for ccrp run pid {proc.pid} (fleet up) to finish with fleet 'lab'..."]
+    assert 0.5 < waited < 10, waited
+
+
+def test_cli_waits_for_a_running_command_with_one_message(tmp_path):
+    with holder(tmp_path, 1.5) as (proc, _):
+        run = ccrp_cli(tmp_path, "vpn", "init", "-i", str(LAB))
+    assert run.returncode == 0, run.stderr
+    lines = run.stderr.splitlines()
+    assert lines[0] == f"ccrp: waiting for ccrp run pid {proc.pid} (fleet up) to finish with fleet 'lab'...", lines
+    assert sum("waiting" in line for line in lines) == 1 and "CA created" in lines[1], lines
+
+
+def test_cli_gives_up_after_ccrp_lock_wait_in_one_line(tmp_path):
+    with holder(tmp_path, 30) as (proc, _):
+        t0 = time.monotonic()
+        run = ccrp_cli(tmp_path, "vpn", "init", "-i", str(LAB), env={"CCRP_LOCK_WAIT": "1"})
+        took = time.monotonic() - t0
+    assert run.returncode == 1, run.stderr
+    waiting, error = run.stderr.splitlines()  # exactly two lines: no traceback
+    assert waiting.startswith(f"ccrp: waiting for ccrp run pid {proc.pid} (fleet up)"), waiting
+    assert error.startswith(f"ccrp: error: fleet 'lab' is still locked by ccrp run pid {proc.pid} (fleet up) "
+                            "after waiting 1 s (hint: "), error
+    assert "CCRP_LOCK_WAIT=SECONDS" in error
+    assert 1 <= took < 15, took
+    assert not (tmp_path / "lab" / "pki").exists()  # the waiting run changed nothing
+
+
+def test_lock_of_a_killed_run_is_free_at_once(tmp_path):
+    """flock belongs to the open file: the kernel drops it when the holder dies, even by SIGKILL,
+    and a child process the holder started does not inherit it (the descriptor is CLOEXEC)."""
+    with holder(tmp_path, 60, "child") as (proc, child):
+        try:
+            os.kill(proc.pid, signal.SIGKILL)
+            assert proc.wait(10) == -signal.SIGKILL
+            os.kill(child, 0)  # the holder's child outlives it...
+            said = []
+            with FleetStore("lab", home=tmp_path, on_wait=said.append).lock(timeout=0):  # ...without the lock
+                pass
+            assert said == []
+        finally:
+            os.kill(child, signal.SIGKILL)
+
+
+def test_lock_wait_comes_from_the_environment(monkeypatch):
+    monkeypatch.delenv("CCRP_LOCK_WAIT", raising=False)
+    assert lock_wait() == 600
+    monkeypatch.setenv("CCRP_LOCK_WAIT", "2.5")
+    assert lock_wait() == 2.5
+    for bad in ("soon", "-1", "nan"):
+        monkeypatch.setenv("CCRP_LOCK_WAIT", bad)
+        with pytest.raises(InputError, match="CCRP_LOCK_WAIT"):
+            lock_wait()
 
 
 def test_corrupt_or_future_state_is_a_clear_error(tmp_path):
