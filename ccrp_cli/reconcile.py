@@ -19,9 +19,13 @@ def plan(fleet: Fleet, provider) -> list[dict]:
     actual = provider.query()
     members = [r.name for r in fleet.members(state)]
     rows = []
+    index = fleet.pki.load_index() if fleet.pki.exists() else None
+    revoked = {name for name in members if index and fleet.pki.revoked_since(name, index)}
     for name in members:
         rec = actual.get(name)
-        if rec is None:
+        if name in revoked:
+            action = "leave (robot revoked)"
+        elif rec is None:
             action = "create"
         elif rec.state is not CloneState.RUNNING:
             action = f"start ({rec.status})"

@@ -19,30 +19,30 @@ def init(fleet: Fleet) -> dict[str, Any]:
     return {"fleet": fleet.name, "created": created, "ca": str(pki.ca_path), "crl": str(pki.crl_path)}
 
 
-def issue(fleet: Fleet, robot: str, renew: bool = False,
+def issue(fleet: Fleet, robot: str, renew: bool = False, provider=None,
           progress: Callable[[str], None] = lambda m: None) -> list[dict[str, Any]]:
     """Issue the robot's certificates on purpose: this also lets a revoked robot back in.
 
-    --renew revokes the current certificates and rotates the password and tls-crypt key; a clone
-    that runs gets the new set at once (OpenVPN restarts, the old session ends) and every other
-    clone the new CRL."""
+    --renew revokes the current certificates and rotates the password and tls-crypt key; with a
+    provider, a clone that runs gets the new set at once (OpenVPN restarts, the old session ends)
+    and every other clone the new CRL. Without one only the PKI changes."""
     with fleet.store.lock():
         state = fleet.load_allocated()
         fleet.robot(state, robot)  # unknown robot: input error before anything is written
         vpn = fleet.inventory.vpn
         results = fleet.pki.issue_robot(robot, vpn.cert_days, renew=renew, enroll=True, crl_days=vpn.crl_days)
-        if renew:
-            _renew_on_clones(fleet, robot, progress)
+        if renew and provider is not None:
+            _renew_on_clones(fleet, provider, robot, progress)
     return [_record(fleet, rec) | {"issued": new} for rec, new in results]
 
 
 CERT_KINDS = {"client": ("client",), "server": ("server",), "relay": ("relay",), "all": ("client", "server", "relay")}
 
 
-def revoke(fleet: Fleet, robot: str, cert: str = "client",
+def revoke(fleet: Fleet, robot: str, cert: str = "client", provider=None,
            progress: Callable[[str], None] = lambda m: None) -> list[dict[str, Any]]:
-    """Revoke the robot's certificates (its client certificate by default), then at once: end its
-    live session on its clone, and give every running clone the new CRL, in parallel."""
+    """Revoke the robot's certificates (its client certificate by default), then, with a provider,
+    at once: end its live session on its clone and give every running clone the new CRL."""
     with fleet.store.lock():
         state = fleet.store.load_state()
         fleet.robot(state, robot)
@@ -51,21 +51,15 @@ def revoke(fleet: Fleet, robot: str, cert: str = "client",
         if "client" in kinds and robot in state.robots:
             state.robots[robot].phase = "revoked"  # left out of sharing and of `fleet up` until re-issued
             fleet.store.save_state(state)
-        provider = _provider(fleet)
+        if provider is None:
+            return [_record(fleet, rec) for rec in revoked]
         _push_crl(fleet, provider, robot, kill="client" in kinds, progress=progress)
-        if "relay" in kinds or "client" in kinds:
-            from .reconcile import reshare
+        from .reconcile import reshare
 
-            reshare(fleet, provider, progress)  # partners stop admitting the revoked relay CN
+        reshare(fleet, provider, progress)  # partners drop a revoked robot and a revoked relay CN
         if kinds != ("client",):
             progress(f"run `ccrp fleet up -i INVENTORY` to give {robot}'s clone new certificates")
     return [_record(fleet, rec) for rec in revoked]
-
-
-def _provider(fleet: Fleet):
-    from .providers import get_provider
-
-    return get_provider(fleet.inventory)
 
 
 def _running(provider) -> list[str]:
@@ -74,10 +68,9 @@ def _running(provider) -> list[str]:
     return sorted(name for name, rec in provider.query().items() if rec.state is CloneState.RUNNING)
 
 
-def _renew_on_clones(fleet: Fleet, robot: str, progress: Callable[[str], None]) -> None:
+def _renew_on_clones(fleet: Fleet, provider, robot: str, progress: Callable[[str], None]) -> None:
     from .reconcile import up
 
-    provider = _provider(fleet)
     if robot in _running(provider):
         failed = [r for r in up(fleet, provider, progress, only=[robot]) if r.action == "failed"]
         if failed:

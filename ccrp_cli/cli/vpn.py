@@ -24,6 +24,12 @@ class CertKind(str, enum.Enum):
     all = "all"
 
 
+def _provider(fleet):
+    from ..providers import get_provider
+
+    return get_provider(fleet.inventory)
+
+
 CERT_COLUMNS = ["SERIAL", "CN", "PROFILE", "NOT AFTER", "REVOKED", "PATH"]
 
 
@@ -57,7 +63,8 @@ def issue_cert(
     """Issue the robot's client certificate and its clone's server certificate.
 
     Also the one way back in for a revoked robot (with a new password and tls-crypt key)."""
-    records = _ops().issue(options.open_fleet(inventory), robot, renew, output.info)
+    fleet = options.open_fleet(inventory)
+    records = _ops().issue(fleet, robot, renew, _provider(fleet) if renew else None, output.info)
     if not as_json:
         for r in records:
             output.info(f"{'issued' if r['issued'] else 'kept valid'} {r['profile']} certificate {r['cn']} ({r['path']})")
@@ -74,7 +81,8 @@ def revoke(
     as_json: options.Json = False,
 ) -> None:
     """Revoke the robot's certificates: its live session ends and every running clone gets the CRL."""
-    records = _ops().revoke(options.open_fleet(inventory), robot, cert.value, output.info)
+    fleet = options.open_fleet(inventory)
+    records = _ops().revoke(fleet, robot, cert.value, _provider(fleet), output.info)
     if not as_json:
         output.info(f"revoked {len(records)} certificate(s) of robot {robot!r}; CRL re-issued")
     output.emit(records, as_json, CERT_COLUMNS, _rows(records))

@@ -409,3 +409,44 @@ def test_revoked_cert_refused(lab: Lab, clone: Clone, robot: Robot) -> None:
     finally:
         # The server keeps running for the other tests: hand it back the CRL it started with.
         replace_file(original, served_crl)
+
+
+def serve(clone: Clone, creds: RobotCredentials, log: Path) -> None:
+    """(Re)start the clone's server with `creds` pushed, as `fleet up` does after a change."""
+    clone.server.stop()
+    write_bundle(clone.dir / "keys", clone_secrets(clone.view, creds), {"kind": "clone-secrets", "robot": clone.view.name})
+    os.chown(clone.dir / "keys" / "passwd", 0, 65534)
+    clone.server = OpenVPNProcess.start(NS_CLONE, log, "--cd", str(clone.dir), "--config", "server.conf")
+    clone.server.wait_completed()
+
+
+def test_after_renew_each_old_credential_fails_alone(lab: Lab, clone: Clone, robot: Robot) -> None:
+    """`vpn issue-cert --renew` replaces the certificate, the password and the tls-crypt key: a
+    client holding the new set with any single one of the old parts is refused."""
+    old = lab.creds["nao1"]
+    vpn.issue(lab.fleet, "nao1", renew=True)
+    new = lab.fleet.pki.credentials("nao1")
+    assert (new.password, new.tls_crypt_key) != (old.password, old.tls_crypt_key)
+    try:
+        serve(clone, new, robot.tmp / "server-renewed.log")
+        fresh = robot.connect(write_edge_bundle(robot.tmp / "new", lab.views["nao1"], new))
+        fresh.wait_completed()  # control: the new set gets a tunnel from this very server
+        fresh.stop()
+
+        serial = cert_serial(old.client_cert_pem)
+        cases = {
+            "old certificate": (with_client_cert(new, old), None,
+                                rf"VERIFY ERROR: depth=0, error=certificate revoked: CN=nao1, serial={serial}\b"),
+            "old password": (new, write_credentials(robot.tmp / "old-password.txt", "nao1", old.password),
+                             r"Auth Username/Password verification failed for peer"),
+            "old tls-crypt key": (new.model_copy(update={"tls_crypt_key": old.tls_crypt_key}), None,
+                                  r"tls-crypt unwrapping failed"),
+        }
+        for name, (creds, password_file, reason) in cases.items():
+            since = clone.server.size()
+            client = robot.connect(write_edge_bundle(robot.tmp / name.replace(" ", "-"), lab.views["nao1"], creds),
+                                   password_file, *GIVE_UP_SOON)
+            assert_refused(client, clone, since, reason)
+            client.stop()
+    finally:
+        serve(clone, old, robot.tmp / "server-restored.log")  # the module's server as it started
