@@ -30,3 +30,32 @@ class InputError(CcrpError):
 
     def __init__(self, message: str, *, hint: str | None = None) -> None:
         super().__init__(message, hint=hint, code=BAD_INPUT)
+
+
+# A user's value echoed in an error is cut to this many characters: a 100k-character name must not
+# become a 100k-character error line.
+SHOWN_CHARS = 80
+
+
+def shown(value: object, limit: int = SHOWN_CHARS) -> str:
+    """repr() of a user's value for an error line, cut to `limit` characters with an ellipsis."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+class cannot_write:  # noqa: N801 - used as `with cannot_write(out):`
+    """Turn an OSError while writing into `out` (a user's --out) into one line, exit 2."""
+
+    def __init__(self, out: object) -> None:
+        self.out = out
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind, exc, tb) -> bool:
+        if isinstance(exc, (OSError, ValueError)) and not isinstance(exc, CcrpError):
+            # ValueError: a NUL byte in the path. The failing path may be a parent of `out`.
+            where = getattr(exc, "filename", None) or self.out
+            reason = getattr(exc, "strerror", None) or str(exc)
+            raise InputError(f"cannot write {shown(str(where))}: {reason}") from None
+        return False

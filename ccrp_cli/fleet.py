@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .addressing import CloneAddresses, addresses, allocate, capacity
-from .errors import InputError
+from .errors import InputError, shown
 from .loader import load_inventory
 from .models.inventory import Inventory, Robot
 from .models.state import FleetState, RobotRecord
@@ -51,8 +51,8 @@ class Fleet:
         for robot in members:
             if robot.name == name:
                 return robot
-        known = ", ".join(r.name for r in members) or "none"
-        raise InputError(f"robot {name!r} is not in fleet {self.name!r} (robots: {known})")
+        known = ", ".join(r.name for r in members[:10]) + (", ..." if len(members) > 10 else "") or "none"
+        raise InputError(f"robot {shown(name)} is not in fleet {self.name!r} (robots: {known})")
 
     def allocate(self, state: FleetState) -> bool:
         """Give every member an address slot in `state`; True when state changed."""

@@ -2,35 +2,64 @@
 
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 from typing import Any
 
 import yaml
 from pydantic import ValidationError
 
-from .errors import InputError
+from .errors import InputError, shown
 from .models.inventory import Inventory
 from .providers import REGISTRY
 
+# Bounds on what an inventory may cost to read (docs/inventory.md: Limits). A fleet of 1000 robots
+# is about 100 KB of YAML; nothing legitimate comes near these.
+MAX_BYTES = 1 << 20
+MAX_DEPTH = 64
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate mapping keys (PyYAML silently keeps the last one)."""
+
+class _InventoryLoader(yaml.SafeLoader):
+    """SafeLoader that refuses duplicate mapping keys (PyYAML silently keeps the last one), nesting
+    deeper than MAX_DEPTH (PyYAML composes recursively: deep input is a RecursionError) and aliases
+    (each alias is expanded again by validation: a 72 KB alias bomb took 9.5 s and 1.2 GB)."""
+
+    _depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            mark = self.peek_event().start_mark
+            raise yaml.composer.ComposerError(
+                None, None, "YAML aliases (*name) are not accepted in an inventory: write the value out", mark)
+        self._depth += 1
+        try:
+            if self._depth > MAX_DEPTH:
+                mark = self.peek_event().start_mark
+                raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_DEPTH} levels", mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
 
 
-def _mapping_no_duplicates(loader: _UniqueKeyLoader, node: yaml.MappingNode) -> dict[Any, Any]:
+def _mapping_no_duplicates(loader: _InventoryLoader, node: yaml.MappingNode) -> dict[Any, Any]:
     seen: set[Any] = set()
     for key_node, _ in node.value:
         key = loader.construct_object(key_node)
-        if key in seen:
+        try:
+            duplicate = key in seen
+        except TypeError:  # an unhashable key ([a]: 1): construct_mapping says so in its own words
+            break
+        if duplicate:
             mark = key_node.start_mark
             raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {key!r} (line {mark.line + 1})", mark
+                None, None, f"duplicate key {shown(key)} (line {mark.line + 1})", mark
             )
         seen.add(key)
     return loader.construct_mapping(node)
 
 
-_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_no_duplicates)
+_InventoryLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_no_duplicates)
 
 
 def _loc(loc: tuple[Any, ...]) -> str:
@@ -41,7 +70,9 @@ def _loc(loc: tuple[Any, ...]) -> str:
         elif i and loc[i - 1] == "provider" and part in REGISTRY:
             continue  # the union's tag (provider.docker.x): the user wrote provider.x
         else:
-            out += f".{part}" if out else str(part)
+            # A key is the user's text (an unknown key, a robot named in imports): cut it like any value.
+            part = str(part) if len(str(part)) <= 40 and str(part).isprintable() else shown(part, 40)
+            out += f".{part}" if out else part
     return out or "(top level)"
 
 
@@ -54,11 +85,23 @@ def _describe(err: dict[str, Any]) -> str:
         return f"{where}: required key is missing"
     if kind == "string_pattern_mismatch":
         pattern = err.get("ctx", {}).get("pattern", "")
-        return f"{where}: {err['input']!r} does not match {pattern}"
+        return f"{where}: {shown(err['input'])} does not match {pattern}"
     if kind == "union_tag_invalid":
-        return f"{where}: unknown provider kind {err['input'].get('kind')!r} (expected docker, openstack, gcp or aws)"
-    msg = err["msg"].removeprefix("Value error, ")
+        return f"{where}: unknown provider kind {shown(err['input'].get('kind'))} (expected docker, openstack, gcp or aws)"
+    msg = _cut(err["msg"].removeprefix("Value error, "), 200)
     return f"{where}: {msg}" if err["loc"] else msg
+
+
+def _cut(text: str, limit: int) -> str:
+    """One line of at most `limit` characters (a safety net: values in messages are already cut)."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _source(path: Path) -> str:
+    """The inventory's path as errors show it: as typed, unless it is long or unprintable."""
+    text = str(path)
+    return text if len(text) <= 80 and text.isprintable() else shown(text)
 
 
 def parse_inventory(data: Any, source: str) -> Inventory:
@@ -72,19 +115,46 @@ def parse_inventory(data: Any, source: str) -> Inventory:
         raise InputError(f"{source}: {_describe(errors[0])}{more}") from None
 
 
+def read_inventory_text(path: Path) -> str:
+    """The file's text, read bounded: at most MAX_BYTES + 1 bytes, from a regular file only (a FIFO
+    would wait for a writer, /dev/zero never ends)."""
+    source = _source(path)
+    try:
+        # O_NONBLOCK: opening a FIFO returns at once instead of waiting for a writer.
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except FileNotFoundError:
+        raise InputError(f"inventory {source} not found", hint="pass -i inventories/lab.yaml or set CCRP_INVENTORY") from None
+    except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
+        raise InputError(f"cannot read inventory {source}: {getattr(exc, 'strerror', None) or exc}") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise InputError(f"inventory {source} is not a regular file", hint="write the inventory to a file first")
+    with os.fdopen(fd, "rb") as fh:
+        try:
+            data = fh.read(MAX_BYTES + 1)
+        except OSError as exc:
+            raise InputError(f"cannot read inventory {source}: {exc.strerror or exc}") from None
+    if len(data) > MAX_BYTES:
+        raise InputError(f"inventory {source} is larger than {MAX_BYTES >> 20} MiB")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"inventory {source} is not UTF-8 text (byte {exc.start})") from None
+
+
 def load_inventory(path: str | Path) -> Inventory:
     path = Path(path)
+    source = _source(path)
+    text = read_inventory_text(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"inventory {path} not found", hint="pass -i inventories/lab.yaml or set CCRP_INVENTORY") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read inventory {path}: {exc}") from None
-    try:
-        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - SafeLoader subclass
+        data = yaml.load(text, Loader=_InventoryLoader)  # noqa: S506 - SafeLoader subclass
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f":{mark.line + 1}:{mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
-        raise InputError(f"{path}{where}: invalid YAML: {' '.join(str(problem).split())}") from None
-    return parse_inventory(data, str(path))
+        raise InputError(f"{source}{where}: invalid YAML: {_cut(str(problem), 160)}") from None
+    except (ValueError, RecursionError) as exc:
+        # A scalar YAML resolves but Python cannot build: a 5000-digit int, the date 2024-13-45.
+        # RecursionError: a last guard; MAX_DEPTH keeps composition far from the limit.
+        raise InputError(f"{source}: invalid YAML: {_cut(str(exc) or type(exc).__name__, 160)}") from None
+    return parse_inventory(data, source)

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .errors import InputError
+from .errors import InputError, cannot_write
 from .fleet import Fleet, clone_view
+from .models.values import parse_endpoint
 
 
 def edge_files(fleet: Fleet, robot: str, remote: str | None = None) -> tuple[list, str]:
@@ -21,6 +22,12 @@ def edge_files(fleet: Fleet, robot: str, remote: str | None = None) -> tuple[lis
             f"the public endpoint of clone {view.addr.clone_host} is not known yet",
             hint="create the clone first (`ccrp clone create`), or pass --remote HOST[:PORT]",
         )
+    # Parsed here so a bad --remote is refused before anything is written (client_profile parses
+    # again: every caller of the renderer gets the same check).
+    try:
+        endpoint = str(parse_endpoint(endpoint, fleet.inventory.vpn.port))
+    except ValueError as exc:
+        raise InputError(f"remote endpoint: {exc}", hint="HOST, HOST:PORT, IPV6 or [IPV6]:PORT") from None
     return bundles.edge_bundle(view, fleet.pki.credentials(robot), endpoint), endpoint
 
 
@@ -28,4 +35,5 @@ def write_edge(fleet: Fleet, robot: str, out: Path, remote: str | None = None) -
     from .render import bundles
 
     files, endpoint = edge_files(fleet, robot, remote)
-    return bundles.write_bundle(out, files, {"fleet": fleet.name, "robot": robot, "kind": "edge", "remote": endpoint})
+    with cannot_write(out):
+        return bundles.write_bundle(out, files, {"fleet": fleet.name, "robot": robot, "kind": "edge", "remote": endpoint})

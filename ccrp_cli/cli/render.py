@@ -32,6 +32,7 @@ def cloud_init(
 @app.command("clone-secrets")
 def clone_secrets(inventory: options.Inventory, robot: options.Robot, out: options.OutDir) -> None:
     """Write the secrets pushed to the clone after boot (server key+cert, CA, CRL, tls-crypt, password hash)."""
+    from ..errors import cannot_write
     from ..fleet import clone_view
     from ..render import bundles
 
@@ -39,7 +40,8 @@ def clone_secrets(inventory: options.Inventory, robot: options.Robot, out: optio
     state = fleet.store.load_state()
     view = clone_view(fleet, state, robot)
     files = bundles.clone_secrets(view, fleet.pki.credentials(robot))
-    bundles.write_bundle(out, files, {"fleet": fleet.name, "robot": robot, "kind": "clone-secrets"})
+    with cannot_write(out):
+        bundles.write_bundle(out, files, {"fleet": fleet.name, "robot": robot, "kind": "clone-secrets"})
     output.info(f"wrote {len(files)} files for clone {view.addr.clone_host} to {out}")
 
 

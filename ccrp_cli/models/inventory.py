@@ -10,12 +10,9 @@ from pydantic import Field, field_validator, model_validator
 from ..providers import REGISTRY
 from .names import Name, Topic
 from .strict import Strict
-
-
-
+from .values import CloudName, Port, StrictInt, check_docker_image
 
 RobotType = Literal["nao", "turtlebot", "generic"]
-Port = Annotated[int, Field(ge=1, le=65535)]
 
 
 class Robot(Strict):
@@ -26,8 +23,8 @@ class Robot(Strict):
     # Topics taken from other robots' clones, by source robot; they appear as /<source><topic>.
     imports: dict[Name, list[Topic]] = {}
     # Per-robot provider overrides (instance size, zone).
-    instance_type: str | None = None
-    zone: str | None = None
+    instance_type: CloudName | None = None
+    zone: CloudName | None = None
 
 
 class RobotTemplate(Strict):
@@ -37,7 +34,7 @@ class RobotTemplate(Strict):
     type: RobotType = "generic"
     exports: list[Topic] = []
     imports: dict[Name, list[Topic]] = {}
-    max: Annotated[int, Field(ge=1, le=1000)] = 50
+    max: Annotated[StrictInt, Field(ge=1, le=1000)] = 50
 
 
 class RosSettings(Strict):
@@ -50,10 +47,10 @@ class VpnSettings(Strict):
     port: Port = 1194
     proto: Literal["udp", "tcp"] = "udp"
     pool: ipaddress.IPv4Network = ipaddress.IPv4Network("10.80.0.0/16")
-    subnet_prefix: Annotated[int, Field(ge=16, le=29)] = 24
+    subnet_prefix: Annotated[StrictInt, Field(ge=16, le=29)] = 24
     key_type: Literal["ecdsa-p256", "rsa3072"] = "ecdsa-p256"
-    cert_days: Annotated[int, Field(ge=30, le=3650)] = 1095
-    crl_days: Annotated[int, Field(ge=365, le=3650)] = 730
+    cert_days: Annotated[StrictInt, Field(ge=30, le=3650)] = 1095
+    crl_days: Annotated[StrictInt, Field(ge=365, le=3650)] = 730
 
     @model_validator(mode="after")
     def _prefix_inside_pool(self) -> "VpnSettings":
@@ -67,7 +64,7 @@ class VpnSettings(Strict):
 class CommonNetwork(Strict):
     cidr: ipaddress.IPv4Network = ipaddress.IPv4Network("10.90.0.0/24")
     # Clone k gets host first_host + k - 1: low addresses are left to gateways and DHCP.
-    first_host: Annotated[int, Field(ge=2)] = 10
+    first_host: Annotated[StrictInt, Field(ge=2)] = 10
 
 
 # multimaster_fkie is not packaged by Debian, and every clone runs Debian 12 (ProviderInfo.platform).
@@ -102,6 +99,18 @@ class Inventory(Strict):
     sharing: Sharing = Sharing()
     robots: list[Robot] = []
     template: RobotTemplate | None = None
+
+    @field_validator("provider")
+    @classmethod
+    def _docker_base_image(cls, provider: object) -> object:
+        # Written into the generated Dockerfile's FROM line (templates/docker/Dockerfile.j2).
+        base_image = getattr(provider, "base_image", None)
+        if base_image is not None:
+            try:
+                check_docker_image(base_image)
+            except ValueError as exc:
+                raise ValueError(f"base_image: {exc}") from None
+        return provider
 
     @field_validator("robots")
     @classmethod

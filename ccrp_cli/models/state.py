@@ -6,6 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict
 
+from .values import EndpointText
+
 SCHEMA_VERSION = 1
 
 # revoked: the robot's certificate was revoked; its clone is left as it is, out of sharing.
@@ -20,8 +22,9 @@ class RobotRecord(BaseModel):
     origin: Literal["inventory", "template"] = "inventory"
     phase: Phase = "planned"
     provider_id: str | None = None
-    # Host or IP (and port) the robot dials for its VPN; known once the clone exists.
-    public_endpoint: str | None = None
+    # Host or IP (and port) the robot dials for its VPN; known once the clone exists. Checked when
+    # state.json is read: it is written into the robot's .ovpn, which root runs on the robot.
+    public_endpoint: EndpointText | None = None
     addresses: dict[str, str] = {}
 
     def clear_clone(self) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ..errors import InputError
+from ..models.values import parse_endpoint
 from ..pki.store import RobotCredentials
 from .templates import render
 from .view import CloneView
@@ -24,13 +26,18 @@ def client_profile(
     remote: str,
     credentials_path: str = ROBOT_CREDENTIALS_PATH,
 ) -> str:
-    host, _, port = remote.rpartition(":") if ":" in remote else (remote, "", "")
+    """The robot's profile; `remote` is HOST[:PORT] or [IPV6]:PORT, checked here because the line
+    `remote HOST PORT` is a directive of a file root runs on the robot."""
+    try:
+        endpoint = parse_endpoint(remote, view.inv.vpn.port)
+    except ValueError as exc:
+        raise InputError(f"remote endpoint: {exc}") from None
     return render(
         "openvpn/client.ovpn.j2",
         **view.ctx(
             creds=creds,
-            remote_host=host,
-            remote_port=port or view.inv.vpn.port,
+            remote_host=endpoint.host,  # OpenVPN takes an IPv6 address bare, without brackets
+            remote_port=endpoint.port,
             credentials_path=credentials_path,
         ),
     )

@@ -6,13 +6,14 @@ import ipaddress
 from typing import Literal
 
 from ...models.strict import Strict
+from ...models.values import CloudName
 
 
 class AwsSettings(Strict):
     kind: Literal["aws"]
-    region: str
-    profile: str | None = None
-    instance_type: str = "t3.medium"
-    vpc_id: str | None = None
-    zones: list[str] = []
+    region: CloudName
+    profile: CloudName | None = None
+    instance_type: CloudName = "t3.medium"
+    vpc_id: CloudName | None = None
+    zones: list[CloudName] = []
     operator_cidr: ipaddress.IPv4Network

@@ -6,13 +6,14 @@ import ipaddress
 from typing import Literal
 
 from ...models.strict import Strict
+from ...models.values import CloudName
 
 
 class GcpSettings(Strict):
     kind: Literal["gcp"]
-    project: str
-    region: str
-    zones: list[str]
-    machine_type: str = "e2-medium"
-    network: str | None = None
+    project: CloudName
+    region: CloudName
+    zones: list[CloudName]
+    machine_type: CloudName = "e2-medium"
+    network: CloudName | None = None
     operator_cidr: ipaddress.IPv4Network

@@ -6,14 +6,15 @@ import ipaddress
 from typing import Literal
 
 from ...models.strict import Strict
+from ...models.values import CloudName
 
 
 class OpenStackSettings(Strict):
     kind: Literal["openstack"]
-    cloud: str  # entry in clouds.yaml (or OS_CLOUD); never parsed by ccrp
-    flavor: str
-    image: str | None = None
-    network: str | None = None  # existing common network; created when absent
-    external_network: str = "public"
+    cloud: CloudName  # entry in clouds.yaml (or OS_CLOUD); never parsed by ccrp
+    flavor: CloudName
+    image: CloudName | None = None
+    network: CloudName | None = None  # existing common network; created when absent
+    external_network: CloudName = "public"
     operator_cidr: ipaddress.IPv4Network
-    zones: list[str] = []
+    zones: list[CloudName] = []
