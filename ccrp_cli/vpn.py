@@ -54,11 +54,12 @@ def revoke(fleet: Fleet, robot: str, cert: str = "client", provider=None,
         if provider is None:
             return [_record(fleet, rec) for rec in revoked]
         _push_crl(fleet, provider, robot, kill="client" in kinds, progress=progress)
-        from .reconcile import reshare
+        if "client" in kinds:
+            from .reconcile import reshare
 
-        reshare(fleet, provider, progress)  # partners drop a revoked robot and a revoked relay CN
-        if kinds != ("client",):
-            progress(f"run `ccrp fleet up -i INVENTORY` to give {robot}'s clone new certificates")
+            reshare(fleet, provider, progress)  # its partners drop the revoked robot's clone
+        else:
+            _replace_on_clone(fleet, provider, robot, progress)  # new server/relay certificate now
     return [_record(fleet, rec) for rec in revoked]
 
 
@@ -68,14 +69,21 @@ def _running(provider) -> list[str]:
     return sorted(name for name, rec in provider.query().items() if rec.state is CloneState.RUNNING)
 
 
-def _renew_on_clones(fleet: Fleet, provider, robot: str, progress: Callable[[str], None]) -> None:
+def _replace_on_clone(fleet: Fleet, provider, robot: str, progress: Callable[[str], None]) -> None:
+    """A running clone of `robot` gets its new certificates and secrets at once (fleet up for that
+    robot: OpenVPN and the relay restart, partners get the new relay CN)."""
     from .reconcile import up
 
-    if robot in _running(provider):
-        failed = [r for r in up(fleet, provider, progress, only=[robot]) if r.action == "failed"]
-        if failed:
-            raise CcrpError(f"renewed, but clone of {robot!r} did not take the new credentials: {failed[0].detail}",
-                            hint="run `ccrp fleet up -i INVENTORY` to push them again")
+    if robot not in _running(provider):
+        return
+    failed = [r for r in up(fleet, provider, progress, only=[robot]) if r.action == "failed"]
+    if failed:
+        raise CcrpError(f"the clone of {robot!r} did not take its new credentials: {failed[0].detail}",
+                        hint="run `ccrp fleet up -i INVENTORY` to push them again")
+
+
+def _renew_on_clones(fleet: Fleet, provider, robot: str, progress: Callable[[str], None]) -> None:
+    _replace_on_clone(fleet, provider, robot, progress)
     _push_crl(fleet, provider, robot, kill=False, progress=progress)
     progress(f"install the new robot bundle on {robot}: ccrp robot bundle -i INVENTORY {robot}")
 

@@ -28,6 +28,7 @@ import rospy
 import zenoh
 
 DEFAULT_CONFIG = "/etc/ccrp/relay.json"
+NOBODY = "no partner (ccrp)"  # relay certificates are named relay-<robot>-<n>
 # How long a new ROS publisher waits for the subscribers the master knows to connect before it
 # sends its first message (otherwise that message would go to nobody).
 CONNECT_GRACE = 2.0
@@ -54,18 +55,17 @@ def zenoh_config(cfg: dict) -> "zenoh.Config":
     }))
     # Only the fleet's current partner clones may exchange anything: admitted by the CN of their
     # relay certificate (one per certificate issued), so a replaced or revoked one gets nothing.
-    acl: dict = {"enabled": True, "default_permission": "deny"}
-    cns = sorted(p["cn"] for p in cfg["peers"].values())
-    if cns:  # Zenoh refuses an empty subject: with no partner, everything stays denied
-        acl |= {
-            "rules": [{"id": "fleet", "permission": "allow", "flows": ["ingress", "egress"],
-                       "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
-                                    "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"],
-                       "key_exprs": [f"ccrp/{cfg['fleet']}/**"]}],
-            "subjects": [{"id": "partners", "cert_common_names": cns}],
-            "policies": [{"rules": ["fleet"], "subjects": ["partners"]}],
-        }
-    c.insert_json5("access_control", json.dumps(acl))
+    # Zenoh wants every list non-empty; with no partner, a CN that no certificate carries.
+    cns = sorted(p["cn"] for p in cfg["peers"].values()) or [NOBODY]
+    c.insert_json5("access_control", json.dumps({
+        "enabled": True, "default_permission": "deny",
+        "rules": [{"id": "fleet", "permission": "allow", "flows": ["ingress", "egress"],
+                   "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                                "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"],
+                   "key_exprs": [f"ccrp/{cfg['fleet']}/**"]}],
+        "subjects": [{"id": "partners", "cert_common_names": cns}],
+        "policies": [{"rules": ["fleet"], "subjects": ["partners"]}],
+    }))
     return c
 
 
@@ -169,6 +169,8 @@ class Relay:
             self.imports.pop(local).close()
         if self.session is not None:
             self.session.close()
+            self.session = None
+        # If this raises, endpoints stay as they were and the next apply() tries again.
         self.session, self.endpoints = zenoh.open(zenoh_config(cfg)), endpoints
 
     def key(self, source: str, topic: str) -> str:
@@ -195,7 +197,7 @@ class Relay:
         log(f"exports {sorted(self.exports)}; imports {sorted(self.imports)}; peers {sorted(cfg['peers'])}")
 
     def status(self) -> dict:
-        connected = {str(z) for z in self.session.info.peers_zid()}
+        connected = {str(z) for z in self.session.info.peers_zid()} if self.session else set()
         return {
             "time": time.time(),
             "peers": {name: p["id"] in connected for name, p in self.cfg["peers"].items()},

@@ -648,6 +648,17 @@ def relay_through(sender, topic: str, receiver, seen_as: str, marker: str, timeo
         return echo.result()
 
 
+def relay_journals(fleet: E2EFleet, robots: list[str]) -> str:
+    """The relay agents' logs and status files, for a failure message."""
+    out = []
+    for robot in robots:
+        clone = fleet.container("clone", robot)
+        _, log = exec_in(clone, ["journalctl", "-u", "ccrp-relay", "--no-pager", "-o", "cat", "-n", "30"])
+        _, status = exec_in(clone, ["cat", "/run/ccrp-relay/status.json"])
+        out.append(f"--- relay of {robot}: {status.strip()}\n{log[-1500:]}")
+    return "\n".join(out)
+
+
 def relay_invocations(fleet: E2EFleet, robots) -> dict[str, str]:
     out = {}
     for robot in robots:
@@ -670,7 +681,8 @@ def test_robot_topic_reaches_other_robot_only_through_both_clones(fleet: E2EFlee
     nao1, nao2 = sim_nao1["container"], sim_nao2["container"]
     marker = "face-" + secrets.token_hex(6)
     rc, out = relay_through(nao1, "/faces", nao2, "/nao1/faces", marker)
-    assert rc == 0 and marker in out, f"/faces of robot nao1 never reached robot nao2 as /nao1/faces: {out[-800:]}"
+    assert rc == 0 and marker in out, (f"/faces of robot nao1 never reached robot nao2 as /nao1/faces: {out[-800:]}\n"
+                                       f"{relay_journals(fleet, ['nao1', 'nao2'])}")
     # ... and the other way round, with nao2's identical topic name kept apart as /nao2/faces.
     rc, out = relay_through(nao2, "/faces", nao1, "/nao2/faces", marker + "b")
     assert rc == 0 and marker + "b" in out, out[-800:]
