@@ -74,6 +74,18 @@ def files_current(provider: Provider, robot: str, files: list) -> bool:
     return all(have.get(f.dest) == hashlib.sha256(f.content.encode()).hexdigest() for f in files)
 
 
+def applied_marker(files: list):
+    """The file pushed after `files` once their groups are set and the units restarted. A run
+    killed between copying the files and restarting OpenVPN (which starts only when its key is
+    there) leaves files that match and a server that never started: without the marker the next
+    run took them for done, and the clone failed `not serving` on every run after."""
+    from .render.bundles import BundleFile
+    from .render.view import SECRETS_DIR
+
+    listing = "".join(f"{f.dest} {f.group} {f.mode:o} {hashlib.sha256(f.content.encode()).hexdigest()}\n" for f in files)
+    return BundleFile(".applied", hashlib.sha256(listing.encode()).hexdigest() + "\n", 0o600, f"{SECRETS_DIR}/.applied")
+
+
 # Hands the secrets directory to the openvpn group ($1 = mode) and prints the device of / and of
 # the directory: they must differ, or the keys would land on the disk that snapshots capture.
 SECRETS_DIR_SH = 'install -d -m "$1" -o root -g openvpn "$0" && stat -c %d / "$0"'
@@ -169,9 +181,11 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         provider.wait_ready(robot, timeout=1200 if bare else 300)
         secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
         keys = [f for f in secrets if f.name != "crl.pem"]
-        if not files_current(provider, robot, keys):
+        applied = applied_marker(keys)
+        if not files_current(provider, robot, [*keys, applied]):
             prepare_secrets_dir(provider, robot)
             provider.push_files(robot, secrets, restart=["ccrp-openvpn.service", "ccrp-relay.service"])
+            provider.push_files(robot, [applied])  # last: until it is there, the next run pushes again
         elif not files_current(provider, robot, secrets):
             # Only the CRL changed (another robot was revoked): OpenVPN re-reads it, the robot's
             # live session stays.
