@@ -1,0 +1,398 @@
+"""Crash safety of `ccrp fleet scale` on Docker: kill -9 at a random moment, then converge (issue 11).
+
+Every trial picks a size K in 1..--max-size other than the fleet's current one (so trials go up
+and down), starts `ccrp fleet scale K` as a subprocess, SIGKILLs it after a random delay, and
+then checks what the kill left and what the next run makes of it:
+
+  left     state.json still parses (FleetStore.load_state); which clone containers exist, and
+           any `.state.json.*.tmp` a write cut short left behind
+  rerun    `ccrp fleet scale K --json` runs to completion (exit 0, no robot failed) without
+           waiting for a lock (the killed run's flock died with it): its wall time is the
+           convergence time
+  check    K robots in state, each with exactly one clone container (no duplicate), running,
+           phase `ready`, master answering in `ccrp status --json`; no container or secrets
+           volume carrying the fleet's labels for a robot state does not know (no orphan)
+
+The bench works on a fleet of its own (`crash<random>`, free subnets, a temp CCRP_HOME); at the
+end, even on failure or Ctrl-C, it runs `ccrp fleet down` and removes every container, volume,
+network and image labelled with that fleet (and nothing else).
+
+Run: .venv/bin/python bench/crash_scale.py [--trials 20] [--max-size 4] [--max-delay 6] [--seed N]
+Writes bench/results/crash_scale.json (--out to change). tests/e2e/test_crash_safety.py runs 3
+trials of the same code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import ipaddress
+import json
+import os
+import platform
+import random
+import secrets
+import shutil
+import signal
+import statistics
+import string
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "bench" / "results"
+LABEL = "ccrp-fleet"
+SERVER_KEY = "/etc/openvpn/server/ccrp/keys/server.key"
+
+
+def free_subnets(client) -> tuple[str, str, str]:
+    """public, common and VPN pool subnets that no Docker network on this host overlaps."""
+    used = []
+    for net in client.networks.list():
+        for cfg in (net.attrs.get("IPAM") or {}).get("Config") or []:
+            if cfg.get("Subnet") and ":" not in cfg["Subnet"]:
+                used.append(ipaddress.ip_network(cfg["Subnet"], strict=False))
+
+    def free(n) -> bool:
+        return not any(n.overlaps(u) for u in used)
+
+    pool = next((p for p in (ipaddress.ip_network(f"10.{k}.0.0/16") for k in range(60, 80)) if free(p)), None)
+    rng = secrets.SystemRandom()
+    for x in rng.sample(range(1, 255), 254):
+        public, common = ipaddress.ip_network(f"172.27.{x}.0/24"), ipaddress.ip_network(f"10.97.{x}.0/24")
+        if free(public) and free(common) and pool is not None:
+            return str(public), str(common), str(pool)
+    raise RuntimeError("no free 172.27.x.0/24 + 10.97.x.0/24 + 10.6x.0.0/16 subnets on this host")
+
+
+@dataclass
+class CrashFleet:
+    """A Docker fleet of template robots only, with its own CCRP_HOME, driven through the CLI."""
+
+    name: str
+    tmp: Path
+    client: object  # docker.DockerClient
+    log: list[str] = field(default_factory=list)
+
+    @classmethod
+    def create(cls, prefix: str = "crash") -> CrashFleet:
+        import docker
+
+        client = docker.from_env(timeout=300)
+        name = prefix + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
+        tmp = Path(tempfile.mkdtemp(prefix=f"ccrp-{name}-"))
+        public, common, pool = free_subnets(client)
+        inventory = {
+            "fleet": name,
+            "provider": {"kind": "docker", "public_cidr": public},
+            "vpn": {"pool": pool},
+            "common": {"cidr": common},
+            "robots": [],
+            "template": {"prefix": "robot", "max": 20},
+        }
+        (tmp / "inventory.yaml").write_text(yaml.safe_dump(inventory, sort_keys=False))
+        return cls(name=name, tmp=tmp, client=client)
+
+    @property
+    def home(self) -> Path:
+        return self.tmp / "home"
+
+    @property
+    def inventory(self) -> Path:
+        return self.tmp / "inventory.yaml"
+
+    def env(self, **extra: str) -> dict[str, str]:
+        env = {**os.environ, "CCRP_HOME": str(self.home), **extra}
+        env.pop("CCRP_INVENTORY", None)
+        return env
+
+    def argv(self, *args: str) -> list[str]:
+        return [sys.executable, "-m", "ccrp_cli", *args, "-i", str(self.inventory)]
+
+    def ccrp(self, *args: str, timeout: float = 600, **env: str) -> subprocess.CompletedProcess:
+        t0 = time.monotonic()
+        proc = subprocess.run(self.argv(*args), cwd=ROOT, env=self.env(**env), capture_output=True, text=True,
+                              timeout=timeout)
+        self.log.append(f"ccrp {' '.join(args)} -> {proc.returncode} in {time.monotonic() - t0:.1f}s")
+        return proc
+
+    def check_call(self, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+        proc = self.ccrp(*args, timeout=timeout)
+        if proc.returncode != 0:
+            raise RuntimeError(f"ccrp {' '.join(args)} exited {proc.returncode}: {proc.stderr.strip()[-1500:]}")
+        return proc
+
+    def prepare(self) -> None:
+        """CA and snapshot (built from ccrp/base:bookworm when it is there: about a minute)."""
+        self.check_call("vpn", "init")
+        self.check_call("snapshot", "build", timeout=1800)
+
+    # -- what is there --------------------------------------------------------------------------
+    def labelled(self, role: str) -> dict:
+        return {"label": [f"{LABEL}={self.name}", f"ccrp-role={role}"]}
+
+    def clone_containers(self) -> dict[str, list[str]]:
+        """robot -> ["name=status", ...] of its clone containers (more than one is a duplicate)."""
+        out: dict[str, list[str]] = {}
+        for c in self.client.containers.list(all=True, filters=self.labelled("clone")):
+            out.setdefault(c.labels.get("ccrp-robot", "?"), []).append(f"{c.name}={c.status}")
+        return out
+
+    def secret_volumes(self) -> list[str]:
+        return sorted((v.attrs.get("Labels") or {}).get("ccrp-robot", "?")
+                      for v in self.client.volumes.list(filters=self.labelled("secrets")))
+
+    def state_robots(self) -> dict[str, str]:
+        """robot -> phase, through ccrp's own loader (raises when state.json does not parse)."""
+        from ccrp_cli.store import FleetStore
+
+        return {name: rec.phase for name, rec in FleetStore(self.name, home=self.home).load_state().robots.items()}
+
+    def temp_files(self) -> list[str]:
+        root = self.home / self.name
+        return sorted(p.name for p in root.iterdir() if p.name.endswith(".tmp")) if root.is_dir() else []
+
+    # -- one trial --------------------------------------------------------------------------------
+    def secrets_pushed(self, robots: set[str]) -> bool:
+        """Whether a running clone of one of `robots` holds its OpenVPN key yet."""
+        for c in self.client.containers.list(filters=self.labelled("clone")):
+            if c.labels.get("ccrp-robot") in robots and c.exec_run(["test", "-e", SERVER_KEY]).exit_code == 0:
+                return True
+        return False
+
+    def kill_scale(self, size: int, delay: float, aimed: bool = False) -> dict:
+        """Start `ccrp fleet scale SIZE`, SIGKILL it after `delay` s, or (aimed) as soon as a new
+        clone holds its secrets: the moment between pushing them and restarting OpenVPN."""
+        before = set(self.state_robots())
+        proc = subprocess.Popen(self.argv("fleet", "scale", str(size)), cwd=ROOT, env=self.env(),
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+        t0 = time.monotonic()
+        if aimed:
+            while proc.poll() is None and time.monotonic() - t0 < 300:
+                if self.secrets_pushed(set(self.state_robots()) - before):
+                    break
+                time.sleep(0.05)
+            delay = time.monotonic() - t0
+        else:
+            time.sleep(delay)
+        finished_first = proc.poll() is not None
+        if not finished_first:
+            os.killpg(proc.pid, signal.SIGKILL)
+        _, err = proc.communicate(timeout=60)
+        left: dict = {"killed": not finished_first, "exit": proc.returncode, "delay_s": round(delay, 2)}
+        if finished_first:
+            left["stderr_tail"] = err.decode(errors="replace")[-300:]
+        self.log.append(f"ccrp fleet scale {size} killed after {delay:.2f}s" if not finished_first
+                        else f"ccrp fleet scale {size} ended before the kill ({proc.returncode})")
+        try:
+            left["state_robots"] = self.state_robots()
+            left["state_parses"] = True
+        except Exception as exc:  # noqa: BLE001 - what a user would see is the finding
+            left["state_parses"], left["state_error"] = False, f"{type(exc).__name__}: {exc}"
+        left["clones"] = self.clone_containers()
+        left["temp_files"] = self.temp_files()
+        return left
+
+    def converge(self, size: int) -> dict:
+        """Run `ccrp fleet scale SIZE --json` to completion and check the fleet it leaves."""
+        t0 = time.monotonic()
+        proc = self.ccrp("fleet", "scale", str(size), "--json")
+        took = time.monotonic() - t0
+        out: dict = {"exit": proc.returncode, "convergence_s": round(took, 2),
+                     "waited_for_lock": "waiting for ccrp run" in proc.stderr}
+        try:
+            rows = json.loads(proc.stdout)
+            out["actions"] = {r["robot"]: r["action"] for r in rows}
+            out["failed"] = {r["robot"]: r["detail"] for r in rows if r["action"] == "failed"}
+        except ValueError:
+            out["actions"], out["failed"] = {}, {"*": proc.stderr.strip()[-600:]}
+        out.update(self.check(size))
+        return out
+
+    def check(self, size: int) -> dict:
+        problems: list[str] = []
+        try:
+            state = self.state_robots()
+        except Exception as exc:  # noqa: BLE001
+            return {"problems": [f"state: {exc}"]}
+        if len(state) != size:
+            problems.append(f"{len(state)} robots in state, wanted {size}: {sorted(state)}")
+        clones = self.clone_containers()
+        duplicates = {r: c for r, c in clones.items() if len(c) > 1}
+        orphans = sorted(r for r in clones if r not in state)
+        orphan_volumes = sorted(r for r in self.secret_volumes() if r not in state)
+        missing = sorted(r for r in state if r not in clones)
+        problems += [f"duplicate clones of {r}: {c}" for r, c in duplicates.items()]
+        problems += [f"orphan clone of {r} (not in state)" for r in orphans]
+        problems += [f"orphan secrets volume of {r} (not in state)" for r in orphan_volumes]
+        problems += [f"no clone for {r}" for r in missing]
+        status = self.ccrp("status", "--json")
+        serving = {}
+        if status.returncode != 0:
+            problems.append(f"ccrp status --json exited {status.returncode}: {status.stderr.strip()[-300:]}")
+        else:
+            for row in json.loads(status.stdout):
+                ok = row["status"] == "running" and row["phase"] == "ready" and row["master_reachable"]
+                serving[row["robot"]] = ok
+                if not ok:
+                    problems.append(f"{row['robot']} not serving: status={row['status']} phase={row['phase']} "
+                                    f"master={row['master_reachable']}")
+            if set(serving) != set(state):
+                problems.append(f"status shows {sorted(serving)}, state has {sorted(state)}")
+        return {"state_robots": state, "clones": clones, "duplicates": duplicates, "orphans": orphans,
+                "orphan_volumes": orphan_volumes, "temp_files": self.temp_files(), "problems": problems}
+
+    def trial(self, index: int, size: int, start: int, delay: float, aimed: bool = False) -> dict:
+        left = self.kill_scale(size, delay, aimed)
+        after = self.converge(size)
+        ok = (left.get("state_parses", False) and after["exit"] == 0 and not after["failed"]
+              and not after["problems"] and not after["waited_for_lock"])
+        return {"trial": index, "aimed": aimed, "from_size": start, "to_size": size,
+                "kill_delay_s": left["delay_s"], "left": left, "rerun": after, "ok": ok}
+
+    # -- the end ----------------------------------------------------------------------------------
+    def cleanup(self) -> list[str]:
+        """`ccrp fleet down`, then everything still labelled with this fleet. Returns what is left."""
+        try:
+            self.ccrp("fleet", "down", timeout=300, CCRP_LOCK_WAIT="60")
+        except Exception as exc:  # noqa: BLE001 - the sweep below still runs
+            self.log.append(f"fleet down failed: {exc}")
+        flt = {"label": [f"{LABEL}={self.name}"]}
+        c = self.client
+        for what, items, remove in (
+            ("container", lambda: c.containers.list(all=True, filters=flt), lambda o: o.remove(force=True, v=True)),
+            ("volume", lambda: c.volumes.list(filters=flt), lambda o: o.remove(force=True)),
+            ("network", lambda: c.networks.list(filters=flt), lambda o: o.remove()),
+            ("image", lambda: c.images.list(filters=flt), lambda o: c.images.remove(o.id, force=True)),
+        ):
+            for obj in items():
+                try:
+                    remove(obj)
+                except Exception as exc:  # noqa: BLE001 - keep sweeping
+                    self.log.append(f"could not remove {what} {getattr(obj, 'name', obj)}: {exc}")
+        left = ([f"container {o.name}" for o in c.containers.list(all=True, filters=flt)]
+                + [f"volume {o.name}" for o in c.volumes.list(filters=flt)]
+                + [f"network {o.name}" for o in c.networks.list(filters=flt)]
+                + [f"image {o.tags or o.id}" for o in c.images.list(filters=flt)])
+        shutil.rmtree(self.tmp, ignore_errors=True)
+        return left
+
+
+def plan_trials(trials: int, aimed: int, max_size: int, max_delay: float, rng: random.Random, start: int):
+    """(from, size, delay, aimed) per trial. Random trials: each size differs from the one before,
+    so they scale up and down. Aimed trials, spread among them, always grow the fleet (at the
+    largest size one waits for the next trial; if none is left, one more random trial goes first)."""
+    current, random_left, aimed_left = start, trials, aimed
+    while random_left or aimed_left:
+        if aimed_left and current < max_size and random_left * aimed <= aimed_left * trials:
+            size = rng.randint(current + 1, max_size)
+            aimed_left -= 1
+            yield current, size, 0.0, True
+        else:
+            size = rng.choice([k for k in range(1, max_size + 1) if k != current])
+            random_left = max(0, random_left - 1)
+            # Removing clones takes a second or two, adding one several: aim the kill inside the run.
+            yield current, size, rng.uniform(0.3, max_delay if size > current else max_delay / 2), False
+        current = size
+
+
+def run(trials: int, aimed: int, max_size: int, max_delay: float, seed: int, progress=print) -> dict:
+    rng = random.Random(seed)
+    fleet = CrashFleet.create()
+    result: dict = {"fleet": fleet.name, "seed": seed, "trials": [], "host": {
+        "machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version()}}
+    previous = signal.signal(signal.SIGTERM, _interrupted)  # `kill` cleans up as Ctrl-C does
+    try:
+        t0 = time.monotonic()
+        fleet.prepare()
+        result["prepare_s"] = round(time.monotonic() - t0, 1)
+        start = 2
+        t0 = time.monotonic()
+        fleet.check_call("fleet", "scale", str(start))
+        result["baseline_scale_s"] = round(time.monotonic() - t0, 2)
+        progress(f"{fleet.name}: snapshot in {result['prepare_s']} s, scale {start} in {result['baseline_scale_s']} s")
+        for i, (frm, size, delay, aim) in enumerate(plan_trials(trials, aimed, max_size, max_delay, rng, start), 1):
+            t = fleet.trial(i, size, frm, delay, aim)
+            result["trials"].append(t)
+            progress(describe(t))
+    finally:
+        left = fleet.cleanup()
+        signal.signal(signal.SIGTERM, previous)
+        result["left_after_cleanup"] = left
+        result["log"] = fleet.log
+        if left:
+            progress(f"cleanup left: {left}")
+    result["summary"] = summary(result["trials"])
+    return result
+
+
+def _interrupted(*_) -> None:
+    raise KeyboardInterrupt
+
+
+def describe(t: dict) -> str:
+    left, rerun = t["left"], t["rerun"]
+    killed = "killed" if left["killed"] else "had already ended"
+    found = "ok" if t["ok"] else "FAIL: " + "; ".join(rerun["problems"] + list(rerun["failed"].values()))[:600]
+    aim = " (aimed: secrets pushed)" if t["aimed"] else ""
+    return (f"trial {t['trial']:2}: scale {t['from_size']}->{t['to_size']} {killed} at {t['kill_delay_s']:.2f}s{aim}, "
+            f"left {sum(map(len, left['clones'].values()))} clones, state "
+            f"{'parses' if left['state_parses'] else 'BROKEN'}; rerun exit {rerun['exit']} in "
+            f"{rerun['convergence_s']}s: {found}")
+
+
+def summary(trials: list[dict]) -> dict:
+    killed = [t for t in trials if t["left"]["killed"]]
+    conv = [t["rerun"]["convergence_s"] for t in trials]
+    return {
+        "trials": len(trials),
+        "aimed": sum(t["aimed"] for t in trials),
+        "aimed_ok": sum(t["ok"] for t in trials if t["aimed"]),
+        "killed_mid_run": len(killed),
+        "finished_before_kill": len(trials) - len(killed),
+        "ok": sum(t["ok"] for t in trials),
+        "state_parsed_after_kill": sum(t["left"]["state_parses"] for t in trials),
+        "clones_left_by_kill": sum(sum(map(len, t["left"]["clones"].values())) for t in killed),
+        "temp_files_left_by_kill": sum(len(t["left"]["temp_files"]) for t in killed),
+        "duplicates": sum(len(t["rerun"].get("duplicates", {})) for t in trials),
+        "orphans": sum(len(t["rerun"].get("orphans", [])) + len(t["rerun"].get("orphan_volumes", [])) for t in trials),
+        "rerun_waited_for_lock": sum(t["rerun"]["waited_for_lock"] for t in trials),
+        "kill_delay_s": {"min": min((t["kill_delay_s"] for t in trials), default=None),
+                         "max": max((t["kill_delay_s"] for t in trials), default=None)},
+        "convergence_s": {"median": round(statistics.median(conv), 2) if conv else None,
+                          "min": min(conv, default=None), "max": max(conv, default=None)},
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trials", type=int, default=20, help="kills at random moments")
+    ap.add_argument("--aimed", type=int, default=5, help="more kills, each as a new clone's secrets land")
+    ap.add_argument("--max-size", type=int, default=4, help="sizes go between 1 and this")
+    ap.add_argument("--max-delay", type=float, default=6.0, help="kill delays are uniform in [0.3, this] s (half of it when scaling down)")
+    ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--out", type=Path, default=RESULTS / "crash_scale.json")
+    args = ap.parse_args()
+    seed = args.seed if args.seed is not None else secrets.randbelow(2**31)
+    started = dt.datetime.now(dt.timezone.utc)
+    try:
+        result = run(args.trials, args.aimed, args.max_size, args.max_delay, seed)
+    except KeyboardInterrupt:
+        raise SystemExit("interrupted; the bench fleet was removed")
+    result["date"] = started.strftime("%Y-%m-%d %H:%M UTC")
+    result["command"] = " ".join(["bench/crash_scale.py", *sys.argv[1:]])
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result["summary"], indent=2))
+    if result["summary"]["ok"] != result["summary"]["trials"]:
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()
