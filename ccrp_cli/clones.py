@@ -122,12 +122,12 @@ WAIT_SERVING_SH = 'until [ -S "$0" ] && ss -Hltn "sport = :$1" | grep -q .; do s
 
 def wait_serving(provider: Provider, robot: str, master_port: int, timeout: float = 60) -> dict:
     """Until the VPN server runs and the ROS master answers inside the clone."""
-    from .render.view import VPN_DIR
+    from .render.view import MGMT_SOCKET
 
     from .retry import PollTimeout, poll
 
     deadline = time.monotonic() + timeout
-    provider.exec(robot, ["sh", "-c", WAIT_SERVING_SH, f"{VPN_DIR}/mgmt.sock", str(master_port)], timeout=timeout)
+    provider.exec(robot, ["sh", "-c", WAIT_SERVING_SH, MGMT_SOCKET, str(master_port)], timeout=timeout)
 
     def serving() -> tuple[bool, dict]:
         h = health(provider, robot)

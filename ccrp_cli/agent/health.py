@@ -8,7 +8,8 @@ import sys
 import time
 import xmlrpc.client
 
-MGMT = "/etc/openvpn/server/ccrp/mgmt.sock"
+# In a root-only directory (templates/systemd/ccrp-openvpn.service): this script runs as root.
+MGMT = "/run/ccrp-openvpn/mgmt.sock"
 # In memory on cloud clones: gone after a reboot until ccrp pushes them again.
 SERVER_KEY = "/etc/openvpn/server/ccrp/keys/server.key"
 MASTER = "http://127.0.0.1:11311"

@@ -13,6 +13,9 @@ VPN_DIR = "/etc/openvpn/server/ccrp"
 # disk, so no snapshot of any kind can capture it: a tmpfs on clouds (mounted at every boot by
 # the user-data's bootcmd), the clone's own volume on Docker (which `docker commit` leaves out).
 SECRETS_DIR = f"{VPN_DIR}/keys"
+# OpenVPN's management socket, in a root-only runtime directory made by ccrp-openvpn.service (the
+# unit sets it, and agent/health.py has its own copy of the path: it runs on the clone, stdlib only).
+MGMT_SOCKET = "/run/ccrp-openvpn/mgmt.sock"
 CCRP_ETC = "/etc/ccrp"
 CCRP_LIB = "/usr/local/lib/ccrp"
 # The topic relay runs as its own user: it reads only relay.key and ca.crt in SECRETS_DIR.
