@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 from pathlib import Path
@@ -14,29 +15,37 @@ from .errors import InputError, shown
 from .models.inventory import Inventory
 from .providers import REGISTRY
 
-# Bounds on what an inventory may cost to read (docs/inventory.md: Limits). A fleet of 1000 robots
-# is about 100 KB of YAML; nothing legitimate comes near these.
-MAX_BYTES = 1 << 20
+# Bounds on what an inventory may cost to read (docs/inventory.md: Limits). PyYAML (pure Python)
+# composes about 40,000 nodes a second: the node bound keeps a hostile file near a quarter of a
+# second, the byte bound does the same for one long scalar. 600 robots written out in full fit;
+# larger fleets come from `template:`.
+MAX_BYTES = 512 << 10
 MAX_DEPTH = 64
+MAX_NODES = 10_000
 
 
 class _InventoryLoader(yaml.SafeLoader):
     """SafeLoader that refuses duplicate mapping keys (PyYAML silently keeps the last one), nesting
-    deeper than MAX_DEPTH (PyYAML composes recursively: deep input is a RecursionError) and aliases
-    (each alias is expanded again by validation: a 72 KB alias bomb took 9.5 s and 1.2 GB)."""
+    deeper than MAX_DEPTH (PyYAML composes recursively: deep input is a RecursionError), more than
+    MAX_NODES nodes, and aliases (each alias is expanded again by validation: a 72 KB alias bomb
+    took 9.5 s and 1.2 GB)."""
 
     _depth = 0
+    _nodes = 0
+
+    def _refuse(self, problem: str) -> None:
+        raise yaml.composer.ComposerError(None, None, problem, self.peek_event().start_mark)
 
     def compose_node(self, parent: Any, index: Any) -> Any:
         if self.check_event(yaml.AliasEvent):
-            mark = self.peek_event().start_mark
-            raise yaml.composer.ComposerError(
-                None, None, "YAML aliases (*name) are not accepted in an inventory: write the value out", mark)
+            self._refuse("YAML aliases (*name) are not accepted in an inventory: write the value out")
         self._depth += 1
+        self._nodes += 1
         try:
             if self._depth > MAX_DEPTH:
-                mark = self.peek_event().start_mark
-                raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_DEPTH} levels", mark)
+                self._refuse(f"nested deeper than {MAX_DEPTH} levels")
+            if self._nodes > MAX_NODES:
+                self._refuse(f"more than {MAX_NODES} YAML nodes")
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
@@ -88,7 +97,11 @@ def _describe(err: dict[str, Any]) -> str:
         return f"{where}: {shown(err['input'])} does not match {pattern}"
     if kind == "union_tag_invalid":
         return f"{where}: unknown provider kind {shown(err['input'].get('kind'))} (expected docker, openstack, gcp or aws)"
-    msg = _cut(err["msg"].removeprefix("Value error, "), 200)
+    msg = err["msg"].removeprefix("Value error, ")
+    value = err.get("input")
+    if isinstance(value, str) and len(value) > 60:  # pydantic quotes some inputs whole (an IP network's)
+        msg = msg.replace(value, value[:59] + "…")
+    msg = _cut(msg, 200)
     return f"{where}: {msg}" if err["loc"] else msg
 
 
@@ -104,11 +117,25 @@ def _source(path: Path) -> str:
     return text if len(text) <= 80 and text.isprintable() else shown(text)
 
 
+def _not_json(value: Any) -> Any:
+    raise TypeError(f"{shown(value, 40)} (a {type(value).__name__}) is not a string, number, "
+                    "true/false, list or mapping: quote it")
+
+
 def parse_inventory(data: Any, source: str) -> Inventory:
+    """Validate strictly, as the JSON the YAML could have been written as: no value changes type
+    on the way (port: true is not port 1, public_cidr: 12345 is not 0.0.48.57/32, "yes" is not a
+    bool), while CIDRs are still written as strings, which strict Python-mode validation refuses."""
     if not isinstance(data, dict):
         raise InputError(f"{source}: an inventory is a YAML mapping (fleet:, provider:, robots: ...)")
     try:
-        return Inventory.model_validate(data)
+        text = json.dumps(data, allow_nan=False, default=_not_json)
+    except TypeError as exc:  # a date, binary or set
+        raise InputError(f"{source}: {_cut(str(exc), 160)}") from None
+    except ValueError:
+        raise InputError(f"{source}: .nan and .inf are not accepted") from None
+    try:
+        return Inventory.model_validate_json(text, strict=True)
     except ValidationError as exc:
         errors = exc.errors()
         more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
@@ -135,7 +162,7 @@ def read_inventory_text(path: Path) -> str:
         except OSError as exc:
             raise InputError(f"cannot read inventory {source}: {exc.strerror or exc}") from None
     if len(data) > MAX_BYTES:
-        raise InputError(f"inventory {source} is larger than {MAX_BYTES >> 20} MiB")
+        raise InputError(f"inventory {source} is larger than {MAX_BYTES >> 10} KiB")
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -16,6 +16,19 @@ Json = Annotated[bool, typer.Option("--json", help="JSON on stdout (logs stay on
 OutDir = Annotated[Path, typer.Option("--out", "-o", help="Directory to write (created 0700).")]
 
 
+def cloud_name(value: str | None) -> str | None:
+    """Option callback for an image, snapshot or network name handed to a cloud or Docker: one
+    token (models/values.py), or exit 2 in one line before the fleet is opened."""
+    if value is None:
+        return None
+    from ..models.values import check_cloud_name
+
+    try:
+        return check_cloud_name(value)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+
+
 # The core (pydantic models, cryptography, yaml) is imported only when a command runs, so
 # `ccrp --help` and completion stay fast.
 def open_fleet(inventory: Path):

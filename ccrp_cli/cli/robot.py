@@ -35,7 +35,7 @@ def sim(
     robot: options.Robot,
     stop: Annotated[bool, typer.Option("--stop", help="Stop and remove the simulated robot.")] = False,
     wait: Annotated[float, typer.Option("--wait", help="Seconds to wait until the robot's VPN is up and its node is on its clone's master (0: don't wait).")] = 0,
-    network: Annotated[str | None, typer.Option("--network", help="Docker network of this host the robot runs on (cloud fleets; default `bridge`). Docker fleets: always <fleet>-public.")] = None,
+    network: Annotated[str | None, typer.Option("--network", callback=options.cloud_name, help="Docker network of this host the robot runs on (cloud fleets; default `bridge`). Docker fleets: always <fleet>-public.")] = None,
     as_json: options.Json = False,
 ) -> None:
     """Run a simulated robot (a container on this host) with exactly its edge bundle; it dials its

@@ -46,7 +46,7 @@ def build(
 @app.command()
 def bake(
     inventory: options.Inventory,
-    base_image: Annotated[str | None, typer.Option("--base-image", help="Debian 12 image to start from (Glance name/id, GCE image path, AMI id or SSM parameter); default: the cloud's stock Debian 12 image.")] = None,
+    base_image: Annotated[str | None, typer.Option("--base-image", callback=options.cloud_name, help="Debian 12 image to start from (Glance name/id, GCE image path, AMI id or SSM parameter); default: the cloud's stock Debian 12 image.")] = None,
     timeout: Annotated[float, typer.Option(help="Seconds the builder may take to install the recipe.", min=60)] = 1800,
     as_json: options.Json = False,
 ) -> None:
@@ -88,7 +88,7 @@ def list_(inventory: options.Inventory, as_json: options.Json = False) -> None:
 @app.command()
 def delete(
     inventory: options.Inventory,
-    snapshot: Annotated[str, typer.Argument(help="Snapshot id or name.")],
+    snapshot: Annotated[str, typer.Argument(callback=options.cloud_name, help="Snapshot id or name.")],
     force: Annotated[bool, typer.Option(help="Delete even the snapshot new clones use.")] = False,
 ) -> None:
     """Delete a snapshot."""

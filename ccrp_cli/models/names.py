@@ -14,7 +14,8 @@ NAME_RE = re.compile(NAME_PATTERN)
 TOPIC_PATTERN = r"^(/[A-Za-z][A-Za-z0-9_]*)+$"
 
 Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN)]
-Topic = Annotated[str, StringConstraints(pattern=TOPIC_PATTERN)]
+# Bounded so that a topic echoed in an error (imports X, which is not exported) stays one short line.
+Topic = Annotated[str, StringConstraints(pattern=TOPIC_PATTERN, max_length=200)]
 
 
 def clone_host(robot: str) -> str:
@@ -29,11 +30,11 @@ def relay_name(robot: str, generation: int) -> str:
 
 
 def check_name(value: str, what: str = "robot name") -> str:
-    from ..errors import InputError
+    from ..errors import InputError, shown
 
-    if not NAME_RE.match(value):
+    if not NAME_RE.fullmatch(value):  # match() lets "nao1\n" through: `$` matches before a final newline
         raise InputError(
-            f"invalid {what} {value!r}: must match {NAME_PATTERN}",
+            f"invalid {what} {shown(value)}: must match {NAME_PATTERN}",
             hint="lower-case letters and digits, starting with a letter, at most 31 characters",
         )
     return value

@@ -1,0 +1,36 @@
+"""`ccrp` run in the test process through its console entry point (ccrp_cli.cli.main.run), for
+property tests that run it a thousand times: the same parsing, error lines and exit codes as
+`python -m ccrp_cli`, without a Python start per example. An exception that escapes run() is not
+caught here: it is what the user would see as a traceback, so the test fails with it."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import sys
+from pathlib import Path
+
+
+def run_ccrp_inprocess(*args: str, home: Path) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of `ccrp ARGS` with CCRP_HOME=home."""
+    from ccrp_cli.cli.main import run
+
+    out, err = io.StringIO(), io.StringIO()
+    saved_argv, saved_home = sys.argv, os.environ.get("CCRP_HOME")
+    sys.argv = ["ccrp", *args]
+    os.environ["CCRP_HOME"] = str(home)
+    code = 0
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                run()
+            except SystemExit as exc:
+                code = exc.code if isinstance(exc.code, int) else 1
+    finally:
+        sys.argv = saved_argv
+        if saved_home is None:
+            os.environ.pop("CCRP_HOME", None)
+        else:
+            os.environ["CCRP_HOME"] = saved_home
+    return code, out.getvalue(), err.getvalue()
