@@ -170,9 +170,18 @@ class FleetStore:
             holder = f"{os.getpid()} {self.command}".strip() + "\n"
             os.pwrite(fd, holder.encode(), 0)
             os.ftruncate(fd, len(holder.encode()))
+            self._remove_stale_temp_files()
             yield
         finally:
             os.close(fd)  # closing the descriptor releases the flock
+
+    def _remove_stale_temp_files(self) -> None:
+        """A run killed while saving state leaves its atomic_write temp file, which no one would
+        ever remove. Only runs holding the lock write state.json, so under the lock any such file
+        is a dead run's."""
+        for stale in self.root.glob(f".{self.state_path.name}.*.tmp"):
+            with contextlib.suppress(FileNotFoundError):
+                stale.unlink()
 
     def load_state(self) -> FleetState:
         try:

@@ -130,6 +130,44 @@ def test_lock_of_a_killed_run_is_free_at_once(tmp_path):
             os.kill(child, signal.SIGKILL)
 
 
+# Saves state and stops in the middle of atomic_write (after the temp file is written, before it
+# replaces state.json), as a run SIGKILLed at that moment does.
+STUCK_WRITER = r"""
+import os, pathlib, sys, time
+from ccrp_cli.models.state import FleetState
+from ccrp_cli.store import FleetStore
+store = FleetStore("lab", home=pathlib.Path(sys.argv[1]))
+def stuck(fd):
+    print("writing", flush=True)
+    time.sleep(60)
+os.fsync = stuck
+with store.lock(timeout=0):
+    store.save_state(FleetState(fleet="lab"))
+"""
+
+
+def test_state_temp_file_of_a_killed_run_is_removed_by_the_next_lock(tmp_path):
+    store = FleetStore("lab", home=tmp_path)
+    with store.lock():
+        store.save_state(FleetState(fleet="lab", robots={"nao1": RobotRecord(index=1)}))
+    proc = subprocess.Popen([sys.executable, "-c", STUCK_WRITER, str(tmp_path)], cwd=ROOT, stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout.readline().strip() == "writing"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        proc.kill()
+    left = [p.name for p in store.root.iterdir() if p.name.endswith(".tmp")]
+    assert len(left) == 1 and left[0].startswith(".state.json."), left
+    assert list(store.load_state().robots) == ["nao1"]  # the old state, whole
+    other = store.root / ".other.json.x.tmp"  # not state's: left alone
+    other.write_text("")
+    with store.lock(timeout=0):
+        pass
+    assert sorted(p.name for p in store.root.iterdir() if p.name.endswith(".tmp")) == [other.name]
+
+
 def test_lock_wait_comes_from_the_environment(monkeypatch):
     monkeypatch.delenv("CCRP_LOCK_WAIT", raising=False)
     assert lock_wait() == 600
