@@ -18,6 +18,11 @@ from .archive import tar_files
 from .host import DockerHost
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
+# What a systemd container (a clone, a simulated robot) gets beyond Docker's defaults: NET_ADMIN for
+# the tunnel and the firewall, SYS_ADMIN for systemd's per-unit mount namespaces. Docker's default
+# seccomp profile stays on (it allows mount/unshare to a SYS_ADMIN container).
+CLONE_CAPS = ["NET_ADMIN", "SYS_ADMIN"]
+CLONE_SECURITY_OPT = ["no-new-privileges"]
 # Docker's container states in ccrp's words.
 STATES = {"created": CloneState.PENDING, "restarting": CloneState.PENDING, "running": CloneState.RUNNING,
           "paused": CloneState.STOPPED, "exited": CloneState.STOPPED, "removing": CloneState.DELETING,
@@ -101,12 +106,15 @@ class DockerProvider(DockerHost):
             labels=labels,
             detach=True,
             network=self.public_net,
-            # systemd as PID 1, like a VM: it needs its cgroups, /run on tmpfs and SYS_ADMIN.
-            cap_add=["NET_ADMIN", "SYS_ADMIN"],
+            # systemd as PID 1, like a VM: its cgroups and /run on tmpfs. SYS_ADMIN is what lets systemd
+            # give units their mount namespaces (ProtectSystem, PrivateTmp): without it they run with
+            # no sandbox and no error. Docker's default seccomp profile suffices; no-new-privileges
+            # makes every setuid binary inert. Measured: docs/security.md "Privileges of Docker clones".
+            cap_add=CLONE_CAPS,
             devices=["/dev/net/tun:/dev/net/tun:rwm"],
             tmpfs={"/run": "", "/run/lock": "", "/tmp": ""},
             volumes={"/sys/fs/cgroup": {"bind": "/sys/fs/cgroup", "mode": "ro"}, volume: {"bind": VPN_DIR, "mode": "rw"}},
-            security_opt=["seccomp=unconfined"],
+            security_opt=CLONE_SECURITY_OPT,
             stop_signal="SIGRTMIN+3",
             ports=ports,
         )

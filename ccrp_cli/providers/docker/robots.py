@@ -9,6 +9,7 @@ from ...errors import CcrpError
 from ..base import owner_labels
 from .archive import tar_files
 from .host import DockerHost
+from .provider import CLONE_CAPS, CLONE_SECURITY_OPT
 
 BUNDLE_DIR = "opt/ccrp-bundle"
 # The robot image of cloud fleets: the same recipe as a Docker clone (openvpn, ROS 1), built here once.
@@ -47,11 +48,12 @@ def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node:
         labels=owner_labels(provider.fleet, "robot-sim", robot),
         detach=True,
         network=network,  # never the common network: robots reach only their clone
-        cap_add=["NET_ADMIN", "SYS_ADMIN"],
+        # The clones' privileges (provider.py): ccrp-vpn.service's sandbox needs SYS_ADMIN here too.
+        cap_add=CLONE_CAPS,
         devices=["/dev/net/tun:/dev/net/tun:rwm"],
         tmpfs={"/run": "", "/run/lock": "", "/tmp": ""},
         volumes={"/sys/fs/cgroup": {"bind": "/sys/fs/cgroup", "mode": "ro"}},
-        security_opt=["seccomp=unconfined"],
+        security_opt=CLONE_SECURITY_OPT,
         stop_signal="SIGRTMIN+3",
     )
     files = [(f"{BUNDLE_DIR}/{f.name}", f.content.encode(), f.mode) for f in bundle]
