@@ -10,7 +10,7 @@ from pydantic import Field, field_validator, model_validator
 from ..providers import REGISTRY
 from .names import Name, Topic
 from .strict import Strict
-from .values import CloudName, Port, StrictInt, check_docker_image
+from .values import CloudName, Port, StrictInt
 
 RobotType = Literal["nao", "turtlebot", "generic"]
 
@@ -99,18 +99,6 @@ class Inventory(Strict):
     sharing: Sharing = Sharing()
     robots: list[Robot] = []
     template: RobotTemplate | None = None
-
-    @field_validator("provider")
-    @classmethod
-    def _docker_base_image(cls, provider: object) -> object:
-        # Written into the generated Dockerfile's FROM line (templates/docker/Dockerfile.j2).
-        base_image = getattr(provider, "base_image", None)
-        if base_image is not None:
-            try:
-                check_docker_image(base_image)
-            except ValueError as exc:
-                raise ValueError(f"base_image: {exc}") from None
-        return provider
 
     @field_validator("robots")
     @classmethod

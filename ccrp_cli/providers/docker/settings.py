@@ -6,6 +6,7 @@ import ipaddress
 from typing import Literal
 
 from ...models.strict import Strict
+from ...models.values import DockerImage
 
 
 class DockerSettings(Strict):
@@ -14,4 +15,5 @@ class DockerSettings(Strict):
     public_cidr: ipaddress.IPv4Network = ipaddress.IPv4Network("172.30.0.0/24")
     # Publish each clone's VPN port on the host so a real robot on the LAN can connect.
     publish_vpn_ports: bool = False
-    base_image: str = "ccrp/base:bookworm"
+    # The generated Dockerfile's FROM line (templates/docker/Dockerfile.j2): a reference, one token.
+    base_image: DockerImage = "ccrp/base:bookworm"
