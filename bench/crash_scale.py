@@ -11,7 +11,8 @@ then checks what the kill left and what the next run makes of it:
            convergence time
   check    K robots in state, each with exactly one clone container (no duplicate), running,
            phase `ready`, master answering in `ccrp status --json`; no container or secrets
-           volume carrying the fleet's labels for a robot state does not know (no orphan)
+           volume carrying the fleet's labels for a robot state does not know (no orphan); no
+           temp file of a cut-short state write left in the store
 
 The bench works on a fleet of its own (`crash<random>`, free subnets, a temp CCRP_HOME); at the
 end, even on failure or Ctrl-C, it runs `ccrp fleet down` and removes every container, volume,
@@ -140,7 +141,8 @@ class CrashFleet:
     def clone_containers(self) -> dict[str, list[str]]:
         """robot -> ["name=status", ...] of its clone containers (more than one is a duplicate)."""
         out: dict[str, list[str]] = {}
-        for c in self.client.containers.list(all=True, filters=self.labelled("clone")):
+        # ignore_removed: a container the killed run was removing may vanish between list and inspect.
+        for c in self.client.containers.list(all=True, filters=self.labelled("clone"), ignore_removed=True):
             out.setdefault(c.labels.get("ccrp-robot", "?"), []).append(f"{c.name}={c.status}")
         return out
 
@@ -161,7 +163,7 @@ class CrashFleet:
     # -- one trial --------------------------------------------------------------------------------
     def secrets_pushed(self, robots: set[str]) -> bool:
         """Whether a running clone of one of `robots` holds its OpenVPN key yet."""
-        for c in self.client.containers.list(filters=self.labelled("clone")):
+        for c in self.client.containers.list(filters=self.labelled("clone"), ignore_removed=True):
             if c.labels.get("ccrp-robot") in robots and c.exec_run(["test", "-e", SERVER_KEY]).exit_code == 0:
                 return True
         return False
@@ -232,6 +234,7 @@ class CrashFleet:
         problems += [f"orphan clone of {r} (not in state)" for r in orphans]
         problems += [f"orphan secrets volume of {r} (not in state)" for r in orphan_volumes]
         problems += [f"no clone for {r}" for r in missing]
+        problems += [f"temp file {name} left in the fleet's store" for name in self.temp_files()]
         status = self.ccrp("status", "--json")
         serving = {}
         if status.returncode != 0:
@@ -318,7 +321,13 @@ def run(trials: int, aimed: int, max_size: int, max_delay: float, seed: int, pro
         result["baseline_scale_s"] = round(time.monotonic() - t0, 2)
         progress(f"{fleet.name}: snapshot in {result['prepare_s']} s, scale {start} in {result['baseline_scale_s']} s")
         for i, (frm, size, delay, aim) in enumerate(plan_trials(trials, aimed, max_size, max_delay, rng, start), 1):
-            t = fleet.trial(i, size, frm, delay, aim)
+            try:
+                t = fleet.trial(i, size, frm, delay, aim)
+            except Exception as exc:  # noqa: BLE001 - the bench's own failure is a result too; go on
+                t = {"trial": i, "aimed": aim, "from_size": frm, "to_size": size, "kill_delay_s": round(delay, 2),
+                     "left": {"killed": None, "state_parses": None, "clones": {}, "temp_files": []},
+                     "rerun": {"exit": None, "convergence_s": None, "waited_for_lock": False, "failed": {},
+                               "problems": [f"bench error: {type(exc).__name__}: {exc}"]}, "ok": False}
             result["trials"].append(t)
             progress(describe(t))
     finally:
@@ -349,7 +358,7 @@ def describe(t: dict) -> str:
 
 def summary(trials: list[dict]) -> dict:
     killed = [t for t in trials if t["left"]["killed"]]
-    conv = [t["rerun"]["convergence_s"] for t in trials]
+    conv = [t["rerun"]["convergence_s"] for t in trials if t["rerun"]["convergence_s"] is not None]
     return {
         "trials": len(trials),
         "aimed": sum(t["aimed"] for t in trials),
@@ -357,7 +366,7 @@ def summary(trials: list[dict]) -> dict:
         "killed_mid_run": len(killed),
         "finished_before_kill": len(trials) - len(killed),
         "ok": sum(t["ok"] for t in trials),
-        "state_parsed_after_kill": sum(t["left"]["state_parses"] for t in trials),
+        "state_parsed_after_kill": sum(bool(t["left"]["state_parses"]) for t in trials),
         "clones_left_by_kill": sum(sum(map(len, t["left"]["clones"].values())) for t in killed),
         "temp_files_left_by_kill": sum(len(t["left"]["temp_files"]) for t in killed),
         "duplicates": sum(len(t["rerun"].get("duplicates", {})) for t in trials),
