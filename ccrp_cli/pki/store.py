@@ -24,7 +24,7 @@ from ..errors import CcrpError
 from ..models.names import clone_host, relay_name
 from ..store import atomic_write, ensure_dir
 from . import profiles
-from .secrets import hash_password, new_password, tls_crypt_key
+from .secrets import hash_password, new_password, tls_crypt_key, verify_password
 
 CRL_WARN_DAYS = 30
 
@@ -236,7 +236,9 @@ class PkiStore:
         if rotate or not tc.exists():
             atomic_write(tc, tls_crypt_key())
         txt, hashed = self._password_paths(robot)
-        if rotate or not txt.exists() or not hashed.exists():
+        # A run killed between the two writes leaves a pair that does not match: make a new one.
+        if rotate or not txt.exists() or not hashed.exists() or \
+                not verify_password(txt.read_text().strip(), hashed.read_text().strip()):
             password = new_password()
             atomic_write(hashed, hash_password(password) + "\n")
             atomic_write(txt, password + "\n")

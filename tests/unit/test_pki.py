@@ -207,3 +207,13 @@ def test_relay_certificates_come_from_their_own_ca_with_a_cn_per_certificate(lab
     assert [r["cn"] for r in revoked] == [second]
     assert "nao1" not in lab.pki.relay_cns()
     assert lab.pki.revoked_since("nao1") is None  # the robot itself stays enrolled
+
+
+def test_a_password_pair_left_by_a_killed_run_is_replaced(lab):
+    """issue_robot writes the hash, then the password: a kill in between must not leave a robot
+    whose password its clone's hash refuses."""
+    txt = lab.pki.root / "passwords" / "nao1.txt"
+    txt.write_text("left-by-a-killed-run\n")
+    lab.pki.issue_robot("nao1", 30)
+    creds = lab.pki.credentials("nao1")
+    assert creds.password != "left-by-a-killed-run" and verify_password(creds.password, creds.password_hash)
