@@ -52,7 +52,7 @@ def write_inventory(tmp_path, robots: int):
 
 
 @pytest.fixture
-def fleet_on_moto(moto_url, ccrp_home, tmp_path):
+def fleet_on_moto(moto_url, ccrp_home, tmp_path):  # noqa: F811 - the imported fixture
     """Fleet gcaws bootstrapped on the moto server, robot1's clone recorded in state."""
     import boto3
 
