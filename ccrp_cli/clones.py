@@ -211,7 +211,8 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
 def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, revoked: CcrpError,
                   progress: Progress) -> CloneResult:
     """A revoked robot stays unenrolled: no certificate, no clone created or configured. A clone
-    of it that runs gets the current CRL (in case `vpn revoke` could not reach it)."""
+    of it that runs gets the current CRL and the kill again, in case `vpn revoke` could not reach
+    it: a failed TLS renegotiation alone does not end a session (docs/security.md)."""
     from .render.bundles import BundleFile
     from .render.view import SECRETS_DIR
 
@@ -221,6 +222,7 @@ def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: 
     if rec is not None and rec.state is CloneState.RUNNING:
         crl = BundleFile("crl.pem", fleet.pki.crl_path.read_text(), 0o644, f"{SECRETS_DIR}/crl.pem")
         provider.push_files(robot, [crl], restart=[])
+        kill_session(provider, robot)
     progress(f"[{robot}] {revoked.message}")
     return CloneResult(robot, "revoked", revoked.message + f" ({revoked.hint})")
 
