@@ -411,12 +411,12 @@ def test_revoked_cert_refused(lab: Lab, clone: Clone, robot: Robot) -> None:
         replace_file(original, served_crl)
 
 
-def serve(clone: Clone, creds: RobotCredentials, log: Path) -> None:
+def serve(clone: Clone, creds: RobotCredentials, log: Path, *extra: str) -> None:
     """(Re)start the clone's server with `creds` pushed, as `fleet up` does after a change."""
     clone.server.stop()
     write_bundle(clone.dir / "keys", clone_secrets(clone.view, creds), {"kind": "clone-secrets", "robot": clone.view.name})
     os.chown(clone.dir / "keys" / "passwd", 0, 65534)
-    clone.server = OpenVPNProcess.start(NS_CLONE, log, "--cd", str(clone.dir), "--config", "server.conf")
+    clone.server = OpenVPNProcess.start(NS_CLONE, log, "--cd", str(clone.dir), "--config", "server.conf", *extra)
     clone.server.wait_completed()
 
 
@@ -450,3 +450,34 @@ def test_after_renew_each_old_credential_fails_alone(lab: Lab, clone: Clone, rob
             client.stop()
     finally:
         serve(clone, old, robot.tmp / "server-restored.log")  # the module's server as it started
+
+
+def test_a_revoked_session_that_escaped_the_kill_ends_at_renegotiation(lab: Lab, clone: Clone, robot: Robot) -> None:
+    """Without `vpn revoke`'s kill, the server's renegotiation (reneg-sec) fails for a revoked
+    certificate, and tran-window bounds how long the old data-channel key lives after that: the
+    session ends within reneg-sec + tran-window. Run with both shortened (10 s each) here; the
+    rendered config has 300 s and 60 s."""
+    conf = (clone.dir / "server.conf").read_text()
+    assert "\nreneg-sec 300\n" in conf and "\ntran-window 60\n" in conf
+    a = clone.view.addr
+    creds = lab.creds["nao1"]
+    fast = ("--reneg-sec", "10", "--tran-window", "10")
+    served_crl = clone.dir / "keys" / "crl.pem"
+    try:
+        serve(clone, creds, robot.tmp / "server-fast.log", *fast)
+        client = robot.connect(write_edge_bundle(robot.tmp / "edge", lab.views["nao1"], creds))
+        client.wait_completed()
+        assert wait_for(lambda: ping(NS_ROBOT, a.clone_vpn_ip), 5)
+        # Revoked, the new CRL on the clone, and no kill.
+        revoked = vpn.revoke(lab.fleet, "nao1") if lab.fleet.pki.revoked_since("nao1") is None else None
+        replace_file(lab.fleet.pki.crl_path, served_crl)
+        t0 = time.monotonic()
+        assert wait_for(lambda: not ping(NS_ROBOT, a.clone_vpn_ip), 40, interval=1), \
+            f"the revoked session still carries traffic after 40 s:\n{clone.server.text()[-3000:]}"
+        took = time.monotonic() - t0
+        print(f"the revoked session ended {took:.1f} s after the CRL reached the server (reneg-sec 10, tran-window 10)")
+        assert took <= 10 + 10 + 10, took
+        assert "certificate revoked" in clone.server.text(), clone.server.text()[-2000:]
+        assert revoked is None or revoked[0]["revoked"]
+    finally:
+        serve(clone, lab.creds["nao1"], robot.tmp / "server-restored.log")
