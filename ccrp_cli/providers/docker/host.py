@@ -85,7 +85,7 @@ class DockerHost:
             labels.append(f"{LABEL_ROBOT}={robot}")
         return {"label": labels}
     def _container(self, robot: str, role: str = "clone"):
-        found = self.client.containers.list(all=True, filters=self._filters(role, robot))
+        found = self.client.containers.list(all=True, ignore_removed=True, filters=self._filters(role, robot))
         return found[0] if found else None
 
     # -- transport ----------------------------------------------------------------------------

@@ -172,7 +172,7 @@ class DockerProvider(DockerHost):
 
     def query(self) -> dict[str, CloneRecord]:
         return {
-            r.robot: r for r in (self._record(c) for c in self.client.containers.list(all=True, filters=self._filters("clone")))
+            r.robot: r for r in (self._record(c) for c in self.client.containers.list(all=True, ignore_removed=True, filters=self._filters("clone")))
         }
 
     def _remove(self, container, volume: str | None) -> None:
@@ -230,7 +230,7 @@ class DockerProvider(DockerHost):
     def teardown(self) -> list[str]:
         """Remove every container, volume and network carrying the fleet's labels."""
         removed = []
-        for c in self.client.containers.list(all=True, filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):
+        for c in self.client.containers.list(all=True, ignore_removed=True, filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):
             c.remove(force=True, v=True)
             removed.append(f"container {c.name}")
         for v in self.client.volumes.list(filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):
@@ -247,7 +247,7 @@ class DockerProvider(DockerHost):
         owned = [
             OwnedResource(kind="container" if c.labels.get(LABEL_ROLE) == "clone" else "robot_sim", id=c.id[:12],
                           name=c.name, robot=c.labels.get(LABEL_ROBOT))
-            for c in self.client.containers.list(all=True, filters=label)
+            for c in self.client.containers.list(all=True, ignore_removed=True, filters=label)
         ]
         owned += [OwnedResource(kind="volume", id=v.name, name=v.name, robot=(v.attrs.get("Labels") or {}).get(LABEL_ROBOT))
                   for v in self.client.volumes.list(filters=label)]
@@ -276,7 +276,7 @@ class DockerProvider(DockerHost):
     def leftovers(self) -> list[str]:
         label = {"label": [f"{LABEL_FLEET}={self.fleet}"]}
         return (
-            [f"container {c.name}" for c in self.client.containers.list(all=True, filters=label)]
+            [f"container {c.name}" for c in self.client.containers.list(all=True, ignore_removed=True, filters=label)]
             + [f"volume {v.name}" for v in self.client.volumes.list(filters=label)]
             + [f"network {n.name}" for n in self.client.networks.list(filters=label)]
         )
