@@ -25,7 +25,7 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
 def vpn_cell(row: dict) -> str:
     revoked = row.get("revoked_at")
     if row["vpn_connected"]:
-        return f"connected {row['robot_address']}" + (" (REVOKED: run vpn revoke again)" if revoked else "")
+        return f"connected {row['robot_address']}" + (" (REVOKED: ending; if it stays, run vpn revoke again)" if revoked else "")
     if revoked:
         return f"revoked {revoked[:10]}"
     # A rebooted cloud clone: its keys lived in memory (docs/security.md).
