@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import ipaddress
 import json
 import os
 import platform
@@ -52,24 +51,12 @@ LABEL = "ccrp-fleet"
 SERVER_KEY = "/etc/openvpn/server/ccrp/keys/server.key"
 
 
-def free_subnets(client) -> tuple[str, str, str]:
-    """public, common and VPN pool subnets that no Docker network on this host overlaps."""
-    used = []
-    for net in client.networks.list():
-        for cfg in (net.attrs.get("IPAM") or {}).get("Config") or []:
-            if cfg.get("Subnet") and ":" not in cfg["Subnet"]:
-                used.append(ipaddress.ip_network(cfg["Subnet"], strict=False))
+def free_subnets() -> tuple[str, str, str]:
+    """public, common and VPN pool subnets that no Docker network or route of this host overlaps."""
+    sys.path.insert(0, str(ROOT))  # the tests' helper that picks them
+    from tests.scenarios.backend import free_cidr
 
-    def free(n) -> bool:
-        return not any(n.overlaps(u) for u in used)
-
-    pool = next((p for p in (ipaddress.ip_network(f"10.{k}.0.0/16") for k in range(60, 80)) if free(p)), None)
-    rng = secrets.SystemRandom()
-    for x in rng.sample(range(1, 255), 254):
-        public, common = ipaddress.ip_network(f"172.27.{x}.0/24"), ipaddress.ip_network(f"10.97.{x}.0/24")
-        if free(public) and free(common) and pool is not None:
-            return str(public), str(common), str(pool)
-    raise RuntimeError("no free 172.27.x.0/24 + 10.97.x.0/24 + 10.6x.0.0/16 subnets on this host")
+    return free_cidr("172.27.0.0/16"), free_cidr("10.97.0.0/16"), free_cidr("10.64.0.0/12", prefix=16)
 
 
 @dataclass
@@ -88,7 +75,7 @@ class CrashFleet:
         client = docker.from_env(timeout=300)
         name = prefix + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
         tmp = Path(tempfile.mkdtemp(prefix=f"ccrp-{name}-"))
-        public, common, pool = free_subnets(client)
+        public, common, pool = free_subnets()
         inventory = {
             "fleet": name,
             "provider": {"kind": "docker", "public_cidr": public},

@@ -19,26 +19,18 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
-import string
-import sys
 import time
-import warnings
 
 import pytest
-import yaml
 
 from ccrp_cli.clones import HEALTH_SCRIPT
-from tests.conftest import LAB
 from tests.e2e.test_docker_fleet import (  # the Docker fleet module's harness; skips without Docker
     CONNECT_TIMEOUT,
     E2EFleet,
-    _free_subnets,
-    _sweep,
     connected,
-    docker,
     exec_in,
     master_probe,
+    start_fleet,
     wait_for,
 )
 
@@ -73,33 +65,11 @@ print(json.dumps(out))
 
 @pytest.fixture(scope="module")
 def fleet(request, tmp_path_factory) -> E2EFleet:
-    client = docker.from_env(timeout=300)
-    name = "e2h" + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
-    public, common, pool = _free_subnets(client)
-    tmp = tmp_path_factory.mktemp(name)
-    data = yaml.safe_load(LAB.read_text())
-    data.update(fleet=name, robots=[{"name": ROBOT, "type": "nao", "exports": ["/faces"]}])
-    data.pop("template", None)
-    data["provider"]["public_cidr"] = public
-    data["common"]["cidr"] = common
-    data["vpn"]["pool"] = pool
-    inventory = tmp / "inventory.yaml"
-    inventory.write_text(yaml.safe_dump(data, sort_keys=False))
-    f = E2EFleet(name=name, inventory=inventory, home=tmp / "home", client=client, tmp=tmp)
+    def one_robot(data: dict) -> None:
+        data.update(robots=[{"name": ROBOT, "type": "nao", "exports": ["/faces"]}])
+        data.pop("template", None)
 
-    def teardown() -> None:
-        try:
-            f.inv("fleet", "down")
-        except Exception as exc:  # noqa: BLE001 - the sweep below still runs
-            warnings.warn(f"ccrp fleet down of {name} failed: {exc}", stacklevel=1)
-        left = _sweep(client, name)
-        if left:
-            warnings.warn(f"e2e fleet {name}: could not remove {left}", stacklevel=1)
-        sys.stderr.write("\n" + "\n".join(f"[{name}] {line}" for line in f.log) + "\n")
-
-    request.addfinalizer(teardown)  # before anything is created
-    f.inv("vpn", "init", check=True)
-    f.inv("snapshot", "build", check=True)
+    f = start_fleet(request, tmp_path_factory, "e2h", one_robot)
     proc = f.inv("fleet", "up", "--json")
     assert proc.returncode == 0, f"fleet up exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr[-3000:]}"
     t0 = time.monotonic()

@@ -25,7 +25,6 @@ container, network, volume and image labelled with the module's fleet, even when
 
 from __future__ import annotations
 
-import ipaddress
 import json
 import os
 import re
@@ -39,7 +38,7 @@ import tarfile
 import tempfile
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -165,21 +164,11 @@ class E2EFleet:
         return needles
 
 
-def _free_subnets(client) -> tuple[str, str, str]:
-    """public, common and VPN pool subnets that no Docker network on this host overlaps."""
-    used = []
-    for net in client.networks.list():
-        for cfg in (net.attrs.get("IPAM") or {}).get("Config") or []:
-            if cfg.get("Subnet") and ":" not in cfg["Subnet"]:
-                used.append(ipaddress.ip_network(cfg["Subnet"], strict=False))
-    free = lambda n: not any(n.overlaps(u) for u in used)  # noqa: E731
-    pool = next((p for p in (ipaddress.ip_network(f"10.{k}.0.0/16") for k in range(82, 90)) if free(p)), None)
-    rng = secrets.SystemRandom()
-    for x in rng.sample(range(1, 255), 254):
-        public, common = ipaddress.ip_network(f"172.31.{x}.0/24"), ipaddress.ip_network(f"10.91.{x}.0/24")
-        if free(public) and free(common) and pool is not None:
-            return str(public), str(common), str(pool)
-    pytest.skip("no free 172.31.x.0/24 + 10.91.x.0/24 + 10.8x.0.0/16 subnets left for the e2e fleet")
+def _free_subnets() -> tuple[str, str, str]:
+    """public, common and VPN pool subnets that no Docker network or route of this host overlaps."""
+    from tests.scenarios.backend import free_cidr
+
+    return free_cidr("172.31.0.0/16"), free_cidr("10.91.0.0/16"), free_cidr("10.84.0.0/14", prefix=16)
 
 
 def _sweep(client, fleet: str) -> list[str]:
@@ -217,15 +206,16 @@ def _sweep(client, fleet: str) -> list[str]:
     return problems + left
 
 
-@pytest.fixture(scope="module")
-def fleet(request, tmp_path_factory) -> Iterator[E2EFleet]:
-    """A dedicated fleet with its CA and snapshot; always swept away at the end of the module."""
+def start_fleet(request, tmp_path_factory, prefix: str, edit: Callable[[dict], None] = lambda data: None) -> E2EFleet:
+    """A fleet of its own from inventories/lab.yaml (`edit` changes the inventory), with its CA and
+    snapshot; swept away when the requesting scope ends, even on failure."""
     client = docker.from_env(timeout=300)
-    name = "e2e" + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
-    public, common, pool = _free_subnets(client)
+    name = prefix + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
+    public, common, pool = _free_subnets()
     tmp = tmp_path_factory.mktemp(name)
     data = yaml.safe_load(LAB.read_text())
     data["fleet"] = name
+    edit(data)
     data["provider"]["public_cidr"] = public
     data["common"]["cidr"] = common
     data["vpn"]["pool"] = pool
@@ -247,6 +237,12 @@ def fleet(request, tmp_path_factory) -> Iterator[E2EFleet]:
     f.inv("vpn", "init", check=True)
     f.inv("snapshot", "build", check=True)  # reuses ccrp/base:bookworm when it is there
     return f
+
+
+@pytest.fixture(scope="module")
+def fleet(request, tmp_path_factory) -> E2EFleet:
+    """A dedicated fleet with its CA and snapshot; always swept away at the end of the module."""
+    return start_fleet(request, tmp_path_factory, "e2e")
 
 
 @pytest.fixture(scope="module")

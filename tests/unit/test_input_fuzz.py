@@ -17,27 +17,11 @@ from hypothesis import strategies as st
 from ccrp_cli.loader import MAX_BYTES
 from tests.conftest import INVENTORIES
 from tests.unit.inprocess_cli import run_ccrp_inprocess
+from tests.unit.trees import nodes, replaced
 
 EXAMPLES = 1000
 BASES = [yaml.safe_load(p.read_text()) for p in INVENTORIES]
 HOLE = "HOLE0HOLE"  # a plain scalar safe_dump never quotes: replaced in the text by raw YAML
-
-
-def _nodes(node, path=()):
-    """Every (path, value) below the top of a parsed inventory."""
-    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
-    for key, child in items:
-        yield path + (key,), child
-        yield from _nodes(child, path + (key,))
-
-
-def _replace(tree, path, value):
-    """A copy of `tree` with the node at `path` replaced by `value`."""
-    if not path:
-        return value
-    copy = dict(tree) if isinstance(tree, dict) else list(tree)
-    copy[path[0]] = _replace(tree[path[0]], path[1:], value)
-    return copy
 
 
 def _dump(tree) -> str:
@@ -82,15 +66,15 @@ def wrong_type(original):
 @st.composite
 def mutate_value(draw) -> bytes:
     base = draw(st.sampled_from(BASES))
-    path, original = draw(st.sampled_from(list(_nodes(base))))
-    return _dump(_replace(base, path, draw(wrong_type(original)))).encode()
+    path, original = draw(st.sampled_from(list(nodes(base))))
+    return _dump(replaced(base, path, draw(wrong_type(original)))).encode()
 
 
 @st.composite
 def mutate_key(draw) -> bytes:
     """A key renamed to a hostile text, or an unknown key added, in a random mapping."""
     base = draw(st.sampled_from(BASES))
-    maps = [(p, n) for p, n in _nodes(base) if isinstance(n, dict)] + [((), base)]
+    maps = [(p, n) for p, n in nodes(base) if isinstance(n, dict)] + [((), base)]
     path, mapping = draw(st.sampled_from(maps))
     copy = dict(mapping)
     if copy and draw(st.booleans()):
@@ -98,14 +82,14 @@ def mutate_key(draw) -> bytes:
         copy[draw(hostile_text(key))] = copy.pop(key)
     else:
         copy["x_" + draw(st.text("abcdefghij", min_size=1, max_size=8))] = "v"
-    return _dump(_replace(base, path, copy)).encode()
+    return _dump(replaced(base, path, copy)).encode()
 
 
 @st.composite
 def mutate_text(draw) -> bytes:
     """Mutations only the YAML text can carry: nesting, aliases, duplicate keys."""
     base = draw(st.sampled_from(BASES))
-    path, _ = draw(st.sampled_from(list(_nodes(base))))
+    path, _ = draw(st.sampled_from(list(nodes(base))))
     depth = draw(st.integers(65, 3000))
     raw = draw(st.sampled_from([
         "[" * depth + "]" * depth,
@@ -113,7 +97,7 @@ def mutate_text(draw) -> bytes:
         "*anchor",
         "[*anchor, *anchor]",
     ]))
-    text = _dump(_replace(base, path, HOLE)).replace(HOLE, raw)
+    text = _dump(replaced(base, path, HOLE)).replace(HOLE, raw)
     if "*anchor" in raw:
         text = "x_anchor: &anchor [1, 2]\n" + text
     kind = draw(st.sampled_from(["hole", "bomb", "duplicate"]))

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from ccrp_cli.models.values import Endpoint, check_cloud_name, parse_endpoint
 from tests.conftest import INVENTORIES, LAB, ROOT
 from tests.unit.inprocess_cli import run_ccrp_inprocess
+from tests.unit.trees import nodes, replaced
 
 # A token in a rendered file: no whitespace, no control character, no quote or backslash.
 TOKEN = re.compile(r"[^\s\x00-\x1f\x7f-\x9f'\"\\]+")
@@ -213,28 +214,12 @@ def test_cloud_name_options_are_refused_or_one_token(tmp_path, option, value):
 
 # -- the inventory's free-form fields -----------------------------------------------------------------
 
-def _string_leaves(node, path=()):
-    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
-    for key, child in items:
-        if isinstance(child, str):
-            yield path + (key,), child
-        yield from _string_leaves(child, path + (key,))
-
-
-def _with(tree, path, value):
-    if not path:
-        return value
-    copy = dict(tree) if isinstance(tree, dict) else list(tree)
-    copy[path[0]] = _with(tree[path[0]], path[1:], value)
-    return copy
-
-
 BASES = [yaml.safe_load(p.read_text()) for p in INVENTORIES]
 # The examples carry no base_image, instance_type or zone: give them one each to be fuzzed too.
 BASES[[b["provider"]["kind"] for b in BASES].index("docker")]["provider"]["base_image"] = "ccrp/base:bookworm"
 for _base in BASES:
     _base["robots"][0].update(instance_type="m1.small", zone="zone-a")
-LEAVES = [(i, path, value) for i, base in enumerate(BASES) for path, value in _string_leaves(base)]
+LEAVES = [(i, path, value) for i, base in enumerate(BASES) for path, value in nodes(base) if isinstance(value, str)]
 
 
 @settings(max_examples=200, deadline=None, database=None,
@@ -245,7 +230,7 @@ def test_inventory_strings_are_refused_or_one_token(tmp_path, leaf, data):
     value = data.draw(hostile(st.just(original)))
     tmp = Path(tempfile.mkdtemp(dir=tmp_path))  # tmp_path is shared by the examples
     inventory = tmp / "inventory.yaml"
-    inventory.write_text(yaml.safe_dump(_with(BASES[index], path, value), sort_keys=False))
+    inventory.write_text(yaml.safe_dump(replaced(BASES[index], path, value), sort_keys=False))
     code, out, err = run_ccrp_inprocess("fleet", "validate", "-i", str(inventory), home=tmp / "home")
     if code != 0:
         one_line_exit_2(code, out, err)
