@@ -64,14 +64,20 @@ def health(provider: Provider, robot: str) -> dict:
         return {"vpn": {"up": False, "clients": []}, "master": {"reachable": False, "nodes": {}}, "error": out[-200:]}
 
 
+def remote_digests(provider: Provider, robot: str, files: list) -> dict[str, str]:
+    """path -> sha256 of those of `files` that the clone holds (a missing one is left out)."""
+    _, out = provider.exec(robot, ["sha256sum", *(f.dest for f in files)], timeout=20)
+    return {line.split()[1]: line.split()[0] for line in out.splitlines() if len(line.split()) == 2}
+
+
+def same(have: dict[str, str], files: list) -> bool:
+    return all(have.get(f.dest) == hashlib.sha256(f.content.encode()).hexdigest() for f in files)
+
+
 def files_current(provider: Provider, robot: str, files: list) -> bool:
     """True when the clone already holds exactly these files: re-running `fleet up` then leaves
     OpenVPN (and the robot's live session) and the relay alone."""
-    rc, out = provider.exec(robot, ["sha256sum", *(f.dest for f in files)], timeout=20)
-    if rc != 0:
-        return False
-    have = {line.split()[1]: line.split()[0] for line in out.splitlines() if len(line.split()) == 2}
-    return all(have.get(f.dest) == hashlib.sha256(f.content.encode()).hexdigest() for f in files)
+    return same(remote_digests(provider, robot, files), files)
 
 
 def applied_marker(files: list):
@@ -181,15 +187,17 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         provider.wait_ready(robot, timeout=1200 if bare else 300)
         secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
         keys = [f for f in secrets if f.name != "crl.pem"]
+        crl = [f for f in secrets if f.name == "crl.pem"]
         applied = applied_marker(keys)
-        if not files_current(provider, robot, [*keys, applied]):
+        have = remote_digests(provider, robot, [*secrets, applied])
+        if not same(have, [*keys, applied]):
             prepare_secrets_dir(provider, robot)
             provider.push_files(robot, secrets, restart=["ccrp-openvpn.service", "ccrp-relay.service"])
             provider.push_files(robot, [applied])  # last: until it is there, the next run pushes again
-        elif not files_current(provider, robot, secrets):
+        elif not same(have, crl):
             # Only the CRL changed (another robot was revoked): OpenVPN re-reads it, the robot's
             # live session stays.
-            provider.push_files(robot, [f for f in secrets if f.name == "crl.pem"], restart=[])
+            provider.push_files(robot, crl, restart=[])
         wait_serving(provider, robot, fleet.inventory.ros.master_port)
         push_relay_config(fleet, provider, state, robot)
     except BaseException:
@@ -213,15 +221,13 @@ def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: 
     """A revoked robot stays unenrolled: no certificate, no clone created or configured. A clone
     of it that runs gets the current CRL and the kill again, in case `vpn revoke` could not reach
     it: a failed TLS renegotiation alone does not end a session (docs/security.md)."""
-    from .render.bundles import BundleFile
-    from .render.view import SECRETS_DIR
+    from .render.bundles import crl_file
 
     writer.state.robots[robot].phase = "revoked"
     writer.fleet.store.save_state(writer.state)  # the caller holds writer.lock
     rec = provider.query().get(robot)
     if rec is not None and rec.state is CloneState.RUNNING:
-        crl = BundleFile("crl.pem", fleet.pki.crl_path.read_text(), 0o644, f"{SECRETS_DIR}/crl.pem")
-        provider.push_files(robot, [crl], restart=[])
+        provider.push_files(robot, [crl_file(fleet.pki.crl_path.read_text())], restart=[])
         kill_session(provider, robot)
     progress(f"[{robot}] {revoked.message}")
     return CloneResult(robot, "revoked", revoked.message + f" ({revoked.hint})")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 from .addressing import CloneAddresses, addresses, allocate, capacity
@@ -33,7 +34,7 @@ class Fleet:
     def name(self) -> str:
         return self.inventory.fleet
 
-    @property
+    @cached_property
     def pki(self) -> PkiStore:
         return PkiStore(self.store.pki_dir, self.name)
 

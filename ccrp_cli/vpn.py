@@ -95,10 +95,9 @@ def _push_crl(fleet: Fleet, provider, robot: str, kill: bool, progress: Callable
     from concurrent.futures import ThreadPoolExecutor
 
     from .clones import kill_session
-    from .render.bundles import BundleFile
-    from .render.view import SECRETS_DIR
+    from .render.bundles import crl_file
 
-    crl = BundleFile("crl.pem", fleet.pki.crl_path.read_text(), 0o644, f"{SECRETS_DIR}/crl.pem")
+    crl = crl_file(fleet.pki.crl_path.read_text())
     running = _running(provider)
     order = sorted(running, key=lambda name: name != robot)
 

@@ -86,6 +86,7 @@ class PkiStore:
     def __init__(self, root: Path, fleet: str) -> None:
         self.root = root
         self.fleet = fleet
+        self._relay_cns: tuple[tuple, dict[str, str]] = ((), {})
 
     # -- paths -----------------------------------------------------------------------------
     @property
@@ -328,7 +329,15 @@ class PkiStore:
         )
 
     def relay_cns(self) -> dict[str, str]:
-        """robot -> CN of its clone's current relay certificate."""
-        index = self.load_index()
-        robots = {c.robot for c in index.certs if c.profile == "relay" and c.robot}
-        return {r: rec.cn for r in sorted(robots) if (rec := self.current_of(index, "relay", r))}
+        """robot -> CN of its clone's current relay certificate. Every clone's relay config needs
+        it: kept until index.json is replaced (atomic writes give it a new inode), so a fleet's
+        configs read the index once, not once per clone."""
+        if not self.exists():
+            self.load_index()  # the one-line error with its hint
+        st = self.index_path.stat()
+        key = (st.st_ino, st.st_mtime_ns, st.st_size)
+        if self._relay_cns[0] != key:
+            index = self.load_index()
+            robots = {c.robot for c in index.certs if c.profile == "relay" and c.robot}
+            self._relay_cns = (key, {r: rec.cn for r in sorted(robots) if (rec := self.current_of(index, "relay", r))})
+        return dict(self._relay_cns[1])

@@ -28,13 +28,18 @@ def clone_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
     """What the clone needs but user-data must never carry."""
     return [
         BundleFile("ca.crt", creds.ca_pem, 0o644, f"{SECRETS_DIR}/ca.crt"),
-        BundleFile("crl.pem", creds.crl_pem, 0o644, f"{SECRETS_DIR}/crl.pem"),
+        crl_file(creds.crl_pem),
         BundleFile("server.crt", creds.server_cert_pem, 0o644, f"{SECRETS_DIR}/server.crt"),
         BundleFile("server.key", creds.server_key_pem, 0o600, f"{SECRETS_DIR}/server.key"),
         BundleFile("tc.key", creds.tls_crypt_key, 0o600, f"{SECRETS_DIR}/tc.key"),
         # Read by ccrp-auth after OpenVPN dropped to the openvpn user.
         BundleFile("passwd", f"{view.name}:{creds.password_hash}\n", 0o640, f"{SECRETS_DIR}/passwd", "openvpn"),
     ] + relay_secrets(view, creds)
+
+
+def crl_file(pem: str) -> BundleFile:
+    """The CRL as pushed to a clone: OpenVPN re-reads it when it changes, no restart needed."""
+    return BundleFile("crl.pem", pem, 0o644, f"{SECRETS_DIR}/crl.pem")
 
 
 def relay_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:

@@ -108,3 +108,16 @@ def test_status_shows_no_sharing_that_is_not_running(lab_up):
         assert (running, peers) == (False, {"nao2": False, "turtlebot1": False})
         assert relay_peers(peers, running) == "0/2 (relay not running)"
     assert relay_peers({}, False) == "-"  # nothing to share with
+
+
+def test_relay_cns_follow_every_change_of_the_index(lab_up):
+    """relay_cns is kept between calls (every clone's config needs it) but must never be stale."""
+    fleet, _ = lab_up
+    first = fleet.pki.relay_cns()
+    assert first["nao1"] == "relay-nao1-1"
+    fleet.pki.issue_relay("nao1", "10.90.0.99", 30)  # replaced: a new index.json
+    assert fleet.pki.relay_cns()["nao1"] == "relay-nao1-2"
+    from ccrp_cli import vpn
+
+    vpn.revoke(fleet, "nao1", cert="relay")
+    assert "nao1" not in fleet.pki.relay_cns()
