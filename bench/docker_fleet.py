@@ -9,11 +9,13 @@
   connect  `ccrp robot sim --wait`: from starting the simulated robot's container until its VPN
            session is up and its demo node is registered on its clone's master.
 
-Medians over --rounds. The benchmark works on its own fleet (`bench`, own subnets, own
-CCRP_HOME) and removes its containers, networks, volumes and images at the end, even on failure.
+Medians over --rounds. The benchmark works on its own fleet (`bench<random>`, subnets no Docker
+network of this machine uses, own CCRP_HOME) and removes its containers, networks, volumes and
+images at the end, even on failure.
 
-Run: .venv/bin/python bench/docker_fleet.py [--rounds 3] [--bare-rounds 3] [--sizes 1,5,10,20]
-Writes bench/results/docker_fleet.json and bench/results/docker_fleet.png.
+Run: .venv/bin/python bench/docker_fleet.py [--rounds 3] [--bare-rounds 3] [--sizes 1,5,10,20] [--out PATH]
+Writes bench/results/docker_fleet.json and bench/results/docker_fleet.png (--out: that JSON
+instead, and no figure).
 """
 
 from __future__ import annotations
@@ -23,7 +25,9 @@ import datetime as dt
 import json
 import os
 import platform
+import secrets
 import statistics
+import string
 import subprocess
 import sys
 import tempfile
@@ -34,15 +38,22 @@ import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "bench" / "results"
-FLEET = "bench"
-INVENTORY = {
-    "fleet": FLEET,
-    "provider": {"kind": "docker", "public_cidr": "172.28.0.0/24"},
-    "vpn": {"pool": "10.84.0.0/16"},
-    "common": {"cidr": "10.94.0.0/24"},
-    "robots": [],
-    "template": {"prefix": "robot", "max": 50},
-}
+FLEET = "bench" + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
+
+
+def inventory() -> dict:
+    sys.path.insert(0, str(ROOT / "bench"))
+    from crash_scale import free_subnets
+
+    public, common, pool = free_subnets()
+    return {
+        "fleet": FLEET,
+        "provider": {"kind": "docker", "public_cidr": public},
+        "vpn": {"pool": pool},
+        "common": {"cidr": common},
+        "robots": [],
+        "template": {"prefix": "robot", "max": 50},
+    }
 
 
 class Cli:
@@ -143,6 +154,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--bare-rounds", type=int, default=3)
     ap.add_argument("--sizes", default="1,5,10,20")
+    ap.add_argument("--out", type=Path, help="write the JSON here (and no figure) instead of bench/results/")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -150,13 +162,16 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         home, inv = Path(tmp) / "home", Path(tmp) / "bench.yaml"
-        inv.write_text(yaml.safe_dump(INVENTORY))
+        inv.write_text(yaml.safe_dump(inventory()))
         cli = Cli(home, inv)
         try:
             cli("vpn", "init")
-            progress("building the bare snapshot and the fleet snapshot")
-            _, bare_build = cli("snapshot", "build", "--bare", "--json")
-            bare = recorded_snapshot(home)
+            bare_build, bare = None, None
+            if args.bare_rounds:  # a bare snapshot only for rounds that use it
+                progress("building the bare snapshot")
+                _, bare_build = cli("snapshot", "build", "--bare", "--json")
+                bare = recorded_snapshot(home)
+            progress("building the fleet snapshot")
             _, snap_build = cli("snapshot", "build", "--json")
             snap = recorded_snapshot(home)
 
@@ -192,33 +207,40 @@ def main() -> None:
             finally:
                 cleanup_fleet(FLEET)
 
+    # What had no round (--bare-rounds 0, --rounds 0) is left out of the results.
     med = lambda xs: round(statistics.median(xs), 2)  # noqa: E731
-    one = med(scale[str(sizes[0])])
     result = {
         "benchmark": "docker_fleet",
         "when": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "kernel": platform.release()},
         "rounds": args.rounds,
-        "snapshot_images_mb": {"snapshot": snap_build[0]["size_mb"], "bare": bare_build[0]["size_mb"]},
+        "bare_rounds": args.bare_rounds,
+        "snapshot_images_mb": {"snapshot": snap_build[0]["size_mb"]} | ({"bare": bare_build[0]["size_mb"]} if bare_build else {}),
         "ready": {
             kind: {"median_s": med([s["clone_s"] for s in samples]),
                    "wall_median_s": med([s["wall_s"] for s in samples]), "samples": samples}
-            for kind, samples in ready.items()
+            for kind, samples in ready.items() if samples
         },
-        "connect": {"median_s": med([c["seconds"] for c in connect]), "samples": connect},
-        "scale": {str(n): {"median_s": med(scale[str(n)]), "ratio_to_1": round(med(scale[str(n)]) / one, 2),
-                           "samples": scale[str(n)]} for n in sizes},
     }
-    cpu = med([s["clone_cpu_s"] for s in ready["snapshot"]])
-    result["cpu_floor"] = {
-        "clone_cpu_s": cpu,
-        "note": "CPU seconds one clone's container uses to get ready; N clones need at least N * that / cores",
-        **{str(n): round(n * cpu / (os.cpu_count() or 1), 1) for n in sizes},
-    }
-    result["ready"]["bare_over_snapshot"] = round(result["ready"]["bare"]["median_s"] / result["ready"]["snapshot"]["median_s"], 1)
-    (RESULTS / "docker_fleet.json").write_text(json.dumps(result, indent=2) + "\n")
-    plot(result, RESULTS / "docker_fleet.png")
-    print(json.dumps({k: result[k] for k in ("ready", "connect", "scale")}, indent=1)[:3000])
+    if connect:
+        result["connect"] = {"median_s": med([c["seconds"] for c in connect]), "samples": connect}
+    if args.rounds:
+        one = med(scale[str(sizes[0])])
+        result["scale"] = {str(n): {"median_s": med(scale[str(n)]), "ratio_to_1": round(med(scale[str(n)]) / one, 2),
+                                    "samples": scale[str(n)]} for n in sizes}
+    if ready["snapshot"]:
+        cpu = med([s["clone_cpu_s"] for s in ready["snapshot"]])
+        result["cpu_floor"] = {
+            "clone_cpu_s": cpu,
+            "note": "CPU seconds one clone's container uses to get ready; N clones need at least N * that / cores",
+            **{str(n): round(n * cpu / (os.cpu_count() or 1), 1) for n in sizes},
+        }
+    if ready["snapshot"] and ready["bare"]:
+        result["ready"]["bare_over_snapshot"] = round(result["ready"]["bare"]["median_s"] / result["ready"]["snapshot"]["median_s"], 1)
+    (args.out or RESULTS / "docker_fleet.json").write_text(json.dumps(result, indent=2) + "\n")
+    if not args.out and "scale" in result and {"snapshot", "bare"} <= result["ready"].keys():
+        plot(result, RESULTS / "docker_fleet.png")
+    print(json.dumps({k: result[k] for k in ("ready", "connect", "scale") if k in result}, indent=1)[:3000])
 
 
 if __name__ == "__main__":

@@ -10,8 +10,11 @@
 All clones run on this host, so the senders' and receivers' clocks are the same clock. The
 benchmark brings up its own fleet (own subnets and CCRP_HOME) and removes everything at the end.
 
-Run: .venv/bin/python bench/relay.py [--clones 10] [--seconds 30]
-Writes bench/results/relay.json and bench/results/relay.png.
+The same for a ROS 2 Jazzy fleet (rclpy probes in the robots' domains, the relay's rclpy side),
+one distro after the other in the same run.
+
+Run: .venv/bin/python bench/relay.py [--clones 10] [--seconds 30] [--distros noetic,jazzy]
+Writes bench/results/relay.{json,png} (Noetic) and bench/results/relay-jazzy.{json,png}.
 """
 
 from __future__ import annotations
@@ -34,22 +37,43 @@ from docker_fleet import RESULTS, Cli, cleanup_fleet  # noqa: E402
 
 FLEET = "relaybench"
 
-PROBE = r"""
+# Run in a clone as `python -c PROBE SPEC`: subscribes, publishes at a rate, prints what it saw.
+# One head per ROS generation (its node, subscribers, publisher and clock), the same loop after it.
+_PROBE_HEAD = r"""
 import json, sys, threading, time
-import rospy
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 spec = json.loads(sys.argv[1])
-rospy.init_node("ccrp_bench", anonymous=True, disable_signals=True)
 seen = {t: {} for t in spec["subscribe"]}
+cls = {"image": Image, "probe": Header}
 def on(topic):
     def cb(msg):
         h = msg.header if hasattr(msg, "header") else msg
-        seen[topic][int(h.frame_id)] = (time.time() - h.stamp.to_sec()) * 1000.0
+        seen[topic][int(h.frame_id)] = (time.time() - seconds(h.stamp)) * 1000.0
     return cb
-cls = {"image": Image, "probe": Header}
+"""
+_ROS1 = r"""
+import rospy
+rospy.init_node("ccrp_bench", anonymous=True, disable_signals=True)
+seconds, stamp = lambda t: t.to_sec(), rospy.Time.from_sec
 subs = [rospy.Subscriber(t, cls[k], on(t), queue_size=100, tcp_nodelay=True) for t, k in spec["subscribe"].items()]
 pub = rospy.Publisher(spec["publish"]["topic"], cls[spec["publish"]["kind"]], queue_size=100, tcp_nodelay=True) if spec.get("publish") else None
+"""
+# rclpy (ROS 2 clones, in the robot's domain through ros.env; run with the wheels' venv python).
+# The relay's own participant is UDP only, so a probe run as root gets the imports it publishes.
+_ROS2 = r"""
+import rclpy
+from builtin_interfaces.msg import Time
+from rclpy.qos import QoSProfile
+rclpy.init()
+node = rclpy.create_node("ccrp_bench")
+seconds = lambda t: t.sec + t.nanosec / 1e9
+stamp = lambda now: Time(sec=int(now), nanosec=int((now % 1) * 1e9))
+subs = [node.create_subscription(cls[k], t, on(t), QoSProfile(depth=100)) for t, k in spec["subscribe"].items()]
+pub = node.create_publisher(cls[spec["publish"]["kind"]], spec["publish"]["topic"], QoSProfile(depth=100)) if spec.get("publish") else None
+threading.Thread(target=rclpy.spin, args=(node,), daemon=True).start()
+"""
+_LOOP = r"""
 time.sleep(spec["settle"])  # publishers, subscribers and relays find each other
 data = bytes(320 * 240 * 3)
 n, period, end = 0, 1.0 / (spec["publish"]["hz"] if pub else 1), time.time() + spec["seconds"]
@@ -57,7 +81,7 @@ nxt = time.time()
 while time.time() < end:
     if pub:
         n += 1
-        h = Header(frame_id=str(n), stamp=rospy.Time.from_sec(time.time()))
+        h = Header(frame_id=str(n), stamp=stamp(time.time()))
         pub.publish(Image(header=h, height=240, width=320, encoding="rgb8", step=960, data=data)
                     if spec["publish"]["kind"] == "image" else h)
     nxt += period
@@ -65,9 +89,10 @@ while time.time() < end:
 time.sleep(2)  # in-flight messages
 print(json.dumps({"sent": n, "seen": {t: {str(k): v for k, v in s.items()} for t, s in seen.items()}}))
 """
+PROBE, PROBE2 = _PROBE_HEAD + _ROS1 + _LOOP, _PROBE_HEAD + _ROS2 + _LOOP
 
 
-def inventory(clones: int) -> dict:
+def inventory(clones: int, distro: str) -> dict:
     robots = []
     for k in range(1, clones + 1):
         prev = f"bot{(k - 2) % clones + 1}"
@@ -75,13 +100,14 @@ def inventory(clones: int) -> dict:
         if k == 2:
             imports[prev].append("/probe")
         robots.append({"name": f"bot{k}", "exports": ["/camera/image_raw", "/probe"], "imports": imports})
-    return {"fleet": FLEET, "provider": {"kind": "docker", "public_cidr": "172.27.0.0/24"},
+    return {"fleet": FLEET, "provider": {"kind": "docker", "public_cidr": "172.27.0.0/24"}, "ros": {"distro": distro},
             "vpn": {"pool": "10.85.0.0/16"}, "common": {"cidr": "10.95.0.0/24"}, "robots": robots}
 
 
-def probe(client, robot: str, spec: dict) -> dict:
+def probe(client, robot: str, spec: dict, distro: str) -> dict:
     c = client.containers.get(f"ccrp-{FLEET}-cri-{robot}")
-    argv = ["bash", "-c", 'set -a; . /etc/ccrp/ros.env; set +a; exec python3 -c "$0" "$1"', PROBE, json.dumps(spec)]
+    script, python = (PROBE, "python3") if distro == "noetic" else (PROBE2, f"/opt/ros/{distro}/bin/python")
+    argv = ["bash", "-c", f'set -a; . /etc/ccrp/ros.env; set +a; exec {python} -c "$0" "$1"', script, json.dumps(spec)]
     res = c.exec_run(argv)
     out = res.output.decode(errors="replace")
     if res.exit_code != 0:
@@ -89,14 +115,18 @@ def probe(client, robot: str, spec: dict) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
-def stream_stats(sent: int, seen: dict[str, float], warmup: int) -> dict:
-    """Loss over the messages sent after the warm-up ones; latency of those received."""
-    window = range(warmup + 1, sent + 1)
+def stream_stats(sent: int, seen: dict[str, float], warmup: int, cooldown: int = 0) -> dict:
+    """Loss over the messages sent after the warm-up ones and before the last `cooldown` ones (the
+    probes start one `docker exec` after another, so a receiver may stop listening before a
+    sender's last messages arrive); latency of those received."""
+    window = range(warmup + 1, sent - cooldown + 1)
     got = [seen[str(i)] for i in window if str(i) in seen]
+    missing = [i for i in range(warmup + 1, sent + 1) if str(i) not in seen]
     lat = sorted(got)
     q = lambda p: round(lat[min(len(lat) - 1, int(p * len(lat)))], 2) if lat else None  # noqa: E731
     return {"sent": len(window), "received": len(got), "lost": len(window) - len(got),
-            "p50_ms": q(0.50), "p95_ms": q(0.95), "max_ms": round(lat[-1], 2) if lat else None}
+            "p50_ms": q(0.50), "p95_ms": q(0.95), "max_ms": round(lat[-1], 2) if lat else None,
+            "missing_seq": missing[:20], "last_seq": sent}
 
 
 def plot(result: dict, path: Path) -> None:
@@ -113,7 +143,7 @@ def plot(result: dict, path: Path) -> None:
         ax1.bar([i + 0.2], [lat[key]["p95_ms"]], 0.4, color="tab:orange", label="p95" if i == 0 else None)
     ax1.set_xticks([0, 1], names)
     ax1.set_ylabel("latency (ms)")
-    ax1.set_title("small message (std_msgs/Header), 20 Hz")
+    ax1.set_title(f"{result['distro']}: small message (std_msgs/Header), 20 Hz")
     ax1.legend()
     streams = result["throughput"]["streams"]
     keys = sorted(streams, key=lambda s: int(s.split("/")[1][3:]))
@@ -133,20 +163,28 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--clones", type=int, default=10)
     ap.add_argument("--seconds", type=float, default=30)
+    ap.add_argument("--distros", default="noetic,jazzy", help="run the benchmark for each, one after the other")
     args = ap.parse_args()
+    summary = {}
+    for distro in args.distros.split(","):
+        summary[distro] = run(args, distro)
+    print(json.dumps(summary, indent=1))
+
+
+def run(args, distro: str) -> dict:
     import docker
 
     client = docker.from_env(timeout=600)
     warmup_s = 3
     with tempfile.TemporaryDirectory() as tmp:
         home, inv = Path(tmp) / "home", Path(tmp) / "relay.yaml"
-        inv.write_text(yaml.safe_dump(inventory(args.clones), sort_keys=False))
+        inv.write_text(yaml.safe_dump(inventory(args.clones, distro), sort_keys=False))
         cli = Cli(home, inv)
         try:
             cli("vpn", "init")
             cli("snapshot", "build")
             wall, _ = cli("fleet", "up", "--json")
-            print(f"bench: {args.clones} clones up in {wall:.1f} s", file=sys.stderr)
+            print(f"bench: {args.clones} {distro} clones up in {wall:.1f} s", file=sys.stderr)
             robots = [f"bot{k}" for k in range(1, args.clones + 1)]
             specs = {}
             for k, robot in enumerate(robots, 1):
@@ -162,8 +200,8 @@ def main() -> None:
             probe_spec = {"publish": {"topic": "/probe", "kind": "probe", "hz": 20}, "subscribe": {},
                           "seconds": args.seconds, "settle": 6}
             with ThreadPoolExecutor(len(robots) + 1) as pool:
-                futures = {r: pool.submit(probe, client, r, specs[r]) for r in robots}
-                probe_sender = pool.submit(probe, client, "bot1", probe_spec)
+                futures = {r: pool.submit(probe, client, r, specs[r], distro) for r in robots}
+                probe_sender = pool.submit(probe, client, "bot1", probe_spec, distro)
                 out = {r: f.result() for r, f in futures.items()}
                 sent_probe = probe_sender.result()["sent"]
         finally:
@@ -176,16 +214,17 @@ def main() -> None:
     for k, robot in enumerate(robots, 1):
         src = f"bot{(k - 2) % args.clones + 1}"
         topic = f"/{src}/camera/image_raw"
-        streams[f"{robot}/{src}"] = stream_stats(out[src]["sent"], out[robot]["seen"][topic], warmup_s * 5)
+        streams[f"{robot}/{src}"] = stream_stats(out[src]["sent"], out[robot]["seen"][topic], warmup_s * 5, 5)
     result = {
         "benchmark": "relay",
+        "distro": distro,
         "when": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "kernel": platform.release()},
         "seconds": args.seconds,
         "clones_up_s": round(wall, 1),
         "latency": {
-            "direct": stream_stats(sent_probe, out["bot1"]["seen"]["/probe"], warmup_s * 20),
-            "relay": stream_stats(sent_probe, out["bot2"]["seen"]["/bot1/probe"], warmup_s * 20),
+            "direct": stream_stats(sent_probe, out["bot1"]["seen"]["/probe"], warmup_s * 20, 20),
+            "relay": stream_stats(sent_probe, out["bot2"]["seen"]["/bot1/probe"], warmup_s * 20, 20),
         },
         "throughput": {"clones": args.clones, "image": "320x240 rgb8", "hz": 5, "streams": streams},
     }
@@ -194,10 +233,11 @@ def main() -> None:
     t["p95_ms_worst"] = max(s["p95_ms"] or 0 for s in streams.values())
     t["p95_ms_median"] = statistics.median(s["p95_ms"] or 0 for s in streams.values())
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "relay.json").write_text(json.dumps(result, indent=2) + "\n")
-    plot(result, RESULTS / "relay.png")
-    print(json.dumps({"latency": result["latency"], "lost_total": t["lost_total"],
-                      "p95_ms_worst": t["p95_ms_worst"], "p95_ms_median": t["p95_ms_median"]}, indent=1))
+    stem = "relay" if distro == "noetic" else f"relay-{distro}"
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2) + "\n")
+    plot(result, RESULTS / f"{stem}.png")
+    return {"latency": result["latency"], "lost_total": t["lost_total"], "p95_ms_worst": t["p95_ms_worst"],
+            "p95_ms_median": t["p95_ms_median"]}
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ from __future__ import annotations
 import ipaddress
 
 from dataclasses import dataclass
+from functools import cached_property
 
 from .errors import InputError
 from .models.inventory import Inventory
@@ -24,6 +25,12 @@ class CloneAddresses:
     clone_vpn_ip: ipaddress.IPv4Address  # .1 of the subnet
     robot_vpn_ip: ipaddress.IPv4Address  # .2: the robot's fixed address
     common_ip: ipaddress.IPv4Address
+
+    @cached_property
+    def hosts_line(self) -> str:
+        """This clone's line in /etc/hosts of every other clone: made once per address plan, which
+        every clone's render shares."""
+        return f"{str(self.common_ip):<15} {self.clone_host}\n"
 
 
 def capacity(inv: Inventory) -> int:

@@ -18,8 +18,7 @@ from .errors import CcrpError
 from .fleet import Fleet, clone_view
 from .models.names import clone_host
 from .models.state import FleetState
-from .pki.store import RobotRevoked
-from .providers.base import CloneSpec, CloneState, Provider
+from .providers.base import CloneSpec, CloneState, Provider, cloud_init_clean
 
 Progress = Callable[[str], None]
 HEALTH_SCRIPT = (Path(__file__).parent / "agent" / "health.py").read_text
@@ -30,6 +29,18 @@ class StateWriter:
 
     def __init__(self, fleet: Fleet, state: FleetState) -> None:
         self.fleet, self.state, self.lock = fleet, state, threading.Lock()
+        # Clones that were up when the run began: they stay in each other's relay config while
+        # this run flips them to `creating` and back (see live()).
+        self.ready_before = {n for n, rec in state.robots.items() if rec.phase == "ready"}
+        # robot -> the relay.json this run found on (or pushed to) its clone: reshare() pushes
+        # only what differs from it, without asking the clone again.
+        self.relay_current: dict[str, str] = {}
+
+    def live(self) -> set[str]:
+        """Clones a relay config names as up during this run: those ready now and those ready when
+        it began (a reused clone is `creating` for a moment; dropping it from its partners'
+        configs then would make every no-op `fleet up` reconfigure sharing twice)."""
+        return self.ready_before | {n for n, rec in list(self.state.robots.items()) if rec.phase == "ready"}
 
     def update(self, robot: str, **fields) -> None:
         with self.lock:
@@ -121,28 +132,93 @@ def kill_session(provider: Provider, robot: str) -> None:
         raise CcrpError(f"cannot end the VPN session on {clone_host(robot)}: {out.strip()[-200:]}")
 
 
-# Waits inside the clone with a shell loop (cheap) instead of a python health probe per poll:
-# with many clones booting at once, the probes' own CPU was what slowed every boot down.
-WAIT_SERVING_SH = 'until [ -S "$0" ] && ss -Hltn "sport = :$1" | grep -q .; do sleep 0.2; done'
+# Whether a clone serves, in bash inside it (no python start per check: with many clones booting
+# at once, the probes' own CPU slowed every boot down). The VPN: ccrp-openvpn active (Type=notify:
+# OpenVPN said it is ready) and listening on its management socket. The master: an XML-RPC
+# getPid answered with code 1, over bash's /dev/tcp. A ROS 2 clone ($PORT is `ros2`) has no master:
+# there "master" means its ROS 2 environment works (ros2_graph.py check: the RMW loads and a node
+# starts, as the ros user in the robot's domain), asked once the VPN serves and then remembered
+# for this boot in /run (a python start with the ROS libraries is about a second of CPU).
+# Sets $vpn and $master (yes/no).
+SERVING_SH = r"""ros2_ok() {
+  [ -e /run/ccrp-ros2.ok ] && return 0
+  ( set -a; . /etc/ccrp/ros.env; set +a
+    logs=$(mktemp -d) && chown ros "$logs" || exit 1
+    ROS_LOG_DIR=$logs HOME=/var/lib/ros /usr/sbin/runuser -u ros -- "/opt/ros/$ROS_DISTRO/bin/python" \
+      /usr/local/lib/ccrp/ros2_graph.py check >/dev/null 2>&1
+    rc=$?; rm -rf "$logs"; exit $rc ) && touch /run/ccrp-ros2.ok
+}
+serving() {
+  vpn=no master=no
+  systemctl is-active --quiet ccrp-openvpn.service && [ -n "$(ss -Hxl src "$MGMT")" ] && vpn=yes
+  if [ "$PORT" = ros2 ]; then
+    [ $vpn = yes ] && ros2_ok && master=yes
+    [ $vpn = yes ] && [ $master = yes ]
+    return
+  fi
+  local body="<?xml version='1.0'?><methodCall><methodName>getPid</methodName><params><param><value><string>/ccrp_fleet_up</string></value></param></params></methodCall>"
+  local reply
+  reply=$({ printf 'POST / HTTP/1.0\r\nContent-Type: text/xml\r\nContent-Length: %d\r\n\r\n%s' "${#body}" "$body" >&0
+            timeout 3 cat; } 2>/dev/null <>"/dev/tcp/127.0.0.1/$PORT" | tr -d '\r\n')
+  case $reply in *'<methodResponse><params><param><value><array><data><value><int>1</int>'*) master=yes ;; esac
+  [ $vpn = yes ] && [ $master = yes ]
+}
+"""
+# Until the clone serves ($0 management socket, $1 master port).
+WAIT_SERVING_SH = SERVING_SH + """MGMT=$0 PORT=$1
+until [ -S "$MGMT" ] && serving; do sleep 0.2; done
+echo "vpn=$vpn master=$master"
+"""
+# A running clone in one round trip ($0 management socket, $1 master port, then files): cloud-init's
+# result of this boot (/run is a tmpfs), the sha256 of those files it holds, and whether it serves.
+PROBE_SH = SERVING_SH + """MGMT=$0 PORT=$1
+shift
+printf '== result\n'; cat /run/cloud-init/result.json 2>/dev/null
+printf '\n== digests\n'; [ $# -eq 0 ] || sha256sum "$@" 2>/dev/null
+serving; echo "== serving vpn=$vpn master=$master"
+"""
 
 
-def wait_serving(provider: Provider, robot: str, master_port: int, timeout: float = 60) -> dict:
-    """Until the VPN server runs and the ROS master answers inside the clone."""
+@dataclass
+class Probe:
+    booted: bool  # cloud-init finished this boot without errors
+    digests: dict[str, str]  # path -> sha256 of the probed files the clone holds
+    serving: bool  # VPN server up and the master answering
+
+
+def serving_port(inv) -> str:
+    """What SERVING_SH checks besides the VPN: the master's port, or `ros2` (no master)."""
+    return "ros2" if inv.ros.ros2 else str(inv.ros.master_port)
+
+
+def probe(provider: Provider, robot: str, master_port: int | str, files: list) -> Probe | None:
+    """What `fleet up` must know of a running clone, in one command: None when the probe could not
+    run (the caller then asks the long way)."""
     from .render.view import MGMT_SOCKET
 
-    from .retry import PollTimeout, poll
-
-    deadline = time.monotonic() + timeout
-    provider.exec(robot, ["sh", "-c", WAIT_SERVING_SH, MGMT_SOCKET, str(master_port)], timeout=timeout)
-
-    def serving() -> tuple[bool, dict]:
-        h = health(provider, robot)
-        return h["vpn"]["up"] and h["master"]["reachable"], h
-
     try:
-        return poll(serving, timeout=max(0.0, deadline - time.monotonic()), interval=0.5)
-    except PollTimeout as late:
-        raise CcrpError(f"clone {clone_host(robot)} is not serving after {timeout:.0f} s: {json.dumps(late.last)[:300]}") from None
+        rc, out = provider.exec(robot, ["bash", "-c", PROBE_SH, MGMT_SOCKET, str(master_port),
+                                        *(f.dest for f in files)], timeout=20)
+    except CcrpError:
+        return None
+    head, sep, rest = out.partition("== result\n")
+    result, sep2, rest = rest.partition("\n== digests\n")
+    digests, sep3, tail = rest.rpartition("== serving ")
+    if rc != 0 or not (sep and sep2 and sep3):
+        return None
+    have = {line.split()[1]: line.split()[0] for line in digests.splitlines() if len(line.split()) == 2}
+    return Probe(cloud_init_clean(result), have, tail.split() == ["vpn=yes", "master=yes"])
+
+
+def wait_serving(provider: Provider, robot: str, master_port: int | str, timeout: float = 60) -> None:
+    """Until the VPN server runs and the ROS master answers inside the clone (ROS 2: its
+    environment works, see SERVING_SH)."""
+    from .render.view import MGMT_SOCKET
+
+    rc, out = provider.exec(robot, ["bash", "-c", WAIT_SERVING_SH, MGMT_SOCKET, str(master_port)], timeout=timeout)
+    if rc != 0 or out.split()[-2:] != ["vpn=yes", "master=yes"]:
+        detail = json.dumps(health(provider, robot))[:300]  # the long way, for the message only
+        raise CcrpError(f"clone {clone_host(robot)} is not serving after {timeout:.0f} s: {detail}")
 
 
 def clone_user_data(view, provider: Provider, bare: bool) -> str:
@@ -155,24 +231,26 @@ def clone_user_data(view, provider: Provider, bare: bool) -> str:
 
 def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress) -> CloneResult:
     """Create or reuse the clone of `robot`, push its secrets, wait until it serves."""
+    from .api_manager import absent_config, api_manager_files, apply_api_manager
+    from .knowledge import absent_config as no_knowledge, apply_knowledge, knowledge_files
     from .render import bundles
     from .render.limits import fit_user_data
 
     t0 = time.monotonic()
     state = writer.state
     view = clone_view(fleet, state, robot)
-    # Clones are ensured in parallel threads and issue_robot is a read-modify-write of the PKI
-    # index: serialise it, or one thread's certificates vanish from the index.
-    with writer.lock:
-        try:
-            fleet.pki.issue_robot(robot, fleet.inventory.vpn.cert_days)
-        except RobotRevoked as revoked:
-            return _left_revoked(fleet, provider, writer, robot, revoked, progress)
-        fleet.pki.issue_relay(robot, str(view.addr.common_ip), fleet.inventory.vpn.cert_days)
+    # up() issued the certificates of every robot in one batch (PkiStore.issue_fleet), except a
+    # revoked robot's.
+    since = fleet.pki.revoked_since(robot)
+    if since is not None:
+        with writer.lock:
+            return _left_revoked(fleet, provider, writer, robot, fleet.pki.unenrolled(robot, since), progress)
     # A bare snapshot gets the recipe's packages from cloud-init at first boot.
     bare = bool(state.snapshot and state.snapshot.get("bare"))
     user_data = clone_user_data(view, provider, bare)
     fit_user_data(provider.kind, user_data)
+    # The API manager's config and key ([] when the robot has none: then its absence is checked).
+    api = api_manager_files(fleet.inventory, view.robot)
     image = snapshot_image(state)
     rec = state.robots[robot]
     writer.update(robot, phase="creating")
@@ -183,23 +261,45 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     )
     progress(f"[{robot}] clone {view.addr.clone_host}: starting from {image}")
     record = provider.run_instance(spec)
+    port = serving_port(fleet.inventory)
     try:
-        provider.wait_ready(robot, timeout=1200 if bare else 300)
         secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
         keys = [f for f in secrets if f.name != "crl.pem"]
         crl = [f for f in secrets if f.name == "crl.pem"]
         applied = applied_marker(keys)
-        have = remote_digests(provider, robot, [*secrets, applied])
+        relay = relay_config_file(fleet, state, robot, writer.live())
+        know = knowledge_files(fleet, state, robot, writer.live())  # [] when it shares no dataset
+        settings = [relay, autostop_file(fleet, view.robot), *know]
+        probed = [*secrets, applied, *settings, *(api or [absent_config()]), *(() if know else [no_knowledge()])]
+        # A clone that was running already: cloud-init's result, the digests of what ccrp put there
+        # and whether it serves, in one round trip. Anything not as it should be is then done the
+        # long way below, as for a new clone.
+        seen = None if record.created else probe(provider, robot, port, probed)
+        if seen is None or not seen.booted:
+            provider.wait_ready(robot, timeout=1200 if bare else 300)
+            seen = probe(provider, robot, port, probed)
+        have = seen.digests if seen is not None else remote_digests(provider, robot, probed)
+        # Settings before keys: a started clone's autostop agent counts idle time from when OpenVPN
+        # serves, so it must have the current setting by then (an old, shorter one powered the clone
+        # off while ccrp was still waiting for its master).
+        changed = [f for f in settings if not same(have, [f])]
+        if changed:
+            provider.push_files(robot, changed, restart=[])  # both agents re-read their file
+        pushed = False
         if not same(have, [*keys, applied]):
             prepare_secrets_dir(provider, robot)
             provider.push_files(robot, secrets, restart=["ccrp-openvpn.service", "ccrp-relay.service"])
             provider.push_files(robot, [applied])  # last: until it is there, the next run pushes again
+            pushed = True
         elif not same(have, crl):
             # Only the CRL changed (another robot was revoked): OpenVPN re-reads it, the robot's
             # live session stays.
             provider.push_files(robot, crl, restart=[])
-        wait_serving(provider, robot, fleet.inventory.ros.master_port)
-        push_relay_config(fleet, provider, state, robot)
+        if pushed or seen is None or not seen.serving:
+            wait_serving(provider, robot, port)
+        apply_api_manager(provider, robot, api, have)
+        apply_knowledge(provider, robot, know, have, restart=pushed)
+        writer.relay_current[robot] = relay.content + "".join(f.content for f in know)
     except BaseException:
         writer.update(robot, phase="failed", provider_id=record.provider_id)
         if record.created:
@@ -208,6 +308,8 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     endpoint = record.public_ip
     writer.update(
         robot, phase="ready", provider_id=record.provider_id, public_endpoint=endpoint,
+        # The snapshot's id (one image may carry several names): a reused clone keeps its own.
+        image=((state.snapshot or {}).get("id") or image) if record.created else rec.image,
         addresses={"public": endpoint or "", "common": str(view.addr.common_ip),
                    "vpn": str(view.addr.clone_vpn_ip), "robot_vpn": str(view.addr.robot_vpn_ip)},
     )
@@ -233,15 +335,32 @@ def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: 
     return CloneResult(robot, "revoked", revoked.message + f" ({revoked.hint})")
 
 
-def push_relay_config(fleet: Fleet, provider: Provider, state: FleetState, robot: str) -> bool:
-    """Give robot's clone its current relay.json; the agent picks it up without a restart.
-    Returns True when the file changed."""
+def relay_config_file(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None):
     from .render.bundles import BundleFile
     from .render.view import CCRP_ETC
     from .sharing import relay_config_text
 
-    files = [BundleFile("relay.json", relay_config_text(fleet, state, robot), 0o644, f"{CCRP_ETC}/relay.json")]
-    if files_current(provider, robot, files):
+    return BundleFile("relay.json", relay_config_text(fleet, state, robot, live), 0o644, f"{CCRP_ETC}/relay.json")
+
+
+def autostop_file(fleet: Fleet, robot):
+    """The clone's autostop setting (agent/autostop.py reads it at every check)."""
+    from .render.bundles import BundleFile
+    from .render.view import CCRP_ETC
+
+    text = json.dumps({"robot": robot.name, "idle": fleet.inventory.idle_of(robot)}) + "\n"
+    return BundleFile("autostop.json", text, 0o644, f"{CCRP_ETC}/autostop.json")
+
+
+def push_relay_config(fleet: Fleet, provider: Provider, state: FleetState, robot: str, known: str | None = None) -> bool:
+    """Give robot's clone its current relay.json (and knowledge.json where it shares a dataset);
+    the agents pick them up without a restart. `known` is what this run already found on (or
+    pushed to) the clone: when it is the same, the clone is not asked again. Returns True when a
+    file changed."""
+    from .knowledge import knowledge_files
+
+    files = [relay_config_file(fleet, state, robot), *knowledge_files(fleet, state, robot)]
+    if "".join(f.content for f in files) == known or files_current(provider, robot, files):
         return False
     provider.push_files(robot, files, restart=[])
     return True

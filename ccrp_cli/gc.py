@@ -56,9 +56,14 @@ def find_leaks(state: FleetState, owned: list[OwnedResource], snapshots: list[Sn
     return [r for r in owned if not known(r)]
 
 
-def collect(state: FleetState, provider, dry_run: bool, progress: Callable[[str], None] = lambda m: None) -> list[GcResult]:
+def collect(state: FleetState, provider, dry_run: bool, progress: Callable[[str], None] = lambda m: None,
+            keep: int = 2) -> list[GcResult]:
     """Find the fleet's leaks; unless dry_run, delete them (instances first: the rest may hang on them)."""
-    leaks = find_leaks(state, provider.list_owned(), provider.list_snapshots())
+    from .snapshots import surplus
+
+    snapshots = provider.list_snapshots()
+    extra = {s.id for s in surplus(state, snapshots, keep)}  # beyond retention: gc removes them too
+    leaks = find_leaks(state, provider.list_owned(), [s for s in snapshots if s.id not in extra])
     leaks.sort(key=lambda r: r.kind not in INSTANCE_KINDS)
     if dry_run:
         return [GcResult(r, "leak") for r in leaks]

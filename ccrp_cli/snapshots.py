@@ -50,7 +50,7 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     progress(f"building snapshot {tag} from {base}")
     labels = owner_labels(fleet.name, "snapshot") | {"ccrp-distro": inv.ros.distro, "ccrp-bare": str(bare).lower()}
     images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat), labels, progress,
-                             images.build_context(plat, progress))
+                             images.build_context(plat, progress, inv.ros.distro))
     record = provider.snapshot_record(client.images.get(tag))
     _use(fleet, record, bare)
     return record
@@ -185,6 +185,56 @@ def _terminate_builder(provider, progress: Progress, failing: bool) -> None:
             raise CcrpError(message, hint="`ccrp gc -i INVENTORY` removes it") from None
         # Keep the error that brought us here; this one is only reported.
         progress(f"warning: {message}; `ccrp gc -i INVENTORY` removes it")
+
+
+# -- retention -------------------------------------------------------------------------------------
+
+def in_use(state) -> dict[str, list[str]] | None:
+    """Snapshot (name or id) -> who uses it: "new clones" for the recorded one, and the robots
+    whose clone was created from it. None when a clone's snapshot is not known (a clone created
+    before ccrp recorded it): then nothing may be deleted."""
+    used: dict[str, list[str]] = {}
+    for key in ("image", "id"):
+        if (state.snapshot or {}).get(key):
+            used.setdefault(state.snapshot[key], []).append("new clones")
+    for robot, rec in sorted(state.robots.items()):
+        if rec.provider_id:
+            if not rec.image:
+                return None
+            used.setdefault(rec.image, []).append(robot)
+    return used
+
+
+def users(record: SnapshotRecord, used: dict[str, list[str]] | None) -> list[str]:
+    if used is None:
+        return ["(unknown)"]
+    return sorted({u for key in (record.id, record.name) for u in used.get(key, [])}, key=lambda u: (u != "new clones", u))
+
+
+def surplus(state, snapshots: list[SnapshotRecord], keep: int) -> list[SnapshotRecord]:
+    """What retention removes: beyond the `keep` newest, every snapshot no clone runs from and
+    new clones do not get."""
+    used = in_use(state)
+    if used is None:
+        return []
+    newest = sorted(snapshots, key=lambda s: s.created, reverse=True)
+    return [s for i, s in enumerate(newest) if i >= keep and not users(s, used)]
+
+
+def retain(fleet: Fleet, provider, progress: Progress) -> list[str]:
+    """Delete the snapshots retention does not keep (after a new one was recorded)."""
+    keep = fleet.inventory.snapshots.keep
+    state = fleet.store.load_state()
+    if in_use(state) is None:
+        progress("kept every snapshot: a clone's snapshot is not recorded (it predates retention); "
+                 "they are pruned once every clone was created by this version")
+        return []
+    removed = []
+    for record in surplus(state, provider.list_snapshots(), keep):
+        provider.delete_snapshot(record.id)
+        removed.append(record.name)
+        progress(f"removed snapshot {record.name} (snapshots.keep is {keep}; no clone runs from it)")
+    return removed
 
 
 def create(fleet: Fleet, provider, robot: str, use: bool) -> SnapshotRecord:

@@ -6,6 +6,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from urllib.parse import urlparse
 
+from .api_manager import api_manager_row
+from .knowledge import knowledge_row
 from .clones import health
 from .errors import CcrpError
 from .fleet import Fleet
@@ -65,30 +67,65 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             "clone": a.clone_host,
             "phase": state.robots[robot].phase if robot in state.robots else "planned",
             "status": rec.status if rec else "absent",
+            "state": rec.state.value if rec else "absent",  # ccrp's word for it, the same on every provider
             "public_ip": rec.public_ip if rec else None,
             "common_ip": str(a.common_ip),
             "vpn_subnet": str(a.vpn_subnet),
             "vpn_connected": False,
             "secrets": None,
             "robot_address": None,
+            "robot_rtt_ms": None,  # one ICMP echo from the clone to the robot through its tunnel
             "master_reachable": False,
+            # ROS 2 has no master: master_reachable then says whether the clone's graph answered.
+            "ros_distro": fleet.inventory.ros.distro,
             "robot_nodes": [],
+            "stale_nodes": [],
             "relay_running": False,
             "relay_peers": {},
             "revoked_at": revoked[robot].isoformat() if revoked.get(robot) else None,
+            "autostop_idle_s": fleet.inventory.idle_of(fleet.robot(state, robot)) or None,
+            "stopped_idle": None,
+            "unreachable": None,
+            "api_manager": api_manager_row(fleet.inventory, fleet.robot(state, robot), None),
+            "knowledge": knowledge_row(fleet, state, robot, None),
         }
+        if rec and rec.state is CloneState.STOPPED:
+            note = provider.stop_note(robot)
+            if note:  # its robot stayed away: the clone's autostop agent powered it off
+                row["status"], row["stopped_idle"] = "stopped (idle)", note
         if rec and rec.state is CloneState.RUNNING:
-            h = health(provider, robot)
-            client, row["robot_nodes"] = robot_link(h, robot)
+            try:
+                h = health(provider, robot)
+            except CcrpError as exc:
+                # Running to the cloud but not answering: booting, or shutting down (autostop, a
+                # poweroff). One such clone must not hide the others' status.
+                row["status"], row["unreachable"] = f"{rec.status} (unreachable)", exc.one_line()
+                return row
+            client, nodes = robot_link(h, robot)
             row["vpn_connected"] = client is not None
+            # The master keeps a node registered after its robot's session ended: without the
+            # session, it is a name on the master, not a robot that answers.
+            row["robot_nodes"], row["stale_nodes"] = (nodes, []) if client else ([], nodes)
             row["secrets"] = h.get("secrets")
             row["robot_address"] = client["real_address"] if client else None
+            row["robot_rtt_ms"] = client.get("rtt_ms") if client else None
             row["master_reachable"] = h["master"]["reachable"]
             row["relay_running"], row["relay_peers"] = relay_link(h, list(relay_config(fleet, state, robot)["peers"]))
+            row["api_manager"] = api_manager_row(fleet.inventory, fleet.robot(state, robot), h)
+            row["knowledge"] = knowledge_row(fleet, state, robot, h)
         return row
 
     robots = list(plan)
     if not robots:
         return []
-    with ThreadPoolExecutor(max_workers=min(8, len(robots))) as pool:
-        return list(pool.map(one, robots))
+    from . import watchdog
+
+    with ThreadPoolExecutor(max_workers=min(provider.max_parallel, len(robots)) + 1) as pool:
+        sims = pool.submit(watchdog.simulated, fleet, provider)
+        rows = list(pool.map(one, robots))
+        seen = sims.result()
+    for row in rows:
+        sim = seen.get(row["robot"]) or {}
+        row["watchdog"] = sim.get("watchdog") or watchdog.inferred(row)
+        row["power"] = sim.get("power")  # a simulated robot's stand-in power device (power.py); None: none ccrp reaches
+    return rows

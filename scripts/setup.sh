@@ -12,6 +12,7 @@ APT_PACKAGES=(
   python3-venv
   docker.io          # the local default backend (Docker Hub is not needed)
   mmdebstrap         # builds the base image from Debian packages
+  chromium chromium-driver  # the dashboard's browser test (headless, driven by selenium)
 )
 
 missing=()

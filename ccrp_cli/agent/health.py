@@ -1,10 +1,16 @@
 """Health of a clone, printed as one JSON object: the VPN (from OpenVPN's management socket) and
-the ROS master (XML-RPC). Run on the clone: `python3 health.py [kill <robot>]`. Stdlib only."""
+the ROS master (XML-RPC), or on a ROS 2 clone the graph as the clone sees it (ros2_graph.py, under
+the `master` key so that readers stay the same). Run on the clone: `python3 health.py [kill <robot>]`.
+Stdlib only."""
 
 import json
 import os
+import shutil
 import socket
+import struct
+import subprocess
 import sys
+import tempfile
 import time
 import xmlrpc.client
 
@@ -13,6 +19,36 @@ MGMT = "/run/ccrp-openvpn/mgmt.sock"
 # In memory on cloud clones: gone after a reboot until ccrp pushes them again.
 SERVER_KEY = "/etc/openvpn/server/ccrp/keys/server.key"
 MASTER = "http://127.0.0.1:11311"
+ROS_ENV = "/etc/ccrp/ros.env"
+GRAPH = "/usr/local/lib/ccrp/ros2_graph.py"
+
+
+def ros_env():
+    try:
+        with open(ROS_ENV) as fh:
+            return dict(line.strip().split("=", 1) for line in fh if "=" in line)
+    except OSError:
+        return {}
+
+
+def graph(env):
+    """ROS 2: the nodes the clone sees in its robot's domain (a remote one is the robot's, as
+    ros2:// URIs on the robot's name, which is how status finds a robot's nodes on a master)."""
+    python = f"/opt/ros/{env.get('ROS_DISTRO', '')}/bin/python"
+    logs = tempfile.mkdtemp(prefix="ccrp-graph-")
+    try:
+        shutil.chown(logs, "ros", "ros")
+        run_env = {"PATH": "/usr/bin:/bin", "HOME": "/var/lib/ros", "ROS_LOG_DIR": logs, **env}
+        proc = subprocess.run(["/usr/sbin/runuser", "-u", "ros", "--", python, GRAPH, "3"], env=run_env,
+                              capture_output=True, text=True, timeout=15)
+        data = json.loads(proc.stdout.strip().splitlines()[-1])
+    except (OSError, ValueError, IndexError, subprocess.TimeoutExpired) as exc:
+        return {"reachable": False, "error": str(exc)[-200:], "nodes": {}, "published_topics": []}
+    finally:
+        shutil.rmtree(logs, ignore_errors=True)
+    robot, me = env.get("CCRP_ROBOT", ""), socket.gethostname()
+    data["nodes"] = {n: f"ros2://{robot if where == 'remote' else me}/" for n, where in data["nodes"].items()}
+    return data
 
 
 def mgmt(command, until):
@@ -32,6 +68,30 @@ def mgmt(command, until):
     return data.decode(errors="replace")
 
 
+def echo_ms(ip, timeout=0.5):
+    """One ICMP echo to `ip` (the robot's VPN address, through the tunnel): the round trip in ms,
+    or None. A raw socket: this script runs as root, and the clone image has no ping."""
+    ident, seq, payload = os.getpid() & 0xFFFF, 1, b"ccrp-health"
+    head = struct.pack("!BBHHH", 8, 0, 0, ident, seq) + payload
+    head += b"\0" * (len(head) % 2)  # the checksum is over 16-bit words
+    total = sum(struct.unpack(f"!{len(head) // 2}H", head))
+    total = (total >> 16) + (total & 0xFFFF)
+    packet = struct.pack("!BBHHH", 8, 0, ~(total + (total >> 16)) & 0xFFFF, ident, seq) + payload
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_ICMP) as s:
+            t0 = time.monotonic()
+            s.sendto(packet, (ip, 0))
+            while (left := t0 + timeout - time.monotonic()) > 0:
+                s.settimeout(left)
+                data, src = s.recvfrom(2048)
+                at = (data[0] & 0x0F) * 4
+                if src[0] == ip and data[at] == 0 and struct.unpack("!HH", data[at + 4:at + 8]) == (ident, seq):
+                    return round((time.monotonic() - t0) * 1000, 2)
+    except OSError:  # socket.timeout included
+        pass
+    return None
+
+
 def vpn():
     try:
         text = mgmt("status 2", ("END",))
@@ -43,10 +103,15 @@ def vpn():
             f = line.split(",")
             clients.append({"cn": f[1], "real_address": f[2], "vpn_ip": f[3], "since": f[7] if len(f) > 7 else "",
                             "client_id": f[10] if len(f) > 10 else ""})
+    for c in clients:  # link quality: the round trip to the robot through its tunnel
+        c["rtt_ms"] = echo_ms(c["vpn_ip"]) if c["vpn_ip"] else None
     return {"up": True, "clients": clients}
 
 
 def master():
+    env = ros_env()
+    if env and "ROS_MASTER_URI" not in env:
+        return graph(env)
     try:
         proxy = xmlrpc.client.ServerProxy(MASTER)
         socket.setdefaulttimeout(3)
@@ -74,6 +139,28 @@ def relay():
     return data
 
 
+def service_report(config, status):
+    """A platform service's own report (written every second), or why there is none: not
+    configured (no pushed config), or not running (no report, or one over 10 s old)."""
+    if not os.path.exists(config):
+        return {"running": False, "configured": False}
+    try:
+        with open(status) as fh:
+            data = json.load(fh)
+    except (OSError, ValueError) as exc:
+        return {"running": False, "configured": True, "error": type(exc).__name__}
+    data["running"], data["configured"] = time.time() - data.get("time", 0) < 10, True
+    return data
+
+
+def knowledge():
+    return service_report("/etc/ccrp/knowledge.json", "/run/ccrp-knowledge/status.json")
+
+
+def api_manager():
+    return service_report("/etc/ccrp/api_manager.json", "/run/ccrp-api-manager/status.json")
+
+
 def main():
     if len(sys.argv) == 3 and sys.argv[1] == "kill":
         # `client-kill <id>` pushes a connection reset to the robot before dropping its instance,
@@ -88,7 +175,8 @@ def main():
             lines += [line for line in reply.splitlines() if line.startswith(("SUCCESS", "ERROR"))]
         print(json.dumps({"kill": lines}))
         return
-    print(json.dumps({"vpn": vpn(), "secrets": os.path.exists(SERVER_KEY), "master": master(), "relay": relay()}))
+    print(json.dumps({"vpn": vpn(), "secrets": os.path.exists(SERVER_KEY), "master": master(), "relay": relay(),
+                      "api_manager": api_manager(), "knowledge": knowledge()}))
 
 
 if __name__ == "__main__":

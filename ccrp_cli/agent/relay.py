@@ -1,11 +1,16 @@
 #!/usr/bin/python3
-"""ccrp relay agent: runs ON a clone (system python3 + rospy + zenoh, nothing from ccrp).
+"""ccrp relay agent: runs ON a clone (system python3 + zenoh + rospy, or on a ROS 2 clone rclpy
+from the distro's venv, which ros-run puts on the path; nothing from ccrp).
 
+ROS 1 (the environment names a master):
 Exports: subscribes to this clone's exported ROS topics as rospy.AnyMsg (raw bytes, any type,
 no generated code) and puts each message on Zenoh key ccrp/<fleet>/<robot>/<topic> with its
 type, md5sum, definition and a sequence number in the attachment.
 Imports: subscribes to the Zenoh keys of the topics this clone imports and republishes each as
 /<source><topic> with a message class made at run time from the type, md5sum and definition.
+
+ROS 2 (no master; docs/ros2.md): the same agent with relay_ros2.py beside it (rclpy): exports and
+imports carry serialized CDR with the type name and reliability/durability QoS.
 
 Peers are listed explicitly (no scouting) and reached over mutual TLS with certificates from the
 fleet's relay CA, each admitted by its certificate's CN (Zenoh access control). The config file is
@@ -23,9 +28,13 @@ import sys
 import threading
 import time
 
-import rosgraph
-import rospy
 import zenoh
+
+try:
+    import rosgraph
+    import rospy
+except ImportError:  # a ROS 2 clone: rclpy instead (relay_ros2.py)
+    rosgraph = rospy = None
 
 DEFAULT_CONFIG = "/etc/ccrp/relay.json"
 NOBODY = "no partner (ccrp)"  # relay certificates are named relay-<robot>-<n>
@@ -103,7 +112,7 @@ class Import:
     """One imported topic: Zenoh samples queued in order, republished by one thread."""
 
     def __init__(self, relay: "Relay", source: str, topic: str, local: str) -> None:
-        self.local, self.count, self.gaps, self.last_seq = local, 0, 0, 0
+        self.relay, self.local, self.count, self.gaps, self.last_seq = relay, local, 0, 0, 0
         self.pub = None
         self.queue: queue.Queue = queue.Queue(maxsize=1000)
         self.thread = threading.Thread(target=self.run, name=f"import {local}", daemon=True)
@@ -128,6 +137,11 @@ class Import:
         while self.pub.get_num_connections() < len(subs) and time.monotonic() < deadline:
             time.sleep(0.02)
 
+    def _publish(self, meta: dict, payload: bytes) -> None:
+        msg = self._publisher(meta).data_class()
+        msg._buff = payload
+        self.pub.publish(msg)
+
     def run(self) -> None:
         while True:
             sample = self.queue.get()
@@ -135,26 +149,39 @@ class Import:
                 return
             try:
                 meta = json.loads(sample.attachment.to_bytes())
-                msg = self._publisher(meta).data_class()
-                msg._buff = sample.payload.to_bytes()
+                self._publish(meta, sample.payload.to_bytes())
                 if self.last_seq and meta["s"] > self.last_seq + 1:
                     self.gaps += meta["s"] - self.last_seq - 1
                 self.last_seq = meta["s"]
-                self.pub.publish(msg)
                 self.count += 1
             except Exception as exc:  # noqa: BLE001 - one bad sample must not stop the topic
                 log(f"{self.local}: dropped a sample: {exc}")
+
+    def _close_pub(self) -> None:
+        self.pub.unregister()
 
     def close(self) -> None:
         self.sub.undeclare()
         self.queue.put(None)
         if self.pub is not None:
-            self.pub.unregister()
+            self._close_pub()
+
+
+class Ros1:
+    """The rospy side: one node per agent, callbacks on rospy's threads."""
+
+    Export, Import = Export, Import
+
+    def __init__(self) -> None:
+        rospy.init_node("ccrp_relay", anonymous=False, disable_signals=True)
+
+    def ok(self) -> bool:
+        return not rospy.is_shutdown()
 
 
 class Relay:
-    def __init__(self, cfg: dict) -> None:
-        self.cfg, self.session, self.endpoints = cfg, None, None
+    def __init__(self, cfg: dict, ros) -> None:
+        self.cfg, self.ros, self.session, self.endpoints = cfg, ros, None, None
         self.exports: dict[str, Export] = {}
         self.imports: dict[str, Import] = {}
         self.apply(cfg)
@@ -188,13 +215,19 @@ class Relay:
         for topic in set(self.exports) - want_exports:
             self.exports.pop(topic).close()
         for topic in sorted(want_exports - set(self.exports)):
-            self.exports[topic] = Export(self, topic)
+            self.exports[topic] = self.ros.Export(self, topic)
         for local in set(self.imports) - set(want_imports):
             self.imports.pop(local).close()
         for local in sorted(set(want_imports) - set(self.imports)):
             i = want_imports[local]
-            self.imports[local] = Import(self, i["source"], i["topic"], local)
+            self.imports[local] = self.ros.Import(self, i["source"], i["topic"], local)
         log(f"exports {sorted(self.exports)}; imports {sorted(self.imports)}; peers {sorted(cfg['peers'])}")
+
+    def poll(self) -> None:
+        """ROS 2: subscribe exported topics whose publishers appeared (or changed) since."""
+        for export in self.exports.values():
+            if hasattr(export, "poll"):
+                export.poll()
 
     def status(self) -> dict:
         connected = {str(z) for z in self.session.info.peers_zid()} if self.session else set()
@@ -227,11 +260,19 @@ def main() -> None:
     with open(path) as fh:
         cfg = json.load(fh)
     wait_for_files(cfg)
-    rospy.init_node("ccrp_relay", anonymous=False, disable_signals=True)
-    relay = Relay(cfg)
+    # A ROS 1 clone's environment names its master (ros.env); a ROS 2 clone's has none, and has
+    # relay_ros2.py beside this file (a bare cloud clone's user-data carries this one: kept small).
+    if os.environ.get("ROS_MASTER_URI"):
+        ros = Ros1()
+    else:
+        from relay_ros2 import Ros2
+
+        ros = Ros2()
+    relay = Relay(cfg, ros)
     log(f"{cfg['robot']}: listening on {cfg['listen']}")
-    while not rospy.is_shutdown():
+    while ros.ok():
         try:
+            relay.poll()
             if os.stat(path).st_mtime != mtime:
                 mtime = os.stat(path).st_mtime
                 with open(path) as fh:

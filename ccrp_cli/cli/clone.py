@@ -8,7 +8,7 @@ import typer
 
 from . import options, output
 
-app = typer.Typer(help="One robot's clone: create, delete, list, exec.", no_args_is_help=True, rich_markup_mode=None)
+app = typer.Typer(help="One robot's clone: create, start, stop, restart, delete, list, exec.", no_args_is_help=True, rich_markup_mode=None)
 
 
 
@@ -18,10 +18,45 @@ def create(inventory: options.Inventory, robot: options.Robot, as_json: options.
     from .. import reconcile
 
     fleet, provider = options.open_provider(inventory)
+    fleet.robot(fleet.store.load_state(), robot)  # an unknown robot is bad input, before any PKI is made
+    from ..actions import ensure_pki, ensure_snapshot
+
+    ensure_pki(fleet, output.info)
     with fleet.store.lock():
-        fleet.robot(fleet.store.load_state(), robot)
+        ensure_snapshot(fleet, provider, output.info)
         items = reconcile.up(fleet, provider, output.info, only=[robot])
     raise typer.Exit(output.results(items, as_json))
+
+
+@app.command()
+def start(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
+    """Start the robot's stopped clone (stopped by autostop or in the cloud's console): its disk is as it
+    was; ccrp pushes its keys again and waits until it serves. A running clone is left as it is."""
+    from ..actions import clone_start
+
+    fleet, provider = options.open_provider(inventory)
+    items = clone_start(fleet, provider, robot, output.info)
+    raise typer.Exit(output.results(items, as_json))
+
+
+@app.command()
+def stop(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
+    """Stop the robot's clone: it costs no compute while stopped, its disk and keys stay. `ccrp clone
+    start` (or the next `fleet up`) starts it again. Stopped already: left as it is."""
+    from ..actions import clone_stop
+
+    fleet, provider = options.open_provider(inventory)
+    raise typer.Exit(output.results(clone_stop(fleet, provider, robot, output.info), as_json))
+
+
+@app.command()
+def restart(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
+    """Stop the robot's clone and start it again, then wait until it serves: the cure for a clone
+    that no longer answers, since the provider stops it, not the clone itself."""
+    from ..actions import clone_restart
+
+    fleet, provider = options.open_provider(inventory)
+    raise typer.Exit(output.results(clone_restart(fleet, provider, robot, output.info), as_json))
 
 
 @app.command()

@@ -58,7 +58,11 @@ def up(inventory: options.Inventory, as_json: options.Json = False) -> None:
     from .. import reconcile
 
     fleet, provider = options.open_provider(inventory)
+    from ..actions import ensure_pki, ensure_snapshot
+
+    ensure_pki(fleet, output.info)
     with fleet.store.lock():
+        ensure_snapshot(fleet, provider, output.info)
         items = reconcile.up(fleet, provider, output.info)
     raise typer.Exit(output.results(items, as_json))
 
@@ -70,11 +74,10 @@ def scale(
     as_json: options.Json = False,
 ) -> None:
     """Grow or shrink the fleet to SIZE clones with template robots (inventory robots always stay)."""
-    from .. import reconcile
+    from ..actions import fleet_scale
 
     fleet, provider = options.open_provider(inventory)
-    with fleet.store.lock():
-        items = reconcile.scale(fleet, provider, size, output.info)
+    items = fleet_scale(fleet, provider, size, output.info)
     raise typer.Exit(output.results(items, as_json))
 
 

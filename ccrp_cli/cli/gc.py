@@ -28,7 +28,7 @@ def gc(
         raise CcrpError(f"no state for fleet {fleet.name!r} in {fleet.store.root}: everything would count as a leak",
                         hint="run where the fleet's state lives (CCRP_HOME), `ccrp gc --dry-run` to look, or `ccrp fleet down`")
     with fleet.store.lock():  # no `fleet up` may create clones while we decide what is a leak
-        results = collect(fleet.store.load_state(), provider, dry_run, output.info)
+        results = collect(fleet.store.load_state(), provider, dry_run, output.info, fleet.inventory.snapshots.keep)
     output.emit([r.as_dict() for r in results], as_json, ["KIND", "ID", "NAME", "ROBOT", "RESULT", "DETAIL"],
                 [(r.resource.kind, r.resource.id, r.resource.name, r.resource.robot, r.action, r.detail) for r in results])
     if not as_json:

@@ -9,7 +9,7 @@ import typer
 
 from .. import __version__
 from ..errors import BAD_INPUT, CcrpError
-from . import clone, doctor, fleet, gc, render, robot, snapshot, status, topics, vpn
+from . import bench, clone, dashboard, doctor, fleet, gc, init, knowledge, render, robot, snapshot, status, topics, vpn
 
 app = typer.Typer(
     name="ccrp",
@@ -26,10 +26,14 @@ app.add_typer(robot.app, name="robot")
 app.add_typer(vpn.app, name="vpn")
 app.add_typer(snapshot.app, name="snapshot")
 app.add_typer(render.app, name="render")
+app.add_typer(bench.app, name="bench")
+app.add_typer(knowledge.app, name="knowledge")
+app.command("init")(init.init)
 app.command("status")(status.status)
 app.command("gc")(gc.gc)
 app.command("doctor")(doctor.doctor)
 app.command("topics")(topics.topics)
+app.command("dashboard")(dashboard.dashboard)
 
 
 def _version(value: bool) -> None:

@@ -7,9 +7,28 @@ from typing import Annotated
 
 import typer
 
+DEFAULT_INVENTORY = "ccrp.yaml"
+_NOT_FOUND = Path()
+
+
+def find_inventory() -> Path:
+    """Without -i or CCRP_INVENTORY: ./ccrp.yaml, else the nearest one in a parent directory (as
+    git finds its repository). Says on stderr which file it took."""
+    here = Path.cwd()
+    for directory in (here, *here.parents):
+        candidate = directory / DEFAULT_INVENTORY
+        if candidate.is_file():
+            from . import output
+
+            output.info(f"using inventory {candidate.relative_to(here) if directory == here else candidate}")
+            return candidate
+    return _NOT_FOUND
+
+
 Inventory = Annotated[
     Path,
-    typer.Option("--inventory", "-i", envvar="CCRP_INVENTORY", help="Fleet inventory YAML.", show_default=False),
+    typer.Option("--inventory", "-i", envvar="CCRP_INVENTORY", default_factory=find_inventory, show_default=False,
+                 help=f"Fleet inventory YAML (default: ./{DEFAULT_INVENTORY} or the nearest one above)."),
 ]
 Robot = Annotated[str, typer.Option("--robot", "-r", help="Robot name (its clone is cri-<robot>).")]
 Json = Annotated[bool, typer.Option("--json", help="JSON on stdout (logs stay on stderr).")]
@@ -34,9 +53,13 @@ def cloud_name(value: str | None) -> str | None:
 def open_fleet(inventory: Path):
     """The fleet; its store names this command in the fleet lock, and says on stderr when it
     waits for another run's lock."""
+    from ..errors import InputError
     from ..fleet import Fleet
     from . import output
 
+    if inventory == _NOT_FOUND:
+        raise InputError(f"no inventory: no -i, no CCRP_INVENTORY, and no {DEFAULT_INVENTORY} here or in a parent directory",
+                         hint="write one with `ccrp init`, or pass -i FILE (examples in inventories/)")
     fleet = Fleet.open(inventory)
     fleet.store.command = command_name()
     fleet.store.on_wait = output.info

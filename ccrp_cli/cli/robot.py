@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Annotated
 
@@ -32,50 +31,120 @@ def bundle(
 @app.command()
 def sim(
     inventory: options.Inventory,
-    robot: options.Robot,
+    robot: Annotated[str | None, typer.Option("--robot", "-r", help="Robot name (with --stop and no --robot: every simulated robot of the fleet).")] = None,
     stop: Annotated[bool, typer.Option("--stop", help="Stop and remove the simulated robot.")] = False,
     wait: Annotated[float, typer.Option("--wait", help="Seconds to wait until the robot's VPN is up and its node is on its clone's master (0: don't wait).")] = 0,
     network: Annotated[str | None, typer.Option("--network", callback=options.cloud_name, help="Docker network of this host the robot runs on (cloud fleets; default `bridge`). Docker fleets: always <fleet>-public.")] = None,
+    link: Annotated[str | None, typer.Option("--link", help="Emulate the path to the clone: eu (50 ms round trip), us (180 ms), DELAY_MS[/JITTER_MS[/LOSS_PCT]], or none. On a running robot only the link changes.")] = None,
     as_json: options.Json = False,
 ) -> None:
     """Run a simulated robot (a container on this host) with exactly its edge bundle; it dials its
     clone over the public network as a real robot would."""
-    from ..errors import InputError
-    from ..providers import Ability, get_provider, info
-    from ..providers.docker import robots as sims
-    from ..providers.docker.host import DockerHost
-    from ..render.templates import static
-    from ..robots import edge_files
+    from ..simulated import Sims, parse_link
 
+    if robot is None and not stop:
+        raise typer.BadParameter("--robot is required (only --stop works on every simulated robot at once)", param_hint="'--robot'")
+    shaped = parse_link(link) if link is not None else None  # bad --link: exit 2 before anything runs
     fleet = options.open_fleet(inventory)
-    kind = fleet.inventory.provider.kind
-    own_network = Ability.ROBOT_SIM in info(kind).abilities  # the Docker fleet's own public network
-    if own_network and network:
-        raise InputError("--network is for cloud fleets", hint="simulated robots of a Docker fleet sit on <fleet>-public")
-    state = fleet.store.load_state()
-    fleet.robot(state, robot)
-    host = get_provider(fleet.inventory) if own_network else DockerHost(fleet.name)
+    sims = Sims(fleet)
+    if stop and robot is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        names = sims.names()
+        with ThreadPoolExecutor(max_workers=8) as pool:  # each shuts down for a second or two
+            list(pool.map(sims.stop, names))
+        output.info(f"removed {len(names)} simulated robot(s) of fleet {fleet.name!r}" + (f": {', '.join(names)}" if names else ""))
+        return
+    fleet.robot(fleet.store.load_state(), robot)
     if stop:
-        removed = sims.stop(host, robot)
+        removed = sims.stop(robot)
         output.info(f"simulated robot {robot!r} {'removed' if removed else 'was not running'}")
         return
-    from ..clones import snapshot_image
-
-    files, endpoint = edge_files(fleet, robot)
-    if own_network:
-        image, net = snapshot_image(state), host.public_net
+    if link is not None and sims.running(robot):
+        sims.set_link(robot, shaped)
+        output.info(f"simulated robot {robot!r}: link {shaped or 'removed'}")
+        result = {"robot": robot, "link": str(shaped) if shaped else None}
     else:
-        image, net = sims.sim_image(host, fleet.inventory.ros.distro, output.info), network or "bridge"
-    t0 = time.monotonic()
-    cid = sims.start(host, robot, image, files, static("edge/ccrp-demo-node"), net)
-    output.info(f"simulated robot {robot!r} ({cid}) installed its bundle and dials {endpoint}")
-    result = {"robot": robot, "container": cid, "endpoint": endpoint, "network": net}
-    if wait > 0:
-        from ..status import wait_connected
-
-        clone_side = host if own_network else get_provider(fleet.inventory)
-        result |= wait_connected(clone_side, robot, wait)
-        result["seconds"] = round(time.monotonic() - t0, 2)  # from container start to node registered
-        output.info(f"robot {robot!r} connected in {result['seconds']:.1f} s; nodes on its clone: {', '.join(result['nodes'])}")
+        result = sims.start(robot, network, wait, output.info)
+        if shaped is not None:
+            sims.set_link(robot, shaped)
+            output.info(f"simulated robot {robot!r}: link {shaped}")
+        result["link"] = str(shaped) if shaped else None
     if as_json:
         output.emit_json(result)
+
+
+@app.command()
+def teleop(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    linear: Annotated[float, typer.Option("--linear", help="Forward velocity, m/s (geometry_msgs/Twist linear.x).")] = 0.0,
+    angular: Annotated[float, typer.Option("--angular", help="Turn rate, rad/s (angular.z).")] = 0.0,
+    topic: Annotated[str, typer.Option("--topic", help="The robot's velocity topic on its clone's master.")] = "cmd_vel",
+    timeout: Annotated[float, typer.Option("--timeout", min=0.5, max=60, help="Seconds to wait for the robot.")] = 5.0,
+    as_json: options.Json = False,
+) -> None:
+    """Send one velocity command to the robot through its clone (published on the clone's master,
+    as an operator's node there would) and report its latency: clone publish -> robot receipt,
+    and the round trip to the robot's acknowledgement on <topic>/ack (docs/dashboard.md)."""
+    from ..actions import robot_teleop
+    from ..evaluation import check_command
+    from ..providers import get_provider
+
+    check_command(linear, angular, topic)  # bad input: exit 2 before the fleet is opened
+    fleet = options.open_fleet(inventory)
+    r = robot_teleop(fleet, get_provider(fleet.inventory), robot, linear, angular, topic, timeout)
+    ms = lambda v: "-" if v is None else f"{v:g}"  # noqa: E731
+    output.emit(r, as_json, ["ROBOT", "TOPIC", "LINEAR", "ANGULAR", "ACKNOWLEDGED", "ONE WAY MS", "ROUND TRIP MS", "REQUEST MS"],
+                [(r["robot"], r["topic"], f"{r['linear']:g}", f"{r['angular']:g}", "yes" if r["acknowledged"] else "no (robot sends no ack)",
+                  ms(r["one_way_ms"]), ms(r["round_trip_ms"]), ms(r["request_ms"]))])
+
+
+@app.command()
+def power(
+    action: Annotated[str, typer.Argument(help="on, off, or status.", metavar="on|off|status")],
+    inventory: options.Inventory,
+    robot: options.Robot,
+    timeout: Annotated[float, typer.Option("--timeout", min=1, max=300, help="Seconds to wait for the device's report.")] = 30.0,
+    as_json: options.Json = False,
+) -> None:
+    """Switch the robot's power through its power device (apart from the robot's computer, reporting
+    every 3 s) and wait until it reports the robot off or running. Simulated robots have a stand-in
+    device; a real robot's device is not reachable by ccrp yet (docs/dashboard.md, Robot power)."""
+    from ..actions import robot_power
+    from ..errors import InputError
+    from ..power import ACTIONS
+
+    if action not in ACTIONS:
+        raise InputError(f"robot power {action[:20]!r}: choose on, off or status", hint="ccrp robot power on --robot R")
+    fleet = options.open_fleet(inventory)
+    r = robot_power(fleet, robot, action, output.info, timeout)
+    output.emit(r, as_json, ["ROBOT", "POWER", "ROBOT STATE", "REPORTED AT", "SECONDS", "DEVICE"],
+                [(r["robot"], r["power"], r["robot_state"], r["reported_at"], f"{r['seconds']:g}", r["device"])])
+
+
+@app.command()
+def camera(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    out: Annotated[Path, typer.Option("--out", "-o", help="The JPEG file to write.")],
+    topic: Annotated[str, typer.Option("--topic", help="The robot's camera topic on its clone's master (sensor_msgs/Image).")] = "/camera/image_raw",
+    timeout: Annotated[float, typer.Option("--timeout", min=0.5, max=60, help="Seconds to wait for a frame.")] = 3.0,
+    as_json: options.Json = False,
+) -> None:
+    """Write the latest frame of the robot's camera, as its clone sees it, to a JPEG file (a ROS node
+    on the clone waits for one frame and encodes it; the dashboard's camera view; docs/dashboard.md)."""
+    from ..camera import check_topic, latest_frame
+    from ..errors import cannot_write
+    from ..providers import get_provider
+
+    check_topic(topic)  # bad input: exit 2 before the fleet is opened
+    fleet = options.open_fleet(inventory)
+    frame = latest_frame(fleet, get_provider(fleet.inventory), robot, topic, timeout)
+    with cannot_write(out):
+        out.write_bytes(frame.jpeg)
+    r = {**frame.public(), "out": str(out)}
+    ms = lambda v: "-" if v is None else f"{v:g}"  # noqa: E731
+    output.emit(r, as_json, ["ROBOT", "TOPIC", "SIZE", "ENCODING", "SEQ", "AGE MS", "READ MS", "BYTES", "OUT"],
+                [(r["robot"], r["topic"], f"{r['width']}x{r['height']}", r["encoding"], r["seq"], ms(r["age_ms"]),
+                  ms(r["read_ms"]), r["bytes"], r["out"])])

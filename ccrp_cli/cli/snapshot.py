@@ -39,6 +39,7 @@ def build(
         from .. import snapshots
 
         record = snapshots.build(fleet, provider, output.info, bare=bare)
+        snapshots.retain(fleet, provider, output.info)
     output.info(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
     _show([record], as_json)
 
@@ -58,6 +59,7 @@ def bake(
         from .. import snapshots
 
         record = snapshots.bake(fleet, provider, output.info, base_image=base_image, timeout=timeout)
+        snapshots.retain(fleet, provider, output.info)
     output.info(f"snapshot {record.name} ({record.id}) recorded: new clones of fleet {fleet.name!r} start from it")
     _show([record], as_json)
 
@@ -80,9 +82,15 @@ def create(
 
 @app.command("list")
 def list_(inventory: options.Inventory, as_json: options.Json = False) -> None:
-    """List the fleet's snapshots."""
+    """List the fleet's snapshots, and who uses each (new clones, clones created from it)."""
+    from ..snapshots import in_use, users
+
     fleet, provider = options.open_provider(inventory)
-    _show(provider.list_snapshots(), as_json)
+    used = in_use(fleet.store.load_state())
+    data = [r.model_dump() | {"in_use": users(r, used)} for r in provider.list_snapshots()]
+    output.emit(data, as_json, [*COLUMNS, "IN USE"],
+                [(r["id"], r["name"], r["created"], r["source"], r["size_mb"], ", ".join(r["in_use"]) or "-") for r in data],
+                title=f"snapshots of fleet {fleet.name!r} (snapshots.keep: {fleet.inventory.snapshots.keep})")
 
 
 @app.command()

@@ -6,26 +6,54 @@ from . import options, output
 
 
 def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
-    """Per robot: clone state, addresses, VPN connected, master reachable, robot nodes on its master."""
+    """Per robot: clone state, addresses, VPN connected, master reachable, robot nodes on its master,
+    the robot's watchdog (connected / brainless); then the fleet's alerts (clone down, robot
+    brainless, certificate or CRL near expiry...), as the dashboard shows them."""
+    from ..alerts import fleet_alerts
     from ..providers import get_provider
     from ..status import fleet_status
+    from ..watchdog import cell as watchdog_cell
+    from ..watchdog import power_cell
 
     fleet = options.open_fleet(inventory)
     rows = fleet_status(fleet, get_provider(fleet.inventory))
+    alerts = fleet_alerts(fleet, rows)
+    for r in rows:  # --json: each row with its alerts and the fleet's own (CRL, CAs), which touch every robot
+        r["alerts"] = [a for a in alerts if a["robot"] in (None, r["robot"])]
     yes = lambda b: "yes" if b else "no"  # noqa: E731
+    # The API manager's column only when some robot has one (docs/services.md).
+    api = any(r.get("api_manager") for r in rows)
+    know = any(r.get("knowledge") for r in rows)  # where services.knowledge shares a dataset
+    power = any(r.get("power") for r in rows)  # a power device ccrp reaches (simulated robots'): docs/dashboard.md
     output.emit(
         rows, as_json,
-        ["ROBOT", "CLONE", "STATE", "PUBLIC IP", "COMMON IP", "VPN", "MASTER", "ROBOT NODES", "RELAY PEERS"],
+        # ROS 2 has no master: there the column says whether the clone's ROS 2 graph answered.
+        ["ROBOT", "CLONE", "STATE", "PUBLIC IP", "COMMON IP", "VPN", "GRAPH" if fleet.inventory.ros.ros2 else "MASTER",
+         "ROBOT NODES", "RELAY PEERS", "WATCHDOG"]
+        + (["POWER"] if power else []) + (["API MANAGER"] if api else []) + (["KNOWLEDGE"] if know else []),
         [(r["robot"], r["clone"], r["status"], r["public_ip"], r["common_ip"],
           vpn_cell(r), yes(r["master_reachable"]),
-          ", ".join(r["robot_nodes"]), relay_peers(r["relay_peers"], r["relay_running"])) for r in rows],
+          nodes_cell(r), relay_peers(r["relay_peers"], r["relay_running"]), watchdog_cell(r.get("watchdog")))
+         + ((power_cell(r.get("power")),) if power else ())
+         + ((api_cell(r.get("api_manager")),) if api else ())
+         + ((knowledge_cell(r.get("knowledge")),) if know else ()) for r in rows],
     )
+    if alerts and not as_json:
+        output.table(["LEVEL", "ROBOT", "ALERT"], [(a["level"], a["robot"] or "(fleet)", a["text"]) for a in alerts],
+                     title=f"\n{len(alerts)} alert(s)")
+
+
+def nodes_cell(row: dict) -> str:
+    if row["stale_nodes"]:
+        return f"(stale, robot not connected: {', '.join(row['stale_nodes'])})"
+    return ", ".join(row["robot_nodes"])
 
 
 def vpn_cell(row: dict) -> str:
     revoked = row.get("revoked_at")
     if row["vpn_connected"]:
-        return f"connected {row['robot_address']}" + (" (REVOKED: ending; if it stays, run vpn revoke again)" if revoked else "")
+        rtt = f", rtt {row['robot_rtt_ms']:.1f} ms" if row.get("robot_rtt_ms") is not None else ""
+        return f"connected {row['robot_address']}{rtt}" + (" (REVOKED: ending; if it stays, run vpn revoke again)" if revoked else "")
     if revoked:
         return f"revoked {revoked[:10]}"
     # A rebooted cloud clone: its keys lived in memory (docs/security.md).
@@ -41,3 +69,25 @@ def relay_peers(peers: dict[str, bool], running: bool = True) -> str:
     if not running:
         return f"0/{len(peers)} (relay not running)"
     return f"{len(peers) - len(down)}/{len(peers)}" + (f" (down: {', '.join(down)})" if down else "")
+
+
+def knowledge_cell(k: dict | None) -> str:
+    """"faces 3, peers 2/2", or why the agent does not run."""
+    if k is None:
+        return "-"
+    if not k["running"]:
+        return "not running"
+    sets = ", ".join(f"{ds} {d['items']}" for ds, d in sorted(k["datasets"].items()))
+    up = sum(k["peers"].values())
+    down = sorted(p for p, ok in k["peers"].items() if not ok)
+    return f"{sets}, peers {up}/{len(k['peers'])}" + (f" (down: {', '.join(down)})" if down else "")
+
+
+def api_cell(api: dict | None) -> str:
+    """"opencv: 12 calls, 0 errors, last 38.9 ms", or why it does not run."""
+    if api is None:
+        return "-"
+    if not api["running"]:
+        return f"{api['backend']}: not running"
+    last = f", last {api['last_latency_ms']} ms" if api.get("last_latency_ms") is not None else ""
+    return f"{api['backend']}: {api['calls']} calls, {api['errors']} errors{last}"

@@ -64,6 +64,10 @@ def issue_cert(
 
     Also the one way back in for a revoked robot (with a new password and tls-crypt key)."""
     fleet = options.open_fleet(inventory)
+    fleet.robot(fleet.store.load_state(), robot)
+    from ..actions import ensure_pki
+
+    ensure_pki(fleet, output.info)
     records = _ops().issue(fleet, robot, renew, _provider(fleet) if renew else None, output.info)
     if not as_json:
         for r in records:
@@ -81,8 +85,10 @@ def revoke(
     as_json: options.Json = False,
 ) -> None:
     """Revoke the robot's certificates: its live session ends and every running clone gets the CRL."""
+    from ..actions import vpn_revoke
+
     fleet = options.open_fleet(inventory)
-    records = _ops().revoke(fleet, robot, cert.value, _provider(fleet), output.info)
+    records = vpn_revoke(fleet, _provider(fleet), robot, output.info, cert.value)
     if not as_json:
         output.info(f"revoked {len(records)} certificate(s) of robot {robot!r}; CRL re-issued")
     output.emit(records, as_json, CERT_COLUMNS, _rows(records))

@@ -8,11 +8,109 @@ from typing import Annotated, Literal, Union
 from pydantic import Field, field_validator, model_validator
 
 from ..providers import REGISTRY
+from ..errors import shown
 from .names import Name, Topic
 from .strict import Strict
-from .values import CloudName, Port, StrictInt
+from .values import CloudName, Duration, Port, StrictInt
 
 RobotType = Literal["nao", "turtlebot", "generic"]
+
+
+class Autostop(Strict):
+    """A clone whose robot has not been connected for `idle` powers itself off (stopped, not
+    deleted); `ccrp clone start` or `fleet up` starts it again. `idle: never` turns it off."""
+
+    idle: Duration
+
+    @field_validator("idle")
+    @classmethod
+    def _in_range(cls, idle: int) -> int:
+        if idle and not 30 <= idle <= 30 * 86400:
+            raise ValueError("idle must be between 30s and 30d, or never")
+        return idle
+
+
+# A backend of the API manager: a built-in one (opencv, face-recognition, google-vision) or the
+# name of a plugin's entry point in the `ccrp.api_backends` group, installed on the clone.
+BACKEND_PATTERN = r"^[a-z][a-z0-9_.-]{0,39}$"
+BUILTIN_BACKENDS = ("opencv", "face-recognition", "google-vision")
+# A plugin's options: flat scalars only (they are pushed as JSON and passed to the plugin as is).
+OptionValue = Union[Annotated[str, Field(max_length=500)], bool, StrictInt, float]
+
+
+class GoogleVision(Strict):
+    """The `google-vision` backend: the official google-cloud-vision client (REST transport)."""
+
+    # host[:port], or http(s)://host[:port] (tests point it at a local endpoint).
+    endpoint: Annotated[str, Field(pattern=r"^(https?://)?[A-Za-z0-9.-]{1,253}(:[0-9]{1,5})?$")] = "vision.googleapis.com"
+    # A service-account key file on the operator's machine. `fleet up` pushes it to the clone's
+    # secrets (never user-data); without it the client finds no credentials and every call fails.
+    credentials: Annotated[str, Field(min_length=1, max_length=4096)] | None = None
+    # Per call, seconds; then the call counts as an error and is retried with backoff.
+    timeout: Annotated[float, Field(strict=True, gt=0, le=60)] = 5.0
+
+
+class ApiManager(Strict):
+    """The clone's API manager (docs/services.md): subscribes to `input` (sensor_msgs/Image), at most
+    `rate` images a second are sent to `backend`, matches under `min_confidence` are dropped and the
+    best one is published on `output` as JSON in a std_msgs/String."""
+
+    enabled: bool = True
+    input: Topic = "/camera/image_raw"
+    output: Topic = "/api_manager/result"
+    backend: Annotated[str, Field(pattern=BACKEND_PATTERN)] = "opencv"
+    rate: Annotated[float, Field(gt=0, le=30)] = 1.0  # Hz
+    min_confidence: Annotated[float, Field(ge=0, le=1)] = 0.5
+    google_vision: GoogleVision = GoogleVision()
+    options: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]{0,39}$")], OptionValue] = {}
+
+    @field_validator("rate", "min_confidence", mode="before")
+    @classmethod
+    def _number(cls, value: object) -> object:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{shown(value)} is not a number")
+        return value
+
+    @model_validator(mode="after")
+    def _loop_free(self) -> "ApiManager":
+        if self.input == self.output:
+            raise ValueError(f"api_manager input and output are the same topic {self.input}")
+        return self
+
+
+# A dataset's name: a directory on every clone that shares it and a Zenoh key chunk.
+DATASET_PATTERN = r"^[a-z][a-z0-9_-]{0,39}$"
+
+
+class Dataset(Strict):
+    # The robots whose clones share the dataset: named robots of the inventory, or `all` (every
+    # robot of the fleet, template robots that `fleet scale` adds too).
+    robots: Literal["all"] | Annotated[list[Name], Field(min_length=1, max_length=1000)]
+
+
+class Knowledge(Strict):
+    """Datasets kept the same on the clones that share them (docs/services.md, Knowledge sync):
+    items sent to the partners when added, and every `reconcile` a pull of their indexes."""
+
+    datasets: dict[Annotated[str, Field(pattern=DATASET_PATTERN)], Dataset] = {}
+    reconcile: Duration = 300
+    # The knowledge agents' own Zenoh listener on the common network (the relay has relay_port).
+    port: Port = 7448
+
+    @field_validator("reconcile")
+    @classmethod
+    def _reconcile_range(cls, seconds: int) -> int:
+        if not 5 <= seconds <= 86400:
+            raise ValueError("reconcile must be between 5s and 1d")
+        return seconds
+
+
+class Services(Strict):
+    """Platform services on the clone (docs/services.md)."""
+
+    api_manager: ApiManager | None = None
+    # Fleet-wide only: a dataset names the robots that share it.
+    knowledge: Knowledge | None = None
 
 
 class Robot(Strict):
@@ -25,6 +123,10 @@ class Robot(Strict):
     # Per-robot provider overrides (instance size, zone).
     instance_type: CloudName | None = None
     zone: CloudName | None = None
+    # Replaces the fleet's `autostop` for this robot's clone.
+    autostop: Autostop | None = None
+    # Each service given here replaces the fleet's setting of it for this robot's clone.
+    services: Services = Services()
 
 
 class RobotTemplate(Strict):
@@ -35,12 +137,22 @@ class RobotTemplate(Strict):
     exports: list[Topic] = []
     imports: dict[Name, list[Topic]] = {}
     max: Annotated[StrictInt, Field(ge=1, le=1000)] = 50
+    autostop: Autostop | None = None
+
+
+# ROS 2 distros ccrp runs (docs/ros2.md): no master; discovery confined to the robot's tunnel.
+ROS2_DISTROS = ("jazzy",)
 
 
 class RosSettings(Strict):
-    # ROS 1 Noetic is the first target (snapshots/noetic.yaml); ROS 2 distros come later.
-    distro: Literal["noetic"] = "noetic"
-    master_port: Port = 11311
+    # One distro for the whole fleet, robots and clones alike (snapshots/<distro>.yaml): ROS 1
+    # Noetic, or ROS 2 Jazzy from the ros-jazzy-* wheels.
+    distro: Literal["noetic", "jazzy"] = "noetic"
+    master_port: Port = 11311  # ROS 1 only
+
+    @property
+    def ros2(self) -> bool:
+        return self.distro in ROS2_DISTROS
 
 
 class VpnSettings(Strict):
@@ -90,6 +202,11 @@ class Sharing(Strict):
 Provider = Annotated[Union[tuple(i.settings for i in REGISTRY.values())], Field(discriminator="kind")]  # type: ignore[valid-type]
 
 
+class SnapshotSettings(Strict):
+    # `snapshot build`/`bake` keep this many of the newest snapshots, and any a clone runs from.
+    keep: Annotated[int, Field(strict=True, ge=1, le=100)] = 2
+
+
 class Inventory(Strict):
     fleet: Name
     provider: Provider
@@ -99,6 +216,41 @@ class Inventory(Strict):
     sharing: Sharing = Sharing()
     robots: list[Robot] = []
     template: RobotTemplate | None = None
+    snapshots: SnapshotSettings = SnapshotSettings()
+    # Fleet-wide; a robot's (or the template's) own `autostop` replaces it. Off when not given.
+    autostop: Autostop | None = None
+    # Fleet-wide; a robot's own `services.<name>` replaces the fleet's.
+    services: Services = Services()
+
+    def api_manager_of(self, robot: Robot) -> ApiManager | None:
+        """The robot's API manager setting (its own, else the fleet's); None when off."""
+        setting = robot.services.api_manager or self.services.api_manager
+        return setting if setting is not None and setting.enabled else None
+
+    def datasets_of(self, robot: str, members: list[str] | None = None) -> dict[str, list[str]]:
+        """The datasets robot's clone shares: name -> the robots sharing it among `members` (the
+        fleet's robots; by default those the inventory names). A dataset with no other member is
+        left out: there is nobody to share it with."""
+        k = self.services.knowledge
+        if k is None:
+            return {}
+        names = [r.name for r in self.robots] if members is None else list(members)
+        out = {}
+        for ds, d in sorted(k.datasets.items()):
+            group = names if d.robots == "all" else [n for n in names if n in d.robots]
+            if robot in group and len(group) > 1:
+                out[ds] = group
+        return out
+
+    def may_share_knowledge(self, robot: str) -> bool:
+        """Whether robot's clone may take part in knowledge sync (its firewall opens the port)."""
+        k = self.services.knowledge
+        return k is not None and any(d.robots == "all" or robot in d.robots for d in k.datasets.values())
+
+    def idle_of(self, robot: Robot) -> int:
+        """Seconds of absence after which the robot's clone stops itself; 0: never."""
+        setting = robot.autostop or self.autostop
+        return setting.idle if setting else 0
 
     @field_validator("robots")
     @classmethod
@@ -120,6 +272,21 @@ class Inventory(Strict):
             for name_b, b in items[i + 1 :]:
                 if a.overlaps(b):
                     raise ValueError(f"{name_a} {a} overlaps {name_b} {b}")
+        return self
+
+    @model_validator(mode="after")
+    def _ros2_supported(self) -> "Inventory":
+        """What a ROS 2 fleet cannot have yet: the API manager (a rospy agent), knowledge sync.
+        Refused here rather than booted half-working."""
+        if not self.ros.ros2:
+            return self
+        d = self.ros.distro
+        if any(self.api_manager_of(r) for r in self.robots) or self.services.api_manager is not None and \
+                self.services.api_manager.enabled:
+            raise ValueError(f"services.api_manager is ROS 1 only so far; turn it off for ros.distro {d}")
+        if self.services.knowledge is not None:
+            # Its agent runs on the system python, whose Zenoh only a ROS 1 image installs.
+            raise ValueError(f"services.knowledge is not built into ros.distro {d}'s clone image yet (docs/ros2.md)")
         return self
 
     @model_validator(mode="after")
@@ -156,6 +323,27 @@ class Inventory(Strict):
                     raise ValueError(
                         f"robot {robot.name!r} collides with template names {self.template.prefix}<k>"
                     )
+        return self
+
+    @model_validator(mode="after")
+    def _knowledge_consistent(self) -> "Inventory":
+        for robot in self.robots:
+            if robot.services.knowledge is not None:
+                raise ValueError(f"robot {robot.name!r}: services.knowledge is fleet-wide; give it at the top level")
+        k = self.services.knowledge
+        if k is None:
+            return self
+        if k.port in (self.sharing.relay_port, self.vpn.port, self.ros.master_port):
+            raise ValueError(f"services.knowledge.port {k.port} is taken by the relay, the VPN or the ROS master")
+        names = {r.name for r in self.robots}
+        for ds, d in k.datasets.items():
+            if d.robots == "all":
+                continue
+            for name in d.robots:
+                if name not in names:
+                    raise ValueError(f"dataset {ds!r} names unknown robot {name!r}")
+            if len(set(d.robots)) != len(d.robots):
+                raise ValueError(f"dataset {ds!r} names a robot twice")
         return self
 
     def robot(self, name: str) -> Robot | None:

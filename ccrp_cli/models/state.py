@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from .values import EndpointText
 
@@ -17,19 +17,22 @@ Phase = Literal["planned", "creating", "ready", "failed", "deleting", "revoked"]
 class RobotRecord(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    # Slot in the address plan; kept for the robot's life so addresses never shift.
-    index: int
-    origin: Literal["inventory", "template"] = "inventory"
+    # Slot in the address plan; kept for the robot's life so addresses never shift. Both are
+    # fixed once recorded (Fleet keeps its address plan while the records stay the same).
+    index: int = Field(frozen=True)
+    origin: Literal["inventory", "template"] = Field("inventory", frozen=True)
     phase: Phase = "planned"
     provider_id: str | None = None
     # Host or IP (and port) the robot dials for its VPN; known once the clone exists. Checked when
     # state.json is read: it is written into the robot's .ovpn, which root runs on the robot.
     public_endpoint: EndpointText | None = None
     addresses: dict[str, str] = {}
+    # The snapshot its clone was created from (kept by snapshot retention while the clone lives).
+    image: str | None = None
 
     def clear_clone(self) -> None:
         """The clone is gone; the robot keeps its slot (and so its addresses)."""
-        self.phase, self.provider_id, self.public_endpoint, self.addresses = "planned", None, None, {}
+        self.phase, self.provider_id, self.public_endpoint, self.addresses, self.image = "planned", None, None, {}, None
 
 
 class FleetState(BaseModel):

@@ -12,13 +12,32 @@ import re
 from dataclasses import dataclass
 from typing import Annotated
 
-from pydantic import AfterValidator, Field
+from pydantic import AfterValidator, BeforeValidator, Field
 
 from ..errors import shown
 
 # Integers are strict: YAML's `true` is not port 1, and "1194" is not a number.
 StrictInt = Annotated[int, Field(strict=True)]
 Port = Annotated[int, Field(strict=True, ge=1, le=65535)]
+
+_DURATION_RE = re.compile(r"([0-9]{1,6})([smhd])", re.ASCII)
+_UNIT = {"s": 1, "m": 60, "h": 3600, "d": 86400}
+
+
+def _seconds(value: object) -> object:
+    """"30m", "90s", "2h", "1d" -> seconds. A bare number is refused: 30 could mean seconds or minutes."""
+    if isinstance(value, str):
+        m = _DURATION_RE.fullmatch(value.strip())
+        if not m:
+            raise ValueError(f"{shown(value)} is not a duration: write it as 90s, 30m, 2h or 1d")
+        return int(m.group(1)) * _UNIT[m.group(2)]
+    if isinstance(value, int) and not isinstance(value, bool):
+        raise ValueError(f"{value} has no unit: write it as {value}s or {value}m")
+    return value
+
+
+# Seconds, written with a unit in the inventory; `never` is 0.
+Duration = Annotated[int, BeforeValidator(lambda v: 0 if v == "never" else _seconds(v)), Field(strict=True)]
 
 # -- hosts and endpoints ------------------------------------------------------------------------
 

@@ -35,6 +35,27 @@ def check_cloud_init(robot: str, rc: int, out: str, timeout: float) -> None:
                         hint=f"ccrp clone exec --robot {robot} -- cloud-init status --long")
 
 
+def autostop_note(text: str) -> str | None:
+    """The last line the clone's autostop agent wrote (agent/autostop.py), without its mark; None
+    when that is the line it writes at start (the clone stopped otherwise during that boot)."""
+    from ..agent.autostop import BOOT_LINE
+    from ..render.view import AUTOSTOP_MARK
+
+    lines = [line.split(AUTOSTOP_MARK, 1)[1].strip() for line in text.splitlines() if AUTOSTOP_MARK in line]
+    return lines[-1] if lines and lines[-1] != BOOT_LINE else None
+
+
+def cloud_init_clean(result_json: str) -> bool:
+    """cloud-init's /run/cloud-init/result.json (written when its last stage ends) says it finished
+    with no errors."""
+    import json
+
+    try:
+        return json.loads(result_json)["v1"]["errors"] == []
+    except (ValueError, KeyError, TypeError):
+        return False
+
+
 class CloneSpec(BaseModel):
     """What to create for one robot."""
 
@@ -93,7 +114,7 @@ ResourceKind = Literal[
     "instance", "container", "robot_sim", "volume", "image", "snapshot", "key_pair",  # compute, images
     "network", "subnet", "router", "port", "floating_ip", "security_group",  # OpenStack / Docker networks
     "vpc", "route_table", "internet_gateway", "elastic_ip",  # AWS
-    "route", "firewall",  # GCP
+    "route", "firewall", "address",  # GCP (address: a reserved external IP)
 ]
 
 
@@ -147,12 +168,17 @@ class Provider(Protocol):
     def wait_ready(self, robot: str, timeout: float) -> None: ...
     def query(self) -> dict[str, CloneRecord]: ...
     def terminate(self, robot: str) -> bool: ...
+    # Ask the robot's running clone to stop (its disk stays); False when none was running. The
+    # caller waits for query() to say STOPPED.
+    def stop_instance(self, robot: str) -> bool: ...
     def push_files(self, robot: str, files: list, restart: list[str]) -> None: ...
     def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]: ...
     def create_snapshot(self, robot: str, name: str) -> SnapshotRecord: ...
     def list_snapshots(self) -> list[SnapshotRecord]: ...
     def delete_snapshot(self, snapshot_id: str) -> None: ...
     def teardown(self) -> list[str]: ...
+    # Why a stopped clone stopped, if its autostop agent stopped it: the agent's line, else None.
+    def stop_note(self, robot: str) -> str | None: ...
     # Every resource carrying this fleet's labels, and deleting one of them (gc of leaks).
     def list_owned(self) -> list[OwnedResource]: ...
     def delete_owned(self, resource: OwnedResource) -> None: ...

@@ -17,7 +17,7 @@ from ..errors import CcrpError
 from ..models.inventory import Inventory
 from ..render.view import LOGIN_USER
 from ..retry import Backoff, ErrorClass, call
-from .base import CloneRecord, check_cloud_init
+from .base import CloneRecord, autostop_note, check_cloud_init
 
 # The login on every cloud clone: the clone's user-data creates it with the operator key
 # (render/cloudinit.py login_user), whatever user the base image has of its own.
@@ -85,6 +85,13 @@ class CloudProvider:
     def console_output(self, robot: str) -> str:
         """The instance's serial console text (cloud-init prints the SSH host keys there)."""
         raise NotImplementedError
+
+    def stop_note(self, robot: str) -> str | None:
+        # The agent's line stays in the console log of the stopped instance.
+        try:
+            return autostop_note(self.console_output(robot) or "")
+        except CcrpError:
+            return None
 
     # -- shared: SSH transport (transport/ssh.py) ------------------------------------------------
     @property

@@ -56,10 +56,12 @@ def relay_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
 
 def edge_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[BundleFile]:
     a = view.addr
-    watchdog_env = (
-        f"CCRP_CLONE_HOST={a.clone_host}\nCCRP_MASTER_PORT={view.inv.ros.master_port}\n"
-        "CCRP_WATCHDOG_INTERVAL=2\nCCRP_WATCHDOG_FAIL_AFTER=3\n"
-    )
+    if view.inv.ros.ros2:
+        # No master to reach: the watchdog pings the clone's VPN address, the robot's DDS peer.
+        check = f"CCRP_CLONE_HOST={a.clone_vpn_ip}\nCCRP_WATCHDOG_CHECK=icmp\n"
+    else:
+        check = f"CCRP_CLONE_HOST={a.clone_host}\nCCRP_MASTER_PORT={view.inv.ros.master_port}\n"
+    watchdog_env = check + "CCRP_WATCHDOG_INTERVAL=2\nCCRP_WATCHDOG_FAIL_AFTER=2\n"
     return [
         BundleFile("robot.ovpn", openvpn.client_profile(view, creds, remote), 0o600),
         BundleFile("vpn-credentials", f"{view.name}\n{creds.password}\n", 0o600),
@@ -72,7 +74,14 @@ def edge_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[B
         BundleFile("ccrp-vpn.service", static("edge/ccrp-vpn.service"), 0o644),
         BundleFile("ccrp-watchdog.service", static("edge/ccrp-watchdog.service"), 0o644),
         BundleFile("install.sh", render("edge/install.sh.j2", **view.ctx()), 0o755),
-    ]
+    ] + (rtps_guard(view) if view.inv.ros.ros2 else [])
+
+
+def rtps_guard(view: CloneView) -> list[BundleFile]:
+    """A ROS 2 robot's firewall for RTPS: its domain's ports only through the tunnel."""
+    ports = network.rtps_ports(view.addr.index)
+    return [BundleFile("ccrp-rtps-guard", render("edge/ccrp-rtps-guard.j2", **view.ctx(ports=ports)), 0o755),
+            BundleFile("ccrp-rtps-guard.service", static("edge/ccrp-rtps-guard.service"), 0o644)]
 
 
 def write_bundle(out: Path, files: list[BundleFile], meta: dict[str, str]) -> Path:

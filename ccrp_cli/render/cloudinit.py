@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import ast
+import functools
 import re
+import threading
 from typing import Any
 
 import yaml
@@ -12,7 +15,7 @@ from ..models.inventory import Inventory
 from ..recipes import platform
 from . import network, openvpn
 from .templates import static
-from .view import CCRP_ETC, CCRP_LIB, LOGIN_USER, RELAY_USER, SECRETS_DIR, VPN_DIR, CloneView
+from .view import API_USER, CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, LOGIN_USER, RELAY_USER, SECRETS_DIR, VPN_DIR, CloneView
 
 
 def agent_source(name: str) -> str:
@@ -21,11 +24,92 @@ def agent_source(name: str) -> str:
 
     return (Path(__file__).resolve().parent.parent / "agent" / f"{name}.py").read_text()
 
+# The agents a snapshot holds (their Python packages come with the recipe's pip list); autostop's is
+# small and stdlib-only, and comes with the user-data instead.
+IMAGE_AGENTS = ("relay", "api_manager")
+
 PRIVATE_KEY_MARKERS = ("PRIVATE KEY", "OpenVPN Static key")
 
 
 def _file(path: str, content: str, mode: str = "0644") -> dict[str, Any]:
+    if path.endswith(".py"):
+        content = compact_python(content)
     return {"path": path, "content": content, "permissions": mode, "owner": "root:root"}
+
+
+def _docstrings(tree) -> list:
+    """The docstring statements of a module, its classes and functions."""
+    return [node.body[0] for node in ast.walk(tree)
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body
+            and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant)
+            and isinstance(node.body[0].value.value, str)]
+
+
+_COMPACTING = threading.Lock()
+
+
+@functools.lru_cache(maxsize=32)
+def compact_python(src: str) -> str:
+    """Once per source and one at a time: `fleet up` renders clones in threads, and CPython 3.11's
+    ast module is not thread-safe ("AST constructor recursion depth mismatch")."""
+    with _COMPACTING:
+        return _compact_python(src)
+
+
+def _compact_python(src: str) -> str:
+    """An agent's source as user-data carries it: without comments, blank lines and docstrings
+    (each becomes `pass`), every other character as written. User-data has a hard limit (AWS:
+    16 KiB gzipped) and a clone needs only the code; snapshots carry the source whole. Returns
+    `src` itself unless the result parses to the same program."""
+    import io
+    import tokenize
+
+    lines = src.splitlines(keepends=True)
+    drop = set()
+    for tok in tokenize.generate_tokens(io.StringIO(src).readline):
+        row = tok.start[0] - 1
+        if tok.type == tokenize.NL and not tok.line.strip():  # a blank line, not one inside a string
+            drop.add(row)
+        elif tok.type == tokenize.COMMENT and not (row == 0 and tok.string.startswith("#!")):
+            if lines[row][:tok.start[1]].strip():
+                lines[row] = lines[row][:tok.start[1]].rstrip() + "\n"
+            else:
+                drop.add(row)
+    stripped, module = set(), ast.parse(src)
+    for doc in _docstrings(module):
+        first, last = lines[doc.lineno - 1], lines[doc.end_lineno - 1]
+        if first[:doc.col_offset].strip() or last[doc.end_col_offset:].strip():
+            continue  # shares a line with other code: left as it is
+        drop |= set(range(doc.lineno, doc.end_lineno))
+        # A function's may be its whole body; the module's goes (`from __future__` must come first).
+        lines[doc.lineno - 1] = first[:doc.col_offset] + "pass\n"
+        if doc is module.body[0]:
+            drop.add(doc.lineno - 1)
+        stripped.add((doc.lineno, doc.col_offset))
+    out = "".join(line for i, line in enumerate(lines) if i not in drop)
+    want = module  # the program expected: docstrings as `pass`, the module's gone
+    if want.body and (getattr(want.body[0], "lineno", 0), getattr(want.body[0], "col_offset", 0)) in stripped:
+        want.body = want.body[1:]
+    for node in ast.walk(want):
+        for field in ("body", "orelse", "finalbody"):
+            block = getattr(node, field, None)
+            if isinstance(block, list):
+                setattr(node, field, [ast.Pass() if isinstance(s, ast.Expr) and (s.lineno, s.col_offset) in stripped
+                                      else s for s in block])
+    try:
+        compile(out, "<agent>", "exec", dont_inherit=True)
+        return out if ast.dump(ast.parse(out)) == ast.dump(want) else src
+    except SyntaxError:
+        return src
+
+
+def clone_units(inv: Inventory) -> list[str]:
+    """The clone's systemd units. A ROS 2 clone has no master, and no API manager (a rospy agent)
+    or knowledge agent yet (the inventory refuses their settings for ROS 2); its relay runs on rclpy."""
+    if inv.ros.ros2:
+        return ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service"]
+    return ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-rosmaster.service", "ccrp-relay.service",
+            "ccrp-autostop.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
 
 
 def user_data_dict(
@@ -38,9 +122,10 @@ def user_data_dict(
     SSH transport uses; without them (Docker) the clone has no login user at all."""
     a = view.addr
     fw4, fw6 = network.firewall_rules(view)
-    units = ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-rosmaster.service", "ccrp-relay.service"]
+    units = clone_units(view.inv)
     files = [
         _file("/etc/hosts", network.clone_hosts_file(view)),
+        _file(f"{CCRP_ETC}/hosts", network.clone_hosts_file(view)),  # put back at every boot (bootcmd)
         _file(f"{CCRP_ETC}/ros.env", network.ros_env(view, "clone")),
         _file("/etc/profile.d/ccrp-ros.sh", static("edge/ccrp-ros.sh")),
         _file(f"{CCRP_ETC}/firewall.rules", fw4, "0600"),
@@ -50,7 +135,13 @@ def user_data_dict(
         _file(f"{VPN_DIR}/ccd/{view.name}", openvpn.ccd_entry(view)),
         _file(f"{VPN_DIR}/ccrp-auth", static("clone/ccrp-auth"), "0755"),
         _file(f"{CCRP_LIB}/ros-run", static("clone/ros-run"), "0755"),
+        _file(f"{CCRP_LIB}/autostop.py", agent_source("autostop"), "0755"),
     ] + [_file(f"/etc/systemd/system/{u}", static(f"systemd/{u}")) for u in units]
+    if view.inv.ros.ros2:
+        files.append(_file(f"{CCRP_LIB}/ros2_graph.py", agent_source("ros2_graph"), "0644"))
+        # A ROS 2 image holds only the wheels' venv (providers/docker/images.py): the relay agent
+        # and its rclpy side come with the user-data, and run on the venv's rclpy and Zenoh.
+        files += [_file(f"{CCRP_LIB}/{name}.py", agent_source(name), "0644") for name in ("relay", "relay_ros2")]
 
     # No "default": the images' own login users differ per cloud, so ccrp defines its own and the
     # image's is not created (keys from the cloud's key pair then go to root, with logins refused).
@@ -59,6 +150,9 @@ def user_data_dict(
         {"name": "openvpn", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
         {"name": "ros", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "homedir": "/var/lib/ros"},
         {"name": RELAY_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
+        {"name": API_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
+        {"name": KNOWLEDGE_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True,
+         "no_create_home": True},
     ]
     data: dict[str, Any] = {
         "hostname": a.clone_host,
@@ -79,7 +173,7 @@ def user_data_dict(
     if view.inv.provider.kind != "docker":
         # bootcmd runs at every boot, before sshd: ccrp can only push into memory. After a
         # reboot the keys are gone and `ccrp fleet up` pushes them again.
-        data["bootcmd"] = secrets_tmpfs_bootcmd()
+        data["bootcmd"] = every_boot_bootcmd()
     if install_packages:
         # A bare base image: install at boot what a snapshot would already contain.
         image = image_config(view.inv)
@@ -94,10 +188,14 @@ def login_user(keys: list[str]) -> dict[str, Any]:
             "ssh_authorized_keys": list(keys)}
 
 
-def secrets_tmpfs_bootcmd() -> list[list[str]]:
-    """Mount a small tmpfs on SECRETS_DIR unless something (a volume) is mounted there already.
-    Root-only until ccrp hands it to the openvpn group just before pushing."""
+def every_boot_bootcmd() -> list[list[str]]:
+    """What a cloud clone does at every boot: put ccrp's /etc/hosts back, and mount a small tmpfs on
+    SECRETS_DIR unless something (a volume) is mounted there already, root-only until ccrp hands it
+    to the openvpn group just before pushing."""
     return [
+        # The clone resolves itself through /etc/hosts (ROS_HOSTNAME), which some images' agents
+        # rewrite at boot (GCE's guest agent manages it): from the second boot on, ccrp's is put back.
+        ["sh", "-c", 'if [ -f "$0" ]; then cp "$0" /etc/hosts; fi', f"{CCRP_ETC}/hosts"],
         ["mkdir", "-p", SECRETS_DIR],
         ["sh", "-c", 'mountpoint -q "$0" || mount -t tmpfs -o mode=0700,size=4m,nosuid,nodev,noexec ccrp-keys "$0"',
          SECRETS_DIR],
@@ -124,11 +222,23 @@ def image_config(inv: Inventory) -> dict[str, Any]:
     # sets it after the packages, when locale-gen and pip3 exist.
     data: dict[str, Any] = {"locale": "false", "package_update": True, "packages": list(plat.packages)}
     data["write_files"], data["runcmd"] = [], [["sh", "-c", LOCALE_SETUP]]
-    if plat.pip:
-        data["write_files"].append(_file(f"{CCRP_LIB}/relay.py", agent_source("relay"), "0755"))
+    if plat.pip and inv.ros.ros2:
+        # The ros-<distro>-* wheels in a venv at the distro's prefix, as the Docker image has them
+        # (templates/docker/ros2-venv.j2), from the index here; the agents come with the clone's user-data.
+        prefix = ros2_prefix(inv.ros.distro)
+        data["write_files"].append(_file(f"{CCRP_LIB}/ros2-setup", static("image/ros2-setup"), "0755"))
+        data["runcmd"] += [["python3", "-m", "venv", prefix],
+                           [f"{prefix}/bin/pip", "install", "--no-cache-dir", *plat.pip, *plat.pip_source],
+                           ["sh", f"{CCRP_LIB}/ros2-setup", prefix, inv.ros.distro]]
+    elif plat.pip:
+        data["write_files"] += [_file(f"{CCRP_LIB}/{name}.py", agent_source(name), "0755") for name in IMAGE_AGENTS]
         # Debian's python is externally managed (PEP 668): pip installs next to it only when told to.
         data["runcmd"].append(["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip])
     return data
+
+
+def ros2_prefix(distro: str) -> str:
+    return f"/opt/ros/{distro}"
 
 
 def _proof(token: str, what: str, argv: list[str]) -> list[str]:
@@ -155,18 +265,20 @@ def builder_user_data(inv: Inventory, token: str) -> str:
     per install step, and a final message carrying the token. No fleet, robot or key in it."""
     plat = platform(inv.ros.distro, inv.provider.kind)
     data = image_config(inv)
+    # ccrp-topic, as in every Docker image; in snapshots only (a bare clone's user-data has no room
+    # left for it: EC2 takes 16 KiB).
+    data["write_files"].append(_file("/usr/local/bin/ccrp-topic", static("image/ccrp-topic"), "0755"))
     pip_names = [re.split(r"[=<>!~;\[ ]", p, maxsplit=1)[0] for p in plat.pip]
     data["runcmd"] += [_proof(token, "apt", ["sh", "-c", INSTALLED_SH, "installed", *data["packages"]]),
                        _proof(token, "locale", ["sh", "-c", LOCALE_SH])]
     if "pip" in bake_proofs(inv):
-        data["runcmd"] += [_proof(token, "pip", ["python3", "-m", "pip", "show", *pip_names])]
+        python = f"{ros2_prefix(inv.ros.distro)}/bin/python" if inv.ros.ros2 else "python3"
+        data["runcmd"] += [_proof(token, "pip", [python, "-m", "pip", "show", *pip_names])]
     data["runcmd"] += [
         ["apt-get", "clean"],
         # Every clone must get its own machine-id on first boot (DHCP client ids derive from it).
         ["truncate", "-s", "0", "/etc/machine-id"],
     ]
-    if not data["write_files"]:
-        del data["write_files"]
     # Without a `users` entry cloud-init would create the image's default user (admin, debian...)
     # with the cloud's key pair and sudo, and the snapshot would carry that login into every clone.
     # The builder creates ccrp's login user instead, with no key and no sudo: a clone's user-data

@@ -8,9 +8,42 @@ from .view import CloneView
 HOSTS_BEGIN, HOSTS_END = "# BEGIN ccrp", "# END ccrp"
 
 
+# ROS 2 domains (docs/ros2.md): 1..100, the range whose RTPS ports (7400 + 250 * domain + up to
+# 249) stay below Linux's ephemeral ports (32768 and up) whatever the participant id.
+DOMAIN_COUNT = 100
+# RTPS's default port mapping: PB + DG * domain, each domain using DG ports.
+RTPS_PB, RTPS_DG = 7400, 250
+
+
+def ros_domain(index: int) -> int:
+    """A robot's ROS_DOMAIN_ID, from its slot (addressing.allocate): slot k gets ((k - 1) % 100) + 1,
+    so the first 100 robots each have their own domain, and a slot keeps its domain for life."""
+    return (index - 1) % DOMAIN_COUNT + 1
+
+
+def rtps_ports(index: int) -> tuple[int, int]:
+    """The UDP port range the robot's domain uses (first, last)."""
+    first = RTPS_PB + RTPS_DG * ros_domain(index)
+    return first, first + RTPS_DG - 1
+
+
 def ros_env(view: CloneView, side: str) -> str:
     """KEY=VALUE lines (systemd EnvironmentFile and POSIX shell). side: clone | robot."""
     a, ros = view.addr, view.inv.ros
+    if ros.ros2:
+        # No master: each side's only DDS peer is the other end of the tunnel, by unicast, and no
+        # multicast anywhere (LOCALHOST). The same domain on both ends, its own per robot.
+        peer = a.robot_vpn_ip if side == "clone" else a.clone_vpn_ip
+        env = {
+            "ROS_DISTRO": ros.distro,
+            "ROS_DOMAIN_ID": str(ros_domain(a.index)),
+            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+            "ROS_STATIC_PEERS": str(peer),
+            "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+            "CCRP_FLEET": view.fleet,
+            "CCRP_ROBOT": view.name,
+        }
+        return "".join(f"{k}={v}\n" for k, v in env.items())
     env = {
         "ROS_DISTRO": ros.distro,
         "ROS_MASTER_URI": f"http://{a.clone_host}:{ros.master_port}",
@@ -29,10 +62,11 @@ def hosts_block(view: CloneView, side: str) -> str:
     a = view.addr
     if side == "clone":
         rows = [("127.0.1.1", a.clone_host), (str(a.robot_vpn_ip), view.name)]
-        rows += [(str(p.common_ip), p.clone_host) for p in view.peers]
     else:
         rows = [(str(a.clone_vpn_ip), a.clone_host), (str(a.robot_vpn_ip), view.name)]
     body = "".join(f"{ip:<15} {host}\n" for ip, host in rows)
+    if side == "clone":
+        body += "".join(p.hosts_line for p in view.peers)
     return f"{HOSTS_BEGIN}\n{body}{HOSTS_END}\n"
 
 
@@ -53,4 +87,6 @@ def chrony_conf(view: CloneView, side: str) -> str:
 
 def firewall_rules(view: CloneView) -> tuple[str, str]:
     """(iptables-restore, ip6tables-restore) rules of the clone."""
-    return render("clone/firewall.rules.j2", **view.ctx()), render("clone/firewall6.rules.j2", **view.ctx())
+    ports = rtps_ports(view.addr.index) if view.inv.ros.ros2 else None
+    return (render("clone/firewall.rules.j2", **view.ctx(rtps_ports=ports)),
+            render("clone/firewall6.rules.j2", **view.ctx(rtps_ports=ports)))

@@ -17,13 +17,24 @@ SECRETS_DIR = f"{VPN_DIR}/keys"
 # unit sets it, and agent/health.py has its own copy of the path: it runs on the clone, stdlib only).
 MGMT_SOCKET = "/run/ccrp-openvpn/mgmt.sock"
 CCRP_ETC = "/etc/ccrp"
+# What the clone's autostop agent leaves when it powers the clone off: this file on the clone's
+# disk (read from a stopped Docker clone) and the same line on the console (kept by the clouds).
+# agent/autostop.py has its own copy of both.
+AUTOSTOP_NOTE = "/var/lib/ccrp/autostop.note"
+AUTOSTOP_MARK = "ccrp-autostop: "
 CCRP_LIB = "/usr/local/lib/ccrp"
 # The topic relay runs as its own user: it reads only relay.key and ca.crt in SECRETS_DIR.
 RELAY_USER = "ccrp-relay"
+# The API manager (docs/services.md) runs as its own user: it reads only its backend's key in
+# SECRETS_DIR (google-vision), and its config and status file.
+API_USER = "ccrp-api"
 # The operator's login on a cloud clone (sudo, the fleet's operator key), created by the clone's
 # user-data on every cloud: the base images' own users differ (admin on AWS, debian on OpenStack,
 # none on GCP). Docker clones have no login user.
 LOGIN_USER = "ccrp"
+# The knowledge agent (docs/services.md) runs as its own user: it reads the relay's TLS files (as a
+# supplementary member of RELAY_USER's group) and writes only its datasets and runtime directory.
+KNOWLEDGE_USER = "ccrp-knowledge"
 
 
 @dataclass(frozen=True)
@@ -47,6 +58,13 @@ class CloneView:
         cidr = getattr(self.inv.provider, "operator_cidr", None)
         return str(cidr) if cidr else None
 
+    @property
+    def knowledge_port(self) -> int | None:
+        """The knowledge agents' port, when this clone shares a dataset (its firewall opens it to the
+        common network)."""
+        k = self.inv.services.knowledge
+        return k.port if k is not None and self.inv.may_share_knowledge(self.name) else None
+
     def ctx(self, **extra: object) -> dict[str, object]:
         """Template context shared by all templates."""
         return {
@@ -60,5 +78,6 @@ class CloneView:
             "operator_cidr": self.operator_cidr,
             "vpn_dir": VPN_DIR,
             "secrets_dir": SECRETS_DIR,
+            "knowledge_port": self.knowledge_port,
             **extra,
         }

@@ -150,8 +150,10 @@ def make_harness(tmp_path, threaded: bool = True):
     server = MotoServer(Path(tmp_path) / "moto-server.log", threaded=threaded)
     try:
         server.wait_ready()
+        empty = Path(tmp_path) / "aws-config"  # not /dev/null: where it is a regular file, it is not empty
+        empty.write_text("")
         env = {"AWS_ENDPOINT_URL": server.url, "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
-               "AWS_DEFAULT_REGION": REGION, "AWS_CONFIG_FILE": os.devnull, "AWS_SHARED_CREDENTIALS_FILE": os.devnull}
+               "AWS_DEFAULT_REGION": REGION, "AWS_CONFIG_FILE": str(empty), "AWS_SHARED_CREDENTIALS_FILE": str(empty)}
         # Only while the clients are built: botocore reads the endpoint and credentials then.
         with mock.patch.dict(os.environ, env):
             for var in ("AWS_SESSION_TOKEN", "AWS_PROFILE", "AWS_IGNORE_CONFIGURED_ENDPOINT_URLS"):

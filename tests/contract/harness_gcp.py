@@ -6,7 +6,12 @@ and answer with the SDK's own types: compute_v1 messages, ExtendedOperation futu
 GCE's http_error_* fields on failure), and the SDK's pagers (lists come in pages of PAGE items).
 The fake enforces what GCE enforces and ccrp relies on: unique names per zone, request-id
 replay, IPs inside the subnetwork, label syntax, the 256 KiB metadata value limit, no delete of
-a network still in use, a regional CPU quota, zones that can run out of capacity.
+a network still in use, a regional CPU quota, zones that can run out of capacity. External IPs
+are GCE's: an access config without natIP gets an ephemeral IP, released when the instance stops
+and replaced by another at its next start; one with natIP must name a RESERVED address of the
+region, which then is IN_USE by the instance and keeps its IP across stop/start; an address in
+use cannot be released; an ephemeral IP can be promoted (addresses.insert with its IP); reserved
+addresses count against a regional STATIC_ADDRESSES quota.
 """
 
 from __future__ import annotations
@@ -90,7 +95,7 @@ def _not_found(link: str):
 class FakeProject:
     """One GCE project with one region, driven through autospecced compute_v1 clients."""
 
-    def __init__(self, cpu_quota: float = 24) -> None:
+    def __init__(self, cpu_quota: float = 24, address_quota: int = 8) -> None:
         self.lock = threading.RLock()
         self.rng = random.Random(7)
         self.instances: dict[tuple[str, str], c.Instance] = {}
@@ -99,6 +104,9 @@ class FakeProject:
         self.firewalls: dict[str, c.Firewall] = {}
         self.routes: dict[str, c.Route] = {}
         self.images: dict[str, c.Image] = {}
+        self.addresses: dict[str, c.Address] = {}  # reserved external addresses of REGION
+        self.address_quota = address_quota
+        self._external = 0  # where the next external IP is looked for
         self.replies: dict[str, c.Operation] = {}  # requestId -> the operation GCE answered with
         self.calls: Counter = Counter()
         self.throttled = 0.0
@@ -114,12 +122,14 @@ class FakeProject:
     # -- plumbing -------------------------------------------------------------------------------
     def _clients(self) -> Clients:
         handlers = {
-            "instances": ("InstancesClient", ["insert", "get", "delete", "start", "aggregated_list",
-                                              "get_serial_port_output"]),
+            "instances": ("InstancesClient", ["insert", "get", "delete", "start", "stop", "aggregated_list",
+                                              "get_serial_port_output", "add_access_config",
+                                              "delete_access_config"]),
             "networks": ("NetworksClient", ["insert", "get", "delete", "list"]),
             "subnetworks": ("SubnetworksClient", ["insert", "get", "delete", "list"]),
             "firewalls": ("FirewallsClient", ["insert", "get", "update", "delete", "list"]),
             "routes": ("RoutesClient", ["insert", "get", "delete", "list"]),
+            "addresses": ("AddressesClient", ["insert", "get", "delete", "list"]),
             "images": ("ImagesClient", ["insert", "get", "delete", "list"]),
             "regions": ("RegionsClient", ["get"]),
             "machine_types": ("MachineTypesClient", ["get"]),
@@ -201,6 +211,69 @@ class FakeProject:
         if zone not in ZONES:
             raise _not_found(self._link(f"zones/{zone}"))
 
+    # -- external IPs ---------------------------------------------------------------------------
+    def _external_pool(self) -> list[str]:
+        return [f"192.0.2.{n}" for n in range(2, 255)]  # TEST-NET-1, never contacted
+
+    def _external_in_use(self) -> set[str]:
+        return ({a.nat_i_p for i in self.instances.values() for nic in i.network_interfaces
+                 for a in nic.access_configs if a.nat_i_p} | {a.address for a in self.addresses.values()})
+
+    def _free_external_ip(self) -> str:
+        """An external IP nobody holds; taken round the pool, so a released IP is not the next one
+        given (a restarted instance gets another IP, as on GCE)."""
+        pool, used = self._external_pool(), self._external_in_use()
+        for _ in range(len(pool)):
+            ip = pool[self._external % len(pool)]
+            self._external += 1
+            if ip not in used:
+                return ip
+        raise exceptions.Forbidden("Quota 'IN_USE_ADDRESSES' exceeded.", errors=[{"reason": "quotaExceeded"}])
+
+    def _reserved(self, ip: str) -> c.Address | None:
+        return next((a for a in self.addresses.values() if ip and a.address == ip), None)
+
+    def _sync_addresses(self) -> None:
+        """An address is IN_USE by the instance whose access config holds its IP, else RESERVED
+        (an instance that vanished, e.g. deleted by hand, frees it, as on GCE)."""
+        holders = {a.nat_i_p: i.self_link for i in self.instances.values() for nic in i.network_interfaces
+                   for a in nic.access_configs if a.nat_i_p}
+        for address in self.addresses.values():
+            user = holders.get(address.address)
+            address.status, address.users = ("IN_USE", [user]) if user else ("RESERVED", [])
+
+    def _check_nat(self, access: c.AccessConfig) -> None:
+        """An access config naming a natIP may only use a reserved address nobody else uses."""
+        if not access.nat_i_p:
+            return
+        self._sync_addresses()
+        address = self._reserved(access.nat_i_p)
+        if address is None:
+            raise exceptions.BadRequest(f"The specified external IP address '{access.nat_i_p}' was not found in "
+                                        f"region '{REGION}'.", errors=[{"reason": "invalid"}])
+        if address.status != "RESERVED":
+            raise exceptions.BadRequest(f"External IP address: {access.nat_i_p} is already in-use.",
+                                        errors=[{"reason": "invalid"}])
+
+    def _take_nat(self, inst: c.Instance, access: c.AccessConfig) -> None:
+        """The access config's IP once the instance has it: its reserved address (IN_USE from now
+        on), or without natIP an ephemeral one."""
+        if self._reserved(access.nat_i_p) is None:
+            access.nat_i_p = self._free_external_ip()
+
+    def _stop_nat(self, inst: c.Instance) -> None:
+        """At stop GCE releases ephemeral IPs; a reserved address stays on the access config."""
+        for nic in inst.network_interfaces:
+            for access in nic.access_configs:
+                if self._reserved(access.nat_i_p) is None:
+                    access.nat_i_p = ""
+
+    def _start_nat(self, inst: c.Instance) -> None:
+        for nic in inst.network_interfaces:
+            for access in nic.access_configs:
+                if not access.nat_i_p:
+                    access.nat_i_p = self._free_external_ip()
+
     # -- instances ------------------------------------------------------------------------------
     def _instance(self, zone: str, name: str) -> c.Instance:
         inst = self.instances.get((zone, name))
@@ -251,6 +324,8 @@ class FakeProject:
         taken = {i.network_interfaces[0].network_i_p for i in self.instances.values() if i.network_interfaces}
         if ipaddress.ip_address(nic.network_i_p) not in ipaddress.ip_network(subnet.ip_cidr_range) or nic.network_i_p in taken:
             raise exceptions.BadRequest(f"IP address '{nic.network_i_p}' is not available in subnetwork {subnet.name}.")
+        for access in nic.access_configs:
+            self._check_nat(access)
         # Accepted: from here on failures are operation errors, as GCE reports them.
         if self._vcpus() + VCPUS.get(tail(inst.machine_type), 2) > self.cpu_quota:
             return self._operation(link, "insert", req.request_id, 403, "QUOTA_EXCEEDED",
@@ -260,12 +335,13 @@ class FakeProject:
                                    f"The zone 'projects/{PROJECT}/zones/{req.zone}' does not have enough resources "
                                    "available to fulfill the request.  Try a different zone, or try again later.")
         nic.network = subnet.network
-        for access in nic.access_configs:
-            access.nat_i_p = f"192.0.2.{len(self.instances) % 250 + 2}"  # TEST-NET-1, never contacted
+        nic.name = "nic0"
         inst.machine_type = self._link(inst.machine_type)
         boot[0].source = self._link(f"zones/{req.zone}/disks/{inst.name}")
         boot[0].initialize_params = c.AttachedDiskInitializeParams()  # GCE does not echo these
         self.store_instance(req.zone, inst)
+        for access in nic.access_configs:
+            self._take_nat(inst, access)
         self.serial[inst.name] = f"cloud-init: booting {inst.name}\n"
         return self._operation(link, "insert", req.request_id)
 
@@ -281,14 +357,52 @@ class FakeProject:
     def _instances_start(self, request=None, **kw):
         req = _request(c.StartInstanceRequest, request, kw)
         inst = self._instance(req.zone, req.instance)
+        if inst.status == "TERMINATED":
+            self._start_nat(inst)
         inst.status = "RUNNING"
         return self._operation(inst.self_link, "start", req.request_id)
+
+    def _instances_stop(self, request=None, **kw):
+        req = _request(c.StopInstanceRequest, request, kw)
+        inst = self._instance(req.zone, req.instance)
+        inst.status = "TERMINATED"  # GCE's word for stopped
+        self._stop_nat(inst)
+        return self._operation(inst.self_link, "stop", req.request_id)
 
     def _instances_delete(self, request=None, **kw):
         req = _request(c.DeleteInstanceRequest, request, kw)
         inst = self._instance(req.zone, req.instance)
         del self.instances[(req.zone, req.instance)]  # routes through it stay, as on GCE
         return self._operation(inst.self_link, "delete", req.request_id)
+
+    def _nic(self, inst: c.Instance, name: str) -> c.NetworkInterface:
+        nic = next((n for n in inst.network_interfaces if n.name == name), None)
+        if nic is None:
+            raise exceptions.BadRequest(f"Invalid value for field 'networkInterface': '{name}'.")
+        return nic
+
+    def _instances_delete_access_config(self, request=None, **kw):
+        req = _request(c.DeleteAccessConfigInstanceRequest, request, kw)
+        inst = self._instance(req.zone, req.instance)
+        nic = self._nic(inst, req.network_interface)
+        kept = [a for a in nic.access_configs if a.name != req.access_config]
+        if len(kept) == len(nic.access_configs):
+            raise exceptions.BadRequest(f"Invalid value for field 'accessConfig': '{req.access_config}'.")
+        nic.access_configs = kept
+        return self._operation(inst.self_link, "deleteAccessConfig", req.request_id)
+
+    def _instances_add_access_config(self, request=None, **kw):
+        req = _request(c.AddAccessConfigInstanceRequest, request, kw)
+        inst = self._instance(req.zone, req.instance)
+        nic = self._nic(inst, req.network_interface)
+        if nic.access_configs:  # GCE: one access config per interface
+            raise exceptions.BadRequest("At most one access config currently supported.")
+        self._check_nat(req.access_config_resource)
+        access = _copy(req.access_config_resource)
+        if inst.status != "TERMINATED" or access.nat_i_p:
+            self._take_nat(inst, access)
+        nic.access_configs = [access]
+        return self._operation(inst.self_link, "addAccessConfig", req.request_id)
 
     def _instances_aggregated_list(self, request=None, **kw):
         req = _request(c.AggregatedListInstancesRequest, request, kw)
@@ -414,6 +528,61 @@ class FakeProject:
     def _firewalls_list(self, request=None, **kw):
         return self._list("firewalls", c.FirewallList, self.firewalls, _request(c.ListFirewallsRequest, request, kw))
 
+    # addresses (one region; external)
+    def _check_region(self, region: str) -> None:
+        if region != REGION:
+            raise _not_found(self._link(f"regions/{region}"))
+
+    def _addresses_insert(self, request=None, **kw):
+        req = _request(c.InsertAddressRequest, request, kw)
+        self._check_region(req.region)
+        if replay := self._replay(req.request_id):
+            return replay
+        self._sync_addresses()
+        want = req.address_resource
+        if want.address_type not in ("", "EXTERNAL"):
+            raise exceptions.BadRequest("Invalid value for field 'resource.addressType': the fake has no internal "
+                                        "addresses.")
+        user = None
+        if want.address:  # promotion: only an ephemeral IP an instance holds in the region
+            user = next((i for i in self.instances.values() for nic in i.network_interfaces
+                         for a in nic.access_configs if a.nat_i_p == want.address), None)
+            if user is None or self._reserved(want.address) is not None:
+                raise exceptions.BadRequest(f"Requested specific address '{want.address}' is not available.",
+                                            errors=[{"reason": "invalid"}])
+        if want.name not in self.addresses and len(self.addresses) >= self.address_quota:
+            return self._operation(self._link(f"regions/{req.region}/addresses/{want.name}"), "insert",
+                                   req.request_id, 403, "QUOTA_EXCEEDED",
+                                   f"Quota 'STATIC_ADDRESSES' exceeded.  Limit: {self.address_quota} in region {REGION}.")
+
+        def prepare(address):
+            address.region = self._link(f"regions/{req.region}")
+            address.address_type, address.network_tier = "EXTERNAL", "PREMIUM"
+            address.address = want.address or self._free_external_ip()
+            address.status = "IN_USE" if user else "RESERVED"
+            address.users = [user.self_link] if user else []
+
+        return self._insert(self.addresses, want, f"regions/{req.region}/addresses", req.request_id, prepare)
+
+    def _addresses_get(self, request=None, **kw):
+        req = _request(c.GetAddressRequest, request, kw)
+        self._check_region(req.region)
+        self._sync_addresses()
+        return self._get(self.addresses, req.address, f"regions/{req.region}/addresses")
+
+    def _addresses_delete(self, request=None, **kw):
+        req = _request(c.DeleteAddressRequest, request, kw)
+        self._check_region(req.region)
+        self._sync_addresses()
+        users = list(self.addresses[req.address].users) if req.address in self.addresses else []
+        return self._delete(self.addresses, req.address, f"regions/{req.region}/addresses", req.request_id, users)
+
+    def _addresses_list(self, request=None, **kw):
+        req = _request(c.ListAddressesRequest, request, kw)
+        self._check_region(req.region)
+        self._sync_addresses()
+        return self._list("addresses", c.AddressList, self.addresses, req)
+
     # routes
     def _routes_insert(self, request=None, **kw):
         req = _request(c.InsertRouteRequest, request, kw)
@@ -478,7 +647,10 @@ class FakeProject:
         return c.Region(name=REGION, status="UP", self_link=self._link(f"regions/{REGION}"),
                         zones=[self._link(f"zones/{z}") for z in ZONES],
                         quotas=[c.Quota(metric="CPUS", limit=self.cpu_quota, usage=self._vcpus()),
-                                c.Quota(metric="IN_USE_ADDRESSES", limit=8, usage=len(self.instances))])
+                                c.Quota(metric="IN_USE_ADDRESSES", limit=8, usage=sum(
+                                    1 for i in self.instances.values() for nic in i.network_interfaces
+                                    for a in nic.access_configs if a.nat_i_p)),
+                                c.Quota(metric="STATIC_ADDRESSES", limit=self.address_quota, usage=len(self.addresses))])
 
     def _machine_types_get(self, request=None, **kw):
         req = _request(c.GetMachineTypeRequest, request, kw)
@@ -496,7 +668,7 @@ class FakeProject:
         for image in self.images.values():
             yield "image", str(image.id), dict(image.labels)
         for kind, store in (("network", self.networks), ("subnet", self.subnetworks),
-                            ("firewall", self.firewalls), ("route", self.routes)):
+                            ("firewall", self.firewalls), ("route", self.routes), ("address", self.addresses)):
             for item in store.values():
                 yield kind, str(item.id), description_marks(item.description)
 

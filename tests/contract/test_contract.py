@@ -62,6 +62,29 @@ def test_failed_create_rolls_back_only_that_robot(harness):
     assert all(harness.instances_for(r) == 1 for r in ROBOTS)
 
 
+def test_stop_keeps_the_clone_and_create_starts_it_again(harness):
+    """`clone stop` asks the provider to stop a running clone and waits for STOPPED; the clone stays
+    (same id), and the next create (what `clone start` and `fleet up` do) runs it again."""
+    from ccrp_cli import retry
+    from ccrp_cli.providers.base import CloneState
+
+    first = create(harness, "robot1")
+    create(harness, "robot2")
+    assert harness.provider.stop_instance("robot1") is True
+    state = retry.poll(lambda: ((s := harness.provider.query()["robot1"].state) is CloneState.STOPPED, s),
+                       timeout=120, interval=0.5)
+    assert state is CloneState.STOPPED
+    assert harness.provider.query()["robot2"].state is not CloneState.STOPPED  # only that robot's
+    assert harness.provider.stop_instance("robot1") is False  # stopped already
+    assert harness.provider.stop_instance("robot3") is False  # no clone at all
+    again = create(harness, "robot1")
+    assert again.provider_id == first.provider_id and not again.created
+    retry.poll(lambda: (harness.provider.query()["robot1"].state is CloneState.RUNNING, None), timeout=120, interval=0.5)
+    assert harness.instances_for("robot1") == 1
+    # The robot's installed bundle dials the clone's public IP: stop/start must not change it.
+    assert first.public_ip and harness.provider.query()["robot1"].public_ip == first.public_ip
+
+
 def test_snapshot_round_trip(harness):
     create(harness, "robot1")
     snap = harness.provider.create_snapshot("robot1", f"ccrp/{FLEET}-clone:robot1-contract")

@@ -13,6 +13,8 @@ at the end of the module whatever happens (`ccrp fleet down`, then everything wi
      robot, whose openvpn keeps uid 0 with CAP_NET_ADMIN alone; the containers run with Docker's
      default seccomp profile and no-new-privileges.
   4. The clone restarted: its robot comes back by itself.
+  5. The clone stopped: the robot is "brainless" within seconds (its watchdog runs the fallback
+     hooks: the simulated robot's stand-in motors stop), and `ccrp clone start` brings it back.
 """
 
 from __future__ import annotations
@@ -241,7 +243,8 @@ def test_units_run_in_their_sandboxes(fleet: E2EFleet, clone, robot):
     if os.geteuid() != 0:
         pytest.skip("reading other processes' namespaces needs root on the host")
     wait_for(f"{ROBOT}'s tunnel up", tunnel_up(fleet, robot), 60)
-    units = [(clone, "/usr/sbin/openvpn --suppress-timestamps --cd"), (robot, "/usr/sbin/openvpn --suppress-timestamps --config")]
+    units = [(clone, "/usr/sbin/openvpn --suppress-timestamps --cd"), (robot, "/usr/sbin/openvpn --suppress-timestamps --config"),
+             (clone, "/usr/local/lib/ccrp/autostop.py")]  # root, but in a read-only view with no network
     if exec_in(clone, ["systemctl", "is-active", "--quiet", "ccrp-relay.service"])[0] == 0:
         units.append((clone, "/usr/local/lib/ccrp/relay.py"))  # when it runs: the relay agent is not what this module tests
     for container, marker in units:
@@ -280,3 +283,56 @@ def test_robot_comes_back_after_the_clone_restarts(fleet: E2EFleet, clone, robot
     wait_for(f"{ROBOT}'s tunnel back to its restarted clone", tunnel_up(fleet, robot), 90, since=t0)
     fleet.log.append(f"{ROBOT}'s tunnel back {time.monotonic() - t0:.1f} s after `docker restart` of its clone")
     assert sh(clone, f"stat -c '%a %U' {MGMT.rsplit('/', 1)[0]} {AUTH_TMP}").split() == ["700", "root", "700", "openvpn"]
+
+
+# -- 5. the clone stopped: the brainless robot -----------------------------------------------------------------
+
+
+def watchdog(robot) -> tuple[str, float]:
+    """The robot's watchdog state and when it was written (ccrp-watchdog: "<state> <unix time>")."""
+    rc, out = exec_in(robot, ["cat", "/run/ccrp/clone-state"])
+    word, _, at = out.strip().partition(" ")
+    return (word, float(at)) if rc == 0 and at else ("", 0.0)
+
+
+def fallback_log(robot) -> list[str]:
+    rc, out = exec_in(robot, ["cat", "/var/log/ccrp-fallback.log"])
+    return [line.split()[0] for line in out.splitlines()] if rc == 0 else []
+
+
+def test_robot_without_its_clone_falls_back_and_comes_back(fleet: E2EFleet, clone, robot):
+    wait_for(f"{ROBOT}'s tunnel up", tunnel_up(fleet, robot), 60)
+    # The watchdog sees the clone back at its next check, which may come a little after the tunnel
+    # (after the restart above it may still read "lost" for one interval).
+    wait_for(f"{ROBOT}'s watchdog: ok", lambda: (watchdog(robot)[0] == "ok", watchdog(robot)), 15)
+    before = len(fallback_log(robot))  # the restart above (section 4) may have made a pair already
+    issued = time.time()
+    clone.stop(timeout=10)  # the clone's systemd shuts down: OpenVPN and the master end first
+    stopped = time.time()
+    word, lost_at = wait_for(f"{ROBOT}'s watchdog: lost", lambda: (watchdog(robot)[0] == "lost", watchdog(robot)), 20)
+    fleet.log.append(f"{ROBOT} brainless {lost_at - stopped:.1f} s after its clone stopped "
+                     f"({lost_at - issued:.1f} s after the stop began, {stopped - issued:.1f} s of shutdown)")
+    assert lost_at - stopped <= 6, f"the watchdog took {lost_at - stopped:.1f} s after the clone stopped"
+    assert sh(robot, "cat /run/ccrp/sim/motors").split()[0] == "stopped"
+    row = fleet.status()[ROBOT]
+    assert row["status"] == "exited" and not row["vpn_connected"]
+
+    proc = fleet.inv("clone", "start", "--robot", ROBOT, "--json")
+    started = time.time()
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert [r["action"] for r in json.loads(proc.stdout)] == ["started"]
+    word, ok_at = wait_for(f"{ROBOT}'s watchdog: ok", lambda: (watchdog(robot)[0] == "ok", watchdog(robot)), 30)
+    fleet.log.append(f"{ROBOT} back {ok_at - started:+.1f} s after `ccrp clone start` returned")
+    assert ok_at - started <= 6, f"the robot came back {ok_at - started:.1f} s after the clone started"
+    assert sh(robot, "cat /run/ccrp/sim/motors").split()[0] == "enabled"
+    # The started clone runs a new master, where the robot's node is unknown until it registers
+    # again: the watchdog's `new-master` hook starts it again (ROS 1 nodes never re-register).
+    # (A new-master of the restart before may land after `before` was read: the order after it counts.)
+    def hooks():
+        log = fallback_log(robot)[before:]
+        lost = log.index("lost") if "lost" in log else len(log)
+        return log[lost:lost + 2] == ["lost", "restored"] and "new-master" in log[lost + 2:], log
+    wait_for(f"{ROBOT}'s hooks: lost, restored, new-master", hooks, 30)
+    wait_for(f"{ROBOT} connected again", tunnel_up(fleet, robot), 30)
+    wait_for(f"/{ROBOT}_demo on the new master", lambda: (f"/{ROBOT}_demo" in (r := fleet.status()[ROBOT])["robot_nodes"], r), 30)
+

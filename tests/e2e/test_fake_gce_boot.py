@@ -1,7 +1,8 @@
 """The GCE fake whose instances really boot (tests/fakes/gce_boot.py), driven with plain compute_v1
 calls and no ccrp in between: an instance boots from the debian-12 family and answers SSH with the
 host keys its serial console shows; stop releases the external IP and start gives a new one; an
-image of its disk boots a second instance; an image with nothing behind it fails the operation;
+image of its disk boots a second instance at a reserved address, which it keeps across stop/start
+and which cannot be released while in use; an image with nothing behind it fails the operation;
 deleting everything leaves nothing. The user's path with ccrp on it is tests/scenarios.
 """
 
@@ -77,8 +78,9 @@ def _ssh_run(ip: str, key, pins: set[str], command: str, timeout: float = 60) ->
 def test_fake_instances_boot_stop_start_capture_and_go(tmp_path):
     """compute_v1 calls only: an instance boots the debian-12 family with its metadata's user-data on
     the subnetwork's range, answers SSH on its NAT IP with the console's host keys; stop releases the
-    ephemeral IP and start brings a new one; an image of its disk boots a second instance that keeps
-    what the first wrote; an image without a disk here fails the insert's operation and leaves no
+    ephemeral IP and start brings a new one; an image of its disk boots a second instance, at a
+    reserved address, that keeps what the first wrote and answers at that same address after a stop
+    and a start; an image without a disk here fails the insert's operation and leaves no
     instance; deletes leave no container, and deleting the image removes its Docker image."""
     if not image_buildable():
         pytest.skip(f"{DEBIAN_12} is missing and mmdebstrap is not installed to build it")
@@ -110,7 +112,7 @@ def test_fake_instances_boot_stop_start_capture_and_go(tmp_path):
         assert debian.family == "debian-12" and gce.images.get(project="debian-cloud", image=debian.name).name == debian.name
         zone, host = ZONES[0], ipaddress.ip_network(cidr)
 
-        def insert(name: str, image: str, ip_index: int):
+        def insert(name: str, image: str, ip_index: int, nat_ip: str | None = None):
             return gce.instances.insert(project=PROJECT, zone=zone, instance_resource=c.Instance(
                 name=name, machine_type=f"zones/{zone}/machineTypes/e2-small",
                 disks=[c.AttachedDisk(boot=True, auto_delete=True,
@@ -118,7 +120,7 @@ def test_fake_instances_boot_stop_start_capture_and_go(tmp_path):
                 metadata=c.Metadata(items=[c.Items(key="user-data", value=user_data)]),
                 network_interfaces=[c.NetworkInterface(subnetwork=f"regions/{REGION}/subnetworks/sub",
                                                        network_i_p=str(host.network_address + ip_index),
-                                                       access_configs=[c.AccessConfig(name="nat")])]))
+                                                       access_configs=[c.AccessConfig(name="nat", nat_i_p=nat_ip)])]))
 
         def nat(name: str) -> str:
             return gce.instances.get(project=PROJECT, zone=zone, instance=name).network_interfaces[0].access_configs[0].nat_i_p
@@ -148,11 +150,25 @@ def test_fake_instances_boot_stop_start_capture_and_go(tmp_path):
             name="snap", source_disk=first.disks[0].source))).result(timeout=300)
         snap = gce.images.get(project=PROJECT, image="snap")
         assert snap.status == "READY" and snap.archive_size_bytes > 0 and "snap" in fake.docker_images
-        insert("second", f"projects/{PROJECT}/global/images/snap", 11).result(timeout=120)
+        gce.addresses.insert(project=PROJECT, region=REGION, address_resource=c.Address(name="second-ip")).result()
+        reserved = gce.addresses.get(project=PROJECT, region=REGION, address="second-ip").address
+        assert ipaddress.ip_address(reserved) in ipaddress.ip_network(fake.internet_cidr)
+        insert("second", f"projects/{PROJECT}/global/images/snap", 11, reserved).result(timeout=120)
+        assert nat("second") == reserved
+        assert gce.addresses.get(project=PROJECT, region=REGION, address="second-ip").status == "IN_USE"
         pins2 = _console_pins(fake, zone, "second")
         assert pins2 != pins  # a new instance: cloud-init made it host keys of its own
-        assert "written by the first boot" in _ssh_run(nat("second"), key, pins2, "cat /etc/gce-fake-marker")
+        assert "written by the first boot" in _ssh_run(reserved, key, pins2, "cat /etc/gce-fake-marker")
         t["capture + boot"] = time.monotonic() - t0 - sum(t.values())
+
+        gce.instances.stop(project=PROJECT, zone=zone, instance="second").result(timeout=120)
+        assert nat("second") == reserved  # a reserved address stays with the stopped instance
+        gce.instances.start(project=PROJECT, zone=zone, instance="second").result(timeout=120)
+        assert nat("second") == reserved and "written by the first boot" in _ssh_run(
+            reserved, key, pins2, "cat /etc/gce-fake-marker")
+        with pytest.raises(exceptions.BadRequest):  # in use by "second"
+            gce.addresses.delete(project=PROJECT, region=REGION, address="second-ip")
+        t["reserved stop + start"] = time.monotonic() - t0 - sum(t.values())
 
         with pytest.raises(exceptions.BadRequest):
             insert("ubuntu", PUBLIC_IMAGE, 12).result(timeout=60)
@@ -161,6 +177,8 @@ def test_fake_instances_boot_stop_start_capture_and_go(tmp_path):
 
         for name in ("first", "second"):
             gce.instances.delete(project=PROJECT, zone=zone, instance=name).result(timeout=120)
+        gce.addresses.delete(project=PROJECT, region=REGION, address="second-ip").result()
+        assert fake.addresses == {}
         ref = fake.docker_images["snap"]
         gce.images.delete(project=PROJECT, image="snap").result()
         assert fake.instances == {} and not boot.containers

@@ -146,7 +146,7 @@ def _user_data(public_key: str) -> str:
         "groups": ["openvpn"],
         "users": [cloudinit.login_user([public_key])],
         # As a cloud clone's user-data does: a tmpfs for the keys at every boot, the VPN directory.
-        "bootcmd": cloudinit.secrets_tmpfs_bootcmd(),
+        "bootcmd": cloudinit.every_boot_bootcmd(),
         "runcmd": [["install", "-d", "-m", "0750", "-o", "root", "-g", "openvpn", VPN_DIR]],
     }
     return "#cloud-config\n" + yaml.safe_dump(data, sort_keys=False)

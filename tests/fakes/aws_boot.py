@@ -22,7 +22,8 @@ the fake is open (mock.patch, undone on close):
   releasing disconnects it. So ccrp (on the host) reaches an instance's public IP over SSH.
   Unlike EC2, the public address is on an interface of the instance (EC2 NATs it to the private IP).
 - StopInstances / StartInstances / TerminateInstances: `stopping`/`pending`/`shutting-down` while
-  the container stops, starts or is removed, then `stopped`/`running`/`terminated`.
+  the container stops, starts or is removed, then `stopped`/`running`/`terminated`. An instance
+  whose container exited by itself (powered off from inside) is `stopped`, as EC2 does.
 - GetConsoleOutput: the container's console (docker logs: systemd and cloud-init, host-key
   fingerprints included), base64-encoded as EC2 sends it, the most recent 64 KiB as EC2 keeps.
 - CreateImage: the AMI is `pending` until the container is committed (CloudBoot.capture), then
@@ -57,9 +58,11 @@ import base64
 import contextlib
 import io
 import ipaddress
+import os
 import re
 import socket
 import sys
+import tempfile
 import threading
 import time
 import traceback
@@ -133,6 +136,7 @@ class AwsBoot:
         self._throttle, self._n = 0.0, 0
         self._refused_robots: dict[str, str] = {}
         self._full_zones: set[str] = set()
+        self._empty_config: str | None = None   # AWS_CONFIG_FILE of the ccrp processes (env())
         self._patches: list = []
         self._server = None
         self.url = ""
@@ -207,6 +211,10 @@ class AwsBoot:
             while self._patches:
                 with contextlib.suppress(Exception):
                     self._patches.pop().stop()
+            if self._empty_config is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(self._empty_config)
+                self._empty_config = None
         finally:
             try:
                 self.boot.cleanup()
@@ -228,11 +236,15 @@ class AwsBoot:
 
     def env(self) -> dict[str, str]:
         """The environment of a `ccrp` process using this fake (a user's shell with an endpoint set).
-        No AWS_PROFILE: the inventory names no profile either. The config files are /dev/null so
-        nothing of this machine's ~/.aws leaks in."""
+        No AWS_PROFILE: the inventory names no profile either. The config files are an empty file of
+        the fake's own so nothing of this machine's ~/.aws leaks in (not /dev/null: on some machines it
+        is a regular file that collects what processes write to it, which botocore then fails to parse)."""
+        if self._empty_config is None:
+            fd, self._empty_config = tempfile.mkstemp(prefix="ccrp-aws-config-")
+            os.close(fd)
         return {"AWS_ENDPOINT_URL": self.url, "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
-                "AWS_DEFAULT_REGION": self.region, "AWS_REGION": self.region, "AWS_CONFIG_FILE": "/dev/null",
-                "AWS_SHARED_CREDENTIALS_FILE": "/dev/null", "AWS_EC2_METADATA_DISABLED": "true"}
+                "AWS_DEFAULT_REGION": self.region, "AWS_REGION": self.region, "AWS_CONFIG_FILE": self._empty_config,
+                "AWS_SHARED_CREDENTIALS_FILE": self._empty_config, "AWS_EC2_METADATA_DISABLED": "true"}
 
     def client(self, service: str = "ec2"):
         """A boto3 client on the fake for the test's own reads: its requests skip the faults."""
@@ -375,7 +387,8 @@ class AwsBoot:
         fake = self
         orig = {name: getattr(EC2Backend, name) for name in (
             "run_instances", "start_instances", "stop_instances", "terminate_instances", "create_image",
-            "deregister_image", "allocate_address", "associate_address", "disassociate_address", "delete_subnet")}
+            "deregister_image", "allocate_address", "associate_address", "disassociate_address", "delete_subnet",
+            "describe_instances")}
 
         def run_instances(backend, image_id, count, user_data, security_group_names, **kwargs):
             from moto.ec2.exceptions import InvalidAMIIdError
@@ -387,6 +400,17 @@ class AwsBoot:
                 _set_state(instance, PENDING)
                 fake._task(instance, fake._boot_instance, image_id)
             return reservation
+
+        def describe_instances(backend, filters=None):
+            # EC2 stops an instance whose OS powered off (InstanceInitiatedShutdownBehavior=stop):
+            # a container that exited by itself, with no task of the fake on it, is `stopped`.
+            for reservation in list(backend.reservations.values()):
+                for instance in reservation.instances:
+                    task = fake._threads.get(instance.id)
+                    if (instance._state.name == "running" and not (task and task.is_alive())
+                            and fake.boot.has(instance.id) and fake.boot.state(instance.id) != "running"):
+                        _set_state(instance, STOPPED)
+            return orig["describe_instances"](backend, filters)
 
         def start_instances(backend, instance_ids):
             done = orig["start_instances"](backend, instance_ids)
@@ -461,7 +485,7 @@ class AwsBoot:
                  "terminate_instances": terminate_instances, "create_image": create_image,
                  "deregister_image": deregister_image, "allocate_address": allocate_address,
                  "associate_address": associate_address, "disassociate_address": disassociate_address,
-                 "delete_subnet": delete_subnet}
+                 "delete_subnet": delete_subnet, "describe_instances": describe_instances}
         patches = [mock.patch.object(EC2Backend, name, fn) for name, fn in hooks.items()]
         patches.append(mock.patch.object(General, "get_console_output", get_console_output))
         for patch in patches:

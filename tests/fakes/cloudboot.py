@@ -113,27 +113,10 @@ def docker_available() -> str | None:
     return None
 
 
-def host_ranges() -> dict[str, str]:
-    """What a fake network must not shadow on this machine: the host's own routes (not the
-    default one) and its DNS servers: range -> what it is. Docker refuses overlaps with its own
-    networks by itself, but not with these, and a bridge on them would cut the host off."""
-    ranges: dict[str, str] = {}
-    try:
-        for line in Path("/proc/net/route").read_text().splitlines()[1:]:
-            f = line.split()
-            dest, mask = (ipaddress.IPv4Address(int(x, 16).to_bytes(4, "little")) for x in (f[1], f[7]))
-            if int(mask):
-                ranges[str(ipaddress.IPv4Network(f"{dest}/{mask}", strict=False))] = f"route via {f[0]}"
-    except OSError:
-        pass
-    try:
-        for line in Path("/etc/resolv.conf").read_text().splitlines():
-            f = line.split()
-            if len(f) >= 2 and f[0] == "nameserver" and ":" not in f[1]:
-                ranges[f"{f[1]}/32"] = "DNS server"
-    except OSError:
-        pass
-    return ranges
+# What a fake network must not shadow on this machine (Docker refuses overlaps with its own
+# networks by itself, but not with the host's routes and DNS servers): the same rule `ccrp init`
+# follows for a new fleet's pools.
+from ccrp_cli.init import host_ranges  # noqa: E402
 
 
 def _tar(files: list[tuple[str, bytes, int]]) -> bytes:

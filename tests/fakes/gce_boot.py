@@ -19,8 +19,10 @@ host, is this host), made when the first instance boots on it (or beforehand, `r
 the container's interface has the instance's networkIP. The internet is a Docker network of the
 fake's own (a free /24 of 172.27.0.0/16 unless `internet_cidr` is given; its .1 is this host): an
 access config's external NAT IP is an address there, on a second interface of the container, so
-ccrp (and a simulated robot on that network) reach the instance's public IP. As on GCE, that
-ephemeral IP is released when the instance stops and a new one comes with the next start.
+ccrp (and a simulated robot on that network) reach the instance's public IP. As on GCE, an
+ephemeral IP is released when the instance stops and a new one comes with the next start, while a
+reserved address (addresses.insert: a free IP of the internet network, or an instance's ephemeral
+IP promoted) stays the instance's: its interface comes back with the same IP at every start.
 
 Operations are honest about time: instances.insert, start, stop, delete and images.insert answer
 a RUNNING operation that is DONE once the container runs / stopped / is gone / is committed, and
@@ -93,7 +95,6 @@ class BootingProject(FakeProject):
         pool = ipaddress.IPv4Network(self.internet_cidr)
         self.internet_gateway = str(next(pool.hosts()))  # this host's address on the internet
         self._nat_pool = [str(h) for h in pool.hosts() if str(h) != self.internet_gateway]
-        self._nat_next = 0
 
     # -- plumbing -------------------------------------------------------------------------------
     def _clients(self):
@@ -174,14 +175,8 @@ class BootingProject(FakeProject):
                 self.subnet_nets[subnet.ip_cidr_range] = net
         return net
 
-    def _nat_ip(self) -> str:
-        used = {ac.nat_i_p for i in self.instances.values() for nic in i.network_interfaces for ac in nic.access_configs}
-        for _ in range(len(self._nat_pool)):
-            ip = self._nat_pool[self._nat_next % len(self._nat_pool)]
-            self._nat_next += 1
-            if ip not in used:
-                return ip
-        raise exceptions.Forbidden("Quota 'IN_USE_ADDRESSES' exceeded.", errors=[{"reason": "quotaExceeded"}])
+    def _external_pool(self) -> list[str]:
+        return self._nat_pool  # FakeProject._free_external_ip hands out addresses of the internet network
 
     # -- images ---------------------------------------------------------------------------------
     def _debian(self) -> c.Image:
@@ -284,8 +279,6 @@ class BootingProject(FakeProject):
         inst.status = "STAGING"
         nic = inst.network_interfaces[0]
         subnet = self.subnetworks[tail(nic.subnetwork)]
-        for access in nic.access_configs:
-            access.nat_i_p = self._nat_ip()
         disk = self._disk_of(source)
         metadata = {item.key: item.value for item in inst.metadata.items}
         user_data = metadata.get("user-data", "").encode()
@@ -321,9 +314,8 @@ class BootingProject(FakeProject):
             self._release_nat(inst)
 
     def _release_nat(self, inst: c.Instance) -> None:
-        for nic in inst.network_interfaces:
-            for access in nic.access_configs:
-                access.nat_i_p = ""
+        """The stopped container leaves the internet; an ephemeral IP goes with it (not a reserved one)."""
+        self._stop_nat(inst)
         if self.boot.has(str(inst.id)):
             self.boot.detach(str(inst.id), self.internet_net)
 
@@ -371,8 +363,7 @@ class BootingProject(FakeProject):
         inst.status = "STAGING"
         server = str(inst.id)
         accesses = [a for nic in inst.network_interfaces for a in nic.access_configs]
-        for access in accesses:  # a new ephemeral external IP
-            access.nat_i_p = self._nat_ip()
+        self._start_nat(inst)  # a new ephemeral external IP; a reserved address is kept
 
         def start() -> None:
             if accesses:
@@ -402,6 +393,29 @@ class BootingProject(FakeProject):
                 del self.instances[key]
 
         return self._pending(inst.self_link, "delete", req.request_id, delete, finished)
+
+    def _wire_nat(self, inst: c.Instance) -> None:
+        """A running container's internet interface follows its access config."""
+        server = str(inst.id)
+        if not self.boot.has(server) or self.boot.state(server) != "running":
+            return
+        ips = [a.nat_i_p for nic in inst.network_interfaces for a in nic.access_configs if a.nat_i_p]
+        if ips:
+            self.boot.attach(server, self.internet_net, ips[0])
+        else:
+            self.boot.detach(server, self.internet_net)
+
+    def _instances_delete_access_config(self, request=None, **kw):
+        req = _request(c.DeleteAccessConfigInstanceRequest, request, kw)
+        op = super()._instances_delete_access_config(req)
+        self._wire_nat(self._instance(req.zone, req.instance))
+        return op
+
+    def _instances_add_access_config(self, request=None, **kw):
+        req = _request(c.AddAccessConfigInstanceRequest, request, kw)
+        op = super()._instances_add_access_config(req)
+        self._wire_nat(self._instance(req.zone, req.instance))
+        return op
 
     # -- inspection -----------------------------------------------------------------------------
     def container_of(self, name: str):

@@ -19,13 +19,15 @@ from typing import Callable
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def inventory_text(fleet: str, provider: str, common_cidr: str, vpn_pool: str) -> str:
-    """The thesis lab in small: nao1 exports /faces, nao2 imports it; a template for `fleet scale`."""
+def inventory_text(fleet: str, provider: str, common_cidr: str, vpn_pool: str, distro: str = "noetic") -> str:
+    """The thesis lab in small: nao1 exports /faces (on ROS 2: the demo node's /chatter), nao2
+    imports it; a template for `fleet scale`."""
+    topic = "/faces" if distro == "noetic" else "/chatter"
     return f"""fleet: {fleet}
 provider:
 {provider.rstrip()}
 ros:
-  distro: noetic
+  distro: {distro}
 vpn:
   pool: {vpn_pool}
 common:
@@ -33,11 +35,11 @@ common:
 robots:
   - name: nao1
     type: nao
-    exports: [/faces]
+    exports: [{topic}]
   - name: nao2
     type: nao
     imports:
-      nao1: [/faces]
+      nao1: [{topic}]
 template:
   prefix: robot
   type: generic
@@ -80,17 +82,9 @@ def free_cidr(within: str, prefix: int = 24, skip: int = 0) -> str:
     import ipaddress
     import random
 
-    import docker
+    from ccrp_cli.init import docker_subnets, host_ranges
 
-    from tests.fakes.cloudboot import host_ranges
-
-    client = docker.from_env()
-    try:
-        used = [ipaddress.IPv4Network(c["Subnet"]) for n in client.networks.list()
-                for c in (n.attrs.get("IPAM") or {}).get("Config") or [] if ":" not in c.get("Subnet", ":")]
-    finally:
-        client.close()
-    used += [ipaddress.IPv4Network(r) for r in host_ranges()]
+    used = docker_subnets() + [ipaddress.IPv4Network(r) for r in host_ranges()]
     candidates = list(ipaddress.IPv4Network(within).subnets(new_prefix=prefix))
     random.shuffle(candidates)  # two runs side by side rarely pick the same
     free = [c for c in candidates if not any(c.overlaps(u) for u in used)]

@@ -41,8 +41,8 @@ def provider_block(project: str, region: str, zones: list[str], operator_cidr: s
 
 def owned(fake, fleet: str) -> list[str]:
     """What the fake holds carrying the fleet's marks ("kind id"), snapshot images left out: labels on
-    instances, the ownership line on networks, subnetworks, firewall rules and routes (the fake has
-    no address resources: ccrp's external IPs are ephemeral)."""
+    instances, the ownership line on networks, subnetworks, firewall rules, routes and the clones'
+    reserved external addresses."""
     with fake.lock:
         return sorted(f"{kind} {rid}" for kind, rid, marks in fake.marks()
                       if kind != "image" and marks.get(LABEL_MANAGED) == "true" and marks.get(LABEL_FLEET) == fleet)

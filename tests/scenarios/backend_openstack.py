@@ -17,7 +17,7 @@ CLOUD = "fakestack"
 
 
 @contextmanager
-def open_backend(tmp_path: Path, fleet: str):
+def open_backend(tmp_path: Path, fleet: str, distro: str = "noetic"):
     with CloudBoot(progress=lambda msg: None) as boot:
         fake = FakeOpenStack(boot=boot)
         with OpenStackHttp(fake) as http:
@@ -26,7 +26,7 @@ def open_backend(tmp_path: Path, fleet: str):
             provider = (f"  kind: openstack\n  cloud: {CLOUD}\n  flavor: m1.small\n  image: {BOOT_IMAGE}\n"
                         f"  external_network: public\n  operator_cidr: {fake.fip_cidr}\n  zones: [az1, az2]\n")
             inv = tmp_path / "inventory.yaml"
-            inv.write_text(inventory_text(fleet, provider, common, "10.85.0.0/16"))
+            inv.write_text(inventory_text(fleet, provider, common, "10.85.0.0/16", distro))
             yield Backend(kind="openstack", inventory=inv, home=tmp_path / "home",
                           env={"OS_CLIENT_CONFIG_FILE": str(clouds)}, owned=lambda: _owned(fake, fleet),
                           faults=_faults(fake), sim_network=fake.fip_network)

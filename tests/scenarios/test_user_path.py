@@ -28,6 +28,7 @@ pytestmark = [
 BACKENDS = ["docker", "openstack", "gcp", "aws"]
 CONNECT = 120  # seconds a simulated robot gets to install its bundle and connect
 ROBOTS = ["nao1", "nao2"]
+AUTOSTOP_BACKENDS = ("docker", "openstack")
 
 
 class Run:
@@ -137,7 +138,24 @@ def test_simulated_robot_connects_through_its_clone(run):
     assert result["nodes"] == ["/nao1_demo"], result
     row = run.status()["nao1"]
     assert row["vpn_connected"] and "/nao1_demo" in row["robot_nodes"], row
+    assert row["robot_rtt_ms"] is not None and 0 < row["robot_rtt_ms"] < 1000, row  # an echo through the tunnel
     run.done.add("robot")
+
+
+def test_bench_through_the_clone_on_an_emulated_link(run):
+    """`ccrp bench` on this backend: the agent on its clone (through the provider's exec) and on the
+    simulated robot, whose path to the clone carries an emulated 30 ms round trip."""
+    run.needs("robot")
+    run.ccrp("robot", "sim", "--robot", "nao1", "--link", "30")
+    try:
+        rtt = {(r["path"], r["probe"]): r for r in run.json("bench", "rtt", "--robot", "nao1", "--samples", "10")}
+        teleop = {r["stream"].split()[0]: r for r in run.json("bench", "teleop", "--robot", "nao1", "--duration", "3")}
+    finally:
+        run.ccrp("robot", "sim", "--robot", "nao1", "--link", "none")
+    assert set(rtt) == {("public (no VPN)", "icmp"), ("VPN", "icmp"), ("VPN", "ros topic")}, rtt
+    for row in rtt.values():
+        assert row["samples"] >= 9 and 28 <= row["p50_ms"] <= 80, rtt
+    assert teleop["command"]["samples"] >= 10 and 13 <= teleop["command"]["p50_ms"] <= 60, teleop
 
 
 def _ros(container, script: str, timeout: int) -> tuple[int, str]:
@@ -176,6 +194,70 @@ def test_clone_delete_and_create(run):
     run.ccrp("clone", "delete", "--robot", "nao2")
     assert run.status()["nao2"]["status"] == "absent"
     run.ccrp("clone", "create", "--robot", "nao2")
+    assert run.status()["nao2"]["master_reachable"] is True
+
+
+def test_idle_clone_stops_itself_and_starts_again(run):
+    """autostop: nao2's robot is away (its sim stopped in the step before), so with a fleet-wide
+    idle of 30 s its clone powers itself off, while nao1's clone, whose robot is connected, stays.
+    The provider keeps the clone (stopped, not deleted); `clone start` brings it back serving.
+    On Docker and OpenStack only: the agent is the same on every clone, each cloud's stop and
+    start are the restart step's, and this step costs 1-3 minutes a backend."""
+    if run.b.kind not in AUTOSTOP_BACKENDS:
+        pytest.skip(f"autostop's user path runs on {' and '.join(AUTOSTOP_BACKENDS)}")
+    run.needs("up")
+    original = run.b.inventory.read_text()
+    run.b.inventory.write_text(original + "autostop:\n  idle: 30s\n")
+    rows: dict = {}
+    try:
+        run.ccrp("fleet", "up")
+        t0, deadline = time.monotonic(), time.monotonic() + 180
+        while (rows := run.status())["nao2"]["status"] != "stopped (idle)" and time.monotonic() < deadline:
+            time.sleep(5)
+        stopped_after = time.monotonic() - t0
+    finally:
+        run.b.inventory.write_text(original)
+        if rows.get("nao2", {}).get("status") != "stopped (idle)":
+            run.ccrp("fleet", "up")  # every clone without autostop again: the steps after are not this one's
+    assert rows["nao2"]["status"] == "stopped (idle)", rows["nao2"]
+    assert "robot nao2 not connected for" in rows["nao2"]["stopped_idle"] and stopped_after >= 25
+    assert rows["nao1"]["status"] != "stopped (idle)" and rows["nao1"]["master_reachable"] is True
+    if "robot" in run.done:
+        assert rows["nao1"]["vpn_connected"] is True
+    plan = {r["robot"]: r["action"] for r in run.json("fleet", "plan")}
+    assert plan["nao2"].startswith("start (") and plan["nao1"] == "keep"
+    started = run.json("clone", "start", "--robot", "nao2")
+    assert [r["action"] for r in started] == ["started"]
+    row = run.status()["nao2"]
+    assert row["master_reachable"] is True and row["stopped_idle"] is None and row["autostop_idle_s"] is None
+    run.ccrp("fleet", "up")  # nao1's clone takes the inventory without autostop again
+    run.ccrp("clone", "start", "--robot", "nao2")  # running already: left as it is
+    run.ccrp("clone", "start", "--robot", "robot4", code=2)  # not in the fleet
+
+
+def test_clone_restart_and_stop(run):
+    """`clone restart`: the provider stops nao1's clone and starts it again; it serves with the same
+    public address (its robot's bundle still points there) and its robot comes back by itself.
+    `clone stop` stops nao2's: `status` says stopped (not idle), a second stop leaves it so, and
+    `fleet up` starts it again."""
+    run.needs("up")
+    before = run.status()["nao1"]
+    restarted = run.json("clone", "restart", "--robot", "nao1")
+    assert [r["action"] for r in restarted] == ["restarted"], restarted
+    row = run.status()["nao1"]
+    assert row["master_reachable"] is True and row["public_ip"] == before["public_ip"], (before, row)
+    if "robot" in run.done:  # its tunnel back, and its node on the new master (the watchdog's new-master hook)
+        deadline = time.monotonic() + 60
+        while not ((row := run.status()["nao1"])["vpn_connected"] and "/nao1_demo" in row["robot_nodes"]) \
+                and time.monotonic() < deadline:
+            time.sleep(3)
+        assert row["vpn_connected"] is True and "/nao1_demo" in row["robot_nodes"], row
+    assert [r["action"] for r in run.json("clone", "stop", "--robot", "nao2")] == ["stopped"]
+    row = run.status()["nao2"]
+    assert row["state"] == "stopped" and row["stopped_idle"] is None, row
+    assert run.json("clone", "stop", "--robot", "nao2")[0]["detail"] == "stopped already"
+    run.ccrp("clone", "stop", "--robot", "robot4", code=2)  # not in the fleet
+    run.ccrp("fleet", "up")
     assert run.status()["nao2"]["master_reachable"] is True
 
 

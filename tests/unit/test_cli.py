@@ -30,12 +30,13 @@ def test_usage_error_is_one_line_exit_2(ccrp):
 
 def test_pki_lifecycle_through_the_cli(ccrp, ccrp_home, tmp_path):
     i = ["-i", str(LAB)]
-    proc = ccrp("vpn", "issue-cert", *i, "--robot", "nao1")
+    proc = ccrp("vpn", "list", *i)
     assert proc.returncode == 1 and "vpn init" in proc.stderr  # hint names the fix
-    assert json.loads(ccrp("vpn", "init", *i, "--json", check=True).stdout)["created"] is True
-    assert json.loads(ccrp("vpn", "init", *i, "--json", check=True).stdout)["created"] is False
-    issued = json.loads(ccrp("vpn", "issue-cert", *i, "--robot", "nao1", "--json", check=True).stdout)
+    proc = ccrp("vpn", "issue-cert", *i, "--robot", "nao1", "--json", check=True)  # a new fleet: its PKI is made first
+    assert "had no PKI yet" in proc.stderr
+    issued = json.loads(proc.stdout)
     assert {r["cn"] for r in issued} == {"nao1", "cri-nao1"} and all(r["issued"] for r in issued)
+    assert json.loads(ccrp("vpn", "init", *i, "--json", check=True).stdout)["created"] is False
     proc = ccrp("vpn", "issue-cert", *i, "--robot", "nao9")
     assert proc.returncode == 2 and "not in fleet 'lab'" in proc.stderr
     listing = json.loads(ccrp("vpn", "list", *i, "--json", check=True).stdout)

@@ -230,7 +230,9 @@ def test_teardown_order_and_snapshots_kept(h):
     snap = h.provider.create_snapshot("robot1", "ccrp/ct-clone:robot1-20260101")
     assert snap.name == "ccrp-ct-clone-robot1-20260101"
     removed = h.provider.teardown()  # the fake refuses to delete a network still in use
-    assert [r.split()[0] for r in removed] == ["route"] * 2 + ["instance"] * 2 + ["firewall"] * 3 + ["subnet", "network"]
+    assert [r.split()[0] for r in removed] == (["route"] * 2 + ["instance"] * 2 + ["address"] * 2 + ["firewall"] * 3
+                                               + ["subnet", "network"])
+    assert h.fake.addresses == {}
     assert h.owned_ids() == {snap.id} and h.provider.leftovers() == []
 
 
@@ -356,3 +358,136 @@ def test_an_operations_own_error_is_not_polled_again(h):
         h.provider._wait(op, "create instance cri-robot1")
     assert len(polls) == 1
     assert classify(err.value) is ErrorClass.ZONE  # the caller moves to the next zone
+
+
+# -- the reserved external address ----------------------------------------------------------------
+def _nat(h: GcpHarness, robot: str = "robot1") -> str:
+    return h._clone(robot).network_interfaces[0].access_configs[0].nat_i_p
+
+
+def test_fake_gives_an_ephemeral_ip_a_new_address_at_every_start(h):
+    """What the reserved address is for: without one, GCE (and the fake) changes the IP."""
+    from google.cloud import compute_v1 as c
+
+    h.provider.run_instance(spec("robot1", 1))
+    (zone, name), inst = next(iter(h.fake.instances.items()))
+    where = dict(project="p", zone=zone, instance=name, network_interface="nic0")
+    h.fake.clients.instances.delete_access_config(access_config="public", **where)
+    h.fake.clients.instances.add_access_config(
+        access_config_resource=c.AccessConfig(name="public", type_="ONE_TO_ONE_NAT"), **where)
+    before = _nat(h)
+    h.fake.clients.instances.stop(project="p", zone=zone, instance=name)
+    assert _nat(h) == ""  # released at stop
+    h.fake.clients.instances.start(project="p", zone=zone, instance=name)
+    assert _nat(h) not in ("", before)
+
+
+def test_clone_keeps_its_reserved_address_across_stop_start_and_loses_it_with_the_clone(h):
+    first = h.provider.run_instance(spec("robot1", 1))
+    address = h.fake.clients.addresses.get(project="p", region="europe-west2", address="ccrp-ct-cri-robot1")
+    assert first.public_ip == address.address == _nat(h)
+    assert address.status == "IN_USE" and address.users == [h._clone("robot1").self_link]
+    assert address.description == "ccrp: ccrp-managed=true ccrp-fleet=ct ccrp-role=address ccrp-robot=robot1"
+    assert h.provider.stop_instance("robot1")
+    assert h.provider.query()["robot1"].public_ip == first.public_ip  # a stopped clone keeps it
+    again = h.provider.run_instance(spec("robot1", 1))
+    assert not again.created and again.public_ip == first.public_ip
+    assert len(h.fake.addresses) == 1  # reused, not reserved again
+    assert {r.kind for r in h.provider.list_owned() if r.robot == "robot1"} == {"instance", "address", "route"}
+    assert h.provider.terminate("robot1") is True
+    assert h.fake.addresses == {} and "address" not in {r.kind for r in h.provider.list_owned()}
+
+
+def test_every_zone_exhausted_releases_the_address_it_reserved(h):
+    h.provider.run_instance(spec("robot1", 1))
+    h.fake.exhausted.update(ZONES)
+    with pytest.raises(CcrpError, match="no capacity"):
+        h.provider.run_instance(spec("robot2", 2))
+    assert set(h.fake.addresses) == {"ccrp-ct-cri-robot1"}
+
+
+def test_address_quota_is_one_line_creates_nothing_and_doctor_counts_it(tmp_path):
+    h = GcpHarness(tmp_path, FakeProject(address_quota=1))
+    h.provider.run_instance(spec("robot1", 1))
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(spec("robot2", 2))
+    line = err.value.one_line()
+    assert "GCE quota exceeded in europe-west2" in line and "Quota 'STATIC_ADDRESSES' exceeded" in line
+    assert h.owned_ids("robot2") == set() and set(h.fake.addresses) == {"ccrp-ct-cri-robot1"}
+    # Five robots, one address reserved: four more needed, one allowed.
+    assert ("STATIC_ADDRESSES in europe-west2", 1.0, 5.0) in [(q.name, q.limit, q.need) for q in h.provider.quotas()]
+
+
+def test_clone_of_an_earlier_ccrp_keeps_its_ephemeral_ip_as_its_reserved_address(h):
+    """A clone created before ccrp reserved addresses runs at an ephemeral IP, which the robot's
+    bundle dials: the next run promotes that IP instead of moving the clone to a new one."""
+    first = h.provider.run_instance(spec("robot1", 1))
+    del h.fake.addresses["ccrp-ct-cri-robot1"]  # as if never reserved: the IP is the instance's own
+    again = h.provider.run_instance(spec("robot1", 1))
+    assert again.public_ip == first.public_ip
+    address = h.fake.addresses["ccrp-ct-cri-robot1"]
+    assert address.address == first.public_ip and address.status == "IN_USE"
+
+
+def test_reused_clone_at_another_ip_is_moved_back_to_its_reserved_address(h):
+    from google.cloud import compute_v1 as c
+
+    first = h.provider.run_instance(spec("robot1", 1))
+    (zone, name), _inst = next(iter(h.fake.instances.items()))
+    where = dict(project="p", zone=zone, instance=name, network_interface="nic0")
+    h.fake.clients.instances.delete_access_config(access_config="public", **where)
+    h.fake.clients.instances.add_access_config(
+        access_config_resource=c.AccessConfig(name="public", type_="ONE_TO_ONE_NAT"), **where)
+    assert _nat(h) != first.public_ip
+    again = h.provider.run_instance(spec("robot1", 1))
+    assert again.public_ip == first.public_ip == _nat(h)
+
+
+def test_foreign_address_with_the_clone_name_is_refused_and_kept(h):
+    from google.cloud import compute_v1 as c
+
+    h.fake.clients.addresses.insert(project="p", region="europe-west2",
+                                    address_resource=c.Address(name="ccrp-ct-cri-robot1", description="mine"))
+    with pytest.raises(CcrpError, match="address ccrp-ct-cri-robot1 exists in europe-west2 but is not ccrp's"):
+        h.provider.run_instance(spec("robot1", 1))
+    assert h.instances_for("robot1") == 0
+    h.provider.teardown()
+    assert set(h.fake.addresses) == {"ccrp-ct-cri-robot1"}
+
+
+def test_gc_finds_an_address_left_by_a_crash_and_releases_it(h):
+    from ccrp_cli.gc import find_leaks
+    from ccrp_cli.models.state import FleetState, RobotRecord
+
+    clone = h.provider.run_instance(spec("robot1", 1))
+    h.provider.run_instance(spec("robot2", 2))
+    h.fake.instances.pop(next(k for k, i in h.fake.instances.items() if i.labels["ccrp-robot"] == "robot2"))
+    state = FleetState(fleet="ct", robots={"robot1": RobotRecord(index=1, phase="ready", provider_id=clone.provider_id)})
+    leaks = find_leaks(state, h.provider.list_owned(), [])
+    assert {(r.kind, r.name) for r in leaks} == {("address", "ccrp-ct-cri-robot2"), ("route", "ccrp-ct-vpn-robot2")}
+    for r in leaks:
+        h.provider.delete_owned(r)
+    assert set(h.fake.addresses) == {"ccrp-ct-cri-robot1"}
+
+
+def test_address_insert_whose_reply_was_lost_is_used_and_rolled_back_as_this_attempts(h):
+    """The insert went through but its reply was lost (503): the retry meets 409 alreadyExists, the
+    address is used, and released again when no zone can create the clone."""
+    real = h.fake.clients.addresses.insert.side_effect
+    lost = []
+
+    def insert_then_lose_the_reply(*args, **kwargs):
+        op = real(*args, **kwargs)
+        if not lost:
+            lost.append(op)
+            raise exceptions.ServiceUnavailable("Backend Error", errors=[{"reason": "backendError"}])
+        return op
+
+    h.fake.clients.addresses.insert.side_effect = insert_then_lose_the_reply
+    h.fake.exhausted.update(ZONES)
+    with pytest.raises(CcrpError, match="no capacity"):
+        h.provider.run_instance(spec("robot1", 1))
+    assert h.fake.clients.addresses.insert.call_count == 2 and h.fake.addresses == {}
+    h.fake.exhausted.clear()
+    record = h.provider.run_instance(spec("robot1", 1, instance_id="ct-robot1-2"))  # not the failed requestIds
+    assert record.public_ip == h.fake.addresses["ccrp-ct-cri-robot1"].address

@@ -57,6 +57,15 @@ def wire(tmp_path):
         for rule in provider.firewall_rules(f"{LINK}/global/networks/ccrp-ct-net"):
             m.get(f"{API}/global/firewalls/{rule.name}", json=json.loads(type(rule).to_json(rule)))
         m.get(f"{API}/aggregated/instances", json={"items": {}})
+        # The clone's address is missing at first, reserved, then read back with its IP.
+        address = f"{API}/regions/{REGION}/addresses/{NAME}"
+        m.get(address, [
+            {"status_code": 404, "json": {"error": {"code": 404, "message": "not found", "errors": [{"reason": "notFound"}]}}},
+            {"status_code": 200, "json": {"name": NAME, "address": "192.0.2.7", "status": "RESERVED",
+                                          "addressType": "EXTERNAL", "region": f"{LINK}/regions/{REGION}",
+                                          "description": "ccrp: ccrp-managed=true ccrp-fleet=ct ccrp-role=address "
+                                                         "ccrp-robot=robot1"}}])
+        m.post(f"{API}/regions/{REGION}/addresses", json=op("operation-0", f"{LINK}/regions/{REGION}/addresses/{NAME}"))
         m.post(f"{API}/zones/{ZONE}/instances", [
             {"status_code": 429, "json": {"error": {"code": 429, "message": "Rate Limit Exceeded", "errors": [
                 {"message": "Rate Limit Exceeded", "domain": "usageLimits", "reason": "rateLimitExceeded"}]}}},
@@ -101,7 +110,11 @@ def test_run_instance_request_on_the_wire_and_a_429_retried_once(wire):
     nic = body["networkInterfaces"][0]
     assert nic["networkIP"] == "10.90.0.10"
     assert nic["subnetwork"] == f"{LINK}/regions/{REGION}/subnetworks/ccrp-ct-common"
-    assert nic["accessConfigs"] == [{"name": "public", "type": "ONE_TO_ONE_NAT"}]
+    # The reserved address, not an ephemeral IP (GCE would change that one at every stop/start).
+    assert nic["accessConfigs"] == [{"name": "public", "type": "ONE_TO_ONE_NAT", "natIP": "192.0.2.7"}]
+    reserved = [r for r in m.request_history if r.method == "POST" and urlparse(r.url).path.endswith("/addresses")]
+    assert [r.json() for r in reserved] == [{"name": NAME, "addressType": "EXTERNAL", "description":
+                                             "ccrp: ccrp-managed=true ccrp-fleet=ct ccrp-role=address ccrp-robot=robot1"}]
     assert body["disks"][0]["initializeParams"]["sourceImage"] == f"projects/{PROJECT}/global/images/ccrp-ct-clone-golden"
     assert "serviceAccounts" not in body  # nothing on a clone needs the GCP API
 

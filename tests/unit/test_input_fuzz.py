@@ -156,7 +156,9 @@ def test_malformed_inventories_are_one_line_exit_2(tmp_path):
         assert len(lines) == 1 and len(lines[0]) <= 300, err[:1000]
         assert lines[0].startswith("ccrp: error: ") and "Traceback" not in err and out == ""
         assert not home.exists(), "a refused inventory must not write anything"
-        assert took < 1.0, f"{took:.2f} s for {data[:200]!r}"
+        # A guard against super-linear parsing (a YAML bomb, deep nesting), not a speed target:
+        # 5000 nested brackets cost 0.7 s here, and CI machines are slower and noisier.
+        assert took < 3.0, f"{took:.2f} s for {data[:200]!r}"
 
     check()
     assert len(seen) >= EXAMPLES

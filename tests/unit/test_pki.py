@@ -217,3 +217,27 @@ def test_a_password_pair_left_by_a_killed_run_is_replaced(lab):
     lab.pki.issue_robot("nao1", 30)
     creds = lab.pki.credentials("nao1")
     assert creds.password != "left-by-a-killed-run" and verify_password(creds.password, creds.password_hash)
+
+
+def test_issue_fleet_issues_what_fleet_up_needs_in_one_index_save(ccrp_home, monkeypatch):
+    """`fleet up`'s batch: every robot's certificates, relay certificate and secrets, the index
+    saved once; a second batch changes nothing; a revoked robot is left out."""
+    fleet = Fleet.open(LAB)
+    vpn.init(fleet)
+    vpn.issue(fleet, "nao2")
+    vpn.revoke(fleet, "nao2")
+    plan = fleet.plan(fleet.store.load_state())
+    robots = {r: str(plan[r].common_ip) for r in ("nao1", "nao2", "turtlebot1")}
+    saves = []
+    monkeypatch.setattr(type(fleet.pki), "_save_index", lambda self, index, real=type(fleet.pki)._save_index: (saves.append(1), real(self, index)))
+    assert fleet.pki.issue_fleet(robots, 30) == ["nao1", "turtlebot1"]
+    assert len(saves) == 1
+    recs = certs(fleet)
+    for cn in ("nao1", "cri-nao1", "turtlebot1", "cri-turtlebot1"):
+        assert openssl_verify(fleet.pki.root, recs[cn]["path"], crl_check=True).returncode == 0
+    assert {c for c in recs if c.startswith("relay-")} == {"relay-nao1-1", "relay-turtlebot1-1"}
+    for robot in ("nao1", "turtlebot1"):
+        creds = fleet.pki.credentials(robot)
+        assert verify_password(creds.password, creds.password_hash) and creds.tls_crypt_key
+    assert fleet.pki.issue_fleet(robots, 30) == [] and len(saves) == 1
+    assert fleet.pki.revoked_since("nao2") is not None

@@ -123,8 +123,11 @@ def test_builder_spec_and_user_data(fleet, tmp_path):
     data = yaml.safe_load(ud)
     assert data["packages"] == platform("noetic", "docker").packages and "apt" not in data
     assert "packages.ros.org" not in ud and "ros-core" in data["packages"] and "openvpn" in data["packages"]
-    assert ["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", "eclipse-zenoh==1.10.2"] in data["runcmd"]
-    assert [f["path"] for f in data["write_files"]] == ["/usr/local/lib/ccrp/relay.py"]
+    assert ["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir",
+            *platform("noetic", "docker").pip] in data["runcmd"]
+    assert "eclipse-zenoh==1.10.2" in platform("noetic", "docker").pip
+    assert [f["path"] for f in data["write_files"]] == ["/usr/local/lib/ccrp/relay.py", "/usr/local/lib/ccrp/api_manager.py",
+                                                        "/usr/local/bin/ccrp-topic"]
     assert ["sh", "-c", LOCALE_SETUP] in data["runcmd"]
     # cloud-init's own locale module would run before the packages and fail on an image without the locale.
     assert data["locale"] == "false"

@@ -141,6 +141,8 @@ class AwsProvider(Images, Owned, CloudProvider):
                                     "DeleteOnTermination": True}],
                 # IMDSv2 only: the metadata service (user-data) needs a session token.
                 MetadataOptions={"HttpTokens": "required", "HttpEndpoint": "enabled"},
+                # A clone's own poweroff (autostop) stops it; AWS's default, said so it stays that way.
+                InstanceInitiatedShutdownBehavior="stop",
                 TagSpecifications=tags.spec(["instance", "volume", "network-interface"], self.fleet, spec.role,
                                             spec.robot, name=spec.hostname),
             )["Instances"][0]
@@ -232,6 +234,12 @@ class AwsProvider(Images, Owned, CloudProvider):
 
     def query(self) -> dict[str, CloneRecord]:
         return {r.robot: r for r in map(self._record, self._instances())}
+
+    def stop_instance(self, robot: str) -> bool:
+        running = [i["InstanceId"] for i in self._instances(robot, states=["pending", "running"])]
+        if running:
+            self.api("stop instance", self.ec2.stop_instances, InstanceIds=running)
+        return bool(running)
 
     def terminate(self, robot: str) -> bool:
         """The robot's owned instances and its Elastic IP (clone or `snapshot bake` builder);

@@ -90,7 +90,14 @@ class DockerHost:
 
     # -- transport ----------------------------------------------------------------------------
     def _running(self, robot: str, role: str = "clone"):
-        c = self._container(robot, role)
+        # By name, one request (a label query lists, then inspects): every command in a clone
+        # asks first. The labels still decide whether the container is ours.
+        try:
+            c = self.client.containers.get(self.container_name(robot, role))
+        except self._NotFound:
+            c = None
+        if c is not None and (c.labels.get(LABEL_FLEET), c.labels.get(LABEL_ROLE), c.labels.get(LABEL_ROBOT)) != (self.fleet, role, robot):
+            c = None
         if c is None or c.status != "running":
             what = "clone" if role == "clone" else "simulated robot"
             raise CcrpError(f"{what} of robot {robot!r} is not running", hint=f"ccrp {'clone create' if role == 'clone' else 'robot sim'} --robot {robot}")
@@ -123,11 +130,15 @@ class DockerHost:
             by_dir.setdefault(directory, []).append((name, f.content.encode(), f.mode))
         for directory, entries in by_dir.items():
             c.put_archive(directory, tar_files(entries))
+        # One command per group and one for the restarts: each is a round trip (and a runc exec).
+        groups: dict[str, list[str]] = {}
         for f in files:
             if f.group != "root":
-                self._check(c, ["chgrp", f.group, f.dest])
-        for unit in restart:
-            self._check(c, ["systemctl", "restart", unit])
+                groups.setdefault(f.group, []).append(f.dest)
+        for group, paths in groups.items():
+            self._check(c, ["chgrp", group, *paths])
+        if restart:
+            self._check(c, ["systemctl", "restart", *restart])
 
     def _check(self, c, argv: list[str]) -> str:
         result = c.exec_run(argv)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ...errors import CcrpError
 from ...recipes import Platform
-from ...render.templates import render
+from ...render.templates import render, static
 from .archive import tar_files
 
 DEFAULT_BASE = "ccrp/base:bookworm"
@@ -44,20 +44,32 @@ def build_base_image(client, tag: str, packages: list[str], progress=lambda msg:
 
 
 def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform) -> str:
+    """A ROS 2 distro's image has its `pip` list (the ros-<distro>-* wheels) in a venv at
+    /opt/ros/<distro> (docs/ros2.md) instead of the ROS 1 agents in /usr/local."""
+    from ...models.inventory import ROS2_DISTROS
     from ...render.cloudinit import LOCALE_SETUP
 
+    prefix = f"/opt/ros/{distro}" if distro in ROS2_DISTROS and plat.pip else ""
     return render("docker/Dockerfile.j2", fleet=fleet, distro=distro, base_image=base_image, packages=plat.packages,
-                  pip=plat.pip, locale_setup=LOCALE_SETUP)
+                  pip=plat.pip, locale_setup=LOCALE_SETUP, ros2_prefix=prefix)
 
 
-def build_context(plat: Platform, progress=lambda msg: None) -> dict[str, bytes]:
-    """Files the Dockerfile copies: the relay agent and the wheels of the recipe's pip packages,
-    downloaded here for the image's python (bookworm: 3.11) so the build needs no index."""
-    from ...render.cloudinit import agent_source
+def build_context(plat: Platform, progress=lambda msg: None, distro: str = "noetic") -> dict[str, bytes]:
+    """Files the Dockerfile copies: the agents (relay, API manager) and the wheels of the recipe's pip packages,
+    downloaded here for the image's python (bookworm: 3.11) so the build needs no index. A ROS 2 distro's
+    image has the wheels only (its agents are ROS 1 only so far), fetched with their own platform tags."""
+    from ...models.inventory import ROS2_DISTROS
+    from ...render.cloudinit import IMAGE_AGENTS, agent_source
 
+    tool = {"ccrp-topic": static("image/ccrp-topic").encode()}  # every image has it
     if not plat.pip:
-        return {}
-    files = {"relay.py": agent_source("relay").encode()}
+        return tool
+    if distro in ROS2_DISTROS:
+        from .ros2 import venv_context
+
+        progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
+        return tool | venv_context(plat)
+    files = tool | {f"{name}.py": agent_source(name).encode() for name in IMAGE_AGENTS}
     with tempfile.TemporaryDirectory() as tmp:
         progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
         argv = [sys.executable, "-m", "pip", "download", "--quiet", "--only-binary=:all:", "--python-version", "3.11",

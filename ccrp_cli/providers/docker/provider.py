@@ -8,16 +8,27 @@ import datetime as dt
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
-from ...render.view import VPN_DIR
+from ...render.view import AUTOSTOP_NOTE, VPN_DIR
 from ..base import (
     LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, OwnedResource, Quota, SnapshotRecord,
-    check_cloud_init, owner_labels,
+    autostop_note, check_cloud_init, cloud_init_clean, owner_labels,
 )
 from . import INFO
 from .archive import tar_files
 from .host import DockerHost
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
+RESULT_JSON = "/run/cloud-init/result.json"
+# Until $0 (cloud-init's result) exists or systemd says the boot is over (cloud-final is part of
+# it), then print it. systemctl every second, the file test every 0.2 s.
+WAIT_RESULT_SH = """i=0
+until [ -e "$0" ]; do
+  if [ $((i % 5)) -eq 4 ]; then
+    case $(systemctl is-system-running 2>/dev/null) in running|degraded|maintenance|stopping) break ;; esac
+  fi
+  i=$((i + 1)); sleep 0.2
+done
+cat "$0" 2>/dev/null"""
 # What a systemd container (a clone, a simulated robot) gets beyond Docker's defaults: NET_ADMIN for
 # the tunnel and the firewall, SYS_ADMIN for systemd's per-unit mount namespaces. Docker's default
 # seccomp profile stays on (it allows mount/unshare to a SYS_ADMIN container).
@@ -167,6 +178,13 @@ class DockerProvider(DockerHost):
 
     def wait_ready(self, robot: str, timeout: float = 300) -> None:
         """Wait for cloud-init to finish inside the clone; fail with its own error detail."""
+        # `cloud-init status --wait` is a Python program polling in the clone: about 0.3 s of CPU
+        # per clone, measured. A shell loop waits for cloud-init's result.json of this boot (/run
+        # is a tmpfs), or for the boot to be over without one; anything but a clean result then
+        # gets cloud-init's own answer.
+        rc, out = self.exec(robot, ["sh", "-c", WAIT_RESULT_SH, RESULT_JSON], timeout=timeout)
+        if rc == 0 and cloud_init_clean(out):
+            return
         rc, out = self.exec(robot, ["cloud-init", "status", "--wait", "--long"], timeout=timeout)
         check_cloud_init(robot, rc, out, timeout)
 
@@ -185,6 +203,13 @@ class DockerProvider(DockerHost):
                 self.client.volumes.get(volume).remove(force=True)
             except self._NotFound:
                 pass
+
+    def stop_instance(self, robot: str) -> bool:
+        c = self._container(robot)
+        if c is None or c.status != "running":
+            return False
+        c.stop(timeout=60)  # SIGRTMIN+3 (the container's stop signal): systemd shuts the clone down
+        return True
 
     def terminate(self, robot: str) -> bool:
         c = self._container(robot)
@@ -225,6 +250,22 @@ class DockerProvider(DockerHost):
         if image.labels.get(LABEL_FLEET) != self.fleet:
             raise CcrpError(f"image {snapshot_id} is not a snapshot of fleet {self.fleet!r}")
         self.client.images.remove(image.id, force=True)
+
+    def stop_note(self, robot: str) -> str | None:
+        """From the stopped container's disk: a Docker clone has no console that outlives it."""
+        import io
+        import tarfile
+
+        c = self._container(robot)
+        if c is None:
+            return None
+        try:
+            stream, _ = c.get_archive(AUTOSTOP_NOTE)
+            with tarfile.open(fileobj=io.BytesIO(b"".join(stream))) as tar:
+                member = tar.extractfile(tar.getmembers()[0])
+                return autostop_note(member.read().decode(errors="replace")) if member else None
+        except (self._NotFound, tarfile.TarError, IndexError):
+            return None
 
     # -- whole fleet ----------------------------------------------------------------------------
     def teardown(self) -> list[str]:

@@ -6,6 +6,7 @@ engine's `bridge`, NATed like a robot on the internet)."""
 from __future__ import annotations
 
 from ...errors import CcrpError
+from ...render.templates import static
 from ..base import owner_labels
 from .archive import tar_files
 from .host import DockerHost
@@ -21,6 +22,7 @@ def sim_image(host: DockerHost, distro: str, progress=lambda msg: None) -> str:
     from ...recipes import platform
     from . import images
 
+    # Its Dockerfile is a clone image's (images.dockerfile): a ROS 2 distro's has the ROS 2 venv.
     tag = SIM_IMAGE.format(distro=distro)
     try:
         host.client.images.get(tag)
@@ -34,12 +36,14 @@ def sim_image(host: DockerHost, distro: str, progress=lambda msg: None) -> str:
         images.build_base_image(host.client, images.DEFAULT_BASE, sorted(set(images.BASE_PACKAGES + plat.packages)), progress)
     progress(f"building the simulated robots' image {tag} (once)")
     images.build_clone_image(host.client, tag, images.dockerfile("robot-sim", distro, images.DEFAULT_BASE, plat),
-                             {"ccrp-managed": "true", "ccrp-role": "robot-image"}, progress, images.build_context(plat, progress))
+                             {"ccrp-managed": "true", "ccrp-role": "robot-image"}, progress, images.build_context(plat, progress, distro))
     return tag
 
 
-def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node: str, network: str) -> str:
-    """(Re)create the simulated robot on `network` and install `bundle` in it. Returns the container id."""
+def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node: str, network: str,
+          python: str = "/usr/bin/python3") -> str:
+    """(Re)create the simulated robot on `network` and install `bundle` in it, then run `demo_node`
+    with `python` (a ROS 2 distro's own, /opt/ros/<distro>/bin/python). Returns the container id."""
     stop(provider, robot)
     c = provider.client.containers.create(
         image,
@@ -60,6 +64,8 @@ def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node:
     files += [
         ("etc/cloud/cloud-init.disabled", b"a robot, not a clone\n", 0o644),
         ("usr/local/lib/ccrp/ccrp-demo-node", demo_node.encode(), 0o755),
+        # What the robot does without its clone: stop its (stand-in) motors and note the time.
+        ("etc/ccrp/fallback.d/50-sim-motors", static("sim/ccrp-sim-fallback").encode(), 0o755),
     ]
     c.put_archive("/", tar_files(files, make_dirs=True))
     c.start()
@@ -71,7 +77,9 @@ def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node:
         robot,
         ["systemd-run", "--unit", "ccrp-demo-node", "--property", "EnvironmentFile=/etc/ccrp/ros.env",
          "--property", "Restart=always", "--property", "RestartSec=2",
-         "/usr/bin/python3", "/usr/local/lib/ccrp/ccrp-demo-node"],
+         # rclpy's logging needs a home for its log directory (systemd-run gives the unit none).
+         "--setenv", "HOME=/root",
+         python, "/usr/local/lib/ccrp/ccrp-demo-node"],
         role="robot-sim",
     )
     if rc != 0:
@@ -83,16 +91,8 @@ def stop(provider: DockerHost, robot: str) -> bool:
     c = provider._container(robot, role="robot-sim")
     if c is None:
         return False
+    # Shut down as a robot is switched off: its OpenVPN tells the clone it leaves (explicit-exit-
+    # notify), so the session ends now instead of at the keepalive timeout, a minute or two later.
+    c.stop(timeout=10)
     c.remove(force=True, v=True)
     return True
-
-
-def vpn_state(provider: DockerHost, robot: str) -> dict:
-    """The simulated robot's view: tunnel address and watchdog state."""
-    c = provider._container(robot, role="robot-sim")
-    if c is None or c.status != "running":
-        return {"running": False}
-    _, addr = provider.exec(robot, ["ip", "-4", "-o", "addr", "show", "dev", "ccrpvpn"], role="robot-sim")
-    _, wd = provider.exec(robot, ["cat", "/run/ccrp/clone-state"], role="robot-sim")
-    ip = addr.split()[3].split("/")[0] if "inet" in addr else None
-    return {"running": True, "vpn_ip": ip, "watchdog": wd.strip() if "No such" not in wd else None}

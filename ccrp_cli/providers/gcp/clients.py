@@ -41,6 +41,7 @@ class Clients:
     subnetworks: Any
     firewalls: Any
     routes: Any
+    addresses: Any
     images: Any
     regions: Any
     machine_types: Any
@@ -52,6 +53,6 @@ class Clients:
         return cls(
             instances=compute_v1.InstancesClient(**kw), networks=compute_v1.NetworksClient(**kw),
             subnetworks=compute_v1.SubnetworksClient(**kw), firewalls=compute_v1.FirewallsClient(**kw),
-            routes=compute_v1.RoutesClient(**kw), images=compute_v1.ImagesClient(**kw),
+            routes=compute_v1.RoutesClient(**kw), addresses=compute_v1.AddressesClient(**kw), images=compute_v1.ImagesClient(**kw),
             regions=compute_v1.RegionsClient(**kw), machine_types=compute_v1.MachineTypesClient(**kw),
         )

@@ -1,5 +1,5 @@
-"""GCE: everything the fleet owns (labelled instances and images; routes, firewalls, subnetworks
-and networks marked in their description), deleting it, and `fleet down`'s teardown in order."""
+"""GCE: everything the fleet owns (labelled instances and images; routes, reserved addresses,
+firewalls, subnetworks and networks marked in their description), deleting it, and `fleet down`'s teardown in order."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ from ..base import LABEL_ROBOT, OwnedResource
 from .ownership import description_marks
 
 # Teardown order: what points at an instance goes first, the network it lives on last.
-TEARDOWN_ORDER = ("route", "instance", "firewall", "subnet", "network")
+# An address is released once its instance is gone (GCE refuses while it is in use).
+TEARDOWN_ORDER = ("route", "instance", "address", "firewall", "subnet", "network")
 SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images do
 
 
@@ -26,6 +27,7 @@ class Owned:
                                         robot=dict(image.labels).get(LABEL_ROBOT)), None))
         unlabelled = (
             ("route", self.c.routes.list, {}),
+            ("address", self.c.addresses.list, {"region": self.region}),
             ("firewall", self.c.firewalls.list, {}),
             ("subnet", self.c.subnetworks.list, {"region": self.region}),
             ("network", self.c.networks.list, {}),
@@ -45,6 +47,7 @@ class Owned:
         where = {
             "route": (self.c.routes.delete, {"route": res.name}),
             "instance": (self.c.instances.delete, {"zone": zone, "instance": res.name}),
+            "address": (self.c.addresses.delete, {"region": self.region, "address": res.name}),
             "firewall": (self.c.firewalls.delete, {"firewall": res.name}),
             "subnet": (self.c.subnetworks.delete, {"region": self.region, "subnetwork": res.name}),
             "network": (self.c.networks.delete, {"network": res.name}),

@@ -3,7 +3,9 @@
 Instances, disks and images carry the fleet's labels (base.owner_labels). Networks, subnetworks,
 firewall rules and routes cannot be labelled in the v1 API: ccrp owns one of those only when its
 name starts with `ccrp-<fleet>-` AND its description is the ownership line written by `describe`
-(fleet names contain no '-', so one fleet's prefix never matches another's).
+(fleet names contain no '-', so one fleet's prefix never matches another's). Reserved addresses
+could carry labels but are owned by that same name-and-description rule, as routes are, so that
+a clone's regional leftovers are recognised by one check.
 """
 
 from __future__ import annotations
@@ -61,6 +63,10 @@ class Names:
 
     def instance(self, robot: str, role: str = "clone") -> str:
         return gce_name(f"{self.prefix}{'cri' if role == 'clone' else role}-{robot}")
+
+    def address(self, robot: str, role: str = "clone") -> str:
+        """The instance's reserved external address: named as the instance it serves."""
+        return self.instance(robot, role)
 
     def route(self, robot: str) -> str:
         return gce_name(f"{self.prefix}vpn-{robot}")

@@ -1,6 +1,7 @@
 """GCE clones: one VM per robot on the fleet's VPC subnetwork (the common network), reachable
-from the internet only on the VPN port (and SSH from the operator's CIDR), forwarding its robot's
-VPN subnet through a route whose next hop is the instance.
+from the internet only on the VPN port (and SSH from the operator's CIDR) at a reserved regional
+external address of its own (kept across stop/start: the robot's bundle dials it), forwarding its
+robot's VPN subnet through a route whose next hop is the instance.
 
 Every SDK call goes through self.api (retry.call, the SDK's own retry switched off), every
 mutation waits for its ExtendedOperation, and every SDK failure leaves as a one-line CcrpError.
@@ -27,7 +28,7 @@ from .errors import as_ccrp_error, classify
 from .images import Images
 from .network import Network
 from .owned import Owned
-from .ownership import Names, request_id, same_resource, tail
+from .ownership import Names, description_marks, request_id, same_resource, tail
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +172,7 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
             return {"source_machine_image": image}
         return {"source_image": image if "/" in image else f"projects/{self.project}/global/images/{image}"}
 
-    def instance_resource(self, spec: CloneSpec, zone: str, user_data: str):
+    def instance_resource(self, spec: CloneSpec, zone: str, user_data: str, nat_ip: str = ""):
         c = self.compute
         labels = owner_labels(self.fleet, spec.role, spec.robot)
         source = self._image_source(spec.image)
@@ -198,27 +199,38 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
             metadata=c.Metadata(items=[c.Items(key=k, value=v) for k, v in metadata.items()]),
             network_interfaces=[c.NetworkInterface(
                 subnetwork=self._subnetwork(), network_i_p=spec.common_ip,
-                access_configs=[c.AccessConfig(name="public", type_="ONE_TO_ONE_NAT")])],
+                access_configs=[self._access_config(nat_ip)])],
             disks=disks,
             # No service account: nothing on a clone needs the GCP API.
         )
 
+    def _access_config(self, nat_ip: str = ""):
+        # With nat_i_p, the access config uses that reserved address; without one GCE would give
+        # an ephemeral IP, released at every stop and replaced at the next start.
+        return self.compute.AccessConfig(name="public", type_="ONE_TO_ONE_NAT", nat_i_p=nat_ip or None)
+
     def run_instance(self, spec: CloneSpec) -> CloneRecord:
-        """Create (or reuse) the robot's clone and its VPN route; on failure after the instance
-        exists, delete what this attempt created."""
+        """Create (or reuse) the robot's clone, its reserved external address and its VPN route;
+        on failure, delete what this attempt created."""
         payload, _ = fit_user_data("gcp", spec.user_data)  # before any API call
         name = self.names.instance(spec.robot, spec.role)
         with self._errors(f"clone {name}"):
             found = self._find(spec.robot, spec.role)
             if found is not None:
                 return self._complete(spec, found[0], found[1].name, created=False)
-            zone, inst = across_zones(self._zones(spec.robot),
-                                      lambda z: self._create_instance(spec, z, payload.decode()),
-                                      classify=self.classify_error, what=f"create clone {name}")
-            return self._complete(spec, zone, inst, created=True)
+            address, reserved = self._ensure_address(spec)
+            try:
+                zone, inst = across_zones(self._zones(spec.robot),
+                                          lambda z: self._create_instance(spec, z, payload.decode(), address),
+                                          classify=self.classify_error, what=f"create clone {name}")
+                return self._complete(spec, zone, inst, created=True, address=address)
+            except BaseException:
+                if reserved:  # the instance is gone already (_create_instance / _complete rolled it back)
+                    self._release_address(spec.robot, self.names.address(spec.robot, spec.role))
+                raise
 
-    def _create_instance(self, spec: CloneSpec, zone: str, user_data: str):
-        resource = self.instance_resource(spec, zone, user_data)
+    def _create_instance(self, spec: CloneSpec, zone: str, user_data: str, nat_ip: str = ""):
+        resource = self.instance_resource(spec, zone, user_data, nat_ip)
         source = self._image_source(spec.image)
         request = self.compute.InsertInstanceRequest(
             project=self.project, zone=zone, instance_resource=resource,
@@ -245,13 +257,17 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
             raise
         return zone, resource.name
 
-    def _complete(self, spec: CloneSpec, zone: str, name: str, created: bool) -> CloneRecord:
+    def _complete(self, spec: CloneSpec, zone: str, name: str, created: bool, address: str = "") -> CloneRecord:
         route_created = False
         try:
             inst = self._call("get instance", self.c.instances.get, project=self.project, zone=zone, instance=name)
             if inst.status == "TERMINATED":  # GCE's word for stopped: a reused clone someone stopped
                 self._mutate(f"start instance {name}", self.c.instances.start, project=self.project, zone=zone,
                              instance=name)
+                inst = self._call("get instance", self.c.instances.get, project=self.project, zone=zone,
+                                  instance=name)
+            if not address:  # a reused clone: make sure it answers at its reserved address
+                self._keep_address(spec, zone, inst)
             route_created = self._ensure_route(spec, inst)
             inst = self._call("get instance", self.c.instances.get, project=self.project, zone=zone, instance=name)
         except BaseException as exc:
@@ -274,6 +290,60 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
             self._wait_all(ops)
         except Exception as exc:  # noqa: BLE001
             log.warning("rollback of clone %s incomplete (%s); `ccrp gc` will find the leftovers", robot, exc)
+
+    # -- reserved external address ----------------------------------------------------------
+    def _ensure_address(self, spec: CloneSpec, current: str = "") -> tuple[str, bool]:
+        """(IP, created by this call) of the instance's reserved regional external address. When
+        missing it is reserved; with `current` (the ephemeral IP a clone of an earlier ccrp runs
+        at) that IP is promoted to a reserved one, so the robot's installed bundle keeps working."""
+        name = self.names.address(spec.robot, spec.role)
+        have = self._get("address", self.c.addresses.get, project=self.project, region=self.region, address=name)
+        created = have is None
+        if have is None:
+            resource = self.compute.Address(name=name, address_type="EXTERNAL", address=current or None,
+                                            description=self.names.describe("address", spec.robot))
+            # A Conflict here is this call's own insert that went through before a retry: it is
+            # still this attempt's to roll back (the ownership check below catches a foreign one).
+            self._insert(f"address {name}", self.c.addresses.insert, project=self.project, region=self.region,
+                         address_resource=resource)
+            have = self._call("get address", self.c.addresses.get, project=self.project, region=self.region,
+                              address=name)
+        if not self.names.owns_unlabelled(have.name, have.description):
+            raise CcrpError(f"address {name} exists in {self.region} but is not ccrp's", hint="rename or release it")
+        return have.address, created
+
+    def _keep_address(self, spec: CloneSpec, zone: str, inst) -> None:
+        """A reused clone runs at its reserved address. One without an address (made by a ccrp that
+        did not reserve them, or its address released by hand) has its current IP promoted, the
+        IP its robot's bundle dials; one at another IP than its existing address (its access
+        config changed by hand) gets an access config on the address."""
+        nic = inst.network_interfaces[0]
+        current = nic.access_configs[0].nat_i_p if nic.access_configs else ""
+        address, _ = self._ensure_address(spec, current)
+        if current == address:
+            return
+        where = dict(project=self.project, zone=zone, instance=inst.name, network_interface=nic.name or "nic0")
+        if nic.access_configs:
+            self._mutate(f"remove the external IP {current} of {inst.name}", self.c.instances.delete_access_config,
+                         access_config=nic.access_configs[0].name, **where)
+        self._mutate(f"attach address {address} to {inst.name}", self.c.instances.add_access_config,
+                     access_config_resource=self._access_config(address), **where)
+
+    def _addresses(self, robot: str | None = None) -> list:
+        """The fleet's reserved addresses in the region (of one robot)."""
+        found = self._list("addresses", self.c.addresses.list, project=self.project, region=self.region)
+        return [a for a in found if self.names.owns_unlabelled(a.name, a.description)
+                and (robot is None or description_marks(a.description).get(LABEL_ROBOT) == robot)]
+
+    def _release_address(self, robot: str, name: str) -> None:
+        """Rollback's release of an address this attempt reserved; a failure is logged, never
+        masks the cause (`ccrp gc` finds the address)."""
+        try:
+            self._wait_all([(f"release address {name}", self._delete(f"address {name}", self.c.addresses.delete,
+                                                                     project=self.project, region=self.region,
+                                                                     address=name))])
+        except Exception as exc:  # noqa: BLE001
+            log.warning("rollback of clone %s: address %s not released (%s); `ccrp gc` will find it", robot, name, exc)
 
     def _ensure_route(self, spec: CloneSpec, inst) -> bool:
         """Route the robot's VPN subnet to its clone; True when this call created the route."""
@@ -306,8 +376,19 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
             clones = ((dict(inst.labels).get(LABEL_ROBOT), inst) for _zone, inst in self._instances("clone"))
             return {robot: self._record(robot, inst) for robot, inst in clones if robot}
 
+    def stop_instance(self, robot: str) -> bool:
+        with self._errors(f"stop clone of {robot}"):
+            found = self._find(robot)
+            if found is None or found[1].status not in ("PROVISIONING", "STAGING", "RUNNING"):
+                return False
+            zone, inst = found
+            self._mutate(f"stop instance {inst.name}", self.c.instances.stop, project=self.project, zone=zone,
+                         instance=inst.name)
+            return True
+
     def terminate(self, robot: str) -> bool:
-        """Delete the robot's clone and its route (owned only); False when there was no clone."""
+        """Delete the robot's clone, its route and then its reserved address (owned only); False
+        when there was no clone."""
         with self._errors(f"delete clone of {robot}"):
             route = self._get("route", self.c.routes.get, project=self.project, route=self.names.route(robot))
             ops = []
@@ -320,6 +401,10 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
                 ops.append(("delete instance", self._delete("instance", self.c.instances.delete,
                                                             project=self.project, zone=zone, instance=inst.name)))
             self._wait_all(ops)
+            # After the instance: GCE refuses to release an address still in use.
+            self._wait_all([(f"release address {a.name}", self._delete(
+                f"address {a.name}", self.c.addresses.delete, project=self.project, region=self.region,
+                address=a.name)) for a in self._addresses(robot)])
             return found is not None
 
     def console_output(self, robot: str) -> str:
@@ -348,8 +433,10 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
         with self._errors(f"quotas of {self.region}"):
             region = self._call("get region", self.c.regions.get, project=self.project, region=self.region)
             missing = [r.name for r in self.inv.robots if r.name not in self.query()]
+            reserved = {a.name for a in self._addresses()}
             adds = {"CPUS": sum(self._vcpus(self._machine_type(r)) for r in missing),
-                    "IN_USE_ADDRESSES": len(missing), "INSTANCES": len(missing)}
+                    "IN_USE_ADDRESSES": len(missing), "INSTANCES": len(missing),
+                    "STATIC_ADDRESSES": sum(self.names.address(r) not in reserved for r in missing)}
             return [Quota(name=f"{q.metric} in {self.region}", limit=q.limit, need=q.usage + adds[q.metric])
                     for q in region.quotas if q.metric in adds]
 

@@ -314,6 +314,14 @@ class OpenStackProvider(Images, Owned, CloudProvider):
             return {r.robot: r for r in (self._record(s) for s in self.servers()
                                          if s.metadata.get(LABEL_ROLE) == "clone")}
 
+    def stop_instance(self, robot: str) -> bool:
+        with self._errors(f"stop clone of {robot}"):
+            server = self._server(robot, role="clone")
+            if server is None or server.status != "ACTIVE":
+                return False
+            self.api("stop server", self.compute.stop_server, server)
+            return True
+
     def terminate(self, robot: str) -> bool:
         """The robot's server(s), floating IP and port: owned ones only."""
         with self._errors(f"delete clone of {robot}"):

@@ -1,0 +1,136 @@
+"""Operations a user starts from the CLI or from the dashboard: one body each, so `ccrp clone
+start` and the dashboard's Start button do exactly the same thing (under the fleet lock).
+
+`say` receives progress lines (the CLI prints them on stderr, the dashboard pushes them to the
+page). Each returns what the CLI renders: per-robot results or certificate records.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+Say = Callable[[str], None]
+
+
+def clone_start(fleet, provider, robot: str, say: Say) -> list:
+    """`ccrp clone start`: start the robot's stopped clone, push its keys again, wait until it serves."""
+    from . import reconcile
+    from .errors import InputError
+    from .providers.base import CloneState
+
+    fleet.robot(fleet.store.load_state(), robot)
+    rec = provider.query().get(robot)
+    if rec is None:
+        raise InputError(f"robot {robot!r} has no clone to start", hint=f"ccrp clone create --robot {robot}")
+    with fleet.store.lock():
+        items = reconcile.up(fleet, provider, say, only=[robot])
+    if rec.state is CloneState.STOPPED and items[0].action == "reused":
+        items[0].action = "started"
+    return items
+
+
+def clone_stop(fleet, provider, robot: str, say: Say, timeout: float = 300) -> list:
+    """`ccrp clone stop`: the provider stops the robot's clone (its disk, addresses and keys stay)
+    and ccrp waits until it says stopped. `clone start`, or the next `fleet up`, starts it again."""
+    import time
+
+    from . import retry
+    from .clones import CloneResult
+    from .errors import CcrpError, InputError
+    from .providers.base import CloneState
+
+    fleet.robot(fleet.store.load_state(), robot)
+    t0 = time.monotonic()
+    with fleet.store.lock():
+        rec = provider.query().get(robot)
+        if rec is None:
+            raise InputError(f"robot {robot!r} has no clone to stop", hint=f"ccrp clone create --robot {robot}")
+        if rec.state is CloneState.STOPPED:
+            return [CloneResult(robot, "stopped", "stopped already")]
+        say(f"{robot}: stopping its clone ({rec.status})")
+        provider.stop_instance(robot)
+
+        def stopped():
+            now = provider.query().get(robot)
+            return now is not None and now.state is CloneState.STOPPED, now.status if now else "gone"
+        try:
+            retry.poll(stopped, timeout=timeout, interval=2, every=30,
+                       progress=lambda s: say(f"{robot}: still stopping after {s:.0f} s"))
+        except retry.PollTimeout as exc:
+            raise CcrpError(f"the clone of {robot} did not stop within {exc.seconds:.0f} s (it is {exc.last})",
+                            hint=f"ccrp clone stop --robot {robot} again, or look at it in the cloud's console") from None
+    return [CloneResult(robot, "stopped", "", time.monotonic() - t0)]
+
+
+def clone_restart(fleet, provider, robot: str, say: Say) -> list:
+    """`ccrp clone restart`: stop the clone, then `clone start`. The provider stops it, so a clone
+    that no longer answers (a hung master, a full disk, lost keys) restarts too."""
+    stopped = clone_stop(fleet, provider, robot, say)
+    items = clone_start(fleet, provider, robot, say)
+    if items[0].action in ("started", "reused"):
+        items[0].action = "restarted"
+    items[0].seconds += stopped[0].seconds
+    return items
+
+
+def fleet_scale(fleet, provider, size: int, say: Say) -> list:
+    """`ccrp fleet scale SIZE`: grow or shrink the fleet with template robots."""
+    from . import reconcile
+
+    reconcile.check_scale(fleet, fleet.store.load_state(), size)  # bad input makes no PKI, no snapshot
+    ensure_pki(fleet, say)
+    with fleet.store.lock():
+        ensure_snapshot(fleet, provider, say)
+        return reconcile.scale(fleet, provider, size, say)
+
+
+def vpn_revoke(fleet, provider, robot: str, say: Say, cert: str = "client") -> list[dict[str, Any]]:
+    """`ccrp vpn revoke`: revoke the robot's certificates, end its session, push the CRL."""
+    from . import vpn
+
+    return vpn.revoke(fleet, robot, cert, provider, say)
+
+
+def ensure_pki(fleet, say: Say) -> None:
+    """A new fleet's PKI is made by the first command that needs it, as `ccrp vpn init` would
+    (which takes the fleet lock: call this before taking it)."""
+    if fleet.pki.exists():
+        return
+    from . import vpn
+
+    made = vpn.init(fleet)
+    say(f"fleet {fleet.name!r} had no PKI yet: created its CA {made['ca']} (as `ccrp vpn init`)")
+
+
+def ensure_snapshot(fleet, provider, say: Say) -> None:
+    """A new Docker fleet's golden image is built by the first command that creates a clone, as
+    `ccrp snapshot build` would (the caller holds the fleet lock). A cloud's is baked on purpose
+    (`ccrp snapshot bake`: a builder instance, minutes, billed), so there the clone says so."""
+    from . import snapshots
+    from .providers import Ability
+
+    recorded = fleet.store.load_state().snapshot or {}
+    if Ability.LOCAL_BUILD not in provider.abilities or (recorded.get("image") and provider.has_image(recorded["image"])):
+        return
+    say(f"fleet {fleet.name!r} has no snapshot yet: building it (as `ccrp snapshot build`)")
+    record = snapshots.build(fleet, provider, say)
+    snapshots.retain(fleet, provider, say)
+    say(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
+
+
+def robot_teleop(fleet, provider, robot: str, linear: float, angular: float, topic: str = "cmd_vel",
+                 timeout: float = 5.0, keep: bool = False) -> dict:
+    """`ccrp robot teleop` and the dashboard's drive keys: one velocity command through the clone.
+    No fleet lock: it changes nothing ccrp records, and an operator must not wait behind a scale."""
+    from .evaluation import send_command
+
+    return send_command(fleet, provider, robot, linear, angular, topic, timeout, keep)
+
+
+def robot_power(fleet, robot: str, action: str, say: Say, timeout: float = 30) -> dict:
+    """`ccrp robot power on|off|status` and the dashboard's Power buttons: through the robot's power
+    device (a simulated robot's stand-in), waiting for its report. No fleet lock: ccrp records nothing."""
+    from .power import power
+
+    return power(fleet, robot, action, say, timeout)

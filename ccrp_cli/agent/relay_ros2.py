@@ -1,0 +1,216 @@
+"""The relay agent's ROS 2 side (rclpy), imported by relay.py on a clone whose ROS environment
+names no master (docs/ros2.md, Topic sharing between Jazzy clones). Runs on Debian's python3 with
+the distro's venv on its path (ros-run); nothing from ccrp.
+
+Exports: an exported topic is subscribed once a publisher of it is on the graph, with its type and
+its publishers' reliability and durability, as serialized CDR (raw); the Zenoh attachment carries
+the type name, that QoS and the sequence number. Imports: the bytes are published as they came on
+/<source><topic>, with that type (its generated class, from the wheels) and that QoS.
+"""
+
+from __future__ import annotations
+
+import importlib
+import ipaddress
+import json
+import os
+import re
+import tempfile
+import threading
+import time
+
+from relay import CONNECT_GRACE, Import, log, write_atomic
+
+RELIABILITY = ("reliable", "best_effort")
+DURABILITY = ("transient_local", "volatile")
+
+
+def message_type(name: str) -> tuple[str, str]:
+    """(package, type) of a ROS 2 message type name, pkg/msg/Type as the graph gives it (or
+    pkg/Type). Anything else is refused: the name comes from the graph or from a peer and is
+    imported as a module."""
+    parts = name.split("/")
+    if len(parts) == 2:
+        parts = [parts[0], "msg", parts[1]]
+    ident = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+    if len(parts) != 3 or parts[1] != "msg" or not ident.match(parts[0]) or not ident.match(parts[2]):
+        raise ValueError(f"not a message type: {name!r}")
+    return parts[0], parts[2]
+
+
+def message_class(name: str):
+    """The generated class of a message type (the distro's wheels have no rosidl_runtime_py)."""
+    package, kind = message_type(name)
+    return getattr(importlib.import_module(f"{package}.msg"), kind)
+
+
+def combined_qos(offered: list[tuple[str, str]]) -> dict:
+    """The reliability and durability to take for a topic's publishers [(reliability, durability)
+    as lower-case policy names]: the weakest of them, which a subscription must ask for no more
+    than to match every publisher (a reliable one would miss a best-effort publisher), and what
+    the importing clone's publisher then offers."""
+    if not offered:
+        raise ValueError("no publishers")
+    reliable = all(r == "reliable" for r, _ in offered)
+    lasting = all(d == "transient_local" for _, d in offered)
+    return {"reliability": "reliable" if reliable else "best_effort",
+            "durability": "transient_local" if lasting else "volatile"}
+
+
+def qos_profile(qos: dict, depth: int = 100):
+    """An rclpy QoSProfile from combined_qos's names; a name not known is refused."""
+    if qos.get("reliability") not in RELIABILITY or qos.get("durability") not in DURABILITY:
+        raise ValueError(f"unknown QoS {qos!r}")
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(depth=depth, reliability=ReliabilityPolicy[qos["reliability"].upper()],
+                      durability=DurabilityPolicy[qos["durability"].upper()])
+
+
+def offered_qos(infos) -> list[tuple[str, str]]:
+    """(reliability, durability) names of the publishers rclpy's graph lists (TopicEndpointInfo)."""
+    return [(i.qos_profile.reliability.name.lower(), i.qos_profile.durability.name.lower()) for i in infos]
+
+
+class Export2:
+    """An exported ROS 2 topic. There is no `any type` subscription in ROS 2: it is subscribed once
+    a publisher of it is on the graph (poll, every second), and again if its type or its
+    publishers' QoS change."""
+
+    def __init__(self, relay, topic: str) -> None:  # relay: relay.Relay
+        self.relay, self.topic, self.count = relay, topic, 0
+        self.sub, self.meta, self.refused = None, None, None
+        self.publisher = relay.session.declare_publisher(relay.key(relay.cfg["robot"], topic))
+        self.poll()
+
+    def poll(self) -> None:
+        node = self.relay.ros.node
+        infos = node.get_publishers_info_by_topic(self.topic)
+        if not infos:
+            return
+        types = sorted({i.topic_type for i in infos})
+        if len(types) > 1:
+            log(f"{self.topic}: published with several types {types}: relaying {types[0]}")
+        infos = [i for i in infos if i.topic_type == types[0]]
+        meta = {"t": types[0], "q": combined_qos(offered_qos(infos))}
+        if meta in (self.meta, self.refused):
+            return
+        try:
+            cls, qos = message_class(meta["t"]), qos_profile(meta["q"])
+        except (ImportError, AttributeError, ValueError) as exc:
+            self.refused = meta  # said once, not every second; a change of type tries again
+            log(f"{self.topic}: cannot relay {meta['t']}: {exc}")
+            return
+        if self.sub is not None:
+            node.destroy_subscription(self.sub)
+            self.sub = None
+        self.sub = node.create_subscription(cls, self.topic, self.forward, qos, raw=True)
+        self.meta = meta
+        log(f"{self.topic}: exporting {meta['t']} ({meta['q']['reliability']}, {meta['q']['durability']})")
+
+    def forward(self, data: bytes) -> None:
+        self.count += 1
+        self.publisher.put(bytes(data), attachment=json.dumps({**self.meta, "s": self.count}).encode())
+
+    def close(self) -> None:
+        if self.sub is not None:
+            self.relay.ros.node.destroy_subscription(self.sub)
+        self.publisher.undeclare()
+
+
+class Import2(Import):
+    """An imported ROS 2 topic: the serialized bytes published as they came (rclpy publishes bytes
+    raw), by a publisher of the sample's type and QoS."""
+
+    kind = None
+
+    def _publish(self, meta: dict, payload: bytes) -> None:
+        kind = (meta["t"], meta["q"]["reliability"], meta["q"]["durability"])
+        node = self.relay.ros.node
+        if self.pub is None or kind != self.kind:
+            cls, qos = message_class(meta["t"]), qos_profile(meta["q"])  # a bad sample changes nothing
+            if self.pub is not None:
+                node.destroy_publisher(self.pub)
+                self.pub = None
+            self.pub = node.create_publisher(cls, self.local, qos)
+            self.kind = kind
+            # As for ROS 1: subscribers the graph knows get the first message too, once matched.
+            deadline = time.monotonic() + CONNECT_GRACE
+            while self.pub.get_subscription_count() < node.count_subscribers(self.local) and \
+                    time.monotonic() < deadline:
+                time.sleep(0.02)
+        self.pub.publish(payload)
+
+    def _close_pub(self) -> None:
+        self.relay.ros.node.destroy_publisher(self.pub)
+
+
+# Fast DDS delivers between processes of one host through shared memory, where a writer puts its
+# samples in a segment the reader created with its umask (0644): a writer of another user cannot,
+# and the relay runs as its own user. rmw_fastrtps sets that transport itself under
+# ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so the agent's participant takes this profile instead
+# (range SYSTEM_DEFAULT: the middleware's settings as given): UDP only, the same unicast discovery
+# as LOCALHOST + ROS_STATIC_PEERS (this host and the robot's VPN address), no multicast.
+FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <transport_descriptors>
+    <transport_descriptor>
+      <transport_id>ccrp_udp</transport_id>
+      <type>UDPv4</type>
+      <maxInitialPeersRange>32</maxInitialPeersRange>
+    </transport_descriptor>
+  </transport_descriptors>
+  <participant profile_name="ccrp_relay" is_default_profile="true">
+    <rtps>
+      <userTransports><transport_id>ccrp_udp</transport_id></userTransports>
+      <useBuiltinTransports>false</useBuiltinTransports>
+      <builtin>
+        <metatrafficUnicastLocatorList><locator><udpv4><address>0.0.0.0</address></udpv4></locator></metatrafficUnicastLocatorList>
+        <initialPeersList>
+{peers}
+        </initialPeersList>
+      </builtin>
+    </rtps>
+  </participant>
+</profiles>
+"""
+
+
+def fastdds_profile(static_peers: str) -> str:
+    """The agent's Fast DDS profile for ROS_STATIC_PEERS (';'-separated); only IPv4 addresses are
+    taken (ccrp writes the robot's VPN address there)."""
+    peers = ["127.0.0.1"]
+    for peer in filter(None, (p.strip() for p in static_peers.split(";"))):
+        try:
+            peers.append(str(ipaddress.IPv4Address(peer)))
+        except ValueError:
+            log(f"ROS_STATIC_PEERS: {peer!r} is not an IPv4 address: left out")
+    return FASTDDS_PROFILE.format(peers="\n".join(
+        f"          <locator><udpv4><address>{p}</address></udpv4></locator>" for p in dict.fromkeys(peers)))
+
+
+class Ros2:
+    """The rclpy side: one node, spun by an executor thread (subscription callbacks); graph queries
+    and entity changes come from the agent's main loop, which rclpy allows while it spins."""
+
+    Export, Import = Export2, Import2
+
+    def __init__(self) -> None:
+        run = os.environ.get("RUNTIME_DIRECTORY") or tempfile.mkdtemp(prefix="ccrp-relay-")
+        profile = os.path.join(run.split(":")[0], "fastdds.xml")
+        write_atomic(profile, fastdds_profile(os.environ.pop("ROS_STATIC_PEERS", "")))
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = profile
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
+
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.rclpy = rclpy
+        rclpy.init()
+        self.node = rclpy.create_node("ccrp_relay")
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        threading.Thread(target=self.executor.spin, name="rclpy", daemon=True).start()
+
+    def ok(self) -> bool:
+        return self.rclpy.ok()

@@ -1,0 +1,109 @@
+"""The API manager, a platform service on the clone (docs/services.md): what `fleet up` pushes for
+it, and how `ccrp status` reports it. It is agent/api_manager.py as ccrp-api-manager.service,
+its setting a pushed file (/etc/ccrp/api_manager.json, like relay.json), its backend's key (if any)
+pushed into the clone's secrets, never into user-data."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .errors import CcrpError, shown
+from .models.inventory import Inventory, Robot
+from .render.bundles import BundleFile
+from .render.view import API_USER, CCRP_ETC, SECRETS_DIR
+
+API_UNIT = "ccrp-api-manager.service"
+API_CONFIG = f"{CCRP_ETC}/api_manager.json"
+API_STATUS = "/run/ccrp-api-manager/status.json"  # agent/health.py has its own copy
+GOOGLE_KEY = f"{SECRETS_DIR}/google-vision.json"
+# Retries of a failed backend call (agent/api_manager.py Caller): attempts per frame, then backoff
+# base and cap in seconds.
+RETRY = {"attempts": 3, "base": 0.5, "max": 30.0}
+
+
+def api_manager_config(inv: Inventory, robot: Robot) -> dict | None:
+    """The agent's config for robot's clone, or None when its clone runs no API manager."""
+    s = inv.api_manager_of(robot)
+    if s is None:
+        return None
+    google = s.google_vision
+    return {
+        "robot": robot.name, "input": s.input, "output": s.output, "backend": s.backend, "rate": s.rate,
+        "min_confidence": s.min_confidence, "options": dict(s.options), "retry": RETRY, "status": API_STATUS,
+        "google_vision": {"endpoint": google.endpoint, "timeout": google.timeout,
+                          "credentials": GOOGLE_KEY if google.credentials else None},
+    }
+
+
+def google_key(path: str) -> str:
+    """The service-account key file named by the inventory, checked to be one (read on the
+    operator's machine at `fleet up`)."""
+    p = Path(path).expanduser()
+    try:
+        text = p.read_text()
+        data = json.loads(text)
+    except (OSError, ValueError) as exc:
+        raise CcrpError(f"google_vision.credentials {shown(str(p))}: {type(exc).__name__}: {shown(str(exc))}",
+                        hint="a service-account key file (JSON) from the Google Cloud console") from None
+    if not isinstance(data, dict) or data.get("type") != "service_account" or "private_key" not in data:
+        raise CcrpError(f"google_vision.credentials {shown(str(p))} is not a service-account key file")
+    return text
+
+
+def api_manager_files(inv: Inventory, robot: Robot) -> list[BundleFile]:
+    """What `fleet up` pushes for robot's API manager: its config, and its Vision key when it has
+    one. [] when the clone runs none."""
+    cfg = api_manager_config(inv, robot)
+    if cfg is None:
+        return []
+    files = [BundleFile("api_manager.json", json.dumps(cfg, indent=1, sort_keys=True) + "\n", 0o644, API_CONFIG)]
+    setting = inv.api_manager_of(robot)
+    if setting is not None and setting.backend == "google-vision" and setting.google_vision.credentials:
+        files.append(BundleFile("google-vision.json", google_key(setting.google_vision.credentials), 0o640, GOOGLE_KEY,
+                                API_USER))
+    return files
+
+
+def absent_config() -> BundleFile:
+    """Probed on a clone whose robot runs no API manager: if the file is there, it is removed."""
+    return BundleFile("api_manager.json", "", 0o644, API_CONFIG)
+
+
+# Whether a clone can run the service: its unit (user-data), its agent (snapshot) and its user.
+HAS_AGENT_SH = (f"test -e /etc/systemd/system/{API_UNIT} && test -e /usr/local/lib/ccrp/api_manager.py "
+                f"&& getent passwd {API_USER} >/dev/null")
+# Turns the service off on a clone: its config and key gone, the unit stopped.
+OFF_SH = f'rm -f "{API_CONFIG}" "{GOOGLE_KEY}" && systemctl stop {API_UNIT}'
+
+
+def apply_api_manager(provider, robot: str, files: list[BundleFile], have: dict[str, str]) -> None:
+    """Bring robot's clone in line with `files` (api_manager_files), given the digests of what it
+    holds: push and restart the agent when they differ, or turn the service off."""
+    from .clones import same
+
+    if files:
+        if not same(have, files):
+            rc, _ = provider.exec(robot, ["sh", "-c", HAS_AGENT_SH], timeout=30)
+            if rc != 0:
+                raise CcrpError(
+                    f"robot {robot!r}'s clone has no API manager: it was made from an older snapshot or user-data",
+                    hint=f"ccrp snapshot build -i INVENTORY, then ccrp clone delete -i INVENTORY --robot {robot} "
+                         f"and ccrp fleet up -i INVENTORY")
+            provider.push_files(robot, files, restart=[API_UNIT])
+    elif API_CONFIG in have:
+        rc, out = provider.exec(robot, ["sh", "-c", OFF_SH], timeout=30)
+        if rc != 0:
+            raise CcrpError(f"cannot turn the API manager off on robot {robot!r}'s clone: {out.strip()[-200:]}")
+
+
+def api_manager_row(inv: Inventory, robot: Robot, health: dict | None) -> dict | None:
+    """`ccrp status`'s view of robot's API manager: None when it has none; `running` only while
+    the agent reports (a status file under 10 s old, agent/health.py)."""
+    s = inv.api_manager_of(robot)
+    if s is None:
+        return None
+    h = (health or {}).get("api_manager") or {}
+    return {"running": bool(h.get("running")), "backend": s.backend, "calls": h.get("calls", 0),
+            "errors": h.get("errors", 0), "published": h.get("published", 0),
+            "last_latency_ms": h.get("last_latency_ms"), "last_error": h.get("last_error")}

@@ -1,0 +1,28 @@
+"""ccrp init: a first ccrp.yaml in this directory."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import options, output
+
+
+def init(
+    provider: Annotated[str, typer.Option("--provider", help="docker (clones on this host), openstack, gcp or aws.")] = "docker",
+    robots: Annotated[str, typer.Option("--robots", help="Robot names, comma-separated.")] = "nao1,nao2",
+    fleet: Annotated[str, typer.Option("--fleet", help="Fleet name (default: this directory's name, if it is a valid one, else 'lab').")] = "",
+    out: Annotated[Path, typer.Option("--out", "-o", help="File to write (never overwritten).")] = Path(options.DEFAULT_INVENTORY),
+    as_json: options.Json = False,
+) -> None:
+    """Write a commented ccrp.yaml that validates, with address pools free on this host (Docker
+    networks, routes, and the other fleets in $CCRP_HOME); then `ccrp fleet up` needs no -i."""
+    from ..init import default_fleet, write
+
+    result = write(out, provider, [r.strip() for r in robots.split(",") if r.strip()], fleet or default_fleet())
+    output.info(f"wrote {out} (fleet {result['fleet']!r} on {provider}, robots {', '.join(result['robots'])}); "
+                f"next: ccrp fleet validate, then ccrp fleet up")
+    if as_json:
+        output.emit_json(result)

@@ -1,0 +1,194 @@
+"""Who may use the dashboard: an ASGI guard in front of every route.
+
+- The access token (made at start with secrets.token_urlsafe, or given) is presented once, as
+  `/?token=...` in the URL ccrp printed. The guard answers with a redirect to `/` without it, and a session cookie (HttpOnly, SameSite=Strict, one name per port): a random session
+  id, not the token, so the token is in no cookie, page, event or log line.
+- Every request needs that session (401 without), and a Host this server answers to (403: a DNS
+  rebinding page sends its own name).
+- Only GET, HEAD and POST exist. A POST changes state: it needs the session, an Origin (or, without
+  one, a Referer) of this very server, and the session's CSRF token in the X-CCRP-CSRF header
+  (403). The CSRF token is in the page (a meta tag), bound to its session, worthless without the
+  cookie.
+- Responses carry a Content-Security-Policy allowing only this server's scripts, no framing, no
+  referrer, no caching.
+- The access log is this guard's: method, path (never the query string), status.
+"""
+
+from __future__ import annotations
+
+import hmac
+import logging
+import secrets
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from http.cookies import SimpleCookie
+from urllib.parse import parse_qs, urlsplit
+
+log = logging.getLogger("ccrp.dashboard")
+
+CSRF_HEADER = "x-ccrp-csrf"
+MAX_SESSIONS = 64
+MIN_TOKEN_CHARS = 16
+SECURITY_HEADERS = [
+    (b"content-security-policy",
+     b"default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data:; connect-src 'self'; "
+     b"base-uri 'none'; form-action 'none'; frame-ancestors 'none'"),
+    (b"x-frame-options", b"DENY"),
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"no-referrer"),
+    (b"cache-control", b"no-store"),
+]
+LOGIN_PAGE = (b"<!doctype html><meta charset=utf-8><title>ccrp dashboard</title>"
+              b"<p>This dashboard needs its access token: open the URL that <code>ccrp dashboard</code> "
+              b"printed when it started (it ends in <code>?token=</code>).</p>")
+
+
+def new_token() -> str:
+    return secrets.token_urlsafe(32)
+
+
+@dataclass
+class Session:
+    csrf: str = field(default_factory=lambda: secrets.token_urlsafe(32))
+    opened: float = field(default_factory=time.time)
+
+
+class Auth:
+    """The token, the sessions it opened, and the Hosts this server answers to (None: any)."""
+
+    def __init__(self, token: str, port: int, allowed_hosts: set[str] | None) -> None:
+        if len(token) < MIN_TOKEN_CHARS:
+            raise ValueError(f"the dashboard token must have at least {MIN_TOKEN_CHARS} characters")
+        self._token = token.encode()
+        self.port = port
+        self.allowed_hosts = allowed_hosts
+        self.cookie = f"ccrp_dashboard_{port}"  # cookies are not kept apart by port: the name is
+        self._sessions: OrderedDict[str, Session] = OrderedDict()
+
+    def token_ok(self, presented: str) -> bool:
+        return hmac.compare_digest(presented.encode(), self._token)
+
+    def open_session(self) -> str:
+        sid = secrets.token_urlsafe(32)
+        self._sessions[sid] = Session()
+        while len(self._sessions) > MAX_SESSIONS:
+            self._sessions.popitem(last=False)
+        return sid
+
+    def session(self, sid: str | None) -> Session | None:
+        if not sid:
+            return None
+        for known, session in self._sessions.items():  # constant time per comparison
+            if hmac.compare_digest(known.encode(), sid.encode()):
+                return session
+        return None
+
+    def host_ok(self, host: str) -> bool:
+        return self.allowed_hosts is None or host.lower() in self.allowed_hosts
+
+
+def allowed_hosts(host: str, port: int) -> set[str] | None:
+    """The Host headers a server bound to host:port answers to: its own address, and the loopback
+    names when it is bound to loopback. Bound to every address (0.0.0.0, ::), any Host."""
+    if host in ("0.0.0.0", "::", ""):
+        return None
+    shown = f"[{host}]" if ":" in host else host
+    hosts = {f"{shown}:{port}"}
+    if host in ("127.0.0.1", "::1", "localhost"):
+        hosts |= {f"127.0.0.1:{port}", f"localhost:{port}", f"[::1]:{port}"}
+    return hosts
+
+
+def _headers(scope) -> dict[str, str]:
+    return {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+
+
+class Guard:
+    """ASGI middleware: the checks above, then the app with scope["ccrp_session"] set."""
+
+    def __init__(self, app, auth: Auth) -> None:
+        self.app = app
+        self.auth = auth
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        method, path = scope["method"], scope["path"]
+        status_seen = {}
+
+        async def send_secured(message):
+            if message["type"] == "http.response.start":
+                status_seen["status"] = message["status"]
+                names = {k.lower() for k, _ in message.get("headers", [])}
+                message = dict(message)
+                message["headers"] = list(message.get("headers", [])) + [
+                    (k, v) for k, v in SECURITY_HEADERS if k not in names]
+            await send(message)
+
+        try:
+            refusal = self.check(scope, method, path)
+            if refusal is not None:
+                await refusal(send_secured)
+            else:
+                await self.app(scope, receive, send_secured)
+        finally:
+            client = (scope.get("client") or ("?", 0))[0]
+            # The path only: the query string may hold the token.
+            log.info('%s "%s %s" %s', client, method, path, status_seen.get("status", "-"))
+
+    def check(self, scope, method: str, path: str):
+        headers = _headers(scope)
+        host = headers.get("host", "")
+        if not self.auth.host_ok(host):
+            return _plain(403, "unknown Host")
+        if method not in ("GET", "HEAD", "POST"):
+            return _plain(405, "method not allowed")
+        query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
+        if method == "GET" and "token" in query:
+            if not self.auth.token_ok(query["token"][0]):
+                return _plain(401, "wrong token", html=LOGIN_PAGE)
+            sid = self.auth.open_session()
+            log.info("session opened from %s", (scope.get("client") or ("?",))[0])
+            cookie = f"{self.auth.cookie}={sid}; HttpOnly; SameSite=Strict; Path=/"
+            return _redirect("/", cookie)  # always the page: a path of the request's could be //elsewhere
+        cookies = SimpleCookie()
+        try:
+            cookies.load(headers.get("cookie", ""))
+        except Exception:  # noqa: BLE001 - a malformed cookie header is no session
+            cookies = SimpleCookie()
+        morsel = cookies.get(self.auth.cookie)
+        session = self.auth.session(morsel.value if morsel else None)
+        if session is None:
+            return _plain(401, "no session: open the URL ccrp dashboard printed", html=LOGIN_PAGE)
+        scope["ccrp_session"] = session
+        if method == "POST":
+            origin = headers.get("origin")
+            if origin is None and headers.get("referer"):
+                parts = urlsplit(headers["referer"])
+                origin = f"{parts.scheme}://{parts.netloc}"
+            if origin != f"http://{host}":
+                return _plain(403, "cross-site request refused (Origin)")
+            if not hmac.compare_digest(headers.get(CSRF_HEADER, "").encode(), session.csrf.encode()):
+                return _plain(403, "cross-site request refused (CSRF token)")
+        return None
+
+
+def _plain(status: int, text: str, html: bytes | None = None):
+    body = html if html is not None else text.encode() + b"\n"
+    kind = b"text/html; charset=utf-8" if html is not None else b"text/plain; charset=utf-8"
+
+    async def respond(send):
+        await send({"type": "http.response.start", "status": status,
+                    "headers": [(b"content-type", kind), (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})
+    return respond
+
+
+def _redirect(path: str, cookie: str):
+    async def respond(send):
+        await send({"type": "http.response.start", "status": 303,
+                    "headers": [(b"location", path.encode()), (b"set-cookie", cookie.encode()),
+                                (b"content-length", b"0")]})
+        await send({"type": "http.response.body", "body": b""})
+    return respond

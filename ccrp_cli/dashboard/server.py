@@ -1,0 +1,199 @@
+"""`ccrp dashboard`: the real fleet wired to the app, served by uvicorn on a socket bound first
+(so the printed URL has the real port, `--bind 127.0.0.1:0` included)."""
+
+from __future__ import annotations
+
+import ipaddress
+import logging
+import socket
+import sys
+from pathlib import Path
+
+from ..errors import InputError
+from .auth import Auth, allowed_hosts, new_token
+from .events import Broker, Monitor, pki_alerts
+
+log = logging.getLogger("ccrp.dashboard")
+
+
+def parse_bind(bind: str) -> tuple[str, int]:
+    """HOST:PORT, [V6]:PORT, or HOST alone (port 8080)."""
+    host, port = bind, "8080"
+    if bind.startswith("["):
+        host, _, rest = bind[1:].partition("]")
+        if rest:
+            if not rest.startswith(":"):
+                raise InputError(f"--bind {bind[:80]!r}: expected HOST:PORT or [IPV6]:PORT")
+            port = rest[1:]
+    elif bind.count(":") == 1:
+        host, port = bind.split(":")
+    if not port.isdigit() or int(port) > 65535:
+        raise InputError(f"--bind {bind[:80]!r}: the port must be a number from 0 to 65535")
+    if host != "localhost":
+        try:
+            ipaddress.ip_address(host)
+        except ValueError:
+            raise InputError(f"--bind {bind[:80]!r}: the host must be an IP address or localhost") from None
+    return ("127.0.0.1" if host == "localhost" else host), int(port)
+
+
+def results(items: list) -> list[dict]:
+    """Per-robot results as `ccrp ... --json` prints them (cli/output.results)."""
+    return [{"robot": r.robot, "action": r.action, "seconds": round(r.seconds, 2), "detail": r.detail} for r in items]
+
+
+def fleet_actions(inventory: Path) -> dict:
+    """The page's actions: each opens the fleet as a CLI run does and calls the CLI's own body
+    (ccrp_cli.actions), which takes the fleet lock."""
+    from .. import actions
+    from ..fleet import Fleet
+    from ..providers import get_provider
+
+    def opened(what: str, say):
+        fleet = Fleet.open(inventory)
+        fleet.store.command = f"dashboard: {what}"
+        fleet.store.on_wait = say
+        return fleet, get_provider(fleet.inventory)
+
+    def clone_start(args: dict, say) -> list[dict]:
+        fleet, provider = opened(f"clone start {args['robot']}", say)
+        return results(actions.clone_start(fleet, provider, args["robot"], say))
+
+    def clone_restart(args: dict, say) -> list[dict]:
+        fleet, provider = opened(f"clone restart {args['robot']}", say)
+        return results(actions.clone_restart(fleet, provider, args["robot"], say))
+
+    def vpn_revoke(args: dict, say) -> list[dict]:
+        fleet, provider = opened(f"vpn revoke {args['robot']}", say)
+        records = actions.vpn_revoke(fleet, provider, args["robot"], say)
+        say(f"revoked {len(records)} certificate(s) of robot {args['robot']!r}; CRL re-issued")
+        return [{"cn": r["cn"], "profile": r["profile"], "serial": r["serial"]} for r in records]
+
+    def fleet_scale(args: dict, say) -> list[dict]:
+        fleet, provider = opened(f"fleet scale {args['size']}", say)
+        return results(actions.fleet_scale(fleet, provider, args["size"], say))
+
+    def robot_power(args: dict, say) -> dict:
+        fleet, _ = opened(f"robot power {args['state']} {args['robot']}", say)
+        r = actions.robot_power(fleet, args["robot"], args["state"], say)
+        say(f"{r['robot']}: power {r['power']}, robot {r['robot_state']} (device report {r['reported_at']})")
+        return r
+
+    return {"clone-start": clone_start, "clone-restart": clone_restart, "vpn-revoke": vpn_revoke, "fleet-scale": fleet_scale, "robot-power": robot_power}
+
+
+def teleop_sender(inventory: Path):
+    """The drive keys' body: `ccrp robot teleop` (ccrp_cli.actions.robot_teleop) on a fleet opened
+    once: a command changes nothing ccrp records, so it needs no fresh state nor the fleet lock."""
+    from .. import actions
+    from ..fleet import Fleet
+    from ..providers import get_provider
+
+    fleet = Fleet.open(inventory)
+    provider = get_provider(fleet.inventory)
+
+    def send(robot: str, linear: float, angular: float) -> dict:
+        # keep: an operator node stays up on the clone between key presses (evaluation.send_command)
+        return actions.robot_teleop(fleet, provider, robot, linear, angular, keep=True)
+
+    def close() -> None:
+        from ..evaluation import stop_operators
+
+        stop_operators(fleet, provider)
+
+    return send, close
+
+
+def camera_reader(inventory: Path):
+    """The camera view's body: `ccrp robot camera` (ccrp_cli.camera.latest_frame) on a fleet opened
+    once, as the drive keys' is: a read changes nothing ccrp records."""
+    from ..camera import latest_frame
+    from ..fleet import Fleet
+    from ..providers import get_provider
+
+    fleet = Fleet.open(inventory)
+    provider = get_provider(fleet.inventory)
+    return lambda robot: latest_frame(fleet, provider, robot)
+
+
+def serve(inventory: Path, bind: str, token: str | None, interval: float) -> None:
+    import uvicorn
+
+    from ..fleet import Fleet
+    from ..providers import get_provider
+    from ..status import fleet_status
+    from .app import Actions, Camera, Teleop, create_app
+
+    host, port = parse_bind(bind)
+    if token is not None and len(token) < 16:
+        raise InputError("--token must have at least 16 characters (or leave it out: one is made)")
+    fleet = Fleet.open(inventory)
+    provider = get_provider(fleet.inventory)
+
+    try:
+        sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        sock.listen(128)  # from now on a connection waits in the backlog until uvicorn takes it
+    except OSError as exc:
+        raise InputError(f"cannot listen on {bind[:80]}: {exc.strerror}") from None
+    port = sock.getsockname()[1]
+
+    _log_to_stderr()
+    made = token is None
+    token = token or new_token()
+    auth = Auth(token, port, allowed_hosts(host, port))
+    broker = Broker()
+    monitor = Monitor(broker, lambda: fleet_status(fleet, provider), lambda robots: pki_alerts(fleet.pki, robots),
+                      interval, fleet.name, fleet.inventory.provider.kind)
+    runner = Actions(broker, fleet_actions(inventory), monitor.refresh)
+    send, close = teleop_sender(inventory)
+    app = create_app(auth, broker, monitor, runner, fleet.name, Teleop(send, broker, close),
+                     Camera(camera_reader(inventory)))
+
+    shown = f"[{host}]" if ":" in host else host
+    if not ipaddress.ip_address(host).is_loopback:
+        log.warning("bound to %s, not to loopback: whoever reaches this port may try the token "
+                    "(an SSH tunnel to a loopback-bound dashboard exposes nothing)", host)
+    url = f"http://{shown}:{port}/"
+    # The one place the token is printed: the URL to open, Jupyter style (not when it was given).
+    print(f"ccrp: dashboard of fleet {fleet.name!r}, open:\n    {url}?token={token if made else '<your token>'}",
+          file=sys.stderr, flush=True)
+
+    config = uvicorn.Config(app, log_config=None, access_log=False, log_level="warning",
+                            timeout_graceful_shutdown=2, lifespan="on")
+    server = _Server(config, broker)
+    try:
+        server.run(sockets=[sock])
+    finally:
+        sock.close()
+        monitor.stop()
+
+
+def _log_to_stderr() -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("ccrp: dashboard: %(message)s"))
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    log.propagate = False
+
+
+def _server_class():
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        """Ends the event streams first on Ctrl-C, so the shutdown does not wait for open pages."""
+
+        def __init__(self, config, broker: Broker) -> None:
+            super().__init__(config)
+            self.broker = broker
+
+        def handle_exit(self, sig, frame) -> None:
+            self.broker.close()
+            super().handle_exit(sig, frame)
+
+    return Server
+
+
+def _Server(config, broker):  # noqa: N802 - a class made on first use (uvicorn imported late)
+    return _server_class()(config, broker)

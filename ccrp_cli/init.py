@@ -1,0 +1,109 @@
+"""`ccrp init`: a first, commented ccrp.yaml whose address pools clash with nothing on this host."""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+from pathlib import Path
+
+from .errors import InputError, cannot_write, shown
+from .store import ccrp_home
+
+# Where each pool is looked for, and the size of one: the lab's choices first.
+SEARCH = {"public": ("172.30.0.0/15", 24), "common": ("10.90.0.0/16", 24), "vpn": ("10.80.0.0/12", 16)}
+PROVIDERS = ("docker", "openstack", "gcp", "aws")
+
+
+def docker_subnets() -> list[ipaddress.IPv4Network]:
+    """The IPv4 subnets of this host's Docker networks (none when no engine answers)."""
+    try:
+        import docker
+
+        client = docker.from_env(timeout=5)
+    except Exception:  # noqa: BLE001 - no engine here: nothing of Docker's to avoid
+        return []
+    try:
+        return [ipaddress.IPv4Network(cfg["Subnet"], strict=False) for net in client.networks.list()
+                for cfg in (net.attrs.get("IPAM") or {}).get("Config") or [] if ":" not in cfg.get("Subnet", ":")]
+    except Exception:  # noqa: BLE001 - same
+        return []
+    finally:
+        client.close()
+
+
+def host_ranges() -> dict[str, str]:
+    """What a new network must not shadow on this host: its routes (not the default one) and its
+    DNS servers, range -> what it is."""
+    ranges: dict[str, str] = {}
+    try:
+        for line in Path("/proc/net/route").read_text().splitlines()[1:]:
+            f = line.split()
+            dest, mask = (ipaddress.IPv4Address(int(x, 16).to_bytes(4, "little")) for x in (f[1], f[7]))
+            if int(mask):
+                ranges[str(ipaddress.IPv4Network(f"{dest}/{mask}", strict=False))] = f"route via {f[0]}"
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        for line in Path("/etc/resolv.conf").read_text().splitlines():
+            f = line.split()
+            if len(f) >= 2 and f[0] == "nameserver" and ":" not in f[1]:
+                ranges[f"{f[1]}/32"] = "DNS server"
+    except OSError:
+        pass
+    return ranges
+
+
+def used_networks() -> list[ipaddress.IPv4Network]:
+    """What a new fleet's pools must not overlap: Docker's networks, this host's routes and DNS
+    servers, and the addresses of every fleet in $CCRP_HOME."""
+    used = docker_subnets() + [ipaddress.IPv4Network(r) for r in host_ranges()]
+    for state in ccrp_home().glob("*/state.json"):
+        try:
+            robots = json.loads(state.read_text()).get("robots", {})
+        except (OSError, ValueError):
+            continue
+        for rec in robots.values():
+            for key in ("common", "vpn"):
+                ip = (rec.get("addresses") or {}).get(key)
+                if ip:
+                    used.append(ipaddress.IPv4Network(f"{ip}/{24 if key == 'common' else 16}", strict=False))
+    return used
+
+
+def free(kind: str, used: list[ipaddress.IPv4Network]) -> str:
+    within, prefix = SEARCH[kind]
+    for net in ipaddress.IPv4Network(within).subnets(new_prefix=prefix):
+        if not any(net.overlaps(u) for u in used):
+            used.append(net)
+            return str(net)
+    raise InputError(f"no free /{prefix} for the {kind} pool in {within} on this host", hint="write the pools by hand")
+
+
+def default_fleet() -> str:
+    from .models.names import NAME_RE
+
+    name = Path.cwd().name.lower()
+    return name if NAME_RE.fullmatch(name) else "lab"
+
+
+def write(path: Path, provider: str, robots: list[str], fleet: str) -> dict:
+    from .models.names import check_name
+    from .render.templates import render
+
+    if provider not in PROVIDERS:
+        raise InputError(f"--provider {shown(provider)}: choose from {', '.join(PROVIDERS)}")
+    check_name(fleet, "fleet name")
+    for name in robots:
+        check_name(name)
+    if len(set(robots)) != len(robots) or not robots:
+        raise InputError("--robots: one or more different names, comma-separated", hint="e.g. --robots nao1,nao2")
+    if path.exists():
+        raise InputError(f"{path} exists: ccrp init never overwrites an inventory", hint="edit it, or remove it first")
+    used = used_networks()
+    pools = {"public": free("public", used) if provider == "docker" else None,
+             "common": free("common", used), "vpn_pool": free("vpn", used)}
+    text = render("init/ccrp.yaml.j2", fleet=fleet, provider=provider, robots=robots, **pools)
+    with cannot_write(path):
+        with open(path, "x") as fh:  # exclusive: a file made meanwhile is not overwritten either
+            fh.write(text)
+    return {"path": str(path), "fleet": fleet, "provider": provider, "robots": robots, **pools}

@@ -1,0 +1,307 @@
+"""Knowledge sync between clones (docs/services.md, Knowledge sync): each clone's agent config, what
+`fleet up` pushes and starts for it, and `ccrp knowledge list|add|remove|sync`.
+
+The agent (agent/knowledge.py as ccrp-knowledge.service, its own user) keeps each dataset the clone
+shares under KNOWLEDGE_ROOT/<dataset>/ and talks to its partners over the relay's channel: the
+common network, mutual TLS with the clone's relay certificate, partners admitted by the CN of
+theirs. Its config is a pushed file (/etc/ccrp/knowledge.json, not secret), re-read when it changes.
+Commands reach the agent through the provider's exec (its control socket, root only) and push.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+import secrets
+from pathlib import Path
+
+from .errors import CcrpError, InputError, shown
+from .fleet import Fleet
+from .models.state import FleetState
+from .render.bundles import BundleFile
+from .render.view import CCRP_ETC, CCRP_LIB, SECRETS_DIR
+
+UNIT = "ccrp-knowledge.service"
+CONFIG = f"{CCRP_ETC}/knowledge.json"
+ROOT = "/var/lib/ccrp/knowledge"
+RUN = "/run/ccrp-knowledge"
+STATUS = f"{RUN}/status.json"
+AGENT = f"{CCRP_LIB}/knowledge.py"
+# What one `knowledge add` moves per file: it is pushed whole, base64 in memory, through the provider.
+MAX_ITEM = 64 << 20
+ITEM_NAME = re.compile(r"^[^/\x00-\x1f\x7f]{1,255}$")
+
+
+def knowledge_config(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> dict | None:
+    """/etc/ccrp/knowledge.json of robot's clone; None when it shares no dataset. Its partners are
+    the clones that share a dataset with it, are up (`live`, by default those state calls ready)
+    and hold a current relay certificate."""
+    from .sharing import zenoh_id
+
+    inv = fleet.inventory
+    k = inv.services.knowledge
+    plan = fleet.plan(state)
+    datasets = inv.datasets_of(robot, [m.name for m in fleet.members(state) if m.name in plan])
+    if k is None or not datasets or robot not in plan:
+        return None
+    if live is None:
+        live = {n for n, rec in state.robots.items() if rec.phase == "ready"}
+    cns = fleet.pki.relay_cns()
+    partners = sorted({m for members in datasets.values() for m in members
+                       if m != robot and m in live and m in plan and m in cns})
+    return {
+        "fleet": inv.fleet,
+        "robot": robot,
+        "id": zenoh_id(inv.fleet, f"{robot}/knowledge"),
+        "listen": f"tls/{plan[robot].common_ip}:{k.port}",
+        "peers": {p: {"endpoint": f"tls/{plan[p].common_ip}:{k.port}", "id": zenoh_id(inv.fleet, f"{p}/knowledge"),
+                      "cn": cns[p]} for p in partners},
+        "datasets": datasets,
+        "reconcile": k.reconcile,
+        "tls": {"ca": f"{SECRETS_DIR}/relay-ca.crt", "cert": f"{SECRETS_DIR}/relay.crt", "key": f"{SECRETS_DIR}/relay.key"},
+        "root": ROOT,
+        "status": STATUS,
+        "socket": f"{RUN}/ctl.sock",
+    }
+
+
+def knowledge_files(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> list[BundleFile]:
+    """What `fleet up` pushes to robot's clone: its config, then the agent itself; [] when it shares
+    no dataset. The agent (stdlib + the Zenoh the relay's snapshot has) comes with its config, not
+    in user-data: a bare cloud image's user-data, which carries the image's agents, would not fit
+    AWS's 16 KiB with it (measured: 22.9 KiB gzipped, 15.8 KiB without)."""
+    from .render.cloudinit import agent_source
+
+    cfg = knowledge_config(fleet, state, robot, live)
+    if cfg is None:
+        return []
+    return [BundleFile("knowledge.json", json.dumps(cfg, indent=1, sort_keys=True) + "\n", 0o644, CONFIG),
+            BundleFile("knowledge.py", agent_source("knowledge"), 0o755, AGENT)]
+
+
+def absent_config() -> BundleFile:
+    """Probed on a clone that shares no dataset: if the file is there, it is removed."""
+    return BundleFile("knowledge.json", "", 0o644, CONFIG)
+
+
+OFF_SH = f'rm -f "{CONFIG}" && systemctl stop {UNIT}'
+
+
+def apply_knowledge(provider, robot: str, files: list[BundleFile], have: dict[str, str], restart: bool) -> None:
+    """After the config and agent went with the clone's settings: restart the agent where its code
+    changed or the relay's TLS files were just pushed (`restart`), start it where only its config
+    is new (a running agent re-reads the file), or turn it off where the clone shares no dataset
+    any more."""
+    from .clones import same
+
+    if files:
+        restart = restart or not same(have, [f for f in files if f.dest == AGENT])
+        if not restart and same(have, files):
+            return
+        rc, out = provider.exec(robot, ["systemctl", "restart" if restart else "start", UNIT], timeout=30)
+        if rc != 0:
+            raise CcrpError(f"cannot start the knowledge agent on robot {robot!r}'s clone: {out.strip()[-200:]}",
+                            hint=f"a clone made before knowledge sync existed has no unit for it: ccrp clone delete -i "
+                                 f"INVENTORY --robot {robot}, then ccrp fleet up -i INVENTORY")
+    elif CONFIG in have:
+        rc, out = provider.exec(robot, ["sh", "-c", OFF_SH], timeout=30)
+        if rc != 0:
+            raise CcrpError(f"cannot turn knowledge sync off on robot {robot!r}'s clone: {out.strip()[-200:]}")
+
+
+# -- the commands --------------------------------------------------------------------------------
+
+def _check(fleet: Fleet, robot: str, dataset: str) -> None:
+    state = fleet.store.load_state()
+    fleet.robot(state, robot)  # one line when the fleet has no such robot
+    shared = fleet.inventory.datasets_of(robot, [m.name for m in fleet.members(state)])
+    if dataset not in shared:
+        have = ", ".join(shared) or "none"
+        raise InputError(f"dataset {shown(dataset)} is not shared with robot {robot!r} (its datasets: {have})",
+                         hint="services.knowledge.datasets in the inventory names the robots of each dataset")
+
+
+def _ctl(provider, robot: str, request: dict, spool: str | None = None, timeout: float = 120) -> dict:
+    argv = ["python3", AGENT, "ctl", json.dumps(request)] + ([spool] if spool else [])
+    rc, out = provider.exec(robot, argv, timeout=timeout)
+    try:
+        reply = json.loads(out.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        raise CcrpError(f"robot {robot!r}'s knowledge agent gave no answer: {out.strip()[-200:]}") from None
+    if rc == 3:
+        raise CcrpError(f"robot {robot!r}'s clone runs no knowledge agent: {reply.get('error')}",
+                        hint="ccrp fleet up -i INVENTORY starts it where services.knowledge shares a dataset")
+    if not reply.get("ok"):
+        raise CcrpError(f"robot {robot!r}'s knowledge agent: {shown(reply.get('error'), 200)}")
+    return reply
+
+
+def list_items(fleet: Fleet, provider, robot: str, dataset: str) -> dict:
+    _check(fleet, robot, dataset)
+    return _ctl(provider, robot, {"op": "list", "dataset": dataset})
+
+
+def item_name(path: Path) -> str:
+    name = path.name
+    if not ITEM_NAME.match(name) or name in (".", ".."):
+        raise InputError(f"cannot name an item {shown(name)}: a file name without control characters")
+    return name
+
+
+def read_items(paths: list[Path]) -> list[tuple[str, bytes]]:
+    """Every file read before anything is sent, so a bad one changes nothing."""
+    if not paths:
+        raise InputError("knowledge add needs at least one FILE")
+    out = []
+    for p in paths:
+        name = item_name(p)
+        try:
+            if p.stat().st_size > MAX_ITEM:
+                raise InputError(f"{shown(str(p))} is over {MAX_ITEM >> 20} MiB, the most one item may be")
+            out.append((name, p.read_bytes()))
+        except OSError as exc:
+            raise InputError(f"cannot read {shown(str(p))}: {exc.strerror}") from None
+    if len({n for n, _ in out}) != len(out):
+        raise InputError("two FILEs have the same name")
+    return out
+
+
+def add_items(fleet: Fleet, provider, robot: str, dataset: str, paths: list[Path]) -> list[dict]:
+    """Add files to the dataset on robot's clone; its agent sends them to the partners at once."""
+    _check(fleet, robot, dataset)
+    items = read_items(paths)
+    _ctl(provider, robot, {"op": "ping", "dataset": dataset})  # before pushing anything
+    added = []
+    for name, data in items:
+        # Root-only, beside the datasets (no dataset name starts with a dot); the ctl client reads
+        # and removes it. Not in /run: Docker's put_archive does not reach a container's tmpfs.
+        spool = f"{ROOT}/.spool-{secrets.token_hex(8)}.b64"
+        provider.push_files(robot, [BundleFile("spool", base64.b64encode(data).decode(), 0o600, spool)], restart=[])
+        reply = _ctl(provider, robot, {"op": "add", "dataset": dataset, "name": name}, spool)
+        added.append({**reply["item"], "new": reply["new"]})
+    return added
+
+
+def remove_items(fleet: Fleet, provider, robot: str, dataset: str, items: list[str]) -> list[dict]:
+    """Remove items (by name: every content of that name; or by sha256) everywhere: a tombstone
+    goes to the partners."""
+    _check(fleet, robot, dataset)
+    if not items:
+        raise InputError("knowledge remove needs at least one NAME or SHA256")
+    out = []
+    for item in items:
+        reply = _ctl(provider, robot, {"op": "remove", "dataset": dataset, "item": item})
+        if not reply["removed"]:
+            raise InputError(f"dataset {dataset!r} on robot {robot!r} has no item {shown(item)}",
+                             hint=f"ccrp knowledge list -i INVENTORY --robot {robot} --dataset {dataset}")
+        out += reply["removed"]
+    return out
+
+
+def sync(fleet: Fleet, provider, robot: str, dataset: str) -> dict:
+    """Reconcile now: robot's clone pulls its partners' indexes and fetches what it lacks."""
+    _check(fleet, robot, dataset)
+    return _ctl(provider, robot, {"op": "sync", "dataset": dataset})
+
+
+# -- merge: one rosbag from a dataset's bags (the thesis's merge_bag) -------------------------------
+
+def merge_bag_files(paths: list[Path], out: Path, names: list[str] | None = None) -> dict:
+    """Write one ROS 1 bag with every message of `paths` (shown in errors as `names`), in time
+    order. Connections are one per (topic, type, md5sum); a message met twice (same connection,
+    time and bytes: two clones recorded the same, or a bag merged before) is written once."""
+    import hashlib
+    import heapq
+    from contextlib import ExitStack
+
+    from rosbags.rosbag1 import Reader, ReaderError, Writer
+
+    def ident(c) -> tuple[str, str, str]:
+        return c.topic, c.msgtype, c.digest
+
+    count = dups = 0
+    seen: set[tuple] = set()
+    try:
+        with ExitStack() as stack:
+            readers = []
+            for p, name in zip(paths, names or [p.name for p in paths]):
+                try:
+                    readers.append(stack.enter_context(Reader(p)))
+                except Exception as exc:  # noqa: BLE001 - rosbags raises what the bytes make it (ReaderError, UnicodeDecodeError...)
+                    raise CcrpError(f"{shown(name)} is not a ROS 1 bag: {type(exc).__name__}: {shown(str(exc), 120)}",
+                                    hint="merge takes the dataset's items named *.bag; remove or rename this one") from None
+            writer = stack.enter_context(Writer(out))
+            conns = {}
+            for r in readers:
+                for c in r.connections:
+                    if ident(c) not in conns:
+                        # rosbags 0.11 gives a MessageDefinition (its text in .data), older ones the text.
+                        msgdef = getattr(c.msgdef, "data", c.msgdef)
+                        conns[ident(c)] = writer.add_connection(c.topic, c.msgtype, msgdef=msgdef, md5sum=c.digest,
+                                                                callerid=getattr(c.ext, "callerid", None),
+                                                                latching=getattr(c.ext, "latching", None))
+            streams = [((t, i, ident(c), data) for c, t, data in r.messages()) for i, r in enumerate(readers)]
+            for t, _i, k, data in heapq.merge(*streams, key=lambda m: (m[0], m[1])):
+                mark = (k, t, hashlib.sha256(data).digest())
+                if mark in seen:
+                    dups += 1
+                    continue
+                seen.add(mark)
+                writer.write(conns[k], t, data)
+                count += 1
+    except ReaderError as exc:
+        out.unlink(missing_ok=True)
+        raise CcrpError(f"cannot read a bag of the dataset: {shown(str(exc), 200)}") from None
+    except CcrpError:
+        out.unlink(missing_ok=True)
+        raise
+    return {"bags": len(paths), "messages": count, "duplicates": dups,
+            "topics": sorted({k[0] for k in conns}), "out": str(out)}
+
+
+def merge(fleet: Fleet, provider, robot: str, dataset: str, out: Path) -> dict:
+    """The dataset's bags (items named *.bag) on robot's clone, fetched and merged into `out`."""
+    import hashlib
+    import tempfile
+
+    _check(fleet, robot, dataset)
+    if out.exists():
+        raise InputError(f"{shown(str(out))} exists already", hint="name a new file with --out")
+    try:
+        import rosbags  # noqa: F401
+    except ImportError:
+        raise InputError("ccrp knowledge merge needs the rosbags library", hint="pip install 'ccrp[rosbag]'") from None
+    bags = [i for i in _ctl(provider, robot, {"op": "list", "dataset": dataset})["items"]
+            if i["name"].lower().endswith(".bag")]
+    if not bags:
+        raise InputError(f"dataset {dataset!r} on robot {robot!r} has no bags (items named *.bag)")
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = []
+        for k, item in enumerate(bags):
+            rc, text = provider.exec(robot, ["base64", "-w0", f"{ROOT}/{dataset}/objects/{item['sha256']}"], timeout=300)
+            try:
+                data = base64.b64decode(text.strip().splitlines()[-1], validate=True) if rc == 0 else b""
+            except (ValueError, IndexError):
+                data = b""
+            if hashlib.sha256(data).hexdigest() != item["sha256"]:
+                raise CcrpError(f"cannot fetch {shown(item['name'])} from robot {robot!r}'s clone (removed meanwhile?)",
+                                hint=f"ccrp knowledge list -i INVENTORY --robot {robot} --dataset {dataset}")
+            path = Path(tmp) / f"{k}.bag"
+            path.write_bytes(data)
+            paths.append(path)
+        return merge_bag_files(paths, out, [i["name"] for i in bags])
+
+
+def knowledge_row(fleet: Fleet, state: FleetState, robot: str, health: dict | None) -> dict | None:
+    """`ccrp status`'s view of robot's knowledge agent: None when its clone shares no dataset;
+    `running` only while the agent reports (a status file under 10 s old, agent/health.py)."""
+    cfg = knowledge_config(fleet, state, robot)
+    if cfg is None:
+        return None
+    h = (health or {}).get("knowledge") or {}
+    running = bool(h.get("running"))
+    seen = h.get("peers", {}) if running else {}
+    return {"running": running, "datasets": h.get("datasets", {}) if running else {},
+            "peers": {p: bool(seen.get(p)) for p in cfg["peers"]}, "errors": h.get("errors", 0),
+            "last_error": h.get("last_error"), "last_reconcile": h.get("last_reconcile")}

@@ -1,0 +1,126 @@
+"""The robot's watchdog as ccrp sees it: connected or brainless (templates/edge/ccrp-watchdog).
+
+A simulated robot on this host is read in its container: the state its watchdog wrote (`ok|lost
+<unix time>`) and the stand-in motors its fallback hook drives. A real robot has no way in but the
+tunnel its watchdog watches, so its state is inferred from the clone's side: a VPN session and a
+master that answers are exactly what the watchdog probes (connected); without a session the
+robot is out of reach and what its watchdog decided is unknown until it comes back.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+from concurrent.futures import ThreadPoolExecutor
+
+log = logging.getLogger("ccrp.watchdog")
+
+STATE_FILE = "/run/ccrp/clone-state"  # CCRP_WATCHDOG_STATE's default, which the bundle keeps
+MOTORS_FILE = "/run/ccrp/sim/motors"  # templates/sim/ccrp-sim-fallback
+POWER_FILE = "/run/ccrp/power/state"  # power.REPORT: the stand-in power device's last report
+# One exec reads the files; a missing one reads as an empty line. A constant: no name reaches the shell.
+READ = ["/bin/sh", "-c", 'for f in "$@"; do printf "%s " "$f"; head -n1 "$f" 2>/dev/null || echo; done',
+        "ccrp-watchdog-state", STATE_FILE, MOTORS_FILE, POWER_FILE]
+STATES = {"ok": "connected", "lost": "brainless"}
+
+
+def _when(text: str) -> str | None:
+    try:
+        return dt.datetime.fromtimestamp(float(text), dt.timezone.utc).isoformat(timespec="seconds")
+    except (ValueError, OverflowError, OSError):
+        return None
+
+
+def _files(out: str) -> dict[str, str]:
+    files = {}
+    for line in out.splitlines():
+        path, _, rest = line.partition(" ")
+        files[path] = rest.strip()
+    return files
+
+
+def parse_power(out: str) -> dict:
+    """The READ command's output -> the power device's last report; a simulated robot whose
+    device has not reported yet (its agent starts with the first `ccrp robot power`) has power on."""
+    from .power import SILENT_S, parse_report
+
+    report = parse_report(_files(out).get(POWER_FILE) or "")
+    if report is None:
+        return {"relay": None, "robot": None, "reported_at": None, "age_s": None, "silent": False}
+    return report | {"silent": report["age_s"] > SILENT_S}
+
+
+def parse(out: str) -> dict:
+    """The READ command's output -> {"state", "since", "source", "motors"}."""
+    files = {path: rest.split() for path, rest in _files(out).items()}
+    state, motors = files.get(STATE_FILE) or [], files.get(MOTORS_FILE) or []
+    word = STATES.get(state[0]) if state else None
+    return {"state": word or "starting",  # no file yet: the watchdog has not decided (first seconds)
+            "since": _when(state[1]) if word and len(state) > 1 else None,
+            "source": "simulated robot",
+            "motors": motors[0] if motors else "enabled"}  # the hook has never run: as the robot started
+
+
+def simulated(fleet, provider) -> dict[str, dict]:
+    """robot -> {"watchdog": its watchdog's state, "power": its power device's report}, for the
+    fleet's simulated robots running on this host. A robot powered off has no watchdog running:
+    its state is `off` (the state file left behind is the last decision before the cut)."""
+    from .providers.base import LABEL_ROBOT
+    from .simulated import Sims
+
+    try:
+        sims = Sims(fleet, provider)
+        running = sims.host.client.containers.list(ignore_removed=True, filters=sims.host._filters("robot-sim"))
+        robots = sorted(c.labels.get(LABEL_ROBOT, "") for c in running)
+    except Exception as exc:  # noqa: BLE001 - no Docker here (a cloud fleet's host): no simulated robots
+        log.debug("no simulated robots read: %s", exc)
+        return {}
+
+    def one(robot: str) -> tuple[str, dict | None]:
+        try:
+            rc, out = sims.exec(robot, READ, timeout=10)
+        except Exception as exc:  # noqa: BLE001 - removed meanwhile: no state, the others still count
+            log.debug("watchdog state of %s not read: %s", robot, exc)
+            return robot, None
+        if rc != 0:
+            return robot, None
+        w, p = parse(out), parse_power(out)
+        if p["robot"] == "off":
+            w = {"state": "off", "since": p["reported_at"], "source": "power device", "motors": None}
+        return robot, {"watchdog": w, "power": p}
+
+    if not robots:
+        return {}
+    with ThreadPoolExecutor(max_workers=min(8, len(robots))) as pool:
+        return {r: s for r, s in pool.map(one, robots) if s is not None}
+
+
+def inferred(row: dict) -> dict:
+    """A robot without a simulated robot here: what its clone's side tells."""
+    if row.get("vpn_connected") and row.get("master_reachable"):
+        return {"state": "connected", "since": None, "source": "clone", "motors": None}
+    return {"state": "unknown", "since": None, "source": "clone", "motors": None}
+
+
+def power_cell(p: dict | None) -> str:
+    """`ccrp status`'s POWER column."""
+    if not p:
+        return "-"
+    if p["relay"] is None:
+        return "on (device not started)"
+    text = p["relay"] if p["robot"] in ("running", "off") else f"{p['relay']} (robot {p['robot']})"
+    return text + (f" (device silent for {p['age_s']:.0f} s)" if p.get("silent") else "")
+
+
+def cell(w: dict | None) -> str:
+    """`ccrp status`'s WATCHDOG column."""
+    if not w or w["state"] == "unknown":
+        return "-"
+    if w["state"] == "off":
+        return "off (robot powered off)"
+    text = w["state"]
+    if w.get("since"):
+        text += f" since {w['since'][11:19]}"
+    if w["state"] == "brainless" and w.get("motors"):
+        text += f" (motors {w['motors']})"
+    return text + (" (seen from clone)" if w["source"] == "clone" else "")

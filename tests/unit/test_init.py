@@ -1,0 +1,95 @@
+"""`ccrp init` and the default inventory: a fleet starts from nothing, commands work as typed."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from ccrp_cli.loader import load_inventory
+from tests.unit.inprocess_cli import run_ccrp_inprocess
+
+
+@pytest.fixture
+def here(tmp_path, monkeypatch) -> Path:
+    work = tmp_path / "lab2"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    monkeypatch.delenv("CCRP_INVENTORY", raising=False)
+    return work
+
+
+@pytest.mark.parametrize("provider", ["docker", "openstack", "gcp", "aws"])
+def test_init_writes_an_inventory_that_validates(here, provider):
+    code, out, err = run_ccrp_inprocess("init", "--provider", provider, "--robots", "nao1,tb1", "--json", home=here / "home")
+    assert code == 0, err
+    inv = load_inventory(here / "ccrp.yaml")
+    assert (inv.fleet, inv.provider.kind, [r.name for r in inv.robots]) == ("lab2", provider, ["nao1", "tb1"])
+    assert json.loads(out)["path"] == "ccrp.yaml"
+    assert (here / "ccrp.yaml").read_text().startswith("# ccrp fleet lab2")
+
+
+def test_init_never_overwrites_and_refuses_bad_input(here):
+    (here / "ccrp.yaml").write_text("mine\n")
+    for argv in (("init",), ("init", "-o", "a.yaml", "--provider", "azure"), ("init", "-o", "b.yaml", "--robots", "nao1,NAO2"),
+                 ("init", "-o", "c.yaml", "--robots", "nao1,nao1"), ("init", "-o", "d.yaml", "--fleet", "My Fleet")):
+        code, _, err = run_ccrp_inprocess(*argv, home=here / "home")
+        assert code == 2 and err.startswith("ccrp: error: ") and err.count("\n") == 1, (argv, err)
+    assert (here / "ccrp.yaml").read_text() == "mine\n"
+    assert sorted(p.name for p in here.iterdir()) == ["ccrp.yaml"]
+
+
+def test_init_pools_avoid_the_fleets_in_ccrp_home(here):
+    """Another fleet's clones use 10.90.0.0/24 and 10.80.0.0/16: the new fleet gets the next free ones."""
+    other = here / "home" / "lab" / "state.json"
+    other.parent.mkdir(parents=True)
+    other.write_text(json.dumps({"fleet": "lab", "robots": {"nao1": {"index": 1, "addresses": {
+        "common": "10.90.0.1", "vpn": "10.80.1.1", "public": "172.30.0.2"}}}}))
+    code, out, err = run_ccrp_inprocess("init", "--json", home=here / "home")
+    assert code == 0, err
+    got = json.loads(out)
+    assert got["common"] != "10.90.0.0/24" and got["vpn_pool"] != "10.80.0.0/16", got
+    inv = load_inventory(here / "ccrp.yaml")
+    assert str(inv.common.cidr) == got["common"] and str(inv.vpn.pool) == got["vpn_pool"]
+
+
+def test_commands_find_ccrp_yaml_here_or_above(here):
+    code, _, _ = run_ccrp_inprocess("init", "--robots", "nao1", home=here / "home")
+    assert code == 0
+    sub = here / "a" / "b"
+    sub.mkdir(parents=True)
+    os.chdir(sub)
+    code, out, err = run_ccrp_inprocess("fleet", "validate", "--json", home=here / "home")
+    assert code == 0, err
+    assert f"ccrp: using inventory {here / 'ccrp.yaml'}" in err
+    assert json.loads(out)["fleet"] == "lab2"
+
+
+def test_no_inventory_anywhere_is_one_line(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("CCRP_INVENTORY", raising=False)
+    code, _, err = run_ccrp_inprocess("clone", "create", "--robot", "nao1", home=tmp_path / "home")
+    assert code == 2 and "no inventory" in err and "ccrp init" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "home").exists()
+
+
+def test_commands_as_typed_in_a_new_fleet_make_its_pki(here):
+    """`ccrp vpn issue-cert --robot nao1` in a directory with only a ccrp.yaml: the fleet's CA is
+    made first, saying so; the certificates verify against it."""
+    import subprocess
+
+    assert run_ccrp_inprocess("init", "--robots", "nao1", home=here / "home")[0] == 0
+    code, out, err = run_ccrp_inprocess("vpn", "issue-cert", "--robot", "nao1", "--json", home=here / "home")
+    assert code == 0, err
+    assert "had no PKI yet: created its CA" in err
+    pki = here / "home" / "lab2" / "pki"
+    for rec in json.loads(out):
+        proc = subprocess.run(["openssl", "verify", "-CAfile", str(pki / "ca.crt"), rec["path"]], capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+    code, _, err = run_ccrp_inprocess("vpn", "issue-cert", "--robot", "nao1", home=here / "home")
+    assert code == 0 and "had no PKI yet" not in err
+    code, _, err = run_ccrp_inprocess("vpn", "issue-cert", "--robot", "ghost", home=here / "home")
+    assert code == 2 and err.splitlines() == ["ccrp: using inventory ccrp.yaml",
+                                              "ccrp: error: robot 'ghost' is not in fleet 'lab2' (robots: nao1)"], err

@@ -1,0 +1,452 @@
+"""Knowledge sync (issue 14): the inventory's services.knowledge, each clone's agent config, the
+merge (a union without duplicates, conflicts kept with their origin, tombstones), a dataset on
+disk (no partial item ever), and three agents for real on loopback over mutual TLS."""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import os
+import random
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from ccrp_cli.agent import knowledge as agent
+from ccrp_cli.errors import CcrpError
+from ccrp_cli.loader import parse_inventory
+
+BASE = {"fleet": "f", "provider": {"kind": "docker"}, "robots": [{"name": "nao1"}, {"name": "nao2"}, {"name": "tb1"}]}
+
+
+def inv(**extra):
+    return parse_inventory({**BASE, **extra}, "ccrp.yaml")
+
+
+def rec(name="a.jpg", data=b"a", origin="nao1", added=1.0, last=None, deleted=None):
+    return {"name": name, "sha256": hashlib.sha256(data).hexdigest(), "size": len(data), "origin": origin,
+            "added": added, "last": added if last is None else last, "deleted": deleted}
+
+
+# -- the inventory ------------------------------------------------------------------------------
+
+def test_datasets_name_their_robots():
+    fleet = inv(services={"knowledge": {"datasets": {"faces": {"robots": ["nao1", "nao2"]}}, "reconcile": "1m"}})
+    assert fleet.datasets_of("nao1") == {"faces": ["nao1", "nao2"]}
+    assert fleet.datasets_of("tb1") == {}
+    assert fleet.services.knowledge.reconcile == 60 and fleet.services.knowledge.port == 7448
+    assert inv().datasets_of("nao1") == {}
+    # `all`: every robot of the fleet, template robots too; a dataset nobody else shares is none.
+    every = inv(services={"knowledge": {"datasets": {"faces": {"robots": "all"}}}})
+    assert every.datasets_of("tb1") == {"faces": ["nao1", "nao2", "tb1"]}
+    assert every.datasets_of("robot1", ["nao1", "robot1"]) == {"faces": ["nao1", "robot1"]}
+    assert every.datasets_of("nao1", ["nao1"]) == {} and every.may_share_knowledge("robot7")
+    assert not fleet.may_share_knowledge("tb1")
+
+
+@pytest.mark.parametrize("setting, why", [
+    ({"datasets": {"faces": {"robots": ["nao1", "nao9"]}}}, "dataset 'faces' names unknown robot 'nao9'"),
+    ({"datasets": {"faces": {"robots": ["nao1", "nao1"]}}}, "dataset 'faces' names a robot twice"),
+    ({"datasets": {"faces": {"robots": []}}}, "services.knowledge.datasets.faces.robots"),
+    ({"datasets": {"faces": {"robots": "some"}}}, "services.knowledge.datasets.faces.robots"),
+    ({"datasets": {"../x": {"robots": ["nao1"]}}}, "services.knowledge.datasets"),
+    ({"datasets": {}, "reconcile": "1s"}, "reconcile must be between 5s and 1d"),
+    ({"datasets": {}, "reconcile": 300}, "300 has no unit"),
+    ({"datasets": {}, "port": 7447}, "services.knowledge.port 7447 is taken"),
+    ({"datasets": {}, "colour": "blue"}, "services.knowledge.colour"),
+])
+def test_a_bad_setting_is_one_line(setting, why):
+    with pytest.raises(CcrpError) as err:
+        inv(services={"knowledge": setting})
+    line = err.value.one_line()
+    assert why in line and "\n" not in line, line
+
+
+def test_knowledge_is_ros1_only_so_far():
+    with pytest.raises(CcrpError, match="services.knowledge is not built into ros.distro jazzy's clone image"):
+        inv(ros={"distro": "jazzy"}, services={"knowledge": {"datasets": {"faces": {"robots": "all"}}}})
+
+
+def test_knowledge_is_fleet_wide_only():
+    with pytest.raises(CcrpError, match="services.knowledge is fleet-wide"):
+        inv(robots=[{"name": "nao1", "services": {"knowledge": {"datasets": {}}}}])
+
+
+# -- the merge ----------------------------------------------------------------------------------
+
+def test_merge_is_a_join_in_any_order():
+    """Every order and grouping of the same records ends in the same record (and so the same
+    index on every clone), whatever came first."""
+    recs = [rec(origin="nao2", added=5.0), rec(origin="nao1", added=3.0, last=9.0),
+            rec(origin="tb1", added=4.0, deleted=7.0), rec(origin="nao1", added=3.0, deleted=10.0)]
+    results = set()
+    for order in itertools.permutations(recs):
+        out = None
+        for r in order:
+            out = agent.merge(out, r)
+            out = agent.merge(out, r)  # idempotent
+        results.add(json.dumps(out, sort_keys=True))
+    assert len(results) == 1
+    out = json.loads(results.pop())
+    assert (out["origin"], out["added"], out["last"], out["deleted"]) == ("nao1", 3.0, 9.0, 10.0)
+    assert not agent.live(out)  # the delete at 10 came after the last add at 9
+
+
+def test_same_content_twice_is_one_item_and_same_name_other_content_keeps_both():
+    index = {}
+    for r in (rec(origin="nao1", added=2.0), rec(origin="nao2", added=1.0), rec(data=b"other", origin="nao2", added=3.0)):
+        index[agent.key(r)] = agent.merge(index.get(agent.key(r)), r)
+    items = agent.listing(index.values())
+    assert [(i["name"], i["origin"]) for i in items] == [("a.jpg", "nao2"), ("a.jpg", "nao2")]
+    assert len({i["sha256"] for i in items}) == 2
+    names = agent.view_names(index.values())
+    sha_a, sha_o = hashlib.sha256(b"a").hexdigest(), hashlib.sha256(b"other").hexdigest()
+    assert names == {f"a.nao2-{sha_a[:8]}.jpg": sha_a, f"a.nao2-{sha_o[:8]}.jpg": sha_o}
+    assert agent.view_names([rec()]) == {"a.jpg": sha_a}
+    assert set(agent.view_names([rec(name="README"), rec(name="README", data=b"x", origin="tb1")])) == \
+        {f"README.nao1-{sha_a[:8]}", f"README.tb1-{hashlib.sha256(b'x').hexdigest()[:8]}"}
+
+
+def test_a_delete_wins_over_the_adds_it_saw_and_a_new_add_wins_over_it():
+    index = {}
+    r = agent.added(index, "a.jpg", rec()["sha256"], 1, "nao1", now=100.0)
+    index[agent.key(r)] = r
+    gone = agent.removed(r, now=50.0)  # a clock behind the add's: the delete still wins
+    assert not agent.live(gone) and gone["deleted"] > r["last"]
+    index[agent.key(gone)] = gone
+    again = agent.added(index, "a.jpg", rec()["sha256"], 1, "nao2", now=10.0)
+    assert agent.live(again) and again["origin"] == "nao1"  # the first add still names the origin
+    # A peer that saw only the first add and the delete converges to the delete; with the new add too, to live.
+    assert not agent.live(agent.merge(r, gone))
+    assert agent.live(agent.merge(agent.merge(r, gone), again))
+    assert agent.added({agent.key(r): r}, "a.jpg", r["sha256"], 1, "tb1", now=200.0) == r  # nothing new
+
+
+@pytest.mark.parametrize("bad", [
+    {"name": "../etc/passwd"}, {"name": ".."}, {"name": "a\nb"}, {"name": ""}, {"sha256": "x" * 64},
+    {"size": -1}, {"size": True and "1"}, {"origin": "Nao/1"}, {"added": "soon"}, {"extra": 1},
+])
+def test_a_peers_bad_record_is_refused(bad):
+    assert agent.valid(rec())
+    assert not agent.valid({**rec(), **bad})
+    assert not agent.valid("not a record")
+
+
+# -- a dataset on disk ---------------------------------------------------------------------------
+
+def test_an_object_with_the_wrong_content_never_becomes_an_item(tmp_path):
+    d = agent.Dataset(str(tmp_path), "faces")
+    with pytest.raises(ValueError, match="hashes to"):
+        d.store(b"cut short", expect=hashlib.sha256(b"the whole item").hexdigest())
+    assert os.listdir(tmp_path / "faces" / "objects") == [] and os.listdir(tmp_path / "faces" / "tmp") == []
+    # A transfer cut by a crash left a temporary file: the next start removes it, no item named.
+    (tmp_path / "faces" / "tmp" / "half").write_bytes(b"half")
+    d = agent.Dataset(str(tmp_path), "faces")
+    assert os.listdir(tmp_path / "faces" / "tmp") == [] and d.index == {}
+
+
+def test_files_view_follows_the_index_and_unused_objects_go(tmp_path):
+    d = agent.Dataset(str(tmp_path), "faces")
+    one = rec(data=b"one", origin="nao1")
+    two = rec(data=b"two", origin="nao2", added=2.0)
+    for data, r in ((b"one", one), (b"two", two)):
+        d.store(data, r["sha256"])
+        d.absorb(r)
+    d.save()
+    files = tmp_path / "faces" / "files"
+    assert sorted(os.listdir(files)) == [f"a.nao1-{one['sha256'][:8]}.jpg", f"a.nao2-{two['sha256'][:8]}.jpg"]
+    d.absorb(agent.removed(two, 3.0))
+    d.save()
+    assert os.listdir(files) == ["a.jpg"] and (files / "a.jpg").read_bytes() == b"one"
+    assert os.listdir(tmp_path / "faces" / "objects") == [one["sha256"]]
+    # The index survives a restart; an item whose object vanished is forgotten (and fetched again).
+    again = agent.Dataset(str(tmp_path), "faces")
+    assert agent.listing(again.index.values()) == agent.listing(d.index.values())
+    os.unlink(tmp_path / "faces" / "objects" / one["sha256"])
+    assert agent.listing(agent.Dataset(str(tmp_path), "faces").index.values()) == []
+
+
+# -- each clone's config -------------------------------------------------------------------------
+
+def test_config_names_partners_that_share_a_dataset_and_acl_admits_only_them(lab):
+    from ccrp_cli.knowledge import knowledge_config
+
+    state = lab.store.load_state()
+    for robot in ("nao1", "nao2", "turtlebot1"):
+        lab.pki.issue_relay(robot, "10.90.0.1", 30)
+    cfg = knowledge_config(lab, state, "nao1", live={"nao1", "nao2", "turtlebot1"})
+    assert cfg["datasets"] == {"faces": ["nao1", "nao2", "turtlebot1"]}
+    assert sorted(cfg["peers"]) == ["nao2", "turtlebot1"] and cfg["listen"].endswith(":7448")
+    assert cfg["tls"]["key"].endswith("/relay.key") and cfg["reconcile"] == 300
+    cns = lab.pki.relay_cns()
+    acl = agent.acl(cfg)
+    assert acl["default_permission"] == "deny"
+    assert acl["subjects"] == [{"id": "s0", "cert_common_names": sorted([cns["nao2"], cns["turtlebot1"]])}]
+    assert acl["rules"][0]["key_exprs"] == ["ccrp/lab/knowledge/faces/**"]
+    # Only clones that are up are partners; a clone sharing nothing gets no config.
+    assert sorted(knowledge_config(lab, state, "nao1", live={"nao2"})["peers"]) == ["nao2"]
+    assert agent.acl(knowledge_config(lab, state, "nao1", live=set()))["subjects"][0]["cert_common_names"] == \
+        [agent.NOBODY]
+
+
+# -- three agents on loopback, for real ---------------------------------------------------------
+
+zenoh = pytest.importorskip("zenoh")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Ctl:
+    """An agent with its control socket, as `ccrp knowledge` reaches it on a clone."""
+
+    def __init__(self, a, sock: str) -> None:
+        self.agent, self.sock = a, sock
+        threading.Thread(target=agent.serve, args=(a, sock), daemon=True).start()
+        deadline = time.monotonic() + 5
+        while not os.path.exists(sock) and time.monotonic() < deadline:
+            time.sleep(0.02)
+
+    def __call__(self, req: dict, data: bytes | None = None, tmp: Path | None = None) -> dict:
+        args = [json.dumps({**req, "socket": self.sock})]
+        if data is not None:
+            spool = tmp / f"spool-{random.randrange(1 << 30)}"
+            import base64
+
+            spool.write_bytes(base64.b64encode(data))
+            args.append(str(spool))
+        import contextlib
+        import io
+
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            agent.ctl(args)
+        return json.loads(out.getvalue())
+
+
+@pytest.fixture
+def agents(lab, tmp_path):
+    robots = ("nao1", "nao2", "turtlebot1")
+    ports = {r: free_port() for r in robots}
+    for r in robots:
+        lab.pki.issue_relay(r, "127.0.0.1", 30)
+    cns = lab.pki.relay_cns()
+    index = lab.pki.load_index()
+    made = {}
+
+    def tls(r):
+        c = lab.pki.current_of(index, "relay", r)
+        return {"ca": str(lab.pki.relay_ca_path), "cert": str(lab.pki.root / c.cert_path),
+                "key": str(lab.pki.root / c.key_path)}
+
+    def start(r):
+        cfg = {"fleet": "lab", "robot": r, "id": "c" + hashlib.sha256(r.encode()).hexdigest()[:31],
+               "listen": f"tls/127.0.0.1:{ports[r]}", "reconcile": 300,
+               "peers": {p: {"endpoint": f"tls/127.0.0.1:{ports[p]}", "id": "c" + hashlib.sha256(p.encode()).hexdigest()[:31],
+                             "cn": cns[p]} for p in robots if p != r},
+               "datasets": {"faces": list(robots)}, "tls": tls(r), "root": str(tmp_path / r),
+               "status": str(tmp_path / f"{r}.status")}
+        a = agent.Agent(cfg)
+        made[r] = Ctl(a, str(tmp_path / f"{r}.sock"))
+        return made[r]
+
+    yield start, tmp_path
+    for c in made.values():
+        c.agent.session.close()
+
+
+def names(ctl) -> list[tuple[str, str]]:
+    return sorted((i["name"], i["origin"]) for i in ctl({"op": "list", "dataset": "faces"})["items"])
+
+
+def until(what, probe, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while True:
+        got = probe()
+        if got:
+            return time.monotonic()
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what}: not within {timeout} s")
+        time.sleep(0.05)
+
+
+def test_three_agents_share_adds_conflicts_and_deletions(agents):
+    start, tmp = agents
+    nao1, nao2, tb = (start(r) for r in ("nao1", "nao2", "turtlebot1"))
+    until("three linked", lambda: all(len(c.agent.session.info.peers_zid()) == 2 for c in (nao1, nao2, tb)), 10)
+
+    t0 = time.monotonic()
+    reply = nao1({"op": "add", "dataset": "faces", "name": "alice.jpg"}, b"alice-1", tmp)
+    assert reply["ok"] and reply["item"]["origin"] == "nao1", reply
+    for c in (nao2, tb):
+        until("alice on every clone", lambda c=c: names(c) == [("alice.jpg", "nao1")])
+    assert time.monotonic() - t0 < 5
+    assert (tmp / "turtlebot1" / "faces" / "files" / "alice.jpg").read_bytes() == b"alice-1"
+
+    # The same name with other content on nao2 at the same time: both kept, each with its origin.
+    nao2({"op": "add", "dataset": "faces", "name": "alice.jpg"}, b"alice-2", tmp)
+    want = [("alice.jpg", "nao1"), ("alice.jpg", "nao2")]
+    for c in (nao1, nao2, tb):
+        until("both alices everywhere", lambda c=c: names(c) == want)
+    # The same content again (another name's twin on another clone) is no new item.
+    assert not tb({"op": "add", "dataset": "faces", "name": "alice.jpg"}, b"alice-1", tmp)["new"]
+
+    # A deletion reaches everyone and takes both versions of the name.
+    gone = tb({"op": "remove", "dataset": "faces", "item": "alice.jpg"})["removed"]
+    assert len(gone) == 2
+    for c in (nao1, nao2, tb):
+        until("alice gone everywhere", lambda c=c: names(c) == [])
+        assert os.listdir(tmp / c.agent.cfg["robot"] / "faces" / "objects") == []
+
+
+def test_reconciliation_repairs_what_a_stopped_clone_missed(agents):
+    start, tmp = agents
+    nao1 = start("nao1")
+    nao1({"op": "add", "dataset": "faces", "name": "bob.jpg"}, b"bob", tmp)
+    nao1({"op": "add", "dataset": "faces", "name": "carol.jpg"}, b"carol", tmp)
+    nao1({"op": "remove", "dataset": "faces", "item": "carol.jpg"})
+    nao2 = start("nao2")  # it was down for all of that: no event ever reached it
+    until("linked", lambda: len(nao2.agent.session.info.peers_zid()) == 1, 10)
+    # A peer that connects is reconciled at once (watch_peers), and `sync` does it on demand.
+    nao2.agent.watch_peers()
+    until("bob on nao2", lambda: names(nao2) == [("bob.jpg", "nao1")])
+    reply = nao2({"op": "sync", "dataset": "faces"})
+    assert reply["ok"] and reply["items"] == 1 and reply["tombstones"] == 1, reply
+
+
+def test_a_transfer_cut_midway_leaves_no_item(agents, monkeypatch):
+    """A holder that sends content which does not hash to what its record says (a transfer cut
+    short, a corrupt disk) gives no item; a later reconciliation with a good holder does."""
+    start, tmp = agents
+    nao1, nao2 = start("nao1"), start("nao2")
+    until("linked", lambda: len(nao2.agent.session.info.peers_zid()) == 1, 10)
+    real = agent.Agent.on_blob
+
+    def cut(self, ds, query):
+        try:
+            query.reply(self.k(ds, "blob", self.cfg["robot"], str(query.key_expr).rsplit("/", 1)[-1]), b"trunc")
+        finally:
+            query.drop()
+
+    monkeypatch.setattr(agent.Agent, "on_blob", cut)
+    nao1({"op": "add", "dataset": "faces", "name": "dave.jpg"}, b"dave" * 1000, tmp)
+    until("nao2 refused the cut transfer", lambda: nao2.agent.counts["errors"] >= 1)
+    assert names(nao2) == [] and os.listdir(tmp / "nao2" / "faces" / "objects") == []
+    assert os.listdir(tmp / "nao2" / "faces" / "tmp") == []
+    monkeypatch.setattr(agent.Agent, "on_blob", real)
+    assert nao2({"op": "sync", "dataset": "faces"})["items"] == 1
+    assert (tmp / "nao2" / "faces" / "files" / "dave.jpg").read_bytes() == b"dave" * 1000
+
+
+def test_control_requests_that_are_refused(agents):
+    start, tmp = agents
+    nao1 = start("nao1")
+    # A spool file swapped for a link (the agent's user owns the directory) is not read through.
+    secret = tmp / "root-only"
+    secret.write_text("c2VjcmV0")
+    (tmp / "spool-link").symlink_to(secret)
+    with pytest.raises(OSError):
+        agent.ctl([json.dumps({"op": "add", "dataset": "faces", "name": "x", "socket": nao1.sock}),
+                   str(tmp / "spool-link")])
+    assert nao1({"op": "list", "dataset": "faces"})["items"] == []
+    assert not nao1({"op": "list", "dataset": "maps"})["ok"]
+    assert "bad item name" in nao1({"op": "add", "dataset": "faces", "name": "../x"}, b"x", tmp)["error"]
+    assert nao1({"op": "remove", "dataset": "faces", "item": "nobody.jpg"})["removed"] == []
+
+
+# -- the commands' bad input: one line, exit 2, before any clone is asked ---------------------------
+
+@pytest.mark.parametrize("args, why", [
+    (("list", "--robot", "nao1", "--dataset", "maps"), "dataset 'maps' is not shared with robot 'nao1' (its datasets: faces)"),
+    (("list", "--robot", "nao9", "--dataset", "faces"), "robot 'nao9' is not in fleet 'lab'"),
+    (("add", "--robot", "nao1", "--dataset", "faces", "no/such.jpg"), "cannot read 'no/such.jpg'"),
+    (("remove", "--robot", "nao1", "--dataset", "faces"), "Missing argument"),
+])
+def test_bad_input_is_one_line_and_exit_2(ccrp, args, why):
+    proc = ccrp("knowledge", *args, "-i", "inventories/lab.yaml")
+    assert proc.returncode == 2 and why in proc.stderr and proc.stderr.count("\n") == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+# -- merge: one bag from a dataset's bags --------------------------------------------------------
+
+def write_bag(path: Path, messages: list[tuple[str, int, str]]) -> None:
+    """A ROS 1 bag of std_msgs/String messages: (topic, time in ns, text)."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    String = store.types["std_msgs/msg/String"]
+    with Writer(path) as w:
+        conns = {}
+        for topic, t, text in messages:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, "std_msgs/msg/String", typestore=store)
+            w.write(conns[topic], t, store.serialize_ros1(String(data=text), "std_msgs/msg/String"))
+
+
+def read_bag(path: Path) -> list[tuple[str, int, str]]:
+    from rosbags.rosbag1 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    with Reader(path) as r:
+        return [(c.topic, t, store.deserialize_ros1(data, c.msgtype).data) for c, t, data in r.messages()]
+
+
+def test_merge_bags_in_time_order_each_message_once(tmp_path):
+    pytest.importorskip("rosbags")
+    from ccrp_cli.knowledge import merge_bag_files
+
+    write_bag(tmp_path / "nao1.bag", [("/faces", 1, "alice"), ("/faces", 5, "bob"), ("/map", 7, "m1")])
+    write_bag(tmp_path / "nao2.bag", [("/faces", 3, "carol"), ("/faces", 5, "bob"), ("/faces", 9, "dave")])
+    out = tmp_path / "merged.bag"
+    result = merge_bag_files([tmp_path / "nao1.bag", tmp_path / "nao2.bag"], out)
+    assert (result["bags"], result["messages"], result["duplicates"], result["topics"]) == (2, 5, 1, ["/faces", "/map"])
+    assert read_bag(out) == [("/faces", 1, "alice"), ("/faces", 3, "carol"), ("/faces", 5, "bob"), ("/map", 7, "m1"),
+                             ("/faces", 9, "dave")]
+    # A merged bag merged again with one of its sources adds nothing.
+    again = merge_bag_files([out, tmp_path / "nao2.bag"], tmp_path / "again.bag")
+    assert (again["messages"], again["duplicates"]) == (5, 3)
+
+
+def test_merge_refuses_what_is_not_a_bag(tmp_path):
+    pytest.importorskip("rosbags")
+    from ccrp_cli.knowledge import merge_bag_files
+
+    (tmp_path / "x.bag").write_bytes(b"#ROSBAG V2.0\n\xd5 not a bag")
+    with pytest.raises(CcrpError, match="'x.bag' is not a ROS 1 bag"):
+        merge_bag_files([tmp_path / "x.bag"], tmp_path / "out.bag")
+    assert not (tmp_path / "out.bag").exists()
+
+
+# -- ccrp status ----------------------------------------------------------------------------------
+
+def test_status_row_and_cell(lab):
+    from ccrp_cli.cli.status import knowledge_cell
+    from ccrp_cli.knowledge import knowledge_row
+
+    state = lab.store.load_state()
+    for robot in ("nao1", "nao2", "turtlebot1"):
+        lab.pki.issue_relay(robot, "10.90.0.1", 30)
+    from ccrp_cli.models.state import RobotRecord
+
+    for k, robot in enumerate(("nao1", "nao2", "turtlebot1"), 1):
+        state.robots[robot] = RobotRecord(index=k, phase="ready")
+    report = {"time": 0, "running": True, "peers": {"nao2": True}, "errors": 1, "last_error": "x",
+              "datasets": {"faces": {"items": 3, "tombstones": 1, "bytes": 10}}, "last_reconcile": 5.0}
+    row = knowledge_row(lab, state, "nao1", {"knowledge": report})
+    assert row["running"] and row["peers"] == {"nao2": True, "turtlebot1": False} and row["errors"] == 1
+    assert knowledge_cell(row) == "faces 3, peers 1/2 (down: turtlebot1)"
+    stopped = knowledge_row(lab, state, "nao1", {"knowledge": {"running": False, "configured": True}})
+    assert knowledge_cell(stopped) == "not running" and stopped["peers"] == {"nao2": False, "turtlebot1": False}
+    assert knowledge_cell(None) == "-"
+    lone = parse_inventory({**BASE, "robots": [{"name": "nao1"}], "services": {"knowledge": {"datasets": {"faces": {"robots": "all"}}}}}, "x")
+    assert lone.datasets_of("nao1") == {}  # nobody to share with: no agent, no status cell

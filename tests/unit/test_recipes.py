@@ -1,0 +1,95 @@
+"""Snapshot recipes: the Jazzy recipe loads beside Noetic's; its ROS 2 layer goes into a venv, in
+the plain layer and in a jazzy fleet's clone image; wheels are fetched for Debian 12's python."""
+
+from __future__ import annotations
+
+import subprocess
+
+from ccrp_cli.providers.docker import images, ros2
+from ccrp_cli.recipes import platform, recipe
+
+
+def test_jazzy_recipe_loads_beside_noetics():
+    jazzy = recipe("jazzy")
+    assert jazzy.distro == "jazzy" and list(jazzy.platforms) == list(recipe("noetic").platforms) == ["debian-bookworm"]
+    plat = platform("jazzy", "docker")
+    assert {"ros-jazzy-rclpy", "ros-jazzy-rmw-fastrtps-cpp", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs",
+            "ros-jazzy-geometry-msgs"} <= {p.split("==")[0] for p in plat.pip}
+    assert "python3-venv" in plat.packages and not any(p.startswith(("ros-", "python3-rospy")) for p in plat.packages)
+
+
+def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch):
+    plat = platform("jazzy", "docker")
+    text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, plat)
+    assert "FROM clone AS ros2\n" in text and "COPY --from=ros2 /opt/ros/jazzy /opt/ros/jazzy\n" in text
+    assert "python3 -m venv /opt/ros/jazzy" in text and "sh /tmp/ccrp-ros2-setup /opt/ros/jazzy jazzy" in text
+    # No ROS 1 agents (relay, API manager) in a ROS 2 image, and no system-wide pip install.
+    assert "relay.py" not in text and "pip3 install" not in text and "cloud_init_modules" in text
+    fetched = []
+    monkeypatch.setattr(ros2, "_pip", lambda args, what: fetched.append(what))
+    context = images.build_context(plat, distro="jazzy")
+    assert set(context) == {"ros2-setup", "ccrp-topic"} and fetched == [["empy==3.3.4"], plat.pip]
+    assert "COPY ccrp-topic /usr/local/bin/ccrp-topic" in text
+
+
+def test_every_image_has_ccrp_topic_and_it_refuses_bad_usage_in_one_line():
+    import sys
+
+    assert set(images.build_context(platform("noetic", "docker").model_copy(update={"pip": []}))) == {"ccrp-topic"}
+    from tests.conftest import ROOT
+
+    tool = str(ROOT / "templates" / "image" / "ccrp-topic")
+    for argv in ([], ["bogus"], ["pub", "/chatter"], ["echo", "/a", "b", "c"], ["echo", "/a", "-n", "x"]):
+        proc = subprocess.run([sys.executable, tool, *argv], capture_output=True, text=True)
+        assert proc.returncode == 2 and proc.stderr.startswith("ccrp-topic: error: "), (argv, proc.stderr)
+        assert "Traceback" not in proc.stderr
+
+
+def test_ros2_layer_installs_the_wheels_in_a_venv_with_a_setup_file():
+    plat = platform("jazzy", "docker")
+    text = ros2.dockerfile("jazzy", images.DEFAULT_BASE, plat)
+    assert text.startswith("# ROS 2 jazzy") and f"FROM {images.DEFAULT_BASE}\n" in text
+    assert f"for p in {' '.join(plat.packages)}; do" in text
+    assert "python3 -m venv /opt/ros/jazzy" in text and f"--find-links /tmp/ccrp-wheels {' '.join(plat.pip)}" in text
+    assert "sh /tmp/ccrp-ros2-setup /opt/ros/jazzy jazzy" in text
+    assert "venv" not in images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "docker"))
+
+
+def test_venv_context_asks_for_bookworms_python_and_builds_only_the_source_packages(monkeypatch):
+    calls = []
+
+    def run(argv, **kwargs):
+        calls.append(argv[3:])
+        return subprocess.CompletedProcess(argv, 0, "", "")
+
+    monkeypatch.setattr(ros2.subprocess, "run", run)
+    zenoh_only = platform("jazzy", "docker").model_copy(update={"pip": ["eclipse-zenoh==1.10.2"], "pip_source": []})
+    assert set(ros2.venv_context(zenoh_only)) == {"ros2-setup"}
+    assert [c[0] for c in calls] == ["download"]
+    download = calls[0]
+    assert download[download.index("--python-version") + 1] == "3.11"
+    assert [download[i + 1] for i, a in enumerate(download) if a == "--platform"] == ["manylinux2014_x86_64",
+                                                                                     "manylinux_2_28_x86_64"]
+    calls.clear()
+    ros2.venv_context(platform("jazzy", "docker"))
+    assert [c[0] for c in calls] == ["wheel", "download"] and calls[0][-1] == "empy==3.3.4"
+
+
+def test_ros2_setup_lists_the_venvs_vendored_libraries_in_setup_sh(tmp_path):
+    """The script both a Docker image build and a cloud's cloud-init run after installing the wheels."""
+    import sys
+
+    from tests.conftest import ROOT
+
+    python = f"{sys.version_info[0]}.{sys.version_info[1]}"
+    site = tmp_path / "lib" / f"python{python}" / "site-packages"
+    for libs in ("ros_rclpy.libs", "ros_fastrtps.libs"):
+        (site / libs).mkdir(parents=True)
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "bin" / "python").symlink_to(sys.executable)
+    subprocess.run(["sh", str(ROOT / "templates" / "image" / "ros2-setup"), str(tmp_path), "jazzy"], check=True)
+    env = subprocess.run(["sh", "-c", '. "$0"; echo "$LD_LIBRARY_PATH|$AMENT_PREFIX_PATH|$RMW_IMPLEMENTATION"',
+                          str(tmp_path / "setup.sh")], capture_output=True, text=True, check=True, env={"PATH": "/usr/bin:/bin"})
+    libs, prefix, rmw = env.stdout.strip().split("|")
+    assert libs.split(":") == [str(tmp_path / "lib"), str(site / "ros_fastrtps.libs"), str(site / "ros_rclpy.libs")]
+    assert prefix == str(tmp_path) and rmw == "rmw_fastrtps_cpp"

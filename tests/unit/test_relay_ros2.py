@@ -1,0 +1,250 @@
+"""The relay agent's ROS 2 side (ccrp_cli/agent/relay_ros2.py, docs/ros2.md): type names and QoS as
+an exporting clone takes them from the graph and an importing clone publishes them again. rclpy
+is not installed here: a small stand-in records what the agent asks of it (the real thing runs in
+tests/e2e/test_jazzy_fleet.py)."""
+
+from __future__ import annotations
+
+import enum
+import importlib.util
+import json
+import sys
+import types
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from tests.unit.test_relay_acl import load_agent
+
+pytest.importorskip("zenoh")
+
+
+class ReliabilityPolicy(enum.Enum):
+    SYSTEM_DEFAULT, RELIABLE, BEST_EFFORT, UNKNOWN = range(4)
+
+
+class DurabilityPolicy(enum.Enum):
+    SYSTEM_DEFAULT, TRANSIENT_LOCAL, VOLATILE, UNKNOWN = range(4)
+
+
+@dataclass
+class QoSProfile:
+    depth: int
+    reliability: ReliabilityPolicy
+    durability: DurabilityPolicy
+
+
+@dataclass
+class Info:
+    """rclpy's TopicEndpointInfo, as far as the agent reads it."""
+    topic_type: str
+    reliability: str
+    durability: str
+
+    @property
+    def qos_profile(self):
+        return QoSProfile(10, ReliabilityPolicy[self.reliability], DurabilityPolicy[self.durability])
+
+
+class String:
+    pass
+
+
+class Twist:
+    pass
+
+
+@dataclass
+class Node:
+    publishers: dict = field(default_factory=dict)
+    subs: list = field(default_factory=list)
+    pubs: list = field(default_factory=list)
+    destroyed: list = field(default_factory=list)
+
+    def get_publishers_info_by_topic(self, topic):
+        return self.publishers.get(topic, [])
+
+    def create_subscription(self, cls, topic, callback, qos, raw=False):
+        self.subs.append((cls, topic, qos, raw))
+        return ("sub", len(self.subs))
+
+    def destroy_subscription(self, sub):
+        self.destroyed.append(sub)
+
+    def create_publisher(self, cls, topic, qos):
+        pub = Pub(cls, topic, qos)
+        self.pubs.append(pub)
+        return pub
+
+    def destroy_publisher(self, pub):
+        self.destroyed.append(pub)
+
+    def count_subscribers(self, topic):
+        return 0
+
+
+@dataclass
+class Pub:
+    cls: type
+    topic: str
+    qos: QoSProfile
+    sent: list = field(default_factory=list)
+
+    def publish(self, data):
+        self.sent.append(data)
+
+    def get_subscription_count(self):
+        return 0
+
+
+class Session:
+    def __init__(self):
+        self.puts = []
+
+    def declare_publisher(self, key):
+        session = self
+
+        class P:
+            def put(self, payload, attachment):
+                session.puts.append((key, payload, json.loads(attachment)))
+
+            def undeclare(self):
+                pass
+        return P()
+
+
+@pytest.fixture
+def agent(monkeypatch):
+    """relay_ros2.py, importing relay.py as on a clone (both in one directory)."""
+    monkeypatch.setitem(sys.modules, "relay", load_agent())
+    spec = importlib.util.spec_from_file_location(
+        "relay_ros2", Path(__file__).resolve().parents[2] / "ccrp_cli" / "agent" / "relay_ros2.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    qos = types.ModuleType("rclpy.qos")
+    qos.QoSProfile, qos.ReliabilityPolicy, qos.DurabilityPolicy = QoSProfile, ReliabilityPolicy, DurabilityPolicy
+    msgs = {"std_msgs.msg": {"String": String}, "geometry_msgs.msg": {"Twist": Twist}}
+    monkeypatch.setitem(sys.modules, "rclpy", types.ModuleType("rclpy"))
+    monkeypatch.setitem(sys.modules, "rclpy.qos", qos)
+    for name, classes in msgs.items():
+        mod = types.ModuleType(name)
+        for cls_name, cls in classes.items():
+            setattr(mod, cls_name, cls)
+        monkeypatch.setitem(sys.modules, name, mod)
+    return module
+
+
+def relay(agent, node):
+    r = types.SimpleNamespace(ros=types.SimpleNamespace(node=node), session=Session(), cfg={"robot": "nao1"})
+    r.key = lambda source, topic: f"ccrp/lab/{source}/{topic.strip('/')}"
+    return r
+
+
+@pytest.mark.parametrize("name, parsed", [
+    ("std_msgs/msg/String", ("std_msgs", "String")),
+    ("sensor_msgs/Image", ("sensor_msgs", "Image")),
+])
+def test_message_type_names(agent, name, parsed):
+    assert agent.message_type(name) == parsed
+
+
+@pytest.mark.parametrize("name", ["std_msgs/srv/Empty", "os/msg/x;y", "../msg/String", "String", "a/msg/B/C", "",
+                                  "std_msgs/msg/1String", "__import__('os')/msg/X"])
+def test_a_type_name_that_is_not_a_message_is_refused(agent, name):
+    # It comes from the graph or from a peer and is imported as a module: nothing else gets through.
+    with pytest.raises(ValueError):
+        agent.message_type(name)
+
+
+def test_message_class_imports_the_generated_class(agent):
+    assert agent.message_class("geometry_msgs/msg/Twist") is Twist
+
+
+@pytest.mark.parametrize("offered, expected", [
+    ([("reliable", "volatile")], ("reliable", "volatile")),
+    ([("best_effort", "volatile")], ("best_effort", "volatile")),
+    ([("reliable", "transient_local")], ("reliable", "transient_local")),
+    # The weakest of several publishers: a reliable subscription would not match a best-effort
+    # one, a transient-local one not a volatile one.
+    ([("reliable", "transient_local"), ("best_effort", "transient_local")], ("best_effort", "transient_local")),
+    ([("reliable", "transient_local"), ("reliable", "volatile")], ("reliable", "volatile")),
+])
+def test_the_qos_taken_is_the_weakest_offered(agent, offered, expected):
+    assert agent.combined_qos(offered) == dict(zip(("reliability", "durability"), expected))
+
+
+def test_qos_names_become_a_profile_and_unknown_ones_are_refused(agent):
+    profile = agent.qos_profile({"reliability": "best_effort", "durability": "transient_local"})
+    assert profile == QoSProfile(100, ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.TRANSIENT_LOCAL)
+    for bad in ({"reliability": "system_default", "durability": "volatile"}, {"reliability": "reliable"}, {}):
+        with pytest.raises(ValueError):
+            agent.qos_profile(bad)
+
+
+def test_an_export_subscribes_raw_once_published_with_the_publishers_type_and_qos(agent):
+    node = Node()
+    r = relay(agent, node)
+    export = agent.Export2(r, "/chatter")
+    assert node.subs == []  # nobody publishes it yet: nothing to subscribe to (no type)
+    node.publishers["/chatter"] = [Info("std_msgs/msg/String", "BEST_EFFORT", "VOLATILE")]
+    export.poll()
+    export.poll()  # unchanged: subscribed once
+    assert node.subs == [(String, "/chatter", QoSProfile(100, ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE), True)]
+    export.forward(b"\x00\x01\x00\x00hi")
+    export.forward(b"\x00\x01\x00\x00ho")
+    assert r.session.puts == [
+        ("ccrp/lab/nao1/chatter", b"\x00\x01\x00\x00hi",
+         {"t": "std_msgs/msg/String", "q": {"reliability": "best_effort", "durability": "volatile"}, "s": 1}),
+        ("ccrp/lab/nao1/chatter", b"\x00\x01\x00\x00ho",
+         {"t": "std_msgs/msg/String", "q": {"reliability": "best_effort", "durability": "volatile"}, "s": 2}),
+    ]
+    # Its publisher came back transient-local and reliable: subscribed again with that QoS.
+    node.publishers["/chatter"] = [Info("std_msgs/msg/String", "RELIABLE", "TRANSIENT_LOCAL")]
+    export.poll()
+    assert node.destroyed == [("sub", 1)]
+    assert node.subs[-1][2] == QoSProfile(100, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def test_an_import_publishes_the_bytes_with_the_type_and_qos_that_came(agent):
+    node = Node()
+    imp = agent.Import2.__new__(agent.Import2)  # without its Zenoh subscriber and thread
+    imp.relay, imp.local, imp.pub = relay(agent, node), "/nao1/chatter", None
+    meta = {"t": "std_msgs/msg/String", "q": {"reliability": "reliable", "durability": "transient_local"}, "s": 1}
+    imp._publish(meta, b"one")
+    imp._publish(meta | {"s": 2}, b"two")
+    assert len(node.pubs) == 1 and node.pubs[0].cls is String and node.pubs[0].topic == "/nao1/chatter"
+    assert node.pubs[0].qos == QoSProfile(100, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
+    assert node.pubs[0].sent == [b"one", b"two"]  # as they came: no deserializing
+    # The source's type changed: a publisher of the new type replaces the old one.
+    imp._publish({"t": "geometry_msgs/msg/Twist", "q": {"reliability": "best_effort", "durability": "volatile"}, "s": 3},
+                 b"three")
+    assert node.destroyed == [node.pubs[0]] and node.pubs[1].cls is Twist and node.pubs[1].sent == [b"three"]
+    with pytest.raises(ValueError):  # a peer's bad type name is refused before any import
+        imp._publish({"t": "os/path/join", "q": meta["q"], "s": 4}, b"x")
+    assert node.pubs[1].sent == [b"three"] and len(node.destroyed) == 1  # and the topic goes on
+
+
+def test_a_type_this_clone_lacks_is_reported_once_and_not_subscribed(agent, capsys):
+    node = Node(publishers={"/faces": [Info("face_msgs/msg/Face", "RELIABLE", "VOLATILE")]})
+    export = agent.Export2(relay(agent, node), "/faces")
+    export.poll()
+    assert node.subs == [] and capsys.readouterr().err.count("cannot relay face_msgs/msg/Face") == 1
+    node.publishers["/faces"] = [Info("std_msgs/msg/String", "RELIABLE", "VOLATILE")]
+    export.poll()
+    assert [s[0] for s in node.subs] == [String]
+
+
+def test_the_agents_fastdds_profile_is_udp_unicast_to_this_host_and_the_robot(agent):
+    """Shared memory fails between users (the agent runs as its own): its participant is UDP only,
+    discovering as LOCALHOST + ROS_STATIC_PEERS do, with no multicast locator."""
+    import xml.etree.ElementTree as ET
+
+    text = agent.fastdds_profile("10.81.1.2; ;robot.example;10.81.1.2")
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    root = ET.fromstring(text)
+    assert [t.text for t in root.findall(".//f:transport_descriptor/f:type", ns)] == ["UDPv4"]
+    assert root.find(".//f:useBuiltinTransports", ns).text == "false"
+    peers = [a.text for a in root.findall(".//f:initialPeersList//f:address", ns)]
+    assert peers == ["127.0.0.1", "10.81.1.2"]  # a name is left out, a repeat once
+    assert root.find(".//f:metatrafficMulticastLocatorList", ns) is None and "SHM" not in text

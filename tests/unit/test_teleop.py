@@ -1,0 +1,100 @@
+"""`ccrp robot teleop` and the dashboard's drive keys without a fleet running: what ccrp runs on
+the clone (the agent pushed once, the operator unit started once for the dashboard and again when
+it ended), what it reports, and refusals."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from ccrp_cli import evaluation
+from ccrp_cli.errors import CcrpError, InputError
+from tests.unit.test_sharing import lab_up  # noqa: F401 - the fixture
+
+
+class Clone:
+    def __init__(self, via="operator", reply=None):
+        self.via, self.reply = via, reply
+        self.pushed, self.ran = [], []
+
+    def query(self):
+        return {"nao1": object()}
+
+    def push_files(self, robot, files, restart=()):
+        self.pushed.append((robot, [f.dest for f in files]))
+
+    def exec(self, robot, argv, timeout=60):
+        self.ran.append(argv)
+        if "teleop-send" in argv:
+            i = argv.index("teleop-send")
+            args = dict(zip(argv[i + 1::2], argv[i + 2::2]))
+            out = self.reply or {"topic": "/" + args["--topic"], "linear": float(args["--linear"]),
+                                 "angular": float(args["--angular"]), "acknowledged": True, "one_way_ms": 0.5,
+                                 "round_trip_ms": 1.1, "via": self.via}
+            return (3 if "error" in out else 0), "rospy noise\n" + json.dumps(out) + "\n"
+        return 0, ""
+
+
+@pytest.fixture(autouse=True)
+def fresh():
+    evaluation._pushed.clear()
+    evaluation._operators.clear()
+
+
+def units(clone):
+    return [a for a in clone.ran if a[0] == "systemd-run"]
+
+
+def test_one_command_from_the_cli(lab_up):  # noqa: F811
+    fleet, _ = lab_up
+    clone = Clone(via="one-shot")
+    got = evaluation.send_command(fleet, clone, "nao1", 0.2, -0.5)
+    assert got["robot"] == "nao1" and got["acknowledged"] and got["round_trip_ms"] == 1.1 and got["request_ms"] >= 0
+    assert clone.pushed == [("nao1", [evaluation.AGENT])] and units(clone) == []  # no operator left behind
+    send = clone.ran[-1]
+    assert send[:len(evaluation.IN_ROS)] == evaluation.IN_ROS  # argv, never a shell string with values in it
+    assert send[len(evaluation.IN_ROS):] == ["teleop-send", "--topic", "cmd_vel", "--linear", "0.2", "--angular", "-0.5",
+                                             "--timeout", "5"]
+
+
+def test_the_dashboard_keeps_an_operator_and_starts_it_again_when_it_ended(lab_up):  # noqa: F811
+    fleet, _ = lab_up
+    clone = Clone(via="operator")
+    for _ in range(3):
+        evaluation.send_command(fleet, clone, "nao1", 0.2, 0, keep=True)
+    assert len(units(clone)) == 1 and len(clone.pushed) == 1
+    assert "teleop-operator" in units(clone)[0] and "ccrp-teleop" in units(clone)[0]
+    clone.via = "one-shot"  # still starting (its socket not yet there): the command went alone
+    evaluation.send_command(fleet, clone, "nao1", 0, 0, keep=True)
+    assert len(units(clone)) == 1
+    evaluation._operators[("lab", "nao1")] -= evaluation.TELEOP_START_S + 1  # ended (idle, the clone restarted)
+    evaluation.send_command(fleet, clone, "nao1", 0, 0, keep=True)
+    clone.via = "operator"
+    evaluation.send_command(fleet, clone, "nao1", 0, 0, keep=True)
+    assert len(units(clone)) == 2
+    assert evaluation.stop_operators(fleet, clone) == ["nao1"]
+    assert ["systemctl", "stop", "ccrp-teleop"] in clone.ran and not evaluation._operators
+
+
+def test_refusals(lab_up):  # noqa: F811
+    fleet, _ = lab_up
+    with pytest.raises(CcrpError, match="nothing subscribes"):
+        evaluation.send_command(fleet, Clone(reply={"error": "nothing subscribes to /cmd_vel on this master"}), "nao1", 0.1, 0)
+    with pytest.raises(InputError, match="has no clone"):
+        evaluation.send_command(fleet, Clone(), "nao2", 0.1, 0)
+    with pytest.raises(InputError):
+        evaluation.send_command(fleet, Clone(), "nobody", 0.1, 0)
+    for linear, angular, topic in ((10.5, 0, "cmd_vel"), (float("inf"), 0, "cmd_vel"), (0, 0, "cmd vel"), (0, 0, "x;rm")):
+        with pytest.raises(InputError):
+            evaluation.check_command(linear, angular, topic)
+    evaluation.check_command(-10, 10, "/mobile_base/cmd_vel")
+
+
+def test_a_ros2_fleet_runs_the_same_agent_command(lab_up):  # noqa: F811
+    """The agent picks rclpy itself where ros.env names no master (tests/e2e/test_jazzy_fleet.py)."""
+    fleet, _ = lab_up
+    fleet.inventory.ros.distro = "jazzy"
+    clone = Clone()
+    assert evaluation.send_command(fleet, clone, "nao1", 0.1, 0)["acknowledged"] is True
+    assert clone.ran[-1][:len(evaluation.IN_ROS)] == evaluation.IN_ROS and "teleop-send" in clone.ran[-1]

@@ -1,0 +1,164 @@
+"""The robot's watchdog in `ccrp status` and on the dashboard: its state read from a simulated
+robot (or inferred from the clone for a real one), the brainless alert, and the fleet's alerts
+(status rows + PKI) that `ccrp status` lists under its table."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+
+from ccrp_cli import watchdog
+from ccrp_cli.alerts import fleet_alerts, row_alerts
+from ccrp_cli.providers.base import LABEL_ROBOT
+from tests.unit.test_sharing import lab_up  # noqa: F401 - the fixture
+
+T = 1795000000.25
+SINCE = dt.datetime.fromtimestamp(T, dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def out(state: str | None, motors: str | None) -> str:
+    return f"{watchdog.STATE_FILE} {state or ''}\n{watchdog.MOTORS_FILE} {motors or ''}\n"
+
+
+def test_the_state_files_of_a_simulated_robot():
+    assert watchdog.parse(out(f"ok {T}", None)) == {
+        "state": "connected", "since": SINCE, "source": "simulated robot", "motors": "enabled"}
+    got = watchdog.parse(out(f"lost {T}", f"stopped {T}"))
+    assert got["state"] == "brainless" and got["since"] == SINCE and got["motors"] == "stopped"
+    assert watchdog.parse(out(None, None))["state"] == "starting"  # before the watchdog's first check
+    assert watchdog.parse(out("garbage", None))["state"] == "starting"
+    assert watchdog.parse(out(f"ok {T}", None))["since"].endswith("+00:00")
+    assert watchdog.parse(out("lost notatime", None)) == {
+        "state": "brainless", "since": None, "source": "simulated robot", "motors": "enabled"}
+
+
+def test_a_real_robot_is_seen_from_its_clone():
+    assert watchdog.inferred({"vpn_connected": True, "master_reachable": True})["state"] == "connected"
+    assert watchdog.inferred({"vpn_connected": False, "master_reachable": True})["state"] == "unknown"
+    assert watchdog.inferred({"vpn_connected": True, "master_reachable": False})["state"] == "unknown"
+    assert watchdog.cell(watchdog.inferred({"vpn_connected": True, "master_reachable": True})) == "connected (seen from clone)"
+    assert watchdog.cell(watchdog.inferred({})) == "-"
+    assert watchdog.cell(watchdog.parse(out(f"lost {T}", f"stopped {T}"))) == f"brainless since {SINCE[11:19]} (motors stopped)"
+
+
+def base_row(**changes) -> dict:
+    row = {"robot": "nao1", "status": "running", "phase": "ready", "vpn_connected": True, "secrets": True,
+           "master_reachable": True, "relay_running": True, "relay_peers": {}, "revoked_at": None,
+           "stale_nodes": [], "watchdog": watchdog.parse(out(f"ok {T}", None))}
+    return row | changes
+
+
+def test_a_brainless_robot_is_an_alert_also_when_its_clone_is_down():
+    lost = watchdog.parse(out(f"lost {T}", f"stopped {T}"))
+    assert [a["kind"] for a in row_alerts(base_row())] == []
+    alerts = row_alerts(base_row(status="exited", vpn_connected=False, watchdog=lost))
+    assert [a["kind"] for a in alerts] == ["clone-down", "robot-brainless"]
+    assert alerts[1]["level"] == "error" and alerts[1]["robot"] == "nao1"
+    assert alerts[1]["text"] == (f"nao1 is brainless since {SINCE[11:19]} UTC: its watchdog lost the clone and ran "
+                                 "its fallback (motors stopped)")
+    assert [a["kind"] for a in row_alerts(base_row(watchdog=watchdog.inferred({})))] == []
+
+
+class Host:
+    """A Docker fleet's provider as Sims sees it: nao1's simulated robot brainless, turtlebot1's
+    removed between the listing and the read."""
+
+    max_parallel = 3
+
+    def __init__(self):
+        outer = self
+
+        class Container:
+            def __init__(self, robot):
+                self.labels = {LABEL_ROBOT: robot}
+
+        class Containers:
+            def list(self, **kw):
+                outer.listed = kw
+                return [Container("nao1"), Container("turtlebot1")]
+
+        self.client = type("Client", (), {"containers": Containers()})()
+        self.ran: list = []
+
+    def _filters(self, role, robot=None):
+        return {"label": [f"role={role}"]}
+
+    def exec(self, robot, argv, timeout=60, role="clone"):
+        self.ran.append((robot, argv, role))
+        if robot == "turtlebot1":
+            from ccrp_cli.errors import CcrpError
+
+            raise CcrpError("container gone")
+        return 0, out(f"lost {T}", f"stopped {T}")
+
+
+def test_simulated_robots_are_read_in_their_containers(lab_up):  # noqa: F811
+    fleet, _ = lab_up
+    host = Host()
+    got = watchdog.simulated(fleet, host)
+    assert got == {"nao1": {"watchdog": {"state": "brainless", "since": SINCE, "source": "simulated robot", "motors": "stopped"},
+                            "power": {"relay": None, "robot": None, "reported_at": None, "age_s": None, "silent": False}}}
+    assert host.listed["filters"] == {"label": ["role=robot-sim"]} and "all" not in host.listed  # running ones
+    assert all(role == "robot-sim" and argv == watchdog.READ for _, argv, role in host.ran)
+    assert watchdog.simulated(fleet, object()) == {}  # no Docker to ask: no simulated robots
+
+
+def test_fleet_alerts_join_rows_and_pki_most_serious_first(lab_up):  # noqa: F811
+    fleet, _ = lab_up
+    lost = watchdog.parse(out(f"lost {T}", f"stopped {T}"))
+    rows = [base_row(), base_row(robot="nao2", vpn_connected=False), base_row(robot="turtlebot1", status="exited",
+                                                                              vpn_connected=False, watchdog=lost)]
+    alerts = fleet_alerts(fleet, rows)
+    got = [(a["level"], a["kind"], a["robot"]) for a in alerts]
+    assert got[:3] == [("error", "clone-down", "turtlebot1"), ("error", "robot-brainless", "turtlebot1"),
+                       ("warning", "robot-disconnected", "nao2")]
+    # lab_up issued the relay certificates for 30 days (as a test): near expiry, after the row alerts
+    assert {k for _, k, _ in got[3:]} == {"cert-expiry"} and {lvl for lvl, _, _ in got[3:]} == {"warning"}
+    json.dumps(alerts)  # what --json prints
+
+
+def power_out(relay: str, robot: str, t: float) -> str:
+    return out(f"ok {T}", None) + f'{watchdog.POWER_FILE} {{"relay": "{relay}", "robot": "{robot}", "t": {t}}}\n'
+
+
+def test_the_power_device_report_and_what_it_changes(lab_up):  # noqa: F811
+    import time
+
+    from ccrp_cli import power
+
+    now = time.time()
+    p = watchdog.parse_power(power_out("off", "off", now - 1))
+    assert p["relay"] == "off" and p["robot"] == "off" and not p["silent"] and p["age_s"] < 3
+    assert watchdog.power_cell(p) == "off"
+    silent = watchdog.parse_power(power_out("on", "running", now - 30))
+    assert silent["silent"] and watchdog.power_cell(silent).startswith("on (device silent for")
+    assert watchdog.power_cell(watchdog.parse_power(power_out("on", "starting", now))) == "on (robot starting)"
+    assert watchdog.power_cell(watchdog.parse_power(out(None, None)))== "on (device not started)"
+    assert watchdog.power_cell(None) == "-"
+    for bad in ("", "{", '{"relay": "maybe", "robot": "off", "t": 1}', '{"relay": "on", "robot": "off"}'):
+        assert power.parse_report(bad) is None, bad
+    # Powered off on purpose: an info alert instead of the disconnection warning; a silent device warns.
+    off = base_row(vpn_connected=False, power=p, watchdog={"state": "off", "since": p["reported_at"],
+                                                           "source": "power device", "motors": None})
+    assert [(a["level"], a["kind"]) for a in row_alerts(off)] == [("info", "robot-powered-off")]
+    assert [a["kind"] for a in row_alerts(base_row(power=silent))] == ["power-device-silent"]
+    assert watchdog.cell(off["watchdog"]) == "off (robot powered off)"
+    # A simulated robot powered off: its watchdog is not running, whatever its state file says.
+    fleet, _ = lab_up
+    host = Host()
+    host.exec = lambda robot, argv, timeout=60, role="clone": (0, power_out("off", "off", now))
+    got = watchdog.simulated(fleet, host)
+    assert got["nao1"]["watchdog"]["state"] == "off" and got["nao1"]["power"]["relay"] == "off"
+
+
+def test_robot_power_refuses_bad_input(ccrp, tmp_path, lab_up):  # noqa: F811
+    r = ccrp("robot", "power", "reboot", "-i", str(tmp_path / "none.yaml"), "--robot", "nao1")
+    assert r.returncode == 2 and r.stderr.startswith("ccrp: error: robot power 'reboot'") and "Traceback" not in r.stderr
+    from ccrp_cli import power
+    from ccrp_cli.errors import InputError
+
+    fleet, _ = lab_up
+    import pytest
+
+    with pytest.raises(InputError, match="unknown robot|not in|nobody"):
+        power.power(fleet, "nobody", "off")
