@@ -71,7 +71,12 @@ seconds = lambda t: t.sec + t.nanosec / 1e9
 stamp = lambda now: Time(sec=int(now), nanosec=int((now % 1) * 1e9))
 subs = [node.create_subscription(cls[k], t, on(t), QoSProfile(depth=100)) for t, k in spec["subscribe"].items()]
 pub = node.create_publisher(cls[spec["publish"]["kind"]], spec["publish"]["topic"], QoSProfile(depth=100)) if spec.get("publish") else None
-threading.Thread(target=rclpy.spin, args=(node,), daemon=True).start()
+stop = threading.Event()
+def spin():
+    while not stop.is_set():
+        rclpy.spin_once(node, timeout_sec=0.1)
+spinner = threading.Thread(target=spin)
+spinner.start()
 """
 _LOOP = r"""
 time.sleep(spec["settle"])  # publishers, subscribers and relays find each other
@@ -89,7 +94,13 @@ while time.time() < end:
 time.sleep(2)  # in-flight messages
 print(json.dumps({"sent": n, "seen": {t: {str(k): v for k, v in s.items()} for t, s in seen.items()}}))
 """
-PROBE, PROBE2 = _PROBE_HEAD + _ROS1 + _LOOP, _PROBE_HEAD + _ROS2 + _LOOP
+# rclpy aborts the process (exit 134) if the interpreter exits while a thread still spins.
+_ROS2_END = r"""
+stop.set()
+spinner.join()
+rclpy.shutdown()
+"""
+PROBE, PROBE2 = _PROBE_HEAD + _ROS1 + _LOOP, _PROBE_HEAD + _ROS2 + _LOOP + _ROS2_END
 
 
 def inventory(clones: int, distro: str) -> dict:
