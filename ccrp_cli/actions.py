@@ -129,8 +129,9 @@ def robot_teleop(fleet, provider, robot: str, linear: float, angular: float, top
 
 
 def robot_power(fleet, robot: str, action: str, say: Say, timeout: float = 30) -> dict:
-    """`ccrp robot power on|off|status` and the dashboard's Power buttons: through the robot's power
-    device (a simulated robot's stand-in), waiting for its report. No fleet lock: ccrp records nothing."""
+    """`ccrp robot power on|off|status` and the dashboard's Power buttons: through the robot's clone
+    to its power device, waiting for its report. No fleet lock: ccrp records nothing (a first use
+    on a simulated robot issues its device's certificate under the lock)."""
     from .power import power
 
     return power(fleet, robot, action, say, timeout)

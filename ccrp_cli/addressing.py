@@ -24,6 +24,7 @@ class CloneAddresses:
     vpn_subnet: ipaddress.IPv4Network
     clone_vpn_ip: ipaddress.IPv4Address  # .1 of the subnet
     robot_vpn_ip: ipaddress.IPv4Address  # .2: the robot's fixed address
+    device_vpn_ip: ipaddress.IPv4Address  # .3: its power device's (docs/dashboard.md, Robot power)
     common_ip: ipaddress.IPv4Address
 
     @cached_property
@@ -74,5 +75,6 @@ def addresses(inv: Inventory, robot: str, index: int) -> CloneAddresses:
         vpn_subnet=subnet,
         clone_vpn_ip=subnet.network_address + 1,
         robot_vpn_ip=subnet.network_address + 2,
+        device_vpn_ip=subnet.network_address + 3,
         common_ip=inv.common.cidr.network_address + inv.common.first_host + index - 1,
     )

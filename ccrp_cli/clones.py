@@ -125,9 +125,10 @@ def prepare_secrets_dir(provider: Provider, robot: str) -> None:
         )
 
 
-def kill_session(provider: Provider, robot: str) -> None:
-    """End the robot's live VPN session (management interface `kill <cn>`)."""
-    rc, out = provider.exec(robot, ["python3", "-c", HEALTH_SCRIPT(), "kill", robot], timeout=20)
+def kill_session(provider: Provider, robot: str, cn: str | None = None) -> None:
+    """End a live VPN session on the robot's clone (management interface): the robot's, or that
+    of `cn` (its power device's)."""
+    rc, out = provider.exec(robot, ["python3", "-c", HEALTH_SCRIPT(), "kill", cn or robot], timeout=20)
     if rc != 0:
         raise CcrpError(f"cannot end the VPN session on {clone_host(robot)}: {out.strip()[-200:]}")
 

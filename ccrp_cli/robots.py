@@ -15,20 +15,25 @@ def edge_files(fleet: Fleet, robot: str, remote: str | None = None) -> tuple[lis
 
     state = fleet.store.load_state()
     view = clone_view(fleet, state, robot)
+    endpoint = endpoint_of(fleet, state, robot, remote)
+    return bundles.edge_bundle(view, fleet.pki.credentials(robot), endpoint), endpoint
+
+
+def endpoint_of(fleet: Fleet, state, robot: str, remote: str | None = None) -> str:
+    """HOST:PORT that the robot (or its power device) dials: `remote`, else its clone's endpoint."""
     rec = state.robots.get(robot)
     endpoint = remote or (rec.public_endpoint if rec else None)
     if not endpoint:
         raise InputError(
-            f"the public endpoint of clone {view.addr.clone_host} is not known yet",
+            f"the public endpoint of the clone of {robot!r} is not known yet",
             hint="create the clone first (`ccrp clone create`), or pass --remote HOST[:PORT]",
         )
     # Parsed here so a bad --remote is refused before anything is written (client_profile parses
     # again: every caller of the renderer gets the same check).
     try:
-        endpoint = str(parse_endpoint(endpoint, fleet.inventory.vpn.port))
+        return str(parse_endpoint(endpoint, fleet.inventory.vpn.port))
     except ValueError as exc:
         raise InputError(f"remote endpoint: {exc}", hint="HOST, HOST:PORT, IPV6 or [IPV6]:PORT") from None
-    return bundles.edge_bundle(view, fleet.pki.credentials(robot), endpoint), endpoint
 
 
 def write_edge(fleet: Fleet, robot: str, out: Path, remote: str | None = None) -> Path:

@@ -135,9 +135,25 @@ class Sims:
         return result
 
     def stop(self, robot: str) -> bool:
+        """Remove the simulated robot (and its power device, if it has one)."""
         from .providers.docker import robots as containers
 
         return containers.stop(self.host, robot)
+
+    # -- its simulated power device (power.py) ---------------------------------------------------
+    def start_device(self, robot: str, files: list) -> str:
+        """(Re)create the robot's power device beside it, with the device bundle `files`."""
+        from .providers.docker import robots as containers
+
+        return containers.start_device(self.host, robot, files)
+
+    def device_log(self, robot: str) -> str:
+        try:
+            _, out = self.host.exec(robot, ["journalctl", "-u", "ccrp-power-vpn", "-u", "ccrp-power-device", "-n", "8",
+                                            "--no-pager"], timeout=10, role="power-sim")
+        except CcrpError as exc:
+            return exc.message
+        return out.strip()
 
     def names(self) -> list[str]:
         """The fleet's simulated robots on this host, running or not."""

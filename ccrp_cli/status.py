@@ -12,6 +12,7 @@ from .clones import health
 from .errors import CcrpError
 from .fleet import Fleet
 from .sharing import relay_config
+from .power import parse_report
 from .providers.base import CloneState
 
 
@@ -113,6 +114,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             row["relay_running"], row["relay_peers"] = relay_link(h, list(relay_config(fleet, state, robot)["peers"]))
             row["api_manager"] = api_manager_row(fleet.inventory, fleet.robot(state, robot), h)
             row["knowledge"] = knowledge_row(fleet, state, robot, h)
+            row["power"] = parse_report(h.get("power") or "")  # None: no device reported since the clone booted
         return row
 
     robots = list(plan)
@@ -125,7 +127,5 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
         rows = list(pool.map(one, robots))
         seen = sims.result()
     for row in rows:
-        sim = seen.get(row["robot"]) or {}
-        row["watchdog"] = sim.get("watchdog") or watchdog.inferred(row)
-        row["power"] = sim.get("power")  # a simulated robot's stand-in power device (power.py); None: none ccrp reaches
+        watchdog.join(row, seen.get(row["robot"]))
     return rows

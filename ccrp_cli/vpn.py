@@ -36,7 +36,10 @@ def issue(fleet: Fleet, robot: str, renew: bool = False, provider=None,
     return [_record(fleet, rec) | {"issued": new} for rec, new in results]
 
 
-CERT_KINDS = {"client": ("client",), "server": ("server",), "relay": ("relay",), "all": ("client", "server", "relay")}
+# A robot's own certificate goes with its power device's: whoever holds the robot holds the device
+# on its power line too.
+CERT_KINDS = {"client": ("client", "power"), "power": ("power",), "server": ("server",), "relay": ("relay",),
+              "all": ("client", "power", "server", "relay")}
 
 
 def revoke(fleet: Fleet, robot: str, cert: str = "client", provider=None,
@@ -53,11 +56,16 @@ def revoke(fleet: Fleet, robot: str, cert: str = "client", provider=None,
             fleet.store.save_state(state)
         if provider is None:
             return [_record(fleet, rec) for rec in revoked]
-        _push_crl(fleet, provider, robot, kill="client" in kinds, progress=progress)
+        _push_crl(fleet, provider, robot, kill=sorted({rec.cn for rec in revoked if rec.profile in ("client", "power")}),
+                  progress=progress)
         if "client" in kinds:
             from .reconcile import reshare
 
             reshare(fleet, provider, progress)  # its partners drop the revoked robot's clone
+        elif kinds == ("power",):
+            from .power import push_passwd
+
+            push_passwd(fleet, provider, robot, progress)  # the clone forgets the device's name
         else:
             _replace_on_clone(fleet, provider, robot, progress)  # new server/relay certificate now
     return [_record(fleet, rec) for rec in revoked]
@@ -84,14 +92,15 @@ def _replace_on_clone(fleet: Fleet, provider, robot: str, progress: Callable[[st
 
 def _renew_on_clones(fleet: Fleet, provider, robot: str, progress: Callable[[str], None]) -> None:
     _replace_on_clone(fleet, provider, robot, progress)
-    _push_crl(fleet, provider, robot, kill=False, progress=progress)
+    _push_crl(fleet, provider, robot, kill=[], progress=progress)
     progress(f"install the new robot bundle on {robot}: ccrp robot bundle -i INVENTORY {robot}")
 
 
-def _push_crl(fleet: Fleet, provider, robot: str, kill: bool, progress: Callable[[str], None]) -> None:
+def _push_crl(fleet: Fleet, provider, robot: str, kill: list[str], progress: Callable[[str], None]) -> None:
     """The new CRL to every running clone, whatever its phase (a failed `fleet up` leaves clones
-    that serve), in parallel. The robot's own clone comes first and, with `kill`, ends the robot's
-    session right after taking the CRL: the reconnection then meets the new CRL."""
+    that serve), in parallel. The robot's own clone comes first and ends the sessions of the CNs
+    in `kill` (the robot, its power device) right after taking the CRL: a reconnection then meets
+    the new CRL."""
     from concurrent.futures import ThreadPoolExecutor
 
     from .clones import kill_session
@@ -104,9 +113,9 @@ def _push_crl(fleet: Fleet, provider, robot: str, kill: bool, progress: Callable
     def one(name: str) -> str | None:
         try:
             provider.push_files(name, [crl], restart=[])  # OpenVPN re-reads crl-verify files when they change
-            if kill and name == robot:
-                kill_session(provider, robot)
-                progress(f"ended the live VPN session of robot {robot!r}")
+            for cn in kill if name == robot else ():
+                kill_session(provider, robot, cn)
+                progress(f"ended the live VPN session of {cn!r}")
         except CcrpError as exc:
             return f"{name}: {exc.message}"
         return None

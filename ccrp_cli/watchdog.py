@@ -17,10 +17,9 @@ log = logging.getLogger("ccrp.watchdog")
 
 STATE_FILE = "/run/ccrp/clone-state"  # CCRP_WATCHDOG_STATE's default, which the bundle keeps
 MOTORS_FILE = "/run/ccrp/sim/motors"  # templates/sim/ccrp-sim-fallback
-POWER_FILE = "/run/ccrp/power/state"  # power.REPORT: the stand-in power device's last report
 # One exec reads the files; a missing one reads as an empty line. A constant: no name reaches the shell.
 READ = ["/bin/sh", "-c", 'for f in "$@"; do printf "%s " "$f"; head -n1 "$f" 2>/dev/null || echo; done',
-        "ccrp-watchdog-state", STATE_FILE, MOTORS_FILE, POWER_FILE]
+        "ccrp-watchdog-state", STATE_FILE, MOTORS_FILE]
 STATES = {"ok": "connected", "lost": "brainless"}
 
 
@@ -39,15 +38,9 @@ def _files(out: str) -> dict[str, str]:
     return files
 
 
-def parse_power(out: str) -> dict:
-    """The READ command's output -> the power device's last report; a simulated robot whose
-    device has not reported yet (its agent starts with the first `ccrp robot power`) has power on."""
-    from .power import SILENT_S, parse_report
-
-    report = parse_report(_files(out).get(POWER_FILE) or "")
-    if report is None:
-        return {"relay": None, "robot": None, "reported_at": None, "age_s": None, "silent": False}
-    return report | {"silent": report["age_s"] > SILENT_S}
+# The power column of a simulated robot whose device has not started yet (the first `ccrp robot
+# power` starts it): its power is on.
+NO_DEVICE_YET = {"relay": None, "robot": None, "reported_at": None, "age_s": None, "silent": False}
 
 
 def parse(out: str) -> dict:
@@ -62,9 +55,7 @@ def parse(out: str) -> dict:
 
 
 def simulated(fleet, provider) -> dict[str, dict]:
-    """robot -> {"watchdog": its watchdog's state, "power": its power device's report}, for the
-    fleet's simulated robots running on this host. A robot powered off has no watchdog running:
-    its state is `off` (the state file left behind is the last decision before the cut)."""
+    """robot -> its watchdog's state, for the fleet's simulated robots running on this host."""
     from .providers.base import LABEL_ROBOT
     from .simulated import Sims
 
@@ -84,15 +75,23 @@ def simulated(fleet, provider) -> dict[str, dict]:
             return robot, None
         if rc != 0:
             return robot, None
-        w, p = parse(out), parse_power(out)
-        if p["robot"] == "off":
-            w = {"state": "off", "since": p["reported_at"], "source": "power device", "motors": None}
-        return robot, {"watchdog": w, "power": p}
+        return robot, parse(out)
 
     if not robots:
         return {}
     with ThreadPoolExecutor(max_workers=min(8, len(robots))) as pool:
         return {r: s for r, s in pool.map(one, robots) if s is not None}
+
+
+def join(row: dict, sim: dict | None) -> None:
+    """A status row's watchdog and power columns, from its simulated robot's watchdog (`sim`, None
+    for a robot not simulated here) and its power device's report on the clone (row["power"])."""
+    row["watchdog"] = sim or inferred(row)
+    p = row.setdefault("power", None)
+    if p is None and sim is not None:  # a simulated robot gets its device at the first `robot power`
+        row["power"] = NO_DEVICE_YET
+    elif p is not None and p["robot"] == "off":  # no watchdog runs on a robot powered off
+        row["watchdog"] = {"state": "off", "since": p["reported_at"], "source": "power device", "motors": None}
 
 
 def inferred(row: dict) -> dict:

@@ -153,6 +153,15 @@ def service_report(config, status):
     return data
 
 
+def power():
+    """The last report of the robot's power device (agent/power.py keeps it), or None."""
+    try:
+        with open("/run/ccrp-power/report") as fh:
+            return fh.readline().strip() or None
+    except OSError:
+        return None
+
+
 def knowledge():
     return service_report("/etc/ccrp/knowledge.json", "/run/ccrp-knowledge/status.json")
 
@@ -176,7 +185,7 @@ def main():
         print(json.dumps({"kill": lines}))
         return
     print(json.dumps({"vpn": vpn(), "secrets": os.path.exists(SERVER_KEY), "master": master(), "relay": relay(),
-                      "api_manager": api_manager(), "knowledge": knowledge()}))
+                      "api_manager": api_manager(), "knowledge": knowledge(), "power": power()}))
 
 
 if __name__ == "__main__":

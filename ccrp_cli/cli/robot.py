@@ -102,25 +102,43 @@ def teleop(
 
 @app.command()
 def power(
-    action: Annotated[str, typer.Argument(help="on, off, or status.", metavar="on|off|status")],
+    action: Annotated[str, typer.Argument(help="on, off, status, or bundle.", metavar="on|off|status|bundle")],
     inventory: options.Inventory,
     robot: options.Robot,
     timeout: Annotated[float, typer.Option("--timeout", min=1, max=300, help="Seconds to wait for the device's report.")] = 30.0,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="bundle: directory (default $CCRP_HOME/<fleet>/power/<robot>).")] = None,
+    remote: Annotated[str | None, typer.Option(help="bundle: HOST[:PORT] the device dials (default: the clone's endpoint).")] = None,
     as_json: options.Json = False,
 ) -> None:
-    """Switch the robot's power through its power device (apart from the robot's computer, reporting
-    every 3 s) and wait until it reports the robot off or running. Simulated robots have a stand-in
-    device; a real robot's device is not reachable by ccrp yet (docs/dashboard.md, Robot power)."""
-    from ..actions import robot_power
+    """Switch the robot's power through its power device and wait until the device reports the
+    robot off or running (on, off), or read its last report (status). The device sits on the
+    robot's power line with a VPN client of its own to the robot's clone, and reports every 3 s;
+    `bundle` writes what it installs (its certificate and password are issued then). A simulated
+    robot gets a simulated device at its first `robot power` (docs/dashboard.md, Robot power)."""
     from ..errors import InputError
     from ..power import ACTIONS
 
     if action not in ACTIONS:
-        raise InputError(f"robot power {action[:20]!r}: choose on, off or status", hint="ccrp robot power on --robot R")
+        raise InputError(f"robot power {action[:20]!r}: choose on, off, status or bundle", hint="ccrp robot power on --robot R")
+    if action != "bundle" and (out or remote):
+        raise InputError("--out and --remote go with `robot power bundle`", hint=f"ccrp robot power bundle --robot {robot}")
     fleet = options.open_fleet(inventory)
+    if action == "bundle":
+        from ..power import write_device_bundle
+        from ..providers import get_provider
+
+        path = write_device_bundle(fleet, get_provider(fleet.inventory), robot, out or fleet.store.root / "power" / robot,
+                                   remote, output.info)
+        output.info(f"bundle for the power device of robot {robot!r} in {path}; on the device: `sudo ./install.sh`, "
+                    "then set CCRP_POWER_RELAY_COMMAND in /etc/ccrp/power.env")
+        typer.echo(str(path))
+        return
+    from ..actions import robot_power
+
     r = robot_power(fleet, robot, action, output.info, timeout)
+    state = r["robot_state"] + (f" (device silent for {r['age_s']:.0f} s)" if r["silent"] else "")
     output.emit(r, as_json, ["ROBOT", "POWER", "ROBOT STATE", "REPORTED AT", "SECONDS", "DEVICE"],
-                [(r["robot"], r["power"], r["robot_state"], r["reported_at"], f"{r['seconds']:g}", r["device"])])
+                [(r["robot"], r["power"], state, r["reported_at"], f"{r['seconds']:g}", r["device"])])
 
 
 @app.command()

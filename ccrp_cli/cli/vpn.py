@@ -21,6 +21,7 @@ class CertKind(str, enum.Enum):
     client = "client"
     server = "server"
     relay = "relay"
+    power = "power"
     all = "all"
 
 
@@ -80,8 +81,8 @@ def revoke(
     inventory: options.Inventory,
     robot: options.Robot,
     cert: Annotated[CertKind, typer.Option(
-        help="Which certificates: the robot's own (client, default: it stays out until `vpn issue-cert`), "
-             "its clone's VPN server, its clone's relay, or all.")] = CertKind.client,
+        help="Which certificates: the robot's own and its power device's (client, default: it stays out until "
+             "`vpn issue-cert`), its power device's alone (power), its clone's VPN server, its clone's relay, or all.")] = CertKind.client,
     as_json: options.Json = False,
 ) -> None:
     """Revoke the robot's certificates: its live session ends and every running clone gets the CRL."""

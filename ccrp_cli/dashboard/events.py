@@ -103,10 +103,10 @@ class Monitor(threading.Thread):
     event: rows, alerts and when it was read. A failed read becomes an alert, not a dead thread."""
 
     def __init__(self, broker: Broker, read: Callable[[], list[dict]], pki_check: Callable[[list[str]], list[dict]],
-                 interval: float, fleet_name: str, provider_kind: str) -> None:
+                 interval: float, fleet_name: str, provider_kind: str, ros2: bool = False) -> None:
         super().__init__(name="ccrp-dashboard-monitor", daemon=True)
         self.broker, self.read, self.pki_check = broker, read, pki_check
-        self.interval, self.fleet_name, self.provider_kind = interval, fleet_name, provider_kind
+        self.interval, self.fleet_name, self.provider_kind, self.ros2 = interval, fleet_name, provider_kind, ros2
         self.stopping = threading.Event()
         self.wake = threading.Event()
         self.reads = 0
@@ -127,7 +127,7 @@ class Monitor(threading.Thread):
             alerts.append(_alert("error", "pki-failed", None, f"reading the fleet's PKI failed: {_one_line(exc)}"))
         self.reads += 1
         return {
-            "fleet": self.fleet_name, "provider": self.provider_kind, "rows": rows, "alerts": alerts,
+            "fleet": self.fleet_name, "provider": self.provider_kind, "ros2": self.ros2, "rows": rows, "alerts": alerts,
             "read_at": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
             "read_seconds": round(time.monotonic() - t0, 2), "interval": self.interval,
         }

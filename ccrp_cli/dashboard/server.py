@@ -145,7 +145,7 @@ def serve(inventory: Path, bind: str, token: str | None, interval: float) -> Non
     auth = Auth(token, port, allowed_hosts(host, port))
     broker = Broker()
     monitor = Monitor(broker, lambda: fleet_status(fleet, provider), lambda robots: pki_alerts(fleet.pki, robots),
-                      interval, fleet.name, fleet.inventory.provider.kind)
+                      interval, fleet.name, fleet.inventory.provider.kind, fleet.inventory.ros.ros2)
     runner = Actions(broker, fleet_actions(inventory), monitor.refresh)
     send, close = teleop_sender(inventory)
     app = create_app(auth, broker, monitor, runner, fleet.name, Teleop(send, broker, close),

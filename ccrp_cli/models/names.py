@@ -23,6 +23,12 @@ def clone_host(robot: str) -> str:
     return f"cri-{robot}"
 
 
+def power_name(robot: str) -> str:
+    """Common name of a robot's power device (its VPN client certificate and password): a dot is
+    in no robot name, so it is no other robot's, clone's or relay's."""
+    return f"{robot}.power"
+
+
 def relay_name(robot: str, generation: int) -> str:
     """Common name of a clone's topic relay certificate: one per certificate issued, so that the
     agents can admit exactly the current ones."""

@@ -13,7 +13,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 KeyType = Literal["ecdsa-p256", "rsa3072"]
 # relay: a clone's topic relay, both ends of mutual TLS on the common network.
-Profile = Literal["server", "client", "relay"]
+# power: the client certificate of a robot's power device (its own VPN client of the clone).
+Profile = Literal["server", "client", "relay", "power"]
 PrivateKey = ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey
 
 # Back-date notBefore a little: a robot whose clock lags must still accept a fresh cert.
@@ -97,6 +98,7 @@ def build_leaf(
     eku = {
         "server": [ExtendedKeyUsageOID.SERVER_AUTH],
         "client": [ExtendedKeyUsageOID.CLIENT_AUTH],
+        "power": [ExtendedKeyUsageOID.CLIENT_AUTH],
         "relay": [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
     }[profile]
     san = [x509.DNSName(cn), *(x509.IPAddress(ipaddress.ip_address(ip)) for ip in ips)]

@@ -6,6 +6,7 @@
     issued/<cn>-<serial>.crt
     tls-crypt/<robot>.key                           (0600, shared by a clone and its robot)
     passwords/<robot>.txt  passwords/<robot>.hash   (0600; only the hash reaches the clone)
+    passwords/<robot>.power.txt  ...hash            (the robot's power device, when it has one)
 
 Callers hold the fleet lock (FleetStore.lock) around every mutating call.
 """
@@ -25,7 +26,7 @@ from cryptography.hazmat.primitives import serialization
 from pydantic import BaseModel, ConfigDict
 
 from ..errors import CcrpError
-from ..models.names import clone_host, relay_name
+from ..models.names import clone_host, power_name, relay_name
 from ..store import FILE_MODE, atomic_write, atomic_write_all, ensure_dir, file_identity
 from . import profiles
 from .secrets import hash_password, new_password, tls_crypt_key, verify_password
@@ -38,7 +39,7 @@ class CertRecord(BaseModel):
 
     serial: str  # hex, as openssl prints it
     cn: str
-    profile: Literal["ca", "relay-ca", "server", "client", "relay"]
+    profile: Literal["ca", "relay-ca", "server", "client", "relay", "power"]
     robot: str | None = None
     not_after: dt.datetime
     cert_path: str
@@ -76,6 +77,12 @@ class RobotCredentials(BaseModel):
     relay_cert_pem: str | None = None
     relay_key_pem: str | None = None
     relay_ca_pem: str | None = None
+    # The robot's power device (robot power bundle), when it has one: its own client certificate
+    # (CN <robot>.power) and password, for the same clone.
+    power_cert_pem: str | None = None
+    power_key_pem: str | None = None
+    power_password: str | None = None
+    power_password_hash: str | None = None
 
 
 class RobotRevoked(CcrpError):
@@ -342,6 +349,30 @@ class PkiStore:
         password = new_password()
         return [(hashed, hash_password(password) + "\n", FILE_MODE), (txt, password + "\n", FILE_MODE)]
 
+    def issue_power(self, robot: str, days: int, crl_days: int, renew: bool = False) -> tuple[CertRecord, bool]:
+        """Ensure the client certificate and password of the robot's power device (CN
+        <robot>.power). A revoked robot gets none until it is enrolled again. `renew` revokes the
+        current one and rotates the password. Returns (record, newly_issued)."""
+        cn = power_name(robot)
+        with self._editing() as index:
+            since = self.revoked_since(robot, index)
+            if since is not None:
+                raise self.unenrolled(robot, since)
+            old = self.current_of(index, "power", robot)
+            new = old is None or renew
+            files: list[tuple[Path, bytes | str, int]] = []
+            rec = self._issue(index, "power", cn, robot, days, files) if new else old
+            if new or self._needs_password(cn, False):
+                files += self._password_files(cn)
+            atomic_write_all(files)
+            # The index last: until it names the new certificate, a crash leaves the old one in force.
+            if new and old is not None:
+                old.revoked_at = _now()
+                self._write_crl(index, crl_days)  # saves the index
+            elif new:
+                self._save_index(index)
+            return rec, new
+
     def issue_relay(self, robot: str, common_ip: str, days: int) -> bool:
         """Ensure the relay certificate of robot's clone, valid for its common-network address.
         Each one gets a CN of its own (relay-<robot>-<n>): the agents admit only the CNs of the
@@ -412,6 +443,10 @@ class PkiStore:
             )
         txt, hashed = self._password_paths(robot)
         read = lambda p: (self.root / p).read_text()  # noqa: E731
+        power = self.current_of(index, "power", robot)
+        ptxt, phash = self._password_paths(power_name(robot))
+        if power is not None and not (ptxt.exists() and phash.exists()):
+            power = None  # a device without its password cannot log in: as if it had none
         return RobotCredentials(
             robot=robot,
             ca_pem=self.ca_path.read_text(),
@@ -426,6 +461,10 @@ class PkiStore:
             relay_cert_pem=read(relay.cert_path) if relay else None,
             relay_key_pem=read(relay.key_path) if relay else None,
             relay_ca_pem=self.relay_ca_path.read_text() if relay else None,
+            power_cert_pem=read(power.cert_path) if power else None,
+            power_key_pem=read(power.key_path) if power else None,
+            power_password=ptxt.read_text().strip() if power else None,
+            power_password_hash=phash.read_text().strip() if power else None,
         )
 
     def relay_cns(self) -> dict[str, str]:

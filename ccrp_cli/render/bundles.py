@@ -8,6 +8,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..models.names import power_name
 from ..pki.store import RobotCredentials
 from ..store import atomic_write, ensure_dir
 from . import network, openvpn
@@ -32,9 +33,18 @@ def clone_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:
         BundleFile("server.crt", creds.server_cert_pem, 0o644, f"{SECRETS_DIR}/server.crt"),
         BundleFile("server.key", creds.server_key_pem, 0o600, f"{SECRETS_DIR}/server.key"),
         BundleFile("tc.key", creds.tls_crypt_key, 0o600, f"{SECRETS_DIR}/tc.key"),
-        # Read by ccrp-auth after OpenVPN dropped to the openvpn user.
-        BundleFile("passwd", f"{view.name}:{creds.password_hash}\n", 0o640, f"{SECRETS_DIR}/passwd", "openvpn"),
+        passwd_file(view, creds),
     ] + relay_secrets(view, creds)
+
+
+def passwd_file(view: CloneView, creds: RobotCredentials) -> BundleFile:
+    """Who may connect to the clone, with their password hashes: the robot, and its power device
+    once it has one. Read by ccrp-auth after OpenVPN dropped to the openvpn user, at every
+    handshake: a new line needs no restart."""
+    lines = f"{view.name}:{creds.password_hash}\n"
+    if creds.power_password_hash:
+        lines += f"{power_name(view.name)}:{creds.power_password_hash}\n"
+    return BundleFile("passwd", lines, 0o640, f"{SECRETS_DIR}/passwd", "openvpn")
 
 
 def crl_file(pem: str) -> BundleFile:
@@ -75,6 +85,25 @@ def edge_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[B
         BundleFile("ccrp-watchdog.service", static("edge/ccrp-watchdog.service"), 0o644),
         BundleFile("install.sh", render("edge/install.sh.j2", **view.ctx()), 0o755),
     ] + (rtps_guard(view) if view.inv.ros.ros2 else [])
+
+
+def power_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[BundleFile]:
+    """What the robot's power device installs: its own VPN client of the robot's clone (its
+    certificate, key and password) and the agent that reports to the clone's power agent and sets
+    the relay (docs/dashboard.md, Robot power)."""
+    from ..render.view import POWER_PORT
+
+    a = view.addr
+    env = f"CCRP_POWER_CLONE={a.clone_vpn_ip}\nCCRP_POWER_PORT={POWER_PORT}\n"
+    return [
+        BundleFile("power.ovpn", openvpn.client_profile(view, creds, remote, device=True), 0o600),
+        BundleFile("power-credentials", f"{power_name(view.name)}\n{creds.power_password}\n", 0o600),
+        BundleFile("power.env", env, 0o644),
+        BundleFile("ccrp-power-device", static("edge/ccrp-power-device"), 0o755),
+        BundleFile("ccrp-power-vpn.service", static("edge/ccrp-power-vpn.service"), 0o644),
+        BundleFile("ccrp-power-device.service", static("edge/ccrp-power-device.service"), 0o644),
+        BundleFile("install.sh", render("edge/install-power.sh.j2", **view.ctx()), 0o755),
+    ]
 
 
 def rtps_guard(view: CloneView) -> list[BundleFile]:

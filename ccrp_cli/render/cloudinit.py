@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import functools
+import json
 import re
 import threading
 from typing import Any
@@ -12,10 +13,12 @@ import yaml
 
 from ..errors import CcrpError
 from ..models.inventory import Inventory
+from ..models.names import power_name
 from ..recipes import platform
 from . import network, openvpn
 from .templates import static
-from .view import API_USER, CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, LOGIN_USER, RELAY_USER, SECRETS_DIR, VPN_DIR, CloneView
+from .view import (API_USER, CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, LOGIN_USER, POWER_PORT, POWER_USER, RELAY_USER,
+                   SECRETS_DIR, VPN_DIR, CloneView)
 
 
 def agent_source(name: str) -> str:
@@ -107,9 +110,10 @@ def clone_units(inv: Inventory) -> list[str]:
     """The clone's systemd units. A ROS 2 clone has no master, and no API manager (a rospy agent)
     or knowledge agent yet (the inventory refuses their settings for ROS 2); its relay runs on rclpy."""
     if inv.ros.ros2:
-        return ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service"]
+        return ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service",
+                "ccrp-power.service"]
     return ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-rosmaster.service", "ccrp-relay.service",
-            "ccrp-autostop.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
+            "ccrp-autostop.service", "ccrp-power.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
 
 
 def user_data_dict(
@@ -133,9 +137,13 @@ def user_data_dict(
         _file("/etc/chrony/conf.d/ccrp.conf", network.chrony_conf(view, "clone")),
         _file(f"{VPN_DIR}/server.conf", openvpn.server_conf(view)),
         _file(f"{VPN_DIR}/ccd/{view.name}", openvpn.ccd_entry(view)),
+        _file(f"{VPN_DIR}/ccd/{power_name(view.name)}", openvpn.device_ccd_entry(view)),
         _file(f"{VPN_DIR}/ccrp-auth", static("clone/ccrp-auth"), "0755"),
         _file(f"{CCRP_LIB}/ros-run", static("clone/ros-run"), "0755"),
         _file(f"{CCRP_LIB}/autostop.py", agent_source("autostop"), "0755"),
+        _file(f"{CCRP_LIB}/power.py", agent_source("power"), "0644"),
+        _file(f"{CCRP_ETC}/power.json", json.dumps({"listen": str(a.clone_vpn_ip), "port": POWER_PORT,
+                                                    "device": str(a.device_vpn_ip)}) + "\n"),
     ] + [_file(f"/etc/systemd/system/{u}", static(f"systemd/{u}")) for u in units]
     if view.inv.ros.ros2:
         files.append(_file(f"{CCRP_LIB}/ros2_graph.py", agent_source("ros2_graph"), "0644"))
@@ -153,6 +161,7 @@ def user_data_dict(
         {"name": API_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
         {"name": KNOWLEDGE_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True,
          "no_create_home": True},
+        {"name": POWER_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
     ]
     data: dict[str, Any] = {
         "hostname": a.clone_host,

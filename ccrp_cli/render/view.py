@@ -35,6 +35,10 @@ LOGIN_USER = "ccrp"
 # The knowledge agent (docs/services.md) runs as its own user: it reads the relay's TLS files (as a
 # supplementary member of RELAY_USER's group) and writes only its datasets and runtime directory.
 KNOWLEDGE_USER = "ccrp-knowledge"
+# The power agent (agent/power.py) runs as its own user, listening on the clone's VPN address at
+# POWER_PORT for the robot's power device, the one peer the firewall lets reach it.
+POWER_USER = "ccrp-power"
+POWER_PORT = 11400
 
 
 @dataclass(frozen=True)
@@ -79,5 +83,6 @@ class CloneView:
             "vpn_dir": VPN_DIR,
             "secrets_dir": SECRETS_DIR,
             "knowledge_port": self.knowledge_port,
+            "power_port": POWER_PORT,
             **extra,
         }

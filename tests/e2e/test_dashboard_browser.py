@@ -22,10 +22,6 @@ from __future__ import annotations
 
 import datetime as dt
 import os
-import shutil
-import signal
-import subprocess
-import sys
 import time
 import urllib.error
 import urllib.request
@@ -34,21 +30,18 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import ROOT
-from tests.e2e.test_docker_fleet import _NO_DOCKER, start_fleet
+from tests.e2e.browser import MISSING, cell, chromium, press, received_commands, running_dashboard, wait
+from tests.e2e.test_docker_fleet import _NO_DOCKER, start_fleet, wait_for
 
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
-    pytest.mark.skipif(not (shutil.which("chromium") and shutil.which("chromedriver")),
-                       reason="needs Debian's chromium and chromium-driver (scripts/setup.sh installs them)"),
+    pytest.mark.skipif(MISSING is not None, reason=str(MISSING)),
 ]
-webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium (`pip install -e .[dev]`)")
-pytest.importorskip("fastapi", reason="needs the dashboard's web stack (`pip install -e .[dashboard]`)")
-
-from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
-from selenium.webdriver.common.by import By  # noqa: E402
-from selenium.webdriver.common.keys import Keys  # noqa: E402
-from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
+if MISSING is None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
 
 # The screenshots in the docs are replaced when asked (as golden files are), else written to tmp.
 SHOTS = ROOT / "docs" / "img" if os.environ.get("CCRP_UPDATE_SCREENSHOTS") else None
@@ -68,87 +61,19 @@ def fleet(request, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def dashboard(fleet):
-    """`ccrp dashboard` as a user runs it; its URL (with the token) read from its stderr."""
-    log = fleet.tmp / "dashboard.log"
-    with log.open("wb") as err:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "ccrp_cli", "dashboard", "-i", str(fleet.inventory), "--bind", "127.0.0.1:0",
-             "--interval", "2"],
-            cwd=ROOT, env=fleet.env(), stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
-    try:
-        url = None
-        deadline = time.monotonic() + 30
-        while url is None:
-            lines = [ln.strip() for ln in log.read_text().splitlines()]
-            url = next((ln for ln in lines if ln.startswith("http://127.0.0.1:") and "?token=" in ln), None)
-            if url is None:
-                assert proc.poll() is None, f"ccrp dashboard exited {proc.returncode}:\n{log.read_text()}"
-                assert time.monotonic() < deadline, f"no URL printed within 30 s:\n{log.read_text()}"
-                time.sleep(0.2)
-        yield {"url": url, "base": url.split("?")[0], "token": url.split("?token=")[1], "log": log, "proc": proc}
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(10)
+    with running_dashboard(fleet) as d:
+        yield d
 
 
 @pytest.fixture(scope="module")
 def browser(dashboard, tmp_path_factory):
-    # Chromium's profile and the scratch directories it leaves behind go to pytest's tmp, not /tmp.
-    scratch = tmp_path_factory.mktemp("chromium")
-    options = webdriver.ChromeOptions()
-    options.binary_location = shutil.which("chromium")
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
-                "--window-size=1400,820", "--no-first-run", "--disable-extensions",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                "--disable-default-apps", "--metrics-recording-only", "--no-proxy-server"):
-        options.add_argument(arg)
-    options.add_argument(f"--user-data-dir={scratch / 'profile'}")
-    service = webdriver.ChromeService(executable_path=shutil.which("chromedriver"), log_output=subprocess.DEVNULL,
-                                      env={**os.environ, "TMPDIR": str(scratch)})
-    driver = webdriver.Chrome(options=options, service=service)
-    try:
+    with chromium(tmp_path_factory.mktemp("chromium")) as driver:
         yield driver
-    finally:
-        driver.quit()
 
 
 @pytest.fixture(scope="module")
 def shots(tmp_path_factory) -> Path:
     return SHOTS or tmp_path_factory.mktemp("screenshots")
-
-
-def cell(driver, robot: str, col: str) -> str:
-    found = driver.find_elements(By.CSS_SELECTOR, f'tr[data-robot="{robot}"] td[data-col="{col}"]')
-    return found[0].text if found else ""
-
-
-def wait(driver, what: str, until, timeout: float):
-    try:
-        # A row re-rendered between finding a cell and reading it: look again at the next poll.
-        return WebDriverWait(driver, timeout, poll_frequency=0.25,
-                             ignored_exceptions=[StaleElementReferenceException]).until(lambda d: until(d))
-    except Exception:  # noqa: BLE001 - a clear message with what the page showed
-        body = driver.find_element(By.TAG_NAME, "body").text
-        pytest.fail(f"{what}: not within {timeout:.0f} s; the page showed:\n{body[:3000]}")
-
-
-def press(driver, robot: str, button: str, label: str) -> None:
-    """Click a button of a robot's row. The page renders its rows anew at every status event (every
-    2 s here): a button found just before that is gone when clicked, so find it again."""
-    for _ in range(20):
-        try:
-            found = driver.find_element(By.CSS_SELECTOR, f'tr[data-robot="{robot}"] td.actions {button}')
-            assert found.text == label, found.text
-            found.click()
-            return
-        except StaleElementReferenceException:
-            time.sleep(0.1)
-    pytest.fail(f"{robot}'s {label} button: re-rendered at every try")
 
 
 def test_a_request_without_the_token_is_refused(dashboard):
@@ -187,14 +112,6 @@ def test_page_lists_the_fleet_and_updates_when_a_robot_connects(fleet, dashboard
     assert not browser.find_elements(By.CSS_SELECTOR, '#alerts li[data-kind="robot-disconnected"][data-robot="nao1"]')
     fleet.log.append(f"page lists the fleet, robot connected and shown: {time.monotonic() - t0:.1f}s")
     assert browser.save_screenshot(str(shots / "dashboard.png"))
-
-
-def received_commands(fleet, robot: str) -> list[dict]:
-    """What the simulated robot's demo node logged receiving on /cmd_vel."""
-    import json
-
-    rc, out = fleet.container("robot-sim", robot).exec_run(["cat", "/var/log/ccrp-sim-cmd_vel.log"])
-    return [json.loads(line) for line in out.decode().splitlines() if line.strip()] if rc == 0 else []
 
 
 def test_a_teleop_key_press_reaches_the_simulated_robot(fleet, dashboard, browser, shots):
@@ -338,16 +255,21 @@ def test_power_off_and_on_switches_the_simulated_robot(fleet, dashboard, browser
     WebDriverWait(browser, 5).until(lambda d: d.switch_to.alert).accept()  # the confirm() dialog
     wait(browser, "the power-off action reported done", lambda d: any(
         "ccrp robot power off --robot nao1" in li.text for li in d.find_elements(By.CSS_SELECTOR, "#actions li.done")), 60)
-    # The clone still lists the VPN session a power cut left (no exit notice) until its keepalive
-    # drops it, up to 2 minutes: the power device's report is what tells the robot is off.
+    # A power cut leaves no exit notice: once the device reports the robot off, ccrp ends the dead
+    # VPN session on the clone, which would otherwise list it until its keepalive dropped it.
     before = cell(browser, "nao1", "vpn")  # connected <address:port> of the session the cut ends
-    wait(browser, "nao1 shown powered off with its alert",
+    wait(browser, "nao1 shown powered off, its VPN session ended, with its alert",
          lambda d: cell(d, "nao1", "power") == "off" and cell(d, "nao1", "watchdog").startswith("off")
+         and not cell(d, "nao1", "vpn").startswith("connected")
          and d.find_elements(By.CSS_SELECTOR, '#alerts li[data-kind="robot-powered-off"][data-robot="nao1"]'), 30)
     for unit in ("ccrp-vpn", "ccrp-watchdog", "ccrp-demo-node"):  # the robot's computer is off...
         assert sim.exec_run(["systemctl", "is-active", unit]).output.decode().strip() != "active", unit
-    # ...its power device is not: it still reports, every 3 s.
-    assert sim.exec_run(["systemctl", "is-active", "ccrp-power-agent"]).output.decode().strip() == "active"
+    # ...its power line and its power device are not: the device, a container of its own with the
+    # device bundle, still reports to the clone every 3 s through its own tunnel.
+    assert sim.exec_run(["systemctl", "is-active", "ccrp-power-supply"]).output.decode().strip() == "active"
+    device = fleet.container("power-sim", "nao1")
+    for unit in ("ccrp-power-vpn", "ccrp-power-device"):
+        assert device.exec_run(["systemctl", "is-active", unit]).output.decode().strip() == "active", unit
     row = fleet.status()["nao1"]
     assert row["power"]["relay"] == "off" and row["power"]["robot"] == "off" and row["power"]["age_s"] <= 4, row["power"]
     assert row["watchdog"]["state"] == "off"
@@ -369,8 +291,34 @@ def test_power_off_and_on_switches_the_simulated_robot(fleet, dashboard, browser
     assert not browser.find_elements(By.CSS_SELECTOR, '#alerts li[data-kind="robot-powered-off"]')
     status = json.loads(fleet.inv("robot", "power", "status", "--robot", "nao1", "--json", check=True).stdout)
     assert status["power"] == "on"
-    refused = fleet.inv("robot", "power", "off", "--robot", "nao2")  # no simulated robot: no device ccrp reaches
-    assert refused.returncode == 2 and "no power device ccrp can reach" in refused.stderr
+    refused = fleet.inv("robot", "power", "off", "--robot", "nao2")  # no simulated robot, no device installed
+    assert refused.returncode == 2 and "has no power device reporting to its clone" in refused.stderr, refused.stderr
+
+
+def test_the_power_device_reaches_only_the_power_agent_and_can_be_revoked(fleet):
+    """The device's tunnel is its own: the clone's firewall lets its address reach the power agent
+    and nothing else; revoked alone, its session ends, its report goes silent, and the robot's own
+    session stays."""
+    import json
+
+    device = fleet.container("power-sim", "nao1")
+    clone_vpn_ip = fleet.plan()["nao1"]["clone_vpn_ip"]
+    probe = ("import socket, sys\ntry:\n    socket.create_connection((sys.argv[1], int(sys.argv[2])), timeout=3).close()\n"
+             "    print('open')\nexcept OSError as e:\n    print(type(e).__name__)")
+    reach = lambda port: device.exec_run(["python3", "-c", probe, clone_vpn_ip, str(port)]).output.decode().strip()  # noqa: E731
+    assert reach(11400) == "open"
+    assert reach(11311) in ("TimeoutError", "timeout")  # the ROS master: dropped for the device
+    assert fleet.status()["nao1"]["power"]["silent"] is False
+    revoked = json.loads(fleet.inv("vpn", "revoke", "--robot", "nao1", "--cert", "power", "--json", check=True).stdout)
+    assert [r["cn"] for r in revoked] == ["nao1.power"]
+    row = wait_for("nao1's device silent, nao1 still connected",
+                   lambda: ((r := fleet.status()["nao1"])["power"]["silent"] and r["vpn_connected"], r), timeout=40)
+    assert row["watchdog"]["state"] == "connected"
+    # Its next `robot power` gives the simulated device a new certificate (a real one needs
+    # `robot power bundle` on purpose), and it reports again.
+    on = json.loads(fleet.inv("robot", "power", "status", "--robot", "nao1", "--json", check=True).stdout)
+    assert on["power"] == "on" and not on["silent"], on
+
 
 
 def test_revoke_from_the_page_runs_and_reports_through_events(fleet, dashboard, browser, shots):

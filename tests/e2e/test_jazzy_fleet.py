@@ -14,10 +14,12 @@ capture on the clone network sees the relay's TLS only. Swept away at the end, e
 from __future__ import annotations
 
 import json
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
+from tests.e2e.browser import MISSING, cell, chromium, press, received_commands, running_dashboard, wait
 from tests.e2e.test_docker_fleet import CAPTURE as COMMON_CAPTURE
 from tests.e2e.test_docker_fleet import _NO_DOCKER, E2EFleet, exec_in, relay_journals, start_fleet, wait_for
 
@@ -191,6 +193,42 @@ def test_teleop_reaches_the_jazzy_robot_and_is_acknowledged(fleet: E2EFleet, sim
     # (ccrp-topic's /cmd_vel of the test above may still come in: the log is searched.)
     mine = [e for e in map(json.loads, log.split("\n")[:-1]) if (e["linear"], e["angular"]) == (0.35, -0.5)]
     assert rc == 0 and mine and mine[0]["motors"] == "enabled", log[-1000:]
+
+
+@pytest.fixture
+def page(fleet: E2EFleet, sim, tmp_path_factory):
+    """The fleet's dashboard open in a headless chromium (tests/e2e/browser.py)."""
+    if MISSING is not None:
+        pytest.skip(MISSING)
+    with running_dashboard(fleet) as dashboard, chromium(tmp_path_factory.mktemp("chromium")) as driver:
+        driver.get(dashboard["url"])
+        yield driver
+
+
+def test_the_dashboard_shows_the_jazzy_robot_on_its_graph_and_drives_it(fleet: E2EFleet, page) -> None:
+    """The page on a ROS 2 fleet: the robot's node on its clone's graph (the Graph column, not a
+    master), a key press driving the robot through the rclpy operator, its camera's frame."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+
+    wait(page, "nao1 shown connected, its node on its clone's graph, its watchdog connected",
+         lambda d: cell(d, "nao1", "vpn").startswith("connected") and "/nao1_demo" in cell(d, "nao1", "nodes")
+         and cell(d, "nao1", "master") == "yes" and cell(d, "nao1", "watchdog").startswith("connected since"), 30)
+    assert page.find_element(By.ID, "col-master").text == "Graph"
+    press(page, "nao1", "button:not(.danger)", "Drive")
+    pressed = time.time()
+    page.find_element(By.TAG_NAME, "body").send_keys(Keys.ARROW_UP)
+    wait(page, "the robot's acknowledgement of the key shown with its latency",
+         lambda d: d.find_element(By.ID, "teleop-last").get_attribute("class") == "ok", 30)
+    # (the /cmd_vel ccrp-topic published above may still come in: the log is searched)
+    forward = [c for c in received_commands(fleet, "nao1") if (c["linear"], c["angular"]) == (0.2, 0) and c["t"] >= pressed]
+    assert forward and forward[0]["motors"] == "enabled"
+    fleet.log.append(f"Jazzy page: key -> robot, round trip shown "
+                     f"{page.find_element(By.ID, 'teleop-last').get_attribute('data-round-trip-ms')} ms")
+    press(page, "nao1", "button.camera", "Camera")
+    shown = "const i = document.getElementById('camera-img'); " \
+            "return i.dataset.robot === 'nao1' && i.complete && i.naturalWidth ? [i.naturalWidth, i.naturalHeight] : null;"
+    assert wait(page, "a camera frame of nao1 decoded by the browser", lambda d: d.execute_script(shown), 30) == [320, 240]
 
 
 def test_a_topic_nao1_exports_reaches_nao2s_clone_with_its_type_and_qos(fleet: E2EFleet, sim) -> None:

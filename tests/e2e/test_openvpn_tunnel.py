@@ -367,10 +367,11 @@ def foreign_ca(fleet_name: str) -> Callable[[Lab, Path], Refusal]:
 
 def wrong_robot(lab: Lab, tmp: Path) -> Refusal:
     """nao2's certificate (valid in this fleet) offered to nao1's clone, with nao1's profile,
-    tls-crypt key and password: verify-x509-name is what tells the two robots apart."""
+    tls-crypt key and password: the tls-verify check (ccrp-auth: the CN must be one of the clone's
+    names) is what tells the two robots apart, before any password is asked."""
     creds = with_client_cert(lab.creds["nao1"], lab.creds["nao2"])
     bundle = write_edge_bundle(tmp / "edge", lab.views["nao1"], creds)
-    return Refusal(bundle, r"VERIFY X509NAME ERROR: CN=nao2, must be nao1")
+    return Refusal(bundle, r"VERIFY SCRIPT ERROR: depth=0, CN=nao2\b")
 
 
 @pytest.mark.parametrize(
@@ -448,6 +449,44 @@ def test_after_renew_each_old_credential_fails_alone(lab: Lab, clone: Clone, rob
                                    password_file, *GIVE_UP_SOON)
             assert_refused(client, clone, since, reason)
             client.stop()
+    finally:
+        serve(clone, old, robot.tmp / "server-restored.log")  # the module's server as it started
+
+
+def test_the_power_device_connects_as_itself_beside_its_robot(lab: Lab, clone: Clone, robot: Robot) -> None:
+    """The robot's power device (`robot power bundle`): its own certificate (CN nao1.power) and
+    password, admitted by the clone once its passwd names it, at its own fixed address, while the
+    robot's own session stays up."""
+    from ccrp_cli.render.bundles import power_bundle
+
+    a, view = clone.view.addr, lab.views["nao1"]
+    old = lab.creds["nao1"]
+    v = lab.fleet.inventory.vpn
+    lab.fleet.pki.issue_power("nao1", v.cert_days, v.crl_days)
+    new = lab.fleet.pki.credentials("nao1")
+    (clone.dir / "ccd" / "nao1.power").write_text(openvpn.device_ccd_entry(view))
+    try:
+        serve(clone, new, robot.tmp / "server-device.log")
+        robot_client = robot.connect(write_edge_bundle(robot.tmp / "edge", view, new))
+        device_dir = write_bundle(robot.tmp / "power", power_bundle(view, new, remote=CLONE_OUTER_IP), {"kind": "power"})
+        device = OpenVPNProcess.start(NS_ROBOT, robot.tmp / "device.log", "--config", str(device_dir / "power.ovpn"),
+                                      "--auth-user-pass", str(device_dir / "power-credentials"))
+        robot.clients.append(device)
+        robot_client.wait_completed()
+        device.wait_completed()
+        addrs = sh("ip", "-n", NS_ROBOT, "-4", "-o", "addr", "show", "dev", "ccrppwr").stdout
+        assert f"inet {a.device_vpn_ip}/{a.vpn_subnet.prefixlen}" in addrs
+        log = clone.server.text()
+        assert "Username/Password authentication succeeded for username 'nao1.power'" in log, log
+        assert "MULTI: primary virtual IP for nao1.power/" in log and "MULTI: primary virtual IP for nao1/" in log, log
+        assert robot_client.running and COMPLETED in robot_client.text()  # the robot's session stays
+        # The robot's password with the device's certificate: refused.
+        since = clone.server.size()
+        wrong = write_credentials(robot.tmp / "robot-password.txt", "nao1.power", new.password)
+        refused = OpenVPNProcess.start(NS_ROBOT, robot.tmp / "device-wrong.log", "--config", str(device_dir / "power.ovpn"),
+                                       "--auth-user-pass", str(wrong), "--dev", "ccrppw2", *GIVE_UP_SOON)
+        robot.clients.append(refused)
+        assert_refused(refused, clone, since, r"Auth Username/Password verification failed for peer")
     finally:
         serve(clone, old, robot.tmp / "server-restored.log")  # the module's server as it started
 

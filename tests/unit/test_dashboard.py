@@ -287,6 +287,7 @@ def test_events_reach_an_open_page_without_a_reload():
                         events.append((name, data))
                         if len(events) == 1:  # the fleet at once; then nao2 connects, and an action
                             assert name == "fleet" and not data["rows"][1]["vpn_connected"]
+                            assert data["ros2"] is False  # a ROS 1 fleet: the page's column says Master
                             d.rows = [row("nao1"), row("nao2")]
                             r = client.post("/api/actions/fleet-scale", json={"size": 4},
                                             headers={"Origin": base, "X-CCRP-CSRF": csrf})

@@ -149,6 +149,21 @@ def test_password_hash_and_the_clone_auth_script(tmp_path):
     assert auth("nao2", "s3cret") != 0
     assert auth("nao1", "s3cret", cn="nao2") != 0
 
+    def tls_verify(depth, cn):  # OpenVPN's tls-verify: depth and subject, the CN in the environment
+        env = {"PATH": "/usr/bin:/bin", "X509_0_CN": cn}
+        return subprocess.run(["python3", str(script), str(depth), f"CN={cn}"], env=env).returncode
+    assert tls_verify(0, "nao1") == 0 and tls_verify(1, "lab-ca") == 0
+    assert tls_verify(0, "nao2") != 0 and tls_verify(0, "nao1.power") != 0 and tls_verify(0, "") != 0
+    # The robot's power device, once it has its line: its own name and password, nothing else.
+    device = hash_password("dev1ce")
+    (tmp_path / "keys" / "passwd").write_text(f"nao1:{encoded}\nnao1.power:{device}\n")
+    assert tls_verify(0, "nao1.power") == 0 and tls_verify(0, "nao1") == 0
+    assert auth("nao1.power", "dev1ce", cn="nao1.power") == 0
+    assert auth("nao1.power", "s3cret", cn="nao1.power") != 0  # the robot's password is not the device's
+    assert auth("nao1", "dev1ce", cn="nao1") != 0
+    assert auth("nao1.power", "dev1ce", cn="nao1") != 0  # the robot's certificate with the device's login
+    assert auth("nao1", "s3cret", cn="nao1.power") != 0
+
 
 def test_a_revoked_robot_stays_out_until_the_operator_reissues(lab):
     """`fleet up` (issue_robot without enroll) must not quietly re-enrol a revoked robot."""

@@ -77,7 +77,7 @@ def test_vpn_configs_follow_the_design(view):
     conf = openvpn.server_conf(view)
     for line in (
         "tls-version-min 1.2", "data-ciphers AES-256-GCM:CHACHA20-POLY1305", "tls-crypt keys/tc.key",
-        "remote-cert-tls client", "verify-x509-name nao1 name", "crl-verify keys/crl.pem",
+        "remote-cert-tls client", "tls-verify ccrp-auth", "crl-verify keys/crl.pem",
         "auth-user-pass-verify ccrp-auth via-file", "user openvpn", "persist-key", "persist-tun",
         "topology subnet", "allow-compression no",
     ):

@@ -118,7 +118,7 @@ def test_rtps_leaves_the_clone_only_through_the_tunnel(jazzy):
                     "-A OUTPUT -p udp -m multiport --dports 53,123 -j ACCEPT", "-A OUTPUT -p udp -j DROP"]
     assert "-A OUTPUT -p udp -j DROP" in fw6 and "-o ccrpvpn" not in fw6
     # Inbound, RTPS comes only from the tunnel, as any ROS traffic (the rules ROS 1 has).
-    assert f"-A INPUT -i ccrpvpn -s {view.addr.vpn_subnet} -j ACCEPT" in fw4
+    assert f"-A INPUT -i ccrpvpn -s {view.addr.robot_vpn_ip} -j ACCEPT" in fw4
     noetic = clone_view(*_noetic(jazzy))
     assert "-A OUTPUT" not in network.firewall_rules(noetic)[0]
 
@@ -134,7 +134,8 @@ def test_a_jazzy_clone_runs_no_master_or_api_manager_and_an_rclpy_relay(jazzy):
     view = clone_view(jazzy, jazzy.store.load_state(), "nao2")
     data = cloudinit.user_data_dict(view)
     enabled = next(c for c in data["runcmd"] if c[:3] == ["systemctl", "enable", "--now"])[3:]
-    assert enabled == ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service"]
+    assert enabled == ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service",
+                       "ccrp-power.service"]
     paths = {f["path"] for f in data["write_files"]}
     assert "/usr/local/lib/ccrp/ros2_graph.py" in paths and "/etc/systemd/system/ccrp-rosmaster.service" not in paths
     # The image holds no agents (only the wheels' venv): the relay comes with the user-data.

@@ -96,8 +96,7 @@ def test_simulated_robots_are_read_in_their_containers(lab_up):  # noqa: F811
     fleet, _ = lab_up
     host = Host()
     got = watchdog.simulated(fleet, host)
-    assert got == {"nao1": {"watchdog": {"state": "brainless", "since": SINCE, "source": "simulated robot", "motors": "stopped"},
-                            "power": {"relay": None, "robot": None, "reported_at": None, "age_s": None, "silent": False}}}
+    assert got == {"nao1": {"state": "brainless", "since": SINCE, "source": "simulated robot", "motors": "stopped"}}
     assert host.listed["filters"] == {"label": ["role=robot-sim"]} and "all" not in host.listed  # running ones
     assert all(role == "robot-sim" and argv == watchdog.READ for _, argv, role in host.ran)
     assert watchdog.simulated(fleet, object()) == {}  # no Docker to ask: no simulated robots
@@ -117,23 +116,20 @@ def test_fleet_alerts_join_rows_and_pki_most_serious_first(lab_up):  # noqa: F81
     json.dumps(alerts)  # what --json prints
 
 
-def power_out(relay: str, robot: str, t: float) -> str:
-    return out(f"ok {T}", None) + f'{watchdog.POWER_FILE} {{"relay": "{relay}", "robot": "{robot}", "t": {t}}}\n'
-
-
 def test_the_power_device_report_and_what_it_changes(lab_up):  # noqa: F811
     import time
 
     from ccrp_cli import power
 
     now = time.time()
-    p = watchdog.parse_power(power_out("off", "off", now - 1))
+    report = lambda relay, robot, t: json.dumps({"relay": relay, "robot": robot, "t": t, "device_t": t})  # noqa: E731
+    p = power.parse_report(report("off", "off", now - 1))
     assert p["relay"] == "off" and p["robot"] == "off" and not p["silent"] and p["age_s"] < 3
     assert watchdog.power_cell(p) == "off"
-    silent = watchdog.parse_power(power_out("on", "running", now - 30))
+    silent = power.parse_report(report("on", "running", now - 30))
     assert silent["silent"] and watchdog.power_cell(silent).startswith("on (device silent for")
-    assert watchdog.power_cell(watchdog.parse_power(power_out("on", "starting", now))) == "on (robot starting)"
-    assert watchdog.power_cell(watchdog.parse_power(out(None, None)))== "on (device not started)"
+    assert watchdog.power_cell(power.parse_report(report("on", "starting", now))) == "on (robot starting)"
+    assert watchdog.power_cell(watchdog.NO_DEVICE_YET) == "on (device not started)"
     assert watchdog.power_cell(None) == "-"
     for bad in ("", "{", '{"relay": "maybe", "robot": "off", "t": 1}', '{"relay": "on", "robot": "off"}'):
         assert power.parse_report(bad) is None, bad
@@ -143,17 +139,25 @@ def test_the_power_device_report_and_what_it_changes(lab_up):  # noqa: F811
     assert [(a["level"], a["kind"]) for a in row_alerts(off)] == [("info", "robot-powered-off")]
     assert [a["kind"] for a in row_alerts(base_row(power=silent))] == ["power-device-silent"]
     assert watchdog.cell(off["watchdog"]) == "off (robot powered off)"
-    # A simulated robot powered off: its watchdog is not running, whatever its state file says.
-    fleet, _ = lab_up
-    host = Host()
-    host.exec = lambda robot, argv, timeout=60, role="clone": (0, power_out("off", "off", now))
-    got = watchdog.simulated(fleet, host)
-    assert got["nao1"]["watchdog"]["state"] == "off" and got["nao1"]["power"]["relay"] == "off"
+    # Joined into a status row: a robot its device reports off runs no watchdog, whatever its
+    # simulated robot's state file says; a simulated robot without a device yet has power on.
+    lost = watchdog.parse(out(f"lost {T}", f"stopped {T}"))
+    row = base_row(vpn_connected=False, power=p)
+    watchdog.join(row, lost)
+    assert row["watchdog"]["state"] == "off" and row["watchdog"]["source"] == "power device"
+    row = {k: v for k, v in base_row().items() if k not in ("power", "watchdog")}
+    watchdog.join(row, lost)
+    assert row["watchdog"] == lost and row["power"] == watchdog.NO_DEVICE_YET
+    real = {k: v for k, v in base_row(vpn_connected=False).items() if k not in ("power", "watchdog")}
+    watchdog.join(real, None)  # a real robot without a device: no power column
+    assert real["power"] is None and real["watchdog"]["state"] == "unknown"
 
 
 def test_robot_power_refuses_bad_input(ccrp, tmp_path, lab_up):  # noqa: F811
     r = ccrp("robot", "power", "reboot", "-i", str(tmp_path / "none.yaml"), "--robot", "nao1")
     assert r.returncode == 2 and r.stderr.startswith("ccrp: error: robot power 'reboot'") and "Traceback" not in r.stderr
+    r = ccrp("robot", "power", "off", "-i", str(tmp_path / "none.yaml"), "--robot", "nao1", "--out", str(tmp_path / "x"))
+    assert r.returncode == 2 and "--out and --remote go with `robot power bundle`" in r.stderr and not (tmp_path / "x").exists()
     from ccrp_cli import power
     from ccrp_cli.errors import InputError
 

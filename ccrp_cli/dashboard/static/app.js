@@ -118,6 +118,8 @@ function stateCell(row) {
 
 function renderFleet(data) {
   document.getElementById("provider").textContent = data.provider;
+  // ROS 2 has no master: the column says whether the clone's graph answers (as `ccrp status` does).
+  document.getElementById("col-master").textContent = data.ros2 ? "Graph" : "Master";
   document.getElementById("updated").textContent =
     `status read ${new Date(data.read_at).toLocaleTimeString()} in ${data.read_seconds} s (every ${data.interval} s)`;
   const body = document.getElementById("robots");

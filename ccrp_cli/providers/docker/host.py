@@ -74,7 +74,7 @@ class DockerHost:
         return f"{self.fleet}-common"
 
     def container_name(self, robot: str, role: str = "clone") -> str:
-        return f"ccrp-{self.fleet}-{'cri-' if role == 'clone' else ''}{robot}"
+        return f"ccrp-{self.fleet}-" + {"clone": f"cri-{robot}", "power-sim": f"{robot}-power"}.get(role, robot)
 
     def volume_name(self, robot: str) -> str:
         return f"ccrp-{self.fleet}-cri-{robot}-vpn"
@@ -99,7 +99,7 @@ class DockerHost:
         if c is not None and (c.labels.get(LABEL_FLEET), c.labels.get(LABEL_ROLE), c.labels.get(LABEL_ROBOT)) != (self.fleet, role, robot):
             c = None
         if c is None or c.status != "running":
-            what = "clone" if role == "clone" else "simulated robot"
+            what = {"clone": "clone", "power-sim": "simulated power device"}.get(role, "simulated robot")
             raise CcrpError(f"{what} of robot {robot!r} is not running", hint=f"ccrp {'clone create' if role == 'clone' else 'robot sim'} --robot {robot}")
         return c
 

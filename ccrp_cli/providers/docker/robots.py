@@ -40,39 +40,58 @@ def sim_image(host: DockerHost, distro: str, progress=lambda msg: None) -> str:
     return tag
 
 
-def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node: str, network: str,
-          python: str = "/usr/bin/python3") -> str:
-    """(Re)create the simulated robot on `network` and install `bundle` in it, then run `demo_node`
-    with `python` (a ROS 2 distro's own, /opt/ros/<distro>/bin/python). Returns the container id."""
-    stop(provider, robot)
+# The stand-in power line between a simulated robot and its simulated power device: a volume of
+# the robot's container that the device's container mounts too (the relay file, the robot's state).
+POWER_DIR = "/var/lib/ccrp/power"
+SUPPLY_PATH = "/usr/local/lib/ccrp/ccrp-power-supply"
+
+
+def _create(provider: DockerHost, robot: str, role: str, image: str, network: str, bundle: list, extra: list,
+            **options):
+    """A systemd container of the robot's (a simulated robot or its power device) on `network`,
+    with `bundle` in BUNDLE_DIR and `extra` files, booted and its bundle's install.sh run."""
     c = provider.client.containers.create(
         image,
-        name=provider.container_name(robot, role="robot-sim"),
-        hostname=robot,
-        labels=owner_labels(provider.fleet, "robot-sim", robot),
+        name=provider.container_name(robot, role=role),
+        labels=owner_labels(provider.fleet, role, robot),
         detach=True,
         network=network,  # never the common network: robots reach only their clone
-        # The clones' privileges (provider.py): ccrp-vpn.service's sandbox needs SYS_ADMIN here too.
+        # The clones' privileges (provider.py): the OpenVPN unit's sandbox needs SYS_ADMIN here too.
         cap_add=CLONE_CAPS,
         devices=["/dev/net/tun:/dev/net/tun:rwm"],
         tmpfs={"/run": "", "/run/lock": "", "/tmp": ""},
-        volumes={"/sys/fs/cgroup": {"bind": "/sys/fs/cgroup", "mode": "ro"}},
         security_opt=CLONE_SECURITY_OPT,
         stop_signal="SIGRTMIN+3",
+        **options,
     )
     files = [(f"{BUNDLE_DIR}/{f.name}", f.content.encode(), f.mode) for f in bundle]
-    files += [
-        ("etc/cloud/cloud-init.disabled", b"a robot, not a clone\n", 0o644),
+    files += [("etc/cloud/cloud-init.disabled", b"a robot, not a clone\n", 0o644), *extra]
+    c.put_archive("/", tar_files(files, make_dirs=True))
+    c.start()
+    provider.wait_systemd(robot, role=role)  # install.sh enables units
+    rc, out = provider.exec(robot, [f"/{BUNDLE_DIR}/install.sh"], timeout=60, role=role)
+    if rc != 0:
+        raise CcrpError(f"install.sh failed in {c.name}: {out.strip()[-300:]}")
+    return c
+
+
+def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node: str, network: str,
+          python: str = "/usr/bin/python3") -> str:
+    """(Re)create the simulated robot on `network` and install `bundle` in it, then run `demo_node`
+    with `python` (a ROS 2 distro's own, /opt/ros/<distro>/bin/python) and its stand-in power
+    supply. Returns the container id."""
+    stop(provider, robot)
+    c = _create(provider, robot, "robot-sim", image, network, bundle, [
         ("usr/local/lib/ccrp/ccrp-demo-node", demo_node.encode(), 0o755),
         # What the robot does without its clone: stop its (stand-in) motors and note the time.
         ("etc/ccrp/fallback.d/50-sim-motors", static("sim/ccrp-sim-fallback").encode(), 0o755),
-    ]
-    c.put_archive("/", tar_files(files, make_dirs=True))
-    c.start()
-    provider.wait_systemd(robot, role="robot-sim")  # install.sh enables units
-    rc, out = provider.exec(robot, [f"/{BUNDLE_DIR}/install.sh"], timeout=60, role="robot-sim")
+        (SUPPLY_PATH.lstrip("/"), static("sim/ccrp-power-supply").encode(), 0o755),
+    ], hostname=robot, volumes=["/sys/fs/cgroup:/sys/fs/cgroup:ro", POWER_DIR])  # POWER_DIR: an anonymous volume
+    # The power line: not one of the robot's units, so it keeps running while the robot is off.
+    rc, out = provider.exec(robot, ["systemd-run", "--unit", "ccrp-power-supply", "--property", "Restart=always",
+                                    "--property", "RestartSec=1", "/usr/bin/python3", SUPPLY_PATH], role="robot-sim")
     if rc != 0:
-        raise CcrpError(f"install.sh failed on simulated robot {robot}: {out.strip()[-300:]}")
+        raise CcrpError(f"cannot start the power supply of simulated robot {robot}: {out.strip()[-200:]}")
     rc, out = provider.exec(
         robot,
         ["systemd-run", "--unit", "ccrp-demo-node", "--property", "EnvironmentFile=/etc/ccrp/ros.env",
@@ -87,7 +106,30 @@ def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node:
     return c.id[:12]
 
 
+def start_device(provider: DockerHost, robot: str, bundle: list) -> str:
+    """(Re)create the simulated robot's power device: a container of its own beside the robot (same
+    image and network), sharing only the robot's power line (POWER_DIR), with the device bundle
+    installed as on a real device. It reads the robot's state from the supply's file."""
+    robot_c = provider._running(robot, role="robot-sim")
+    stop_device(provider, robot)
+    network = next(iter(robot_c.attrs["NetworkSettings"]["Networks"]))
+    robot_state = f"CCRP_POWER_ROBOT_COMMAND=cat {POWER_DIR}/robot\n".encode()
+    c = _create(provider, robot, "power-sim", robot_c.image.id, network, bundle,
+                [("etc/ccrp/power.env", robot_state, 0o644)], hostname=f"{robot}-power",
+                volumes=["/sys/fs/cgroup:/sys/fs/cgroup:ro"], volumes_from=[robot_c.id])
+    return c.id[:12]
+
+
+def stop_device(provider: DockerHost, robot: str) -> bool:
+    c = provider._container(robot, role="power-sim")
+    if c is None:
+        return False
+    c.remove(force=True, v=True)
+    return True
+
+
 def stop(provider: DockerHost, robot: str) -> bool:
+    stop_device(provider, robot)  # first: it holds the robot's power line volume
     c = provider._container(robot, role="robot-sim")
     if c is None:
         return False

@@ -1,0 +1,85 @@
+"""ccrp power agent, on a clone: the clone's end of the line to the robot's power device.
+
+The device (templates/edge/ccrp-power-device) sits on the robot's power line, apart from the
+robot's computer, with a VPN client of its own to this clone (CN <robot>.power, a fixed address
+that the clone's firewall lets reach this port and nothing else). Every few seconds it connects,
+sends its report as one JSON line {"relay": "on"|"off", "robot": "running"|"starting"|"off", "t"},
+and gets back one line {"relay": "on"|"off"|null}: the state ccrp asked for (`ccrp robot power
+on|off` writes it to WANT as root), null when nothing was asked. The last report is kept in
+REPORT, stamped with this clone's clock, for `ccrp robot power` and the clone's health.
+
+Run: `python3 power.py /etc/ccrp/power.json` ({"listen": clone VPN address, "port", "device":
+the device's VPN address}). Standard library only.
+"""
+import json
+import os
+import socket
+import sys
+import time
+
+# Both in memory: a wish left from before a reboot, or carried into a snapshot, switches no robot.
+WANT = "/run/ccrp-power/want"
+REPORT = "/run/ccrp-power/report"
+IP_FREEBIND = 15  # socket.IP_FREEBIND (Linux): bind the VPN address before OpenVPN's tun has it
+MAX_LINE = 1024
+
+
+def wanted():
+    try:
+        with open(WANT, encoding="utf-8") as fh:
+            word = fh.read().strip()
+    except OSError:
+        return None
+    return word if word in ("on", "off") else None
+
+
+def read_line(conn):
+    data = b""
+    while b"\n" not in data:
+        chunk = conn.recv(MAX_LINE)
+        if not chunk or len(data) + len(chunk) > MAX_LINE:
+            raise ValueError("no report line")
+        data += chunk
+    return data.split(b"\n", 1)[0]
+
+
+def keep(report):
+    """The device's report, validated, as REPORT's one line."""
+    relay, robot = report["relay"], report["robot"]
+    if relay not in ("on", "off") or robot not in ("running", "starting", "off"):
+        raise ValueError(f"a report with relay {relay!r}, robot {robot!r}")
+    line = {"relay": relay, "robot": robot, "t": round(time.time(), 3), "device_t": float(report.get("t", 0))}
+    tmp = REPORT + ".tmp"
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(json.dumps(line) + "\n")
+    os.replace(tmp, REPORT)
+
+
+def serve(server, device):
+    while True:
+        conn, peer = server.accept()
+        with conn:
+            if peer[0] != device:  # the firewall admits only the device's address: a second lock
+                continue
+            conn.settimeout(2)  # one device, one short exchange: a stalled one waits at most this
+            try:
+                keep(json.loads(read_line(conn)))
+                conn.sendall((json.dumps({"relay": wanted()}) + "\n").encode())
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                print(f"ccrp-power: a report from {peer[0]} refused: {exc}", file=sys.stderr, flush=True)
+
+
+def main():
+    with open(sys.argv[1], encoding="utf-8") as fh:
+        cfg = json.load(fh)
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    server.setsockopt(socket.IPPROTO_IP, IP_FREEBIND, 1)
+    server.bind((cfg["listen"], int(cfg["port"])))
+    server.listen(4)
+    print(f"ccrp-power: listening on {cfg['listen']}:{cfg['port']} for the power device at {cfg['device']}", flush=True)
+    serve(server, cfg["device"])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,169 @@
+"""A robot's power device: its own certificate and password (checked with openssl), its bundle,
+and the clone's power agent talking with the device's agent over real sockets on loopback."""
+
+from __future__ import annotations
+
+import json
+import os
+import runpy
+import shlex
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+from cryptography import x509
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from tests.conftest import ROOT
+from tests.unit.test_pki import openssl_verify
+
+
+def test_the_device_has_a_certificate_and_password_of_its_own(lab):
+    from ccrp_cli import vpn
+    from ccrp_cli.pki.store import RobotRevoked
+
+    pki, v = lab.pki, lab.inventory.vpn
+    before = pki.credentials("nao1")
+    assert before.power_cert_pem is None
+    rec, new = pki.issue_power("nao1", v.cert_days, v.crl_days)
+    assert new and rec.cn == "nao1.power" and rec.profile == "power"
+    assert pki.issue_power("nao1", v.cert_days, v.crl_days) == (rec, False)  # idempotent
+    creds = pki.credentials("nao1")
+    cert = x509.load_pem_x509_certificate(creds.power_cert_pem.encode())
+    assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == "nao1.power"
+    assert list(cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value) == [ExtendedKeyUsageOID.CLIENT_AUTH]
+    assert openssl_verify(pki.root, pki.root / rec.cert_path).returncode == 0
+    assert creds.power_password != creds.password and creds.power_key_pem != creds.client_key_pem
+    assert (pki.root / rec.key_path).stat().st_mode & 0o777 == 0o600
+    # The clone's passwd names both, each with its own hash.
+    from ccrp_cli.fleet import clone_view
+    from ccrp_cli.render.bundles import passwd_file
+
+    lines = passwd_file(clone_view(lab, lab.load_allocated(), "nao1"), creds).content.splitlines()
+    assert [line.split(":")[0] for line in lines] == ["nao1", "nao1.power"]
+    # Revoking the robot revokes its device (on the robot's power line: who holds one holds both).
+    revoked = vpn.revoke(lab, "nao1")
+    assert sorted(r["cn"] for r in revoked) == ["nao1", "nao1.power"]
+    assert openssl_verify(pki.root, pki.root / rec.cert_path, crl_check=True).returncode != 0
+    with pytest.raises(RobotRevoked):
+        pki.issue_power("nao1", v.cert_days, v.crl_days)
+    # Back in on purpose, the device needs a new certificate: the old one stays revoked.
+    vpn.issue(lab, "nao1")
+    assert pki.credentials("nao1").power_cert_pem is None
+    again, new = pki.issue_power("nao1", v.cert_days, v.crl_days)
+    assert new and again.serial != rec.serial
+    # The device alone.
+    assert [r["cn"] for r in vpn.revoke(lab, "nao1", cert="power")] == ["nao1.power"]
+    assert pki.revoked_since("nao1") is None and pki.credentials("nao1").power_cert_pem is None
+
+
+def test_the_device_bundle_dials_the_clone_as_the_device(lab, tmp_path):
+    from ccrp_cli import power
+
+    files, endpoint = power.device_files(lab, "nao1", remote="203.0.113.10")
+    by = {f.name: f for f in files}
+    creds = lab.pki.credentials("nao1")
+    profile = by["power.ovpn"].content
+    assert endpoint == "203.0.113.10:1194" and "remote 203.0.113.10 1194" in profile
+    assert "\ndev ccrppwr\n" in profile and "auth-user-pass /etc/ccrp/power-credentials" in profile
+    assert creds.power_key_pem.strip() in profile and creds.client_key_pem.strip() not in profile
+    assert "verify-x509-name cri-nao1 name" in profile  # the device checks the clone, as the robot does
+    assert by["power-credentials"].content == f"nao1.power\n{creds.power_password}\n"
+    assert creds.password not in "".join(f.content for f in files)
+    assert {n: f.mode for n, f in by.items() if f.mode == 0o600}.keys() == {"power.ovpn", "power-credentials"}
+    plan = lab.plan(lab.load_allocated())["nao1"]
+    assert by["power.env"].content == f"CCRP_POWER_CLONE={plan.clone_vpn_ip}\nCCRP_POWER_PORT=11400\n"
+    # install.sh into a staging root, twice: the owner's lines of power.env stay.
+    bundle = tmp_path / "bundle"
+    from ccrp_cli.render.bundles import write_bundle
+
+    write_bundle(bundle, files, {"robot": "nao1"})
+    root = tmp_path / "root"
+    env = {"PATH": os.environ["PATH"], "CCRP_ROOT": str(root)}
+    assert subprocess.run(["sh", str(bundle / "install.sh")], env=env, capture_output=True).returncode == 0
+    with (root / "etc/ccrp/power.env").open("a") as fh:
+        fh.write("CCRP_POWER_RELAY_COMMAND=/usr/local/bin/relay-gpio 17\n")
+    done = subprocess.run(["sh", str(bundle / "install.sh")], env=env, capture_output=True, text=True)
+    assert done.returncode == 0 and "reports to cri-nao1" in done.stdout
+    lines = (root / "etc/ccrp/power.env").read_text().splitlines()
+    assert sorted(lines) == sorted(["CCRP_POWER_RELAY_COMMAND=/usr/local/bin/relay-gpio 17",
+                                    f"CCRP_POWER_CLONE={plan.clone_vpn_ip}", "CCRP_POWER_PORT=11400"])
+    assert (root / "etc/ccrp/power.ovpn").stat().st_mode & 0o777 == 0o600
+    assert (root / "etc/systemd/system/ccrp-power-device.service").exists()
+
+
+@pytest.fixture
+def agents(tmp_path, monkeypatch):
+    """The clone's power agent serving on 127.0.0.1 for a device at 127.0.0.1, and the device
+    agent's functions (templates/edge/ccrp-power-device)."""
+    from ccrp_cli.agent import power as clone_agent
+
+    monkeypatch.setattr(clone_agent, "WANT", str(tmp_path / "want"))
+    monkeypatch.setattr(clone_agent, "REPORT", str(tmp_path / "report"))
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(4)
+    threading.Thread(target=clone_agent.serve, args=(server, "127.0.0.1"), daemon=True).start()
+    device = runpy.run_path(str(ROOT / "templates/edge/ccrp-power-device"), run_name="ccrp_power_device")
+    cfg = {"CCRP_POWER_CLONE": "127.0.0.1", "CCRP_POWER_PORT": str(server.getsockname()[1])}
+    yield device, cfg, tmp_path
+    server.close()
+
+
+def test_the_device_reports_and_switches_as_the_clone_asks(agents):
+    device, cfg, tmp = agents
+    report = lambda: json.loads((tmp / "report").read_text())  # noqa: E731
+    relay = str(tmp / "relay")
+    assert device["relay_state"](relay) == "on"  # never switched: the robot's power is on
+    assert device["exchange"](cfg, {"relay": "on", "robot": "running", "t": 1.0}) is None  # nothing asked
+    got = report()
+    assert (got["relay"], got["robot"], got["device_t"]) == ("on", "running", 1.0) and abs(got["t"] - time.time()) < 5
+    (tmp / "want").write_text("off\n")  # what `ccrp robot power off` writes on the clone
+    assert device["exchange"](cfg, {"relay": "on", "robot": "running", "t": 2.0}) == "off"
+    device["switch"](cfg, relay, "off")
+    assert device["relay_state"](relay) == "off"
+    assert device["robot_state"](cfg, "off") == "off" and device["robot_state"](cfg, "on") == "running"
+    # A relay driven by a command (a GPIO helper): the switch counts only when it succeeds.
+    marker = tmp / "gpio"
+    ok = {**cfg, "CCRP_POWER_RELAY_COMMAND": shlex.join([sys.executable, "-c",
+                                                         f"import sys; open({str(marker)!r}, 'w').write(sys.argv[1])"])}
+    device["switch"](ok, relay, "on")
+    assert marker.read_text() == "on" and device["relay_state"](relay) == "on"
+    with pytest.raises(OSError, match="exited 1"):
+        device["switch"]({**cfg, "CCRP_POWER_RELAY_COMMAND": shutil.which("false")}, relay, "off")
+    assert device["relay_state"](relay) == "on"
+    # The robot's state from a command (a simulated robot's power line file, a ping on a real one).
+    assert device["robot_state"]({"CCRP_POWER_ROBOT_COMMAND": "echo starting"}, "on") == "starting"
+    assert device["robot_state"]({"CCRP_POWER_ROBOT_COMMAND": "echo nonsense"}, "on") == "starting"
+
+
+def no_answer(conn) -> bool:
+    """Closed without an answer (or reset: the agent closed with what was sent unread)."""
+    try:
+        return conn.recv(100) == b""
+    except ConnectionResetError:
+        return True
+
+
+def test_the_clone_agent_answers_only_its_device_and_only_reports(agents):
+    device, cfg, tmp = agents
+    port = int(cfg["CCRP_POWER_PORT"])
+    # Another address (the firewall already drops it on a clone): no answer, nothing kept.
+    with socket.socket() as other:
+        other.bind(("127.0.0.2", 0))
+        other.settimeout(3)
+        other.connect(("127.0.0.1", port))
+        other.sendall(b'{"relay": "on", "robot": "running", "t": 1}\n')
+        assert no_answer(other)
+    assert not (tmp / "report").exists()
+    for bad in (b'{"relay": "maybe", "robot": "running", "t": 1}\n', b"not json\n", b"x" * 5000):
+        with socket.create_connection(("127.0.0.1", port), timeout=3) as conn:
+            conn.sendall(bad)
+            assert no_answer(conn), bad
+    assert not (tmp / "report").exists()
+    assert device["exchange"](cfg, {"relay": "off", "robot": "off", "t": 3.0}) is None  # still serving
+    assert json.loads((tmp / "report").read_text())["relay"] == "off"
