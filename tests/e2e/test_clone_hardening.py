@@ -244,7 +244,8 @@ def test_units_run_in_their_sandboxes(fleet: E2EFleet, clone, robot):
         pytest.skip("reading other processes' namespaces needs root on the host")
     wait_for(f"{ROBOT}'s tunnel up", tunnel_up(fleet, robot), 60)
     units = [(clone, "/usr/sbin/openvpn --suppress-timestamps --cd"), (robot, "/usr/sbin/openvpn --suppress-timestamps --config"),
-             (clone, "/usr/local/lib/ccrp/autostop.py")]  # root, but in a read-only view with no network
+             (clone, "/usr/local/lib/ccrp/autostop.py"),  # root, but in a read-only view with no network
+             (clone, "/usr/local/lib/ccrp/power.py")]  # the power device's one port on the clone
     if exec_in(clone, ["systemctl", "is-active", "--quiet", "ccrp-relay.service"])[0] == 0:
         units.append((clone, "/usr/local/lib/ccrp/relay.py"))  # when it runs: the relay agent is not what this module tests
     for container, marker in units:
@@ -253,6 +254,10 @@ def test_units_run_in_their_sandboxes(fleet: E2EFleet, clone, robot):
         # ProtectSystem/PrivateTmp need a mount namespace; without one systemd runs the unit
         # unsandboxed and says so only at debug level ("assuming containerized execution").
         assert own != init, f"{marker} in {container.name} runs in PID 1's mount namespace: no sandbox"
+
+    # The power agent listens where the robot's power device reaches it: its own user, no capability.
+    status = proc_status(clone, main_pid(clone, "ccrp-power.service"))
+    assert status["Uid"].split()[0] != "0" and int(status["CapBnd"], 16) == 0 and status["NoNewPrivs"].strip() == "1", status
 
     pid = main_pid(robot, "ccrp-vpn.service")
     status = proc_status(robot, pid)
