@@ -1,7 +1,8 @@
 """`ccrp robot camera` and the dashboard's camera view: the latest frame of a robot's camera topic as
-its clone sees it, read on the clone by a short script run through the provider's exec (a ROS
-node there, rospy or rclpy, waits for one sensor_msgs/Image and encodes it as JPEG with the
-clone's OpenCV)."""
+its clone sees it. A camera agent on the clone (agent/camera.py, started by the first read and
+ending after CAMERA_IDLE_S without one) keeps the newest frame of each topic asked for; a read is
+one exec of a small client that asks it on its Unix socket and prints its answer (a JPEG made with
+the clone's OpenCV)."""
 
 from __future__ import annotations
 
@@ -10,99 +11,45 @@ import json
 import re
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 from .errors import CcrpError, InputError, shown
 
 DEFAULT_TOPIC = "/camera/image_raw"
 TOPIC_RE = r"/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*"
 MAX_JPEG = 4 * 1024 * 1024  # a frame bigger than this is not a camera view (and would not fit an exec answer)
+AGENT = "/usr/local/lib/ccrp/camera.py"
+UNIT = "ccrp-camera"
+SOCKET = "/run/ccrp-camera/camera.sock"
+CAMERA_IDLE_S = 120
 
-# Run on the clone as `python3 -c READER TOPIC TIMEOUT`: names and numbers are arguments, never
-# shell text. Its last line is one JSON object: the frame, or {"error", "why"}. One reader per ROS
-# generation, the same head (OpenCV) and tail (checks, JPEG) around how each gets one message.
-_HEAD = r'''
-import base64, json, os, sys, time
-topic, timeout = sys.argv[1], float(sys.argv[2])
-def done(**d):
-    sys.stdout.write("\n" + json.dumps(d) + "\n"); sys.stdout.flush(); os._exit(0)
+# Run on the clone as `python3 -c ASK SOCKET TOPIC TIMEOUT` (names and numbers are arguments, never
+# shell text; standard library only, so it starts in milliseconds). Prints the agent's answer, or
+# {"why": "no-agent"} when none serves.
+ASK = r"""
+import json, socket, sys
+path, topic, timeout = sys.argv[1], sys.argv[2], float(sys.argv[3])
 try:
-    import numpy as np, cv2
-except ImportError as e:
-    done(error="the clone has no OpenCV for python3 (%s): the clone image's pip packages (snapshots/<distro>.yaml)" % e, why="unavailable")
-'''
-_ROS1 = r'''import rosgraph, rospy
-from sensor_msgs.msg import Image
-# The master first: rospy.init_node would wait for an unreachable master for ever.
-try:
-    published = dict(rosgraph.Master("/ccrp_camera").getPublishedTopics(""))
-except Exception as e:
-    done(error="the clone's ROS master does not answer (%s)" % e, why="no-master")
-name = topic if topic.startswith("/") else "/" + topic
-if name not in published:
-    done(error="nothing publishes %s on the clone's master (is the robot connected, with a camera?)" % name, why="no-publisher")
-if published[name] != "sensor_msgs/Image":
-    done(error="%s is a %s, not a sensor_msgs/Image" % (name, published[name]), why="bad-type")
-rospy.init_node("ccrp_camera", anonymous=True, disable_signals=True, disable_rosout=True)
-try:
-    msg = rospy.wait_for_message(name, Image, timeout=timeout)
-except Exception:
-    done(error="no frame on %s within %g s" % (name, timeout), why="no-frame")
-received = time.time()
-seq, stamp = msg.header.seq, msg.header.stamp.to_sec()
-'''
-_ROS2 = r'''import rclpy
-from rclpy.qos import qos_profile_sensor_data
-from sensor_msgs.msg import Image
-rclpy.init()
-node = rclpy.create_node("ccrp_camera")
-name = topic if topic.startswith("/") else "/" + topic
-# The robot's publishers, found by discovery through the tunnel (ROS 2 has no master to ask).
-end, kinds = time.time() + min(timeout, 3.0), []
-while time.time() < end and not kinds:
-    rclpy.spin_once(node, timeout_sec=0.1)
-    kinds = dict(node.get_topic_names_and_types()).get(name, [])
-if not kinds:
-    done(error="nothing publishes %s on the clone's graph (is the robot connected, with a camera?)" % name, why="no-publisher")
-if "sensor_msgs/msg/Image" not in kinds:
-    done(error="%s is a %s, not a sensor_msgs/msg/Image" % (name, ",".join(kinds)), why="bad-type")
-got = []
-# Best effort takes a reliable publisher's frames as well as a best-effort one's.
-node.create_subscription(Image, name, got.append, qos_profile_sensor_data)
-end = time.time() + timeout
-while time.time() < end and not got:
-    rclpy.spin_once(node, timeout_sec=0.1)
-if not got:
-    done(error="no frame on %s within %g s" % (name, timeout), why="no-frame")
-received, msg = time.time(), got[0]
-seq, stamp = 0, msg.header.stamp.sec + msg.header.stamp.nanosec / 1e9  # a ROS 2 header has no seq
-'''
-_ENCODE = r'''channels = {"rgb8": 3, "bgr8": 3, "mono8": 1, "rgba8": 4, "bgra8": 4}.get(msg.encoding)
-if channels is None:
-    done(error="frames in %s are not shown (rgb8, bgr8, mono8, rgba8, bgra8 are)" % msg.encoding, why="bad-frame")
-h, w, step = msg.height, msg.width, msg.step
-data = np.frombuffer(msg.data, dtype=np.uint8)
-if h < 1 or w < 1 or step < w * channels or data.size < h * step:
-    done(error="a malformed %dx%d %s frame (step %d, %d bytes)" % (w, h, msg.encoding, step, data.size), why="bad-frame")
-img = data[:h * step].reshape(h, step)[:, :w * channels]
-img = img.reshape(h, w) if channels == 1 else img.reshape(h, w, channels)
-convert = {"rgb8": cv2.COLOR_RGB2BGR, "rgba8": cv2.COLOR_RGBA2BGR, "bgra8": cv2.COLOR_BGRA2BGR}.get(msg.encoding)
-if convert is not None:
-    img = cv2.cvtColor(img, convert)
-ok, jpeg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
-if not ok:
-    done(error="OpenCV could not encode the frame", why="bad-frame")
-done(topic=name, width=w, height=h, encoding=msg.encoding, seq=seq, frame_id=msg.header.frame_id,
-     stamp=stamp or None, age_ms=round((received - stamp) * 1000, 1) if stamp else None,
-     jpeg=base64.b64encode(jpeg.tobytes()).decode())
-'''
-READER, READER2 = _HEAD + _ROS1 + _ENCODE, _HEAD + _ROS2 + _ENCODE
-
-# The clone's ROS environment, then the reader (evaluation.IN_ROS's prelude; a constant). A ROS 2
-# clone's setup.sh puts the wheels' venv (rclpy, OpenCV) on Debian's python3 path.
-_PRELUDE = ['/bin/sh', '-c', 'set -a; . /etc/ccrp/ros.env; set +a; '
-            'if [ -f "/opt/ros/$ROS_DISTRO/setup.sh" ]; then . "/opt/ros/$ROS_DISTRO/setup.sh"; fi; exec "$@"',
-            'ccrp-camera', '/usr/bin/python3', '-c']
-IN_ROS, IN_ROS2 = [*_PRELUDE, READER], [*_PRELUDE, READER2]
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(timeout + 15)
+    s.connect(path)
+except OSError as e:
+    print(json.dumps({"error": "no camera agent serves (%s)" % e, "why": "no-agent"})); sys.exit(0)
+s.sendall((json.dumps({"topic": topic, "timeout": timeout}) + "\n").encode())
+print(s.makefile("rb").readline().decode() or json.dumps({"error": "the camera agent ended the request", "why": "no-agent"}))
+"""
+ASK_ARGV = ["python3", "-c", ASK, SOCKET]
+# The agent's unit: the clone's ROS environment (a ROS 2 clone's setup.sh puts the wheels' venv,
+# rclpy and OpenCV, on Debian's python3 path), the `ros` user, logs and socket in memory.
+_IN_ROS = ["/bin/sh", "-c", 'set -a; . /etc/ccrp/ros.env; set +a; '
+           'if [ -f "/opt/ros/$ROS_DISTRO/setup.sh" ]; then . "/opt/ros/$ROS_DISTRO/setup.sh"; fi; exec "$@"',
+           "ccrp-camera", "/usr/bin/python3"]
+UNIT_OPTIONS = ["--description", "ccrp camera agent (ccrp robot camera, the dashboard's camera view)",
+                "--property", "User=ros", "--property", "RuntimeDirectory=ccrp-camera",
+                "--property", "RuntimeDirectoryMode=0700", "--property", "NoNewPrivileges=yes",
+                "--property", "ProtectSystem=full", "--property", "ProtectHome=yes", "--property", "PrivateTmp=yes",
+                "--setenv", "HOME=/run/ccrp-camera", "--setenv", "ROS_HOME=/run/ccrp-camera",
+                "--setenv", "ROS_LOG_DIR=/run/ccrp-camera/log"]
 
 
 class NoFrame(CcrpError):
@@ -148,18 +95,16 @@ def latest_frame(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeou
         raise NoFrame(f"robot {robot!r} has no clone", "no-clone", hint=f"ccrp clone create -i INVENTORY --robot {robot}")
     t0 = time.perf_counter()
     try:
-        reader = IN_ROS2 if fleet.inventory.ros.ros2 else IN_ROS
-        rc, out = provider.exec(robot, [*reader, topic, f"{timeout:g}"], timeout=timeout + 30)
+        got = _ask(provider, robot, topic, timeout)
+        if got.get("why") == "no-agent":  # the first read since the clone booted, or after an idle spell
+            start_agent(provider, robot)
+            got = _ask_until_served(provider, robot, topic, timeout)
+    except NoFrame:
+        raise
     except CcrpError as exc:  # the clone is stopped or unreachable
-        raise NoFrame(f"robot {robot!r}: its clone did not run the camera reader: {exc.message}", "no-clone",
+        raise NoFrame(f"robot {robot!r}: its clone did not answer the camera read: {exc.message}", "no-clone",
                       hint="ccrp status -i INVENTORY") from None
     read_ms = round((time.perf_counter() - t0) * 1000, 1)
-    last = next((ln for ln in reversed(out.strip().splitlines()) if ln.startswith("{")), "")
-    try:
-        got = json.loads(last)
-    except ValueError:
-        raise NoFrame(f"the camera reader failed on the clone of {robot!r} (exit {rc}): {' '.join(out.split())[-300:]}",
-                      "failed", hint="is the clone serving? `ccrp status -i INVENTORY`") from None
     if "error" in got:
         raise NoFrame(f"robot {robot!r}: {got['error']}", str(got.get("why", "failed")),
                       hint="ccrp status -i INVENTORY (VPN, robot nodes)")
@@ -170,7 +115,46 @@ def latest_frame(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeou
                       stamp=None if got.get("stamp") is None else float(got["stamp"]),
                       age_ms=None if got.get("age_ms") is None else float(got["age_ms"]), read_ms=read_ms)
     except (KeyError, TypeError, ValueError) as exc:
-        raise NoFrame(f"the camera reader on the clone of {robot!r} answered something else: {shown(str(exc))}", "failed") from None
+        raise NoFrame(f"the camera agent on the clone of {robot!r} answered something else: {shown(str(exc))}", "failed") from None
     if not (jpeg.startswith(b"\xff\xd8") and jpeg.rstrip(b"\0").endswith(b"\xff\xd9")) or len(jpeg) > MAX_JPEG:
-        raise NoFrame(f"the camera reader on the clone of {robot!r} sent no JPEG ({len(jpeg)} bytes)", "failed")
+        raise NoFrame(f"the camera agent on the clone of {robot!r} sent no JPEG ({len(jpeg)} bytes)", "failed")
     return frame
+
+
+def _ask(provider, robot: str, topic: str, timeout: float) -> dict:
+    """The agent's answer through the client (one exec), as a dict."""
+    rc, out = provider.exec(robot, [*ASK_ARGV, topic, f"{timeout:g}"], timeout=timeout + 30)
+    last = next((ln for ln in reversed(out.strip().splitlines()) if ln.startswith("{")), "")
+    try:
+        got = json.loads(last)
+    except ValueError:
+        got = None
+    if not isinstance(got, dict):
+        raise NoFrame(f"the camera read failed on the clone of {robot!r} (exit {rc}): {' '.join(out.split())[-300:]}",
+                      "failed", hint="is the clone serving? `ccrp status -i INVENTORY`")
+    return got
+
+
+def start_agent(provider, robot: str) -> None:
+    """The camera agent on the clone, (re)started from this ccrp's copy of it."""
+    from .render.bundles import BundleFile
+    from .render.view import CCRP_LIB
+    from .simulated import run_unit
+
+    source = (Path(__file__).parent / "agent" / "camera.py").read_text()
+    provider.push_files(robot, [BundleFile("camera.py", source, 0o644, f"{CCRP_LIB}/camera.py")], restart=[])
+    run_unit(lambda argv: provider.exec(robot, argv, timeout=30), UNIT, [*_IN_ROS, AGENT, SOCKET, str(CAMERA_IDLE_S)],
+             f"the clone of {robot!r}", UNIT_OPTIONS)
+
+
+def _ask_until_served(provider, robot: str, topic: str, timeout: float) -> dict:
+    """Asks until the agent just started serves (its node and OpenCV load in a second or two)."""
+    from .retry import PollTimeout, poll
+
+    try:
+        return poll(lambda: ((got := _ask(provider, robot, topic, timeout)).get("why") != "no-agent", got),
+                    timeout=30, interval=0.3)
+    except PollTimeout:
+        _, log = provider.exec(robot, ["journalctl", "-u", UNIT, "-n", "5", "--no-pager"], timeout=15)
+        raise NoFrame(f"the camera agent did not start on the clone of {robot!r}: {' '.join(log.split())[-300:]}",
+                      "failed") from None

@@ -150,8 +150,9 @@ def camera(
     timeout: Annotated[float, typer.Option("--timeout", min=0.5, max=60, help="Seconds to wait for a frame.")] = 3.0,
     as_json: options.Json = False,
 ) -> None:
-    """Write the latest frame of the robot's camera, as its clone sees it, to a JPEG file (a ROS node
-    on the clone waits for one frame and encodes it; the dashboard's camera view; docs/dashboard.md)."""
+    """Write the latest frame of the robot's camera, as its clone sees it, to a JPEG file (asked of a
+    camera agent on the clone, which the first read starts; the dashboard's camera view;
+    docs/dashboard.md)."""
     from ..camera import check_topic, latest_frame
     from ..errors import cannot_write
     from ..providers import get_provider

@@ -451,8 +451,8 @@ def test_camera_frame_is_the_clones_jpeg_read_through_exec(cam):
     assert float(r.headers["x-ccrp-frame-read-ms"]) >= 0
     assert "content-security-policy" in r.headers
     (robot, argv), = cam.clones.ran
-    # argv, never a shell string with a name in it: the constant prelude and reader, then the values.
-    assert robot == "nao1" and argv == [*camera.IN_ROS, "/camera/image_raw", "3"]
+    # argv, never a shell string with a name in it: the constant client and socket, then the values.
+    assert robot == "nao1" and argv == [*camera.ASK_ARGV, "/camera/image_raw", "3"]
     assert not any("nao1" in a for a in argv)
 
 

@@ -208,30 +208,3 @@ def test_a_jazzy_edge_bundle_installs_its_guard_under_a_staging_root(jazzy, tmp_
     assert subprocess.run(["sh", "-n", str(root / "usr/local/lib/ccrp/ccrp-rtps-guard")]).returncode == 0
     assert subprocess.run(["sh", str(root / "usr/local/lib/ccrp/ccrp-rtps-guard"), "sideways"],
                           capture_output=True).returncode == 2
-
-
-def test_the_camera_view_of_a_jazzy_robot_runs_the_rclpy_reader(jazzy):
-    """The same exec and answer as on ROS 1, with the reader that asks the graph, not a master."""
-    import base64
-    import json
-
-    from ccrp_cli import camera
-
-    jpeg = b"\xff\xd8" + bytes(600) + b"\xff\xd9"
-    ran = []
-
-    class Clones:
-        def query(self):
-            return {"nao1": object()}
-
-        def exec(self, robot, argv, timeout=60):
-            ran.append(argv)
-            return 0, json.dumps({"topic": "/camera/image_raw", "width": 320, "height": 240, "encoding": "rgb8",
-                                  "seq": 0, "frame_id": "nao1_camera", "stamp": 1.5, "age_ms": 3.0,
-                                  "jpeg": base64.b64encode(jpeg).decode()})
-
-    frame = camera.latest_frame(jazzy, Clones(), "nao1")
-    assert ran == [[*camera.IN_ROS2, "/camera/image_raw", "3"]] and frame.jpeg == jpeg
-    for reader in (camera.READER, camera.READER2):
-        compile(reader, "<reader>", "exec")
-    assert "rclpy" in camera.READER2 and "rospy" not in camera.READER2 and "rclpy" not in camera.READER
