@@ -12,7 +12,7 @@ from pydantic import BaseModel
 LABEL_MANAGED = "ccrp-managed"
 LABEL_FLEET = "ccrp-fleet"
 LABEL_ROBOT = "ccrp-robot"
-LABEL_ROLE = "ccrp-role"  # clone | builder | robot-sim | snapshot | network | secrets
+LABEL_ROLE = "ccrp-role"  # clone | builder | robot-sim | power-sim | snapshot | network | secrets
 
 
 def owner_labels(fleet: str, role: str, robot: str | None = None) -> dict[str, str]:

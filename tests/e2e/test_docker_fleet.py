@@ -196,7 +196,8 @@ def _sweep(client, fleet: str) -> list[str]:
     for image in images:
         for c in client.containers.list(all=True, filters={"ancestor": image.id}):
             containers[c.id] = c
-    for c in containers.values():
+    # Simulated power devices first: each holds its robot's power-line volume, which goes with the robot.
+    for c in sorted(containers.values(), key=lambda c: c.labels.get("ccrp-role") != "power-sim"):
         attempt(f"container {c.name}", lambda c=c: c.remove(force=True, v=True))
     for v in client.volumes.list(filters=by_label):
         attempt(f"volume {v.name}", lambda v=v: v.remove(force=True))

@@ -271,7 +271,9 @@ class DockerProvider(DockerHost):
     def teardown(self) -> list[str]:
         """Remove every container, volume and network carrying the fleet's labels."""
         removed = []
-        for c in self.client.containers.list(all=True, ignore_removed=True, filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):
+        found = self.client.containers.list(all=True, ignore_removed=True, filters={"label": [f"{LABEL_FLEET}={self.fleet}"]})
+        # A simulated power device first: it holds its robot's power-line volume, which goes with the robot.
+        for c in sorted(found, key=lambda c: c.labels.get(LABEL_ROLE) != "power-sim"):
             c.remove(force=True, v=True)
             removed.append(f"container {c.name}")
         for v in self.client.volumes.list(filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):

@@ -95,7 +95,7 @@ def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node:
     rc, out = provider.exec(
         robot,
         ["systemd-run", "--unit", "ccrp-demo-node", "--property", "EnvironmentFile=/etc/ccrp/ros.env",
-         "--property", "Restart=always", "--property", "RestartSec=2",
+         "--property", "Restart=always", "--property", "RestartSec=2", "--property", "TimeoutStopSec=5",
          # rclpy's logging needs a home for its log directory (systemd-run gives the unit none).
          "--setenv", "HOME=/root",
          python, "/usr/local/lib/ccrp/ccrp-demo-node"],
