@@ -80,7 +80,7 @@ def push_passwd(fleet: Fleet, provider, robot: str, say: Say) -> None:
     password hash, or without them once the device is revoked. OpenVPN's checks read the file at
     every handshake: nothing restarts, the robot's session stays. A clone not running gets it with
     its other secrets when it is next brought up."""
-    from .clones import applied_marker
+    from .clones import applied_marker, files_current
     from .providers.base import CloneState
     from .render import bundles
 
@@ -92,8 +92,10 @@ def push_passwd(fleet: Fleet, provider, robot: str, say: Say) -> None:
     secrets = bundles.clone_secrets(view, fleet.pki.credentials(robot))
     keys = [f for f in secrets if f.name != "crl.pem"]
     passwd = next(f for f in keys if f.name == "passwd")
-    # The marker of what was pushed, so that `fleet up` does not push (and restart) again.
-    provider.push_files(robot, [passwd, applied_marker(keys)], restart=[])
+    # With the marker of what the clone holds, so that `fleet up` does not push (and restart)
+    # again; unless another of its keys is not the current one: then `fleet up` pushes them all.
+    others_current = files_current(provider, robot, [f for f in keys if f is not passwd])
+    provider.push_files(robot, [passwd, *([applied_marker(keys)] if others_current else [])], restart=[])
 
 
 def write_device_bundle(fleet: Fleet, provider, robot: str, out: Path, remote: str | None, say: Say) -> Path:

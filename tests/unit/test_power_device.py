@@ -167,3 +167,46 @@ def test_the_clone_agent_answers_only_its_device_and_only_reports(agents):
     assert not (tmp / "report").exists()
     assert device["exchange"](cfg, {"relay": "off", "robot": "off", "t": 3.0}) is None  # still serving
     assert json.loads((tmp / "report").read_text())["relay"] == "off"
+
+
+def test_the_clone_learns_the_device_without_a_restart_and_without_hiding_stale_keys(lab):
+    """push_passwd: the running clone's passwd names the device (no unit restarted); the marker of
+    applied keys goes with it only when the clone's other keys are the current ones, else the next
+    `fleet up` must still push them all."""
+    import hashlib
+
+    from ccrp_cli import power
+    from ccrp_cli.fleet import clone_view
+    from ccrp_cli.providers.base import CloneState
+    from ccrp_cli.render.bundles import clone_secrets
+
+    v = lab.inventory.vpn
+    lab.pki.issue_power("nao1", v.cert_days, v.crl_days)
+    keys = [f for f in clone_secrets(clone_view(lab, lab.load_allocated(), "nao1"), lab.pki.credentials("nao1"))
+            if f.name != "crl.pem"]
+
+    class Clone:
+        def __init__(self, stale: str | None):
+            self.held = {f.dest: hashlib.sha256(f.content.encode()).hexdigest() for f in keys if f.name != stale}
+            self.pushed = []
+
+        def query(self):
+            return {"nao1": SimpleRecord()}
+
+        def exec(self, robot, argv, timeout=60):
+            assert argv[0] == "sha256sum"
+            return 0, "".join(f"{self.held[p]}  {p}\n" for p in argv[1:] if p in self.held)
+
+        def push_files(self, robot, files, restart=()):
+            assert restart == []
+            self.pushed.append([f.name for f in files])
+
+    class SimpleRecord:
+        state = CloneState.RUNNING
+
+    current = Clone(stale=None)
+    power.push_passwd(lab, current, "nao1", lambda m: None)
+    assert current.pushed == [["passwd", ".applied"]]
+    behind = Clone(stale="server.crt")
+    power.push_passwd(lab, behind, "nao1", lambda m: None)
+    assert behind.pushed == [["passwd"]]
