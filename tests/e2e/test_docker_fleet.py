@@ -520,7 +520,8 @@ def test_wrong_credentials_and_wrong_robot_are_refused(fleet: E2EFleet, up):
     assert f"tls-crypt unwrapping failed from [AF_INET]{other.ip}:" in log, log[-2000:]
 
     # Even with nao1's tls-crypt key (leaked), nao2's certificate is not nao1's: the clone's
-    # verify-x509-name refuses it (the client's own server-name check is dropped for this).
+    # tls-verify check (ccrp-auth: a CN of the clone's own) refuses it during the handshake, before
+    # any password (the client's own server-name check is dropped for this).
     t0 = time.time()
     tc_nao1 = (fleet.home / fleet.name / "pki" / "tls-crypt" / "nao1.key").read_text()
     leaked = re.sub(r"(?s)<tls-crypt>.*?</tls-crypt>", lambda _: f"<tls-crypt>\n{tc_nao1.strip()}\n</tls-crypt>", wrong_remote)
@@ -529,7 +530,7 @@ def test_wrong_credentials_and_wrong_robot_are_refused(fleet: E2EFleet, up):
     stolen = openvpn_probe(fleet, leaked, f"{user}\n{password}\n", ended, 20, give_up_soon)
     assert COMPLETED not in stolen.logs, stolen.logs[-2000:]
     log = server_log(fleet, "nao1", t0)
-    assert "VERIFY X509NAME ERROR: CN=nao2, must be nao1" in log, log[-2000:]
+    assert "VERIFY SCRIPT ERROR: depth=0, CN=nao2" in log, log[-2000:]
 
 
 # -- 5. no secret where it must not be ------------------------------------------------------------
