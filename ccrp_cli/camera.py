@@ -39,11 +39,7 @@ s.sendall((json.dumps({"topic": topic, "timeout": timeout}) + "\n").encode())
 print(s.makefile("rb").readline().decode() or json.dumps({"error": "the camera agent ended the request", "why": "no-agent"}))
 """
 ASK_ARGV = ["python3", "-c", ASK, SOCKET]
-# The agent's unit: the clone's ROS environment (a ROS 2 clone's setup.sh puts the wheels' venv,
-# rclpy and OpenCV, on Debian's python3 path), the `ros` user, logs and socket in memory.
-_IN_ROS = ["/bin/sh", "-c", 'set -a; . /etc/ccrp/ros.env; set +a; '
-           'if [ -f "/opt/ros/$ROS_DISTRO/setup.sh" ]; then . "/opt/ros/$ROS_DISTRO/setup.sh"; fi; exec "$@"',
-           "ccrp-camera", "/usr/bin/python3"]
+# The agent's unit: the clone's ROS environment, the `ros` user, logs and socket in memory.
 UNIT_OPTIONS = ["--description", "ccrp camera agent (ccrp robot camera, the dashboard's camera view)",
                 "--property", "User=ros", "--property", "RuntimeDirectory=ccrp-camera",
                 "--property", "RuntimeDirectoryMode=0700", "--property", "NoNewPrivileges=yes",
@@ -137,14 +133,15 @@ def _ask(provider, robot: str, topic: str, timeout: float) -> dict:
 
 def start_agent(provider, robot: str) -> None:
     """The camera agent on the clone, (re)started from this ccrp's copy of it."""
+    from .evaluation import ROS_PRELUDE
     from .render.bundles import BundleFile
     from .render.view import CCRP_LIB
     from .simulated import run_unit
 
     source = (Path(__file__).parent / "agent" / "camera.py").read_text()
     provider.push_files(robot, [BundleFile("camera.py", source, 0o644, f"{CCRP_LIB}/camera.py")], restart=[])
-    run_unit(lambda argv: provider.exec(robot, argv, timeout=30), UNIT, [*_IN_ROS, AGENT, SOCKET, str(CAMERA_IDLE_S)],
-             f"the clone of {robot!r}", UNIT_OPTIONS)
+    argv = [*ROS_PRELUDE, "ccrp-camera", "/usr/bin/python3", AGENT, SOCKET, str(CAMERA_IDLE_S)]
+    run_unit(lambda cmd: provider.exec(robot, cmd, timeout=30), UNIT, argv, f"the clone of {robot!r}", UNIT_OPTIONS)
 
 
 def _ask_until_served(provider, robot: str, topic: str, timeout: float) -> dict:

@@ -24,9 +24,10 @@ SERVE_UNIT, WORKER_UNIT = "ccrp-bench-serve", "ccrp-bench-worker"
 WORKER_PORT = 7460
 # Runs the agent in the ROS environment of the machine (robot or clone). A constant: names and
 # numbers reach the agent as separate arguments, never through the shell.
-IN_ROS = ['/bin/sh', '-c', 'set -a; . /etc/ccrp/ros.env; set +a; '
-          'if [ -f "/opt/ros/$ROS_DISTRO/setup.sh" ]; then . "/opt/ros/$ROS_DISTRO/setup.sh"; fi; exec "$@"',
-          'ccrp-bench', '/usr/bin/python3', AGENT]
+# A ROS 2 machine's setup.sh puts the wheels' venv (rclpy, OpenCV) on Debian's python3 path.
+ROS_PRELUDE = ['/bin/sh', '-c', 'set -a; . /etc/ccrp/ros.env; set +a; '
+               'if [ -f "/opt/ros/$ROS_DISTRO/setup.sh" ]; then . "/opt/ros/$ROS_DISTRO/setup.sh"; fi; exec "$@"']
+IN_ROS = [*ROS_PRELUDE, 'ccrp-bench', '/usr/bin/python3', AGENT]
 
 
 def summary(samples: list[float]) -> dict:

@@ -117,9 +117,12 @@ def ensure_device(fleet: Fleet, provider, robot: str, say: Say) -> tuple[dict, s
     from .retry import PollTimeout, poll
     from .simulated import Sims
 
-    sims = Sims(fleet, provider)
-    simulated = sims.running(robot)
     report = read(provider, robot)
+    try:
+        sims = Sims(fleet, provider)
+        simulated = sims.running(robot)
+    except CcrpError:  # no Docker engine here (a cloud fleet's operator machine): no simulated robots
+        sims, simulated = None, False
     if simulated and (report is None or report["silent"]):
         say(f"{robot}: starting its simulated power device (a container beside the robot, with the device bundle)")
         files, _ = device_files(fleet, robot)

@@ -210,3 +210,30 @@ def test_the_clone_learns_the_device_without_a_restart_and_without_hiding_stale_
     behind = Clone(stale="server.crt")
     power.push_passwd(lab, behind, "nao1", lambda m: None)
     assert behind.pushed == [["passwd"]]
+
+
+def test_a_real_robots_power_goes_through_its_clone_without_docker_here(lab, monkeypatch):
+    """A cloud fleet's operator machine may have no Docker engine: a real robot's power command
+    needs only its clone (the wish written there, the device's next report read there)."""
+    from ccrp_cli import power, simulated
+    from ccrp_cli.errors import CcrpError
+
+    def no_docker(*a, **k):
+        raise CcrpError("cannot reach the Docker engine")
+
+    monkeypatch.setattr(simulated, "Sims", no_docker)
+
+    class Clone:  # the clone's power agent, and the device answering the wish at its next report
+        report = {"relay": "on", "robot": "running"}
+
+        def exec(self, robot, argv, timeout=60):
+            if argv == ["cat", power.REPORT]:
+                return 0, json.dumps({**self.report, "t": time.time()}) + "\n"
+            if argv[:len(power.SET_STATE)] == power.SET_STATE:
+                self.report = {"relay": argv[-1], "robot": "off" if argv[-1] == "off" else "running"}
+                return 0, f"{int(time.time())}\n"
+            return 0, '{"kill": ["SUCCESS: common name \'nao1\' found, 1 client(s) killed"]}\n'  # the dead session
+
+    got = power.power(lab, "nao1", "off", provider=Clone(), timeout=5)
+    assert (got["power"], got["robot_state"], got["device"]) == ("off", "off", "device")
+    assert power.power(lab, "nao1", "status", provider=Clone())["power"] == "on"
