@@ -3,9 +3,11 @@ the plain layer and in a jazzy fleet's clone image; wheels are fetched for Debia
 
 from __future__ import annotations
 
+import secrets
 import subprocess
+from pathlib import Path
 
-from ccrp_cli.providers.docker import images, ros2
+from ccrp_cli.providers.docker import images, ros2, wheels
 from ccrp_cli.recipes import platform, recipe
 
 
@@ -18,7 +20,7 @@ def test_jazzy_recipe_loads_beside_noetics():
     assert "python3-venv" in plat.packages and not any(p.startswith(("ros-", "python3-rospy")) for p in plat.packages)
 
 
-def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch):
+def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch, tmp_path):
     plat = platform("jazzy", "docker")
     text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, plat)
     assert "FROM clone AS ros2\n" in text and "COPY --from=ros2 /opt/ros/jazzy /opt/ros/jazzy\n" in text
@@ -26,7 +28,8 @@ def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch):
     # No ROS 1 agents (relay, API manager) in a ROS 2 image, and no system-wide pip install.
     assert "relay.py" not in text and "pip3 install" not in text and "cloud_init_modules" in text
     fetched = []
-    monkeypatch.setattr(ros2, "_pip", lambda args, what: fetched.append(what))
+    monkeypatch.setenv("CCRP_CACHE", str(tmp_path))
+    monkeypatch.setattr(wheels, "_pip", lambda args, what, check=True: not fetched.append(what))
     context = images.build_context(plat, distro="jazzy")
     assert set(context) == {"ros2-setup", "ccrp-topic"} and fetched == [["empy==3.3.4"], plat.pip]
     assert "COPY ccrp-topic /usr/local/bin/ccrp-topic" in text
@@ -55,14 +58,15 @@ def test_ros2_layer_installs_the_wheels_in_a_venv_with_a_setup_file():
     assert "venv" not in images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "docker"))
 
 
-def test_venv_context_asks_for_bookworms_python_and_builds_only_the_source_packages(monkeypatch):
+def test_venv_context_asks_for_bookworms_python_and_builds_only_the_source_packages(monkeypatch, tmp_path):
     calls = []
 
     def run(argv, **kwargs):
         calls.append(argv[3:])
         return subprocess.CompletedProcess(argv, 0, "", "")
 
-    monkeypatch.setattr(ros2.subprocess, "run", run)
+    monkeypatch.setenv("CCRP_CACHE", str(tmp_path))
+    monkeypatch.setattr(wheels.subprocess, "run", run)
     zenoh_only = platform("jazzy", "docker").model_copy(update={"pip": ["eclipse-zenoh==1.10.2"], "pip_source": []})
     assert set(ros2.venv_context(zenoh_only)) == {"ros2-setup"}
     assert [c[0] for c in calls] == ["download"]
@@ -93,3 +97,28 @@ def test_ros2_setup_lists_the_venvs_vendored_libraries_in_setup_sh(tmp_path):
     libs, prefix, rmw = env.stdout.strip().split("|")
     assert libs.split(":") == [str(tmp_path / "lib"), str(site / "ros_fastrtps.libs"), str(site / "ros_rclpy.libs")]
     assert prefix == str(tmp_path) and rmw == "rmw_fastrtps_cpp"
+
+
+def test_fetched_wheels_are_kept_and_taken_from_the_cache_the_next_time(monkeypatch, tmp_path):
+    """A second fetch finds the first one's files through --find-links (pip takes a link's file
+    before the index's) and gets the same bytes, so Docker's cache holds for the layer installing them."""
+    monkeypatch.setenv("CCRP_CACHE", str(tmp_path / "cache"))
+    calls = []
+
+    def run(argv, **kwargs):
+        calls.append(argv)
+        dest = argv[argv.index("--dest") + 1] if "--dest" in argv else argv[argv.index("--wheel-dir") + 1]
+        links = [argv[i + 1] for i, a in enumerate(argv) if a == "--find-links"]
+        cached = [p for link in links for p in Path(link).glob("*.whl")]
+        for name in ("demo-1.0-py3-none-any.whl",):
+            src = next((p for p in cached if p.name == name), None)
+            (Path(dest) / name).write_bytes(src.read_bytes() if src else secrets.token_bytes(16))
+        return subprocess.CompletedProcess(argv, 0, "", "")
+
+    monkeypatch.setattr(wheels.subprocess, "run", run)
+    first = wheels.fetch(["demo==1.0"], ("manylinux2014_x86_64",))
+    assert list(first) == ["wheels/demo-1.0-py3-none-any.whl"]
+    assert (wheels.cache_dir() / "demo-1.0-py3-none-any.whl").read_bytes() == first["wheels/demo-1.0-py3-none-any.whl"]
+    assert wheels.fetch(["demo==1.0"], ("manylinux2014_x86_64",)) == first
+    assert str(wheels.cache_dir()) in calls[-1] and calls[-1][calls[-1].index("--python-version") + 1] == "3.11"
+    assert not [p for p in wheels.cache_dir().iterdir() if p.name.startswith(".")]  # no partial copy left

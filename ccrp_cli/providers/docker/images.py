@@ -6,7 +6,6 @@ from __future__ import annotations
 import io
 import shutil
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -69,18 +68,11 @@ def build_context(plat: Platform, progress=lambda msg: None, distro: str = "noet
 
         progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
         return tool | venv_context(plat)
-    files = tool | {f"{name}.py": agent_source(name).encode() for name in IMAGE_AGENTS}
-    with tempfile.TemporaryDirectory() as tmp:
-        progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
-        argv = [sys.executable, "-m", "pip", "download", "--quiet", "--only-binary=:all:", "--python-version", "3.11",
-                "--platform", "manylinux2014_x86_64", "--implementation", "cp", "--dest", tmp, *plat.pip]
-        proc = subprocess.run(argv, capture_output=True, text=True)
-        if proc.returncode != 0:
-            last = ([ln for ln in proc.stderr.splitlines() if not ln.startswith("WARNING")] or ["?"])[-1]
-            raise CcrpError(f"cannot download {', '.join(plat.pip)}: {last}", hint="check that PyPI (or your pip index) is reachable")
-        for wheel in Path(tmp).glob("*.whl"):
-            files[f"wheels/{wheel.name}"] = wheel.read_bytes()
-    return files
+    from . import wheels
+
+    progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
+    agents = {f"{name}.py": agent_source(name).encode() for name in IMAGE_AGENTS}
+    return tool | agents | wheels.fetch(plat.pip, ("manylinux2014_x86_64",))
 
 
 def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progress=lambda msg: None,
