@@ -51,3 +51,92 @@ def lab(ccrp_home):
     for robot in fleet.inventory.robots:
         vpn.issue(fleet, robot.name)
     return fleet
+
+
+# -- end-to-end runs: shared images, grouping for parallel workers, what a failure prints -------------
+
+
+@pytest.fixture(scope="session")
+def clone_images():
+    """distro -> the run's clone image of it (tests/e2e/fleet.py warm_snapshot), built on first use:
+    every fleet's `snapshot build` after it is served from Docker's layer cache."""
+    import docker
+
+    from tests.e2e.fleet import warm_snapshot
+
+    client = docker.from_env(timeout=900)
+    built: dict[str, str] = {}
+
+    def get(distro: str) -> str:
+        if distro not in built:
+            built[distro] = warm_snapshot(client, distro)
+        return built[distro]
+
+    yield get
+    client.close()
+
+
+# Work units of a parallel run (pytest-xdist, --dist loadgroup): the tests of a module that share a
+# module-scoped fleet run on one worker, in file order; a scenario's backends are a unit each. The
+# contract suite's Docker harness uses fixed ranges, so its tests stay on one worker too. Units start
+# longest first (measured: docs/benchmarks.md "Test suite"), unit tests fill the gaps at the end.
+SLOWEST_FIRST = [
+    "tests/scenarios/test_user_path.py[openstack]", "tests/scenarios/test_user_path.py[aws]",
+    "tests/scenarios/test_user_path.py[gcp]", "tests/scenarios/test_jazzy_cloud.py", "tests/e2e/test_docker_fleet.py",
+    "tests/e2e/test_gce_startup_script.py", "tests/scenarios/test_user_path.py[docker]",
+]
+
+
+def _group(item) -> str | None:
+    path = item.nodeid.split("::")[0]
+    if path.startswith("tests/scenarios/test_user_path.py"):
+        return f"{path}[{item.callspec.params['run']}]"
+    if path.startswith(("tests/e2e/", "tests/scenarios/", "tests/live/")):
+        return path
+    if path.startswith("tests/contract/"):
+        return f"{path}[{item.callspec.params['harness']}]" if hasattr(item, "callspec") else path
+    return None
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the xdist_group marks
+def pytest_collection_modifyitems(config, items):
+    groups = {}
+    for item in items:
+        group = _group(item)
+        if group:
+            item.add_marker(pytest.mark.xdist_group(group))
+            groups[item] = group
+
+    def rank(item) -> tuple[int, int]:
+        group = groups.get(item)
+        if group is None:
+            return (2, 0)
+        return (0, SLOWEST_FIRST.index(group)) if group in SLOWEST_FIRST else (1, 0)
+
+    items[:] = sorted(items, key=rank)  # stable: file order within a unit
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """A failing end-to-end test prints its fleet's containers: states, failed units, journals of
+    ccrp's units, consoles (tests/e2e/fleet.py diagnostics)."""
+    outcome = yield
+    report = outcome.get_result()
+    if not report.failed or call.when not in ("setup", "call"):
+        return
+    labels = sorted({label for value in getattr(item, "funcargs", {}).values()
+                     for label in getattr(value, "diagnostic_labels", ())})
+    if not labels:
+        return
+    try:
+        import docker
+
+        from tests.e2e.fleet import diagnostics
+
+        client = docker.from_env(timeout=60)
+        try:
+            report.sections.append(("ccrp fleet containers", "\n".join(diagnostics(client, label) for label in labels)))
+        finally:
+            client.close()
+    except Exception as exc:  # noqa: BLE001 - never hide the test's own failure
+        report.sections.append(("ccrp fleet containers", f"diagnostics failed: {exc!r}"))

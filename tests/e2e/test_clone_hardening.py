@@ -26,7 +26,7 @@ import time
 import pytest
 
 from ccrp_cli.clones import HEALTH_SCRIPT
-from tests.e2e.test_docker_fleet import (  # the Docker fleet module's harness; skips without Docker
+from tests.e2e.fleet import (
     CONNECT_TIMEOUT,
     E2EFleet,
     connected,

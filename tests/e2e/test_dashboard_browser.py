@@ -31,11 +31,11 @@ import pytest
 
 from tests.conftest import ROOT
 from tests.e2e.browser import MISSING, cell, chromium, press, received_commands, running_dashboard, wait
-from tests.e2e.test_docker_fleet import _NO_DOCKER, start_fleet, wait_for
+from tests.e2e.fleet import NO_DOCKER, start_fleet, wait_for
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
+    pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
     pytest.mark.skipif(MISSING is not None, reason=str(MISSING)),
 ]
 if MISSING is None:

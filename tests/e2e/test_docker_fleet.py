@@ -38,213 +38,47 @@ import re
 import secrets
 import shutil
 import signal
-import string
 import subprocess
 import sys
 import tarfile
 import tempfile
 import time
-import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import yaml
 
-from tests.conftest import LAB, ROOT, run_ccrp
-
-
-def _docker_info() -> str | None:
-    """None when the engine answers `docker info`, else why not."""
-    if shutil.which("docker") is None:
-        return "the docker CLI is not installed"
-    try:
-        proc = subprocess.run(["docker", "info", "--format", "{{.ServerVersion}}"], capture_output=True,
-                              text=True, timeout=20)
-    except subprocess.TimeoutExpired:
-        return "`docker info` did not answer within 20 s"
-    if proc.returncode != 0:
-        last = (proc.stderr.strip().splitlines() or ["?"])[-1]
-        return f"`docker info` failed: {last}"
-    return None
-
-
-_NO_DOCKER = _docker_info()
-
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
-]
+from ccrp_cli.providers.docker.archive import tar_files
+from tests.conftest import ROOT
+from tests.e2e.fleet import (
+    abnormal_exits,
+    CAPTURE,
+    COMPLETED,
+    CONNECT_TIMEOUT,
+    E2EFleet,
+    FLEET_LABEL,
+    MARKERS,
+    NO_DOCKER,
+    PEM_BLOCK,
+    REVOKE_TIMEOUT,
+    ROBOTS,
+    connected,
+    exec_in,
+    master_probe,
+    relay_journals,
+    start_fleet,
+    tcp_probe,
+    wait_for,
+)
 
 docker = pytest.importorskip("docker", reason="the Docker SDK (`pip install docker`) is not installed")
 
-from ccrp_cli.providers.docker.archive import tar_files  # noqa: E402
-
-ROBOTS = ("nao1", "nao2", "turtlebot1")
-FLEET_LABEL = "ccrp-fleet"
-COMPLETED = "Initialization Sequence Completed"
-CONNECT_TIMEOUT = 30.0   # a simulated robot's node registered on its clone's master
-REVOKE_TIMEOUT = 10.0    # a revoked robot's live session ended (issue: within 10 s)
-# Markers of private key material in text; a hit must also be a whole PEM block with a body
-# (libraries and docs carry the bare header strings).
-PEM_BLOCK = re.compile(
-    rb"-----BEGIN ((?:[A-Z0-9]+ )*PRIVATE KEY|OpenVPN Static key V1)-----[\r\n]+"
-    rb"(?:[A-Za-z0-9+/=:,\- ]*[\r\n]+){2,}-----END \1-----"
-)
-MARKERS = (b"PRIVATE KEY", b"OpenVPN Static key")
-
-
-# -- the module's fleet ------------------------------------------------------------------------
-
-
-@dataclass
-class E2EFleet:
-    name: str
-    inventory: Path
-    home: Path
-    client: object  # docker.DockerClient
-    tmp: Path
-    log: list[str] = field(default_factory=list)
-
-    # ccrp through its CLI, in a subprocess: real exit codes, real stderr.
-    def run(self, *args: str, check: bool = False) -> subprocess.CompletedProcess:
-        t0 = time.monotonic()
-        proc = run_ccrp(*args, home=self.home)
-        shown = " ".join(a if len(a) < 60 and "\n" not in a else "<...>" for a in args)
-        self.log.append(f"ccrp {shown} -> {proc.returncode} in {time.monotonic() - t0:.1f}s")
-        if check and proc.returncode != 0:
-            pytest.fail(f"`ccrp {' '.join(args)}` exited {proc.returncode}:\n{proc.stderr[-3000:]}")
-        return proc
-
-    def inv(self, *args: str, check: bool = False) -> subprocess.CompletedProcess:
-        """ccrp <args> -i <the module's inventory> (before a `--`, when there is one)"""
-        cut = args.index("--") if "--" in args else len(args)
-        return self.run(*args[:cut], "-i", str(self.inventory), *args[cut:], check=check)
-
-    def json(self, *args: str) -> object:
-        proc = self.inv(*args, "--json", check=True)
-        try:
-            return json.loads(proc.stdout)
-        except ValueError:
-            pytest.fail(f"`ccrp {' '.join(args)} --json` printed no JSON on stdout:\n{proc.stdout[:2000]}")
-
-    def env(self) -> dict[str, str]:
-        env = {**os.environ, "CCRP_HOME": str(self.home)}
-        env.pop("CCRP_INVENTORY", None)
-        return env
-
-    # -- what Docker has, by the fleet's labels ----------------------------------------------
-    def labelled(self, **labels: str) -> dict[str, str]:
-        return {"label": [f"{FLEET_LABEL}={self.name}", *(f"ccrp-{k}={v}" for k, v in labels.items())]}
-
-    def containers(self, **labels: str) -> list:
-        return self.client.containers.list(all=True, filters=self.labelled(**labels))
-
-    def container(self, role: str, robot: str):
-        found = self.containers(role=role, robot=robot)
-        assert len(found) == 1, f"expected one {role} container of {robot}, found {[c.name for c in found]}"
-        return found[0]
-
-    def status(self) -> dict[str, dict]:
-        return {row["robot"]: row for row in self.json("status")}
-
-    def snapshot_image(self) -> str:
-        state = json.loads((self.home / self.name / "state.json").read_text())
-        return state["snapshot"]["image"]
-
-    def plan(self) -> dict[str, dict]:
-        return {r["name"]: r for r in self.json("fleet", "validate")["robots"]}
-
-    def secret_needles(self) -> dict[bytes, str]:
-        """Fragments of every secret in the fleet's PKI store: key bodies, tls-crypt keys, passwords."""
-        pki = self.home / self.name / "pki"
-        needles: dict[bytes, str] = {}
-        for path in sorted((pki / "private").glob("*.key")) + sorted((pki / "tls-crypt").glob("*.key")):
-            body = [ln.strip() for ln in path.read_text().splitlines()
-                    if ln.strip() and not ln.startswith(("-----", "#"))]
-            for line in body[:2]:  # random from the first line on (a P-256 key has 16 random chars there)
-                needles[line.encode()] = f"pki/{path.parent.name}/{path.name}"
-        for path in sorted((pki / "passwords").glob("*.txt")):
-            needles[path.read_text().strip().encode()] = f"pki/passwords/{path.name}"
-        assert needles, f"no secrets found under {pki}"
-        return needles
-
-
-def _free_subnets() -> tuple[str, str, str]:
-    """public, common and VPN pool subnets that no Docker network or route of this host overlaps."""
-    from tests.scenarios.backend import free_cidr
-
-    return free_cidr("172.31.0.0/16"), free_cidr("10.91.0.0/16"), free_cidr("10.84.0.0/14", prefix=16)
-
-
-def _sweep(client, fleet: str) -> list[str]:
-    """Remove everything labelled with `fleet` (and containers of its images). Returns what is left."""
-    by_label = {"label": [f"{FLEET_LABEL}={fleet}"]}
-    problems = []
-
-    def attempt(what: str, fn: Callable[[], object]) -> None:
-        try:
-            fn()
-        except docker.errors.NotFound:
-            pass
-        except Exception as exc:  # noqa: BLE001 - keep sweeping; report at the end
-            problems.append(f"{what}: {exc}")
-
-    images = client.images.list(filters=by_label)
-    containers = {c.id: c for c in client.containers.list(all=True, filters=by_label)}
-    for image in images:
-        for c in client.containers.list(all=True, filters={"ancestor": image.id}):
-            containers[c.id] = c
-    # Simulated power devices first: each holds its robot's power-line volume, which goes with the robot.
-    for c in sorted(containers.values(), key=lambda c: c.labels.get("ccrp-role") != "power-sim"):
-        attempt(f"container {c.name}", lambda c=c: c.remove(force=True, v=True))
-    for v in client.volumes.list(filters=by_label):
-        attempt(f"volume {v.name}", lambda v=v: v.remove(force=True))
-    for n in client.networks.list(filters=by_label):
-        attempt(f"network {n.name}", n.remove)
-    for image in images:
-        attempt(f"image {image.tags or image.id}", lambda i=image: client.images.remove(i.id, force=True))
-    left = (
-        [f"container {c.name}" for c in client.containers.list(all=True, filters=by_label)]
-        + [f"volume {v.name}" for v in client.volumes.list(filters=by_label)]
-        + [f"network {n.name}" for n in client.networks.list(filters=by_label)]
-        + [f"image {i.tags or i.id}" for i in client.images.list(filters=by_label)]
-    )
-    return problems + left
-
-
-def start_fleet(request, tmp_path_factory, prefix: str, edit: Callable[[dict], None] = lambda data: None) -> E2EFleet:
-    """A fleet of its own from inventories/lab.yaml (`edit` changes the inventory), with its CA and
-    snapshot; swept away when the requesting scope ends, even on failure."""
-    client = docker.from_env(timeout=300)
-    name = prefix + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
-    public, common, pool = _free_subnets()
-    tmp = tmp_path_factory.mktemp(name)
-    data = yaml.safe_load(LAB.read_text())
-    data["fleet"] = name
-    edit(data)
-    data["provider"]["public_cidr"] = public
-    data["common"]["cidr"] = common
-    data["vpn"]["pool"] = pool
-    inventory = tmp / "inventory.yaml"
-    inventory.write_text(yaml.safe_dump(data, sort_keys=False))
-    f = E2EFleet(name=name, inventory=inventory, home=tmp / "home", client=client, tmp=tmp)
-
-    def teardown() -> None:
-        try:
-            f.inv("fleet", "down")
-        except Exception as exc:  # noqa: BLE001 - the sweep below still runs
-            warnings.warn(f"ccrp fleet down of {name} failed: {exc}", stacklevel=1)
-        left = _sweep(client, name)
-        if left:
-            warnings.warn(f"e2e fleet {name}: could not remove {left}", stacklevel=1)
-        sys.stderr.write("\n" + "\n".join(f"[{name}] {line}" for line in f.log) + "\n")
-
-    request.addfinalizer(teardown)  # before anything is created
-    f.inv("vpn", "init", check=True)
-    f.inv("snapshot", "build", check=True)  # reuses ccrp/base:bookworm when it is there
-    return f
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
+]
 
 
 @pytest.fixture(scope="module")
@@ -269,79 +103,6 @@ def sim_nao1(fleet: E2EFleet, up) -> dict:
     return {"started": t0, "container": fleet.container("robot-sim", "nao1")}
 
 
-def wait_for(what: str, probe: Callable[[], tuple[bool, object]], timeout: float, interval: float = 1.0,
-             since: float | None = None) -> object:
-    """Call probe() until it says done; fail after `timeout` s (from `since`) with its last answer."""
-    deadline = (since if since is not None else time.monotonic()) + timeout
-    while True:
-        done, last = probe()
-        if done:
-            return last
-        if time.monotonic() > deadline:
-            pytest.fail(f"{what}: not within {timeout:.0f} s; last seen: {json.dumps(last, default=str)[:1500]}")
-        time.sleep(interval)
-
-
-def connected(fleet: E2EFleet, robot: str) -> Callable[[], tuple[bool, object]]:
-    def probe():
-        row = fleet.status()[robot]
-        return row["vpn_connected"] and f"/{robot}_demo" in row["robot_nodes"], row
-    return probe
-
-
-def exec_in(container, argv: list[str], timeout: int = 30) -> tuple[int, str]:
-    result = container.exec_run(["timeout", str(timeout), *argv])
-    return result.exit_code, (result.output or b"").decode(errors="replace")
-
-
-TCP_PROBE = r"""
-import json, socket, sys
-from concurrent.futures import ThreadPoolExecutor
-def probe(target):
-    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    s.settimeout(3)
-    try:
-        s.connect((target[0], target[1]))
-        return "open"
-    except socket.timeout:
-        return "timeout"
-    except OSError as exc:
-        return type(exc).__name__
-    finally:
-        s.close()
-targets = json.loads(sys.argv[1])
-with ThreadPoolExecutor(len(targets)) as pool:
-    print(json.dumps({f"{h}:{p}": r for (h, p), r in zip(targets, pool.map(probe, targets))}))
-"""
-
-
-# A TCP connect alone proves little for addresses off the container's own networks: this host's
-# egress may accept any TCP connection sent to its default gateway (a transparent proxy does
-# here). The master is asked who it is instead, which only a real ROS master answers.
-MASTER_PROBE = r"""
-import json, socket, sys, xmlrpc.client
-socket.setdefaulttimeout(4)
-out = {}
-for url in sys.argv[1:]:
-    try:
-        code, _, uri = xmlrpc.client.ServerProxy(url).getUri("/ccrp_e2e")
-        out[url] = f"master {uri}" if code == 1 else f"code {code}"
-    except Exception as exc:
-        out[url] = type(exc).__name__
-print(json.dumps(out))
-"""
-
-
-def master_probe(container, urls: list[str]) -> dict[str, str]:
-    rc, out = exec_in(container, ["python3", "-c", MASTER_PROBE, *urls])
-    assert rc == 0, f"master probe failed in {container.name}: {out[-500:]}"
-    return json.loads(out.strip().splitlines()[-1])
-
-
-def tcp_probe(container, targets: list[tuple[str, int]]) -> dict[str, str]:
-    rc, out = exec_in(container, ["python3", "-c", TCP_PROBE, json.dumps(targets)])
-    assert rc == 0, f"TCP probe failed in {container.name}: {out[-500:]}"
-    return json.loads(out.strip().splitlines()[-1])
 
 
 # -- 1. up, and up again ------------------------------------------------------------------------
@@ -656,17 +417,6 @@ def relay_through(sender, topic: str, receiver, seen_as: str, marker: str, timeo
         return echo.result()
 
 
-def relay_journals(fleet: E2EFleet, robots: list[str]) -> str:
-    """The relay agents' logs and status files, for a failure message."""
-    out = []
-    for robot in robots:
-        clone = fleet.container("clone", robot)
-        _, log = exec_in(clone, ["journalctl", "-u", "ccrp-relay", "--no-pager", "-o", "cat", "-n", "30"])
-        _, status = exec_in(clone, ["cat", "/run/ccrp-relay/status.json"])
-        out.append(f"--- relay of {robot}: {status.strip()}\n{log[-1500:]}")
-    return "\n".join(out)
-
-
 def relay_invocations(fleet: E2EFleet, robots) -> dict[str, str]:
     out = {}
     for robot in robots:
@@ -750,26 +500,6 @@ def test_unexported_topic_is_never_received_elsewhere(fleet: E2EFleet, sim_nao1,
     # The agents relay exactly the policy: nao1 exports /faces and nothing else.
     rc, status = exec_in(fleet.container("clone", "nao1"), ["cat", "/run/ccrp-relay/status.json"])
     assert rc == 0 and set(json.loads(status)["exports"]) == {"/faces"}, status
-
-
-CAPTURE = r"""
-import socket, subprocess, sys, time
-ip, seconds, marker = sys.argv[1], float(sys.argv[2]), sys.argv[3].encode()
-iface = next(l.split()[1] for l in subprocess.run(["ip", "-o", "-4", "addr", "show"], capture_output=True,
-                                                  text=True).stdout.splitlines() if f" {ip}/" in l)
-sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x0003))
-sock.bind((iface, 0))
-sock.settimeout(0.2)
-seen, found, deadline = 0, False, time.monotonic() + seconds
-while time.monotonic() < deadline:
-    try:
-        frame = sock.recv(65535)
-    except socket.timeout:
-        continue
-    seen += len(frame)
-    found = found or marker in frame
-print(iface, seen, found)
-"""
 
 
 def test_relay_traffic_is_encrypted_on_the_common_network(fleet: E2EFleet, sim_nao1, sim_nao2):
@@ -1309,6 +1039,9 @@ def test_fleet_scale_adds_and_removes_only_template_robots(fleet: E2EFleet, up):
 
 
 def test_fleet_down_leaves_nothing(fleet: E2EFleet, up):
+    # Every agent and tool started so far exited cleanly: read before fleet down takes the journals.
+    crashed = abnormal_exits(fleet.client, f"{FLEET_LABEL}={fleet.name}")
+    assert not crashed, crashed
     proc = fleet.inv("fleet", "down", "--json")
     assert proc.returncode == 0, proc.stderr[-2000:]
     removed = json.loads(proc.stdout)["removed"]

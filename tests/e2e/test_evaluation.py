@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.e2e.test_docker_fleet import CONNECT_TIMEOUT, E2EFleet, exec_in, start_fleet, wait_for
+from tests.e2e.fleet import CONNECT_TIMEOUT, E2EFleet, exec_in, start_fleet, wait_for
 
 pytestmark = [pytest.mark.slow]
 

@@ -13,11 +13,11 @@ import pytest
 
 from tests.fakes.cloudboot import DEBIAN_12, docker_available, image_buildable
 
-_NO_DOCKER = docker_available()
+NO_DOCKER = docker_available()
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
+    pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
 ]
 
 docker = pytest.importorskip("docker")

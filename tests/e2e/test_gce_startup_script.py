@@ -19,11 +19,11 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import ROOT
-from tests.e2e.test_docker_fleet import _NO_DOCKER
+from tests.e2e.fleet import NO_DOCKER
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
+    pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
 ]
 
 docker = pytest.importorskip("docker")

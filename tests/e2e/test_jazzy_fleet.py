@@ -20,12 +20,12 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from tests.e2e.browser import MISSING, cell, chromium, press, received_commands, running_dashboard, wait
-from tests.e2e.test_docker_fleet import CAPTURE as COMMON_CAPTURE
-from tests.e2e.test_docker_fleet import _NO_DOCKER, E2EFleet, exec_in, relay_journals, start_fleet, wait_for
+from tests.e2e.fleet import CAPTURE as COMMON_CAPTURE
+from tests.e2e.fleet import NO_DOCKER, E2EFleet, exec_in, relay_journals, start_fleet, wait_for
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
+    pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
 ]
 
 # What crosses a container's eth0 (its public network) for SECONDS: UDP datagrams of OpenVPN (port

@@ -15,16 +15,18 @@ import warnings
 import pytest
 import yaml
 
-from tests.e2e.test_docker_fleet import _NO_DOCKER, _sweep
+from tests.e2e.fleet import NO_DOCKER, sweep
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
+    pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
 ]
 
 
-def test_init_then_fleet_up_starts_a_fleet_from_nothing(tmp_path):
+def test_init_then_fleet_up_starts_a_fleet_from_nothing(tmp_path, clone_images):
     import docker
+
+    clone_images("noetic")  # the snapshot fleet up builds comes from Docker's cache
 
     name = "e2n" + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
     work = tmp_path / "lab"
@@ -55,6 +57,6 @@ def test_init_then_fleet_up_starts_a_fleet_from_nothing(tmp_path):
     finally:
         subprocess.run([sys.executable, "-m", "ccrp_cli", "fleet", "down"], cwd=work, env=env, capture_output=True,
                        timeout=600)
-        left = _sweep(client, name)
+        left = sweep(client, name)
         if left:
             warnings.warn(f"fleet {name}: could not remove {left}", stacklevel=1)

@@ -8,6 +8,7 @@ even when the scenario failed.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -15,6 +16,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -61,6 +64,9 @@ class Backend:
     sim_network: str | None = None
     # In-process runner for backends whose fake cannot serve another process (None: subprocess).
     runner: Callable[..., subprocess.CompletedProcess] | None = None
+    # Docker labels of the containers the fleet runs in beside its own `ccrp-fleet` one (a fake
+    # cloud's servers): what a failing scenario prints the journals and consoles of.
+    labels: list[str] = field(default_factory=list)
 
     def ccrp(self, *args: str, timeout: float = 900) -> subprocess.CompletedProcess:
         if self.runner is not None:
@@ -86,6 +92,68 @@ def free_cidr(within: str, prefix: int = 24, skip: int = 0) -> str:
 
     used = docker_subnets() + [ipaddress.IPv4Network(r) for r in host_ranges()]
     candidates = list(ipaddress.IPv4Network(within).subnets(new_prefix=prefix))
+    # Parallel workers of one run (pytest-xdist) pick from disjoint shares: a network is made only
+    # later (at `fleet up`), so two workers must never pick the same range meanwhile.
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    candidates = candidates[int(worker) % count::count] if worker.isdigit() else candidates
     random.shuffle(candidates)  # two runs side by side rarely pick the same
     free = [c for c in candidates if not any(c.overlaps(u) for u in used)]
+    if len(free) <= skip:
+        raise RuntimeError(f"no free /{prefix} left in {within} for this worker")
     return str(free[skip])
+
+
+CONNECT = 120  # seconds a simulated robot gets to install its bundle and connect
+
+
+class Run:
+    """A backend plus the steps done so far (a step that needs a failed one is skipped); the
+    `run` fixture of a scenario module."""
+
+    def __init__(self, backend, fleet: str) -> None:
+        self.b, self.fleet, self.done = backend, fleet, set()
+
+    def ccrp(self, *args: str, code: int = 0, timeout: float = 1200) -> subprocess.CompletedProcess:
+        argv = [*args, "-i", str(self.b.inventory)] if args[0] not in ("--help",) else list(args)
+        if "--" in args:  # options go before the command of `clone exec ... -- CMD`
+            cut = args.index("--")
+            argv = [*args[:cut], "-i", str(self.b.inventory), *args[cut:]]
+        proc = self.b.ccrp(*argv, timeout=timeout)
+        assert "Traceback" not in proc.stderr, f"ccrp {' '.join(args)} printed a traceback:\n{proc.stderr[-3000:]}"
+        assert proc.returncode == code, (f"ccrp {' '.join(args)} exited {proc.returncode}, wanted {code}\n"
+                                         f"stderr: {proc.stderr[-3000:]}\nstdout: {proc.stdout[-1000:]}")
+        return proc
+
+    def json(self, *args: str, code: int = 0):
+        return json.loads(self.ccrp(*args, "--json", code=code).stdout)
+
+    def status(self) -> dict[str, dict]:
+        return {r["robot"]: r for r in self.json("status")}
+
+    def needs(self, *steps: str) -> None:
+        missing = [s for s in steps if s not in self.done]
+        if missing:
+            pytest.skip(f"needs the earlier step(s) {', '.join(missing)}")
+
+    @property
+    def diagnostic_labels(self) -> list[str]:
+        return [f"ccrp-fleet={self.fleet}", *self.b.labels]
+
+    def abnormal_exits(self) -> dict[str, str]:
+        """Container -> journal lines of processes that ended abnormally (tests/e2e/fleet.py)."""
+        import docker
+
+        from tests.e2e.fleet import abnormal_exits
+
+        client = docker.from_env(timeout=120)
+        try:
+            return {name: lines for label in self.diagnostic_labels for name, lines in abnormal_exits(client, label).items()}
+        finally:
+            client.close()
+
+
+def sim(run: Run, robot: str) -> dict:
+    """`ccrp robot sim --robot ROBOT --wait` (on the backend's robot network), its JSON."""
+    extra = ["--network", run.b.sim_network] if run.b.sim_network else []
+    return run.json("robot", "sim", "--robot", robot, "--wait", str(CONNECT), *extra)

@@ -101,4 +101,4 @@ def _backend(tmp_path: Path, fleet: str, home: Path, fake: AwsBoot) -> AwsBacken
     }
     return AwsBackend(kind="aws", inventory=inventory, home=home, env=fake.env(),
                       owned=lambda: owned_by_fleet(fake, fleet), faults=faults,
-                      sim_network=fake.internet_network, fake=fake)
+                      sim_network=fake.internet_network, fake=fake, labels=[f"ccrp-fake={fake.boot.run}"])

@@ -107,7 +107,8 @@ def open_backend(tmp_path: Path, fleet: str, echo: bool = False):
         runner = InProcessCcrp({"CCRP_HOME": str(home)}, patches, echo_stderr=echo)
         backend = Backend(kind="gcp", inventory=inventory, home=home, owned=lambda: owned(fake, fleet),
                           faults={"quota": quota, "zone": zone, "storm": storm}, runner=runner,
-                          sim_network=fake.internet_net)  # simulated robots dial public IPs from there
+                          sim_network=fake.internet_net,  # simulated robots dial public IPs from there
+                          labels=[f"ccrp-fake={boot.run}"])
         backend.fake = fake  # type: ignore[attr-defined] - for tests that look inside
         try:
             yield backend

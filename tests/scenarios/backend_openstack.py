@@ -29,7 +29,7 @@ def open_backend(tmp_path: Path, fleet: str, distro: str = "noetic"):
             inv.write_text(inventory_text(fleet, provider, common, "10.85.0.0/16", distro))
             yield Backend(kind="openstack", inventory=inv, home=tmp_path / "home",
                           env={"OS_CLIENT_CONFIG_FILE": str(clouds)}, owned=lambda: _owned(fake, fleet),
-                          faults=_faults(fake), sim_network=fake.fip_network)
+                          faults=_faults(fake), sim_network=fake.fip_network, labels=[f"ccrp-fake={boot.run}"])
 
 
 def _owned(fake: FakeOpenStack, fleet: str) -> list[str]:

@@ -15,13 +15,13 @@ import secrets
 
 import pytest
 
-from tests.e2e.test_docker_fleet import _NO_DOCKER
+from tests.e2e.fleet import NO_DOCKER
 from tests.scenarios import backend_openstack
-from tests.scenarios.test_user_path import Run, _sim
+from tests.scenarios.backend import Run, sim
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
+    pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
 ]
 
 
@@ -48,7 +48,7 @@ def test_a_jazzy_fleet_bakes_boots_connects_and_shares_on_openstack(run):
     for robot in ("nao1", "nao2"):  # the graph in place of the master: the clone's ROS 2 answered
         assert rows[robot]["master_reachable"] is True and rows[robot]["ros_distro"] == "jazzy", rows[robot]
 
-    assert _sim(run, "nao1")["nodes"] == ["/nao1_demo"]
+    assert sim(run, "nao1")["nodes"] == ["/nao1_demo"]
     row = run.status()["nao1"]
     assert row["vpn_connected"] and "/nao1_demo" in row["robot_nodes"], row
     # ccrp-topic comes with the snapshot: nao2's clone gets nao1's /chatter from its relay.
@@ -56,6 +56,8 @@ def test_a_jazzy_fleet_bakes_boots_connects_and_shares_on_openstack(run):
                    "-t", "60").stdout
     assert out.count('{"data": "hello from nao1 #') == 2, out
     assert run.status()["nao2"]["relay_peers"] == {"nao1": True}
+
+    assert not run.abnormal_exits()  # no agent on the clones or the robot aborted (rclpy at exit)
 
     run.ccrp("robot", "sim", "--stop")
     run.ccrp("fleet", "down")

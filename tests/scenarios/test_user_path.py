@@ -12,52 +12,22 @@ from __future__ import annotations
 import importlib
 import json
 import secrets
-import subprocess
 import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from tests.e2e.test_docker_fleet import _NO_DOCKER
+from tests.e2e.fleet import NO_DOCKER
+from tests.scenarios.backend import Run, sim
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(_NO_DOCKER is not None, reason=f"needs a running Docker engine ({_NO_DOCKER})"),
+    pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
 ]
 
 BACKENDS = ["docker", "openstack", "gcp", "aws"]
-CONNECT = 120  # seconds a simulated robot gets to install its bundle and connect
 ROBOTS = ["nao1", "nao2"]
 AUTOSTOP_BACKENDS = ("docker", "openstack")
-
-
-class Run:
-    """A backend plus the steps done so far (a step that needs a failed one is skipped)."""
-
-    def __init__(self, backend, fleet: str) -> None:
-        self.b, self.fleet, self.done = backend, fleet, set()
-
-    def ccrp(self, *args: str, code: int = 0, timeout: float = 1200) -> subprocess.CompletedProcess:
-        argv = [*args, "-i", str(self.b.inventory)] if args[0] not in ("--help",) else list(args)
-        if "--" in args:  # options go before the command of `clone exec ... -- CMD`
-            cut = args.index("--")
-            argv = [*args[:cut], "-i", str(self.b.inventory), *args[cut:]]
-        proc = self.b.ccrp(*argv, timeout=timeout)
-        assert "Traceback" not in proc.stderr, f"ccrp {' '.join(args)} printed a traceback:\n{proc.stderr[-3000:]}"
-        assert proc.returncode == code, (f"ccrp {' '.join(args)} exited {proc.returncode}, wanted {code}\n"
-                                         f"stderr: {proc.stderr[-3000:]}\nstdout: {proc.stdout[-1000:]}")
-        return proc
-
-    def json(self, *args: str, code: int = 0):
-        return json.loads(self.ccrp(*args, "--json", code=code).stdout)
-
-    def status(self) -> dict[str, dict]:
-        return {r["robot"]: r for r in self.json("status")}
-
-    def needs(self, *steps: str) -> None:
-        missing = [s for s in steps if s not in self.done]
-        if missing:
-            pytest.skip(f"needs the earlier step(s) {', '.join(missing)}")
 
 
 @pytest.fixture(scope="module", params=BACKENDS)
@@ -68,6 +38,8 @@ def run(request, tmp_path_factory):
     except ModuleNotFoundError as exc:
         pytest.skip(f"no scenario backend for {kind} ({exc})")
     fleet = f"sc{kind[:2]}{secrets.token_hex(2)}"
+    if kind == "docker":
+        request.getfixturevalue("clone_images")("noetic")  # its snapshot build then comes from Docker's cache
     with module.open_backend(tmp_path_factory.mktemp(f"scenario-{kind}"), fleet) as backend:
         r = Run(backend, fleet)
         yield r
@@ -125,16 +97,11 @@ def test_clone_exec(run):
     run.ccrp("clone", "exec", "--robot", "nobody", "--", "true", code=2)
 
 
-def _sim(run, robot: str) -> dict:
-    extra = ["--network", run.b.sim_network] if run.b.sim_network else []
-    return run.json("robot", "sim", "--robot", robot, "--wait", str(CONNECT), *extra)
-
-
 def test_simulated_robot_connects_through_its_clone(run):
     """The robot side for real: the edge bundle installed in a container of this host, OpenVPN
     with certificate + password to its clone's public IP, its node on the clone's master."""
     run.needs("up")
-    result = _sim(run, "nao1")
+    result = sim(run, "nao1")
     assert result["nodes"] == ["/nao1_demo"], result
     row = run.status()["nao1"]
     assert row["vpn_connected"] and "/nao1_demo" in row["robot_nodes"], row
@@ -167,7 +134,7 @@ def test_topic_of_robot_nao1_reaches_robot_nao2_through_both_clones(run):
     run.needs("robot")
     import docker
 
-    _sim(run, "nao2")
+    sim(run, "nao2")
     client = docker.from_env()
     try:
         nao1, nao2 = (client.containers.get(f"ccrp-{run.fleet}-{r}") for r in ROBOTS)
@@ -298,6 +265,13 @@ def test_doctor(run):
     checks = {c["check"]: c for c in run.json("doctor")}
     assert checks["snapshot"]["status"] == "ok", checks
     assert not [c for c in checks.values() if c["status"] == "fail"], checks
+
+
+def test_no_process_of_the_fleet_ended_abnormally(run):
+    """Every agent and tool ccrp started on the clones and simulated robots exited cleanly (no
+    abort, core dump or segfault in their journals), read before `fleet down` takes them."""
+    run.needs("up")
+    assert not run.abnormal_exits()
 
 
 def test_fleet_down_leaves_nothing(run):

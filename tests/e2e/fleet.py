@@ -1,0 +1,402 @@
+"""The harness of the end-to-end tests on Docker: a fleet of its own per module (`start_fleet`),
+driven through the CLI in subprocesses, swept away by its labels whatever happens; probes run in
+its containers; and what a failing test prints about the fleet (`diagnostics`). Fixtures built on it
+are in conftest.py; this module holds no test."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import secrets
+import shutil
+import string
+import subprocess
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import docker
+import pytest
+import yaml
+
+from tests.conftest import LAB, run_ccrp
+from tests.scenarios.backend import free_cidr
+
+def _docker_info() -> str | None:
+    """None when the engine answers `docker info`, else why not."""
+    if shutil.which("docker") is None:
+        return "the docker CLI is not installed"
+    try:
+        proc = subprocess.run(["docker", "info", "--format", "{{.ServerVersion}}"], capture_output=True,
+                              text=True, timeout=20)
+    except subprocess.TimeoutExpired:
+        return "`docker info` did not answer within 20 s"
+    if proc.returncode != 0:
+        last = (proc.stderr.strip().splitlines() or ["?"])[-1]
+        return f"`docker info` failed: {last}"
+    return None
+
+
+NO_DOCKER = _docker_info()
+
+ROBOTS = ("nao1", "nao2", "turtlebot1")
+FLEET_LABEL = "ccrp-fleet"
+COMPLETED = "Initialization Sequence Completed"
+CONNECT_TIMEOUT = 30.0   # a simulated robot's node registered on its clone's master
+REVOKE_TIMEOUT = 10.0    # a revoked robot's live session ended (issue: within 10 s)
+# Markers of private key material in text; a hit must also be a whole PEM block with a body
+# (libraries and docs carry the bare header strings).
+PEM_BLOCK = re.compile(
+    rb"-----BEGIN ((?:[A-Z0-9]+ )*PRIVATE KEY|OpenVPN Static key V1)-----[\r\n]+"
+    rb"(?:[A-Za-z0-9+/=:,\- ]*[\r\n]+){2,}-----END \1-----"
+)
+MARKERS = (b"PRIVATE KEY", b"OpenVPN Static key")
+
+
+# -- the module's fleet ------------------------------------------------------------------------
+
+
+@dataclass
+class E2EFleet:
+    name: str
+    inventory: Path
+    home: Path
+    client: object  # docker.DockerClient
+    tmp: Path
+    log: list[str] = field(default_factory=list)
+
+    # ccrp through its CLI, in a subprocess: real exit codes, real stderr.
+    def run(self, *args: str, check: bool = False) -> subprocess.CompletedProcess:
+        t0 = time.monotonic()
+        proc = run_ccrp(*args, home=self.home)
+        shown = " ".join(a if len(a) < 60 and "\n" not in a else "<...>" for a in args)
+        self.log.append(f"ccrp {shown} -> {proc.returncode} in {time.monotonic() - t0:.1f}s")
+        if check and proc.returncode != 0:
+            pytest.fail(f"`ccrp {' '.join(args)}` exited {proc.returncode}:\n{proc.stderr[-3000:]}")
+        return proc
+
+    def inv(self, *args: str, check: bool = False) -> subprocess.CompletedProcess:
+        """ccrp <args> -i <the module's inventory> (before a `--`, when there is one)"""
+        cut = args.index("--") if "--" in args else len(args)
+        return self.run(*args[:cut], "-i", str(self.inventory), *args[cut:], check=check)
+
+    def json(self, *args: str) -> object:
+        proc = self.inv(*args, "--json", check=True)
+        try:
+            return json.loads(proc.stdout)
+        except ValueError:
+            pytest.fail(f"`ccrp {' '.join(args)} --json` printed no JSON on stdout:\n{proc.stdout[:2000]}")
+
+    @property
+    def diagnostic_labels(self) -> list[str]:
+        """What a failing test prints the containers of (conftest.py)."""
+        return [f"{FLEET_LABEL}={self.name}"]
+
+    def env(self) -> dict[str, str]:
+        env = {**os.environ, "CCRP_HOME": str(self.home)}
+        env.pop("CCRP_INVENTORY", None)
+        return env
+
+    # -- what Docker has, by the fleet's labels ----------------------------------------------
+    def labelled(self, **labels: str) -> dict[str, str]:
+        return {"label": [f"{FLEET_LABEL}={self.name}", *(f"ccrp-{k}={v}" for k, v in labels.items())]}
+
+    def containers(self, **labels: str) -> list:
+        return self.client.containers.list(all=True, filters=self.labelled(**labels))
+
+    def container(self, role: str, robot: str):
+        found = self.containers(role=role, robot=robot)
+        assert len(found) == 1, f"expected one {role} container of {robot}, found {[c.name for c in found]}"
+        return found[0]
+
+    def status(self) -> dict[str, dict]:
+        return {row["robot"]: row for row in self.json("status")}
+
+    def snapshot_image(self) -> str:
+        state = json.loads((self.home / self.name / "state.json").read_text())
+        return state["snapshot"]["image"]
+
+    def plan(self) -> dict[str, dict]:
+        return {r["name"]: r for r in self.json("fleet", "validate")["robots"]}
+
+    def secret_needles(self) -> dict[bytes, str]:
+        """Fragments of every secret in the fleet's PKI store: key bodies, tls-crypt keys, passwords."""
+        pki = self.home / self.name / "pki"
+        needles: dict[bytes, str] = {}
+        for path in sorted((pki / "private").glob("*.key")) + sorted((pki / "tls-crypt").glob("*.key")):
+            body = [ln.strip() for ln in path.read_text().splitlines()
+                    if ln.strip() and not ln.startswith(("-----", "#"))]
+            for line in body[:2]:  # random from the first line on (a P-256 key has 16 random chars there)
+                needles[line.encode()] = f"pki/{path.parent.name}/{path.name}"
+        for path in sorted((pki / "passwords").glob("*.txt")):
+            needles[path.read_text().strip().encode()] = f"pki/passwords/{path.name}"
+        assert needles, f"no secrets found under {pki}"
+        return needles
+
+
+def free_subnets() -> tuple[str, str, str]:
+    """public, common and VPN pool subnets that no Docker network or route of this host overlaps."""
+    return free_cidr("172.31.0.0/16"), free_cidr("10.91.0.0/16"), free_cidr("10.84.0.0/14", prefix=16)
+
+
+def sweep(client, fleet: str) -> list[str]:
+    """Remove everything labelled with `fleet` (and containers of its images). Returns what is left."""
+    by_label = {"label": [f"{FLEET_LABEL}={fleet}"]}
+    problems = []
+
+    def attempt(what: str, fn: Callable[[], object]) -> None:
+        try:
+            fn()
+        except docker.errors.NotFound:
+            pass
+        except Exception as exc:  # noqa: BLE001 - keep sweeping; report at the end
+            problems.append(f"{what}: {exc}")
+
+    images = client.images.list(filters=by_label)
+    containers = {c.id: c for c in client.containers.list(all=True, filters=by_label)}
+    for image in images:
+        for c in client.containers.list(all=True, filters={"ancestor": image.id}):
+            containers[c.id] = c
+    # Simulated power devices first: each holds its robot's power-line volume, which goes with the robot.
+    for c in sorted(containers.values(), key=lambda c: c.labels.get("ccrp-role") != "power-sim"):
+        attempt(f"container {c.name}", lambda c=c: c.remove(force=True, v=True))
+    for v in client.volumes.list(filters=by_label):
+        attempt(f"volume {v.name}", lambda v=v: v.remove(force=True))
+    for n in client.networks.list(filters=by_label):
+        attempt(f"network {n.name}", n.remove)
+    for image in images:
+        attempt(f"image {image.tags or image.id}", lambda i=image: client.images.remove(i.id, force=True))
+    left = (
+        [f"container {c.name}" for c in client.containers.list(all=True, filters=by_label)]
+        + [f"volume {v.name}" for v in client.volumes.list(filters=by_label)]
+        + [f"network {n.name}" for n in client.networks.list(filters=by_label)]
+        + [f"image {i.tags or i.id}" for i in client.images.list(filters=by_label)]
+    )
+    return problems + left
+
+
+def start_fleet(request, tmp_path_factory, prefix: str, edit: Callable[[dict], None] = lambda data: None) -> E2EFleet:
+    """A fleet of its own from inventories/lab.yaml (`edit` changes the inventory), with its CA and
+    snapshot; swept away when the requesting scope ends, even on failure."""
+    client = docker.from_env(timeout=300)
+    name = prefix + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
+    public, common, pool = free_subnets()
+    tmp = tmp_path_factory.mktemp(name)
+    data = yaml.safe_load(LAB.read_text())
+    data["fleet"] = name
+    edit(data)
+    data["provider"]["public_cidr"] = public
+    data["common"]["cidr"] = common
+    data["vpn"]["pool"] = pool
+    inventory = tmp / "inventory.yaml"
+    inventory.write_text(yaml.safe_dump(data, sort_keys=False))
+    f = E2EFleet(name=name, inventory=inventory, home=tmp / "home", client=client, tmp=tmp)
+
+    def teardown() -> None:
+        crashed = abnormal_exits(client, f"{FLEET_LABEL}={name}")  # before fleet down takes the journals
+        try:
+            f.inv("fleet", "down")
+        except Exception as exc:  # noqa: BLE001 - the sweep below still runs
+            warnings.warn(f"ccrp fleet down of {name} failed: {exc}", stacklevel=1)
+        left = sweep(client, name)
+        if left:
+            warnings.warn(f"e2e fleet {name}: could not remove {left}", stacklevel=1)
+        sys.stderr.write("\n" + "\n".join(f"[{name}] {line}" for line in f.log) + "\n")
+        assert not crashed, f"processes of fleet {name} ended abnormally: {json.dumps(crashed, indent=1)}"
+
+    request.addfinalizer(teardown)  # before anything is created
+    f.inv("vpn", "init", check=True)
+    request.getfixturevalue("clone_images")(data["ros"]["distro"])  # the run's image: every layer cached
+    f.inv("snapshot", "build", check=True)
+    return f
+
+
+def wait_for(what: str, probe: Callable[[], tuple[bool, object]], timeout: float, interval: float = 1.0,
+             since: float | None = None) -> object:
+    """Call probe() until it says done; fail after `timeout` s (from `since`) with its last answer."""
+    deadline = (since if since is not None else time.monotonic()) + timeout
+    while True:
+        done, last = probe()
+        if done:
+            return last
+        if time.monotonic() > deadline:
+            pytest.fail(f"{what}: not within {timeout:.0f} s; last seen: {json.dumps(last, default=str)[:1500]}")
+        time.sleep(interval)
+
+
+def connected(fleet: E2EFleet, robot: str) -> Callable[[], tuple[bool, object]]:
+    def probe():
+        row = fleet.status()[robot]
+        return row["vpn_connected"] and f"/{robot}_demo" in row["robot_nodes"], row
+    return probe
+
+
+def exec_in(container, argv: list[str], timeout: int = 30) -> tuple[int, str]:
+    result = container.exec_run(["timeout", str(timeout), *argv])
+    return result.exit_code, (result.output or b"").decode(errors="replace")
+
+
+TCP_PROBE = r"""
+import json, socket, sys
+from concurrent.futures import ThreadPoolExecutor
+def probe(target):
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    s.settimeout(3)
+    try:
+        s.connect((target[0], target[1]))
+        return "open"
+    except socket.timeout:
+        return "timeout"
+    except OSError as exc:
+        return type(exc).__name__
+    finally:
+        s.close()
+targets = json.loads(sys.argv[1])
+with ThreadPoolExecutor(len(targets)) as pool:
+    print(json.dumps({f"{h}:{p}": r for (h, p), r in zip(targets, pool.map(probe, targets))}))
+"""
+
+
+# A TCP connect alone proves little for addresses off the container's own networks: this host's
+# egress may accept any TCP connection sent to its default gateway (a transparent proxy does
+# here). The master is asked who it is instead, which only a real ROS master answers.
+MASTER_PROBE = r"""
+import json, socket, sys, xmlrpc.client
+socket.setdefaulttimeout(4)
+out = {}
+for url in sys.argv[1:]:
+    try:
+        code, _, uri = xmlrpc.client.ServerProxy(url).getUri("/ccrp_e2e")
+        out[url] = f"master {uri}" if code == 1 else f"code {code}"
+    except Exception as exc:
+        out[url] = type(exc).__name__
+print(json.dumps(out))
+"""
+
+
+def master_probe(container, urls: list[str]) -> dict[str, str]:
+    rc, out = exec_in(container, ["python3", "-c", MASTER_PROBE, *urls])
+    assert rc == 0, f"master probe failed in {container.name}: {out[-500:]}"
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def tcp_probe(container, targets: list[tuple[str, int]]) -> dict[str, str]:
+    rc, out = exec_in(container, ["python3", "-c", TCP_PROBE, json.dumps(targets)])
+    assert rc == 0, f"TCP probe failed in {container.name}: {out[-500:]}"
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def relay_journals(fleet: E2EFleet, robots: list[str]) -> str:
+    """The relay agents' logs and status files, for a failure message."""
+    out = []
+    for robot in robots:
+        clone = fleet.container("clone", robot)
+        _, log = exec_in(clone, ["journalctl", "-u", "ccrp-relay", "--no-pager", "-o", "cat", "-n", "30"])
+        _, status = exec_in(clone, ["cat", "/run/ccrp-relay/status.json"])
+        out.append(f"--- relay of {robot}: {status.strip()}\n{log[-1500:]}")
+    return "\n".join(out)
+
+
+CAPTURE = r"""
+import socket, subprocess, sys, time
+ip, seconds, marker = sys.argv[1], float(sys.argv[2]), sys.argv[3].encode()
+iface = next(l.split()[1] for l in subprocess.run(["ip", "-o", "-4", "addr", "show"], capture_output=True,
+                                                  text=True).stdout.splitlines() if f" {ip}/" in l)
+sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x0003))
+sock.bind((iface, 0))
+sock.settimeout(0.2)
+seen, found, deadline = 0, False, time.monotonic() + seconds
+while time.monotonic() < deadline:
+    try:
+        frame = sock.recv(65535)
+    except socket.timeout:
+        continue
+    seen += len(frame)
+    found = found or marker in frame
+print(iface, seen, found)
+"""
+
+
+# -- what a failing test prints; no process ended abnormally --------------------------------------
+
+# Journal lines of a process that ended abnormally: a core dump, an abort (exit 134: "terminate
+# called without an active exception", rclpy's C++ side when a spinning thread outlives the
+# interpreter), a segmentation fault, a fatal Python error. Tests stop units on purpose only with
+# SIGTERM or SIGKILL, which none of these match.
+ABNORMAL = r"code=dumped|status=(6/ABRT|11/SEGV|134)|terminate called|Fatal Python error"
+# The units worth reading when a test fails: ccrp's own, transient ones (systemd-run) included,
+# OpenVPN's and cloud-init's final stage.
+JOURNAL_UNITS = ["-u", "ccrp-*", "-u", "openvpn*", "-u", "cloud-final.service"]
+
+
+def containers_labelled(client, label: str, running: bool = False) -> list:
+    try:
+        found = client.containers.list(all=not running, filters={"label": label})
+    except docker.errors.DockerException:
+        return []
+    return sorted(found, key=lambda c: c.name)
+
+
+def abnormal_exits(client, label: str) -> dict[str, str]:
+    """Container name -> its journal's lines of processes that ended abnormally (ABNORMAL), for
+    every running container carrying `label` (a fleet's clones and simulated robots)."""
+    found = {}
+    for c in containers_labelled(client, label, running=True):
+        rc, out = exec_in(c, ["sh", "-c", 'journalctl -q --no-pager -o short-monotonic | grep -E -e "$1"', "sh", ABNORMAL])
+        if rc == 0 and out.strip():
+            found[c.name] = out.strip()[-3000:]
+    return found
+
+
+def diagnostics(client, label: str, lines: int = 60) -> str:
+    """What a failing end-to-end test prints about the containers carrying `label`: each one's
+    state, its failed units, the journal of ccrp's units and its console (docker logs), so that a
+    CI failure can be understood from the output alone."""
+    out = []
+    for c in containers_labelled(client, label):
+        try:
+            c.reload()
+            out.append(f"===== {c.name} ({c.labels.get('ccrp-role', '?')}): {c.status}")
+            if c.status == "running":
+                _, failed = exec_in(c, ["systemctl", "--failed", "--no-legend", "--no-pager"], timeout=10)
+                out.append(f"--- failed units: {failed.strip() or 'none'}")
+                _, journal = exec_in(c, ["journalctl", "-q", "--no-pager", "-o", "short-monotonic", "-n", str(lines),
+                                         *JOURNAL_UNITS], timeout=10)
+                out.append(f"--- journal (ccrp, openvpn, cloud-final), last {lines} lines:\n{journal.rstrip()}")
+            logs = c.logs(tail=lines // 2).decode(errors="replace").rstrip()
+            out.append(f"--- console, last {lines // 2} lines:\n{logs}")
+        except docker.errors.DockerException as exc:  # gone meanwhile: say so and go on
+            out.append(f"===== {c.name}: {type(exc).__name__}")
+    return "\n".join(out)
+
+
+# -- one clone image per distro for the whole run -------------------------------------------------
+
+SNAPSHOT_CACHE = "ccrp-test/snapshot-cache:{distro}"
+
+
+def warm_snapshot(client, distro: str) -> str:
+    """Build the clone image of `distro` once, as `ccrp snapshot build` does (same Dockerfile and
+    context), and keep it tagged between runs: every fleet's own `snapshot build` then finds each
+    layer in Docker's cache and takes seconds. A lock file makes parallel workers build it once."""
+    import fcntl
+
+    from ccrp_cli.providers.docker import images
+    from ccrp_cli.recipes import platform
+
+    plat = platform(distro, "docker")
+    tag = SNAPSHOT_CACHE.format(distro=distro)
+    base_packages = sorted(set(images.BASE_PACKAGES + platform("noetic", "docker").packages))  # as snapshot build
+    with open("/tmp/ccrp-test-snapshot-cache.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one build at a time: the base image is shared too
+        try:
+            client.images.get(images.DEFAULT_BASE)
+        except docker.errors.ImageNotFound:
+            images.build_base_image(client, images.DEFAULT_BASE, base_packages)
+        images.build_clone_image(client, tag, images.dockerfile("cache", distro, images.DEFAULT_BASE, plat),
+                                 {"ccrp-test-cache": distro}, files=images.build_context(plat, distro=distro))
+    return tag
