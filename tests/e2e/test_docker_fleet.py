@@ -411,8 +411,8 @@ def relay_through(sender, topic: str, receiver, seen_as: str, marker: str, timeo
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(2) as pool:
+        # No pause between the two: the publisher repeats at 5 Hz, so the subscriber gets one whenever it is up.
         echo = pool.submit(ros_sh, receiver, f"rostopic echo -n 1 {seen_as}", timeout)
-        time.sleep(1)
         pool.submit(ros_sh, sender, f"rostopic pub -r 5 {topic} std_msgs/String 'data: {marker}'", timeout - 2)
         return echo.result()
 
@@ -1077,12 +1077,14 @@ def test_fleet_up_killed_midway_converges_on_next_run(fleet: E2EFleet):
                             cwd=ROOT, env=fleet.env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             start_new_session=True)
     try:
-        time.sleep(3)
+        # Midway: once the run has created its first clone container (not after a fixed time).
+        wait_for("the first clone of the interrupted fleet up", lambda: (bool(fleet.containers(role="clone")), None),
+                 60, interval=0.1)
         os.kill(proc.pid, signal.SIGKILL)
     finally:
         _, err = proc.communicate(timeout=30)
     assert proc.returncode == -signal.SIGKILL, f"fleet up ended on its own before the kill: {err.decode()[-1500:]}"
-    fleet.log.append("killed `fleet up` after 3 s; left: "
+    fleet.log.append("killed `fleet up` at its first clone; left: "
                      + ", ".join(f"{c.name}={c.status}" for c in fleet.containers()))
 
     again = fleet.inv("fleet", "up", "--json")

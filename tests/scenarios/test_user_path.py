@@ -140,8 +140,7 @@ def test_topic_of_robot_nao1_reaches_robot_nao2_through_both_clones(run):
         nao1, nao2 = (client.containers.get(f"ccrp-{run.fleet}-{r}") for r in ROBOTS)
         marker = "face-" + secrets.token_hex(6)
         with ThreadPoolExecutor(2) as pool:
-            echo = pool.submit(_ros, nao2, "rostopic echo -n 1 /nao1/faces", 60)
-            time.sleep(2)
+            echo = pool.submit(_ros, nao2, "rostopic echo -n 1 /nao1/faces", 60)  # the publisher repeats: no pause needed
             pool.submit(_ros, nao1, f"rostopic pub -r 5 /faces std_msgs/String 'data: {marker}'", 55)
             rc, out = echo.result()
     finally:
