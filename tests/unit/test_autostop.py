@@ -13,7 +13,6 @@ from ccrp_cli.errors import CcrpError
 from ccrp_cli.loader import parse_inventory
 from ccrp_cli.models.inventory import Robot
 from ccrp_cli.providers.base import autostop_note
-from tests.unit.test_sharing import lab_up  # noqa: F401 - the fixture
 
 BASE = {"fleet": "f", "provider": {"kind": "docker"}, "robots": [{"name": "nao1"}, {"name": "nao2"}]}
 

@@ -145,4 +145,3 @@ def test_the_first_read_starts_the_agent_and_the_next_ones_only_ask(lab_up):  # 
     assert len(clone.ran) == 1  # one exec: the client's question
 
 
-from tests.unit.test_sharing import lab_up  # noqa: E402,F401 - the fixture

@@ -10,7 +10,6 @@ from ccrp_cli.clones import StateWriter, probe, relay_config_file
 from ccrp_cli.providers.base import CloneRecord, CloneState
 from ccrp_cli.render.bundles import BundleFile
 from ccrp_cli.sharing import relay_config
-from tests.unit.test_sharing import lab_up  # noqa: F401 - the fixture
 
 RESULT = '{\n "v1": {\n  "datasource": "DataSourceNoCloud",\n  "errors": []\n }\n}\n'
 

@@ -22,7 +22,6 @@ from ccrp_cli.dashboard.auth import Auth, allowed_hosts  # noqa: E402
 from ccrp_cli.dashboard.events import Broker, Monitor, pki_alerts, row_alerts  # noqa: E402
 from ccrp_cli.dashboard.server import parse_bind  # noqa: E402
 from ccrp_cli.errors import InputError  # noqa: E402
-from tests.unit.test_sharing import lab_up  # noqa: E402, F401 - the fixture
 
 TOKEN = "unit-test-token-" + "x" * 27
 PORT = 8080

@@ -14,15 +14,9 @@ from ccrp_cli import vpn
 from ccrp_cli.fleet import Fleet
 from ccrp_cli.pki.secrets import hash_password, tls_crypt_key, verify_password
 from tests.conftest import LAB, ROOT
+from tests.unit.helpers import openssl_verify
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed")
-
-
-def openssl_verify(pki, cert, crl_check=False):
-    args = ["openssl", "verify", "-CAfile", str(pki / "ca.crt")]
-    if crl_check:
-        args += ["-crl_check", "-CRLfile", str(pki / "crl.pem")]
-    return subprocess.run([*args, str(cert)], capture_output=True, text=True)
 
 
 def certs(lab):

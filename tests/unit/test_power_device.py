@@ -19,7 +19,7 @@ from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from tests.conftest import ROOT
-from tests.unit.test_pki import openssl_verify
+from tests.unit.helpers import openssl_verify
 
 
 def test_the_device_has_a_certificate_and_password_of_its_own(lab):

@@ -3,11 +3,8 @@ access control that admits only the CNs relay.json names (docs/security.md, Revo
 
 from __future__ import annotations
 
-import importlib.util
 import socket
-import sys
 import time
-import types
 from pathlib import Path
 
 import pytest
@@ -18,21 +15,7 @@ from ccrp_cli import vpn  # noqa: E402
 from ccrp_cli.fleet import Fleet  # noqa: E402
 from tests.conftest import LAB  # noqa: E402
 
-AGENT = Path(__file__).resolve().parents[2] / "ccrp_cli" / "agent" / "relay.py"
-
-
-def load_agent():
-    """relay.py runs on a clone with rospy; its Zenoh config needs none of it."""
-    stubs = {name: types.ModuleType(name) for name in ("rospy", "rosgraph") if name not in sys.modules}
-    sys.modules.update(stubs)
-    try:
-        spec = importlib.util.spec_from_file_location("ccrp_relay_agent", AGENT)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        return module
-    finally:
-        for name in stubs:
-            sys.modules.pop(name, None)
+from tests.unit.helpers import load_agent  # noqa: E402
 
 
 def free_port() -> int:

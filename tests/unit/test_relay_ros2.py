@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.unit.test_relay_acl import load_agent
+from tests.unit.helpers import load_agent
 
 pytest.importorskip("zenoh")
 

@@ -10,7 +10,6 @@ import pytest
 
 from ccrp_cli import evaluation
 from ccrp_cli.errors import CcrpError, InputError
-from tests.unit.test_sharing import lab_up  # noqa: F401 - the fixture
 
 
 class Clone:

@@ -10,7 +10,6 @@ import json
 from ccrp_cli import watchdog
 from ccrp_cli.alerts import fleet_alerts, row_alerts
 from ccrp_cli.providers.base import LABEL_ROBOT
-from tests.unit.test_sharing import lab_up  # noqa: F401 - the fixture
 
 T = 1795000000.25
 SINCE = dt.datetime.fromtimestamp(T, dt.timezone.utc).isoformat(timespec="seconds")
