@@ -23,7 +23,8 @@ from .specs import FAST, Knobs, clone_spec, inventory
 BASE = "ccrp/base:bookworm"
 TINY = "ccrp/contract-tiny:latest"
 # Subnets of their own, so a fleet running on this engine is never in the way.
-PUBLIC_CIDR, COMMON_CIDR = "172.31.197.0/24", "10.197.0.0/24"
+# Ranges of the harness's networks: a free /24 of each, picked per test (tests/scenarios/backend.py free_cidr).
+PUBLIC_RANGE, COMMON_RANGE = "172.25.0.0/16", "10.197.0.0/16"
 _ID = re.compile(r"/[0-9a-f]{12,64}(?=/|$)")
 
 
@@ -159,8 +160,10 @@ def make_harness(tmp_path):
     built = _tiny_image(raw)
     from ccrp_cli.providers.docker.provider import DockerProvider
 
-    inv = inventory({"kind": "docker", "public_cidr": PUBLIC_CIDR, "publish_vpn_ports": True},
-                    common={"cidr": COMMON_CIDR})
+    from tests.scenarios.backend import free_cidr
+
+    inv = inventory({"kind": "docker", "public_cidr": free_cidr(PUBLIC_RANGE), "publish_vpn_ports": True},
+                    common={"cidr": free_cidr(COMMON_RANGE)})
     provider = DockerProvider(inv)
     provider.backoff = FAST
     harness = None

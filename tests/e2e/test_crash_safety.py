@@ -13,16 +13,15 @@ runs `ccrp fleet down` and removes everything labelled with that fleet, even whe
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 import subprocess
-import sys
 import time
 
 import pytest
 
 from tests.conftest import ROOT
+from tests.e2e.crash import CrashFleet
 
 pytestmark = [
     pytest.mark.slow,
@@ -31,22 +30,13 @@ pytestmark = [
 docker = pytest.importorskip("docker", reason="the Docker SDK (`pip install docker`) is not installed")
 
 
-def _bench():
-    spec = importlib.util.spec_from_file_location("crash_scale", ROOT / "bench" / "crash_scale.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while it loads
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
-def crash_fleet(request):
+def crash_fleet(request, clone_images):
     try:
         docker.from_env(timeout=20).ping()
     except Exception as exc:  # noqa: BLE001
         pytest.skip(f"needs a running Docker engine ({type(exc).__name__})")
-    bench = _bench()
-    fleet = bench.CrashFleet.create()
+    fleet = CrashFleet.create()
 
     def teardown() -> None:
         left = fleet.cleanup()
@@ -54,6 +44,7 @@ def crash_fleet(request):
         assert not left, f"could not remove {left}"
 
     request.addfinalizer(teardown)  # before anything is created
+    clone_images("noetic")  # its snapshot build then comes from Docker's cache
     fleet.prepare()
     fleet.check_call("fleet", "scale", "2")
     return fleet
