@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import uuid
 from pathlib import Path
 
 import pytest
@@ -140,3 +141,56 @@ def pytest_runtest_makereport(item, call):
             client.close()
     except Exception as exc:  # noqa: BLE001 - never hide the test's own failure
         report.sections.append(("ccrp fleet containers", f"diagnostics failed: {exc!r}"))
+
+
+def pytest_configure(config):
+    """One id for the whole run, parallel workers included (xdist hands it to them): what the builder
+    disks the fake clouds keep for the run carry (tests/fakes/cloudboot.py warm_bake)."""
+    if not hasattr(config, "workerinput"):
+        uid = getattr(config.option, "testrunuid", None) or uuid.uuid4().hex
+        if hasattr(config.option, "testrunuid"):
+            config.option.testrunuid = uid
+        os.environ["PYTEST_XDIST_TESTRUNUID"] = uid
+
+
+def pytest_sessionfinish(session):
+    """After the last worker: remove the builder disks the run kept."""
+    if hasattr(session.config, "workerinput"):
+        return
+    try:
+        import docker
+
+        from tests.fakes.cloudboot import remove_baked
+
+        client = docker.from_env(timeout=120)
+        try:
+            remove_baked(client)
+        finally:
+            client.close()
+    except Exception:  # noqa: BLE001 - no engine here: nothing was kept
+        pass
+
+
+@pytest.fixture(scope="session")
+def baked_recipes():
+    """distro -> the run's one full install of its recipe on the fake clouds' stock image
+    (tests/fakes/cloudboot.py warm_bake), which later `snapshot bake` builders start from."""
+    import yaml
+
+    from ccrp_cli.loader import load_inventory
+    from ccrp_cli.render.cloudinit import builder_user_data
+    from tests.fakes.cloudboot import warm_bake
+
+    done: dict[str, str] = {}
+
+    def get(distro: str, tmp: Path) -> str:
+        if distro not in done:
+            data = yaml.safe_load((ROOT / "inventories" / "openstack.yaml").read_text())
+            data["ros"]["distro"] = distro
+            path = tmp / f"bake-{distro}.yaml"
+            path.write_text(yaml.safe_dump(data))
+            token = uuid.uuid4().hex[:16]
+            done[distro] = warm_bake(builder_user_data(load_inventory(path), token).encode(), progress=lambda m: None)
+        return done[distro]
+
+    return get

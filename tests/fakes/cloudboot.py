@@ -19,6 +19,13 @@ hands each server it creates to a `CloudBoot`, which plays the hypervisor:
 - `capture()` is a snapshot of the boot disk (`docker commit`): what a process mounted inside
   (a tmpfs) is not in it, as on a cloud.
 
+- One full install per recipe and test run: a `snapshot bake` builder installs the whole recipe
+  on the stock image (Debian's ROS packages, the wheels: minutes), and a test run bakes the same
+  recipe on every fake cloud. `warm_bake` does it once per run on the stock image, checks every
+  install proof on its console and keeps its disk (`ccrp-fake-baked=<key>`); a later builder of the
+  run whose user-data is the same (its token aside) boots from that disk instead, where the same
+  user-data runs again, finds each package in place and prints every proof for real.
+
 Everything carries the label ccrp-fake=<run>; `cleanup()` (also the context manager's exit)
 removes every container, network and captured image of the run, whatever happened.
 The base images carry ccrp-fake-image=<name> and are kept between runs (built once).
@@ -26,8 +33,13 @@ The base images carry ccrp-fake-image=<name> and are kept between runs (built on
 
 from __future__ import annotations
 
+import fcntl
+import gzip
+import hashlib
 import io
 import ipaddress
+import os
+import re
 import secrets
 import shutil
 import subprocess
@@ -75,6 +87,78 @@ RUN update-ca-certificates >/dev/null \
 STOPSIGNAL SIGRTMIN+3
 CMD ["/lib/systemd/systemd"]
 """
+
+
+BAKED = "ccrp-fake-baked"        # = install key, on a builder's disk kept for the run's later builders
+BAKED_RUN = "ccrp-fake-testrun"  # = the test run it belongs to
+_OWN_RUN = secrets.token_hex(8)
+
+
+def test_run() -> str:
+    """One id for the whole test run, parallel workers included (tests/conftest.py sets it)."""
+    return os.environ.get("PYTEST_XDIST_TESTRUNUID") or _OWN_RUN
+BAKE_TOKEN = re.compile(rb"ccrp-bake ([0-9a-f]{16}) finished")
+
+
+def install_key(user_data: bytes) -> str | None:
+    """A builder's user-data (it ends in `ccrp-bake <token> finished`) without its token, hashed;
+    None for any other user-data."""
+    if user_data[:2] == b"\x1f\x8b":
+        user_data = gzip.decompress(user_data)
+    found = BAKE_TOKEN.search(user_data)
+    return hashlib.sha256(user_data.replace(found.group(1), b"")).hexdigest()[:16] if found else None
+
+
+def baked_disk(client, key: str) -> str | None:
+    """The run's kept builder disk for this install key, if `warm_bake` made it."""
+    found = client.images.list(filters={"label": [f"{BAKED}={key}", f"{BAKED_RUN}={test_run()}"]})
+    return found[0].id if found else None
+
+
+def warm_bake(user_data: bytes, timeout: float = 1800, client=None, progress=print) -> str:
+    """The run's one full install of the builder user-data's recipe on the stock image, its disk kept
+    (labelled with its install key and the test run); returns that image. Parallel workers wait on a
+    lock file and take the first one's. Fails with the console's tail when an install proof is missing."""
+    client = client or docker.from_env(timeout=300)
+    key = install_key(user_data)
+    token = BAKE_TOKEN.search(user_data).group(1).decode()
+    with open(f"/tmp/ccrp-fake-bake-{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        disk = baked_disk(client, key)
+        if disk:
+            return disk
+        for old in client.images.list(filters={"label": f"{BAKED}={key}"}):  # an earlier run's
+            client.images.remove(old.id, force=True)
+        with CloudBoot(client=client, progress=progress) as boot:
+            net, cidr = boot.claim_network("bake", "172.24.0.0/16")
+            ip = str(list(ipaddress.IPv4Network(cidr).hosts())[1])
+            progress(f"cloudboot: the run's full install of the recipe ({key}) on {DEBIAN_12}")
+            boot.boot("warm-bake", "ccrp-builder", DEBIAN_12, user_data, [(net, ip)])
+            deadline = time.monotonic() + timeout
+            while b"ccrp-bake %s finished" % token.encode() not in boot.console("warm-bake").encode():
+                if time.monotonic() > deadline or boot.state("warm-bake") != "running":
+                    raise RuntimeError(f"warm bake: no final message within {timeout:.0f} s: "
+                                       f"{boot.console('warm-bake')[-1500:]}")
+                time.sleep(5)
+            console = boot.console("warm-bake")
+            proofs = re.findall(rb"ccrp-bake \$0 ([a-z]+)-ok", user_data)  # the token is the script's $0
+            missing = [p.decode() for p in proofs if f"ccrp-bake {token} {p.decode()}-ok" not in console]
+            if missing or not proofs:
+                raise RuntimeError(f"warm bake: proofs {missing or 'none'} missing: {console[-1500:]}")
+            container = boot._container("warm-bake")
+            container.stop(timeout=30)
+            image = container.commit(repository="ccrp-fake/baked", tag=key,
+                                     conf={"Labels": {BAKED: key, BAKED_RUN: test_run()}})
+            return image.id
+
+
+def remove_baked(client) -> None:
+    """Remove the builder disks this test run kept (at the end of the run)."""
+    for image in client.images.list(filters={"label": f"{BAKED_RUN}={test_run()}"}):
+        try:
+            client.images.remove(image.id, force=True)
+        except docker.errors.NotFound:
+            pass
 
 
 def vendor_data_default_user(name: str) -> bytes:
@@ -261,6 +345,8 @@ class CloudBoot:
         if given), then one interface per (docker network name, ip), the first one at create time."""
         if image == DEBIAN_12:
             self.base_image()
+            key = install_key(user_data)
+            image = (baked_disk(self.client, key) if key else None) or image  # the run's installed recipe
         hostname = "".join(c if c.isalnum() or c == "-" else "-" for c in name)[:63].strip("-") or "server"
         endpoints = {net: self.client.api.create_endpoint_config(ipv4_address=ip) for net, ip in networks[:1]}
         host_config = self.client.api.create_host_config(

@@ -26,7 +26,8 @@ pytestmark = [
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
+def run(tmp_path_factory, baked_recipes):
+    baked_recipes("jazzy", tmp_path_factory.mktemp("bake"))  # the run's full install, the bake's builder starts from
     fleet = f"scj{secrets.token_hex(2)}"
     with backend_openstack.open_backend(tmp_path_factory.mktemp("scenario-jazzy"), fleet, distro="jazzy") as backend:
         r = Run(backend, fleet)

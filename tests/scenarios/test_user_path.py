@@ -40,6 +40,8 @@ def run(request, tmp_path_factory):
     fleet = f"sc{kind[:2]}{secrets.token_hex(2)}"
     if kind == "docker":
         request.getfixturevalue("clone_images")("noetic")  # its snapshot build then comes from Docker's cache
+    else:  # the run's one full install of the recipe, which this cloud's bake builder starts from
+        request.getfixturevalue("baked_recipes")("noetic", tmp_path_factory.mktemp("bake"))
     with module.open_backend(tmp_path_factory.mktemp(f"scenario-{kind}"), fleet) as backend:
         r = Run(backend, fleet)
         yield r
