@@ -147,8 +147,10 @@ def warm_bake(user_data: bytes, timeout: float = 1800, client=None, progress=pri
                 raise RuntimeError(f"warm bake: proofs {missing or 'none'} missing: {console[-1500:]}")
             container = boot._container("warm-bake")
             container.stop(timeout=30)
-            image = container.commit(repository="ccrp-fake/baked", tag=key,
-                                     conf={"Labels": {BAKED: key, BAKED_RUN: test_run()}})
+            # A commit takes the container's labels: its run's label is replaced, or the cleanup
+            # of this CloudBoot would remove the disk with the rest of the run.
+            image = container.commit(repository="ccrp-fake/baked", tag=key, conf={"Labels": {
+                LABEL: f"testrun-{test_run()}", BAKED: key, BAKED_RUN: test_run()}})
             return image.id
 
 
