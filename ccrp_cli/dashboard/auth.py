@@ -11,6 +11,8 @@
   cookie.
 - Responses carry a Content-Security-Policy allowing only this server's scripts, no framing, no
   referrer, no caching.
+- Only HTTP reaches the app: a websocket is closed (1008) before it, whatever it carries; the
+  lifespan (the server's start and stop) passes.
 - The access log is this guard's: method, path (never the query string), status.
 """
 
@@ -112,8 +114,10 @@ class Guard:
         self.auth = auth
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http":
+        if scope["type"] == "lifespan":  # the server's start and stop: no client in it
             return await self.app(scope, receive, send)
+        if scope["type"] != "http":
+            return await self.refuse(scope, send)
         method, path = scope["method"], scope["path"]
         status_seen = {}
 
@@ -136,6 +140,15 @@ class Guard:
             client = (scope.get("client") or ("?", 0))[0]
             # The path only: the query string may hold the token.
             log.info('%s "%s %s" %s', client, method, path, status_seen.get("status", "-"))
+
+    async def refuse(self, scope, send) -> None:
+        """Any other scope (a websocket) never reaches the app: the checks below are HTTP's, and
+        the dashboard has no websocket route, so none is accepted rather than one half-checked."""
+        client = (scope.get("client") or ("?", 0))[0]
+        log.info('%s "%s %s" refused', client, scope["type"].upper(), scope.get("path", "-"))
+        if scope["type"] == "websocket":
+            # Closed before it is accepted: the client gets a 403; 1008 is "policy violation".
+            await send({"type": "websocket.close", "code": 1008})
 
     def check(self, scope, method: str, path: str):
         headers = _headers(scope)

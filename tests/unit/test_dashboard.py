@@ -537,3 +537,44 @@ def test_the_page_gets_every_row_field_it_reads():
     assert read <= set(ROW_FIELDS) | {"unreachable"}, read - set(ROW_FIELDS)
     assert public_row(row(state="stopped", robot_rtt_ms=1.5))["state"] == "stopped"
     assert "password" not in public_row(row())
+
+
+def test_the_guard_closes_a_websocket_before_any_app_sees_it_and_lets_lifespan_through():
+    """The guard checked HTTP only and handed any other scope to the app: a websocket route added
+    one day would have had no session, Host or Origin check. Now a websocket is closed (1008, a 403
+    to the client) before the app runs, session or not; the lifespan still reaches the app."""
+    from starlette.websockets import WebSocketDisconnect
+
+    from ccrp_cli.dashboard.auth import Guard
+
+    seen = []
+
+    async def probe(scope, receive, send):  # would accept any websocket
+        seen.append(scope["type"])
+        if scope["type"] == "lifespan":
+            while (await receive())["type"] != "lifespan.shutdown":
+                await send({"type": "lifespan.startup.complete"})
+            await send({"type": "lifespan.shutdown.complete"})
+        elif scope["type"] == "websocket":
+            await receive()
+            await send({"type": "websocket.accept"})
+            await send({"type": "websocket.send", "text": "fleet"})
+
+    auth = Auth(TOKEN, PORT, allowed_hosts("127.0.0.1", PORT))
+    with TestClient(Guard(probe, auth), base_url=BASE) as client:
+        with pytest.raises(WebSocketDisconnect) as closed:
+            with client.websocket_connect("/events", headers={"Origin": BASE}) as ws:
+                ws.receive_text()
+        assert closed.value.code == 1008
+    assert seen == ["lifespan"]
+
+
+def test_a_websocket_to_the_dashboard_is_refused_even_with_a_session(dash):
+    from starlette.websockets import WebSocketDisconnect
+
+    login(dash.client)
+    for path in ("/events", "/", "/api/status"):
+        with pytest.raises(WebSocketDisconnect) as closed:
+            with dash.client.websocket_connect(path, headers={"Origin": BASE}):
+                pass
+        assert closed.value.code == 1008, path
