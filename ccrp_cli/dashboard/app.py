@@ -349,6 +349,7 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
 
     @app.get("/events")
     async def events(request: Request) -> StreamingResponse:
+        session = request.scope["ccrp_session"]
         queue = broker.subscribe()
 
         async def stream():
@@ -356,7 +357,9 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
                 yield "retry: 2000\n\n"
                 for a in actions.list():
                     yield sse("action", json.dumps(a, default=str, separators=(",", ":")))
-                while not broker.closed:
+                # Ends with its session (expired, logged out), within a keepalive: the page's
+                # reconnection then gets the 401 that tells it so.
+                while not broker.closed and auth.alive(session):
                     try:
                         item = await asyncio.wait_for(queue.get(), timeout=KEEPALIVE_S)
                     except asyncio.TimeoutError:

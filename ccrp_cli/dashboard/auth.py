@@ -3,6 +3,8 @@
 - The access token (made at start with secrets.token_urlsafe, or given) is presented once, as
   `/?token=...` in the URL ccrp printed. The guard answers with a redirect to `/` without it, and a session cookie (HttpOnly, SameSite=Strict, one name per port): a random session
   id, not the token, so the token is in no cookie, page, event or log line.
+- A session ends after SESSION_IDLE_S without a request, and SESSION_MAX_S after it opened in any
+  case; an event stream open with it ends too.
 - Every request needs that session (401 without), and a Host this server answers to (403: a DNS
   rebinding page sends its own name).
 - Only GET, HEAD and POST exist. A POST changes state: it needs the session, an Origin (or, without
@@ -31,6 +33,10 @@ log = logging.getLogger("ccrp.dashboard")
 
 CSRF_HEADER = "x-ccrp-csrf"
 MAX_SESSIONS = 64
+# A session unused this long ends (a page left open, a browser walked away from); none outlives
+# the second, however busy: a stolen cookie is worth hours, not the server's whole life.
+SESSION_IDLE_S = 30 * 60
+SESSION_MAX_S = 12 * 3600
 MIN_TOKEN_CHARS = 16
 SECURITY_HEADERS = [
     (b"content-security-policy",
@@ -52,14 +58,17 @@ def new_token() -> str:
 
 @dataclass
 class Session:
+    opened: float  # times on Auth.clock
+    used: float
     csrf: str = field(default_factory=lambda: secrets.token_urlsafe(32))
-    opened: float = field(default_factory=time.time)
+    ended: bool = False
 
 
 class Auth:
-    """The token, the sessions it opened, and the Hosts this server answers to (None: any)."""
+    """The token, the sessions it opened, and the Hosts this server answers to (None: any).
+    `clock` is monotonic: a wall clock set back would stretch the sessions' lifetimes."""
 
-    def __init__(self, token: str, port: int, allowed_hosts: set[str] | None) -> None:
+    def __init__(self, token: str, port: int, allowed_hosts: set[str] | None, clock=time.monotonic) -> None:
         if len(token) < MIN_TOKEN_CHARS:
             raise ValueError(f"the dashboard token must have at least {MIN_TOKEN_CHARS} characters")
         self._token = token.encode()
@@ -67,24 +76,45 @@ class Auth:
         self.allowed_hosts = allowed_hosts
         self.cookie = f"ccrp_dashboard_{port}"  # cookies are not kept apart by port: the name is
         self._sessions: OrderedDict[str, Session] = OrderedDict()
+        self.clock = clock
 
     def token_ok(self, presented: str) -> bool:
         return hmac.compare_digest(presented.encode(), self._token)
 
     def open_session(self) -> str:
+        now = self.clock()
+        self._drop_expired(now)
         sid = secrets.token_urlsafe(32)
-        self._sessions[sid] = Session()
+        self._sessions[sid] = Session(opened=now, used=now)
         while len(self._sessions) > MAX_SESSIONS:
-            self._sessions.popitem(last=False)
+            self._sessions.popitem(last=False)[1].ended = True
         return sid
 
     def session(self, sid: str | None) -> Session | None:
+        """The open session of this id, its idle time started again; None: unknown or expired."""
         if not sid:
             return None
+        now = self.clock()
+        self._drop_expired(now)
         for known, session in self._sessions.items():  # constant time per comparison
             if hmac.compare_digest(known.encode(), sid.encode()):
+                session.used = now
                 return session
         return None
+
+    def alive(self, session: Session) -> bool:
+        """Whether a session is still open; asking is no use of it (an event stream asks)."""
+        return not session.ended and not self._expired(session, self.clock())
+
+    @staticmethod
+    def _expired(session: Session, now: float) -> bool:
+        return now - session.used >= SESSION_IDLE_S or now - session.opened >= SESSION_MAX_S
+
+    def _drop_expired(self, now: float) -> None:
+        for sid, session in list(self._sessions.items()):
+            if self._expired(session, now):
+                session.ended = True
+                del self._sessions[sid]
 
     def host_ok(self, host: str) -> bool:
         return self.allowed_hosts is None or host.lower() in self.allowed_hosts

@@ -578,3 +578,55 @@ def test_a_websocket_to_the_dashboard_is_refused_even_with_a_session(dash):
             with dash.client.websocket_connect(path, headers={"Origin": BASE}):
                 pass
         assert closed.value.code == 1008, path
+
+
+class Clock:
+    """A monotonic clock the test moves."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_a_session_ends_after_30_idle_minutes_and_after_12_hours_in_any_case(dash):
+    from ccrp_cli.dashboard import auth
+
+    assert (auth.SESSION_IDLE_S, auth.SESSION_MAX_S) == (30 * 60, 12 * 3600)  # the documented defaults
+    dash.auth.clock = clock = Clock()
+    login(dash.client)
+    for _ in range(3):  # each request starts the idle time again
+        clock.now += auth.SESSION_IDLE_S - 1
+        assert dash.client.get("/api/status").status_code == 200
+    clock.now += auth.SESSION_IDLE_S
+    assert dash.client.get("/api/status").status_code == 401
+    assert dash.client.get("/api/status").status_code == 401  # gone, not only late
+    # Busy all along: still over after 12 hours.
+    login(dash.client)
+    opened = clock.now
+    while clock.now + 600 < opened + auth.SESSION_MAX_S:
+        clock.now += 600
+        assert dash.client.get("/api/status").status_code == 200
+    clock.now = opened + auth.SESSION_MAX_S
+    assert dash.client.get("/api/status").status_code == 401
+    login(dash.client)  # the token opens a new one
+    assert dash.client.get("/api/status").status_code == 200
+
+
+def test_an_event_stream_ends_with_its_session(dash):
+    """The stream outlived its session: a page left open kept receiving the fleet for ever."""
+    from ccrp_cli.dashboard import auth
+
+    dash.auth.clock = clock = Clock()
+    login(dash.client)
+    events = 0
+    with dash.client.stream("GET", "/events") as stream:
+        for line in stream.iter_lines():
+            if line.startswith("event: fleet"):
+                events += 1
+                if events == 2:  # the monitor publishes every 0.2 s: the next one ends it
+                    clock.now += auth.SESSION_IDLE_S
+            assert events < 30, "the stream went on after its session expired"
+    assert events >= 2
+    assert dash.client.get("/events").status_code == 401  # the page's reconnection is told
