@@ -4,7 +4,7 @@
   `/?token=...` in the URL ccrp printed. The guard answers with a redirect to `/` without it, and a session cookie (HttpOnly, SameSite=Strict, one name per port): a random session
   id, not the token, so the token is in no cookie, page, event or log line.
 - A session ends after SESSION_IDLE_S without a request, and SESSION_MAX_S after it opened in any
-  case; an event stream open with it ends too.
+  case; an event stream open with it ends too. POST /api/logout ends it at once.
 - Every request needs that session (401 without), and a Host this server answers to (403: a DNS
   rebinding page sends its own name).
 - Only GET, HEAD and POST exist. A POST changes state: it needs the session, an Origin (or, without
@@ -101,6 +101,13 @@ class Auth:
                 session.used = now
                 return session
         return None
+
+    def end(self, session: Session) -> None:
+        """Logout: the session is forgotten, so its cookie is worth nothing, and its streams end."""
+        session.ended = True
+        for sid, known in list(self._sessions.items()):
+            if known is session:
+                del self._sessions[sid]
 
     def alive(self, session: Session) -> bool:
         """Whether a session is still open; asking is no use of it (an event stream asks)."""

@@ -630,3 +630,28 @@ def test_an_event_stream_ends_with_its_session(dash):
             assert events < 30, "the stream went on after its session expired"
     assert events >= 2
     assert dash.client.get("/events").status_code == 401  # the page's reconnection is told
+
+
+def test_logout_is_a_guarded_post_that_ends_the_session(dash):
+    csrf = login(dash.client)
+    assert 'id="logout"' in dash.client.get("/").text  # the page's button
+    sid = dash.client.cookies[dash.auth.cookie]
+    session = dash.auth.session(sid)
+    # Under the checks of every POST: a foreign page cannot log the operator out either.
+    assert dash.client.post("/api/logout", headers={"Origin": BASE}).status_code == 403
+    assert dash.client.post("/api/logout", headers={"Origin": "http://attacker.example",
+                                                    "X-CCRP-CSRF": csrf}).status_code == 403
+    assert dash.client.get("/api/status").status_code == 200
+    r = dash.client.post("/api/logout", headers={"Origin": BASE, "X-CCRP-CSRF": csrf})
+    assert r.status_code == 204
+    cleared = r.headers["set-cookie"]
+    assert cleared.startswith(f"{dash.auth.cookie}=") and "Max-Age=0" in cleared and "HttpOnly" in cleared
+    assert dash.auth.cookie not in dash.client.cookies
+    # The old cookie, kept anyway, is worth nothing: the server forgot the session, and its
+    # event streams end (auth.alive).
+    old = {"Cookie": f"{dash.auth.cookie}={sid}"}
+    assert dash.client.get("/api/status", headers=old).status_code == 401
+    assert dash.client.post("/api/logout", headers=old | {"Origin": BASE, "X-CCRP-CSRF": csrf}).status_code == 401
+    assert not dash.auth.alive(session)
+    login(dash.client)
+    assert dash.client.get("/api/status").status_code == 200
