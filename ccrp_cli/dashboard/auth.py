@@ -3,6 +3,8 @@
 - The access token (made at start with secrets.token_urlsafe, or given) is presented once, as
   `/?token=...` in the URL ccrp printed. The guard answers with a redirect to `/` without it, and a session cookie (HttpOnly, SameSite=Strict, one name per port): a random session
   id, not the token, so the token is in no cookie, page, event or log line.
+- A client address that sent TOKEN_FAILURES_ALLOWED wrong tokens within TOKEN_FAILURE_WINDOW_S
+  gets 429 (with Retry-After) for any token until the oldest of them is that old.
 - A session ends after SESSION_IDLE_S without a request, and SESSION_MAX_S after it opened in any
   case; an event stream open with it ends too. POST /api/logout ends it at once.
 - Every request needs that session (401 without), and a Host this server answers to (403: a DNS
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import hmac
 import logging
+import math
 import secrets
 import time
 from collections import OrderedDict
@@ -37,6 +40,12 @@ MAX_SESSIONS = 64
 # the second, however busy: a stolen cookie is worth hours, not the server's whole life.
 SESSION_IDLE_S = 30 * 60
 SESSION_MAX_S = 12 * 3600
+# Wrong tokens one client address may send within the window; then it waits. The token's entropy
+# is the defence; this slows a guesser to a few tries a minute per address, and says on stderr that
+# one is at it. The addresses kept are bounded: a flood of them cannot fill the memory.
+TOKEN_FAILURES_ALLOWED = 5
+TOKEN_FAILURE_WINDOW_S = 60
+MAX_CLIENTS_KEPT = 1024
 MIN_TOKEN_CHARS = 16
 SECURITY_HEADERS = [
     (b"content-security-policy",
@@ -76,10 +85,28 @@ class Auth:
         self.allowed_hosts = allowed_hosts
         self.cookie = f"ccrp_dashboard_{port}"  # cookies are not kept apart by port: the name is
         self._sessions: OrderedDict[str, Session] = OrderedDict()
+        self._failures: OrderedDict[str, list[float]] = OrderedDict()  # client -> its wrong tokens' times
         self.clock = clock
 
     def token_ok(self, presented: str) -> bool:
         return hmac.compare_digest(presented.encode(), self._token)
+
+    def token_wait(self, client: str) -> int:
+        """Seconds before `client` may present a token again; 0: now."""
+        now = self.clock()
+        recent = [t for t in self._failures.get(client, ()) if now - t < TOKEN_FAILURE_WINDOW_S]
+        if len(recent) < TOKEN_FAILURES_ALLOWED:
+            return 0
+        return max(1, math.ceil(recent[-TOKEN_FAILURES_ALLOWED] + TOKEN_FAILURE_WINDOW_S - now))
+
+    def token_failed(self, client: str) -> int:
+        """Counts a wrong token from `client`; returns its wrong tokens within the window."""
+        now = self.clock()
+        recent = [t for t in self._failures.pop(client, ()) if now - t < TOKEN_FAILURE_WINDOW_S] + [now]
+        self._failures[client] = recent  # the most recent failure last: the first one dropped
+        while len(self._failures) > MAX_CLIENTS_KEPT:
+            self._failures.popitem(last=False)
+        return len(recent)
 
     def open_session(self) -> str:
         now = self.clock()
@@ -196,10 +223,19 @@ class Guard:
             return _plain(405, "method not allowed")
         query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
         if method == "GET" and "token" in query:
+            client = (scope.get("client") or ("?",))[0]
+            wait = self.auth.token_wait(client)
+            if wait:  # refused before the token is compared, the right one too
+                return _plain(429, f"too many wrong tokens: try again in {wait} s",
+                              headers=[(b"retry-after", str(wait).encode())])
             if not self.auth.token_ok(query["token"][0]):
+                failures = self.auth.token_failed(client)
+                if failures == TOKEN_FAILURES_ALLOWED:
+                    log.warning("%s sent %d wrong tokens within %d s: its next ones wait", client, failures,
+                                TOKEN_FAILURE_WINDOW_S)
                 return _plain(401, "wrong token", html=LOGIN_PAGE)
             sid = self.auth.open_session()
-            log.info("session opened from %s", (scope.get("client") or ("?",))[0])
+            log.info("session opened from %s", client)
             cookie = f"{self.auth.cookie}={sid}; HttpOnly; SameSite=Strict; Path=/"
             return _redirect("/", cookie)  # always the page: a path of the request's could be //elsewhere
         cookies = SimpleCookie()
@@ -224,13 +260,14 @@ class Guard:
         return None
 
 
-def _plain(status: int, text: str, html: bytes | None = None):
+def _plain(status: int, text: str, html: bytes | None = None, headers: list | None = None):
     body = html if html is not None else text.encode() + b"\n"
     kind = b"text/html; charset=utf-8" if html is not None else b"text/plain; charset=utf-8"
 
     async def respond(send):
         await send({"type": "http.response.start", "status": status,
-                    "headers": [(b"content-type", kind), (b"content-length", str(len(body)).encode())]})
+                    "headers": [(b"content-type", kind), (b"content-length", str(len(body)).encode()),
+                                *(headers or [])]})
         await send({"type": "http.response.body", "body": body})
     return respond
 

@@ -655,3 +655,29 @@ def test_logout_is_a_guarded_post_that_ends_the_session(dash):
     assert not dash.auth.alive(session)
     login(dash.client)
     assert dash.client.get("/api/status").status_code == 200
+
+
+def test_wrong_tokens_are_limited_per_client_address(dash, caplog):
+    from ccrp_cli.dashboard import auth
+
+    caplog.set_level(logging.INFO, logger="ccrp.dashboard")
+    assert (auth.TOKEN_FAILURES_ALLOWED, auth.TOKEN_FAILURE_WINDOW_S) == (5, 60)
+    dash.auth.clock = clock = Clock()
+    wrong = "/?token=" + TOKEN[:-1] + "y"
+    for _ in range(10):  # a success is no failure
+        login(dash.client)
+    for _ in range(4):
+        assert dash.client.get(wrong).status_code == 401
+    login(dash.client)
+    assert dash.client.get(wrong).status_code == 401  # the fifth within the minute
+    # Now even the right token waits: an answer would tell a guesser it is right.
+    for waited, retry in ((0, 60), (30, 30), (29, 1)):
+        clock.now += waited
+        r = dash.client.get(f"/?token={TOKEN}")
+        assert r.status_code == 429 and r.headers["retry-after"] == str(retry), (waited, r.headers)
+        assert "set-cookie" not in r.headers and TOKEN not in r.text
+    assert any("5 wrong tokens" in rec.getMessage() for rec in caplog.records)
+    other = TestClient(dash.app, base_url=BASE, follow_redirects=False, client=("192.0.2.7", 50000))
+    login(other)  # another address is not held up
+    clock.now += 1  # a minute after the first of the five
+    login(dash.client)
