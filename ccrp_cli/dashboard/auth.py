@@ -32,6 +32,8 @@ from dataclasses import dataclass, field
 from http.cookies import SimpleCookie
 from urllib.parse import parse_qs, urlsplit
 
+from ..errors import InputError
+
 log = logging.getLogger("ccrp.dashboard")
 
 CSRF_HEADER = "x-ccrp-csrf"
@@ -46,7 +48,10 @@ SESSION_MAX_S = 12 * 3600
 TOKEN_FAILURES_ALLOWED = 5
 TOKEN_FAILURE_WINDOW_S = 60
 MAX_CLIENTS_KEPT = 1024
+# A token given with --token: at least this long, and not a few characters repeated (16 times "a"
+# passed the length alone). A random 16-character one passes (hex: 99 times in 100).
 MIN_TOKEN_CHARS = 16
+MIN_TOKEN_DISTINCT = 8
 SECURITY_HEADERS = [
     (b"content-security-policy",
      b"default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data:; connect-src 'self'; "
@@ -65,6 +70,19 @@ def new_token() -> str:
     return secrets.token_urlsafe(32)
 
 
+def check_token(token: str) -> None:
+    """Refuses a given token easy to guess, in one line that does not repeat it."""
+    if len(token) < MIN_TOKEN_CHARS:
+        why = f"has {len(token)} characters; it needs at least {MIN_TOKEN_CHARS}"
+    elif len(set(token)) < MIN_TOKEN_DISTINCT:
+        why = f"uses only {len(set(token))} different characters; it needs at least {MIN_TOKEN_DISTINCT}"
+    else:
+        return
+    raise InputError(f"the dashboard token (--token or CCRP_DASHBOARD_TOKEN) {why}",
+                     hint="leave --token out and CCRP_DASHBOARD_TOKEN unset: ccrp then makes a random "
+                          "256-bit token and prints it in the URL to open")
+
+
 @dataclass
 class Session:
     opened: float  # times on Auth.clock
@@ -78,8 +96,7 @@ class Auth:
     `clock` is monotonic: a wall clock set back would stretch the sessions' lifetimes."""
 
     def __init__(self, token: str, port: int, allowed_hosts: set[str] | None, clock=time.monotonic) -> None:
-        if len(token) < MIN_TOKEN_CHARS:
-            raise ValueError(f"the dashboard token must have at least {MIN_TOKEN_CHARS} characters")
+        check_token(token)
         self._token = token.encode()
         self.port = port
         self.allowed_hosts = allowed_hosts

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from .auth import Auth, allowed_hosts, new_token
+from .auth import Auth, allowed_hosts, check_token, new_token
 from .events import Broker, Monitor, pki_alerts
 
 log = logging.getLogger("ccrp.dashboard")
@@ -125,8 +125,8 @@ def serve(inventory: Path, bind: str, token: str | None, interval: float) -> Non
     from .app import Actions, Camera, Teleop, create_app
 
     host, port = parse_bind(bind)
-    if token is not None and len(token) < 16:
-        raise InputError("--token must have at least 16 characters (or leave it out: one is made)")
+    if token is not None:
+        check_token(token)
     fleet = Fleet.open(inventory)
     provider = get_provider(fleet.inventory)
 

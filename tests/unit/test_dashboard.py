@@ -248,7 +248,7 @@ def test_bad_bind_is_bad_input(bind):
 
 
 def test_short_token_refused():
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError):
         Auth("short", PORT, None)
 
 
@@ -681,3 +681,25 @@ def test_wrong_tokens_are_limited_per_client_address(dash, caplog):
     login(other)  # another address is not held up
     clock.now += 1  # a minute after the first of the five
     login(dash.client)
+
+
+@pytest.mark.parametrize("token, why", [
+    ("a" * 16, "only 1 different characters"), ("ab" * 16, "only 2 different characters"),
+    ("0123" * 4, "only 4 different characters"), ("x7Kq", "has 4 characters"),
+])
+def test_a_weak_token_is_refused_in_one_line_before_the_fleet_is_opened(ccrp, tmp_path, token, why):
+    """16 identical characters passed the length check. A weak token is refused before anything
+    else (the inventory here does not exist), in one line that does not repeat it."""
+    from ccrp_cli.dashboard.auth import MIN_TOKEN_DISTINCT, check_token, new_token
+
+    assert MIN_TOKEN_DISTINCT == 8
+    r = ccrp("dashboard", "-i", str(tmp_path / "none.yaml"), "--token", token)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.startswith("ccrp: error:") and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert why in r.stderr and "hint: leave --token out" in r.stderr and "Traceback" not in r.stderr
+    assert token not in r.stderr
+    with pytest.raises(InputError, match=why):
+        Auth(token, PORT, None)
+    check_token(new_token())
+    check_token("0123456789abcdef")
+    check_token("01234567" * 2)
