@@ -37,6 +37,17 @@ def parse_bind(bind: str) -> tuple[str, int]:
     return ("127.0.0.1" if host == "localhost" else host), int(port)
 
 
+def warn_if_exposed(host: str) -> None:
+    """One line on stderr when the dashboard listens beyond this machine: it speaks plain HTTP, so
+    whoever sees its traffic reads the token in the URL and the cookie in every request."""
+    if ipaddress.ip_address(host).is_loopback:
+        return
+    print(f"ccrp: warning: the dashboard listens on {host}, beyond this machine, without TLS: the token and "
+          "the session cookie cross the network in clear; bind it to 127.0.0.1 and reach it through an SSH "
+          "tunnel (ssh -L 8080:127.0.0.1:8080 THIS-HOST) or a reverse proxy with TLS (docs/dashboard.md)",
+          file=sys.stderr, flush=True)
+
+
 def results(items: list) -> list[dict]:
     """Per-robot results as `ccrp ... --json` prints them (cli/output.results)."""
     return [{"robot": r.robot, "action": r.action, "seconds": round(r.seconds, 2), "detail": r.detail} for r in items]
@@ -152,9 +163,7 @@ def serve(inventory: Path, bind: str, token: str | None, interval: float) -> Non
                      Camera(camera_reader(inventory)))
 
     shown = f"[{host}]" if ":" in host else host
-    if not ipaddress.ip_address(host).is_loopback:
-        log.warning("bound to %s, not to loopback: whoever reaches this port may try the token "
-                    "(an SSH tunnel to a loopback-bound dashboard exposes nothing)", host)
+    warn_if_exposed(host)
     url = f"http://{shown}:{port}/"
     # The one place the token is printed: the URL to open, Jupyter style (not when it was given).
     print(f"ccrp: dashboard of fleet {fleet.name!r}, open:\n    {url}?token={token if made else '<your token>'}",

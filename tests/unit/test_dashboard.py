@@ -703,3 +703,24 @@ def test_a_weak_token_is_refused_in_one_line_before_the_fleet_is_opened(ccrp, tm
     check_token(new_token())
     check_token("0123456789abcdef")
     check_token("01234567" * 2)
+
+
+@pytest.mark.parametrize("host, loud", [
+    ("0.0.0.0", True), ("::", True), ("192.0.2.10", True), ("fd00::5", True),
+    ("127.0.0.1", False), ("127.0.0.2", False), ("::1", False),
+])
+def test_a_bind_beyond_loopback_warns_that_token_and_cookie_cross_in_clear(host, loud, capsys):
+    """It said only that others "may try the token": not that the dashboard speaks plain HTTP, so
+    the token and every request's session cookie can be read on the way."""
+    from ccrp_cli.dashboard.server import warn_if_exposed
+
+    warn_if_exposed(host)
+    out = capsys.readouterr()
+    assert out.out == ""
+    if not loud:
+        assert out.err == ""
+        return
+    assert out.err.startswith("ccrp: warning:") and out.err.count("\n") == 1, out.err
+    assert host in out.err and "without TLS" in out.err
+    assert "token and the session cookie cross the network in clear" in out.err
+    assert "SSH tunnel" in out.err and "reverse proxy with TLS" in out.err
