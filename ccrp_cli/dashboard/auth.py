@@ -1,8 +1,9 @@
 """Who may use the dashboard: an ASGI guard in front of every route.
 
-- The access token (made at start with secrets.token_urlsafe, or given) is presented once, as
-  `/?token=...` in the URL ccrp printed. The guard answers with a redirect to `/` without it, and a session cookie (HttpOnly, SameSite=Strict, one name per port): a random session
-  id, not the token, so the token is in no cookie, page, event or log line.
+- The access token (made at start with secrets.token_urlsafe, or given: check_token refuses a weak
+  one) is presented once, as `/?token=...` in the URL ccrp printed. The guard answers with a
+  redirect to `/` without it, and a session cookie (HttpOnly, SameSite=Strict, one name per port):
+  a random session id, not the token, so the token is in no cookie, page, event or log line.
 - A client address that sent TOKEN_FAILURES_ALLOWED wrong tokens within TOKEN_FAILURE_WINDOW_S
   gets 429 (with Retry-After) for any token until the oldest of them is that old.
 - A session ends after SESSION_IDLE_S without a request, and SESSION_MAX_S after it opened in any

@@ -562,9 +562,9 @@ def test_the_guard_closes_a_websocket_before_any_app_sees_it_and_lets_lifespan_t
 
     auth = Auth(TOKEN, PORT, allowed_hosts("127.0.0.1", PORT))
     with TestClient(Guard(probe, auth), base_url=BASE) as client:
-        with pytest.raises(WebSocketDisconnect) as closed:
-            with client.websocket_connect("/events", headers={"Origin": BASE}) as ws:
-                ws.receive_text()
+        with pytest.raises(WebSocketDisconnect) as closed, \
+                client.websocket_connect("/events", headers={"Origin": BASE}) as ws:
+            ws.receive_text()
         assert closed.value.code == 1008
     assert seen == ["lifespan"]
 
@@ -574,9 +574,8 @@ def test_a_websocket_to_the_dashboard_is_refused_even_with_a_session(dash):
 
     login(dash.client)
     for path in ("/events", "/", "/api/status"):
-        with pytest.raises(WebSocketDisconnect) as closed:
-            with dash.client.websocket_connect(path, headers={"Origin": BASE}):
-                pass
+        with pytest.raises(WebSocketDisconnect) as closed, dash.client.websocket_connect(path, headers={"Origin": BASE}):
+            pass
         assert closed.value.code == 1008, path
 
 
