@@ -14,7 +14,8 @@ def dashboard(
     bind: Annotated[str, typer.Option(help="Address and port to listen on (loopback by default).")] = "127.0.0.1:8080",
     token: Annotated[str | None, typer.Option(
         envvar="CCRP_DASHBOARD_TOKEN", show_default=False,
-        help="Access token (at least 16 characters; default: a random one, printed in the URL to open). "
+        help="Access token (at least 16 characters, 8 of them different; default: a random one, "
+             "printed in the URL to open). "
              "Prefer the environment variable: other users see command lines.")] = None,
     interval: Annotated[float, typer.Option(help="Seconds between two reads of the fleet's status.", min=1)] = 5.0,
 ) -> None:
@@ -28,7 +29,10 @@ def dashboard(
 
         raise CcrpError(f"ccrp dashboard needs {exc.name}, which is not installed",
                         hint="pip install 'ccrp[dashboard]' (fastapi and uvicorn)") from None
+    from ..dashboard.auth import check_token
     from ..dashboard.server import serve
 
+    if token is not None:
+        check_token(token)  # a weak token: one line, exit 2, before the fleet is opened
     options.open_fleet(inventory)  # no inventory, a bad one: one line, exit 2, before anything listens
     serve(inventory, bind, token, interval)

@@ -13,6 +13,7 @@ Routes (all behind auth.Guard):
   POST /api/actions/robot-power  {"robot": NAME, "state": "on"|"off"} = ccrp robot power STATE --robot NAME
   POST /api/teleop             {"robot": NAME, "linear": X, "angular": Z}
                                = ccrp robot teleop: answered with the command's latency
+  POST /api/logout             ends this page's session (and clears its cookie)
   GET  /api/camera/{robot}     = ccrp robot camera: the latest frame of the robot's camera as its
                                clone sees it (image/jpeg, its details in X-CCRP-Frame-* headers)
 """
@@ -304,6 +305,15 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
         action = actions.submit(kind, args.model_dump())
         return JSONResponse(action.public(), status_code=202)
 
+    @app.post("/api/logout")
+    async def logout(request: Request) -> Response:
+        # A POST like the actions: the guard checked Origin and CSRF token, so no other page can
+        # log the operator out.
+        auth.end(request.scope["ccrp_session"])
+        response = Response(status_code=204)
+        response.delete_cookie(auth.cookie, path="/", httponly=True, samesite="strict")
+        return response
+
     @app.post("/api/teleop")
     async def drive(request: Request) -> JSONResponse:
         if teleop is None:
@@ -349,6 +359,7 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
 
     @app.get("/events")
     async def events(request: Request) -> StreamingResponse:
+        session = request.scope["ccrp_session"]
         queue = broker.subscribe()
 
         async def stream():
@@ -356,7 +367,9 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
                 yield "retry: 2000\n\n"
                 for a in actions.list():
                     yield sse("action", json.dumps(a, default=str, separators=(",", ":")))
-                while not broker.closed:
+                # Ends with its session (expired, logged out), within a keepalive: the page's
+                # reconnection then gets the 401 that tells it so.
+                while not broker.closed and auth.alive(session):
                     try:
                         item = await asyncio.wait_for(queue.get(), timeout=KEEPALIVE_S)
                     except asyncio.TimeoutError:

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from .auth import Auth, allowed_hosts, new_token
+from .auth import Auth, allowed_hosts, check_token, new_token
 from .events import Broker, Monitor, pki_alerts
 
 log = logging.getLogger("ccrp.dashboard")
@@ -35,6 +35,17 @@ def parse_bind(bind: str) -> tuple[str, int]:
         except ValueError:
             raise InputError(f"--bind {bind[:80]!r}: the host must be an IP address or localhost") from None
     return ("127.0.0.1" if host == "localhost" else host), int(port)
+
+
+def warn_if_exposed(host: str) -> None:
+    """One line on stderr when the dashboard listens beyond this machine: it speaks plain HTTP, so
+    whoever sees its traffic reads the token in the URL and the cookie in every request."""
+    if ipaddress.ip_address(host).is_loopback:
+        return
+    print(f"ccrp: warning: the dashboard listens on {host}, beyond this machine, without TLS: the token and "
+          "the session cookie cross the network in clear; bind it to 127.0.0.1 and reach it through an SSH "
+          "tunnel (ssh -L 8080:127.0.0.1:8080 THIS-HOST) or a reverse proxy with TLS (docs/dashboard.md)",
+          file=sys.stderr, flush=True)
 
 
 def results(items: list) -> list[dict]:
@@ -125,8 +136,8 @@ def serve(inventory: Path, bind: str, token: str | None, interval: float) -> Non
     from .app import Actions, Camera, Teleop, create_app
 
     host, port = parse_bind(bind)
-    if token is not None and len(token) < 16:
-        raise InputError("--token must have at least 16 characters (or leave it out: one is made)")
+    if token is not None:
+        check_token(token)
     fleet = Fleet.open(inventory)
     provider = get_provider(fleet.inventory)
 
@@ -152,9 +163,7 @@ def serve(inventory: Path, bind: str, token: str | None, interval: float) -> Non
                      Camera(camera_reader(inventory)))
 
     shown = f"[{host}]" if ":" in host else host
-    if not ipaddress.ip_address(host).is_loopback:
-        log.warning("bound to %s, not to loopback: whoever reaches this port may try the token "
-                    "(an SSH tunnel to a loopback-bound dashboard exposes nothing)", host)
+    warn_if_exposed(host)
     url = f"http://{shown}:{port}/"
     # The one place the token is printed: the URL to open, Jupyter style (not when it was given).
     print(f"ccrp: dashboard of fleet {fleet.name!r}, open:\n    {url}?token={token if made else '<your token>'}",

@@ -247,7 +247,7 @@ def test_bad_bind_is_bad_input(bind):
 
 
 def test_short_token_refused():
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError):
         Auth("short", PORT, None)
 
 
@@ -536,3 +536,189 @@ def test_the_page_gets_every_row_field_it_reads():
     assert read <= set(ROW_FIELDS) | {"unreachable"}, read - set(ROW_FIELDS)
     assert public_row(row(state="stopped", robot_rtt_ms=1.5))["state"] == "stopped"
     assert "password" not in public_row(row())
+
+
+def test_the_guard_closes_a_websocket_before_any_app_sees_it_and_lets_lifespan_through():
+    """The guard checked HTTP only and handed any other scope to the app: a websocket route added
+    one day would have had no session, Host or Origin check. Now a websocket is closed (1008, a 403
+    to the client) before the app runs, session or not; the lifespan still reaches the app."""
+    from starlette.websockets import WebSocketDisconnect
+
+    from ccrp_cli.dashboard.auth import Guard
+
+    seen = []
+
+    async def probe(scope, receive, send):  # would accept any websocket
+        seen.append(scope["type"])
+        if scope["type"] == "lifespan":
+            while (await receive())["type"] != "lifespan.shutdown":
+                await send({"type": "lifespan.startup.complete"})
+            await send({"type": "lifespan.shutdown.complete"})
+        elif scope["type"] == "websocket":
+            await receive()
+            await send({"type": "websocket.accept"})
+            await send({"type": "websocket.send", "text": "fleet"})
+
+    auth = Auth(TOKEN, PORT, allowed_hosts("127.0.0.1", PORT))
+    with TestClient(Guard(probe, auth), base_url=BASE) as client:
+        with pytest.raises(WebSocketDisconnect) as closed, \
+                client.websocket_connect("/events", headers={"Origin": BASE}) as ws:
+            ws.receive_text()
+        assert closed.value.code == 1008
+    assert seen == ["lifespan"]
+
+
+def test_a_websocket_to_the_dashboard_is_refused_even_with_a_session(dash):
+    from starlette.websockets import WebSocketDisconnect
+
+    login(dash.client)
+    for path in ("/events", "/", "/api/status"):
+        with pytest.raises(WebSocketDisconnect) as closed, dash.client.websocket_connect(path, headers={"Origin": BASE}):
+            pass
+        assert closed.value.code == 1008, path
+
+
+class Clock:
+    """A monotonic clock the test moves."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_a_session_ends_after_30_idle_minutes_and_after_12_hours_in_any_case(dash):
+    from ccrp_cli.dashboard import auth
+
+    assert (auth.SESSION_IDLE_S, auth.SESSION_MAX_S) == (30 * 60, 12 * 3600)  # the documented defaults
+    dash.auth.clock = clock = Clock()
+    login(dash.client)
+    for _ in range(3):  # each request starts the idle time again
+        clock.now += auth.SESSION_IDLE_S - 1
+        assert dash.client.get("/api/status").status_code == 200
+    clock.now += auth.SESSION_IDLE_S
+    assert dash.client.get("/api/status").status_code == 401
+    assert dash.client.get("/api/status").status_code == 401  # gone, not only late
+    # Busy all along: still over after 12 hours.
+    login(dash.client)
+    opened = clock.now
+    while clock.now + 600 < opened + auth.SESSION_MAX_S:
+        clock.now += 600
+        assert dash.client.get("/api/status").status_code == 200
+    clock.now = opened + auth.SESSION_MAX_S
+    assert dash.client.get("/api/status").status_code == 401
+    login(dash.client)  # the token opens a new one
+    assert dash.client.get("/api/status").status_code == 200
+
+
+def test_an_event_stream_ends_with_its_session(dash):
+    """The stream outlived its session: a page left open kept receiving the fleet for ever."""
+    from ccrp_cli.dashboard import auth
+
+    dash.auth.clock = clock = Clock()
+    login(dash.client)
+    events = 0
+    with dash.client.stream("GET", "/events") as stream:
+        for line in stream.iter_lines():
+            if line.startswith("event: fleet"):
+                events += 1
+                if events == 2:  # the monitor publishes every 0.2 s: the next one ends it
+                    clock.now += auth.SESSION_IDLE_S
+            assert events < 30, "the stream went on after its session expired"
+    assert events >= 2
+    assert dash.client.get("/events").status_code == 401  # the page's reconnection is told
+
+
+def test_logout_is_a_guarded_post_that_ends_the_session(dash):
+    csrf = login(dash.client)
+    assert 'id="logout"' in dash.client.get("/").text  # the page's button
+    sid = dash.client.cookies[dash.auth.cookie]
+    session = dash.auth.session(sid)
+    # Under the checks of every POST: a foreign page cannot log the operator out either.
+    assert dash.client.post("/api/logout", headers={"Origin": BASE}).status_code == 403
+    assert dash.client.post("/api/logout", headers={"Origin": "http://attacker.example",
+                                                    "X-CCRP-CSRF": csrf}).status_code == 403
+    assert dash.client.get("/api/status").status_code == 200
+    r = dash.client.post("/api/logout", headers={"Origin": BASE, "X-CCRP-CSRF": csrf})
+    assert r.status_code == 204
+    cleared = r.headers["set-cookie"]
+    assert cleared.startswith(f"{dash.auth.cookie}=") and "Max-Age=0" in cleared and "HttpOnly" in cleared
+    assert dash.auth.cookie not in dash.client.cookies
+    # The old cookie, kept anyway, is worth nothing: the server forgot the session, and its
+    # event streams end (auth.alive).
+    old = {"Cookie": f"{dash.auth.cookie}={sid}"}
+    assert dash.client.get("/api/status", headers=old).status_code == 401
+    assert dash.client.post("/api/logout", headers=old | {"Origin": BASE, "X-CCRP-CSRF": csrf}).status_code == 401
+    assert not dash.auth.alive(session)
+    login(dash.client)
+    assert dash.client.get("/api/status").status_code == 200
+
+
+def test_wrong_tokens_are_limited_per_client_address(dash, caplog):
+    from ccrp_cli.dashboard import auth
+
+    caplog.set_level(logging.INFO, logger="ccrp.dashboard")
+    assert (auth.TOKEN_FAILURES_ALLOWED, auth.TOKEN_FAILURE_WINDOW_S) == (5, 60)
+    dash.auth.clock = clock = Clock()
+    wrong = "/?token=" + TOKEN[:-1] + "y"
+    for _ in range(10):  # a success is no failure
+        login(dash.client)
+    for _ in range(4):
+        assert dash.client.get(wrong).status_code == 401
+    login(dash.client)
+    assert dash.client.get(wrong).status_code == 401  # the fifth within the minute
+    # Now even the right token waits: an answer would tell a guesser it is right.
+    for waited, retry in ((0, 60), (30, 30), (29, 1)):
+        clock.now += waited
+        r = dash.client.get(f"/?token={TOKEN}")
+        assert r.status_code == 429 and r.headers["retry-after"] == str(retry), (waited, r.headers)
+        assert "set-cookie" not in r.headers and TOKEN not in r.text
+    assert any("5 wrong tokens" in rec.getMessage() for rec in caplog.records)
+    other = TestClient(dash.app, base_url=BASE, follow_redirects=False, client=("192.0.2.7", 50000))
+    login(other)  # another address is not held up
+    clock.now += 1  # a minute after the first of the five
+    login(dash.client)
+
+
+@pytest.mark.parametrize("token, why", [
+    ("a" * 16, "only 1 different characters"), ("ab" * 16, "only 2 different characters"),
+    ("0123" * 4, "only 4 different characters"), ("x7Kq", "has 4 characters"),
+])
+def test_a_weak_token_is_refused_in_one_line_before_the_fleet_is_opened(ccrp, tmp_path, token, why):
+    """16 identical characters passed the length check. A weak token is refused before anything
+    else (the inventory here does not exist), in one line that does not repeat it."""
+    from ccrp_cli.dashboard.auth import MIN_TOKEN_DISTINCT, check_token, new_token
+
+    assert MIN_TOKEN_DISTINCT == 8
+    r = ccrp("dashboard", "-i", str(tmp_path / "none.yaml"), "--token", token)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.startswith("ccrp: error:") and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert why in r.stderr and "hint: leave --token out" in r.stderr and "Traceback" not in r.stderr
+    assert token not in r.stderr
+    with pytest.raises(InputError, match=why):
+        Auth(token, PORT, None)
+    check_token(new_token())
+    check_token("0123456789abcdef")
+    check_token("01234567" * 2)
+
+
+@pytest.mark.parametrize("host, loud", [
+    ("0.0.0.0", True), ("::", True), ("192.0.2.10", True), ("fd00::5", True),
+    ("127.0.0.1", False), ("127.0.0.2", False), ("::1", False),
+])
+def test_a_bind_beyond_loopback_warns_that_token_and_cookie_cross_in_clear(host, loud, capsys):
+    """It said only that others "may try the token": not that the dashboard speaks plain HTTP, so
+    the token and every request's session cookie can be read on the way."""
+    from ccrp_cli.dashboard.server import warn_if_exposed
+
+    warn_if_exposed(host)
+    out = capsys.readouterr()
+    assert out.out == ""
+    if not loud:
+        assert out.err == ""
+        return
+    assert out.err.startswith("ccrp: warning:") and out.err.count("\n") == 1, out.err
+    assert host in out.err and "without TLS" in out.err
+    assert "token and the session cookie cross the network in clear" in out.err
+    assert "SSH tunnel" in out.err and "reverse proxy with TLS" in out.err

@@ -65,6 +65,13 @@ async function act(kind, args) {
   }
 }
 
+async function logout() {
+  const r = await fetch("/api/logout", {method: "POST", credentials: "same-origin", headers: {"X-CCRP-CSRF": CSRF}});
+  // 401: the session had already ended. Either way "/" is now the page asking for the token.
+  if (r.ok || r.status === 401) location.replace("/");
+  else alert(`The dashboard refused to log out (${r.status}: ${await r.text()})`);
+}
+
 function vpnCell(row) {
   if (row.vpn_connected) {
     const rtt = row.robot_rtt_ms === null || row.robot_rtt_ms === undefined ? "" : `, rtt ${row.robot_rtt_ms.toFixed(1)} ms`;
@@ -402,6 +409,7 @@ function connect() {
 }
 
 document.addEventListener("DOMContentLoaded", () => {
+  document.getElementById("logout").addEventListener("click", logout);
   const size = document.getElementById("scale-size");
   size.addEventListener("input", () => { size.dataset.touched = "1"; });
   document.getElementById("scale-form").addEventListener("submit", (e) => {
