@@ -157,7 +157,7 @@ class Clones:
         return 0, json.dumps({"vpn": {"up": True, "clients": []}, "master": {"reachable": True, "nodes": {}}})
 
 
-def test_status_shows_a_clone_stopped_idle_and_one_that_does_not_answer(lab_up):  # noqa: F811
+def test_status_shows_a_clone_stopped_idle_and_one_that_does_not_answer(lab_up):
     from ccrp_cli.status import fleet_status
 
     fleet, _ = lab_up

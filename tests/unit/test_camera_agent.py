@@ -130,7 +130,7 @@ class Clone:
         return 0, ""
 
 
-def test_the_first_read_starts_the_agent_and_the_next_ones_only_ask(lab_up):  # noqa: F811
+def test_the_first_read_starts_the_agent_and_the_next_ones_only_ask(lab_up):
     fleet, _ = lab_up
     jpeg = cv2.imencode(".jpg", np.zeros((8, 16, 3), np.uint8))[1].tobytes()
     clone = Clone({"topic": "/camera/image_raw", "width": 16, "height": 8, "encoding": "rgb8", "seq": 3,

@@ -63,7 +63,7 @@ def test_probe_says_what_is_not_so():
     assert probe(Clone(0, "sudo: something\n"), "nao1", 11311, files) is None
 
 
-def test_a_reused_clone_stays_in_its_partners_relay_config_while_it_is_creating(lab_up):  # noqa: F811
+def test_a_reused_clone_stays_in_its_partners_relay_config_while_it_is_creating(lab_up):
     fleet, state = lab_up
     writer = StateWriter(fleet, state)
     before = relay_config(fleet, state, "nao1")
@@ -72,7 +72,7 @@ def test_a_reused_clone_stays_in_its_partners_relay_config_while_it_is_creating(
     assert "nao2" not in relay_config(fleet, state, "nao1")["peers"]  # state alone would drop it
 
 
-def test_reshare_asks_only_clones_whose_config_this_run_does_not_know(lab_up):  # noqa: F811
+def test_reshare_asks_only_clones_whose_config_this_run_does_not_know(lab_up):
     fleet, state = lab_up
     from ccrp_cli.knowledge import knowledge_files
 
@@ -87,7 +87,7 @@ def test_reshare_asks_only_clones_whose_config_this_run_does_not_know(lab_up):  
     assert len(clone.calls) == len(asked)  # one digest question per clone not known
 
 
-def test_reshare_leaves_a_clone_that_stopped_itself_alone(lab_up):  # noqa: F811
+def test_reshare_leaves_a_clone_that_stopped_itself_alone(lab_up):
     """A clone its autostop agent powered off is still `ready` in the state: pushing to it would
     fail every command that reshares; it gets the config when it starts again."""
     fleet, state = lab_up

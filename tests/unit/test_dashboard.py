@@ -422,7 +422,7 @@ class CameraClones:
 
 
 @pytest.fixture
-def cam(lab_up):  # noqa: F811
+def cam(lab_up):
     from ccrp_cli.camera import latest_frame
     from ccrp_cli.dashboard.app import Camera
 
@@ -505,7 +505,7 @@ def test_robot_camera_refuses_bad_input_before_opening_the_fleet(ccrp, tmp_path)
     assert not (tmp_path / "f.jpg").exists()
 
 
-def test_robot_camera_writes_the_frame(lab_up, tmp_path, monkeypatch):  # noqa: F811
+def test_robot_camera_writes_the_frame(lab_up, tmp_path, monkeypatch):
     """The CLI's body on a fake clone: the JPEG written, its details printed."""
     from typer.testing import CliRunner
 

@@ -45,7 +45,7 @@ def units(clone):
     return [a for a in clone.ran if a[0] == "systemd-run"]
 
 
-def test_one_command_from_the_cli(lab_up):  # noqa: F811
+def test_one_command_from_the_cli(lab_up):
     fleet, _ = lab_up
     clone = Clone(via="one-shot")
     got = evaluation.send_command(fleet, clone, "nao1", 0.2, -0.5)
@@ -57,7 +57,7 @@ def test_one_command_from_the_cli(lab_up):  # noqa: F811
                                              "--timeout", "5"]
 
 
-def test_the_dashboard_keeps_an_operator_and_starts_it_again_when_it_ended(lab_up):  # noqa: F811
+def test_the_dashboard_keeps_an_operator_and_starts_it_again_when_it_ended(lab_up):
     fleet, _ = lab_up
     clone = Clone(via="operator")
     for _ in range(3):
@@ -76,7 +76,7 @@ def test_the_dashboard_keeps_an_operator_and_starts_it_again_when_it_ended(lab_u
     assert ["systemctl", "stop", "ccrp-teleop"] in clone.ran and not evaluation._operators
 
 
-def test_refusals(lab_up):  # noqa: F811
+def test_refusals(lab_up):
     fleet, _ = lab_up
     with pytest.raises(CcrpError, match="nothing subscribes"):
         evaluation.send_command(fleet, Clone(reply={"error": "nothing subscribes to /cmd_vel on this master"}), "nao1", 0.1, 0)
@@ -90,7 +90,7 @@ def test_refusals(lab_up):  # noqa: F811
     evaluation.check_command(-10, 10, "/mobile_base/cmd_vel")
 
 
-def test_a_ros2_fleet_runs_the_same_agent_command(lab_up):  # noqa: F811
+def test_a_ros2_fleet_runs_the_same_agent_command(lab_up):
     """The agent picks rclpy itself where ros.env names no master (tests/e2e/test_jazzy_fleet.py)."""
     fleet, _ = lab_up
     fleet.inventory.ros.distro = "jazzy"

@@ -91,7 +91,7 @@ class Host:
         return 0, out(f"lost {T}", f"stopped {T}")
 
 
-def test_simulated_robots_are_read_in_their_containers(lab_up):  # noqa: F811
+def test_simulated_robots_are_read_in_their_containers(lab_up):
     fleet, _ = lab_up
     host = Host()
     got = watchdog.simulated(fleet, host)
@@ -101,7 +101,7 @@ def test_simulated_robots_are_read_in_their_containers(lab_up):  # noqa: F811
     assert watchdog.simulated(fleet, object()) == {}  # no Docker to ask: no simulated robots
 
 
-def test_fleet_alerts_join_rows_and_pki_most_serious_first(lab_up):  # noqa: F811
+def test_fleet_alerts_join_rows_and_pki_most_serious_first(lab_up):
     fleet, _ = lab_up
     lost = watchdog.parse(out(f"lost {T}", f"stopped {T}"))
     rows = [base_row(), base_row(robot="nao2", vpn_connected=False), base_row(robot="turtlebot1", status="exited",
@@ -115,7 +115,7 @@ def test_fleet_alerts_join_rows_and_pki_most_serious_first(lab_up):  # noqa: F81
     json.dumps(alerts)  # what --json prints
 
 
-def test_the_power_device_report_and_what_it_changes(lab_up):  # noqa: F811
+def test_the_power_device_report_and_what_it_changes(lab_up):
     import time
 
     from ccrp_cli import power
@@ -152,7 +152,7 @@ def test_the_power_device_report_and_what_it_changes(lab_up):  # noqa: F811
     assert real["power"] is None and real["watchdog"]["state"] == "unknown"
 
 
-def test_robot_power_refuses_bad_input(ccrp, tmp_path, lab_up):  # noqa: F811
+def test_robot_power_refuses_bad_input(ccrp, tmp_path, lab_up):
     r = ccrp("robot", "power", "reboot", "-i", str(tmp_path / "none.yaml"), "--robot", "nao1")
     assert r.returncode == 2 and r.stderr.startswith("ccrp: error: robot power 'reboot'") and "Traceback" not in r.stderr
     r = ccrp("robot", "power", "off", "-i", str(tmp_path / "none.yaml"), "--robot", "nao1", "--out", str(tmp_path / "x"))
