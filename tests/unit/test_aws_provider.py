@@ -13,13 +13,13 @@ from ccrp_cli.errors import CcrpError
 from ccrp_cli.retry import ErrorClass
 from tests.contract.specs import FAST, clone_spec, inventory
 
-from .aws_fakes import REGION, aws_env, inject_error  # noqa: F401 - fixture
+from .aws_fakes import REGION, inject_error
 
 PROVIDER = {"kind": "aws", "region": REGION, "zones": ["us-east-1a", "us-east-1b"], "operator_cidr": "198.51.100.0/24"}
 
 
 @pytest.fixture
-def mocked(aws_env):  # noqa: F811
+def mocked(aws_env):
     from moto import mock_aws
 
     with mock_aws():

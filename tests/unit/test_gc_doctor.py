@@ -10,7 +10,7 @@ from ccrp_cli.gc import find_leaks
 from ccrp_cli.models.state import FleetState, RobotRecord
 from ccrp_cli.providers.base import CloneSpec, OwnedResource, SnapshotRecord
 
-from .aws_fakes import REGION, aws_env, moto_server, moto_url  # noqa: F401 - fixtures
+from .aws_fakes import REGION
 
 INVENTORY = """\
 fleet: gcaws
@@ -52,7 +52,7 @@ def write_inventory(tmp_path, robots: int):
 
 
 @pytest.fixture
-def fleet_on_moto(moto_url, ccrp_home, tmp_path):  # noqa: F811 - the imported fixture
+def fleet_on_moto(moto_url, ccrp_home, tmp_path):
     """Fleet gcaws bootstrapped on the moto server, robot1's clone recorded in state."""
     import boto3
 
@@ -134,7 +134,7 @@ def test_doctor_cli_on_moto(fleet_on_moto, ccrp, ccrp_home):
     assert "limit 5, fleet needs 6" in rows["quota Elastic IPs (one per clone)"]["detail"]
 
 
-def test_doctor_unknown_profile_is_a_failed_row(aws_env, ccrp, tmp_path):  # noqa: F811
+def test_doctor_unknown_profile_is_a_failed_row(aws_env, ccrp, tmp_path):
     path = tmp_path / "p.yaml"
     path.write_text(write_inventory(tmp_path, 1).read_text().replace("kind: aws,", "kind: aws, profile: nosuch,"))
     proc = ccrp("doctor", "-i", str(path))
@@ -142,7 +142,7 @@ def test_doctor_unknown_profile_is_a_failed_row(aws_env, ccrp, tmp_path):  # noq
     assert "nosuch" in proc.stdout and "aws configure" in proc.stdout
 
 
-def test_gc_without_state_refuses_to_delete(moto_url, ccrp, tmp_path):  # noqa: F811
+def test_gc_without_state_refuses_to_delete(moto_url, ccrp, tmp_path):
     import boto3
 
     path = write_inventory(tmp_path, 1)
