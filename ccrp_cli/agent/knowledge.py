@@ -23,6 +23,7 @@ Local control (root only, the socket is the agent user's 0600): `knowledge.py ct
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import json
 import os
@@ -37,11 +38,32 @@ import time
 DEFAULT_CONFIG = "/etc/ccrp/knowledge.json"
 SOCKET = "/run/ccrp-knowledge/ctl.sock"
 NOBODY = "no partner (ccrp)"
-NAME_RE = re.compile(r"^[^/\x00-\x1f\x7f]{1,255}$")
+NAME_CHARS = re.compile(r"[^/\x00-\x1f\x7f]+")
 SHA_RE = re.compile(r"^[0-9a-f]{64}$")
 ROBOT_RE = re.compile(r"^[a-z][a-z0-9-]{0,62}$")
 FETCH_TIMEOUT = 30.0
 MAX_ITEM = 1 << 30
+# An item's name is a file name in files/, and on a conflict gets `.<origin>-<sha8>` added: the
+# file system takes 255 bytes (not characters), so a name keeps room for the longest such suffix
+# (an origin of 63 characters, ROBOT_RE): a longer name would fail on the disk of every clone that
+# shares the dataset, at every start of their agents.
+NAME_BYTES = 255 - len(".-") - 63 - 8  # 182
+
+
+def name_problem(name: object) -> str | None:
+    """Why `name` cannot be an item's name, or None when it can (the CLI, the control socket and
+    peers' records all ask this)."""
+    if not isinstance(name, str) or not name:
+        return "an item needs a name"
+    if name in (".", "..") or not NAME_CHARS.fullmatch(name):
+        return "a file name without '/' or control characters"
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:  # a lone surrogate: from a file name that is not UTF-8
+        return "a name in UTF-8"
+    if size > NAME_BYTES:
+        return f"{size} bytes in UTF-8, over the {NAME_BYTES} an item name may have (a conflict adds .<origin>-<sha8>)"
+    return None
 
 
 def log(msg: str) -> None:
@@ -62,7 +84,7 @@ def valid(rec: object) -> bool:
     """A record as a peer may send it: names that are safe as file names, hashes, sane numbers."""
     try:
         return (isinstance(rec, dict) and set(rec) == {"name", "sha256", "size", "origin", "added", "last", "deleted"}
-                and isinstance(rec["name"], str) and bool(NAME_RE.match(rec["name"])) and rec["name"] not in (".", "..")
+                and name_problem(rec["name"]) is None
                 and isinstance(rec["sha256"], str) and bool(SHA_RE.match(rec["sha256"]))
                 and isinstance(rec["size"], int) and 0 <= rec["size"] <= MAX_ITEM
                 and isinstance(rec["origin"], str) and bool(ROBOT_RE.match(rec["origin"]))
@@ -138,8 +160,8 @@ def write_atomic(path: str, data: bytes) -> None:
 
 
 class Dataset:
-    def __init__(self, root: str, name: str) -> None:
-        self.name, self.dir = name, os.path.join(root, name)
+    def __init__(self, root: str, name: str, report=log) -> None:
+        self.name, self.dir, self.report = name, os.path.join(root, name), report
         for sub in ("objects", "files", "tmp"):
             os.makedirs(os.path.join(self.dir, sub), exist_ok=True)
         # A transfer cut by a crash left its temporary file only: nothing of it was ever an item.
@@ -186,24 +208,41 @@ class Dataset:
         self.refresh()
 
     def refresh(self) -> None:
-        """files/ as the live items, and objects no live item needs removed."""
+        """files/ as the live items, and objects no live item needs removed. An entry the file
+        system refuses (an OSError: a name too long for it, a full disk, a directory put in the
+        way) is reported and skipped: the rest is done, and the agent, which refreshes at every
+        start, keeps running instead of failing on the same record again and again."""
         want = view_names(self.index.values())
         files = os.path.join(self.dir, "files")
         for name in os.listdir(files):
             path = os.path.join(files, name)
             sha = want.get(name)
-            if sha is None or os.stat(path).st_ino != os.stat(self.object(sha)).st_ino:
-                os.unlink(path)
+            try:
+                if sha is None or os.stat(path).st_ino != os.stat(self.object(sha)).st_ino:
+                    os.unlink(path)
+            except OSError as exc:
+                self.skipped(f"files/{name}", exc)
         for name, sha in want.items():
             path = os.path.join(files, name)
             if not os.path.exists(path):
                 tmp = os.path.join(self.dir, "tmp", f"link.{os.getpid()}")
-                os.link(self.object(sha), tmp)
-                os.replace(tmp, path)
+                try:
+                    os.link(self.object(sha), tmp)
+                    os.replace(tmp, path)
+                except OSError as exc:
+                    self.skipped(f"files/{name}", exc)
+                    with contextlib.suppress(OSError):
+                        os.unlink(tmp)  # else the next item's link would find it there (EEXIST)
         needed = {r["sha256"] for r in self.index.values() if live(r)}
         for sha in os.listdir(os.path.join(self.dir, "objects")):
             if sha not in needed:
-                os.unlink(self.object(sha))
+                try:
+                    os.unlink(self.object(sha))
+                except OSError as exc:
+                    self.skipped(f"objects/{sha}", exc)
+
+    def skipped(self, what: str, exc: OSError) -> None:
+        self.report(f"{self.name}: skipped {what!r:.120}: {exc.strerror or exc}")
 
     def absorb(self, rec: dict) -> bool:
         """Merge a record whose object (if it makes the item live) is here. True when it changed."""
@@ -289,7 +328,7 @@ class Agent:
             self.cfg = cfg
             for ds in cfg["datasets"]:
                 if ds not in self.datasets:
-                    self.datasets[ds] = Dataset(cfg["root"], ds)
+                    self.datasets[ds] = Dataset(cfg["root"], ds, self.error)
             for ds in set(self.datasets) - set(cfg["datasets"]):
                 del self.datasets[ds]  # its files stay on disk; it is no longer shared
             if link != self.linked:
@@ -451,8 +490,9 @@ class Agent:
                 return {"ok": True, **d.stats(), "items": listing(d.index.values())}
         if op == "add":
             name = req.get("name")
-            if not isinstance(name, str) or not NAME_RE.match(name) or name in (".", ".."):
-                return {"ok": False, "error": f"bad item name {str(name)[:80]!r}"}
+            problem = name_problem(name)
+            if problem:
+                return {"ok": False, "error": f"bad item name {str(name)[:80]!r}: {problem}"}
             with self.lock:
                 sha = d.store(data or b"")
                 rec = added(d.index, name, sha, len(data or b""), self.cfg["robot"], time.time())
