@@ -48,6 +48,13 @@ MAX_ITEM = 1 << 30
 # (an origin of 63 characters, ROBOT_RE): a longer name would fail on the disk of every clone that
 # shares the dataset, at every start of their agents.
 NAME_BYTES = 255 - len(".-") - 63 - 8  # 182
+# Times decide which of an add and a delete wins, and a new add wins by being 1 ms later: a delete
+# at NaN, infinity or 1e16 (where 1e16 + 1e-3 == 1e16) would win for ever. A peer's time may be at
+# most FUTURE_S ahead of this clock (chrony keeps clones far closer). The index read at start, whose
+# records passed that check when they came, only has to be below MAX_TIME (2100): this clock may
+# have gone back since, and a record dropped there would take its content along.
+FUTURE_S = 600.0
+MAX_TIME = 4102444800.0
 
 
 def name_problem(name: object) -> str | None:
@@ -80,16 +87,19 @@ def live(rec: dict) -> bool:
     return rec["deleted"] is None or rec["last"] > rec["deleted"]
 
 
-def valid(rec: object) -> bool:
-    """A record as a peer may send it: names that are safe as file names, hashes, sane numbers."""
+def valid(rec: object, latest: float = MAX_TIME) -> bool:
+    """A record as a peer may send it: names that are safe as file names, hashes, and numbers that
+    are numbers (not bools, finite, not negative), times not after `latest`."""
+    def when(t: object) -> bool:
+        return isinstance(t, (int, float)) and not isinstance(t, bool) and 0 <= t <= latest  # NaN fails
+
     try:
         return (isinstance(rec, dict) and set(rec) == {"name", "sha256", "size", "origin", "added", "last", "deleted"}
                 and name_problem(rec["name"]) is None
                 and isinstance(rec["sha256"], str) and bool(SHA_RE.match(rec["sha256"]))
-                and isinstance(rec["size"], int) and 0 <= rec["size"] <= MAX_ITEM
+                and type(rec["size"]) is int and 0 <= rec["size"] <= MAX_ITEM  # an int, not a bool
                 and isinstance(rec["origin"], str) and bool(ROBOT_RE.match(rec["origin"]))
-                and all(isinstance(rec[k], (int, float)) for k in ("added", "last"))
-                and (rec["deleted"] is None or isinstance(rec["deleted"], (int, float))))
+                and when(rec["added"]) and when(rec["last"]) and (rec["deleted"] is None or when(rec["deleted"])))
     except (TypeError, KeyError):
         return False
 
@@ -436,8 +446,9 @@ class Agent:
         if d is None or not isinstance(records, list):
             return 0
         changed = 0
+        latest = time.time() + FUTURE_S
         for rec in records:
-            if not valid(rec):
+            if not valid(rec, latest):
                 self.error(f"{ds}: refused a record from {holders}: {json.dumps(rec)[:120]}")
                 continue
             if d.missing(rec):

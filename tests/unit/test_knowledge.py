@@ -128,7 +128,7 @@ def test_a_delete_wins_over_the_adds_it_saw_and_a_new_add_wins_over_it():
 
 @pytest.mark.parametrize("bad", [
     {"name": "../etc/passwd"}, {"name": ".."}, {"name": "a\nb"}, {"name": ""}, {"sha256": "x" * 64},
-    {"size": -1}, {"size": True and "1"}, {"origin": "Nao/1"}, {"added": "soon"}, {"extra": 1},
+    {"size": -1}, {"size": True and "1"}, {"size": 1.0}, {"size": agent.MAX_ITEM + 1}, {"origin": "Nao/1"}, {"added": "soon"}, {"extra": 1},
 ])
 def test_a_peers_bad_record_is_refused(bad):
     assert agent.valid(rec())
@@ -136,6 +136,18 @@ def test_a_peers_bad_record_is_refused(bad):
     assert not agent.valid("not a record")
 
 
+@pytest.mark.parametrize("bad", [
+    {"deleted": 1e16}, {"deleted": float("inf")}, {"deleted": float("nan")}, {"deleted": -1.0}, {"deleted": True},
+    {"added": 1e16}, {"added": float("nan")}, {"added": 10 ** 400}, {"added": False},
+    {"last": float("inf")}, {"last": -0.5}, {"size": True},
+])
+def test_a_peers_numbers_are_bounded(bad):
+    """Non-finite or huge times made a delete permanent: an add 1 ms later is still the delete's
+    time (1e16 + 1e-3 == 1e16), and nothing is later than infinity or NaN."""
+    assert not agent.valid({**rec(), **bad})
+
+
+# -- a dataset on disk ---------------------------------------------------------------------------
 # -- a dataset on disk ---------------------------------------------------------------------------
 
 def test_an_object_with_the_wrong_content_never_becomes_an_item(tmp_path):
@@ -428,6 +440,26 @@ def test_control_requests_that_are_refused(agents):
     too_long = nao1({"op": "add", "dataset": "faces", "name": "é" * 100}, b"x", tmp)
     assert not too_long["ok"] and "200 bytes in UTF-8" in too_long["error"], too_long
     assert nao1({"op": "remove", "dataset": "faces", "item": "nobody.jpg"})["removed"] == []
+
+
+def test_a_peers_time_from_the_future_cannot_make_a_delete_permanent(agents):
+    """A tombstone from a peer with a time past the receiver's clock by more than FUTURE_S (or not
+    a time at all) is refused; one within it is taken, and a new add still wins over it."""
+    start, tmp = agents
+    nao1 = start("nao1")
+    nao1({"op": "add", "dataset": "faces", "name": "eve.jpg"}, b"eve", tmp)
+    item = next(iter(nao1.agent.datasets["faces"].index.values()))
+
+    def take(recs):  # as a peer's event is taken: on the agent's worker
+        return nao1.agent.call(lambda: nao1.agent.take("faces", recs, ["nao2"]))
+
+    now, errors = time.time(), nao1.agent.counts["errors"]
+    for deleted in (1e16, float("inf"), float("nan"), now + 3600):
+        assert take([{**item, "deleted": deleted}]) == 0, deleted
+    assert names(nao1) == [("eve.jpg", "nao1")] and nao1.agent.counts["errors"] == errors + 4
+    assert take([{**item, "deleted": now + 60}]) == 1 and names(nao1) == []
+    nao1({"op": "add", "dataset": "faces", "name": "eve.jpg"}, b"eve", tmp)
+    assert names(nao1) == [("eve.jpg", "nao1")]
 
 
 # -- the commands' bad input: one line, exit 2, before any clone is asked ---------------------------
