@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import base64
 import json
-import re
 import secrets
 from pathlib import Path
 
+from .agent.knowledge import name_problem
 from .errors import CcrpError, InputError, shown
 from .fleet import Fleet
 from .models.state import FleetState
@@ -30,7 +30,6 @@ STATUS = f"{RUN}/status.json"
 AGENT = f"{CCRP_LIB}/knowledge.py"
 # What one `knowledge add` moves per file: it is pushed whole, base64 in memory, through the provider.
 MAX_ITEM = 64 << 20
-ITEM_NAME = re.compile(r"^[^/\x00-\x1f\x7f]{1,255}$")
 
 
 def knowledge_config(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> dict | None:
@@ -143,9 +142,12 @@ def list_items(fleet: Fleet, provider, robot: str, dataset: str) -> dict:
 
 
 def item_name(path: Path) -> str:
+    """The file's name as the item's, checked as the agents check it (agent/knowledge.py), so a
+    name no clone could store is refused here, before anything is sent."""
     name = path.name
-    if not ITEM_NAME.match(name) or name in (".", ".."):
-        raise InputError(f"cannot name an item {shown(name)}: a file name without control characters")
+    problem = name_problem(name)
+    if problem:
+        raise InputError(f"cannot name an item {shown(name)}: {problem}")
     return name
 
 

@@ -30,9 +30,23 @@ REPORT_S = 3.0  # the device reports every 3 s; three missed reports make it sil
 SILENT_S = 3 * REPORT_S
 ACTIONS = ("on", "off", "status", "bundle")
 # Writes a state file atomically and prints the clone's clock then (reports carry the clone's
-# time): a constant script, the path and state as arguments.
-SET_STATE = ["/bin/sh", "-c", 'mkdir -p "${1%/*}" && printf "%s\\n" "$2" > "$1.tmp" && mv "$1.tmp" "$1" && date +%s',
-             "ccrp-power"]
+# time): a constant script, the path and state as arguments. It runs as root in /run/ccrp-power,
+# which the agent's user owns: a link that user plants must not redirect root's write. So the
+# temporary file is new and root's own (mkstemp: a random name, O_CREAT|O_EXCL|O_NOFOLLOW, so a
+# link under that name fails the open instead of being followed), 0644 for the agent to read,
+# and the rename replaces whatever is at the path (a link too) without following it. -I: root's
+# Python imports nothing from the working directory or the environment.
+SET_STATE = ["/usr/bin/python3", "-I", "-c", """
+import os, sys, tempfile, time
+path, state = sys.argv[1:]
+os.makedirs(os.path.dirname(path), exist_ok=True)
+fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=os.path.basename(path) + ".")
+os.fchmod(fd, 0o644)
+os.write(fd, (state + "\\n").encode())
+os.close(fd)
+os.replace(tmp, path)
+print(int(time.time()))
+"""]
 
 
 def parse_report(text: str, now: float | None = None) -> dict | None:

@@ -23,6 +23,7 @@ Local control (root only, the socket is the agent user's 0600): `knowledge.py ct
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import json
 import os
@@ -37,11 +38,39 @@ import time
 DEFAULT_CONFIG = "/etc/ccrp/knowledge.json"
 SOCKET = "/run/ccrp-knowledge/ctl.sock"
 NOBODY = "no partner (ccrp)"
-NAME_RE = re.compile(r"^[^/\x00-\x1f\x7f]{1,255}$")
+NAME_CHARS = re.compile(r"[^/\x00-\x1f\x7f]+")
 SHA_RE = re.compile(r"^[0-9a-f]{64}$")
 ROBOT_RE = re.compile(r"^[a-z][a-z0-9-]{0,62}$")
 FETCH_TIMEOUT = 30.0
 MAX_ITEM = 1 << 30
+# An item's name is a file name in files/, and on a conflict gets `.<origin>-<sha8>` added: the
+# file system takes 255 bytes (not characters), so a name keeps room for the longest such suffix
+# (an origin of 63 characters, ROBOT_RE): a longer name would fail on the disk of every clone that
+# shares the dataset, at every start of their agents.
+NAME_BYTES = 255 - len(".-") - 63 - 8  # 182
+# Times decide which of an add and a delete wins, and a new add wins by being 1 ms later: a delete
+# at NaN, infinity or 1e16 (where 1e16 + 1e-3 == 1e16) would win for ever. A peer's time may be at
+# most FUTURE_S ahead of this clock (chrony keeps clones far closer). The index read at start, whose
+# records passed that check when they came, only has to be below MAX_TIME (2100): this clock may
+# have gone back since, and a record dropped there would take its content along.
+FUTURE_S = 600.0
+MAX_TIME = 4102444800.0
+
+
+def name_problem(name: object) -> str | None:
+    """Why `name` cannot be an item's name, or None when it can (the CLI, the control socket and
+    peers' records all ask this)."""
+    if not isinstance(name, str) or not name:
+        return "an item needs a name"
+    if name in (".", "..") or not NAME_CHARS.fullmatch(name):
+        return "a file name without '/' or control characters"
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:  # a lone surrogate: from a file name that is not UTF-8
+        return "a name in UTF-8"
+    if size > NAME_BYTES:
+        return f"{size} bytes in UTF-8, over the {NAME_BYTES} an item name may have (a conflict adds .<origin>-<sha8>)"
+    return None
 
 
 def log(msg: str) -> None:
@@ -58,16 +87,19 @@ def live(rec: dict) -> bool:
     return rec["deleted"] is None or rec["last"] > rec["deleted"]
 
 
-def valid(rec: object) -> bool:
-    """A record as a peer may send it: names that are safe as file names, hashes, sane numbers."""
+def valid(rec: object, latest: float = MAX_TIME) -> bool:
+    """A record as a peer may send it: names that are safe as file names, hashes, and numbers that
+    are numbers (not bools, finite, not negative), times not after `latest`."""
+    def when(t: object) -> bool:
+        return isinstance(t, (int, float)) and not isinstance(t, bool) and 0 <= t <= latest  # NaN fails
+
     try:
         return (isinstance(rec, dict) and set(rec) == {"name", "sha256", "size", "origin", "added", "last", "deleted"}
-                and isinstance(rec["name"], str) and bool(NAME_RE.match(rec["name"])) and rec["name"] not in (".", "..")
+                and name_problem(rec["name"]) is None
                 and isinstance(rec["sha256"], str) and bool(SHA_RE.match(rec["sha256"]))
-                and isinstance(rec["size"], int) and 0 <= rec["size"] <= MAX_ITEM
+                and type(rec["size"]) is int and 0 <= rec["size"] <= MAX_ITEM  # an int, not a bool
                 and isinstance(rec["origin"], str) and bool(ROBOT_RE.match(rec["origin"]))
-                and all(isinstance(rec[k], (int, float)) for k in ("added", "last"))
-                and (rec["deleted"] is None or isinstance(rec["deleted"], (int, float))))
+                and when(rec["added"]) and when(rec["last"]) and (rec["deleted"] is None or when(rec["deleted"])))
     except (TypeError, KeyError):
         return False
 
@@ -138,8 +170,8 @@ def write_atomic(path: str, data: bytes) -> None:
 
 
 class Dataset:
-    def __init__(self, root: str, name: str) -> None:
-        self.name, self.dir = name, os.path.join(root, name)
+    def __init__(self, root: str, name: str, report=log) -> None:
+        self.name, self.dir, self.report = name, os.path.join(root, name), report
         for sub in ("objects", "files", "tmp"):
             os.makedirs(os.path.join(self.dir, sub), exist_ok=True)
         # A transfer cut by a crash left its temporary file only: nothing of it was ever an item.
@@ -186,24 +218,41 @@ class Dataset:
         self.refresh()
 
     def refresh(self) -> None:
-        """files/ as the live items, and objects no live item needs removed."""
+        """files/ as the live items, and objects no live item needs removed. An entry the file
+        system refuses (an OSError: a name too long for it, a full disk, a directory put in the
+        way) is reported and skipped: the rest is done, and the agent, which refreshes at every
+        start, keeps running instead of failing on the same record again and again."""
         want = view_names(self.index.values())
         files = os.path.join(self.dir, "files")
         for name in os.listdir(files):
             path = os.path.join(files, name)
             sha = want.get(name)
-            if sha is None or os.stat(path).st_ino != os.stat(self.object(sha)).st_ino:
-                os.unlink(path)
+            try:
+                if sha is None or os.stat(path).st_ino != os.stat(self.object(sha)).st_ino:
+                    os.unlink(path)
+            except OSError as exc:
+                self.skipped(f"files/{name}", exc)
         for name, sha in want.items():
             path = os.path.join(files, name)
             if not os.path.exists(path):
                 tmp = os.path.join(self.dir, "tmp", f"link.{os.getpid()}")
-                os.link(self.object(sha), tmp)
-                os.replace(tmp, path)
+                try:
+                    os.link(self.object(sha), tmp)
+                    os.replace(tmp, path)
+                except OSError as exc:
+                    self.skipped(f"files/{name}", exc)
+                    with contextlib.suppress(OSError):
+                        os.unlink(tmp)  # else the next item's link would find it there (EEXIST)
         needed = {r["sha256"] for r in self.index.values() if live(r)}
         for sha in os.listdir(os.path.join(self.dir, "objects")):
             if sha not in needed:
-                os.unlink(self.object(sha))
+                try:
+                    os.unlink(self.object(sha))
+                except OSError as exc:
+                    self.skipped(f"objects/{sha}", exc)
+
+    def skipped(self, what: str, exc: OSError) -> None:
+        self.report(f"{self.name}: skipped {what!r:.120}: {exc.strerror or exc}")
 
     def absorb(self, rec: dict) -> bool:
         """Merge a record whose object (if it makes the item live) is here. True when it changed."""
@@ -289,7 +338,7 @@ class Agent:
             self.cfg = cfg
             for ds in cfg["datasets"]:
                 if ds not in self.datasets:
-                    self.datasets[ds] = Dataset(cfg["root"], ds)
+                    self.datasets[ds] = Dataset(cfg["root"], ds, self.error)
             for ds in set(self.datasets) - set(cfg["datasets"]):
                 del self.datasets[ds]  # its files stay on disk; it is no longer shared
             if link != self.linked:
@@ -397,8 +446,9 @@ class Agent:
         if d is None or not isinstance(records, list):
             return 0
         changed = 0
+        latest = time.time() + FUTURE_S
         for rec in records:
-            if not valid(rec):
+            if not valid(rec, latest):
                 self.error(f"{ds}: refused a record from {holders}: {json.dumps(rec)[:120]}")
                 continue
             if d.missing(rec):
@@ -451,8 +501,9 @@ class Agent:
                 return {"ok": True, **d.stats(), "items": listing(d.index.values())}
         if op == "add":
             name = req.get("name")
-            if not isinstance(name, str) or not NAME_RE.match(name) or name in (".", ".."):
-                return {"ok": False, "error": f"bad item name {str(name)[:80]!r}"}
+            problem = name_problem(name)
+            if problem:
+                return {"ok": False, "error": f"bad item name {str(name)[:80]!r}: {problem}"}
             with self.lock:
                 sha = d.store(data or b"")
                 rec = added(d.index, name, sha, len(data or b""), self.cfg["robot"], time.time())

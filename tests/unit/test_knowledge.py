@@ -128,7 +128,7 @@ def test_a_delete_wins_over_the_adds_it_saw_and_a_new_add_wins_over_it():
 
 @pytest.mark.parametrize("bad", [
     {"name": "../etc/passwd"}, {"name": ".."}, {"name": "a\nb"}, {"name": ""}, {"sha256": "x" * 64},
-    {"size": -1}, {"size": True and "1"}, {"origin": "Nao/1"}, {"added": "soon"}, {"extra": 1},
+    {"size": -1}, {"size": True and "1"}, {"size": 1.0}, {"size": agent.MAX_ITEM + 1}, {"origin": "Nao/1"}, {"added": "soon"}, {"extra": 1},
 ])
 def test_a_peers_bad_record_is_refused(bad):
     assert agent.valid(rec())
@@ -136,6 +136,18 @@ def test_a_peers_bad_record_is_refused(bad):
     assert not agent.valid("not a record")
 
 
+@pytest.mark.parametrize("bad", [
+    {"deleted": 1e16}, {"deleted": float("inf")}, {"deleted": float("nan")}, {"deleted": -1.0}, {"deleted": True},
+    {"added": 1e16}, {"added": float("nan")}, {"added": 10 ** 400}, {"added": False},
+    {"last": float("inf")}, {"last": -0.5}, {"size": True},
+])
+def test_a_peers_numbers_are_bounded(bad):
+    """Non-finite or huge times made a delete permanent: an add 1 ms later is still the delete's
+    time (1e16 + 1e-3 == 1e16), and nothing is later than infinity or NaN."""
+    assert not agent.valid({**rec(), **bad})
+
+
+# -- a dataset on disk ---------------------------------------------------------------------------
 # -- a dataset on disk ---------------------------------------------------------------------------
 
 def test_an_object_with_the_wrong_content_never_becomes_an_item(tmp_path):
@@ -168,6 +180,73 @@ def test_files_view_follows_the_index_and_unused_objects_go(tmp_path):
     assert agent.listing(again.index.values()) == agent.listing(d.index.values())
     os.unlink(tmp_path / "faces" / "objects" / one["sha256"])
     assert agent.listing(agent.Dataset(str(tmp_path), "faces").index.values()) == []
+
+
+def test_item_names_are_limited_in_bytes_with_room_for_the_conflict_suffix(tmp_path):
+    """A name is a file name on every clone: 255 bytes, not characters, and a conflict adds
+    `.<origin>-<sha8>` to it. The longest name allowed still fits with the longest origin."""
+    longest = "a" * 178 + ".jpg"
+    assert agent.valid({**rec(), "name": longest}) and len(longest.encode()) == 182
+    for bad in ("é" * 100, "a" * 183, "a.jpg\n", "\udcff.jpg", "."):
+        assert not agent.valid({**rec(), "name": bad}), bad
+        assert agent.name_problem(bad), bad
+    assert "200 bytes in UTF-8, over the 182" in agent.name_problem("é" * 100)
+    # Two contents under the longest name, from an origin of the longest robot name: both on disk.
+    origin = "r" * 63
+    d = agent.Dataset(str(tmp_path), "faces")
+    for data in (b"one", b"two"):
+        r = rec(name=longest, data=data, origin=origin)
+        d.store(data, r["sha256"])
+        d.absorb(r)
+    d.save()
+    on_disk = os.listdir(tmp_path / "faces" / "files")
+    assert len(on_disk) == 2 and max(len(n.encode()) for n in on_disk) == 255
+
+
+def test_the_cli_refuses_a_name_no_clone_could_store(tmp_path):
+    from ccrp_cli import knowledge
+    from ccrp_cli.errors import InputError
+
+    long_name = tmp_path / ("é" * 100)  # 200 bytes: fits this disk, not an item with its suffix
+    long_name.write_bytes(b"x")
+    with pytest.raises(InputError) as err:
+        knowledge.read_items([long_name])
+    line = err.value.one_line()
+    assert "200 bytes in UTF-8, over the 182" in line and "\n" not in line, line
+    ok = tmp_path / "alice.jpg"
+    ok.write_bytes(b"x")
+    assert knowledge.read_items([ok]) == [("alice.jpg", b"x")]
+
+
+def test_a_record_the_disk_refuses_is_skipped_and_reported_never_fatal(tmp_path):
+    """An index written before names were limited in bytes (a 400-byte name, the record kept)
+    made every start fail with ENAMETOOLONG: such a record is dropped when the index is read, and
+    anything else the file system refuses while files/ is made is reported and skipped."""
+    good, long = rec(name="bob.jpg", data=b"bob"), rec(name="é" * 200, data=b"long")
+    faces = tmp_path / "faces"
+    (faces / "objects").mkdir(parents=True)
+    for r, data in ((good, b"bob"), (long, b"long")):
+        (faces / "objects" / r["sha256"]).write_bytes(data)
+    (faces / "index.json").write_text(json.dumps([good, long]))
+    d = agent.Dataset(str(tmp_path), "faces")
+    assert os.listdir(faces / "files") == ["bob.jpg"] and list(d.index) == [agent.key(good)]
+    reports = []
+    d.report = reports.append  # the agent passes its error(): counted, in `ccrp status`, logged
+    # A record that gets past the checks and still cannot be put on disk (here the 400-byte name
+    # again; a full disk or a directory in the way alike): the others are done, it is reported.
+    d.store(b"long", long["sha256"])
+    d.index[agent.key(long)] = long
+    (faces / "files" / "bob.jpg").unlink()
+    (faces / "files" / "carol.jpg").mkdir()
+    carol = rec(name="carol.jpg", data=b"carol")
+    d.store(b"carol", carol["sha256"])
+    d.absorb(carol)
+    d.save()
+    assert sorted(os.listdir(faces / "files")) == ["bob.jpg", "carol.jpg"]
+    assert (faces / "files" / "bob.jpg").read_bytes() == b"bob" and os.listdir(faces / "tmp") == []
+    assert any("File name too long" in m for m in reports), reports
+    assert any("carol.jpg" in m and "directory" in m.lower() for m in reports), reports
+    assert all("\n" not in m for m in reports)
 
 
 # -- each clone's config -------------------------------------------------------------------------
@@ -358,7 +437,29 @@ def test_control_requests_that_are_refused(agents):
     assert nao1({"op": "list", "dataset": "faces"})["items"] == []
     assert not nao1({"op": "list", "dataset": "maps"})["ok"]
     assert "bad item name" in nao1({"op": "add", "dataset": "faces", "name": "../x"}, b"x", tmp)["error"]
+    too_long = nao1({"op": "add", "dataset": "faces", "name": "é" * 100}, b"x", tmp)
+    assert not too_long["ok"] and "200 bytes in UTF-8" in too_long["error"], too_long
     assert nao1({"op": "remove", "dataset": "faces", "item": "nobody.jpg"})["removed"] == []
+
+
+def test_a_peers_time_from_the_future_cannot_make_a_delete_permanent(agents):
+    """A tombstone from a peer with a time past the receiver's clock by more than FUTURE_S (or not
+    a time at all) is refused; one within it is taken, and a new add still wins over it."""
+    start, tmp = agents
+    nao1 = start("nao1")
+    nao1({"op": "add", "dataset": "faces", "name": "eve.jpg"}, b"eve", tmp)
+    item = next(iter(nao1.agent.datasets["faces"].index.values()))
+
+    def take(recs):  # as a peer's event is taken: on the agent's worker
+        return nao1.agent.call(lambda: nao1.agent.take("faces", recs, ["nao2"]))
+
+    now, errors = time.time(), nao1.agent.counts["errors"]
+    for deleted in (1e16, float("inf"), float("nan"), now + 3600):
+        assert take([{**item, "deleted": deleted}]) == 0, deleted
+    assert names(nao1) == [("eve.jpg", "nao1")] and nao1.agent.counts["errors"] == errors + 4
+    assert take([{**item, "deleted": now + 60}]) == 1 and names(nao1) == []
+    nao1({"op": "add", "dataset": "faces", "name": "eve.jpg"}, b"eve", tmp)
+    assert names(nao1) == [("eve.jpg", "nao1")]
 
 
 # -- the commands' bad input: one line, exit 2, before any clone is asked ---------------------------

@@ -169,6 +169,51 @@ def test_the_clone_agent_answers_only_its_device_and_only_reports(agents):
     assert json.loads((tmp / "report").read_text())["relay"] == "off"
 
 
+@pytest.mark.parametrize("bad", [
+    b"[" * 1000,  # json's RecursionError
+    b'{"relay": "on", "robot": "running", "t": 1' + b"0" * 400 + b"}",  # an int no float holds (OverflowError)
+    b'{"relay": "on", "robot": "running", "t": NaN}', b'{"relay": "on", "robot": "running", "t": Infinity}',
+    b'{"relay": "on", "robot": "running", "t": true}', b'{"relay": "on", "robot": "running", "t": "1.5"}',
+    b'{"relay": ["on"], "robot": "running"}', b'["on", "running"]', b'"on"',
+])
+def test_a_malformed_report_is_dropped_and_the_agent_keeps_serving(agents, capsys, bad):
+    """Whoever holds the device's key and password writes the report line: one that is not a
+    report (whatever json makes of it) is dropped and logged, and the next good report is served."""
+    device, cfg, tmp = agents
+    with socket.create_connection(("127.0.0.1", int(cfg["CCRP_POWER_PORT"])), timeout=3) as conn:
+        conn.sendall(bad + b"\n")
+        assert no_answer(conn)
+    assert not (tmp / "report").exists()
+    assert device["exchange"](cfg, {"relay": "off", "robot": "off", "t": 3.0}) is None  # still serving
+    assert json.loads((tmp / "report").read_text())["device_t"] == 3.0
+    assert "ccrp-power: a report from 127.0.0.1 refused: " in capsys.readouterr().err
+
+
+def test_roots_wish_goes_through_no_link_the_agents_user_planted(tmp_path, monkeypatch):
+    """`ccrp robot power` writes the wish as root in /run/ccrp-power, which the power agent's user
+    owns: a link that user put where root writes (the temporary file's old name, or the wish
+    itself) must not carry root's write to another file. The agent still reads the wish."""
+    from ccrp_cli import power
+    from ccrp_cli.agent import power as clone_agent
+
+    run = tmp_path / "ccrp-power"
+    run.mkdir()
+    victim = tmp_path / "shadow"
+    victim.write_text("root's file\n")
+    (run / "want.tmp").symlink_to(victim)
+    want = run / "want"
+    want.symlink_to(victim)
+    argv = [*power.SET_STATE, str(want), "off"]
+    argv[0] = sys.executable if "python" in argv[0] else argv[0]  # the clone's /usr/bin/python3; here, this one
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0 and done.stdout.strip().isdigit(), done.stderr
+    assert victim.read_text() == "root's file\n"
+    assert not want.is_symlink() and want.read_text() == "off\n" and want.stat().st_mode & 0o777 == 0o644
+    assert sorted(p.name for p in run.iterdir()) == ["want", "want.tmp"]  # no temporary file left behind
+    monkeypatch.setattr(clone_agent, "WANT", str(want))
+    assert clone_agent.wanted() == "off"
+
+
 def test_the_clone_learns_the_device_without_a_restart_and_without_hiding_stale_keys(lab):
     """push_passwd: the running clone's passwd names the device (no unit restarted); the marker of
     applied keys goes with it only when the clone's other keys are the current ones, else the next
