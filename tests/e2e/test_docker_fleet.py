@@ -916,7 +916,7 @@ def test_knowledge_reaches_every_clone_with_a_conflict_a_deletion_and_a_missed_e
 
     # merge: the bags two clones recorded, fetched from a third as one bag in time order (merge_bag).
     pytest.importorskip("rosbags")
-    from tests.unit.test_knowledge import read_bag, write_bag
+    from tests.unit.helpers import read_bag, write_bag
 
     bags = [fleet.tmp / "knowledge" / "a" / "nao1-faces.bag", fleet.tmp / "knowledge" / "b" / "nao2-faces.bag"]
     write_bag(bags[0], [("/faces", 1000, "alice"), ("/faces", 3000, "bob")])

@@ -30,3 +30,27 @@ def load_agent():
     finally:
         for name in stubs:
             sys.modules.pop(name, None)
+
+
+def write_bag(path: Path, messages: list[tuple[str, int, str]]) -> None:
+    """A ROS 1 bag of std_msgs/String messages: (topic, time in ns, text)."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    String = store.types["std_msgs/msg/String"]
+    with Writer(path) as w:
+        conns = {}
+        for topic, t, text in messages:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, "std_msgs/msg/String", typestore=store)
+            w.write(conns[topic], t, store.serialize_ros1(String(data=text), "std_msgs/msg/String"))
+
+
+def read_bag(path: Path) -> list[tuple[str, int, str]]:
+    from rosbags.rosbag1 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    with Reader(path) as r:
+        return [(c.topic, t, store.deserialize_ros1(data, c.msgtype).data) for c, t, data in r.messages()]

@@ -19,6 +19,7 @@ import pytest
 from ccrp_cli.agent import knowledge as agent
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.loader import parse_inventory
+from tests.unit.helpers import read_bag, write_bag
 
 BASE = {"fleet": "f", "provider": {"kind": "docker"}, "robots": [{"name": "nao1"}, {"name": "nao2"}, {"name": "tb1"}]}
 
@@ -477,30 +478,6 @@ def test_bad_input_is_one_line_and_exit_2(ccrp, args, why):
 
 
 # -- merge: one bag from a dataset's bags --------------------------------------------------------
-
-def write_bag(path: Path, messages: list[tuple[str, int, str]]) -> None:
-    """A ROS 1 bag of std_msgs/String messages: (topic, time in ns, text)."""
-    from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS1_NOETIC)
-    String = store.types["std_msgs/msg/String"]
-    with Writer(path) as w:
-        conns = {}
-        for topic, t, text in messages:
-            if topic not in conns:
-                conns[topic] = w.add_connection(topic, "std_msgs/msg/String", typestore=store)
-            w.write(conns[topic], t, store.serialize_ros1(String(data=text), "std_msgs/msg/String"))
-
-
-def read_bag(path: Path) -> list[tuple[str, int, str]]:
-    from rosbags.rosbag1 import Reader
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS1_NOETIC)
-    with Reader(path) as r:
-        return [(c.topic, t, store.deserialize_ros1(data, c.msgtype).data) for c, t, data in r.messages()]
-
 
 def test_merge_bags_in_time_order_each_message_once(tmp_path):
     pytest.importorskip("rosbags")
