@@ -82,20 +82,21 @@ def clone_images():
 # contract suite's Docker harness uses fixed ranges, so its tests stay on one worker too. Units start
 # longest first (measured: docs/benchmarks.md "Test suite"), unit tests fill the gaps at the end.
 SLOWEST_FIRST = [
-    "tests/scenarios/test_user_path.py[openstack]", "tests/scenarios/test_user_path.py[aws]",
-    "tests/scenarios/test_user_path.py[gcp]", "tests/scenarios/test_jazzy_cloud.py", "tests/e2e/test_docker_fleet.py",
-    "tests/e2e/test_gce_startup_script.py", "tests/scenarios/test_user_path.py[docker]",
+    "tests/scenarios/test_user_path.py/openstack", "tests/scenarios/test_user_path.py/aws",
+    "tests/scenarios/test_user_path.py/gcp", "tests/scenarios/test_jazzy_cloud.py", "tests/e2e/test_docker_fleet.py",
+    "tests/e2e/test_gce_startup_script.py", "tests/scenarios/test_user_path.py/docker",
 ]
 
 
 def _group(item) -> str | None:
+    """The item's work unit (no "]" in it: xdist would not see the group after one)."""
     path = item.nodeid.split("::")[0]
     if path.startswith("tests/scenarios/test_user_path.py"):
-        return f"{path}[{item.callspec.params['run']}]"
+        return f"{path}/{item.callspec.params['run']}"
     if path.startswith(("tests/e2e/", "tests/scenarios/", "tests/live/")):
         return path
     if path.startswith("tests/contract/"):
-        return f"{path}[{item.callspec.params['harness']}]" if hasattr(item, "callspec") else path
+        return f"{path}/{item.callspec.params['harness']}" if hasattr(item, "callspec") else path
     return None
 
 
