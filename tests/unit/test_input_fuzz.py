@@ -7,6 +7,7 @@ point, in process, with `fleet validate` (it loads the inventory first and write
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -19,7 +20,8 @@ from tests.conftest import INVENTORIES
 from tests.unit.inprocess_cli import run_ccrp_inprocess
 from tests.unit.trees import nodes, replaced
 
-EXAMPLES = 1000
+# `make quick` asks for fewer (CCRP_FUZZ_EXAMPLES): the development loop, not the proof `make test` is.
+EXAMPLES = int(os.environ.get("CCRP_FUZZ_EXAMPLES", "1000"))
 BASES = [yaml.safe_load(p.read_text()) for p in INVENTORIES]
 HOLE = "HOLE0HOLE"  # a plain scalar safe_dump never quotes: replaced in the text by raw YAML
 
