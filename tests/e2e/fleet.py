@@ -290,14 +290,14 @@ def tcp_probe(container, targets: list[tuple[str, int]]) -> dict[str, str]:
     return json.loads(out.strip().splitlines()[-1])
 
 
-def relay_journals(fleet: E2EFleet, robots: list[str]) -> str:
-    """The relay agents' logs and status files, for a failure message."""
+def agent_journals(fleet: E2EFleet, robots, agent: str = "relay") -> str:
+    """An agent's log (unit ccrp-<agent>) and status file on each robot's clone, for a failure message."""
     out = []
     for robot in robots:
         clone = fleet.container("clone", robot)
-        _, log = exec_in(clone, ["journalctl", "-u", "ccrp-relay", "--no-pager", "-o", "cat", "-n", "30"])
-        _, status = exec_in(clone, ["cat", "/run/ccrp-relay/status.json"])
-        out.append(f"--- relay of {robot}: {status.strip()}\n{log[-1500:]}")
+        _, log = exec_in(clone, ["journalctl", "-u", f"ccrp-{agent}", "--no-pager", "-o", "cat", "-n", "30"])
+        _, status = exec_in(clone, ["cat", f"/run/ccrp-{agent}/status.json"])
+        out.append(f"--- {agent} agent of {robot}: {status.strip()}\n{log[-1500:]}")
     return "\n".join(out)
 
 

@@ -67,7 +67,7 @@ from tests.e2e.fleet import (
     connected,
     exec_in,
     master_probe,
-    relay_journals,
+    agent_journals,
     start_fleet,
     tcp_probe,
     wait_for,
@@ -440,7 +440,7 @@ def test_robot_topic_reaches_other_robot_only_through_both_clones(fleet: E2EFlee
     marker = "face-" + secrets.token_hex(6)
     rc, out = relay_through(nao1, "/faces", nao2, "/nao1/faces", marker)
     assert rc == 0 and marker in out, (f"/faces of robot nao1 never reached robot nao2 as /nao1/faces: {out[-800:]}\n"
-                                       f"{relay_journals(fleet, ['nao1', 'nao2'])}")
+                                       f"{agent_journals(fleet, ['nao1', 'nao2'])}")
     # ... and the other way round, with nao2's identical topic name kept apart as /nao2/faces.
     rc, out = relay_through(nao2, "/faces", nao1, "/nao2/faces", marker + "b")
     assert rc == 0 and marker + "b" in out, out[-800:]
@@ -812,16 +812,6 @@ FACES = "/var/lib/ccrp/knowledge/faces"
 SYNC_TIMEOUT = 15.0
 
 
-def knowledge_journal(fleet: E2EFleet, robots=ROBOTS) -> str:
-    out = []
-    for robot in robots:
-        clone = fleet.container("clone", robot)
-        _, log = exec_in(clone, ["journalctl", "-u", "ccrp-knowledge", "--no-pager", "-o", "cat", "-n", "20"])
-        _, status = exec_in(clone, ["cat", "/run/ccrp-knowledge/status.json"])
-        out.append(f"--- knowledge agent of {robot}: {status.strip()}\n{log[-1500:]}")
-    return "\n".join(out)
-
-
 def dataset_files(fleet: E2EFleet, robot: str, sub: str = "files") -> dict[str, str]:
     """name -> sha256 of what the clone's dataset holds under `sub` (files/: the items by name)."""
     _, out = exec_in(fleet.container("clone", robot),
@@ -855,7 +845,7 @@ def test_knowledge_reaches_every_clone_with_a_conflict_a_deletion_and_a_missed_e
         return all(peers.get(p) is True for p in ROBOTS if p != robot)
 
     wait_for("every knowledge agent linked to its partners",
-             lambda: (all(linked(r) for r in ROBOTS), knowledge_journal(fleet)), 30)
+             lambda: (all(linked(r) for r in ROBOTS), agent_journals(fleet, ROBOTS, "knowledge")), 30)
     for robot in ROBOTS:
         rc, out = exec_in(fleet.container("clone", robot), ["stat", "-c", "%U %a", FACES])
         assert out.split() == ["ccrp-knowledge", "755"], out
@@ -910,7 +900,7 @@ def test_knowledge_reaches_every_clone_with_a_conflict_a_deletion_and_a_missed_e
     # The killed agent is started again by systemd 2 s later (RestartSec): its fetch may have ended
     # before the kill, so the items can be whole before its control socket is back.
     wait_for("turtlebot1's knowledge agent back", lambda: (
-        exec_in(tb, ["test", "-S", "/run/ccrp-knowledge/ctl.sock"])[0] == 0, knowledge_journal(fleet)), 30)
+        exec_in(tb, ["test", "-S", "/run/ccrp-knowledge/ctl.sock"])[0] == 0, agent_journals(fleet, ROBOTS, "knowledge")), 30)
     reply = fleet.json("knowledge", "sync", "--robot", "turtlebot1", "--dataset", "faces")
     assert (reply["changed"], reply["items"], reply["tombstones"] - before) == (0, 2, 2), reply
 

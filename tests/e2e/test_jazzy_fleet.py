@@ -21,7 +21,7 @@ import pytest
 
 from tests.e2e.browser import MISSING, cell, chromium, press, received_commands, running_dashboard, wait
 from tests.e2e.fleet import CAPTURE as COMMON_CAPTURE
-from tests.e2e.fleet import NO_DOCKER, E2EFleet, exec_in, relay_journals, start_fleet, wait_for
+from tests.e2e.fleet import NO_DOCKER, E2EFleet, exec_in, agent_journals, start_fleet, wait_for
 
 pytestmark = [
     pytest.mark.slow,
@@ -236,7 +236,7 @@ def test_a_topic_nao1_exports_reaches_nao2s_clone_with_its_type_and_qos(fleet: E
     nao2's clone publishes what comes as /nao1/chatter; nao1's unexported topics stay home."""
     clone1, clone2 = fleet.container("clone", "nao1"), fleet.container("clone", "nao2")
     rc, out = exec_in(clone2, ["ccrp-topic", "echo", "/nao1/chatter", "-n", "3", "-t", "30"], timeout=50)
-    assert rc == 0 and out.count('{"data": "hello from nao1 #') == 3, f"{out}\n{relay_journals(fleet, ['nao1', 'nao2'])}"
+    assert rc == 0 and out.count('{"data": "hello from nao1 #') == 3, f"{out}\n{agent_journals(fleet, ['nao1', 'nao2'])}"
     # A graph snapshot may list a topic before its publishers' QoS has come in: asked again then.
     home, there = wait_for("the publishers' QoS on both clones' graphs", lambda: (
         (g := (_graph_qos(clone1), _graph_qos(clone2)))[0].get("/chatter") and g[1].get("/nao1/chatter"), g), 30)
@@ -265,7 +265,7 @@ def test_what_nao2_imports_reaches_robot_nao2_itself(fleet: E2EFleet, sim) -> No
             rc, out = exec_in(robot2, ["ccrp-topic", "echo", "/nao1/chatter", "-n", "2", "-t", "30"], timeout=50)
             crc, captured = capture.result()
         assert rc == 0 and out.count('{"data": "hello from nao1 #') == 2, \
-            f"{out}\n{relay_journals(fleet, ['nao1', 'nao2'])}"
+            f"{out}\n{agent_journals(fleet, ['nao1', 'nao2'])}"
         iface, nbytes, found = captured.split()[-3:]
         assert crc == 0 and int(nbytes) > 1000 and found == "False", captured[-800:]
         # nao1's own topics are nao1's: robot nao2 sees its import, never nao1's /chatter itself.
