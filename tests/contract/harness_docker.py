@@ -155,8 +155,14 @@ def make_harness(tmp_path):
         from ccrp_cli.providers.docker import images
         from ccrp_cli.recipes import platform
 
+        from tests.locks import host_lock
+
         pkgs = sorted(set(images.BASE_PACKAGES + platform("noetic", "docker").packages))
-        images.build_base_image(raw, BASE, pkgs)
+        with host_lock("ccrp-base"):  # the e2e modules' clone_images builds it too (tests/e2e/fleet.py)
+            try:
+                raw.images.get(BASE)
+            except docker.errors.ImageNotFound:
+                images.build_base_image(raw, BASE, pkgs)
     built = _tiny_image(raw)
     from ccrp_cli.providers.docker.provider import DockerProvider
 

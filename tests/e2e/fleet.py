@@ -383,20 +383,19 @@ def warm_snapshot(client, distro: str) -> str:
     """Build the clone image of `distro` once, as `ccrp snapshot build` does (same Dockerfile and
     context), and keep it tagged between runs: every fleet's own `snapshot build` then finds each
     layer in Docker's cache and takes seconds. A lock file makes parallel workers build it once."""
-    import fcntl
-
     from ccrp_cli.providers.docker import images
     from ccrp_cli.recipes import platform
+    from tests.locks import host_lock
 
     plat = platform(distro, "docker")
     tag = SNAPSHOT_CACHE.format(distro=distro)
     base_packages = sorted(set(images.BASE_PACKAGES + platform("noetic", "docker").packages))  # as snapshot build
-    with open("/tmp/ccrp-test-snapshot-cache.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # one build at a time: the base image is shared too
+    with host_lock("ccrp-base"):  # the contract suite's harness builds it too
         try:
             client.images.get(images.DEFAULT_BASE)
         except docker.errors.ImageNotFound:
             images.build_base_image(client, images.DEFAULT_BASE, base_packages)
+    with host_lock(f"snapshot-{distro}"):
         images.build_clone_image(client, tag, images.dockerfile("cache", distro, images.DEFAULT_BASE, plat),
                                  {"ccrp-test-cache": distro}, files=images.build_context(plat, distro=distro))
     return tag

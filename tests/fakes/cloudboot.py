@@ -33,7 +33,6 @@ The base images carry ccrp-fake-image=<name> and are kept between runs (built on
 
 from __future__ import annotations
 
-import fcntl
 import gzip
 import hashlib
 import io
@@ -51,6 +50,8 @@ from pathlib import Path
 
 import docker
 import docker.errors
+
+from tests.locks import host_lock
 
 LABEL = "ccrp-fake"               # = run id, on everything a run creates
 IMAGE_LABEL = "ccrp-fake-image"   # on the base images, kept between runs
@@ -122,8 +123,7 @@ def warm_bake(user_data: bytes, timeout: float = 1800, client=None, progress=pri
     client = client or docker.from_env(timeout=300)
     key = install_key(user_data)
     token = BAKE_TOKEN.search(user_data).group(1).decode()
-    with open(f"/tmp/ccrp-fake-bake-{key}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    with host_lock(f"bake-{key}"):
         disk = baked_disk(client, key)
         if disk:
             return disk
@@ -283,7 +283,7 @@ class CloudBoot:
     # -- images ---------------------------------------------------------------------------------
     def base_image(self) -> str:
         """DEBIAN_12, built once if missing (one build even when servers boot concurrently)."""
-        with self._base_lock:
+        with self._base_lock, host_lock("fake-debian-12"):  # threads here, other workers of the run
             return build_debian_12(self.client, self.progress)
 
     # -- networks -------------------------------------------------------------------------------
