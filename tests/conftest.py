@@ -79,8 +79,8 @@ def clone_images():
 
 # Work units of a parallel run (pytest-xdist, --dist loadgroup): the tests of a module that share a
 # module-scoped fleet run on one worker, in file order; a scenario's backends are a unit each. The
-# contract suite's Docker harness uses fixed ranges, so its tests stay on one worker too. Units start
-# longest first (measured: docs/benchmarks.md "Test suite"), unit tests fill the gaps at the end.
+# contract suite's Docker harness has one fleet name, so its tests stay on one worker too. Units start
+# longest first (measured: docs/benchmarks.md "The test suite"), unit tests fill the gaps at the end.
 SLOWEST_FIRST = [
     "tests/scenarios/test_user_path.py/openstack", "tests/scenarios/test_user_path.py/aws",
     "tests/scenarios/test_user_path.py/gcp", "tests/scenarios/test_jazzy_cloud.py", "tests/e2e/test_docker_fleet.py",
