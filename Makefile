@@ -9,11 +9,13 @@ setup:
 quickstart:
 	bash scripts/quickstart.sh
 
-# Every test, slow end-to-end ones included, on 3 workers: the end-to-end modules mostly wait on
-# boots and installs, so they overlap well on 2 cores (docs/benchmarks.md "Test suite"). Each
-# module (and each scenario backend) stays on one worker, in file order; the 25 slowest are listed.
+# Every test, slow end-to-end ones included, on 3 workers: the end-to-end modules wait on boots and
+# installs part of the time, and 3 workers keep 2 cores busy (docs/benchmarks.md "The test suite").
+# Each module (and each scenario backend) stays on one worker, in file order; the 25 slowest are listed.
+# Its temporary directory is short and fixed (pytest empties it at the start): paths in the one-line
+# errors some tests compare are cut beyond a length, which pytest's default under xdist reached.
 test:
-	$(PY) -m pytest -n 3 --dist loadgroup --no-loadscope-reorder --durations=25
+	$(PY) -m pytest -n 3 --dist loadgroup --no-loadscope-reorder --durations=25 --basetemp=/tmp/ccrptest
 
 unit:
 	$(PY) -m pytest tests/unit
@@ -21,7 +23,7 @@ unit:
 # The development loop: unit and contract tests (no fleet, no boot), the input fuzzer at 100
 # examples instead of 1000.
 quick:
-	CCRP_FUZZ_EXAMPLES=100 $(PY) -m pytest -n 3 --dist loadgroup tests/unit tests/contract
+	CCRP_FUZZ_EXAMPLES=100 $(PY) -m pytest -n 3 --dist loadgroup --basetemp=/tmp/ccrpquick tests/unit tests/contract
 
 bench:
 	$(PY) bench/startup.py
