@@ -147,22 +147,9 @@ def make_harness(tmp_path):
         raw.ping()
     except docker.errors.DockerException as exc:
         pytest.skip(f"no Docker engine ({type(exc).__name__})")
-    try:
-        raw.images.get(BASE)
-    except docker.errors.ImageNotFound:
-        # A fresh machine (CI): build ccrp's base image exactly as `snapshot build` would, once;
-        # the end-to-end tests then reuse it.
-        from ccrp_cli.providers.docker import images
-        from ccrp_cli.recipes import platform
+    from tests.e2e.fleet import ensure_base
 
-        from tests.locks import host_lock
-
-        pkgs = sorted(set(images.BASE_PACKAGES + platform("noetic", "docker").packages))
-        with host_lock("ccrp-base"):  # the e2e modules' clone_images builds it too (tests/e2e/fleet.py)
-            try:
-                raw.images.get(BASE)
-            except docker.errors.ImageNotFound:
-                images.build_base_image(raw, BASE, pkgs)
+    ensure_base(raw)  # a fresh machine (CI): built once, as `snapshot build` would; the e2e tests reuse it
     built = _tiny_image(raw)
     from ccrp_cli.providers.docker.provider import DockerProvider
 

@@ -379,6 +379,27 @@ def diagnostics(client, label: str, lines: int = 60) -> str:
 SNAPSHOT_CACHE = "ccrp-test/snapshot-cache:{distro}"
 
 
+def ensure_base(client) -> None:
+    """ccrp's base image, built as a Noetic fleet's `snapshot build` would if it is missing (a fresh
+    machine), once for all the run's workers (the contract harness needs it too)."""
+    from ccrp_cli.providers.docker import images
+    from ccrp_cli.recipes import platform
+    from tests.locks import host_lock
+
+    def missing() -> bool:
+        try:
+            client.images.get(images.DEFAULT_BASE)
+            return False
+        except docker.errors.ImageNotFound:
+            return True
+
+    if missing():
+        with host_lock("ccrp-base"):
+            if missing():  # another worker may have built it meanwhile
+                packages = sorted(set(images.BASE_PACKAGES + platform("noetic", "docker").packages))
+                images.build_base_image(client, images.DEFAULT_BASE, packages)
+
+
 def warm_snapshot(client, distro: str) -> str:
     """Build the clone image of `distro` once, as `ccrp snapshot build` does (same Dockerfile and
     context), and keep it tagged between runs: every fleet's own `snapshot build` then finds each
@@ -389,12 +410,7 @@ def warm_snapshot(client, distro: str) -> str:
 
     plat = platform(distro, "docker")
     tag = SNAPSHOT_CACHE.format(distro=distro)
-    base_packages = sorted(set(images.BASE_PACKAGES + platform("noetic", "docker").packages))  # as snapshot build
-    with host_lock("ccrp-base"):  # the contract suite's harness builds it too
-        try:
-            client.images.get(images.DEFAULT_BASE)
-        except docker.errors.ImageNotFound:
-            images.build_base_image(client, images.DEFAULT_BASE, base_packages)
+    ensure_base(client)
     with host_lock(f"snapshot-{distro}"):
         images.build_clone_image(client, tag, images.dockerfile("cache", distro, images.DEFAULT_BASE, plat),
                                  {"ccrp-test-cache": distro}, files=images.build_context(plat, distro=distro))

@@ -283,6 +283,11 @@ class CloudBoot:
     # -- images ---------------------------------------------------------------------------------
     def base_image(self) -> str:
         """DEBIAN_12, built once if missing (one build even when servers boot concurrently)."""
+        try:
+            self.client.images.get(DEBIAN_12)
+            return DEBIAN_12  # the usual case: no lock taken at every boot
+        except docker.errors.ImageNotFound:
+            pass
         with self._base_lock, host_lock("fake-debian-12"):  # threads here, other workers of the run
             return build_debian_12(self.client, self.progress)
 
