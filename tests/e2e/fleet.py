@@ -240,6 +240,28 @@ def exec_in(container, argv: list[str], timeout: int = 30) -> tuple[int, str]:
     return result.exit_code, (result.output or b"").decode(errors="replace")
 
 
+def ros_sh(container, script: str, timeout: int = 30) -> tuple[int, str]:
+    """A fixed shell snippet (no names from input) in the container's ROS 1 environment."""
+    return exec_in(container, ["bash", "-c", f"set -a; . /etc/ccrp/ros.env; set +a; {script}"], timeout)
+
+
+def relay_through(sender, topic: str, receiver, seen_as: str, marker: str, timeout: int = 20) -> tuple[int, str]:
+    """Publish `marker` on `topic` in sender until one arrives on `seen_as` in receiver (or
+    `timeout` ends); the publisher is stopped as soon as the subscriber returns."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    assert marker.replace("-", "").isalnum(), marker  # it reaches pkill's pattern
+    with ThreadPoolExecutor(2) as pool:
+        # No pause between the two: the publisher repeats at 5 Hz, so the subscriber gets one whenever it is up.
+        echo = pool.submit(ros_sh, receiver, f"rostopic echo -n 1 {seen_as}", timeout)
+        pool.submit(ros_sh, sender, f"rostopic pub -r 5 {topic} std_msgs/String 'data: {marker}'", timeout - 2)
+        try:
+            return echo.result()
+        finally:  # else leaving the pool waits for the publisher's whole timeout
+            # "[f]ace-..." matches the publisher's command line, not this pkill's own
+            sender.exec_run(["pkill", "-f", f"data: [{marker[0]}]{marker[1:]}"])
+
+
 TCP_PROBE = r"""
 import json, socket, sys
 from concurrent.futures import ThreadPoolExecutor

@@ -68,6 +68,8 @@ from tests.e2e.fleet import (
     exec_in,
     master_probe,
     agent_journals,
+    relay_through,
+    ros_sh,
     start_fleet,
     tcp_probe,
     wait_for,
@@ -399,22 +401,6 @@ def test_no_private_key_in_images_labels_env_or_logs(fleet: E2EFleet, sim_nao1):
 def sim_nao2(fleet: E2EFleet, up) -> dict:
     fleet.inv("robot", "sim", "--robot", "nao2", "--wait", str(CONNECT_TIMEOUT), check=True)
     return {"container": fleet.container("robot-sim", "nao2")}
-
-
-def ros_sh(container, script: str, timeout: int = 30) -> tuple[int, str]:
-    """A fixed shell snippet (no names from input) in the container's ROS environment."""
-    return exec_in(container, ["bash", "-c", f"set -a; . /etc/ccrp/ros.env; set +a; {script}"], timeout)
-
-
-def relay_through(sender, topic: str, receiver, seen_as: str, marker: str, timeout: int = 20) -> tuple[int, str]:
-    """Publish `marker` on `topic` in sender until one arrives on `seen_as` in receiver."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(2) as pool:
-        # No pause between the two: the publisher repeats at 5 Hz, so the subscriber gets one whenever it is up.
-        echo = pool.submit(ros_sh, receiver, f"rostopic echo -n 1 {seen_as}", timeout)
-        pool.submit(ros_sh, sender, f"rostopic pub -r 5 {topic} std_msgs/String 'data: {marker}'", timeout - 2)
-        return echo.result()
 
 
 def relay_invocations(fleet: E2EFleet, robots) -> dict[str, str]:

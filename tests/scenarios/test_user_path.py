@@ -13,11 +13,10 @@ import importlib
 import json
 import secrets
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from tests.e2e.fleet import NO_DOCKER
+from tests.e2e.fleet import NO_DOCKER, relay_through
 from tests.scenarios.backend import Run, sim
 
 pytestmark = [
@@ -127,11 +126,6 @@ def test_bench_through_the_clone_on_an_emulated_link(run):
     assert teleop["command"]["samples"] >= 10 and 13 <= teleop["command"]["p50_ms"] <= 60, teleop
 
 
-def _ros(container, script: str, timeout: int) -> tuple[int, str]:
-    res = container.exec_run(["timeout", str(timeout), "bash", "-c", f"set -a; . /etc/ccrp/ros.env; set +a; {script}"])
-    return res.exit_code, res.output.decode(errors="replace")
-
-
 def test_topic_of_robot_nao1_reaches_robot_nao2_through_both_clones(run):
     run.needs("robot")
     import docker
@@ -141,10 +135,7 @@ def test_topic_of_robot_nao1_reaches_robot_nao2_through_both_clones(run):
     try:
         nao1, nao2 = (client.containers.get(f"ccrp-{run.fleet}-{r}") for r in ROBOTS)
         marker = "face-" + secrets.token_hex(6)
-        with ThreadPoolExecutor(2) as pool:
-            echo = pool.submit(_ros, nao2, "rostopic echo -n 1 /nao1/faces", 60)  # the publisher repeats: no pause needed
-            pool.submit(_ros, nao1, f"rostopic pub -r 5 /faces std_msgs/String 'data: {marker}'", 55)
-            rc, out = echo.result()
+        rc, out = relay_through(nao1, "/faces", nao2, "/nao1/faces", marker, 60)
     finally:
         client.close()
     assert rc == 0 and marker in out, f"/faces of robot nao1 never reached robot nao2 as /nao1/faces: {out[-800:]}"
