@@ -81,10 +81,14 @@ def clone_images():
 # module-scoped fleet run on one worker, in file order; a scenario's backends are a unit each. The
 # contract suite's Docker harness has one fleet name, so its tests stay on one worker too. Units start
 # longest first (measured: docs/benchmarks.md "The test suite"), unit tests fill the gaps at the end.
+# One cloud scenario starts first and makes the run's Noetic bake (baked_recipes); the other two
+# clouds come after a Docker unit on each worker, so no worker idles waiting for that bake. Each
+# worker takes a unit and one ahead (xdist's LoadScheduling), so the order is read in threes.
 SLOWEST_FIRST = [
-    "tests/scenarios/test_user_path.py/openstack", "tests/scenarios/test_user_path.py/aws",
-    "tests/scenarios/test_user_path.py/gcp", "tests/scenarios/test_jazzy_cloud.py", "tests/e2e/test_docker_fleet.py",
-    "tests/e2e/test_gce_startup_script.py", "tests/scenarios/test_user_path.py/docker",
+    "tests/scenarios/test_user_path.py/openstack", "tests/e2e/test_docker_fleet.py",
+    "tests/scenarios/test_user_path.py/docker", "tests/scenarios/test_user_path.py/aws",
+    "tests/scenarios/test_user_path.py/gcp", "tests/scenarios/test_jazzy_cloud.py",
+    "tests/e2e/test_gce_startup_script.py", "tests/e2e/test_evaluation.py", "tests/e2e/test_dashboard_browser.py",
 ]
 
 
