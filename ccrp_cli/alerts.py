@@ -40,6 +40,10 @@ def row_alerts(row: dict) -> list[dict]:
     return alerts
 
 
+# Restarts after which a node counts as in a restart loop (its unit restarts every 3 s).
+RESTART_LOOP = 3
+
+
 def clone_alerts(row: dict) -> list[dict]:
     robot, status = row["robot"], row["status"]
     if status == "stopped (idle)":
@@ -72,6 +76,11 @@ def clone_alerts(row: dict) -> list[dict]:
         stale = row.get("stale_nodes") or []
         extra = f"; stale nodes on its master: {', '.join(stale)}" if stale else ""
         alerts.append(_alert("warning", "robot-disconnected", robot, f"{robot} is not connected to its clone{extra}"))
+    for node in row.get("nodes") or []:  # the robot's own software (docs/workloads.md)
+        if node["state"] == "failed" or (node.get("restarts") or 0) >= RESTART_LOOP:
+            alerts.append(_alert("error", "node-failing", robot,
+                                 f"node {node['name']} on {robot}'s clone is {node['state']} after {node.get('restarts') or 0} "
+                                 f"restart(s): ccrp logs --robot {robot} {node['name']}"))
     peers = row.get("relay_peers") or {}
     if peers and not row.get("relay_running"):
         alerts.append(_alert("error", "relay-down", robot, f"relay of {robot}'s clone is not running: nothing is shared"))

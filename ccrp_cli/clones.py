@@ -236,6 +236,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     from .knowledge import absent_config as no_knowledge, apply_knowledge, knowledge_files
     from .render import bundles
     from .render.limits import fit_user_data
+    from .workloads import NO_SOFTWARE, absent_index, apply_nodes, node_files
 
     t0 = time.monotonic()
     state = writer.state
@@ -271,7 +272,10 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         relay = relay_config_file(fleet, state, robot, writer.live())
         know = knowledge_files(fleet, state, robot, writer.live())  # [] when it shares no dataset
         settings = [relay, autostop_file(fleet, view.robot), *know]
-        probed = [*secrets, applied, *settings, *(api or [absent_config()]), *(() if know else [no_knowledge()])]
+        # The robot's own nodes (docs/workloads.md): their units and the index of them.
+        nodes = node_files(fleet.inventory, view.robot, (state.snapshot or {}).get("software", NO_SOFTWARE))
+        probed = [*secrets, applied, *settings, *(api or [absent_config()]), *(() if know else [no_knowledge()]),
+                  *(nodes or [absent_index()])]
         # A clone that was running already: cloud-init's result, the digests of what ccrp put there
         # and whether it serves, in one round trip. Anything not as it should be is then done the
         # long way below, as for a new clone.
@@ -300,6 +304,9 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
             wait_serving(provider, robot, port)
         apply_api_manager(provider, robot, api, have)
         apply_knowledge(provider, robot, know, have, restart=pushed)
+        started = apply_nodes(provider, robot, nodes, have)
+        if started:
+            progress(f"[{robot}] nodes started: {', '.join(started)}")
         writer.relay_current[robot] = relay.content + "".join(f.content for f in know)
     except BaseException:
         writer.update(robot, phase="failed", provider_id=record.provider_id)

@@ -21,6 +21,8 @@ from .store import FleetStore
 class Fleet:
     inventory: Inventory
     store: FleetStore
+    # Where the inventory was read from: its `software.workspace` is relative to it.
+    path: Path | None = None
     # What members/plan derived from the state's slots, with the slots they came from: a command
     # asks for the view of each clone, and each view needs the whole plan.
     _derived: dict[str, tuple[tuple, Any]] = field(default_factory=dict, init=False, repr=False, compare=False)
@@ -33,7 +35,7 @@ class Fleet:
                 f"{inventory_path}: {len(inv.robots)} robots but the address pools have room for {capacity(inv)}",
                 hint="widen vpn.pool or common.cidr",
             )
-        return cls(inv, FleetStore(inv.fleet))
+        return cls(inv, FleetStore(inv.fleet), Path(inventory_path).resolve())
 
     @property
     def name(self) -> str:
@@ -63,7 +65,7 @@ class Fleet:
             for name, rec in sorted(state.robots.items(), key=lambda kv: kv[1].index):
                 if rec.origin == "template" and tpl is not None:
                     robots.append(Robot(name=name, type=tpl.type, exports=tpl.exports, imports=tpl.imports,
-                                        autostop=tpl.autostop))
+                                        autostop=tpl.autostop, software=tpl.software))
             return tuple(robots)
 
         return list(self._derive("members", state, compute))

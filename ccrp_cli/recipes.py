@@ -25,10 +25,22 @@ class Platform(BaseModel):
     pip_source: list[str] = []
 
 
+class RosdepEntry(BaseModel):
+    """What a package.xml dependency key installs in the snapshot (docs/workloads.md)."""
+
+    model_config = ConfigDict(extra="forbid")
+    apt: list[str] = []
+    pip: list[str] = []
+
+
 class Recipe(BaseModel):
     model_config = ConfigDict(extra="forbid")
     distro: str
     platforms: dict[str, Platform]
+    # package.xml keys (rosdep's names) -> Debian packages or wheels; a key missing here is refused.
+    rosdep: dict[str, RosdepEntry] = {}
+    # What building the workspace needs besides its packages' own keys (compiler, build tool).
+    build_tools: RosdepEntry = RosdepEntry()
 
 
 @cache

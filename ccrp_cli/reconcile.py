@@ -11,6 +11,7 @@ from .errors import CcrpError, InputError
 from .fleet import Fleet
 from .models.state import RobotRecord
 from .providers.base import CloneState
+from .workloads import check_snapshot, stale_snapshot
 
 
 def plan(fleet: Fleet, provider) -> list[dict]:
@@ -21,6 +22,7 @@ def plan(fleet: Fleet, provider) -> list[dict]:
     rows = []
     index = fleet.pki.load_index() if fleet.pki.exists() else None
     revoked = {name for name in members if index and fleet.pki.revoked_since(name, index)}
+    stale = stale_snapshot(fleet, state)
     for name in members:
         rec = actual.get(name)
         if name in revoked:
@@ -33,11 +35,22 @@ def plan(fleet: Fleet, provider) -> list[dict]:
             action = "keep"
         else:
             action = "configure"
-        rows.append({"robot": name, "action": action, "provider_id": rec.provider_id if rec else None})
+        rows.append({"robot": name, "action": action, "provider_id": rec.provider_id if rec else None,
+                     "software": _software_note(state, name, stale) if rec is not None else None})
     for name, rec in actual.items():
         if name not in members:
             rows.append({"robot": name, "action": "delete (not in fleet)", "provider_id": rec.provider_id})
     return rows
+
+
+def _software_note(state, robot: str, stale: str | None) -> str | None:
+    """Whether robot's clone runs the inventory's software (docs/workloads.md): None when it does."""
+    if stale is not None:
+        return f"{stale}: build a new snapshot, then re-create the clone"
+    rec, snap = state.robots.get(robot), state.snapshot or {}
+    if rec is not None and rec.image and snap.get("id") and rec.image != snap["id"]:
+        return "runs an older snapshot than the current one: re-create the clone to run the current software"
+    return None
 
 
 def _fan_out(fn, robots: list[str], progress: Progress, provider) -> list[CloneResult]:
@@ -63,6 +76,7 @@ def _fan_out(fn, robots: list[str], progress: Progress, provider) -> list[CloneR
 def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None) -> list[CloneResult]:
     """Create or reuse every member's clone; delete clones of robots no longer in the fleet."""
     state = fleet.load_allocated()
+    check_snapshot(fleet, state, provider.kind)  # before any clone changes
     writer = StateWriter(fleet, state)
     provider.bootstrap()
     members = [r.name for r in fleet.members(state)]
@@ -126,6 +140,7 @@ def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneRe
     inv = fleet.inventory
     state = fleet.store.load_state()
     template, want = check_scale(fleet, state, size)
+    check_snapshot(fleet, state, provider.kind)
     removed = template[want:]  # the newest template robots go first
     new: list[str] = []
     k = 1

@@ -8,6 +8,7 @@ from typing import Callable
 from .errors import CcrpError
 from .fleet import Fleet
 from .providers.base import SnapshotRecord
+from .workloads import NO_SOFTWARE
 
 Progress = Callable[[str], None]
 
@@ -27,9 +28,13 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     from .providers.base import owner_labels
     from .providers.docker import images
     from .recipes import platform
+    from .workloads import snapshot_software
 
     inv = fleet.inventory
     plat = platform(inv.ros.distro, provider.kind)
+    # The fleet's own software, read and checked before anything is built (a bare snapshot has none:
+    # its clones install ccrp's recipe at boot, and fleet up then refuses an inventory with software).
+    software = None if bare else snapshot_software(inv, fleet.path)
     base = inv.provider.base_image  # type: ignore[union-attr]
     client = provider.client
     if bare:
@@ -48,11 +53,13 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
             images.build_base_image(client, base, sorted(set(images.BASE_PACKAGES + plat.packages)), progress)
     tag = f"{image_repo(fleet)}:{'bare-' if bare else ''}{_stamp()}"
     progress(f"building snapshot {tag} from {base}")
-    labels = owner_labels(fleet.name, "snapshot") | {"ccrp-distro": inv.ros.distro, "ccrp-bare": str(bare).lower()}
-    images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat), labels, progress,
-                             images.build_context(plat, progress, inv.ros.distro))
+    digest = software.digest if software is not None else NO_SOFTWARE
+    labels = owner_labels(fleet.name, "snapshot") | {"ccrp-distro": inv.ros.distro, "ccrp-bare": str(bare).lower(),
+                                                     "ccrp-software": digest}
+    images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat, software), labels,
+                             progress, images.build_context(plat, progress, inv.ros.distro, software))
     record = provider.snapshot_record(client.images.get(tag))
-    _use(fleet, record, bare)
+    _use(fleet, record, bare, software=digest)
     return record
 
 

@@ -89,6 +89,8 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             "unreachable": None,
             "api_manager": api_manager_row(fleet.inventory, fleet.robot(state, robot), None),
             "knowledge": knowledge_row(fleet, state, robot, None),
+            # The robot's own nodes (docs/workloads.md): None where it runs none.
+            "nodes": None,
         }
         if rec and rec.state is CloneState.STOPPED:
             note = provider.stop_note(robot)
@@ -115,6 +117,7 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
             row["api_manager"] = api_manager_row(fleet.inventory, fleet.robot(state, robot), h)
             row["knowledge"] = knowledge_row(fleet, state, robot, h)
             row["power"] = parse_report(h.get("power") or "")  # None: no device reported since the clone booted
+            row["nodes"] = h.get("nodes") or None
         return row
 
     robots = list(plan)

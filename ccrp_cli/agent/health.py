@@ -162,6 +162,32 @@ def power():
         return None
 
 
+def nodes(index_path="/etc/ccrp/workloads.json"):
+    """The robot's own nodes (docs/workloads.md) as systemd sees them, or None when ccrp put none
+    here: state, restarts so far, and the digest of what each runs."""
+    try:
+        with open(index_path) as fh:
+            index = json.load(fh)["nodes"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    names = [n for n in index if isinstance(n, str) and n.replace("-", "").isalnum()]
+    if not names:
+        return []
+    props = "ActiveState,SubState,NRestarts"
+    try:
+        out = subprocess.run(["systemctl", "show", "--property", props, *(f"ccrp-run-{n}.service" for n in names)],
+                             capture_output=True, text=True, timeout=10).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        out = ""
+    blocks = [dict(line.split("=", 1) for line in b.splitlines() if "=" in line) for b in out.split("\n\n")]
+    rows = []
+    for name, b in zip(names, blocks + [{}] * len(names)):
+        restarts = b.get("NRestarts", "")
+        rows.append({"name": name, "state": b.get("ActiveState") or "unknown", "sub": b.get("SubState") or "",
+                     "restarts": int(restarts) if restarts.isdigit() else None, "digest": index[name]})
+    return rows
+
+
 def knowledge():
     return service_report("/etc/ccrp/knowledge.json", "/run/ccrp-knowledge/status.json")
 
@@ -185,7 +211,7 @@ def main():
         print(json.dumps({"kill": lines}))
         return
     print(json.dumps({"vpn": vpn(), "secrets": os.path.exists(SERVER_KEY), "master": master(), "relay": relay(),
-                      "api_manager": api_manager(), "knowledge": knowledge(), "power": power()}))
+                      "api_manager": api_manager(), "knowledge": knowledge(), "power": power(), "nodes": nodes()}))
 
 
 if __name__ == "__main__":

@@ -100,4 +100,5 @@ def plan(inventory: options.Inventory, as_json: options.Json = False) -> None:
 
     fleet, provider = options.open_provider(inventory)
     rows = reconcile.plan(fleet, provider)
-    output.emit(rows, as_json, ["ROBOT", "ACTION", "ID"], [(r["robot"], r["action"], r["provider_id"]) for r in rows])
+    output.emit(rows, as_json, ["ROBOT", "ACTION", "ID", "SOFTWARE"],
+                [(r["robot"], r["action"], r["provider_id"], r.get("software") or "") for r in rows])

@@ -21,7 +21,7 @@ def _show(records, as_json: bool) -> None:
 @app.command()
 def build(
     inventory: options.Inventory,
-    if_missing: Annotated[bool, typer.Option("--if-missing", help="Keep the recorded snapshot if its image exists.")] = False,
+    if_missing: Annotated[bool, typer.Option("--if-missing", help="Keep the recorded snapshot if its image exists and holds the inventory's software.")] = False,
     bare: Annotated[bool, typer.Option("--bare", help="Only systemd + cloud-init: clones install the recipe at boot (slow; for comparison).")] = False,
     as_json: options.Json = False,
 ) -> None:
@@ -32,7 +32,11 @@ def build(
     with fleet.store.lock():
         recorded = fleet.store.load_state().snapshot or {}
         current = recorded.get("image")
-        if if_missing and current and provider.has_image(current) and bool(recorded.get("bare")) == bare:
+        # Kept only while it holds the inventory's software (a changed workspace needs a new one).
+        from ..workloads import stale_snapshot
+
+        if if_missing and current and provider.has_image(current) and bool(recorded.get("bare")) == bare \
+                and stale_snapshot(fleet, fleet.store.load_state()) is None:
             output.info(f"snapshot {current} exists; new clones start from it")
             _show([provider.snapshot_record(provider.client.images.get(current))], as_json)
             return

@@ -25,22 +25,31 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
     api = any(r.get("api_manager") for r in rows)
     know = any(r.get("knowledge") for r in rows)  # where services.knowledge shares a dataset
     power = any(r.get("power") for r in rows)  # a power device ccrp reaches (simulated robots'): docs/dashboard.md
+    own = any(r.get("nodes") for r in rows)  # the robots' own software (docs/workloads.md)
     output.emit(
         rows, as_json,
         # ROS 2 has no master: there the column says whether the clone's ROS 2 graph answered.
         ["ROBOT", "CLONE", "STATE", "PUBLIC IP", "COMMON IP", "VPN", "GRAPH" if fleet.inventory.ros.ros2 else "MASTER",
          "ROBOT NODES", "RELAY PEERS", "WATCHDOG"]
-        + (["POWER"] if power else []) + (["API MANAGER"] if api else []) + (["KNOWLEDGE"] if know else []),
+        + (["POWER"] if power else []) + (["API MANAGER"] if api else []) + (["KNOWLEDGE"] if know else [])
+        + (["NODES"] if own else []),
         [(r["robot"], r["clone"], r["status"], r["public_ip"], r["common_ip"],
           vpn_cell(r), yes(r["master_reachable"]),
           nodes_cell(r), relay_peers(r["relay_peers"], r["relay_running"]), watchdog_cell(r.get("watchdog")))
          + ((power_cell(r.get("power")),) if power else ())
          + ((api_cell(r.get("api_manager")),) if api else ())
-         + ((knowledge_cell(r.get("knowledge")),) if know else ()) for r in rows],
+         + ((knowledge_cell(r.get("knowledge")),) if know else ())
+         + ((own_nodes_cell(r.get("nodes")),) if own else ()) for r in rows],
     )
     if alerts and not as_json:
         output.table(["LEVEL", "ROBOT", "ALERT"], [(a["level"], a["robot"] or "(fleet)", a["text"]) for a in alerts],
                      title=f"\n{len(alerts)} alert(s)")
+
+
+def own_nodes_cell(nodes: list[dict] | None) -> str:
+    """The robot's own nodes: `mapper active`, `mapper failed (4 restarts)`."""
+    return ", ".join(f"{n['name']} {n['state']}" + (f" ({n['restarts']} restarts)" if n.get("restarts") else "")
+                     for n in nodes or [])
 
 
 def nodes_cell(row: dict) -> str:

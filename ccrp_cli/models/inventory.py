@@ -10,6 +10,7 @@ from pydantic import Field, field_validator, model_validator
 from ..providers import REGISTRY
 from ..errors import shown
 from .names import Name, Topic
+from .software import Software, TypeSettings, merge
 from .strict import Strict
 from .values import CloudName, Duration, Port, StrictInt
 
@@ -127,6 +128,8 @@ class Robot(Strict):
     autostop: Autostop | None = None
     # Each service given here replaces the fleet's setting of it for this robot's clone.
     services: Services = Services()
+    # Added to the fleet's and its type's software (docs/workloads.md).
+    software: Software | None = None
 
 
 class RobotTemplate(Strict):
@@ -138,6 +141,7 @@ class RobotTemplate(Strict):
     imports: dict[Name, list[Topic]] = {}
     max: Annotated[StrictInt, Field(ge=1, le=1000)] = 50
     autostop: Autostop | None = None
+    software: Software | None = None
 
 
 # ROS 2 distros ccrp runs (docs/ros2.md): no master; discovery confined to the robot's tunnel.
@@ -221,6 +225,23 @@ class Inventory(Strict):
     autostop: Autostop | None = None
     # Fleet-wide; a robot's own `services.<name>` replaces the fleet's.
     services: Services = Services()
+    # The robot's own software on its clone (docs/workloads.md): fleet-wide, then per robot type
+    # and per robot, merged in that order.
+    software: Software | None = None
+    types: dict[RobotType, TypeSettings] = {}
+
+    def software_of(self, robot: Robot) -> Software:
+        """What robot's clone runs: the fleet's software, its type's, its own."""
+        kind = self.types.get(robot.type)
+        return merge(self.software, kind.software if kind else None, robot.software)
+
+    def snapshot_software(self) -> Software:
+        """What the fleet's snapshot holds: every package any robot needs and the workspace (one
+        snapshot serves every clone; which nodes run is each robot's own)."""
+        levels = [self.software, *(t.software for t in self.types.values()), *(r.software for r in self.robots),
+                  self.template.software if self.template else None]
+        merged = merge(*levels)
+        return merged.model_copy(update={"run": []})
 
     def api_manager_of(self, robot: Robot) -> ApiManager | None:
         """The robot's API manager setting (its own, else the fleet's); None when off."""
@@ -344,6 +365,19 @@ class Inventory(Strict):
                     raise ValueError(f"dataset {ds!r} names unknown robot {name!r}")
             if len(set(d.robots)) != len(d.robots):
                 raise ValueError(f"dataset {ds!r} names a robot twice")
+        return self
+
+    @model_validator(mode="after")
+    def _one_workspace(self) -> "Inventory":
+        """The workspace is built into the fleet's one snapshot, so it is fleet-wide; types and
+        robots choose which of its nodes run."""
+        given = [(f"types.{t}", s.software) for t, s in self.types.items()] + \
+                [(f"robot {r.name!r}", r.software) for r in self.robots] + \
+                [("template", self.template.software if self.template else None)]
+        for where, software in given:
+            if software is not None and software.workspace is not None:
+                raise ValueError(f"{where}: software.workspace is fleet-wide (it is built into the fleet's snapshot); "
+                                 "give it under the top-level software:, and choose each robot's nodes with run:")
         return self
 
     def robot(self, name: str) -> Robot | None:

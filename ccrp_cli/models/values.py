@@ -36,6 +36,16 @@ def _seconds(value: object) -> object:
     return value
 
 
+def parse_duration(text: str, what: str) -> int:
+    """A command-line duration (10m, 2h, 1d) in seconds, or one line naming the option."""
+    from ..errors import InputError
+
+    try:
+        return int(_seconds(text))  # type: ignore[call-overload]
+    except ValueError as exc:
+        raise InputError(f"{what}: {exc}") from None
+
+
 # Seconds, written with a unit in the inventory; `never` is 0.
 Duration = Annotated[int, BeforeValidator(lambda v: 0 if v == "never" else _seconds(v)), Field(strict=True)]
 

@@ -236,11 +236,11 @@ def test_inventory_strings_are_refused_or_one_token(tmp_path, leaf, data):
         one_line_exit_2(code, out, err)
         return
     assert TOKEN.fullmatch(value), f"{'.'.join(map(str, path))} accepted {value!r}"
-    if path[-1] == "base_image":  # the one inventory string written into a file ccrp generates
+    if path[-1] == "base_image":  # written into a file ccrp generates (as software's are: test_workloads.py)
         from ccrp_cli.providers.docker.images import dockerfile
         from ccrp_cli.recipes import platform
 
         text = dockerfile("lab", "noetic", value, platform("noetic", "docker"))
         # The value is one token of the first FROM; the others name the Dockerfile's own stages.
         assert [line for line in text.splitlines() if line.startswith("FROM")] == [
-            f"FROM {value} AS clone", "FROM clone AS agents", "FROM clone"]
+            f"FROM {value} AS clone", "FROM clone AS agents", "FROM clone AS image"]

@@ -42,37 +42,71 @@ def build_base_image(client, tag: str, packages: list[str], progress=lambda msg:
                                               changes=['CMD ["/lib/systemd/systemd"]'])
 
 
-def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform) -> str:
+def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, software=None) -> str:
     """A ROS 2 distro's image has its `pip` list (the ros-<distro>-* wheels) in a venv at
-    /opt/ros/<distro> (docs/ros2.md) instead of the ROS 1 agents in /usr/local."""
+    /opt/ros/<distro> (docs/ros2.md) instead of the ROS 1 agents in /usr/local. The fleet's own
+    software (workloads.SnapshotSoftware), when it has some, comes last (templates/docker/software.j2)."""
     from ...models.inventory import ROS2_DISTROS
+    from ...recipes import recipe
     from ...render.cloudinit import LOCALE_SETUP
+    from ...workloads import WORKSPACE
 
     prefix = f"/opt/ros/{distro}" if distro in ROS2_DISTROS and plat.pip else ""
+    extra: dict = {"software": None}
+    if software is not None and not software.empty:
+        extra = {"software": software, "sw_apt": software.apt, "sw_pip": _software_pip(software),
+                 "build_apt": recipe(distro).build_tools.apt, "prefix": WORKSPACE,
+                 "pip_command": f"{prefix}/bin/pip" if prefix else "PIP_BREAK_SYSTEM_PACKAGES=1 pip3",
+                 "package_dirs": sorted({p.path.rsplit("/", 1)[0] if "/" in p.path else "." for p in software.packages})}
     return render("docker/Dockerfile.j2", fleet=fleet, distro=distro, base_image=base_image, packages=plat.packages,
-                  pip=plat.pip, locale_setup=LOCALE_SETUP, ros2_prefix=prefix)
+                  pip=plat.pip, locale_setup=LOCALE_SETUP, ros2_prefix=prefix, **extra)
 
 
-def build_context(plat: Platform, progress=lambda msg: None, distro: str = "noetic") -> dict[str, bytes]:
+def _software_pip(software) -> list[str]:
+    # `wheel` builds the ament_python packages in the venv (its setuptools has no bdist_wheel of its own).
+    return software.pip + (["wheel"] if software.build_type == "ament_python" else [])
+
+
+def build_context(plat: Platform, progress=lambda msg: None, distro: str = "noetic", software=None) -> dict[str, bytes]:
     """Files the Dockerfile copies: the agents (relay, API manager) and the wheels of the recipe's pip packages,
     downloaded here for the image's python (bookworm: 3.11) so the build needs no index. A ROS 2 distro's
-    image has the wheels only (its agents are ROS 1 only so far), fetched with their own platform tags."""
+    image has the wheels only (its agents are ROS 1 only so far), fetched with their own platform tags.
+    With the fleet's software: its workspace and the wheels of its `pip` list, from the same cache."""
+    tool = {"ccrp-topic": static("image/ccrp-topic").encode()}  # every image has it
+    return tool | _recipe_context(plat, progress, distro) | _software_context(software, progress, distro)
+
+
+def _software_context(software, progress, distro: str) -> dict[str, bytes]:
+    from ...models.inventory import ROS2_DISTROS
+    from . import wheels
+    from .ros2 import WHEEL_PLATFORMS
+
+    if software is None or software.empty:
+        return {}
+    files = {f"workspace/{rel}": data for rel, data in software.workspace}
+    pip = _software_pip(software)
+    if pip:
+        progress(f"fetching wheels for the fleet's software: {', '.join(pip)}")
+        platforms = WHEEL_PLATFORMS if distro in ROS2_DISTROS else ("manylinux2014_x86_64",)
+        files |= {f"software-{name}": data for name, data in wheels.fetch(pip, platforms).items()}
+    return files
+
+
+def _recipe_context(plat: Platform, progress, distro: str) -> dict[str, bytes]:
     from ...models.inventory import ROS2_DISTROS
     from ...render.cloudinit import IMAGE_AGENTS, agent_source
 
-    tool = {"ccrp-topic": static("image/ccrp-topic").encode()}  # every image has it
     if not plat.pip:
-        return tool
+        return {}
+    progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
     if distro in ROS2_DISTROS:
         from .ros2 import venv_context
 
-        progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
-        return tool | venv_context(plat)
+        return venv_context(plat)
     from . import wheels
 
-    progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
     agents = {f"{name}.py": agent_source(name).encode() for name in IMAGE_AGENTS}
-    return tool | agents | wheels.fetch(plat.pip, ("manylinux2014_x86_64",))
+    return agents | wheels.fetch(plat.pip, ("manylinux2014_x86_64",))
 
 
 def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progress=lambda msg: None,

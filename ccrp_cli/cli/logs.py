@@ -1,0 +1,51 @@
+"""ccrp logs: the journal of a robot's own nodes (or of one of ccrp's units) on its clone."""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated
+
+import typer
+
+from . import options, output
+
+
+def logs(
+    inventory: options.Inventory,
+    robot: options.Robot,
+    name: Annotated[str | None, typer.Argument(help="A node of the robot's software.run, or a ccrp unit "
+                                                    "(relay, openvpn, rosmaster, ...). Default: every node.")] = None,
+    follow: Annotated[bool, typer.Option("--follow", "-f", help="Keep printing new lines until Ctrl-C.")] = False,
+    since: Annotated[str | None, typer.Option("--since", help="Only lines of the last 10m, 2h, 1d...")] = None,
+    lines: Annotated[int, typer.Option("--lines", "-n", min=1, max=10000, help="How many of the last lines.")] = 100,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object per line: time, unit, message.")] = False,
+) -> None:
+    """Show a node's log from robot's clone, through the provider (Docker exec or SSH): e.g.
+    `ccrp logs --robot nao1 mapper -f`."""
+    from ..models.values import parse_duration
+    from ..providers import get_provider
+    from ..workloads import log_units, read_journal
+
+    since_s = parse_duration(since, "--since") if since else None
+    fleet = options.open_fleet(inventory)
+    units = log_units(fleet.inventory, fleet.robot(fleet.store.load_state(), robot), name)
+    provider = get_provider(fleet.inventory)
+    entries, cursor = read_journal(provider, robot, units, lines, since_s)
+    _show(entries, as_json)
+    try:
+        while follow:
+            time.sleep(1.0)
+            entries, cursor = read_journal(provider, robot, units, lines, cursor=cursor)
+            _show(entries, as_json)
+    except KeyboardInterrupt:  # the way to end --follow: not an interruption of anything
+        pass
+
+
+def _show(entries: list[dict], as_json: bool) -> None:
+    import json
+
+    for e in entries:
+        if as_json:
+            print(json.dumps(e), flush=True)
+        else:
+            print(f"{e['time'][:23]} {e['unit'].removesuffix('.service')}: {e['message']}", flush=True)

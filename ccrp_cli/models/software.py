@@ -1,0 +1,151 @@
+"""The robot's own software on its clone (docs/workloads.md): the inventory's `software:`, given
+fleet-wide, per robot type (`types.<type>.software`) and per robot (`robots[].software`).
+
+Merged fleet -> type -> robot: `apt` and `pip` lists add up, a `run` entry replaces the entry of
+the same name from the level before, `workspace` is the last one given. Every value that reaches
+a rendered file (a systemd unit, a Dockerfile, user-data) is typed here first: a Debian package
+name, a pip requirement, a unit name, an argv without control characters.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import PurePosixPath
+from typing import Annotated, Literal
+
+from pydantic import AfterValidator, BeforeValidator, Field, StringConstraints, field_validator
+
+from ..errors import shown
+from .strict import Strict
+
+# Debian policy 5.6.1: lower case letters, digits, + - . ; at least two characters, a letter or digit first.
+DebPackage = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9+.-]{1,99}$")]
+# A node's name becomes the unit ccrp-run-<name>.service and a journal's unit filter.
+NodeName = Annotated[str, StringConstraints(pattern=r"^[a-z][a-z0-9-]{0,39}$")]
+
+# Words a shell gives meaning to: an argv holding one of them alone was written as a shell line.
+SHELL_WORDS = {"|", "||", "&", "&&", ";", ";;", ">", ">>", "<", "<<", "2>", "2>&1", "$(", "`", "(", ")"}
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+_REQUIREMENT = re.compile(r"[A-Za-z0-9._\-\[\],<>=!~*+]+")
+
+
+def _requirement(text: object) -> object:
+    """A pip requirement as pip reads it (name, extras, version specifiers, markers), nothing more:
+    no URL, path or option (`-e`, `--index-url`), which would fetch from elsewhere."""
+    if not isinstance(text, str):
+        return text
+    from packaging.requirements import InvalidRequirement, Requirement
+
+    if text.startswith("-") or _CONTROL.search(text) or len(text) > 200:
+        raise ValueError(f"{shown(text)} is not a pip requirement (name and version specifiers only)")
+    try:
+        req = Requirement(text)
+    except InvalidRequirement:
+        raise ValueError(f"{shown(text)} is not a pip requirement (e.g. numpy>=1.24)") from None
+    if req.url:
+        raise ValueError(f"{shown(text)}: a requirement from a URL is not taken; name the package on the index")
+    if req.marker:
+        raise ValueError(f"{shown(text)}: environment markers are not taken (every clone runs the same Python)")
+    if not _REQUIREMENT.fullmatch(str(req)):  # it becomes one word of a build command
+        raise ValueError(f"{shown(text)} is not a pip requirement (name, extras and version specifiers only)")
+    return str(req)
+
+
+PipRequirement = Annotated[str, BeforeValidator(_requirement)]
+
+
+def _workspace(text: str) -> str:
+    path = PurePosixPath(text)
+    if not text or _CONTROL.search(text) or len(text) > 200:
+        raise ValueError(f"{shown(text)} is not a workspace directory")
+    if path.is_absolute() or ".." in path.parts:
+        raise ValueError(f"workspace {shown(text)}: give a directory inside the inventory's, relative to it")
+    return text
+
+
+def _argv(value: object) -> object:
+    if isinstance(value, str):
+        raise ValueError(f"command {shown(value)}: give the command as a list of words, e.g. "
+                         "[python3, -m, my_pkg.node]; it runs without a shell")
+    return value
+
+
+def _words(argv: list[str]) -> list[str]:
+    for word in argv:
+        if _CONTROL.search(word):
+            raise ValueError(f"command word {shown(word)} holds a control character")
+        if word.strip() in SHELL_WORDS:
+            raise ValueError(f"command {shown(' '.join(argv))}: {word!r} means something to a shell only, and the "
+                             "command runs without one; run a script of your workspace instead")
+    return argv
+
+
+Argv = Annotated[
+    list[Annotated[str, StringConstraints(min_length=1, max_length=1000)]],
+    BeforeValidator(_argv), AfterValidator(_words), Field(min_length=1, max_length=64),
+]
+
+_MEMORY = re.compile(r"([0-9]{1,6})([KMG])", re.ASCII)
+
+
+class RunNode(Strict):
+    """A node kept running on the clone: the unit ccrp-run-<name>, as the `ros` user, in the
+    clone's ROS environment (and the workspace's, when there is one)."""
+
+    name: NodeName
+    command: Argv
+    # systemd's Restart=: on-failure (the default) restarts after a crash or a non-zero exit.
+    restart: Literal["on-failure", "always", "no"] = "on-failure"
+    # CPU cores the node may use (CPUQuota), e.g. 0.5 or 2.
+    cpu: Annotated[float, Field(strict=True, gt=0, le=256)] | None = None
+    # Memory it may use (MemoryMax), e.g. 512M or 2G.
+    memory: Annotated[str, StringConstraints(pattern=_MEMORY.pattern)] | None = None
+
+    @field_validator("cpu", mode="before")
+    @classmethod
+    def _number(cls, value: object) -> object:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) and value is not None:
+            raise ValueError(f"{shown(str(value))} is not a number of CPU cores (e.g. 0.5 or 2)")
+        return float(value) if value is not None else None
+
+
+class Software(Strict):
+    # Debian packages (ROS 1 fleets: Debian's ROS packages; any fleet: libraries, tools).
+    apt: list[DebPackage] = Field(default=[], max_length=200)
+    # Python requirements, installed for the clone's ROS python.
+    pip: list[PipRequirement] = Field(default=[], max_length=200)
+    # A catkin (ROS 1) or colcon/ament_python (ROS 2) workspace, relative to the inventory.
+    workspace: Annotated[str, AfterValidator(_workspace)] | None = None
+    run: list[RunNode] = Field(default=[], max_length=50)
+
+    @field_validator("run")
+    @classmethod
+    def _unique_run(cls, nodes: list[RunNode]) -> list[RunNode]:
+        names = [n.name for n in nodes]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"run: {', '.join(dup)} given twice")
+        return nodes
+
+
+class TypeSettings(Strict):
+    """What every robot of a type shares (`types.<type>:`)."""
+
+    software: Software | None = None
+
+
+def merge(*levels: Software | None) -> Software:
+    """fleet -> type -> robot: lists add (each package once, first place kept), a `run` entry
+    replaces the one of the same name, `workspace` is the last one given."""
+    apt: list[str] = []
+    pip: list[str] = []
+    run: dict[str, RunNode] = {}
+    workspace = None
+    for level in levels:
+        if level is None:
+            continue
+        apt += [p for p in level.apt if p not in apt]
+        pip += [p for p in level.pip if p not in pip]
+        run.update({n.name: n for n in level.run})
+        workspace = level.workspace or workspace
+    return Software(apt=apt, pip=pip, workspace=workspace, run=list(run.values()))

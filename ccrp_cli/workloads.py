@@ -1,0 +1,365 @@
+"""The robot's own software on its clone (docs/workloads.md): the workspace's packages and what
+they depend on, the digest a snapshot carries, each clone's node units, their state and logs.
+
+The snapshot holds the software (packages, the built workspace); `fleet up` gives each clone the
+units of its robot's `run` nodes and starts them. Every name that reaches a unit or a command line
+is a NodeName ([a-z][a-z0-9-]*); a node's argv is escaped for systemd, never given to a shell.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .errors import CcrpError, InputError, shown
+from .models.inventory import Inventory, Robot
+from .models.software import RunNode, Software
+from .render.bundles import BundleFile
+from .render.templates import static
+
+WORKSPACE = "/opt/ccrp/workspace"  # the install space (catkin) / build output, in the snapshot
+UNIT_DIR = "/etc/systemd/system"
+UNIT_PREFIX = "ccrp-run-"
+INDEX = "/etc/ccrp/workloads.json"  # the nodes ccrp put on this clone, with their digests
+ROS_RUN = "/usr/local/lib/ccrp/ros-run"
+NO_SOFTWARE = "none"  # the digest of a snapshot (or inventory) without software of the user's
+
+# Directories of a workspace that are build output, not source (catkin, colcon) or tool state.
+SKIP_DIRS = {"build", "devel", "install", "log", "logs", "__pycache__", ".git", ".hg", ".svn"}
+MAX_WORKSPACE_BYTES = 64 << 20  # goes into a build context (Docker) or over SSH (clouds)
+SAFE_PATH = re.compile(r"[A-Za-z0-9._+/-]{1,200}")
+DEPEND_TAGS = ("depend", "build_depend", "exec_depend", "run_depend", "buildtool_depend", "build_export_depend",
+               "test_depend")
+
+
+def unit_name(node: str) -> str:
+    return f"{UNIT_PREFIX}{node}.service"
+
+
+# -- the workspace ---------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Package:
+    name: str
+    build_type: str  # catkin | ament_python | ament_cmake | cmake
+    depends: tuple[str, ...]  # rosdep keys, the workspace's own packages left out
+    path: str  # package.xml, relative to the workspace
+
+
+def workspace_dir(inv_path: Path | None, software: Software) -> Path | None:
+    if software.workspace is None:
+        return None
+    base = inv_path.parent if inv_path is not None else Path.cwd()
+    path = (base / software.workspace).resolve()
+    if not path.is_dir():
+        raise InputError(f"software.workspace {shown(software.workspace)}: no directory {path}",
+                         hint="give the workspace's directory (holding src/) relative to the inventory")
+    return path
+
+
+def workspace_files(root: Path) -> list[tuple[str, bytes]]:
+    """(relative path, content) of the workspace's source files, sorted: what a snapshot builds and
+    its digest covers. Build output, version control and symlinks leaving the workspace stay out."""
+    out: list[tuple[str, bytes]] = []
+    total = 0
+    for path in sorted(root.rglob("*")):
+        rel = path.relative_to(root)
+        if any(part in SKIP_DIRS or part.startswith(".") for part in rel.parts):
+            continue
+        if path.is_symlink() and not path.resolve().is_relative_to(root):
+            raise InputError(f"workspace file {rel} links outside the workspace ({path.resolve()})")
+        if not path.is_file():
+            continue
+        data = path.read_bytes()
+        total += len(data)
+        if total > MAX_WORKSPACE_BYTES:
+            raise InputError(f"workspace {root} holds more than {MAX_WORKSPACE_BYTES >> 20} MB of source",
+                             hint="keep data and build output out of it (build/, install/, log/ are skipped)")
+        out.append((rel.as_posix(), data))
+    return out
+
+
+def scan_packages(root: Path, files: list[tuple[str, bytes]]) -> list[Package]:
+    # A directory holding CATKIN_IGNORE or COLCON_IGNORE is left out with everything under it.
+    ignored = [rel.rsplit("/", 1)[0] + "/" if "/" in rel else "" for rel, _ in files
+               if rel.rsplit("/", 1)[-1] in ("CATKIN_IGNORE", "COLCON_IGNORE")]
+    manifests = [(rel, data) for rel, data in files if rel.rsplit("/", 1)[-1] == "package.xml"
+                 and not any(rel.startswith(prefix) for prefix in ignored)]
+    if not manifests:
+        raise InputError(f"workspace {root} holds no package.xml", hint="a ROS workspace has its packages under src/")
+    parsed = []
+    for rel, data in manifests:
+        try:
+            tree = ET.fromstring(data)
+        except ET.ParseError as exc:
+            raise InputError(f"workspace {root}: {rel} is not valid XML ({exc})") from None
+        name = (tree.findtext("name") or "").strip()
+        if not name:
+            raise InputError(f"workspace {root}: {rel} names no package")
+        keys = [(e.text or "").strip() for tag in DEPEND_TAGS for e in tree.findall(tag)]
+        tools = [(e.text or "").strip() for e in tree.findall("buildtool_depend")]
+        build_type = (tree.findtext("export/build_type") or "").strip() or ("catkin" if "catkin" in tools else "cmake")
+        parsed.append((name, build_type, keys, rel))
+    for _, _, _, rel in parsed:  # a package's directory becomes a word of the snapshot's build
+        if not SAFE_PATH.fullmatch(rel):
+            raise InputError(f"workspace {root}: package path {shown(rel)} has characters other than letters, digits and ._+-/",
+                             hint="rename the package's directory")
+    own = {name for name, *_ in parsed}
+    return [Package(name, bt, tuple(dict.fromkeys(k for k in keys if k and k not in own)), rel)
+            for name, bt, keys, rel in parsed]
+
+
+# -- what the packages depend on --------------------------------------------------------------------
+
+@dataclass
+class Resolved:
+    apt: list[str] = field(default_factory=list)
+    pip: list[str] = field(default_factory=list)
+
+
+def resolve(distro: str, packages: list[Package]) -> Resolved:
+    """Each package.xml key to the Debian packages (ROS 1: Debian's ROS) or wheels (ROS 2) the
+    recipe's `rosdep:` table names; a key with no entry is an error naming it and its package."""
+    from .models.inventory import ROS2_DISTROS
+    from .recipes import recipe
+
+    table = recipe(distro).rosdep
+    out = Resolved()
+    for pkg in packages:
+        if distro in ROS2_DISTROS and pkg.build_type != "ament_python":
+            raise InputError(f"package {pkg.name} ({pkg.path}) is {pkg.build_type}: a ROS 2 workspace here builds "
+                             "ament_python packages only (the ROS 2 wheels have no rclcpp)")
+        if distro not in ROS2_DISTROS and pkg.build_type != "catkin":
+            raise InputError(f"package {pkg.name} ({pkg.path}) is {pkg.build_type}: a ROS 1 workspace builds catkin packages")
+        for key in pkg.depends:
+            if key in ("rclcpp", "rclcpp_components", "ament_cmake") and distro in ROS2_DISTROS:
+                raise InputError(f"package {pkg.name} depends on {key}: the ROS 2 wheels have no rclcpp (C++); "
+                                 "write the node in Python (rclpy)")
+            entry = table.get(key)
+            if entry is None:
+                raise InputError(f"package {pkg.name} depends on {shown(key)}, which resolves to no "
+                                 f"{'wheel' if distro in ROS2_DISTROS else 'Debian package'} for {distro}",
+                                 hint="add what it needs under software.apt or software.pip, and remove the key "
+                                      "from package.xml, or name a key of the recipe's rosdep table")
+            out.apt += [p for p in entry.apt if p not in out.apt]
+            out.pip += [p for p in entry.pip if p not in out.pip]
+    return out
+
+
+# -- what a snapshot holds ----------------------------------------------------------------------------
+
+@dataclass
+class SnapshotSoftware:
+    """The fleet's software as its snapshot holds it: the spec, the workspace and its packages,
+    what they resolve to, and the digest of all of it."""
+
+    spec: Software
+    distro: str
+    workspace: list[tuple[str, bytes]] = field(default_factory=list)
+    packages: list[Package] = field(default_factory=list)
+    resolved: Resolved = field(default_factory=Resolved)
+
+    @property
+    def empty(self) -> bool:
+        return not (self.spec.apt or self.spec.pip or self.workspace)
+
+    @property
+    def apt(self) -> list[str]:
+        return list(dict.fromkeys([*self.spec.apt, *self.resolved.apt]))
+
+    @property
+    def pip(self) -> list[str]:
+        return list(dict.fromkeys([*self.spec.pip, *self.resolved.pip]))
+
+    @property
+    def build_type(self) -> str | None:
+        return self.packages[0].build_type if self.packages else None
+
+    @property
+    def digest(self) -> str:
+        if self.empty:
+            return NO_SOFTWARE
+        h = hashlib.sha256(json.dumps({"apt": self.apt, "pip": self.pip, "distro": self.distro}).encode())
+        for rel, data in self.workspace:
+            h.update(f"\0{rel}\0{len(data)}\0".encode())
+            h.update(data)
+        return h.hexdigest()[:16]
+
+
+def snapshot_software(inv: Inventory, inv_path: Path | None) -> SnapshotSoftware:
+    """Read and check everything the snapshot will hold, before anything is built or changed."""
+    spec = inv.snapshot_software()
+    out = SnapshotSoftware(spec=spec, distro=inv.ros.distro)
+    root = workspace_dir(inv_path, spec)
+    if root is not None:
+        out.workspace = workspace_files(root)
+        out.packages = scan_packages(root, out.workspace)
+        out.resolved = resolve(inv.ros.distro, out.packages)
+    return out
+
+
+def stale_snapshot(fleet, state) -> str | None:
+    """Why the fleet's snapshot cannot serve the inventory's software (None when it can)."""
+    want = snapshot_software(fleet.inventory, fleet.path).digest
+    have = (state.snapshot or {}).get("software", NO_SOFTWARE)
+    if want == have:
+        return None
+    return (f"the snapshot holds software {have}, the inventory's is {want}" if want != NO_SOFTWARE
+            else f"the snapshot holds software {have}, the inventory names none")
+
+
+def check_snapshot(fleet, state, provider_kind: str) -> None:
+    """Refuse to create or update clones whose snapshot lacks the inventory's software."""
+    why = stale_snapshot(fleet, state)
+    if why is not None and state.snapshot:
+        make = "snapshot build" if provider_kind == "docker" else "snapshot bake"
+        raise InputError(f"{why}: clones made from it would not have it", hint=f"ccrp {make} -i INVENTORY first")
+
+
+# -- each clone's nodes --------------------------------------------------------------------------------
+
+def systemd_word(word: str) -> str:
+    """One argv word for a unit's ExecStart=: double-quoted, with systemd's own escapes, so
+    `$VAR`, `%n`, quotes and backslashes reach the program as written."""
+    escaped = word.replace("\\", "\\\\").replace('"', '\\"').replace("%", "%%").replace("$", "$$")
+    return f'"{escaped}"'
+
+
+def node_unit(node: RunNode, digest: str) -> str:
+    limits = []
+    if node.cpu is not None:
+        limits.append(f"CPUQuota={round(node.cpu * 100)}%")
+    if node.memory is not None:
+        limits.append(f"MemoryMax={node.memory}")
+    return static("systemd/ccrp-run.service").format(
+        name=node.name, exec=" ".join([ROS_RUN, *(systemd_word(w) for w in node.command)]), restart=node.restart,
+        limits="\n".join(limits), digest=digest)
+
+
+def node_files(inv: Inventory, robot: Robot, software_digest: str) -> list[BundleFile]:
+    """The units of robot's `run` nodes and the index of them (INDEX), whose digest per node says
+    which to restart."""
+    nodes = inv.software_of(robot).run
+    if not nodes:
+        return []
+    files, index = [], {}
+    for node in nodes:
+        digest = hashlib.sha256(json.dumps([node.model_dump(), software_digest]).encode()).hexdigest()[:16]
+        files.append(BundleFile(unit_name(node.name), node_unit(node, digest), 0o644, f"{UNIT_DIR}/{unit_name(node.name)}"))
+        index[node.name] = digest
+    return files + [BundleFile("workloads.json", json.dumps({"nodes": index, "software": software_digest}) + "\n",
+                               0o644, INDEX)]
+
+
+# Brings the clone's node units in line with the index just pushed ($1: the nodes to keep, then
+# the nodes to restart). Names are NodeNames ([a-z][a-z0-9-]*): word splitting them is safe.
+APPLY_SH = r"""
+keep="$1"; shift
+for f in /etc/systemd/system/ccrp-run-*.service; do
+  [ -e "$f" ] || continue
+  n=${f##*/ccrp-run-}; n=${n%.service}
+  case " $keep " in *" $n "*) ;; *) systemctl disable --now "ccrp-run-$n.service" >/dev/null 2>&1; rm -f "$f";; esac
+done
+systemctl daemon-reload
+for n in $keep; do systemctl enable "ccrp-run-$n.service" 2>/dev/null || exit 1; done
+for n in "$@"; do systemctl restart "ccrp-run-$n.service" || exit 1; done
+for n in $keep; do systemctl start "ccrp-run-$n.service" || exit 1; done
+"""
+
+
+def absent_index() -> BundleFile:
+    """Probed on a clone whose robot runs no node: if it holds an index, its nodes are removed."""
+    return BundleFile("workloads.json", "", 0o644, INDEX)
+
+
+def apply_nodes(provider, robot: str, files: list[BundleFile], have: dict[str, str]) -> list[str]:
+    """Push the units that changed and (re)start them; stop and remove the nodes no longer
+    named. Returns the nodes restarted or started anew."""
+    from .clones import same
+
+    if not files:
+        if INDEX in have:  # it ran nodes before: none now
+            rc, out = provider.exec(robot, ["sh", "-c", APPLY_SH + f'rm -f "{INDEX}"\n', "ccrp-nodes", ""], timeout=120)
+            if rc != 0:
+                raise CcrpError(f"cannot remove the nodes of robot {robot!r}'s clone: {out.strip()[-300:]}")
+        return []
+    changed = [f for f in files if not same(have, [f])]
+    if not changed:
+        return []
+    index = json.loads(files[-1].content)["nodes"]
+    restart = [f.name.removeprefix(UNIT_PREFIX).removesuffix(".service") for f in changed if f.dest != INDEX]
+    provider.push_files(robot, changed, restart=[])
+    rc, out = provider.exec(robot, ["sh", "-c", APPLY_SH, "ccrp-nodes", " ".join(index), *restart], timeout=120)
+    if rc != 0:
+        raise CcrpError(f"cannot start the nodes of robot {robot!r}'s clone: {out.strip()[-300:]}")
+    return restart
+
+
+# -- logs ------------------------------------------------------------------------------------------
+
+# ccrp's own units on a clone, by the name `ccrp logs` takes (their unit is ccrp-<name>.service).
+CCRP_UNITS = ("openvpn", "relay", "rosmaster", "autostop", "power", "knowledge", "api-manager", "firewall")
+
+
+def log_units(inv: Inventory, robot: Robot, name: str | None) -> list[str]:
+    """The units `ccrp logs` reads: every node of robot's, one node, or one of ccrp's own units."""
+    nodes = [n.name for n in inv.software_of(robot).run]
+    if name is None:
+        if not nodes:
+            raise InputError(f"robot {robot.name!r} runs no node of its own (software.run)",
+                             hint=f"name one of ccrp's units instead: {', '.join(CCRP_UNITS)}")
+        return [unit_name(n) for n in nodes]
+    if name in nodes:
+        return [unit_name(name)]
+    if name in CCRP_UNITS:
+        return [f"ccrp-{name}.service"]
+    raise InputError(f"{shown(name)} is neither a node of robot {robot.name!r} nor a ccrp unit",
+                     hint=f"nodes: {', '.join(nodes) or 'none'}; ccrp units: {', '.join(CCRP_UNITS)}")
+
+
+def read_journal(provider, robot: str, units: list[str], lines: int, since_s: int | None = None,
+                 cursor: str | None = None) -> tuple[list[dict], str | None]:
+    """Journal entries of `units` on robot's clone (the last `lines`, or those after `cursor`),
+    each {time, unit, message}, and the cursor to read on from. Through the provider's exec, so
+    the same on every backend."""
+    argv = ["journalctl", "--no-pager", "--output", "json", "--output-fields", "MESSAGE,_SYSTEMD_UNIT,UNIT,SYSLOG_IDENTIFIER"]
+    for unit in units:
+        argv += ["--unit", unit]
+    if cursor:
+        argv += ["--after-cursor", cursor]
+    else:
+        argv += ["--lines", str(lines)]
+        if since_s:
+            argv += ["--since", f"-{since_s}s"]
+    rc, out = provider.exec(robot, argv, timeout=30)
+    if rc != 0 and not out.lstrip().startswith("{"):
+        raise CcrpError(f"cannot read the journal of robot {robot!r}'s clone: {out.strip()[-200:]}")
+    entries = []
+    for line in out.splitlines():
+        try:
+            e = json.loads(line)
+        except ValueError:
+            continue
+        if not isinstance(e, dict):
+            continue
+        cursor = e.get("__CURSOR", cursor)
+        message = e.get("MESSAGE")
+        if isinstance(message, list):  # journald gives bytes that are not UTF-8 as a list of ints
+            message = bytes(b for b in message if isinstance(b, int) and 0 <= b < 256).decode(errors="replace")
+        micros = e.get("__REALTIME_TIMESTAMP")
+        entries.append({"time": _iso(micros), "unit": e.get("_SYSTEMD_UNIT") or e.get("UNIT") or "",
+                        "ident": e.get("SYSLOG_IDENTIFIER") or "", "message": message if isinstance(message, str) else ""})
+    return entries, cursor
+
+
+def _iso(micros) -> str:
+    import datetime as dt
+
+    try:
+        return dt.datetime.fromtimestamp(int(micros) / 1e6, dt.timezone.utc).isoformat(timespec="milliseconds")
+    except (TypeError, ValueError, OverflowError):
+        return ""
