@@ -8,8 +8,16 @@ and gets back one line {"relay": "on"|"off"|null}: the state ccrp asked for (`cc
 on|off` writes it to WANT as root), null when nothing was asked. The last report is kept in
 REPORT, stamped with this clone's clock, for `ccrp robot power` and the clone's health.
 
-Run: `python3 power.py /etc/ccrp/power.json` ({"listen": clone VPN address, "port", "device":
-the device's VPN address}). Standard library only.
+The agent binds no port: systemd does (ccrp-power.socket, at boot before any service or login,
+FreeBind so before OpenVPN's tun has the address) and passes the listening socket to it (socket
+activation). Port 11400 is unprivileged: an agent that bound it itself could find it taken by any
+local user who bound it first (at boot, or while the agent restarts), who would then get the
+device's reports and answer `relay: on/off`. A socket systemd holds stays held across the agent's
+restarts. Started without it, the agent says so and exits NO_SOCKET, which its unit does not restart.
+
+Run by systemd: `python3 power.py /etc/ccrp/power.json` ({"listen": clone VPN address, "port",
+"device": the device's VPN address}), with LISTEN_PID/LISTEN_FDS and the socket at fd 3.
+Standard library only (no python-systemd).
 """
 import json
 import os
@@ -20,8 +28,11 @@ import time
 # Both in memory: a wish left from before a reboot, or carried into a snapshot, switches no robot.
 WANT = "/run/ccrp-power/want"
 REPORT = "/run/ccrp-power/report"
-IP_FREEBIND = 15  # socket.IP_FREEBIND (Linux): bind the VPN address before OpenVPN's tun has it
 MAX_LINE = 1024
+FIRST_FD = 3  # sd_listen_fds(3): where the sockets systemd passes begin
+# Started without systemd's socket (by hand, or a unit that lost its Requires=): a mistake no restart
+# mends. EX_CONFIG; ccrp-power.service's RestartPreventExitStatus, so it is said once, not in a loop.
+NO_SOCKET = 78
 
 
 def wanted():
@@ -85,15 +96,36 @@ def serve(server, device):
                       file=sys.stderr, flush=True)
 
 
+def inherited(listen, port):
+    """The listening socket systemd passed (socket activation, as sd_listen_fds(3) takes it: LISTEN_PID
+    is this process, LISTEN_FDS the count, the first at fd 3), checked to be TCP listening on
+    listen:port; or None and why not. The variables go, so no child would take them as its own."""
+    pid, count = os.environ.pop("LISTEN_PID", ""), os.environ.pop("LISTEN_FDS", "")
+    if (pid, count) != (str(os.getpid()), "1"):
+        return None, f"LISTEN_PID {pid[:20]!r}, LISTEN_FDS {count[:20]!r}; this is pid {os.getpid()}"
+    try:
+        server = socket.socket(fileno=FIRST_FD)  # family and type read from the descriptor
+        where = server.getsockname()
+        ok = server.type == socket.SOCK_STREAM and server.getsockopt(socket.SOL_SOCKET, socket.SO_ACCEPTCONN)
+    except OSError as exc:
+        return None, f"fd {FIRST_FD}: {exc}"
+    if not ok or where != (listen, port):
+        server.close()
+        return None, f"fd {FIRST_FD} is not TCP listening on {listen}:{port}, but {where}"
+    os.set_inheritable(FIRST_FD, False)
+    server.setblocking(True)  # a passed socket may be non-blocking (the passer's choice); serve() waits in accept()
+    return server, None
+
+
 def main():
     with open(sys.argv[1], encoding="utf-8") as fh:
         cfg = json.load(fh)
-    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    server.setsockopt(socket.IPPROTO_IP, IP_FREEBIND, 1)
-    server.bind((cfg["listen"], int(cfg["port"])))
-    server.listen(4)
-    print(f"ccrp-power: listening on {cfg['listen']}:{cfg['port']} for the power device at {cfg['device']}", flush=True)
+    server, problem = inherited(cfg["listen"], int(cfg["port"]))
+    if server is None:
+        print(f"ccrp-power: no socket from systemd ({problem}): the agent binds no port itself. "
+              "Run ccrp-power.service (it takes ccrp-power.socket), not this script", file=sys.stderr, flush=True)
+        sys.exit(NO_SOCKET)
+    print(f"ccrp-power: serving {cfg['listen']}:{cfg['port']} for the power device at {cfg['device']}", flush=True)
     serve(server, cfg["device"])
 
 

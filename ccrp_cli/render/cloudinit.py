@@ -16,7 +16,7 @@ from ..models.inventory import Inventory
 from ..models.names import power_name
 from ..recipes import platform
 from . import network, openvpn
-from .templates import static
+from .templates import render, static
 from .view import (API_USER, CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, LOGIN_USER, POWER_PORT, POWER_USER, RELAY_USER,
                    SECRETS_DIR, VPN_DIR, CloneView)
 
@@ -106,6 +106,9 @@ def _compact_python(src: str) -> str:
         return src
 
 
+POWER_SOCKET = "ccrp-power.socket"
+
+
 def clone_units(inv: Inventory) -> list[str]:
     """The clone's systemd units. A ROS 2 clone has no master, and no API manager (a rospy agent)
     or knowledge agent yet (the inventory refuses their settings for ROS 2); its relay runs on rclpy."""
@@ -145,6 +148,8 @@ def user_data_dict(
         _file(f"{CCRP_ETC}/power.json", json.dumps({"listen": str(a.clone_vpn_ip), "port": POWER_PORT,
                                                     "device": str(a.device_vpn_ip)}) + "\n"),
     ] + [_file(f"/etc/systemd/system/{u}", static(f"systemd/{u}")) for u in units]
+    # The power agent's port, bound by systemd and handed to the agent (agent/power.py, inherited).
+    files.append(_file(f"/etc/systemd/system/{POWER_SOCKET}", render(f"systemd/{POWER_SOCKET}.j2", **view.ctx())))
     if view.inv.ros.ros2:
         files.append(_file(f"{CCRP_LIB}/ros2_graph.py", agent_source("ros2_graph"), "0644"))
         # A ROS 2 image holds only the wheels' venv (providers/docker/images.py): the relay agent
@@ -174,6 +179,9 @@ def user_data_dict(
             ["install", "-d", "-m", "0751", "-o", "root", "-g", "openvpn", VPN_DIR],
             ["install", "-d", "-m", "0755", "-o", "ros", "-g", "ros", "/var/lib/ros"],
             ["systemctl", "daemon-reload"],
+            # Alone and first: the port is systemd's before any of ccrp's services (and their users)
+            # run. From the next boot on, sockets.target orders it before them.
+            ["systemctl", "enable", "--now", POWER_SOCKET],
             ["systemctl", "enable", "--now", *units],
             ["systemctl", "try-restart", "chrony.service"],
         ],

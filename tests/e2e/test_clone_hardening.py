@@ -11,7 +11,9 @@ at the end of the module whatever happens (`ccrp fleet down`, then everything wi
      user on a tmpfs (tmp-dir), deleted after the check, and found nowhere on the clone's disk.
   3. The units' sandboxes are really applied (their own mount namespaces), in the clone and in the
      robot, whose openvpn keeps uid 0 with CAP_NET_ADMIN alone; the containers run with Docker's
-     default seccomp profile and no-new-privileges.
+     default seccomp profile and no-new-privileges. The power agent's port is systemd's
+     (ccrp-power.socket): a local user cannot bind it, even while the agent is stopped, and the
+     agent run by hand without it exits 78 at once.
   4. The clone restarted: its robot comes back by itself.
   5. The clone stopped: the robot is "brainless" within seconds (its watchdog runs the fallback
      hooks: the simulated robot's stand-in motors stop), and `ccrp clone start` brings it back.
@@ -276,6 +278,41 @@ def test_units_run_in_their_sandboxes(fleet: E2EFleet, clone, robot):
             host["SecurityOpt"]
         assert any(o.startswith("no-new-privileges") for o in host["SecurityOpt"] or []), host["SecurityOpt"]
         assert not host.get("Privileged")
+
+
+# Binds the power agent's address and port as the impostor would (IP_FREEBIND, SO_REUSEADDR).
+BIND_PROBE = r"""
+import socket, sys
+s = socket.socket()
+s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+s.setsockopt(socket.IPPROTO_IP, 15, 1)
+try:
+    s.bind((sys.argv[1], int(sys.argv[2])))
+    s.listen(1)
+    print("bound")
+except OSError as exc:
+    print(exc.errno)
+"""
+NOBODY = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]
+
+
+def test_a_local_user_cannot_take_the_power_agents_port(fleet: E2EFleet, clone):
+    """Port 11400 is unprivileged: who binds the clone's VPN address there first gets the power
+    device's reports and answers `relay: on/off`. systemd holds it (ccrp-power.socket) from boot on
+    and while the agent is down, and the agent binds nothing itself."""
+    ip = fleet.plan()[ROBOT]["clone_vpn_ip"]
+    assert sh(clone, "systemctl show -p Listen --value ccrp-power.socket").strip() == f"{ip}:11400 (Stream)"
+    assert sh(clone, "systemctl is-active ccrp-power.socket ccrp-power.service").split() == ["active", "active"]
+    taken = lambda: exec_in(clone, [*NOBODY, "python3", "-c", BIND_PROBE, ip, "11400"])[1].strip()  # noqa: E731
+    assert taken() == "98"  # EADDRINUSE
+    sh(clone, "systemctl stop ccrp-power.service")
+    try:
+        assert taken() == "98"  # the agent down, its socket still systemd's
+        rc, out = exec_in(clone, [*NOBODY, "python3", "/usr/local/lib/ccrp/power.py", "/etc/ccrp/power.json"])
+        assert rc == 78 and "ccrp-power: no socket from systemd (" in out, (rc, out)
+    finally:
+        sh(clone, "systemctl start ccrp-power.service")
+    assert main_pid(clone, "ccrp-power.service") > 0
 
 
 # -- 4. the clone restarted ----------------------------------------------------------------------------------

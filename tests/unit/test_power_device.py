@@ -282,3 +282,171 @@ def test_a_real_robots_power_goes_through_its_clone_without_docker_here(lab, mon
     got = power.power(lab, "nao1", "off", provider=Clone(), timeout=5)
     assert (got["power"], got["robot_state"], got["device"]) == ("off", "off", "device")
     assert power.power(lab, "nao1", "status", provider=Clone())["power"] == "on"
+
+
+# -- the agent's socket is systemd's (socket activation) -------------------------------------------------
+
+# What systemd does before it execs a socket-activated service: the socket at fd 3, LISTEN_FDS, and
+# LISTEN_PID set to the pid that then runs the service (exec keeps it); a test may set another.
+AS_SYSTEMD = """
+import os, sys
+fd = int(sys.argv[1])
+if fd != 3:
+    os.dup2(fd, 3)
+    os.close(fd)
+os.environ.setdefault("LISTEN_PID", str(os.getpid()))
+os.execv(sys.executable, [sys.executable, *sys.argv[2:]])
+"""
+# The clone's agent with its state files in the test's directory: argv want, report, power.json.
+AGENT = f"""
+import sys
+sys.path.insert(0, {str(ROOT)!r})
+from ccrp_cli.agent import power
+power.WANT, power.REPORT = sys.argv[1:3]
+sys.argv = ["power.py", sys.argv[3]]
+power.main()
+"""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_agent(tmp, port: int, fd3=None, env: dict | None = None) -> subprocess.Popen:
+    """The agent for power.json's 127.0.0.1:port; given `fd3` (a socket, or any file), as systemd
+    starts it, with LISTEN_FDS=1 unless `env` says otherwise."""
+    (tmp / "power.json").write_text(json.dumps({"listen": "127.0.0.1", "port": port, "device": "127.0.0.1"}))
+    agent = [sys.executable, "-c", AGENT, str(tmp / "want"), str(tmp / "report"), str(tmp / "power.json")]
+    kw = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    if fd3 is None:
+        return subprocess.Popen(agent, env={"PATH": os.environ["PATH"], **(env or {})}, **kw)
+    return subprocess.Popen([sys.executable, "-c", AS_SYSTEMD, str(fd3.fileno()), *agent[1:]],
+                            env={"PATH": os.environ["PATH"], "LISTEN_FDS": "1", **(env or {})},
+                            pass_fds=(fd3.fileno(),), **kw)
+
+
+def held_socket(port: int = 0) -> socket.socket:
+    """A listening socket as ccrp-power.socket makes it; non-blocking, as a passed socket may be."""
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    s.setsockopt(socket.IPPROTO_IP, 15, 1)  # FreeBind=yes
+    s.bind(("127.0.0.1", port))
+    s.listen(8)
+    s.setblocking(False)
+    return s
+
+
+def stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.kill()
+    proc.communicate(timeout=30)
+
+
+def test_the_agent_serves_on_the_socket_systemd_holds_and_binds_none_itself(tmp_path):
+    """ccrp-power.socket holds the port, the agent gets it at fd 3 (LISTEN_FDS/LISTEN_PID, no
+    python-systemd) and serves the device's reports on it. While it is held, across the agent's
+    restarts too, nobody else binds it (the impersonation: bind the clone's VPN address first,
+    IP_FREEBIND, and answer the device `relay: on`); a report sent while the agent is down waits in
+    the socket's queue for the next agent."""
+    device = runpy.run_path(str(ROOT / "templates/edge/ccrp-power-device"), run_name="ccrp_power_device")
+    held = held_socket()
+    port = held.getsockname()[1]
+    cfg = {"CCRP_POWER_CLONE": "127.0.0.1", "CCRP_POWER_PORT": str(port)}
+    (tmp_path / "want").write_text("off\n")
+    agent = start_agent(tmp_path, port, held)
+    try:
+        started = agent.stdout.readline()
+        assert started.startswith(f"ccrp-power: serving 127.0.0.1:{port} "), (started, agent.poll())
+        assert device["exchange"](cfg, {"relay": "on", "robot": "running", "t": 1.0}) == "off"
+        assert json.loads((tmp_path / "report").read_text())["device_t"] == 1.0
+        stop(agent)
+        # The agent is down (a restart): the port is still held, and still refused to anyone else.
+        with socket.socket() as impostor:
+            impostor.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            impostor.setsockopt(socket.IPPROTO_IP, 15, 1)
+            with pytest.raises(OSError) as taken:
+                impostor.bind(("127.0.0.1", port))
+            assert taken.value.errno == 98  # EADDRINUSE
+        waiting = socket.create_connection(("127.0.0.1", port), timeout=20)
+        waiting.sendall(b'{"relay": "off", "robot": "off", "t": 2.0}\n')
+        agent = start_agent(tmp_path, port, held)
+        assert "ccrp-power: serving" in agent.stdout.readline()
+        with waiting:
+            assert json.loads(waiting.makefile().readline()) == {"relay": "off"}
+        assert json.loads((tmp_path / "report").read_text())["device_t"] == 2.0
+    finally:
+        stop(agent)
+        held.close()
+
+
+@pytest.mark.parametrize("how", ["no variables", "another pid", "two sockets", "another port", "no socket at fd 3"])
+def test_without_systemds_socket_the_agent_says_so_and_exits_once(tmp_path, how):
+    """Run by hand, or by a unit without its socket: the agent binds nothing (a port it bound itself
+    is the one any user could have bound first), says why in one line, and exits NO_SOCKET, which
+    ccrp-power.service does not restart (test_the_power_units_give_the_agent_systemds_socket)."""
+    from ccrp_cli.agent import power as clone_agent
+
+    port, held, env = free_port(), None, {}
+    if how == "another pid":  # LISTEN_PID names another process: the socket is not ours
+        held, env = held_socket(port), {"LISTEN_PID": str(os.getpid())}
+    elif how == "two sockets":
+        held, env = held_socket(port), {"LISTEN_FDS": "2"}
+    elif how == "another port":
+        held = held_socket()  # what the unit holds is not what power.json names
+    elif how == "no socket at fd 3":
+        held = open(tmp_path / "plain", "w")  # noqa: SIM115
+    proc = start_agent(tmp_path, port, held, env)
+    try:
+        out, err = proc.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        stop(proc)
+        pytest.fail(f"{how}: the agent kept running (it serves a port it bound itself)")
+    finally:
+        if held is not None:
+            held.close()
+    assert proc.returncode == clone_agent.NO_SOCKET == 78, (how, proc.returncode, err)
+    assert "ccrp-power: no socket from systemd (" in err and len(err.strip().splitlines()) == 1, err
+    assert "Traceback" not in err and out == ""
+
+
+def test_the_power_units_give_the_agent_systemds_socket(lab):
+    """The clone's user-data: ccrp-power.socket listens on the clone's VPN address (power.json's, and
+    the firewall's) with FreeBind, from sockets.target, and is started alone before ccrp's services;
+    the service requires it, never hits a start limit (that would close the socket) and does not
+    restart on NO_SOCKET. No shell line: units and runcmd are argv built from constants."""
+    from ccrp_cli.agent import power as clone_agent
+    from ccrp_cli.fleet import clone_view
+    from ccrp_cli.render import cloudinit
+
+    view = clone_view(lab, lab.load_allocated(), "nao1")
+    data = cloudinit.user_data_dict(view)
+    files = {f["path"]: f["content"] for f in data["write_files"]}
+
+    def unit(path: str) -> dict[str, list[str]]:
+        """Each `Key=` of a unit file -> its values in order (comments and sections dropped)."""
+        keys: dict[str, list[str]] = {}
+        for line in files[path].splitlines():
+            if "=" in line and not line.startswith(("#", ";", "[")):
+                key, value = line.split("=", 1)
+                keys.setdefault(key, []).append(value)
+        return keys
+
+    sock, service = unit("/etc/systemd/system/ccrp-power.socket"), unit("/etc/systemd/system/ccrp-power.service")
+    ip = str(view.addr.clone_vpn_ip)
+    assert json.loads(files["/etc/ccrp/power.json"])["listen"] == ip
+    assert sock["ListenStream"] == [f"{ip}:11400"] and sock["FreeBind"] == ["yes"]
+    assert sock["WantedBy"] == ["sockets.target"] and "DefaultDependencies" not in sock  # Before=sockets.target
+    assert not any(k.startswith("Exec") or k == "Accept" for k in sock)  # Accept=no: one agent takes the socket
+    assert f"-d {ip} -p tcp --dport 11400 -j ACCEPT" in files["/etc/ccrp/firewall.rules"]
+    assert service["Requires"] == ["ccrp-power.socket"] and "ccrp-power.socket" in " ".join(service["After"]).split()
+    assert service["StartLimitIntervalSec"] == ["0"] and "StartLimitBurst" not in service
+    assert service["RestartPreventExitStatus"] == [str(clone_agent.NO_SOCKET)] and service["Restart"] == ["always"]
+    assert service["ExecStart"] == ["/usr/bin/python3 /usr/local/lib/ccrp/power.py /etc/ccrp/power.json"]
+    assert service["User"] == ["ccrp-power"] and "Sockets" not in service  # the socket of its own name
+    runcmd = data["runcmd"]
+    assert all(isinstance(c, list) and "sh" not in c[:1] for c in runcmd), runcmd
+    starts = [i for i, c in enumerate(runcmd) if c[:3] == ["systemctl", "enable", "--now"]]
+    assert runcmd[starts[0]] == ["systemctl", "enable", "--now", "ccrp-power.socket"]
+    assert len(starts) == 2 and "ccrp-power.service" in runcmd[starts[1]] and starts[0] < starts[1]

@@ -133,7 +133,9 @@ def _noetic(jazzy):
 def test_a_jazzy_clone_runs_no_master_or_api_manager_and_an_rclpy_relay(jazzy):
     view = clone_view(jazzy, jazzy.store.load_state(), "nao2")
     data = cloudinit.user_data_dict(view)
-    enabled = next(c for c in data["runcmd"] if c[:3] == ["systemctl", "enable", "--now"])[3:]
+    starts = [c[3:] for c in data["runcmd"] if c[:3] == ["systemctl", "enable", "--now"]]
+    assert starts[0] == ["ccrp-power.socket"]  # alone and first (unit/test_power_device.py)
+    enabled = starts[1]
     assert enabled == ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service",
                        "ccrp-power.service"]
     paths = {f["path"] for f in data["write_files"]}
