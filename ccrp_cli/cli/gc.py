@@ -21,9 +21,8 @@ def gc(
     Known: recorded clones, their public IPs/volumes/routes, the fleet's network, firewall and key
     pair, and its snapshots. On Docker, also snapshot images of any fleet whose state directory
     is gone (orphans). Run with --dry-run first to see what would go."""
-    from ..gc import collect, collect_images
-
     from ..errors import CcrpError
+    from ..gc import collect, collect_images
     from ..providers import Ability
 
     fleet, provider = options.open_provider(inventory)

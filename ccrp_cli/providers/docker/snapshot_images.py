@@ -19,9 +19,9 @@ import json
 import os
 import re
 import socket
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping
 
 from ...store import read_state_id
 from ..base import LABEL_FLEET, LABEL_MANAGED
