@@ -41,7 +41,7 @@ def run(fleet: Fleet) -> list[Check]:
     inv = fleet.inventory
     kind = inv.provider.kind
     checks = []
-    from .providers import info
+    from .providers import Ability, info
 
     sdks = info(kind).sdk_modules  # paramiko: the SSH transport of every cloud
     missing = [(m, extra) for m, extra in sdks if not _installed(m)]
@@ -56,6 +56,8 @@ def run(fleet: Fleet) -> list[Check]:
         checks.append(check)
     if provider is not None:
         checks += _credentials(provider) + _quotas(provider) + [_snapshot(fleet, provider)]
+        if Ability.LOCAL_BUILD in provider.abilities:
+            checks.append(_snapshot_images(provider))
     if kind == "docker" and shutil.which("mmdebstrap") is None:
         checks.append(Check("tool mmdebstrap", WARN, "not found",
                             "apt-get install mmdebstrap (builds the base image when it is missing)"))
@@ -117,6 +119,36 @@ def _snapshot(fleet: Fleet, provider) -> Check:
     if present:
         return Check("snapshot", OK, recorded)
     return Check("snapshot", FAIL, f"{recorded} is recorded but gone", f"ccrp {_build_command(provider)} -i INVENTORY")
+
+
+def _snapshot_images(provider) -> Check:
+    """Docker: the disk ccrp's snapshot images take on this host, this state's and orphans'."""
+    from docker.errors import DockerException
+
+    from .providers.docker import snapshot_images as si
+    from .store import read_state_id
+
+    try:
+        census = si.census(provider.client, provider.fleet, read_state_id(provider.state_dir), provider.state_dir.parent)
+    except (DockerException, OSError) as exc:  # a report only: the engine answered the checks above
+        return Check("snapshot images", WARN, f"cannot list them ({type(exc).__name__})")
+    parts = []
+    for state, what in ((si.THIS, "this fleet"), (si.ORPHAN, "orphans"), (si.UNLABELLED, "unlabelled"),
+                        (si.OTHER, "other states")):
+        verdicts = census.of(state)
+        if verdicts or state in (si.THIS, si.ORPHAN):
+            own = sum(v.image.own for v in verdicts)
+            parts.append(f"{what} {len(verdicts)} ({si.megabytes(own)})")
+    # Layers shared with other images (the base, each other) are not counted: removing the
+    # images frees at least what is shown.
+    detail = "; ".join(parts) + " of their own layers"
+    waste = [v for v in census.of(si.ORPHAN) + census.of(si.UNLABELLED) if v.removable]
+    if not waste:
+        return Check("snapshot images", OK, detail)
+    hint = "`ccrp gc --dry-run` lists them, `ccrp gc` removes the orphans"
+    if any(v.state == si.UNLABELLED for v in waste):
+        hint += ", `ccrp gc --unlabelled` the unlabelled too"
+    return Check("snapshot images", WARN, detail, hint)
 
 
 def _build_command(provider) -> str:

@@ -5,6 +5,11 @@ creation is in flight: the next `fleet up` reuses it), what belongs to a known r
 IP, volumes, routes), the bootstrap resources (network, firewall, key pair), and the fleet's
 snapshots (`ccrp snapshot delete` manages those). Everything else owned is a leak: left by a crash,
 an interrupted rollback or a hand-made copy.
+
+On Docker, snapshot images also outlive the state directory that recorded them (a quick start in
+a temporary CCRP_HOME, a test run): no fleet's gc would ever see them again. `collect_images`
+finds them host-wide by the state labels each snapshot image carries
+(providers/docker/snapshot_images.py).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ ROBOT_KINDS = {"robot_sim"}
 @dataclass
 class GcResult:
     resource: OwnedResource
-    action: str  # leak (dry run) | deleted | failed
+    action: str  # leak | orphan | unlabelled (dry run, or not removed) | kept | deleted | failed
     detail: str = ""
 
     def as_dict(self) -> dict:
@@ -75,4 +80,33 @@ def collect(state: FleetState, provider, dry_run: bool, progress: Callable[[str]
             results.append(GcResult(r, "deleted"))
         except CcrpError as exc:
             results.append(GcResult(r, "failed", exc.one_line()))
+    return results
+
+
+def collect_images(provider, dry_run: bool, unlabelled: bool = False,
+                   progress: Callable[[str], None] = lambda m: None) -> list[GcResult]:
+    """Docker: snapshot images on this host whose state directory is gone or was made again
+    (orphans), and those from before the labels (unlabelled), with what became of each. This
+    state's images are the fleet's leak rule's, a live state's are left alone; an image a
+    container uses or a state of this CCRP_HOME records is kept. Unlabelled images are removed
+    only when asked (`unlabelled`): nothing says they are not another CCRP_HOME's."""
+    from .providers.docker import snapshot_images as si
+    from .store import read_state_id
+
+    census = si.census(provider.client, provider.fleet, read_state_id(provider.state_dir), provider.state_dir.parent)
+    results = []
+    for v in census.of(si.ORPHAN) + census.of(si.UNLABELLED):
+        resource = OwnedResource(kind="image", id=v.image.id, name=", ".join(v.image.snapshot_tags))
+        detail = f"{v.detail}; {si.megabytes(v.image.own)} of its own"
+        if not v.removable:
+            results.append(GcResult(resource, "kept", detail))
+        elif dry_run or (v.state == si.UNLABELLED and not unlabelled):
+            results.append(GcResult(resource, v.state, detail if dry_run else f"{detail}; --unlabelled removes it"))
+        else:
+            try:
+                done = si.remove(provider.client, v.image)
+                progress(f"deleted image {resource.name}")
+                results.append(GcResult(resource, "deleted", done or detail))
+            except CcrpError as exc:
+                results.append(GcResult(resource, "failed", exc.one_line()))
     return results

@@ -25,7 +25,6 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     """Build the golden clone image (docker) and record it for new clones. A `bare` snapshot has
     only systemd and cloud-init: its clones install the recipe's packages at boot, as a clone
     started from a stock cloud image would (slower: the reason for snapshots, see bench/)."""
-    from .providers.base import owner_labels
     from .providers.docker import images
     from .recipes import platform
     from .workloads import snapshot_software
@@ -54,8 +53,8 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     tag = f"{image_repo(fleet)}:{'bare-' if bare else ''}{_stamp()}"
     progress(f"building snapshot {tag} from {base}")
     digest = software.digest if software is not None else NO_SOFTWARE
-    labels = owner_labels(fleet.name, "snapshot") | {"ccrp-distro": inv.ros.distro, "ccrp-bare": str(bare).lower(),
-                                                     "ccrp-software": digest}
+    labels = provider.snapshot_labels() | {"ccrp-distro": inv.ros.distro, "ccrp-bare": str(bare).lower(),
+                                           "ccrp-software": digest}
     images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat, software), labels,
                              progress, images.build_context(plat, progress, inv.ros.distro, software))
     record = provider.snapshot_record(client.images.get(tag))

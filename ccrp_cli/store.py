@@ -27,6 +27,10 @@ FILE_MODE = 0o600
 DIR_MODE = 0o700
 LOCK_WAIT_ENV = "CCRP_LOCK_WAIT"
 DEFAULT_LOCK_WAIT = 600.0
+# A random id made once per state directory: what the Docker backend's snapshot images are
+# labelled with, so `ccrp gc` can tell an image of a directory deleted and made again (a new id)
+# from one whose state still lives (providers/docker/snapshot_images.py).
+STATE_ID_FILE = "state-id"
 
 
 def ccrp_home() -> Path:
@@ -41,6 +45,39 @@ def ensure_dir(path: Path) -> Path:
             path.mkdir(mode=DIR_MODE)
             os.chmod(path, DIR_MODE)  # mkdir's mode is masked by the umask
     return path
+
+
+def read_state_id(root: Path) -> str | None:
+    """The id in the state directory `root`; None when it has none (or `root` is gone). Other
+    errors (a directory this user may not read) pass: the caller cannot judge, so must keep."""
+    try:
+        return (root / STATE_ID_FILE).read_text().strip() or None
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+
+
+def ensure_state_id(root: Path) -> str:
+    """The id of the state directory `root`, made (with `root`) if missing. Two runs making it at
+    once agree: the file appears whole (a hard link of a written temp file, which fails when it
+    exists) and whoever lost reads the winner's."""
+    found = read_state_id(root)
+    if found:
+        return found
+    import secrets
+
+    path = root / STATE_ID_FILE
+    tmp = _write_temp(path, secrets.token_hex(16) + "\n", FILE_MODE)
+    try:
+        os.link(tmp, path)
+        _fsync_dir(root)
+    except FileExistsError:
+        pass
+    finally:
+        tmp.unlink(missing_ok=True)
+    found = read_state_id(root)
+    if not found:  # there, but empty: written by hand
+        raise CcrpError(f"{path} is empty", hint="remove it: ccrp makes a new state id")
+    return found
 
 
 def atomic_write(path: Path, data: bytes | str, mode: int = FILE_MODE, durable: bool = True) -> None:

@@ -12,15 +12,18 @@ from . import options, output
 def gc(
     inventory: options.Inventory,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="Only list the leaks.")] = False,
+    unlabelled: Annotated[bool, typer.Option("--unlabelled", help="Docker: also remove snapshot images from before "
+                                             "images were labelled with their state, when no container uses them.")] = False,
     as_json: options.Json = False,
 ) -> None:
     """Delete resources carrying the fleet's labels that ccrp's state does not know (leaks).
 
     Known: recorded clones, their public IPs/volumes/routes, the fleet's network, firewall and key
-    pair, and its snapshots. Run with --dry-run first to see what would go."""
-    from ..gc import collect
-
+    pair, and its snapshots. On Docker, also snapshot images of any fleet whose state directory
+    is gone (orphans). Run with --dry-run first to see what would go."""
     from ..errors import CcrpError
+    from ..gc import collect, collect_images
+    from ..providers import Ability
 
     fleet, provider = options.open_provider(inventory)
     if not dry_run and not fleet.store.state_path.exists():
@@ -28,9 +31,19 @@ def gc(
         raise CcrpError(f"no state for fleet {fleet.name!r} in {fleet.store.root}: everything would count as a leak",
                         hint="run where the fleet's state lives (CCRP_HOME), `ccrp gc --dry-run` to look, or `ccrp fleet down`")
     with fleet.store.lock():  # no `fleet up` may create clones while we decide what is a leak
-        results = collect(fleet.store.load_state(), provider, dry_run, output.info, fleet.inventory.snapshots.keep)
+        leaks = collect(fleet.store.load_state(), provider, dry_run, output.info, fleet.inventory.snapshots.keep)
+        images = []
+        if Ability.LOCAL_BUILD in provider.abilities:  # snapshot images live on this host, whatever their state
+            images = collect_images(provider, dry_run, unlabelled, output.info)
+    results = leaks + images
     output.emit([r.as_dict() for r in results], as_json, ["KIND", "ID", "NAME", "ROBOT", "RESULT", "DETAIL"],
                 [(r.resource.kind, r.resource.id, r.resource.name, r.resource.robot, r.action, r.detail) for r in results])
     if not as_json:
-        output.info(f"fleet {fleet.name!r}: {len(results)} leaked resources" + (" (dry run: nothing deleted)" if dry_run else ""))
+        orphans = sum(r.action in ("orphan", "deleted", "failed") for r in images)
+        output.info(f"fleet {fleet.name!r}: {len(leaks)} leaked resources"
+                    + (f"; {orphans} orphan snapshot images on this host" if images else "")
+                    + (" (dry run: nothing deleted)" if dry_run else ""))
+        if any(r.action == "unlabelled" for r in images):
+            output.info("unlabelled: snapshot images from before ccrp labelled them with their state directory; "
+                        "`ccrp gc --unlabelled` removes those no container uses and no state here records")
     raise typer.Exit(1 if any(r.action == "failed" for r in results) else 0)

@@ -36,8 +36,6 @@ def require(kind: str, ability: Ability, hint: str) -> None:
 def get_provider(inv: "Inventory", workdir: Path | None = None) -> "Provider":
     module, cls = REGISTRY[inv.provider.kind].factory.split(":")
     backend = getattr(importlib.import_module(f"{__name__}.{module}"), cls)
-    if inv.provider.kind == "docker":
-        return backend(inv)
     from ..store import FleetStore
 
     return backend(inv, workdir or FleetStore(inv.fleet).root)

@@ -157,7 +157,7 @@ def make_harness(tmp_path):
 
     inv = inventory({"kind": "docker", "public_cidr": free_cidr(PUBLIC_RANGE), "publish_vpn_ports": True},
                     common={"cidr": free_cidr(COMMON_RANGE)})
-    provider = DockerProvider(inv)
+    provider = DockerProvider(inv, tmp_path / "store")  # its state id labels the snapshots it takes
     provider.backoff = FAST
     harness = None
     try:

@@ -5,10 +5,12 @@ Docker API into a per-clone volume, never into user-data, labels, environment or
 from __future__ import annotations
 
 import datetime as dt
+from pathlib import Path
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...render.view import AUTOSTOP_NOTE, VPN_DIR
+from ...store import FleetStore, ensure_state_id, read_state_id
 from ..base import (
     LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, OwnedResource, Quota, SnapshotRecord,
     autostop_note, check_cloud_init, cloud_init_clean, owner_labels,
@@ -45,9 +47,12 @@ class DockerProvider(DockerHost):
     abilities = INFO.abilities
     max_parallel = 8  # clones at once in `fleet up`: containers boot on this host's CPUs
 
-    def __init__(self, inv: Inventory) -> None:
+    def __init__(self, inv: Inventory, workdir: Path | None = None) -> None:
         super().__init__(inv.fleet)
         self.inv = inv
+        # The fleet's state directory (providers.get_provider: the store's root): its id labels
+        # the snapshot images, so `ccrp gc` can tell whose they are.
+        self.state_dir = workdir or FleetStore(inv.fleet).root
 
     # -- networks -----------------------------------------------------------------------------
     def bootstrap(self) -> None:
@@ -225,9 +230,17 @@ class DockerProvider(DockerHost):
         c = self._running(robot)
         # The secrets volume is not part of a commit: the snapshot carries no key.
         repo, _, tag = name.rpartition(":")
-        image = c.commit(repository=repo, tag=tag, changes=[f"LABEL {k}={v}" for k, v in
-                                                            owner_labels(self.fleet, "snapshot", robot).items()])
+        # Labels through the config, not a LABEL line: the state directory's path is taken as it
+        # is (spaces, quotes, `$`), and these win over the clone's own labels the image inherits.
+        image = c.commit(repository=repo, tag=tag, conf={"Labels": self.snapshot_labels(robot)})
         return self.snapshot_record(image)
+
+    def snapshot_labels(self, robot: str | None = None) -> dict[str, str]:
+        """Owner labels of a snapshot image, with the state it belongs to (`ccrp gc` finds the
+        images of deleted state directories by them)."""
+        from .snapshot_images import state_labels
+
+        return owner_labels(self.fleet, "snapshot", robot) | state_labels(self.state_dir, ensure_state_id(self.state_dir))
 
     def snapshot_record(self, image) -> SnapshotRecord:
         return SnapshotRecord(
@@ -239,7 +252,14 @@ class DockerProvider(DockerHost):
         )
 
     def list_snapshots(self) -> list[SnapshotRecord]:
-        images = self.client.images.list(filters=self._filters("snapshot"))
+        """This state's snapshots, and the fleet's from before images were labelled with their
+        state: a fleet of the same name in another CCRP_HOME has its own (retention and gc of
+        this one must not touch them)."""
+        from .snapshot_images import LABEL_STATE_ID
+
+        mine = read_state_id(self.state_dir)
+        images = [i for i in self.client.images.list(filters=self._filters("snapshot"))
+                  if i.labels.get(LABEL_STATE_ID) in (None, mine)]
         return sorted((self.snapshot_record(i) for i in images), key=lambda s: s.created)
 
     def delete_snapshot(self, snapshot_id: str) -> None:
