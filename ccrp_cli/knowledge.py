@@ -57,6 +57,7 @@ def knowledge_config(fleet: Fleet, state: FleetState, robot: str, live: set[str]
         "peers": {p: {"endpoint": f"tls/{plan[p].common_ip}:{k.port}", "id": zenoh_id(inv.fleet, f"{p}/knowledge"),
                       "cn": cns[p]} for p in partners},
         "datasets": datasets,
+        "quotas": {ds: {"items": k.datasets[ds].quota.items, "bytes": k.datasets[ds].quota.bytes} for ds in datasets},
         "reconcile": k.reconcile,
         "tls": {"ca": f"{SECRETS_DIR}/relay-ca.crt", "cert": f"{SECRETS_DIR}/relay.crt", "key": f"{SECRETS_DIR}/relay.key"},
         "root": ROOT,
@@ -169,11 +170,30 @@ def read_items(paths: list[Path]) -> list[tuple[str, bytes]]:
     return out
 
 
+def check_quota(fleet: Fleet, dataset: str, robot: str, listed: dict, items: list[tuple[str, bytes]]) -> None:
+    """Refuse in one line, before anything is pushed, files that would take the dataset past its
+    quota (services.knowledge.datasets.<ds>.quota) on robot's clone, whose `list` is `listed`. The
+    agent checks each add too, and a partner's items on their way may still fill it first."""
+    import hashlib
+
+    quota = fleet.inventory.services.knowledge.datasets[dataset].quota
+    have = {(i["name"], i["sha256"]) for i in listed["items"]}
+    new = {(n, hashlib.sha256(data).hexdigest()): len(data) for n, data in items}
+    new = {k: size for k, size in new.items() if k not in have}
+    count, size = len(listed["items"]) + len(new), listed["bytes"] + sum(new.values())
+    if count > quota.items or size > quota.bytes:
+        raise InputError(f"dataset {dataset!r} on robot {robot!r} would hold {count} items of {size} bytes, over its "
+                         f"quota of {quota.items} items and {quota.bytes} bytes; nothing was added",
+                         hint=f"ccrp knowledge remove what it no longer needs, or raise "
+                              f"services.knowledge.datasets.{dataset}.quota in the inventory")
+
+
 def add_items(fleet: Fleet, provider, robot: str, dataset: str, paths: list[Path]) -> list[dict]:
     """Add files to the dataset on robot's clone; its agent sends them to the partners at once."""
     _check(fleet, robot, dataset)
     items = read_items(paths)
-    _ctl(provider, robot, {"op": "ping", "dataset": dataset})  # before pushing anything
+    # Before pushing anything: the agent answers, and the files fit the dataset's quota.
+    check_quota(fleet, dataset, robot, _ctl(provider, robot, {"op": "list", "dataset": dataset}), items)
     added = []
     for name, data in items:
         # Root-only, beside the datasets (no dataset name starts with a dot); the ctl client reads

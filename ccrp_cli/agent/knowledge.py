@@ -10,12 +10,16 @@ hard link per live item, under its name; names that several contents share get
 the same on every clone: a union without duplicates, deletions carried as tombstones.
 
 Between clones (Zenoh over the relay's mutual TLS, peers and their certificate CNs from the config):
-  ccrp/<fleet>/knowledge/<ds>/event/<robot>      records a clone just changed (put)
-  ccrp/<fleet>/knowledge/<ds>/index/<robot>      queryable: that clone's whole index
-  ccrp/<fleet>/knowledge/<ds>/blob/<robot>/<sha> queryable: one object's bytes
-A record that makes an item live is merged only once its object is here: fetched to tmp/, its
-hash checked, then renamed into objects/ (a transfer cut anywhere leaves no item). Every
-`reconcile` seconds, when a peer (re)connects and on `sync`, the agent pulls every peer's index.
+  ccrp/<fleet>/knowledge/<ds>/<robot>/event      records a clone just changed (put)
+  ccrp/<fleet>/knowledge/<ds>/<robot>/index      queryable: that clone's whole index
+  ccrp/<fleet>/knowledge/<ds>/<robot>/blob/<sha> queryable: one object's bytes
+Each clone writes (puts, replies, declares queryables) under its own <ds>/<robot>/ only: every
+receiver's Zenoh access control admits a partner's writes there alone, by the CN of its relay
+certificate (`acl`), so the robot a key names is the clone that wrote it. A record that makes an
+item live is merged only once its object is here: fetched to tmp/, its size and hash checked,
+then renamed into objects/ (a transfer cut anywhere leaves no item), and only within the
+dataset's quota. Every `reconcile` seconds, when a peer (re)connects and on `sync`, the agent
+pulls every peer's index.
 
 Local control (root only, the socket is the agent user's 0600): `knowledge.py ctl REQUEST [FILE]`.
 """
@@ -55,6 +59,15 @@ NAME_BYTES = 255 - len(".-") - 63 - 8  # 182
 # have gone back since, and a record dropped there would take its content along.
 FUTURE_S = 600.0
 MAX_TIME = 4102444800.0
+# What a dataset may hold on this clone when the config names no quota (ccrp's own configs always
+# do: services.knowledge.datasets.<ds>.quota, whose default this is): live items, and their bytes.
+DEFAULT_QUOTA = {"items": 10000, "bytes": 1 << 30}
+# Tombstones are kept (none is collected yet), so the index, in memory and in index.json, is bounded
+# apart: at most this many records, live or deleted, per item of the quota.
+RECORDS_PER_ITEM = 4
+# A peer's records that are refused are reported once each (they come again at every
+# reconciliation), remembering at most this many.
+REPORTED = 10000
 
 
 def name_problem(name: object) -> str | None:
@@ -115,6 +128,39 @@ def merge(a: dict | None, b: dict) -> dict:
             "last": max(a["last"], b["last"]), "deleted": max(dels) if dels else None}
 
 
+def vouched(old: dict | None, rec: dict, sender: str) -> bool:
+    """Whether `sender` (the robot its key names, which the ACL binds to the CN of its relay
+    certificate) may tell this clone `rec`: an add of its own (origin is the sender), or news of an
+    item this clone knows already that leaves its first add (time and origin) as it is: a delete or
+    an add again, passed on. Anything else would let one partner say another added something."""
+    return rec["origin"] == sender or (old is not None and (old["added"], old["origin"]) <= (rec["added"], rec["origin"]))
+
+
+def quota_problem(old: dict | None, rec: dict, used: dict, quota: dict) -> str | None:
+    """Why merging `rec` (whose index record here is `old`) would take a dataset past its quota,
+    given what it `used` ({items, bytes, records}); None when it fits. Only a record that makes an
+    item live, or a new record, costs: a delete never is refused."""
+    if old is None and used["records"] >= quota["items"] * RECORDS_PER_ITEM:
+        return (f"its index holds {used['records']} records (deleted items too), the most for a quota of "
+                f"{quota['items']} items")
+    if live(merge(old, rec)) and not (old is not None and live(old)):
+        if used["items"] >= quota["items"]:
+            return f"it holds {used['items']} items, its quota"
+        if used["bytes"] + rec["size"] > quota["bytes"]:
+            return f"{rec['size']} bytes more than its {used['bytes']} would pass its quota of {quota['bytes']}"
+    return None
+
+
+def account(used: dict, old: dict | None, new: dict) -> None:
+    """`used` after `old` became `new` in the index."""
+    used["records"] += old is None
+    was = old is not None and live(old)
+    if live(new) != was:
+        sign = 1 if live(new) else -1
+        used["items"] += sign
+        used["bytes"] += sign * new["size"]
+
+
 def added(index: dict, name: str, sha: str, size: int, origin: str, now: float) -> dict:
     """The record after adding (name, sha) here: new, or live again after a delete (the add wins
     over a delete it saw, whatever the clocks say)."""
@@ -161,12 +207,19 @@ def listing(records) -> list[dict]:
 # -- a dataset on disk ---------------------------------------------------------------------------
 
 def write_atomic(path: str, data: bytes) -> None:
+    """`data` as the file at `path`, whole or not at all; a write that fails (a full disk) leaves
+    the old file and no temporary one, and raises."""
     tmp = f"{path}.tmp"
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 class Dataset:
@@ -205,11 +258,16 @@ class Dataset:
             raise ValueError(f"content hashes to {sha[:12]}, not {expect[:12]}")
         if not self.has(sha):
             tmp = os.path.join(self.dir, "tmp", f"{sha}.{os.getpid()}.{threading.get_ident()}")
-            with open(tmp, "wb") as fh:
-                fh.write(data)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, self.object(sha))
+            try:
+                with open(tmp, "wb") as fh:
+                    fh.write(data)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                os.replace(tmp, self.object(sha))
+            except BaseException:  # a full disk: what was written of it goes, the caller reports
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
+                raise
         return sha
 
     def save(self) -> None:
@@ -272,6 +330,11 @@ class Dataset:
         return {"items": sum(1 for r in recs if live(r)), "tombstones": sum(1 for r in recs if not live(r)),
                 "bytes": sum(r["size"] for r in recs if live(r))}
 
+    def used(self) -> dict:
+        """What counts against the quota: live items, their bytes, and records (tombstones too)."""
+        s = self.stats()
+        return {"items": s["items"], "bytes": s["bytes"], "records": len(self.index)}
+
 
 # -- between clones ------------------------------------------------------------------------------
 
@@ -292,21 +355,54 @@ def zenoh_config(cfg: dict):
         "connect_private_key": tls["key"], "connect_certificate": tls["cert"],
     }))
     c.insert_json5("access_control", json.dumps(acl(cfg)))
+    # Zenoh drops a message larger than this rather than gather it in memory (its default is 1 GiB):
+    # an object is at most its dataset's quota, an index at most its records (under 1 KiB each).
+    c.insert_json5("transport/link/rx/max_message_size", json.dumps(max_message(cfg)))
     return c
 
 
+def quota_of(cfg: dict, ds: str) -> dict:
+    return {**DEFAULT_QUOTA, **cfg.get("quotas", {}).get(ds, {})}
+
+
+def item_cap(cfg: dict, ds: str) -> int:
+    """The most bytes one item of `ds` may have: its quota's, and never over MAX_ITEM."""
+    return min(MAX_ITEM, quota_of(cfg, ds)["bytes"])
+
+
+def max_message(cfg: dict) -> int:
+    biggest = max((max(item_cap(cfg, ds), quota_of(cfg, ds)["items"] * RECORDS_PER_ITEM * 1024)
+                   for ds in cfg["datasets"]), default=0)
+    return min(MAX_ITEM, biggest) + (1 << 20)
+
+
 def acl(cfg: dict) -> dict:
-    """Zenoh access control: a dataset's keys are open only to the clones sharing it, each admitted
-    by the CN of its current relay certificate (Zenoh wants every list non-empty)."""
-    rules, subjects, policies = [], [], []
+    """Zenoh access control, which this clone's session enforces on what each partner sends it and
+    on what it sends each partner. A partner is known by the CN of its current relay certificate
+    (mutual TLS) and sees only the datasets it shares: it may subscribe to and query every key of
+    such a dataset, but put, reply and declare a queryable only under its own
+    `<dataset>/<robot>/`, and this clone sends under its own only. So the robot a key names is the
+    clone that wrote it: a partner can neither publish nor answer a query as another. (Zenoh wants
+    every list non-empty.)"""
+    me, peers = cfg["robot"], sorted(cfg["peers"])
+    read = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
+    write = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
+    rules, policies, used = [], [], set()
     for i, (ds, members) in enumerate(sorted(cfg["datasets"].items())):
-        cns = sorted(cfg["peers"][m]["cn"] for m in members if m in cfg["peers"]) or [NOBODY]
-        rules.append({"id": f"r{i}", "permission": "allow", "flows": ["ingress", "egress"],
-                      "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
-                                   "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"],
-                      "key_exprs": [f"ccrp/{cfg['fleet']}/knowledge/{ds}/**"]})
-        subjects.append({"id": f"s{i}", "cert_common_names": cns})
-        policies.append({"rules": [f"r{i}"], "subjects": [f"s{i}"]})
+        space = f"ccrp/{cfg['fleet']}/knowledge/{ds}"
+        partners = [j for j, p in enumerate(peers) if p in members]
+        if not partners:
+            continue
+        rules += [{"id": f"d{i}-read", "permission": "allow", "flows": ["ingress", "egress"], "messages": read,
+                   "key_exprs": [f"{space}/**"]},
+                  {"id": f"d{i}-mine", "permission": "allow", "flows": ["egress"], "messages": write,
+                   "key_exprs": [f"{space}/{me}/**"]}]
+        for j in partners:
+            rules.append({"id": f"d{i}-p{j}", "permission": "allow", "flows": ["ingress"], "messages": write,
+                          "key_exprs": [f"{space}/{peers[j]}/**"]})
+            policies.append({"rules": [f"d{i}-read", f"d{i}-mine", f"d{i}-p{j}"], "subjects": [f"p{j}"]})
+            used.add(j)
+    subjects = [{"id": f"p{j}", "cert_common_names": [cfg["peers"][peers[j]]["cn"]]} for j in sorted(used)]
     if not rules:
         rules = [{"id": "none", "permission": "allow", "flows": ["ingress"], "messages": ["put"],
                   "key_exprs": [f"ccrp/{cfg['fleet']}/knowledge/none"]}]
@@ -321,15 +417,22 @@ class Agent:
         self.jobs: queue.Queue = queue.Queue()
         self.datasets: dict[str, Dataset] = {}
         self.decls: list = []
-        self.counts = {"received": 0, "fetched": 0, "published": 0, "errors": 0}
+        self.counts = {"received": 0, "fetched": 0, "published": 0, "errors": 0, "refused": 0}
         self.last_error: str | None = None
+        self.reported: set[tuple] = set()
         self.last_reconcile: float | None = None
         self.seen_peers: set[str] = set()
         self.apply(cfg)
         threading.Thread(target=self.work, name="worker", daemon=True).start()
 
-    def k(self, ds: str, *rest: str) -> str:
-        return "/".join((f"ccrp/{self.cfg['fleet']}/knowledge/{ds}", *rest))
+    def k(self, ds: str, robot: str, *rest: str) -> str:
+        """A key of `robot`'s under dataset `ds` (`*` for every robot's): ccrp/<fleet>/knowledge/<ds>/<robot>/..."""
+        return "/".join((f"ccrp/{self.cfg['fleet']}/knowledge/{ds}", robot, *rest))
+
+    @staticmethod
+    def writer(key: str) -> str:
+        """The robot a key of ours names, <ds>/<robot>/event|index: the clone that wrote it (acl)."""
+        return str(key).split("/")[4]
 
     # -- configuration
     def apply(self, cfg: dict) -> None:
@@ -358,10 +461,10 @@ class Agent:
         self.session = zenoh.open(zenoh_config(self.cfg))
         me = self.cfg["robot"]
         for ds in self.datasets:
-            self.decls.append(self.session.declare_subscriber(self.k(ds, "event", "*"),
+            self.decls.append(self.session.declare_subscriber(self.k(ds, "*", "event"),
                                                               lambda s, ds=ds: self.jobs.put(("event", ds, s))))
-            self.decls.append(self.session.declare_queryable(self.k(ds, "index", me), lambda q, ds=ds: self.on_index(ds, q)))
-            self.decls.append(self.session.declare_queryable(self.k(ds, "blob", me, "*"), lambda q, ds=ds: self.on_blob(ds, q)))
+            self.decls.append(self.session.declare_queryable(self.k(ds, me, "index"), lambda q, ds=ds: self.on_index(ds, q)))
+            self.decls.append(self.session.declare_queryable(self.k(ds, me, "blob", "*"), lambda q, ds=ds: self.on_blob(ds, q)))
         self.seen_peers = set()
 
     # -- answering peers (Zenoh's threads)
@@ -370,7 +473,7 @@ class Agent:
             with self.lock:
                 d = self.datasets.get(ds)
                 records = list(d.index.values()) if d else []
-            query.reply(self.k(ds, "index", self.cfg["robot"]), json.dumps(records).encode())
+            query.reply(self.k(ds, self.cfg["robot"], "index"), json.dumps(records).encode())
         except Exception as exc:  # noqa: BLE001 - a peer's query must not stop the agent
             self.error(f"index query: {exc}")
         finally:
@@ -385,7 +488,7 @@ class Agent:
             if path is not None:
                 with open(path, "rb") as fh:
                     data = fh.read()
-                query.reply(self.k(ds, "blob", self.cfg["robot"], sha), data)
+                query.reply(self.k(ds, self.cfg["robot"], "blob", sha), data)
         except Exception as exc:  # noqa: BLE001
             self.error(f"blob query: {exc}")
         finally:
@@ -399,8 +502,7 @@ class Agent:
                 if job[0] == "event":
                     _, ds, sample = job
                     self.counts["received"] += 1
-                    sender = str(sample.key_expr).rsplit("/", 1)[-1]
-                    self.take(ds, json.loads(sample.payload.to_bytes()), [sender])
+                    self.take(ds, json.loads(sample.payload.to_bytes()), self.writer(sample.key_expr))
                 elif job[0] == "reconcile":
                     self.reconcile(job[1] if len(job) > 1 else None)
                 elif job[0] == "call":
@@ -427,45 +529,94 @@ class Agent:
         self.last_error = msg[:300]
         log(msg)
 
-    def fetch(self, ds: str, sha: str, holders: list[str]) -> bytes | None:
-        """An object's bytes from the first holder that answers with the right content."""
-        for holder in holders:
-            if holder == self.cfg["robot"]:
+    def refuse(self, what: tuple, msg: str) -> None:
+        """Count a peer's record refused, and report it the first time: the same record comes
+        again at every reconciliation, and the log must not fill with it."""
+        self.counts["refused"] += 1
+        if what in self.reported:
+            return
+        if len(self.reported) >= REPORTED:
+            self.reported.clear()
+        self.reported.add(what)
+        self.error(msg)
+
+    def fetch(self, ds: str, rec: dict, holder: str) -> bytes | None:
+        """The object of `rec` from `holder`, if it answers with the content the record names:
+        its size (checked before the bytes are copied out of Zenoh's buffer) and its hash."""
+        sha, size = rec["sha256"], rec["size"]
+        if holder == self.cfg["robot"]:
+            return None
+        for reply in self.session.get(self.k(ds, holder, "blob", sha), timeout=FETCH_TIMEOUT):
+            if reply.ok is None:
                 continue
-            for reply in self.session.get(self.k(ds, "blob", holder, sha), timeout=FETCH_TIMEOUT):
-                if reply.ok is not None:
-                    data = reply.ok.payload.to_bytes()
-                    if hashlib.sha256(data).hexdigest() == sha:
-                        return data
-                    self.error(f"{ds}: {holder} sent content that does not hash to {sha[:12]}")
+            if len(reply.ok.payload) != size:
+                self.refuse((ds, holder, "size", sha), f"{ds}: {holder} sent {len(reply.ok.payload)} bytes for "
+                            f"{rec['name']!r:.120} ({sha[:12]}), whose record says {size}: dropped")
+                continue
+            data = reply.ok.payload.to_bytes()
+            if hashlib.sha256(data).hexdigest() == sha:
+                return data
+            self.error(f"{ds}: {holder} sent content that does not hash to {sha[:12]}")
         return None
 
-    def take(self, ds: str, records: list, holders: list[str]) -> int:
-        """Merge peers' records: tombstones at once, a live item once its object is here."""
+    def take(self, ds: str, records: list, sender: str) -> int:
+        """Merge the records `sender` sent (its event, or its index): tombstones at once, a live
+        item once its object is here. A record is refused (and reported once) when it is not
+        well-formed, when `sender` may not vouch for it (`vouched`), when it would take the
+        dataset past its quota, or when its content is not what it says; one that the disk
+        refuses (ENOSPC) is skipped and reported. The others are taken either way."""
         d = self.datasets.get(ds)
         if d is None or not isinstance(records, list):
             return 0
         changed = 0
         latest = time.time() + FUTURE_S
+        quota = quota_of(self.cfg, ds)
+        with self.lock:
+            used = d.used()
         for rec in records:
             if not valid(rec, latest):
-                self.error(f"{ds}: refused a record from {holders}: {json.dumps(rec)[:120]}")
+                self.error(f"{ds}: refused a record from {sender}: {json.dumps(rec)[:120]}")
+                continue
+            old = d.index.get(key(rec))
+            if not vouched(old, rec, sender):
+                self.refuse((ds, sender, "origin", rec["origin"], key(rec)),
+                            f"{ds}: {sender} sent {rec['name']!r:.120} ({rec['sha256'][:12]}) as added by "
+                            f"{rec['origin']}: a clone vouches only for its own adds; dropped")
+                continue
+            problem = quota_problem(old, rec, used, quota)
+            if problem:
+                self.refuse((ds, "quota", key(rec)), f"{ds}: {rec['name']!r:.120} from {sender} not taken: {problem}")
                 continue
             if d.missing(rec):
-                data = self.fetch(ds, rec["sha256"], holders)
+                data = self.fetch(ds, rec, sender)
                 if data is None:
-                    self.error(f"{ds}: {rec['name']} ({rec['sha256'][:12]}) not fetched from {holders}; "
+                    self.error(f"{ds}: {rec['name']} ({rec['sha256'][:12]}) not fetched from {sender}; "
                                "the next reconciliation tries again")
                     continue
-                with self.lock:
-                    d.store(data, rec["sha256"])
+                try:
+                    with self.lock:
+                        d.store(data, rec["sha256"])
+                except OSError as exc:  # a full disk: this item waits for the next reconciliation
+                    d.skipped(f"objects/{rec['sha256']}", exc)
+                    continue
                 self.counts["fetched"] += 1
             with self.lock:
                 changed += d.absorb(rec)
+                account(used, old, d.index[key(rec)])
         if changed:
+            self.save(d)
+        return changed
+
+    def save(self, d: Dataset) -> bool:
+        """index.json and files/ written; a disk that refuses is reported, and the index kept in
+        memory is written at the next change."""
+        try:
             with self.lock:
                 d.save()
-        return changed
+            return True
+        except OSError as exc:
+            d.skipped("index.json", exc)
+            return False
 
     def reconcile(self, only: str | None = None) -> int:
         import zenoh
@@ -474,18 +625,18 @@ class Agent:
         for ds in sorted(self.datasets):
             if only and ds != only:
                 continue
-            for reply in self.session.get(self.k(ds, "index", "*"), target=zenoh.QueryTarget.ALL, timeout=10.0):
+            for reply in self.session.get(self.k(ds, "*", "index"), target=zenoh.QueryTarget.ALL, timeout=10.0):
                 if reply.ok is None:
                     continue
-                peer = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+                peer = self.writer(reply.ok.key_expr)
                 if peer == self.cfg["robot"]:
                     continue
-                changed += self.take(ds, json.loads(reply.ok.payload.to_bytes()), [peer])
+                changed += self.take(ds, json.loads(reply.ok.payload.to_bytes()), peer)
         self.last_reconcile = time.time()
         return changed
 
     def publish(self, ds: str, records: list[dict]) -> None:
-        self.session.put(self.k(ds, "event", self.cfg["robot"]), json.dumps(records).encode())
+        self.session.put(self.k(ds, self.cfg["robot"], "event"), json.dumps(records).encode())
         self.counts["published"] += 1
 
     # -- local requests (the control socket's thread, run by the worker)
@@ -504,11 +655,20 @@ class Agent:
             problem = name_problem(name)
             if problem:
                 return {"ok": False, "error": f"bad item name {str(name)[:80]!r}: {problem}"}
+            data = data or b""
             with self.lock:
-                sha = d.store(data or b"")
-                rec = added(d.index, name, sha, len(data or b""), self.cfg["robot"], time.time())
+                sha = hashlib.sha256(data).hexdigest()
+                rec = added(d.index, name, sha, len(data), self.cfg["robot"], time.time())
+                problem = quota_problem(d.index.get(key(rec)), rec, d.used(), quota_of(self.cfg, ds))
+                if problem:
+                    return {"ok": False, "error": f"dataset {ds!r} is full: {problem}"}
+                try:
+                    d.store(data, sha)
+                except OSError as exc:
+                    return {"ok": False, "error": f"cannot store {name!r:.120} on this clone: {exc.strerror or exc}"}
                 fresh = d.absorb(rec)
-                d.save()
+            if not self.save(d):
+                return {"ok": False, "error": f"cannot write dataset {ds!r}'s index on this clone: {self.last_error}"}
             self.publish(ds, [rec])
             return {"ok": True, "item": {"name": name, "sha256": sha, "size": rec["size"], "origin": rec["origin"]},
                     "new": bool(fresh)}
@@ -519,9 +679,8 @@ class Agent:
                 recs = [removed(r, time.time()) for r in hit]
                 for r in recs:
                     d.absorb(r)
-                if recs:
-                    d.save()
             if recs:
+                self.save(d)
                 self.publish(ds, recs)
             return {"ok": True, "removed": [{"name": r["name"], "sha256": r["sha256"], "origin": r["origin"]} for r in recs]}
         if op == "sync":
@@ -577,8 +736,11 @@ def serve(agent: Agent, path: str) -> None:
                 data = None
                 if req.get("op") == "add":
                     size = int(req.get("size", -1))
-                    if not 0 <= size <= MAX_ITEM:
-                        raise ValueError(f"bad size {size}")
+                    # Never more in memory than the dataset's quota lets one item have.
+                    cap = item_cap(agent.cfg, req.get("dataset")) if req.get("dataset") in agent.datasets else 0
+                    if not 0 <= size <= cap:
+                        raise ValueError(f"an item of {size} bytes: dataset {str(req.get('dataset'))[:40]!r} here "
+                                         f"takes up to {cap}")
                     data = f.read(size)
                     if len(data) != size:
                         raise ConnectionError("the client went away mid-item")

@@ -12,7 +12,7 @@ from ..errors import shown
 from .names import Name, Topic
 from .software import Software, TypeSettings, merge
 from .strict import Strict
-from .values import CloudName, Duration, Port, StrictInt
+from .values import CloudName, Duration, Port, Size, StrictInt
 
 RobotType = Literal["nao", "turtlebot", "generic"]
 
@@ -83,10 +83,27 @@ class ApiManager(Strict):
 DATASET_PATTERN = r"^[a-z][a-z0-9_-]{0,39}$"
 
 
+class Quota(Strict):
+    """What one dataset may hold on each clone that shares it: live items, and their bytes. A
+    partner's item past it is refused by the agent (and reported); `knowledge add` refuses in one
+    line. No item is bigger than `bytes` (nor than 1 GiB, what an agent takes from a partner)."""
+
+    items: Annotated[int, Field(strict=True, ge=1, le=1_000_000)] = 10_000
+    bytes: Size = 1 << 30
+
+    @field_validator("bytes")
+    @classmethod
+    def _bytes_range(cls, size: int) -> int:
+        if not 1 << 10 <= size <= 1 << 40:
+            raise ValueError("a dataset's quota of bytes must be between 1KiB and 1TiB")
+        return size
+
+
 class Dataset(Strict):
     # The robots whose clones share the dataset: named robots of the inventory, or `all` (every
     # robot of the fleet, template robots that `fleet scale` adds too).
     robots: Literal["all"] | Annotated[list[Name], Field(min_length=1, max_length=1000)]
+    quota: Quota = Quota()
 
 
 class Knowledge(Strict):

@@ -49,6 +49,27 @@ def parse_duration(text: str, what: str) -> int:
 # Seconds, written with a unit in the inventory; `never` is 0.
 Duration = Annotated[int, BeforeValidator(lambda v: 0 if v == "never" else _seconds(v)), Field(strict=True)]
 
+_SIZE_RE = re.compile(r"([0-9]{1,9}) ?(B|[KMGT]i?B)", re.ASCII)
+_SIZE_UNIT = {"B": 1, "KB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12,
+              "KiB": 1 << 10, "MiB": 1 << 20, "GiB": 1 << 30, "TiB": 1 << 40}
+
+
+def _bytes(value: object) -> object:
+    """"500MB", "2GiB", "64 KiB" -> bytes (KB, MB... are powers of 1000, KiB, MiB... of 1024). A
+    bare number is refused: 500 could mean bytes or megabytes."""
+    if isinstance(value, str):
+        m = _SIZE_RE.fullmatch(value.strip())
+        if not m:
+            raise ValueError(f"{shown(value)} is not a size: write it as 500MB, 2GiB or 64KiB")
+        return int(m.group(1)) * _SIZE_UNIT[m.group(2)]
+    if isinstance(value, int) and not isinstance(value, bool):
+        raise ValueError(f"{value} has no unit: write it as {value}MB or {value}MiB")
+    return value
+
+
+# Bytes, written with a unit in the inventory.
+Size = Annotated[int, BeforeValidator(_bytes), Field(strict=True)]
+
 # -- hosts and endpoints ------------------------------------------------------------------------
 
 _LABEL = r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)"

@@ -40,6 +40,11 @@ def test_datasets_name_their_robots():
     assert fleet.datasets_of("nao1") == {"faces": ["nao1", "nao2"]}
     assert fleet.datasets_of("tb1") == {}
     assert fleet.services.knowledge.reconcile == 60 and fleet.services.knowledge.port == 7448
+    # A quota by default; sizes are written with a unit (KB, MB: powers of 1000; KiB, MiB: of 1024).
+    quota = fleet.services.knowledge.datasets["faces"].quota
+    assert (quota.items, quota.bytes) == (10000, 1 << 30) == (agent.DEFAULT_QUOTA["items"], agent.DEFAULT_QUOTA["bytes"])
+    small = inv(services={"knowledge": {"datasets": {"faces": {"robots": "all", "quota": {"items": 5, "bytes": "500MB"}}}}})
+    assert small.services.knowledge.datasets["faces"].quota.bytes == 500_000_000
     assert inv().datasets_of("nao1") == {}
     # `all`: every robot of the fleet, template robots too; a dataset nobody else shares is none.
     every = inv(services={"knowledge": {"datasets": {"faces": {"robots": "all"}}}})
@@ -55,6 +60,11 @@ def test_datasets_name_their_robots():
     ({"datasets": {"faces": {"robots": []}}}, "services.knowledge.datasets.faces.robots"),
     ({"datasets": {"faces": {"robots": "some"}}}, "services.knowledge.datasets.faces.robots"),
     ({"datasets": {"../x": {"robots": ["nao1"]}}}, "services.knowledge.datasets"),
+    ({"datasets": {"faces": {"robots": "all", "quota": {"bytes": 500}}}}, "500 has no unit: write it as 500MB or 500MiB"),
+    ({"datasets": {"faces": {"robots": "all", "quota": {"bytes": "5 parsecs"}}}}, "'5 parsecs' is not a size"),
+    ({"datasets": {"faces": {"robots": "all", "quota": {"bytes": "2TiB"}}}}, "quota of bytes must be between 1KiB and 1TiB"),
+    ({"datasets": {"faces": {"robots": "all", "quota": {"items": 0}}}}, "services.knowledge.datasets.faces.quota.items"),
+    ({"datasets": {"faces": {"robots": "all", "quota": {"items": True}}}}, "services.knowledge.datasets.faces.quota.items"),
     ({"datasets": {}, "reconcile": "1s"}, "reconcile must be between 5s and 1d"),
     ({"datasets": {}, "reconcile": 300}, "300 has no unit"),
     ({"datasets": {}, "port": 7447}, "services.knowledge.port 7447 is taken"),
@@ -262,15 +272,61 @@ def test_config_names_partners_that_share_a_dataset_and_acl_admits_only_them(lab
     assert cfg["datasets"] == {"faces": ["nao1", "nao2", "turtlebot1"]}
     assert sorted(cfg["peers"]) == ["nao2", "turtlebot1"] and cfg["listen"].endswith(":7448")
     assert cfg["tls"]["key"].endswith("/relay.key") and cfg["reconcile"] == 300
-    cns = lab.pki.relay_cns()
-    acl = agent.acl(cfg)
-    assert acl["default_permission"] == "deny"
-    assert acl["subjects"] == [{"id": "s0", "cert_common_names": sorted([cns["nao2"], cns["turtlebot1"]])}]
-    assert acl["rules"][0]["key_exprs"] == ["ccrp/lab/knowledge/faces/**"]
+    assert cfg["quotas"] == {"faces": {"items": 10000, "bytes": 1 << 30}}
     # Only clones that are up are partners; a clone sharing nothing gets no config.
     assert sorted(knowledge_config(lab, state, "nao1", live={"nao2"})["peers"]) == ["nao2"]
     assert agent.acl(knowledge_config(lab, state, "nao1", live=set()))["subjects"][0]["cert_common_names"] == \
         [agent.NOBODY]
+
+
+def granted(acl: dict, cn: str) -> dict[tuple[str, str], set[str]]:
+    """(flow, message) -> the key expressions the ACL allows for the partner with certificate `cn`."""
+    subjects = {s["id"] for s in acl["subjects"] if cn in s["cert_common_names"]}
+    rules = {r["id"]: r for r in acl["rules"]}
+    out: dict[tuple[str, str], set[str]] = {}
+    for p in acl["policies"]:
+        if subjects & set(p["subjects"]):
+            for rid in p["rules"]:
+                r = rules[rid]
+                assert r["permission"] == "allow"
+                for flow, msg in itertools.product(r["flows"], r["messages"]):
+                    out.setdefault((flow, msg), set()).update(r["key_exprs"])
+    return out
+
+
+def test_the_acl_lets_each_clone_write_only_under_its_own_key(lab):
+    """Issue 25, item 5: the ACL covered a dataset's whole key space, so a partner could put an
+    event under another's key (the sender was taken from the key) or answer a query as another.
+    The zenoh config each clone loads now lets a partner, known by the CN of its relay
+    certificate, read all of a dataset but write (put, reply, declare a queryable) only under its
+    own `<dataset>/<robot>/`; and this clone sends under its own only."""
+    from ccrp_cli.knowledge import knowledge_config
+
+    state = lab.store.load_state()
+    for robot in ("nao1", "nao2", "turtlebot1"):
+        lab.pki.issue_relay(robot, "10.90.0.1", 30)
+    cns = lab.pki.relay_cns()
+    cfg = knowledge_config(lab, state, "nao1", live={"nao1", "nao2", "turtlebot1"})
+    def given(v):  # zenoh fills in what the config leaves out as null
+        if isinstance(v, dict):
+            return {k: given(x) for k, x in v.items() if x is not None}
+        return [given(x) for x in v] if isinstance(v, list) else v
+
+    loaded = given(json.loads(agent.zenoh_config(cfg).get_json("access_control")))  # what the session loads
+    assert loaded == agent.acl(cfg) and loaded["enabled"]
+    assert loaded["default_permission"] == "deny"
+    space = "ccrp/lab/knowledge/faces"
+    for peer in ("nao2", "turtlebot1"):
+        g = granted(loaded, cns[peer])
+        for msg in ("put", "delete", "reply", "declare_queryable"):
+            assert g[("ingress", msg)] == {f"{space}/{peer}/**"}, (peer, msg, g)
+            assert g[("egress", msg)] == {f"{space}/nao1/**"}, (peer, msg, g)
+        for msg in ("declare_subscriber", "query"):
+            assert g[("ingress", msg)] == g[("egress", msg)] == {f"{space}/**"}
+    assert granted(loaded, cns["nao1"]) == {} and granted(loaded, "relay-stranger-1") == {}
+    # Zenoh gathers no message bigger than an item or an index may be, well under its 1 GiB.
+    small = {**cfg, "quotas": {"faces": {"items": 10, "bytes": 1 << 20}}}
+    assert json.loads(agent.zenoh_config(small).get_json("transport/link/rx/max_message_size")) == 2 << 20
 
 
 # -- three agents on loopback, for real ---------------------------------------------------------
@@ -326,17 +382,18 @@ def agents(lab, tmp_path):
         return {"ca": str(lab.pki.relay_ca_path), "cert": str(lab.pki.root / c.cert_path),
                 "key": str(lab.pki.root / c.key_path)}
 
-    def start(r):
+    def start(r, **extra):
         cfg = {"fleet": "lab", "robot": r, "id": "c" + hashlib.sha256(r.encode()).hexdigest()[:31],
                "listen": f"tls/127.0.0.1:{ports[r]}", "reconcile": 300,
                "peers": {p: {"endpoint": f"tls/127.0.0.1:{ports[p]}", "id": "c" + hashlib.sha256(p.encode()).hexdigest()[:31],
                              "cn": cns[p]} for p in robots if p != r},
                "datasets": {"faces": list(robots)}, "tls": tls(r), "root": str(tmp_path / r),
-               "status": str(tmp_path / f"{r}.status")}
+               "status": str(tmp_path / f"{r}.status"), **extra}
         a = agent.Agent(cfg)
         made[r] = Ctl(a, str(tmp_path / f"{r}.sock"))
         return made[r]
 
+    start.tls, start.ports = tls, ports  # for a partner's session made by hand
     yield start, tmp_path
     for c in made.values():
         c.agent.session.close()
@@ -344,6 +401,12 @@ def agents(lab, tmp_path):
 
 def names(ctl) -> list[tuple[str, str]]:
     return sorted((i["name"], i["origin"]) for i in ctl({"op": "list", "dataset": "faces"})["items"])
+
+
+def answering(ctl, peer: str) -> bool:
+    """Whether `peer`'s queryables have reached ctl's agent: the link is up a little before."""
+    a = ctl.agent
+    return any(r.ok is not None for r in a.session.get(a.k("faces", peer, "index"), timeout=1.0))
 
 
 def until(what, probe, timeout=5.0):
@@ -411,7 +474,7 @@ def test_a_transfer_cut_midway_leaves_no_item(agents, monkeypatch):
 
     def cut(self, ds, query):
         try:
-            query.reply(self.k(ds, "blob", self.cfg["robot"], str(query.key_expr).rsplit("/", 1)[-1]), b"trunc")
+            query.reply(self.k(ds, self.cfg["robot"], "blob", str(query.key_expr).rsplit("/", 1)[-1]), b"trunc")
         finally:
             query.drop()
 
@@ -452,7 +515,7 @@ def test_a_peers_time_from_the_future_cannot_make_a_delete_permanent(agents):
     item = next(iter(nao1.agent.datasets["faces"].index.values()))
 
     def take(recs):  # as a peer's event is taken: on the agent's worker
-        return nao1.agent.call(lambda: nao1.agent.take("faces", recs, ["nao2"]))
+        return nao1.agent.call(lambda: nao1.agent.take("faces", recs, "nao2"))
 
     now, errors = time.time(), nao1.agent.counts["errors"]
     for deleted in (1e16, float("inf"), float("nan"), now + 3600):
@@ -461,6 +524,200 @@ def test_a_peers_time_from_the_future_cannot_make_a_delete_permanent(agents):
     assert take([{**item, "deleted": now + 60}]) == 1 and names(nao1) == []
     nao1({"op": "add", "dataset": "faces", "name": "eve.jpg"}, b"eve", tmp)
     assert names(nao1) == [("eve.jpg", "nao1")]
+
+
+def rogue_session(start, as_robot: str, to: str):
+    """A Zenoh session holding `as_robot`'s relay certificate and key, with no ACL of its own (whoever
+    holds a clone's relay key can run what they like), linked to `to`'s agent."""
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.1:{start.ports[to]}"]))
+    t = start.tls(as_robot)
+    c.insert_json5("transport/link/tls", json.dumps({
+        "root_ca_certificate": t["ca"], "enable_mtls": True,
+        "connect_private_key": t["key"], "connect_certificate": t["cert"]}))
+    return zenoh.open(c)
+
+
+def test_a_partner_cannot_publish_or_answer_as_another(agents):
+    """Issue 25, item 5, for real on loopback: nao2's relay key in hand, a session puts an event
+    under nao1's key and answers turtlebot1's index query as nao1. turtlebot1's Zenoh drops both
+    (its ACL); what nao2 sends under its own key, in which an item says nao1 added it, the agent
+    drops and reports once; nao2's own records are taken."""
+    start, _tmp = agents
+    tb = start("turtlebot1")
+    rogue = rogue_session(start, "nao2", "turtlebot1")
+    try:
+        until("linked", lambda: len(tb.agent.session.info.peers_zid()) == 1, 10)
+        space = "ccrp/lab/knowledge/faces"
+        forged = rec(name="forged.jpg", data=b"forged", origin="nao1", added=time.time())
+        forged_gone = {**forged, "deleted": forged["added"] + 1}  # a tombstone: nothing to fetch
+        own = {**rec(name="own.jpg", data=b"own", origin="nao2", added=time.time()), "deleted": time.time() + 1}
+        vouched_for = {**rec(name="claimed.jpg", data=b"claimed", origin="nao1", added=time.time())}
+        vouched_for["deleted"] = vouched_for["added"] + 1
+
+        def replies(query):
+            # Under nao1's key (the ACL drops it), and under its own, one record it may vouch for.
+            query.reply(f"{space}/nao1/index", json.dumps([forged_gone]).encode())
+            query.reply(f"{space}/nao2/index", json.dumps([own]).encode())
+
+        queryable = rogue.declare_queryable(f"{space}/nao2/index", replies)
+        rogue.declare_queryable(f"{space}/nao1/index", replies)  # nao1's queryable: dropped too
+        as_nao1 = rogue.declare_publisher(f"{space}/nao1/event")
+        # The rogue sends the put only once it knows turtlebot1 subscribes: it is then dropped there.
+        until("turtlebot1's subscriber known to the rogue", lambda: as_nao1.matching_status.matching)
+        as_nao1.put(json.dumps([forged_gone]).encode())
+        rogue.put(f"{space}/nao2/event", json.dumps([vouched_for]).encode())
+        rogue.put(f"{space}/nao2/event", json.dumps([vouched_for]).encode())
+        rogue.put(f"{space}/nao2/event", json.dumps([own]).encode())
+        index = tb.agent.datasets["faces"].index
+        until("nao2's own record taken", lambda: agent.key(own) in index)
+        assert agent.key(forged) not in index and agent.key(vouched_for) not in index
+        assert tb.agent.counts["received"] == 3  # the event under nao1's key never reached the agent
+        assert tb.agent.counts["refused"] == 2
+        reports = [m for m in [tb.agent.last_error] if m]
+        assert reports and "nao2 sent 'claimed.jpg'" in reports[0] and "added by nao1" in reports[0], reports
+        assert tb.agent.counts["errors"] == 1  # reported once, refused twice
+        # The index query: only nao2's own answer comes through, as nao2's.
+        index.pop(agent.key(own))
+        assert tb.agent.call(lambda: tb.agent.reconcile("faces")) == 1
+        assert agent.key(own) in index and agent.key(forged) not in index
+        queryable.undeclare()
+    finally:
+        rogue.close()
+
+
+def test_a_record_a_partner_cannot_vouch_for_is_dropped_and_reported_once(agents):
+    """A partner vouches for its own adds only: one it says another clone made (origin is not the
+    partner its key names) is dropped, reported once however often it comes. A delete or an add
+    again that it passes on for an item this clone knows, which leaves the item's first add as it
+    is, is taken: that is how a removal by a clone that did not add the item spreads."""
+    start, tmp = agents
+    nao1 = start("nao1")
+    nao1({"op": "add", "dataset": "faces", "name": "eve.jpg"}, b"eve", tmp)
+    eve = next(iter(nao1.agent.datasets["faces"].index.values()))
+
+    def take(recs, sender="nao2"):
+        return nao1.agent.call(lambda: nao1.agent.take("faces", recs, sender))
+
+    other = {**rec(name="mallory.jpg", data=b"m", origin="turtlebot1", added=time.time()), "deleted": time.time() + 1}
+    errors = nao1.agent.counts["errors"]
+    assert take([other]) == take([other]) == 0
+    assert nao1.agent.counts["refused"] == 2 and nao1.agent.counts["errors"] == errors + 1
+    assert "added by turtlebot1" in nao1.agent.last_error
+    # Back-dating a known item's first add to name another origin is the same claim: refused.
+    assert take([{**eve, "added": eve["added"] - 10, "origin": "turtlebot1"}]) == 0
+    assert nao1.agent.datasets["faces"].index[agent.key(eve)]["origin"] == "nao1"
+    # The item's delete, passed on by nao2, is taken.
+    assert take([{**eve, "deleted": time.time()}]) == 1 and names(nao1) == []
+    # An item nao2 says it added itself is taken (a tombstone here: nothing to fetch).
+    assert take([{**other, "origin": "nao2"}]) == 1
+
+
+def test_a_dataset_quota_bounds_what_the_control_socket_and_partners_add(agents):
+    """Issue 25, item 6: a dataset has a quota of items and bytes (the inventory's, sent in the
+    config). An add past it is refused; a partner's item past it is not fetched, and reported
+    once; a delete is always taken; an item bigger than the quota is not read into memory."""
+    start, tmp = agents
+    nao1 = start("nao1", quotas={"faces": {"items": 2, "bytes": 100}})
+    add = lambda name, data: nao1({"op": "add", "dataset": "faces", "name": name}, data, tmp)
+    assert add("a", b"a" * 40)["ok"] and add("b", b"b" * 40)["ok"]
+    full = add("c", b"c")
+    assert not full["ok"] and "dataset 'faces' is full: it holds 2 items, its quota" in full["error"], full
+    assert nao1({"op": "remove", "dataset": "faces", "item": "b"})["removed"]
+    too_big = add("c", b"c" * 61)
+    assert not too_big["ok"] and "61 bytes more than its 40 would pass its quota of 100" in too_big["error"], too_big
+    huge = add("d", b"d" * 101)  # over what one item may be: refused before it is read
+    assert not huge["ok"] and "an item of 101 bytes" in huge["error"] and "takes up to 100" in huge["error"], huge
+    assert add("c", b"c" * 60)["ok"] and names(nao1) == [("a", "nao1"), ("c", "nao1")]
+
+    def take(recs):
+        return nao1.agent.call(lambda: nao1.agent.take("faces", recs, "nao2"))
+
+    now, fetched, errors = time.time(), nao1.agent.counts["fetched"], nao1.agent.counts["errors"]
+    theirs = rec(name="x", data=b"x", origin="nao2", added=now)
+    assert take([theirs]) == take([theirs]) == 0  # full: no fetch is even tried
+    assert nao1.agent.counts["fetched"] == fetched and nao1.agent.counts["errors"] == errors + 1
+    assert "'x' from nao2 not taken: it holds 2 items, its quota" in nao1.agent.last_error
+    a = nao1.agent.datasets["faces"].index[agent.key(rec(name="a", data=b"a" * 40))]
+    assert take([{**a, "deleted": now + 1}]) == 1 and names(nao1) == [("c", "nao1")]
+    # Tombstones are kept, and bounded too: RECORDS_PER_ITEM per item of the quota, live or not.
+    ghosts = [{**rec(name=f"g{i}", data=b"g%d" % i, origin="nao2", added=now), "deleted": now + 1} for i in range(8)]
+    assert take(ghosts) == 8 - 3 and len(nao1.agent.datasets["faces"].index) == 2 * agent.RECORDS_PER_ITEM
+
+
+def test_a_partners_content_must_be_the_size_its_record_says(agents, monkeypatch):
+    """A record whose size says less than its content (so that a partner's item passes the quota)
+    is dropped and reported when the content comes, even though it hashes right."""
+    start, tmp = agents
+    logged = []
+    monkeypatch.setattr(agent, "log", logged.append)
+    nao2 = start("nao2")
+    nao2({"op": "add", "dataset": "faces", "name": "big.bin"}, b"b" * 5000, tmp)  # before nao1 is up
+    big = next(iter(nao2.agent.datasets["faces"].index.values()))
+    nao1 = start("nao1")
+    until("linked, nao2 answering", lambda: answering(nao1, "nao2"), 10)
+
+    def take(recs):
+        return nao1.agent.call(lambda: nao1.agent.take("faces", recs, "nao2"))
+
+    assert take([{**big, "size": 1}]) == 0 and names(nao1) == []
+    assert any("nao2 sent 5000 bytes for 'big.bin'" in m and "says 1: dropped" in m for m in logged), logged
+    assert os.listdir(tmp / "nao1" / "faces" / "objects") == [] and os.listdir(tmp / "nao1" / "faces" / "tmp") == []
+    assert take([big]) == 1 and names(nao1) == [("big.bin", "nao2")]
+
+
+def test_a_full_disk_skips_the_item_and_the_agent_goes_on(agents, monkeypatch):
+    """ENOSPC while an object is written: the item is skipped and reported (a partner's, until the
+    next reconciliation; an add, refused in one line), the other items are taken, and the agent
+    keeps serving."""
+    import errno
+
+    start, tmp = agents
+    nao2 = start("nao2")
+    for name in ("one.jpg", "two.jpg"):
+        nao2({"op": "add", "dataset": "faces", "name": name}, name.encode() * 100, tmp)
+    one, two = sorted(nao2.agent.datasets["faces"].index.values(), key=lambda r: r["name"])
+    nao1 = start("nao1")
+    until("linked, nao2 answering", lambda: answering(nao1, "nao2"), 10)
+    real = agent.Dataset.store
+
+    def full(self, data, expect=None):
+        if hashlib.sha256(data).hexdigest() in (one["sha256"], hashlib.sha256(b"three").hexdigest()):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(self, data, expect)
+
+    monkeypatch.setattr(agent.Dataset, "store", full)
+    assert nao1.agent.call(lambda: nao1.agent.take("faces", [one, two], "nao2")) == 1
+    assert names(nao1) == [("two.jpg", "nao2")] and "No space left on device" in nao1.agent.last_error
+    reply = nao1({"op": "add", "dataset": "faces", "name": "three.jpg"}, b"three", tmp)
+    assert not reply["ok"] and "cannot store 'three.jpg' on this clone: No space left on device" in reply["error"]
+    assert nao1({"op": "ping"})["ok"] and names(nao1) == [("two.jpg", "nao2")]
+    monkeypatch.setattr(agent.Dataset, "store", real)
+    assert nao1({"op": "sync", "dataset": "faces"})["items"] == 2
+
+
+def test_knowledge_add_refuses_past_the_quota_in_one_line():
+    """`ccrp knowledge add` compares the files with what the clone's dataset holds and its quota,
+    before anything is pushed: one line, exit 2."""
+    from types import SimpleNamespace
+
+    from ccrp_cli.errors import InputError
+    from ccrp_cli.knowledge import check_quota
+
+    fleet = SimpleNamespace(inventory=inv(services={"knowledge": {"datasets": {
+        "faces": {"robots": "all", "quota": {"items": 2, "bytes": "1KiB"}}}}}))
+    held = {"name": "a.jpg", "sha256": hashlib.sha256(b"a" * 500).hexdigest(), "size": 500}
+    listed = {"items": [held], "bytes": 500}
+    check_quota(fleet, "faces", "nao1", listed, [("b.jpg", b"b" * 500)])
+    check_quota(fleet, "faces", "nao1", listed, [("a.jpg", b"a" * 500), ("b.jpg", b"b" * 500)])  # a.jpg: there
+    for items in ([("b.jpg", b"b" * 525)], [("b.jpg", b"b"), ("c.jpg", b"c")]):
+        with pytest.raises(InputError) as err:
+            check_quota(fleet, "faces", "nao1", listed, items)
+        line = err.value.one_line()
+        assert "over its quota of 2 items and 1024 bytes; nothing was added" in line and "\n" not in line, line
+        assert "services.knowledge.datasets.faces.quota" in line and err.value.code == 2
 
 
 # -- the commands' bad input: one line, exit 2, before any clone is asked ---------------------------
