@@ -125,10 +125,16 @@ def test_second_run_says_whom_it_waits_for_then_proceeds(tmp_path):
 
 
 def test_cli_waits_for_a_running_command_with_one_message(tmp_path):
-    with holder(tmp_path, 1.5) as (proc, _):
-        run = ccrp_cli(tmp_path, "vpn", "init", "-i", str(LAB))
-    assert run.returncode == 0, run.stderr
-    lines = run.stderr.splitlines()
+    """The holder lets go only once the waiting run has said so (a fixed hold raced the CLI's start
+    on a loaded machine: it began after the lock was free and had nothing to wait for)."""
+    with holder(tmp_path, 60) as (proc, _):
+        run = subprocess.Popen([sys.executable, "-m", "ccrp_cli", "vpn", "init", "-i", str(LAB)], cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "CCRP_HOME": str(tmp_path)})
+        first = run.stderr.readline()
+    out, rest = run.communicate(timeout=60)  # the holder was killed on leaving: the lock is free
+    assert run.returncode == 0, first + rest
+    lines = (first + rest).splitlines()
     assert lines[0] == f"ccrp: waiting for ccrp run pid {proc.pid} (fleet up) to finish with fleet 'lab'...", lines
     assert sum("waiting" in line for line in lines) == 1 and "CA created" in lines[1], lines
 
