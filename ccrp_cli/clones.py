@@ -318,6 +318,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         robot, phase="ready", provider_id=record.provider_id, public_endpoint=endpoint,
         # The snapshot's id (one image may carry several names): a reused clone keeps its own.
         image=((state.snapshot or {}).get("id") or image) if record.created else rec.image,
+        software=(state.snapshot or {}).get("software", NO_SOFTWARE) if record.created else rec.software,
         addresses={"public": endpoint or "", "common": str(view.addr.common_ip),
                    "vpn": str(view.addr.clone_vpn_ip), "robot_vpn": str(view.addr.robot_vpn_ip)},
     )

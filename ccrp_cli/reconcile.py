@@ -11,7 +11,7 @@ from .errors import CcrpError, InputError
 from .fleet import Fleet
 from .models.state import RobotRecord
 from .providers.base import CloneState
-from .workloads import check_snapshot, stale_snapshot
+from .workloads import NO_SOFTWARE, check_snapshot, stale_snapshot
 
 
 def plan(fleet: Fleet, provider) -> list[dict]:
@@ -47,9 +47,11 @@ def _software_note(state, robot: str, stale: str | None) -> str | None:
     """Whether robot's clone runs the inventory's software (docs/workloads.md): None when it does."""
     if stale is not None:
         return f"{stale}: build a new snapshot, then re-create the clone"
-    rec, snap = state.robots.get(robot), state.snapshot or {}
-    if rec is not None and rec.image and snap.get("id") and rec.image != snap["id"]:
-        return "runs an older snapshot than the current one: re-create the clone to run the current software"
+    rec, want = state.robots.get(robot), (state.snapshot or {}).get("software", NO_SOFTWARE)
+    # A clone from before software digests were recorded (None) ran no software of the user's.
+    have = (rec.software or NO_SOFTWARE) if rec is not None else want
+    if have != want:
+        return f"runs software {have}, the snapshot holds {want}: re-create the clone"
     return None
 
 

@@ -351,7 +351,7 @@ def read_journal(provider, robot: str, units: list[str], lines: int, since_s: in
         if isinstance(message, list):  # journald gives bytes that are not UTF-8 as a list of ints
             message = bytes(b for b in message if isinstance(b, int) and 0 <= b < 256).decode(errors="replace")
         micros = e.get("__REALTIME_TIMESTAMP")
-        entries.append({"time": _iso(micros), "unit": e.get("_SYSTEMD_UNIT") or e.get("UNIT") or "",
+        entries.append({"time": _iso(micros), "unit": e.get("UNIT") or e.get("_SYSTEMD_UNIT") or "",
                         "ident": e.get("SYSLOG_IDENTIFIER") or "", "message": message if isinstance(message, str) else ""})
     return entries, cursor
 

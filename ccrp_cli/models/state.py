@@ -29,10 +29,13 @@ class RobotRecord(BaseModel):
     addresses: dict[str, str] = {}
     # The snapshot its clone was created from (kept by snapshot retention while the clone lives).
     image: str | None = None
+    # The digest of the user's software that snapshot held (docs/workloads.md).
+    software: str | None = None
 
     def clear_clone(self) -> None:
         """The clone is gone; the robot keeps its slot (and so its addresses)."""
         self.phase, self.provider_id, self.public_endpoint, self.addresses, self.image = "planned", None, None, {}, None
+        self.software = None
 
 
 class FleetState(BaseModel):
