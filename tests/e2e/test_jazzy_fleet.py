@@ -21,6 +21,7 @@ import pytest
 
 from tests.e2e.browser import MISSING, cell, chromium, press, received_commands, running_dashboard, wait
 from tests.e2e.fleet import CAPTURE as COMMON_CAPTURE
+from tests.conftest import ROOT
 from tests.e2e.fleet import NO_DOCKER, E2EFleet, exec_in, agent_journals, start_fleet, wait_for
 
 pytestmark = [
@@ -90,19 +91,27 @@ def _graph_qos(container) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
+# The robots' own software (docs/workloads.md): the offloading example's ament_python workspace,
+# whose node on each clone turns the robot's /scan into /map.
+OFFLOAD = ROOT / "examples" / "offload"
+MAPPER = {"name": "mapper", "command": ["python3", "-m", "ccrp_offload.scan_to_map"]}
+
+
 def _jazzy(data: dict) -> None:
     """inventories/lab.yaml's networks (start_fleet fills them in), on Jazzy, with nao1 and nao2:
-    nao1 exports /chatter (not its /camera/image_raw), nao2 imports it."""
+    nao1 exports /chatter (not its /camera/image_raw), nao2 imports it; every clone runs the
+    offloading example's mapper node."""
     for key in set(data) - {"fleet", "provider", "vpn", "common"}:
         del data[key]
     data["ros"] = {"distro": "jazzy"}
     data["robots"] = [{"name": "nao1", "type": "nao", "exports": ["/chatter"]},
                       {"name": "nao2", "type": "nao", "imports": {"nao1": ["/chatter"]}}]
+    data["software"] = {"workspace": "ws", "run": [MAPPER]}
 
 
 @pytest.fixture(scope="module")
 def fleet(request, tmp_path_factory) -> E2EFleet:
-    return start_fleet(request, tmp_path_factory, "e2j", _jazzy)
+    return start_fleet(request, tmp_path_factory, "e2j", _jazzy, copy={"ws": OFFLOAD / "ros2" / "ws"})
 
 
 @pytest.fixture(scope="module")
@@ -275,3 +284,78 @@ def test_what_nao2_imports_reaches_robot_nao2_itself(fleet: E2EFleet, sim) -> No
         assert "/nao1/camera/image_raw" not in topics, topics
     finally:
         fleet.inv("robot", "sim", "--robot", "nao2", "--stop")
+
+
+# -- the robots' own software (docs/workloads.md) --------------------------------------------------
+
+def _robot_sh(robot, script: str, timeout: int = 60) -> tuple[int, str]:
+    """A fixed snippet in the simulated robot's ROS 2 environment (its ros.env, the wheels' setup)."""
+    return exec_in(robot, ["sh", "-c", f"set -a; . /etc/ccrp/ros.env; set +a; . /opt/ros/jazzy/setup.sh; {script}"],
+                   timeout)
+
+
+def test_the_robots_own_node_on_its_clone_answers_its_scan_with_a_map(fleet: E2EFleet, sim) -> None:
+    """The thesis's offloading in small: robot nao1 publishes a laser scan, the example
+    workspace's node on its clone (the snapshot built it, fleet up started it as ccrp-run-mapper)
+    publishes /map back, which the robot receives through its tunnel. `status` shows the node,
+    `logs` its output."""
+    from ccrp_cli.providers.docker.archive import tar_files
+    from ccrp_cli.providers.docker.wheels import cache_dir
+
+    row = fleet.status()["nao1"]
+    assert [(n["name"], n["state"], n["restarts"]) for n in row["nodes"]] == [("mapper", "active", 0)], row["nodes"]
+    logs = fleet.inv("logs", "--robot", "nao1", "mapper", "-n", "20", check=True).stdout
+    assert "ccrp-run-mapper: " in logs and "ccrp_offload 1.0 started" in logs, logs
+    robot = fleet.container("robot-sim", "nao1")
+    # The robot's side needs nav_msgs too (a robot brings its own ROS 2): the wheels the snapshot
+    # build fetched, from this host's cache, installed with no index.
+    wheels = sorted(p for p in cache_dir().glob("ros*nav_msgs-5.3.6-*.whl"))
+    assert len(wheels) == 2, wheels
+    exec_in(robot, ["mkdir", "-p", "/var/lib/offload"])
+    files = [*wheels, OFFLOAD / "robot" / "fake_scan.py", OFFLOAD / "robot" / "wait_map.py"]
+    robot.put_archive("/var/lib/offload", tar_files([(p.name, p.read_bytes(), 0o644) for p in files]))
+    rc, out = exec_in(robot, ["sh", "-c", "/opt/ros/jazzy/bin/pip install -q --no-index --no-deps /var/lib/offload/*.whl"])
+    assert rc == 0, out
+    exec_in(robot, ["systemd-run", "--unit", "e2e-fake-scan", "sh", "-c", "set -a; . /etc/ccrp/ros.env; set +a; "
+                    ". /opt/ros/jazzy/setup.sh; exec python3 /var/lib/offload/fake_scan.py"])
+    try:
+        rc, out = _robot_sh(robot, "python3 /var/lib/offload/wait_map.py --timeout 60", 90)
+    finally:
+        exec_in(robot, ["systemctl", "stop", "e2e-fake-scan"])
+    assert rc == 0, f"robot nao1 got no /map from its clone: {out[-600:]}\n{agent_journals(fleet, ['nao1'])}"
+    grid = json.loads(out.strip().splitlines()[-1])
+    assert grid["width"] == 100 and grid["occupied"] > 0 and grid["free"] > 0, grid
+
+
+def test_a_clone_made_again_from_the_snapshot_runs_the_same_software(fleet: E2EFleet, up) -> None:
+    """nao2's clone deleted and created again: its node starts at boot from the snapshot, with
+    nothing installed, at the digest the snapshot holds; plan names no clone with other software."""
+    fleet.inv("clone", "delete", "--robot", "nao2", check=True)
+    fleet.inv("clone", "create", "--robot", "nao2", check=True)
+    state = json.loads((fleet.home / fleet.name / "state.json").read_text())
+    assert state["robots"]["nao2"]["software"] == state["snapshot"]["software"] != "none", state
+    def mapper_active() -> tuple[bool, list]:
+        nodes = fleet.status()["nao2"]["nodes"] or []
+        return [(n["name"], n["state"]) for n in nodes] == [("mapper", "active")], nodes
+
+    row = wait_for("nao2's mapper active", mapper_active, 30)
+    assert row == [{"name": "mapper", "state": "active", "sub": "running", "restarts": 0,
+                    "digest": row[0]["digest"]}]
+    assert "ccrp_offload 1.0 started" in fleet.inv("logs", "--robot", "nao2", "mapper", check=True).stdout
+    assert all(r["software"] is None for r in fleet.json("fleet", "plan"))
+
+
+def test_a_node_dropped_from_the_inventory_leaves_the_clones(fleet: E2EFleet, up) -> None:
+    """fleet up after the run list lost mapper: its unit is stopped and removed on every clone, and
+    status and logs no longer name it."""
+    import yaml
+
+    data = yaml.safe_load(fleet.inventory.read_text())
+    data["software"]["run"] = []
+    fleet.inventory.write_text(yaml.safe_dump(data, sort_keys=False))
+    fleet.inv("fleet", "up", check=True)
+    for robot in ("nao1", "nao2"):
+        rc, units = exec_in(fleet.container("clone", robot), ["systemctl", "list-units", "--all", "ccrp-run-*"])
+        assert "ccrp-run-mapper" not in units, units
+        assert fleet.status()[robot]["nodes"] is None
+    assert fleet.inv("logs", "--robot", "nao1").returncode == 2  # no node of its own any more
