@@ -1,8 +1,11 @@
 """`ccrp robot camera` and the dashboard's camera view: the latest frame of a robot's camera topic as
-its clone sees it. A camera agent on the clone (agent/camera.py, started by the first read and
-ending after CAMERA_IDLE_S without one) keeps the newest frame of each topic asked for; a read is
-one exec of a small client that asks it on its Unix socket and prints its answer (a JPEG made with
-the clone's OpenCV)."""
+its clone sees it. A camera agent on the clone (agent/camera.py, ending after CAMERA_IDLE_S without
+a read) keeps the newest frame of each topic asked for; a read is one exec of a small client that
+asks it on its Unix socket and prints its answer (a JPEG made with the clone's OpenCV).
+
+Who starts the agent: `ccrp robot camera` (its first read), and the dashboard's Camera button
+(start_camera, a POST under the page's CSRF and Origin checks). The dashboard's frame reads, GETs,
+start nothing (latest_frame with start=False): without an agent they answer NoFrame "no-agent"."""
 
 from __future__ import annotations
 
@@ -82,17 +85,27 @@ def check_topic(topic: str) -> None:
         raise InputError(f"--topic {shown(topic)} is not a ROS topic name", hint=f"e.g. --topic {DEFAULT_TOPIC}")
 
 
-def latest_frame(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0) -> Frame:
-    """One frame of `topic` as the robot's clone sees it. No fleet lock: it changes nothing ccrp
-    records, and the dashboard polls it."""
-    check_topic(topic)
+def _check_robot(fleet, provider, robot: str) -> None:
     fleet.robot(fleet.store.load_state(), robot)  # a robot of this fleet, or exit 2
     if robot not in provider.query():
         raise NoFrame(f"robot {robot!r} has no clone", "no-clone", hint=f"ccrp clone create -i INVENTORY --robot {robot}")
+
+
+def latest_frame(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0,
+                 start: bool = True) -> Frame:
+    """One frame of `topic` as the robot's clone sees it. No fleet lock: it changes nothing ccrp
+    records, and the dashboard polls it. Without `start` (the dashboard's GET) a clone whose agent
+    does not run is NoFrame "no-agent", and nothing is started there."""
+    check_topic(topic)
+    _check_robot(fleet, provider, robot)
     t0 = time.perf_counter()
     try:
         got = _ask(provider, robot, topic, timeout)
         if got.get("why") == "no-agent":  # the first read since the clone booted, or after an idle spell
+            if not start:
+                raise NoFrame(f"no camera agent runs on the clone of {robot!r} (not started, or ended after "
+                              f"{CAMERA_IDLE_S} s without a read)", "no-agent",
+                              hint=f"start it: the dashboard's Camera button, or `ccrp robot camera --robot {robot}`")
             start_agent(provider, robot)
             got = _ask_until_served(provider, robot, topic, timeout)
     except NoFrame:
@@ -115,6 +128,24 @@ def latest_frame(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeou
     if not (jpeg.startswith(b"\xff\xd8") and jpeg.rstrip(b"\0").endswith(b"\xff\xd9")) or len(jpeg) > MAX_JPEG:
         raise NoFrame(f"the camera agent on the clone of {robot!r} sent no JPEG ({len(jpeg)} bytes)", "failed")
     return frame
+
+
+def start_camera(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0) -> dict:
+    """The dashboard's Camera button (a POST): the camera agent on the robot's clone, started unless
+    one serves, and asked until it does. {"robot", "agent": "running" | "started"}."""
+    check_topic(topic)
+    _check_robot(fleet, provider, robot)
+    try:
+        if _ask(provider, robot, topic, timeout).get("why") != "no-agent":
+            return {"robot": robot, "agent": "running"}
+        start_agent(provider, robot)
+        _ask_until_served(provider, robot, topic, timeout)
+    except NoFrame:
+        raise
+    except CcrpError as exc:  # the clone is stopped or unreachable
+        raise NoFrame(f"robot {robot!r}: its clone did not answer: {exc.message}", "no-clone",
+                      hint="ccrp status -i INVENTORY") from None
+    return {"robot": robot, "agent": "started"}
 
 
 def _ask(provider, robot: str, topic: str, timeout: float) -> dict:

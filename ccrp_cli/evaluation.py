@@ -271,6 +271,19 @@ _pushed: set[tuple[str, str]] = set()  # (fleet, robot): the agent is on that cl
 _operators: dict[tuple[str, str], float] = {}  # (fleet, robot) -> when this process started its teleop operator
 TELEOP_UNIT, TELEOP_IDLE_S = "ccrp-teleop", 600.0
 TELEOP_START_S = 15.0  # an operator not serving this long after its start has ended
+# The operator's unit, as the camera agent's (camera.UNIT_OPTIONS): the `ros` user, not root; its
+# socket (the agent's TELEOP_SOCKET, /run/ccrp-teleop/teleop.sock) and ROS logs in a 0700 runtime
+# directory of that user, which teleop-send (as `ros` too, AS_ROS) and root reach, no other user.
+TELEOP_UNIT_OPTIONS = ["--collect", "--description", "ccrp teleop operator (the dashboard's drive keys)",
+                       "--property", "User=ros", "--property", "RuntimeDirectory=ccrp-teleop",
+                       "--property", "RuntimeDirectoryMode=0700", "--property", "NoNewPrivileges=yes",
+                       "--property", "ProtectSystem=full", "--property", "ProtectHome=yes",
+                       "--property", "PrivateTmp=yes",
+                       "--setenv", "HOME=/run/ccrp-teleop", "--setenv", "ROS_HOME=/run/ccrp-teleop",
+                       "--setenv", "ROS_LOG_DIR=/run/ccrp-teleop/log"]
+# A command without the operator (the CLI's, or the dashboard's while its operator starts) runs its
+# node as the `ros` user too: runuser with the argv, no shell (its home is /var/lib/ros, its own).
+AS_ROS = ["/usr/sbin/runuser", "-u", "ros", "--"]
 
 
 def check_command(linear: float, angular: float, topic: str) -> None:
@@ -300,7 +313,7 @@ def send_command(fleet: Fleet, provider, robot: str, linear: float, angular: flo
     fleet.robot(fleet.store.load_state(), robot)
     if robot not in provider.query():
         raise InputError(f"robot {robot!r} has no clone", hint=f"ccrp clone create -i INVENTORY --robot {robot}")
-    argv = [*IN_ROS, "teleop-send", "--topic", topic, "--linear", repr(float(linear)), "--angular", repr(float(angular)),
+    argv = [*AS_ROS, *IN_ROS, "teleop-send", "--topic", topic, "--linear", repr(float(linear)), "--angular", repr(float(angular)),
             "--timeout", f"{timeout:g}"]
     key = (fleet.name, robot)
     t0 = time.perf_counter()
@@ -311,7 +324,7 @@ def send_command(fleet: Fleet, provider, robot: str, linear: float, angular: flo
         if keep and key not in _operators:
             run_unit(lambda a: provider.exec(robot, a), TELEOP_UNIT,
                      [*IN_ROS, "teleop-operator", "--topic", topic, "--idle", f"{TELEOP_IDLE_S:g}"],
-                     f"the clone of {robot!r}", ["--collect"])
+                     f"the clone of {robot!r}", TELEOP_UNIT_OPTIONS)
             _operators[key] = time.monotonic()
         rc, out = provider.exec(robot, argv, timeout=timeout + 30)
         last = out.strip().splitlines()[-1] if out.strip() else ""

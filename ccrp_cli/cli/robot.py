@@ -151,7 +151,7 @@ def camera(
     as_json: options.Json = False,
 ) -> None:
     """Write the latest frame of the robot's camera, as its clone sees it, to a JPEG file (asked of a
-    camera agent on the clone, which the first read starts; the dashboard's camera view;
+    camera agent on the clone, which this command starts when none runs; the dashboard's camera view;
     docs/dashboard.md)."""
     from ..camera import check_topic, latest_frame
     from ..errors import cannot_write

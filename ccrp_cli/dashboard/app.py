@@ -14,8 +14,16 @@ Routes (all behind auth.Guard):
   POST /api/teleop             {"robot": NAME, "linear": X, "angular": Z}
                                = ccrp robot teleop: answered with the command's latency
   POST /api/logout             ends this page's session (and clears its cookie)
-  GET  /api/camera/{robot}     = ccrp robot camera: the latest frame of the robot's camera as its
-                               clone sees it (image/jpeg, its details in X-CCRP-Frame-* headers)
+  POST /api/camera/{robot}/start  starts the camera agent on the robot's clone unless it runs
+                               (the Camera button): {"robot", "agent": "running"|"started"}
+  GET  /api/camera/{robot}     the latest frame of the robot's camera as its clone sees it
+                               (image/jpeg, its details in X-CCRP-Frame-* headers); starts nothing:
+                               without a camera agent on the clone, 503 {"why": "no-agent"}
+
+A GET changes nothing, on this server or on a clone: a page the guard does not check can make the
+browser send one with the session cookie (an <img src> on a page of another server on this host,
+which is the same site whatever its port, so the SameSite=Strict cookie goes along); only a POST,
+which the guard checks for Origin and CSRF token, starts or changes anything.
 """
 
 from __future__ import annotations
@@ -107,29 +115,41 @@ class Teleop:
                 log.warning("teleop operators not stopped: %s", _one_line(exc))
 
 
-# Reads one camera frame: robot -> ccrp_cli.camera.Frame (raises camera.NoFrame, InputError).
+# Reads one camera frame, starting nothing: robot -> ccrp_cli.camera.Frame (raises camera.NoFrame,
+# "no-agent" when no camera agent runs on the clone; InputError).
 CameraFn = Callable[[str], Any]
+# Starts the camera agent on the robot's clone unless it runs: robot -> {"robot", "agent"}.
+CameraStartFn = Callable[[str], dict]
 
 
 class Camera:
     """The page's camera view polls every ~2 s, from each open page: one read per robot runs at a
     time (in a thread: it is an exec on the clone), and a request arriving meanwhile gets that
-    read's answer rather than starting another."""
+    read's answer rather than starting another. Starting the agent (the Camera button's POST) is
+    kept apart from the reads, one start per robot at a time as well."""
 
-    def __init__(self, read: CameraFn) -> None:
-        self.read = read
+    def __init__(self, read: CameraFn, start: CameraStartFn | None = None) -> None:
+        self.read, self.starter = read, start
         self.pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="ccrp-dashboard-camera")
         self.running: dict[str, asyncio.Future] = {}
+        self.starting: dict[str, asyncio.Future] = {}
 
-    async def frame(self, robot: str):
-        # Only the event loop's thread touches `running`: no lock.
-        future = self.running.get(robot)
+    @staticmethod
+    async def _once(pool, table: dict, fn, robot: str):
+        # Only the event loop's thread touches the tables: no lock.
+        future = table.get(robot)
         if future is None:
-            future = asyncio.get_running_loop().run_in_executor(self.pool, self.read, robot)
-            self.running[robot] = future
-            future.add_done_callback(lambda f: self.running.pop(robot, None) if self.running.get(robot) is f else None)
+            future = asyncio.get_running_loop().run_in_executor(pool, fn, robot)
+            table[robot] = future
+            future.add_done_callback(lambda f: table.pop(robot, None) if table.get(robot) is f else None)
         # A page gone away does not cancel the read another page waits for.
         return await asyncio.shield(future)
+
+    async def frame(self, robot: str):
+        return await self._once(self.pool, self.running, self.read, robot)
+
+    async def start(self, robot: str) -> dict:
+        return await self._once(self.pool, self.starting, self.starter, robot)
 
     def shutdown(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
@@ -328,26 +348,45 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
         result = await loop.run_in_executor(teleop.pool, teleop.run, args.robot, args.linear, args.angular)
         return JSONResponse(result, status_code=200 if result["ok"] else 502)
 
-    @app.get("/api/camera/{robot}")
-    async def camera_frame(robot: str) -> Response:
+    async def camera_call(robot: str, call) -> tuple[Any, JSONResponse | None]:
+        """(what `call(robot)` gave, None), or (None, the refusal): a bad name, a robot not in the
+        fleet, no frame or no clone (with its `why`), a failed provider."""
         from ..camera import NoFrame
         from ..errors import InputError
 
         if camera is None:
-            return JSONResponse({"error": "the camera view is not available here"}, status_code=404)
+            return None, JSONResponse({"error": "the camera view is not available here"}, status_code=404)
         try:
             RobotArg(robot=robot)
         except ValueError:
-            return JSONResponse({"error": f"bad robot name {robot[:40]!r}"}, status_code=400)
+            return None, JSONResponse({"error": f"bad robot name {robot[:40]!r}"}, status_code=400)
         try:
-            frame = await camera.frame(robot)
+            return await call(robot), None
         except InputError as exc:  # not a robot of this fleet
-            return JSONResponse({"error": exc.one_line()}, status_code=404)
+            return None, JSONResponse({"error": exc.one_line()}, status_code=404)
         except NoFrame as exc:
-            return JSONResponse({"error": exc.one_line(), "why": exc.why}, status_code=503,
-                                headers={"Cache-Control": "no-store"})
+            return None, JSONResponse({"error": exc.one_line(), "why": exc.why}, status_code=503,
+                                      headers={"Cache-Control": "no-store"})
         except Exception as exc:  # noqa: BLE001 - the provider failed: said on the page, the server goes on
-            return JSONResponse({"error": _one_line(exc)}, status_code=502, headers={"Cache-Control": "no-store"})
+            return None, JSONResponse({"error": _one_line(exc)}, status_code=502, headers={"Cache-Control": "no-store"})
+
+    @app.post("/api/camera/{robot}/start")
+    async def camera_start(robot: str) -> JSONResponse:
+        # A POST: the guard checked Origin and CSRF token, so only this server's page starts a unit
+        # on a clone.
+        if camera is not None and camera.starter is None:
+            return JSONResponse({"error": "the camera view is not available here"}, status_code=404)
+        started, refused = await camera_call(robot, lambda r: camera.start(r))
+        if refused is not None:
+            return refused
+        return JSONResponse(started, headers={"Cache-Control": "no-store"})
+
+    @app.get("/api/camera/{robot}")
+    async def camera_frame(robot: str) -> Response:
+        # Reads only (camera.frame never starts the agent): a GET any page can make the browser send.
+        frame, refused = await camera_call(robot, lambda r: camera.frame(r))
+        if refused is not None:
+            return refused
         headers = {"Cache-Control": "no-store", "X-CCRP-Frame-Topic": frame.topic, "X-CCRP-Frame-Seq": str(frame.seq),
                    "X-CCRP-Frame-Size": f"{frame.width}x{frame.height}", "X-CCRP-Frame-Encoding": frame.encoding,
                    "X-CCRP-Frame-Read-Ms": f"{frame.read_ms:g}"}

@@ -115,16 +115,18 @@ def teleop_sender(inventory: Path):
     return send, close
 
 
-def camera_reader(inventory: Path):
-    """The camera view's body: `ccrp robot camera` (ccrp_cli.camera.latest_frame) on a fleet opened
-    once, as the drive keys' is: a read changes nothing ccrp records."""
-    from ..camera import latest_frame
+def camera_functions(inventory: Path):
+    """The camera view's bodies on a fleet opened once, as the drive keys' is (they change nothing
+    ccrp records): (read, start). `read` is `ccrp robot camera`'s (ccrp_cli.camera.latest_frame)
+    without its start of the agent: the page's GET starts nothing on a clone. `start` is the Camera
+    button's POST (ccrp_cli.camera.start_camera)."""
+    from ..camera import latest_frame, start_camera
     from ..fleet import Fleet
     from ..providers import get_provider
 
     fleet = Fleet.open(inventory)
     provider = get_provider(fleet.inventory)
-    return lambda robot: latest_frame(fleet, provider, robot)
+    return (lambda robot: latest_frame(fleet, provider, robot, start=False)), (lambda robot: start_camera(fleet, provider, robot))
 
 
 def serve(inventory: Path, bind: str, token: str | None, interval: float) -> None:
@@ -160,7 +162,7 @@ def serve(inventory: Path, bind: str, token: str | None, interval: float) -> Non
     runner = Actions(broker, fleet_actions(inventory), monitor.refresh)
     send, close = teleop_sender(inventory)
     app = create_app(auth, broker, monitor, runner, fleet.name, Teleop(send, broker, close),
-                     Camera(camera_reader(inventory)))
+                     Camera(*camera_functions(inventory)))
 
     shown = f"[{host}]" if ":" in host else host
     warn_if_exposed(host)

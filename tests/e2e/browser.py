@@ -123,7 +123,13 @@ def press(driver, robot: str, button: str, label: str) -> None:
     pytest.fail(f"{robot}'s {label} button: re-rendered at every try")
 
 
-def received_commands(fleet, robot: str) -> list[dict]:
-    """What the simulated robot's demo node logged receiving on /cmd_vel."""
+def motor_log(fleet, robot: str) -> list[dict]:
+    """The simulated robot's demo node's motion log: the commands it received on /cmd_vel, and the
+    stops its deadman made (`"deadman": true`) when no command came for 0.5 s while moving."""
     rc, out = fleet.container("robot-sim", robot).exec_run(["cat", "/var/log/ccrp-sim-cmd_vel.log"])
     return [json.loads(line) for line in out.decode().splitlines() if line.strip()] if rc == 0 else []
+
+
+def received_commands(fleet, robot: str) -> list[dict]:
+    """What the simulated robot's demo node logged receiving on /cmd_vel (its deadman's stops left out)."""
+    return [c for c in motor_log(fleet, robot) if not c.get("deadman")]

@@ -30,7 +30,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import ROOT
-from tests.e2e.browser import MISSING, cell, chromium, press, received_commands, running_dashboard, wait
+from tests.e2e.browser import MISSING, cell, chromium, motor_log, press, received_commands, running_dashboard, wait
 from tests.e2e.fleet import NO_DOCKER, start_fleet, wait_for
 
 pytestmark = [
@@ -163,6 +163,45 @@ def test_a_teleop_key_press_reaches_the_simulated_robot(fleet, dashboard, browse
     assert refused.returncode != 0 and "nothing subscribes" in refused.stderr and "Traceback" not in refused.stderr
 
 
+def test_a_held_key_is_repeated_and_stops_when_the_page_loses_focus_or_is_hidden(fleet, dashboard, browser):
+    """A drive key held down (no keyboard repeat under WebDriver: one keydown) is sent again every
+    200 ms; the page losing focus (`blur`) or being hidden (`visibilitychange`) stops the robot at
+    once although no keyup came, and forgets the key. The robot's own deadman stops a single
+    command after 0.5 s (its `deadman` line in the motion log)."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    assert browser.find_element(By.ID, "teleop-robot").get_attribute("value") == "nao1"  # chosen by the test above
+    ops = [("blur", "window.dispatchEvent(new Event('blur'))"),
+           ("hidden", ("Object.defineProperty(document, 'hidden', {configurable: true, get: () => true});"
+                       "document.dispatchEvent(new Event('visibilitychange'));"))]
+    for what, leave in ops:
+        n, pressed = len(received_commands(fleet, "nao1")), time.time()
+        ActionChains(browser).key_down(Keys.ARROW_UP).perform()
+        wait(browser, f"the held key sent again ({what})", lambda d, n=n, pressed=pressed: len(
+            [c for c in received_commands(fleet, "nao1")[n:] if c["linear"] == 0.2 and c["t"] >= pressed]) >= 4, 30)
+        browser.execute_script(leave)
+        left = time.time()
+        wait(browser, f"the stop sent when the page was left ({what})", lambda d, n=n: any(
+            c["linear"] == 0 and c["angular"] == 0 for c in received_commands(fleet, "nao1")[n:]), 30)
+        time.sleep(1.5)  # a forward still under way may land; none after the stop
+        got = received_commands(fleet, "nao1")[n:]
+        stop = max(i for i, c in enumerate(got) if (c["linear"], c["angular"]) == (0, 0))
+        assert all((c["linear"], c["angular"]) == (0, 0) for c in got[stop:]), got
+        assert got[stop]["t"] - left < 5, got
+        browser.execute_script("delete document.hidden")
+        ActionChains(browser).key_up(Keys.ARROW_UP).perform()  # the key's keyup, late: nothing moves, nothing sent
+    # One command from the pad, no stop from the page: the robot's deadman stops it.
+    n = len(motor_log(fleet, "nao1"))
+    browser.find_element(By.ID, "teleop-left").click()
+    wait(browser, "the robot's deadman stop after the pad's single command", lambda d: any(
+        c.get("deadman") for c in motor_log(fleet, "nao1")[n:]), 30)
+    log = motor_log(fleet, "nao1")[n:]
+    stop = next(c for c in log if c.get("deadman"))
+    turn = [c for c in log if (c["linear"], c["angular"]) == (0, 0.5) and c["t"] <= stop["t"]][-1]  # (the last resend)
+    assert (stop["linear"], stop["angular"]) == (0, 0) and 0.5 <= stop["t"] - turn["t"] < 2.0, log
+    fleet.log.append(f"robot deadman: stopped {stop['t'] - turn['t']:.2f} s after the last command")
+
+
 def jpeg_size(data: bytes) -> tuple[int, int]:
     """(width, height) from a JPEG's frame header, walking its segments from the start."""
     assert data[:2] == b"\xff\xd8" and data.rstrip(b"\0")[-2:] == b"\xff\xd9", data[:16]
@@ -186,6 +225,16 @@ def page_fetch(browser, path: str) -> dict:
           done({status: r.status, type: r.headers.get("content-type"), cache: r.headers.get("cache-control"),
                 body: btoa(bin)});
         }).catch((e) => done({status: 0, error: String(e)}));""", path)
+
+
+def page_post(browser, path: str) -> dict:
+    """POST `path` as the page does (its session, its CSRF token): status and JSON body."""
+    return browser.execute_async_script("""
+        const done = arguments[arguments.length - 1];
+        const csrf = document.querySelector('meta[name="ccrp-csrf"]').content;
+        fetch(arguments[0], {method: "POST", credentials: "same-origin", headers: {"X-CCRP-CSRF": csrf}})
+          .then(async (r) => done({status: r.status, body: await r.json()}))
+          .catch((e) => done({status: 0, error: String(e)}));""", path)
 
 
 def test_the_camera_view_shows_the_latest_frame_from_the_clone(fleet, dashboard, browser, shots):
@@ -230,6 +279,14 @@ def test_the_camera_view_shows_the_latest_frame_from_the_clone(fleet, dashboard,
     got = page_fetch(browser, "/api/camera/nao1")
     assert (got["status"], got["type"], got["cache"]) == (200, "image/jpeg", "no-store"), got.get("error")
     assert jpeg_size(base64.b64decode(got["body"])) == (320, 240)
+    # nao2's camera was never started: a GET says so and starts nothing on its clone; the page's POST
+    # (the Camera button's) starts the agent, which then says why there is no frame.
+    got = page_fetch(browser, "/api/camera/nao2")
+    assert got["status"] == 503 and '"why":"no-agent"' in base64.b64decode(got["body"]).decode()
+    rc, _ = fleet.container("clone", "nao2").exec_run(["systemctl", "is-active", "--quiet", "ccrp-camera"])
+    assert rc != 0  # no camera unit on nao2's clone
+    started = page_post(browser, "/api/camera/nao2/start")
+    assert started == {"status": 200, "body": {"robot": "nao2", "agent": "started"}}, started
     got = page_fetch(browser, "/api/camera/nao2")
     assert got["status"] == 503 and "nothing publishes /camera/image_raw" in base64.b64decode(got["body"]).decode()
     assert page_fetch(browser, "/api/camera/NAO1")["status"] == 400

@@ -91,7 +91,7 @@ def login(client) -> str:
 
 ROUTES = [("GET", "/"), ("GET", "/static/app.js"), ("GET", "/events"), ("GET", "/api/status"),
           ("GET", "/api/actions"), ("POST", "/api/actions/clone-start"), ("POST", "/api/teleop"),
-          ("GET", "/api/camera/nao1")]
+          ("GET", "/api/camera/nao1"), ("POST", "/api/camera/nao1/start")]
 
 
 @pytest.mark.parametrize("method, path", ROUTES)
@@ -390,6 +390,8 @@ def test_power_from_the_page_is_an_action_with_checked_arguments(dash):
     assert dash.calls == [("robot-power", {"robot": "nao1", "state": "off"})]
 
 
+ASK = ["python3", "-c"]  # the camera's client (camera.ASK_ARGV): a read, never a start
+
 # A real JPEG (16x8), as the clone's OpenCV would send one.
 JPEG = base64.b64decode(
     "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDABALDA4MChAODQ4SERATGCgaGBYWGDEjJR0oOjM9PDkzODdASFxOQERXRTc4UG1RV19iZ2hnPk1xeXBkeFxlZ2P/2wBDARESEhgVGC8aGi9jQjhCY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2P/wAARCAAIABADASIAAhEBAxEB/8QAHwAAAQUBAQEBAQEAAAAAAAAAAAECAwQFBgcICQoL/8QAtRAAAgEDAwIEAwUFBAQAAAF9AQIDAAQRBRIhMUEGE1FhByJxFDKBkaEII0KxwRVS0fAkM2JyggkKFhcYGRolJicoKSo0NTY3ODk6Q0RFRkdISUpTVFVWV1hZWmNkZWZnaGlqc3R1dnd4eXqDhIWGh4iJipKTlJWWl5iZmqKjpKWmp6ipqrKztLW2t7i5usLDxMXGx8jJytLT1NXW19jZ2uHi4+Tl5ufo6erx8vP09fb3+Pn6/8QAHwEAAwEBAQEBAQEBAQAAAAAAAAECAwQFBgcICQoL/8QAtREAAgECBAQDBAcFBAQAAQJ3AAECAxEEBSExBhJBUQdhcRMiMoEIFEKRobHBCSMzUvAVYnLRChYkNOEl8RcYGRomJygpKjU2Nzg5OkNERUZHSElKU1RVVldYWVpjZGVmZ2hpanN0dXZ3eHl6goOEhYaHiImKkpOUlZaXmJmaoqOkpaanqKmqsrO0tba3uLm6wsPExcbHyMnK0tPU1dbX2Nna4uPk5ebn6Onq8vP09fb3+Pn6/9oADAMBAAIRAxEAPwChRRRXQfRH/9k=")
@@ -397,10 +399,13 @@ JPEG = base64.b64decode(
 
 class CameraClones:
     """The provider boundary: nao1's clone has a camera frame, nao2's robot is not connected,
-    turtlebot1 has no clone. `hold` keeps nao1's read running until set."""
+    turtlebot1 has no clone. `hold` keeps nao1's read running until set. The camera agent serves
+    (`serving`) until a test says it does not; its unit's systemd-run starts it."""
 
     def __init__(self) -> None:
         self.ran: list[tuple[str, list[str]]] = []
+        self.pushed: list[str] = []
+        self.serving = True
         self.hold = threading.Event()
         self.hold.set()
         self.reply = {"topic": "/camera/image_raw", "width": 16, "height": 8, "encoding": "rgb8", "seq": 41,
@@ -410,9 +415,18 @@ class CameraClones:
     def query(self):
         return {"nao1": object(), "nao2": object()}
 
+    def push_files(self, robot, files, restart=()):
+        self.pushed += [f.dest for f in files]
+
     def exec(self, robot, argv, timeout=60):
         self.ran.append((robot, argv))
+        if argv[0] == "systemd-run":
+            self.serving = True
+        if argv[0] in ("systemd-run", "systemctl"):
+            return 0, ""
         self.hold.wait(5)
+        if not self.serving:
+            return 0, json.dumps({"error": "no camera agent serves ([Errno 2] No such file or directory)", "why": "no-agent"})
         if robot == "nao2":
             out = {"error": "nothing publishes /camera/image_raw on the clone's master (is the robot connected, with a camera?)",
                    "why": "no-publisher"}
@@ -422,15 +436,18 @@ class CameraClones:
 
 
 @pytest.fixture
-def cam(lab_up):
-    from ccrp_cli.camera import latest_frame
+def cam(lab_up, monkeypatch):
+    """The app with the camera functions `ccrp dashboard` wires (server.camera_functions), on a
+    fake clone at the provider boundary."""
+    from ccrp_cli import providers
     from ccrp_cli.dashboard.app import Camera
+    from ccrp_cli.dashboard.server import camera_functions
+    from tests.conftest import LAB
 
-    fleet, _ = lab_up
     d = Dashboard()
     d.clones = CameraClones()
-    d.app = create_app(d.auth, d.broker, d.monitor, d.actions, "lab", None,
-                       Camera(lambda robot: latest_frame(fleet, d.clones, robot)))
+    monkeypatch.setattr(providers, "get_provider", lambda inventory: d.clones)
+    d.app = create_app(d.auth, d.broker, d.monitor, d.actions, "lab", None, Camera(*camera_functions(LAB)))
     with TestClient(d.app, base_url=BASE, follow_redirects=False) as client:
         d.client = client
         yield d
@@ -473,6 +490,52 @@ def test_camera_refuses_bad_names_and_says_why_there_is_no_frame(cam):
     cam.clones.reply = {**cam.clones.reply, "jpeg": base64.b64encode(b"<html>not a picture</html>").decode()}
     r = cam.client.get("/api/camera/nao1")
     assert r.status_code == 503 and "sent no JPEG" in r.json()["error"]
+
+
+def started_units(clones) -> list[list[str]]:
+    return [argv for _, argv in clones.ran if argv[0] == "systemd-run"]
+
+
+def test_a_camera_get_starts_nothing_on_the_clone(cam):
+    """A GET is what any page can make the browser send with the session cookie (an <img src>):
+    it started the camera agent's unit on the clone. Now a read without an agent is a 503 that
+    says so, and nothing was pushed or started."""
+    login(cam.client)
+    cam.clones.serving = False
+    r = cam.client.get("/api/camera/nao1", headers={"Origin": "http://attacker.example"})  # a GET is not checked for Origin
+    assert r.status_code == 503 and r.headers["cache-control"] == "no-store", r.text
+    assert cam.client.head("/api/camera/nao1").status_code in (405, 503)
+    assert r.json()["why"] == "no-agent" and "no camera agent runs on the clone of 'nao1'" in r.json()["error"]
+    assert started_units(cam.clones) == [] and cam.clones.pushed == [] and not cam.clones.serving
+    assert all(argv[:len(ASK)] == ASK for _, argv in cam.clones.ran)  # reads only
+
+
+def test_the_camera_agent_starts_with_a_guarded_post(cam):
+    """The Camera button's POST: under the Origin and CSRF checks of every POST; it starts the agent
+    (as the `ros` user) once, then finds it running; the page's GETs then read frames."""
+    from ccrp_cli import camera
+
+    csrf = login(cam.client)
+    cam.clones.serving = False
+    url = "/api/camera/nao1/start"
+    for headers in ({"Origin": BASE}, {"Origin": BASE, "X-CCRP-CSRF": "wrong"},
+                    {"Origin": "http://attacker.example", "X-CCRP-CSRF": csrf}, {"X-CCRP-CSRF": csrf}):
+        assert cam.client.post(url, headers=headers).status_code == 403, headers
+    assert cam.clones.ran == []
+    headers = {"Origin": BASE, "X-CCRP-CSRF": csrf}
+    r = cam.client.post(url, headers=headers)
+    assert r.status_code == 200 and r.json() == {"robot": "nao1", "agent": "started"}, r.text
+    (unit,) = started_units(cam.clones)
+    assert unit[unit.index("--unit") + 1] == camera.UNIT and "User=ros" in unit and cam.clones.pushed == [camera.AGENT]
+    assert cam.client.get("/api/camera/nao1").content == JPEG
+    r = cam.client.post(url, headers=headers)
+    assert r.json() == {"robot": "nao1", "agent": "running"} and len(started_units(cam.clones)) == 1
+    for bad in ("NAO1", "x" * 64):
+        assert cam.client.post(f"/api/camera/{bad}/start", headers=headers).status_code == 400
+    assert cam.client.post("/api/camera/ghost/start", headers=headers).status_code == 404
+    r = cam.client.post("/api/camera/turtlebot1/start", headers=headers)
+    assert r.status_code == 503 and r.json()["why"] == "no-clone"
+    assert len(started_units(cam.clones)) == 1
 
 
 def test_camera_runs_one_read_per_robot_at_a_time(cam):

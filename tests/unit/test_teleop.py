@@ -52,8 +52,9 @@ def test_one_command_from_the_cli(lab_up):
     assert got["robot"] == "nao1" and got["acknowledged"] and got["round_trip_ms"] == 1.1 and got["request_ms"] >= 0
     assert clone.pushed == [("nao1", [evaluation.AGENT])] and units(clone) == []  # no operator left behind
     send = clone.ran[-1]
-    assert send[:len(evaluation.IN_ROS)] == evaluation.IN_ROS  # argv, never a shell string with values in it
-    assert send[len(evaluation.IN_ROS):] == ["teleop-send", "--topic", "cmd_vel", "--linear", "0.2", "--angular", "-0.5",
+    prefix = [*evaluation.AS_ROS, *evaluation.IN_ROS]
+    assert send[:len(prefix)] == prefix  # argv, never a shell string with values in it
+    assert send[len(prefix):] == ["teleop-send", "--topic", "cmd_vel", "--linear", "0.2", "--angular", "-0.5",
                                              "--timeout", "5"]
 
 
@@ -96,4 +97,34 @@ def test_a_ros2_fleet_runs_the_same_agent_command(lab_up):
     fleet.inventory.ros.distro = "jazzy"
     clone = Clone()
     assert evaluation.send_command(fleet, clone, "nao1", 0.1, 0)["acknowledged"] is True
-    assert clone.ran[-1][:len(evaluation.IN_ROS)] == evaluation.IN_ROS and "teleop-send" in clone.ran[-1]
+    prefix = [*evaluation.AS_ROS, *evaluation.IN_ROS]
+    assert clone.ran[-1][:len(prefix)] == prefix and "teleop-send" in clone.ran[-1]
+
+
+def test_the_operator_node_and_each_command_run_as_the_ros_user_not_root(lab_up):
+    """The dashboard's operator node ran as root on the clone (a transient unit with no User=), its
+    socket root's in /run. Now its unit runs as `ros`, as the camera agent's does, its socket in
+    that user's 0700 runtime directory; a command without the operator runs its node through
+    runuser as `ros`. Names and numbers are separate arguments after constants: no shell string is
+    built from them."""
+    import runpy
+
+    from ccrp_cli import camera
+    from tests.conftest import ROOT
+
+    fleet, _ = lab_up
+    clone = Clone(via="operator")
+    evaluation.send_command(fleet, clone, "nao1", 0.2, 0, keep=True)
+    (unit,) = units(clone)
+    props = [unit[i + 1] for i, a in enumerate(unit) if a == "--property"]
+    assert "User=ros" in props and "RuntimeDirectory=ccrp-teleop" in props and "RuntimeDirectoryMode=0700" in props
+    assert "NoNewPrivileges=yes" in props and not any(p.startswith("User=") and p != "User=ros" for p in props)
+    assert [p for p in camera.UNIT_OPTIONS if p.startswith("User=")] == ["User=ros"]  # the camera agent's, alike
+    command = unit[unit.index(evaluation.IN_ROS[0]):]
+    assert command == [*evaluation.IN_ROS, "teleop-operator", "--topic", "cmd_vel", "--idle", "600"]
+    # The agent's socket is in the unit's runtime directory, which systemd makes the `ros` user's.
+    agent = runpy.run_path(str(ROOT / "templates/bench/ccrp-bench"), run_name="ccrp_bench")
+    assert agent["TELEOP_SOCKET"].startswith("/run/ccrp-teleop/")
+    send = clone.ran[-1]
+    assert send[:4] == ["/usr/sbin/runuser", "-u", "ros", "--"] and "teleop-send" in send
+    assert not any("nao1" in a for argv in clone.ran for a in argv)  # the shell text (ROS_PRELUDE) is a constant

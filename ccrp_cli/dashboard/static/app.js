@@ -204,10 +204,17 @@ function renderAction(a) {
 
 // Teleoperation: one command in flight per page; a key pressed meanwhile replaces the command
 // waiting to go, so the robot gets the key's latest state and commands never pile up.
+// A held key is sent again every DRIVE_REPEAT_MS: the robot stops by itself when no command came
+// for 0.5 s (its deadman, templates/edge/ccrp-demo-node), so a held key must keep saying so. The
+// page losing focus or being hidden stops the robot and forgets the held key: its keyup would go
+// to another window, and the robot would drive on.
 const DRIVE = {forward: [1, 0], back: [-1, 0], left: [0, 1], right: [0, -1], stop: [0, 0]};
 const KEYS = {ArrowUp: "forward", w: "forward", ArrowDown: "back", s: "back", ArrowLeft: "left", a: "left",
               ArrowRight: "right", d: "right", " ": "stop", x: "stop"};
+const DRIVE_REPEAT_MS = 200;
 let driving = false, nextDrive = null;
+let heldKey = null, heldTimer = null;  // the drive key held down, and its repeat
+let moving = false;  // this page's last command (sent or waiting) was not a stop
 
 // The connected robots as the options of a <select> (its first option stays); false when the
 // robot chosen there is gone.
@@ -243,7 +250,25 @@ function drive(name) {
   const speed = parseFloat(document.getElementById("teleop-linear").value) || 0;
   const turn = parseFloat(document.getElementById("teleop-angular").value) || 0;
   nextDrive = {robot, linear: l * speed, angular: a * turn};
+  moving = nextDrive.linear !== 0 || nextDrive.angular !== 0;
   if (!driving) sendDrive();
+}
+
+function holdKey(name) {
+  // A drive key pressed (or repeated by the keyboard): driven now and every DRIVE_REPEAT_MS while held.
+  heldKey = name === "stop" ? null : name;
+  clearInterval(heldTimer);
+  heldTimer = heldKey ? setInterval(() => { if (heldKey) drive(heldKey); }, DRIVE_REPEAT_MS) : null;
+  drive(name);
+}
+
+function releaseKeys() {
+  // Every key let go, the robot stopped: a key released, the page left (blur) or hidden.
+  const was = heldKey !== null || moving;
+  heldKey = null;
+  clearInterval(heldTimer);
+  heldTimer = null;
+  if (was && document.getElementById("teleop-robot").value) drive("stop");
 }
 
 async function sendDrive() {
@@ -290,10 +315,14 @@ function showDrive(r) {
     : `${what}: published on the clone; the robot sends no acknowledgement, latency unknown`;
 }
 
-// Camera: one frame at a time from the clone (GET /api/camera/ROBOT), the next asked for 2 s after
-// the last answer, only while the page is shown and a connected robot is chosen.
+// Camera: choosing a robot starts its camera agent on the clone (POST /api/camera/ROBOT/start, with
+// the CSRF token: a GET never starts anything), then one frame at a time from the clone (GET
+// /api/camera/ROBOT), the next asked for 2 s after the last answer, only while the page is shown
+// and a connected robot is chosen. An agent that ended since (idle while the page was hidden, the
+// clone restarted) is started again once; a start that failed is not retried until chosen again.
 const CAMERA_EVERY_MS = 2000;
 let cameraTimer = null, cameraReading = false, cameraShown = null;  // cameraShown: the frame on screen, to age it
+let cameraNeedsStart = false, cameraHadFrame = false;
 
 function renderCameraChoices(rows) {
   if (!renderRobotChoices("camera-robot", rows)) cameraChanged();  // its robot left: the view stops
@@ -321,7 +350,20 @@ function cameraChanged() {
   info.className = "off";
   clearTimeout(cameraTimer);
   cameraTimer = null;
+  cameraNeedsStart = !!robot;
+  cameraHadFrame = false;
   if (robot) readCamera();
+}
+
+async function startCamera(robot) {
+  // null: started (or already running); otherwise why not.
+  const r = await fetch(`/api/camera/${encodeURIComponent(robot)}/start`, {
+    method: "POST", credentials: "same-origin", cache: "no-store", headers: {"X-CCRP-CSRF": CSRF},
+  });
+  if (r.ok) return null;
+  let why = `${r.status}`;
+  try { why = (await r.json()).error || why; } catch (e) { /* not JSON */ }
+  return why;
 }
 
 function dataUrl(blob) {
@@ -342,16 +384,33 @@ async function readCamera() {
   const info = document.getElementById("camera-info");
   const img = document.getElementById("camera-img");
   try {
+    if (cameraNeedsStart) {
+      cameraNeedsStart = false;
+      if (!cameraShown) { info.textContent = "starting the camera agent on the clone…"; info.className = "off"; }
+      const failed = await startCamera(robot);
+      if (document.getElementById("camera-robot").value !== robot) return;  // another robot chosen meanwhile
+      if (failed) {
+        img.classList.add("stale");
+        info.textContent = `camera not started: ${failed}`;
+        info.className = "bad";
+        return;
+      }
+    }
     const r = await fetch(`/api/camera/${encodeURIComponent(robot)}`, {credentials: "same-origin", cache: "no-store"});
     if (document.getElementById("camera-robot").value !== robot) return;  // another robot chosen meanwhile
     if (!r.ok) {
-      let why = `${r.status}`;
-      try { why = (await r.json()).error || why; } catch (e) { /* not JSON */ }
+      let why = `${r.status}`, body = {};
+      try { body = await r.json(); why = body.error || why; } catch (e) { /* not JSON */ }
+      if (body.why === "no-agent" && cameraHadFrame) {  // it ended since the last frame: started again next
+        cameraHadFrame = false;
+        cameraNeedsStart = true;
+      }
       img.classList.add("stale");
       info.textContent = `no frame: ${why}`;
       info.className = "bad";
       return;
     }
+    cameraHadFrame = true;
     const h = (name) => r.headers.get(`X-CCRP-Frame-${name}`);
     const src = await dataUrl(await r.blob());
     if (document.getElementById("camera-robot").value !== robot) return;
@@ -426,8 +485,10 @@ document.addEventListener("DOMContentLoaded", () => {
   document.getElementById("teleop-robot").addEventListener("change", (e) => e.target.blur());
   document.getElementById("camera-robot").addEventListener("change", (e) => { e.target.blur(); cameraChanged(); });
   document.addEventListener("visibilitychange", () => {
+    if (document.hidden) releaseKeys();  // a tab switched away from gets no keyup: stop the robot now
     if (!document.hidden && !cameraTimer && !cameraReading && document.getElementById("camera-robot").value) readCamera();
   });
+  window.addEventListener("blur", releaseKeys);  // another window took the keyboard: stop the robot
   setInterval(showCameraAge, 500);
   document.addEventListener("keydown", (e) => {
     const tag = e.target.tagName;
@@ -435,12 +496,12 @@ document.addEventListener("DOMContentLoaded", () => {
     const name = KEYS[e.key.length === 1 ? e.key.toLowerCase() : e.key];
     if (!name || !document.getElementById("teleop-robot").value) return;
     e.preventDefault();  // the arrows drive, they do not scroll the page
-    drive(name);
+    holdKey(name);
   });
   document.addEventListener("keyup", (e) => {
     const name = KEYS[e.key.length === 1 ? e.key.toLowerCase() : e.key];
     if (name && name !== "stop" && document.getElementById("teleop-robot").value
-        && !["INPUT", "SELECT", "TEXTAREA"].includes(e.target.tagName)) drive("stop");  // a key let go stops the robot
+        && !["INPUT", "SELECT", "TEXTAREA"].includes(e.target.tagName)) releaseKeys();  // a key let go stops the robot
   });
   connect();
 });
