@@ -122,6 +122,14 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     inv = fleet.inventory
     kind = inv.provider.kind
     require(kind, Ability.BAKE, hint=f"on {kind} the golden image is built locally: `ccrp snapshot build`")
+    from .workloads import snapshot_software
+
+    if not snapshot_software(inv, fleet.path).empty:
+        # Honest until a builder installs and builds it: its clones would start nodes whose code is missing.
+        raise InputError(f"software: (the robots' own packages and workspace) is built into Docker snapshots only "
+                         f"so far; {kind}'s bake does not install it yet",
+                         hint="remove software: from this cloud inventory, or run the fleet on the Docker backend "
+                              "(docs/workloads.md, Not yet)")
     base = base_image or getattr(inv.provider, "image", None) or DEFAULT_BASE[kind]
     # A cloud may name its images indirectly (AWS: an SSM parameter): the state records what was used.
     base = provider.resolve_image(base)

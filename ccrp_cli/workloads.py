@@ -216,8 +216,9 @@ def check_snapshot(fleet, state, provider_kind: str) -> None:
     """Refuse to create or update clones whose snapshot lacks the inventory's software."""
     why = stale_snapshot(fleet, state)
     if why is not None and state.snapshot:
-        make = "snapshot build" if provider_kind == "docker" else "snapshot bake"
-        raise InputError(f"{why}: clones made from it would not have it", hint=f"ccrp {make} -i INVENTORY first")
+        hint = ("ccrp snapshot build -i INVENTORY first" if provider_kind == "docker"
+                else "a cloud's bake does not build software: yet (docs/workloads.md, Not yet)")
+        raise InputError(f"{why}: clones made from it would not have it", hint=hint)
 
 
 # -- each clone's nodes --------------------------------------------------------------------------------
@@ -257,14 +258,17 @@ def node_files(inv: Inventory, robot: Robot, software_digest: str) -> list[Bundl
 
 # Brings the clone's node units in line with the index just pushed ($1: the nodes to keep, then
 # the nodes to restart). Names are NodeNames ([a-z][a-z0-9-]*): word splitting them is safe.
+# A node that ended badly when stopped stays listed as failed: reset-failed forgets it.
 APPLY_SH = r"""
-keep="$1"; shift
+keep="$1"; shift; gone=""
 for f in /etc/systemd/system/ccrp-run-*.service; do
   [ -e "$f" ] || continue
   n=${f##*/ccrp-run-}; n=${n%.service}
-  case " $keep " in *" $n "*) ;; *) systemctl disable --now "ccrp-run-$n.service" >/dev/null 2>&1; rm -f "$f";; esac
+  case " $keep " in *" $n "*) ;; *) systemctl disable --now "ccrp-run-$n.service" >/dev/null 2>&1; rm -f "$f"
+                                    gone="$gone ccrp-run-$n.service";; esac
 done
 systemctl daemon-reload
+[ -z "$gone" ] || systemctl reset-failed $gone >/dev/null 2>&1
 for n in $keep; do systemctl enable "ccrp-run-$n.service" 2>/dev/null || exit 1; done
 for n in "$@"; do systemctl restart "ccrp-run-$n.service" || exit 1; done
 for n in $keep; do systemctl start "ccrp-run-$n.service" || exit 1; done

@@ -316,13 +316,17 @@ def test_the_robots_own_node_on_its_clone_answers_its_scan_with_a_map(fleet: E2E
     robot.put_archive("/var/lib/offload", tar_files([(p.name, p.read_bytes(), 0o644) for p in files]))
     rc, out = exec_in(robot, ["sh", "-c", "/opt/ros/jazzy/bin/pip install -q --no-index --no-deps /var/lib/offload/*.whl"])
     assert rc == 0, out
-    exec_in(robot, ["systemd-run", "--unit", "e2e-fake-scan", "sh", "-c", "set -a; . /etc/ccrp/ros.env; set +a; "
-                    ". /opt/ros/jazzy/setup.sh; exec python3 /var/lib/offload/fake_scan.py"])
+    # A unit of its own (HOME set: ROS 2's logging needs a home to write in).
+    exec_in(robot, ["systemd-run", "--unit", "e2e-fake-scan", "--setenv=HOME=/root", "sh", "-c",
+                    "set -a; . /etc/ccrp/ros.env; set +a; . /opt/ros/jazzy/setup.sh; exec python3 /var/lib/offload/fake_scan.py"])
     try:
         rc, out = _robot_sh(robot, "python3 /var/lib/offload/wait_map.py --timeout 60", 90)
+        scan_log = exec_in(robot, ["journalctl", "-u", "e2e-fake-scan", "-n", "20", "--no-pager"])[1]
     finally:
         exec_in(robot, ["systemctl", "stop", "e2e-fake-scan"])
-    assert rc == 0, f"robot nao1 got no /map from its clone: {out[-600:]}\n{agent_journals(fleet, ['nao1'])}"
+    mapper_log = fleet.inv("logs", "--robot", "nao1", "mapper", "-n", "20").stdout
+    assert rc == 0, (f"robot nao1 got no /map from its clone: {out[-600:]}\n--- the robot's scan:\n{scan_log}\n"
+                     f"--- the clone's mapper:\n{mapper_log}")
     grid = json.loads(out.strip().splitlines()[-1])
     assert grid["width"] == 100 and grid["occupied"] > 0 and grid["free"] > 0, grid
 

@@ -263,11 +263,13 @@ def test_the_inventories_run_the_workspace_on_two_nao_clones(ros, fleet, distro,
     assert [(r["name"], r["type"]) for r in data["robots"]] == [("nao1", "nao"), ("nao2", "nao")]
     assert data["software"] == {"workspace": f"{ros}/ws", "run": [{"name": "mapper", "command": command}]}
     assert (path.parent / data["software"]["workspace"] / "src" / "ccrp_offload" / "package.xml").is_file()
-    # The rest is a valid inventory today; `software` too once the model knows it.
-    if "software" not in Inventory.model_fields:
-        data.pop("software")
     inv = Inventory.model_validate(data)
     assert inv.ros.distro == distro
+    # Its workspace resolves (every package.xml key has an entry in the recipe's rosdep table).
+    from ccrp_cli.workloads import snapshot_software
+
+    snap = snapshot_software(inv, path)
+    assert snap.build_type == ("catkin" if ros == "ros1" else "ament_python") and snap.digest != "none"
 
 
 def test_the_two_example_fleets_can_run_side_by_side():

@@ -245,3 +245,20 @@ def test_docker_is_refused(ccrp_home):
     with pytest.raises(InputError, match="cannot do snapshot bake") as err:
         snapshots.bake(lab, FakeCloud("docker", [DONE]), lambda m: None)
     assert "snapshot build" in err.value.hint
+
+
+def test_bake_refuses_software_it_cannot_build_yet(ccrp_home, tmp_path):
+    """A cloud's bake does not install the robots' own software yet (docs/workloads.md): one line,
+    before any builder starts, instead of clones whose nodes have no code."""
+    import yaml
+
+    from ccrp_cli.errors import InputError
+
+    data = yaml.safe_load(INVENTORIES["openstack"].read_text())
+    data["software"] = {"apt": ["htop"]}
+    path = tmp_path / "inventory.yaml"
+    path.write_text(yaml.safe_dump(data))
+    cloud = FakeCloud("openstack")
+    with pytest.raises(InputError, match="Docker snapshots only"):
+        _bake(Fleet.open(path), cloud)
+    assert cloud.specs == [] and cloud.instances == {}

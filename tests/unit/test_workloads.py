@@ -256,6 +256,7 @@ def test_nodes_leave_the_clone_when_the_inventory_drops_them(tmp_path):
     assert sorted(p.name for p in units.iterdir()) == ["ccrp-run-a.service"]
     calls = log.read_text().splitlines()
     assert calls[0] == "disable --now ccrp-run-old.service" and "daemon-reload" in calls
+    assert "reset-failed ccrp-run-old.service" in calls
     assert "restart ccrp-run-b.service" in calls and "start ccrp-run-a.service" in calls
 
 
