@@ -131,17 +131,17 @@ def resolve(distro: str, packages: list[Package]) -> Resolved:
     out = Resolved()
     for pkg in packages:
         if distro in ROS2_DISTROS and pkg.build_type != "ament_python":
-            raise InputError(f"package {pkg.name} ({pkg.path}) is {pkg.build_type}: a ROS 2 workspace here builds "
+            raise InputError(f"package {shown(pkg.name)} ({pkg.path}) is {shown(pkg.build_type)}: a ROS 2 workspace here builds "
                              "ament_python packages only (the ROS 2 wheels have no rclcpp)")
         if distro not in ROS2_DISTROS and pkg.build_type != "catkin":
-            raise InputError(f"package {pkg.name} ({pkg.path}) is {pkg.build_type}: a ROS 1 workspace builds catkin packages")
+            raise InputError(f"package {shown(pkg.name)} ({pkg.path}) is {shown(pkg.build_type)}: a ROS 1 workspace builds catkin packages")
         for key in pkg.depends:
             if key in ("rclcpp", "rclcpp_components", "ament_cmake") and distro in ROS2_DISTROS:
-                raise InputError(f"package {pkg.name} depends on {key}: the ROS 2 wheels have no rclcpp (C++); "
+                raise InputError(f"package {shown(pkg.name)} depends on {key}: the ROS 2 wheels have no rclcpp (C++); "
                                  "write the node in Python (rclpy)")
             entry = table.get(key)
             if entry is None:
-                raise InputError(f"package {pkg.name} depends on {shown(key)}, which resolves to no "
+                raise InputError(f"package {shown(pkg.name)} depends on {shown(key)}, which resolves to no "
                                  f"{'wheel' if distro in ROS2_DISTROS else 'Debian package'} for {distro}",
                                  hint="add what it needs under software.apt or software.pip, and remove the key "
                                       "from package.xml, or name a key of the recipe's rosdep table")
