@@ -42,6 +42,26 @@ def build_base_image(client, tag: str, packages: list[str], progress=lambda msg:
                                               changes=['CMD ["/lib/systemd/systemd"]'])
 
 
+def ensure_base(client, base: str, plat: Platform, progress=lambda msg: None) -> None:
+    """The image a clone image is built FROM: pulled, or for ccrp's own base built from Debian
+    packages with the recipe's packages already in."""
+    import docker
+
+    try:
+        client.images.get(base)
+        return
+    except docker.errors.ImageNotFound:
+        pass
+    if base != DEFAULT_BASE:
+        progress(f"pulling base image {base}")
+        try:
+            client.images.pull(base)
+        except Exception as exc:  # noqa: BLE001 - registry errors vary
+            raise CcrpError(f"cannot pull base image {base}: {exc}", hint="check provider.base_image") from None
+    else:
+        build_base_image(client, base, sorted(set(BASE_PACKAGES + plat.packages)), progress)
+
+
 def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, software=None) -> str:
     """A ROS 2 distro's image has its `pip` list (the ros-<distro>-* wheels) in a venv at
     /opt/ros/<distro> (docs/ros2.md) instead of the ROS 1 agents in /usr/local. The fleet's own
@@ -110,18 +130,25 @@ def _recipe_context(plat: Platform, progress, distro: str) -> dict[str, bytes]:
 
 
 def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progress=lambda msg: None,
-                      files: dict[str, bytes] | None = None) -> str:
-    """docker build from an in-memory context: the Dockerfile and `files`."""
+                      files: dict[str, bytes] | None = None, what: str = "snapshot build") -> str:
+    """docker build from an in-memory context: the Dockerfile and `files`. A failed step is one
+    line: Docker's error and the last line the step printed (a build tool's own error, where
+    Docker only says "returned a non-zero code")."""
     entries = [("Dockerfile", text.encode(), 0o644), *((name, data, 0o644) for name, data in (files or {}).items())]
     buf = io.BytesIO(tar_files(entries))
     image_id = None
+    last = ""
     for chunk in client.api.build(fileobj=buf, custom_context=True, tag=tag, labels=labels, rm=True,
                                   forcerm=True, decode=True):
         if "error" in chunk:
-            raise CcrpError(f"snapshot build failed: {chunk['error'].strip()}")
+            said = f" (last output: {last[-300:]})" if last else ""
+            raise CcrpError(f"{what} failed: {chunk['error'].strip()}{said}")
         line = chunk.get("stream", "").strip()
         if line.startswith("Step "):
             progress(line)
+            last = ""
+        elif line and not line.startswith(("--->", "Removing intermediate", "Running in ")):
+            last = line.splitlines()[-1].strip()
         if "aux" in chunk and "ID" in chunk["aux"]:
             image_id = chunk["aux"]["ID"]
     return image_id or client.images.get(tag).id
