@@ -22,8 +22,11 @@ def deploy(
     that does not stay up puts its clone back on the previous version. apt/pip changes need a new
     snapshot and new clones."""
     from .. import deploy as core
+    from ..providers import get_provider
 
-    fleet, provider = options.open_provider(inventory)
+    fleet = options.open_fleet(inventory)
+    core.targets(fleet, fleet.store.load_state(), robot, type_)  # a bad --robot / --type: exit 2 before anything
+    provider = get_provider(fleet.inventory)
     if dry_run:
         items = core.deploy(fleet, provider, output.info, robot, type_, dry_run=True)
     else:

@@ -179,9 +179,11 @@ def sweep(client, fleet: str) -> list[str]:
     return problems + left
 
 
-def start_fleet(request, tmp_path_factory, prefix: str, edit: Callable[[dict], None] = lambda data: None) -> E2EFleet:
-    """A fleet of its own from inventories/lab.yaml (`edit` changes the inventory), with its CA and
-    snapshot; swept away when the requesting scope ends, even on failure."""
+def start_fleet(request, tmp_path_factory, prefix: str, edit: Callable[[dict], None] = lambda data: None,
+                prepare: Callable[[Path], None] = lambda tmp: None) -> E2EFleet:
+    """A fleet of its own from inventories/lab.yaml (`edit` changes the inventory; `prepare` puts
+    files beside it, e.g. a workspace), with its CA and snapshot; swept away when the requesting
+    scope ends, even on failure."""
     client = docker.from_env(timeout=300)
     name = prefix + "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(6))
     public, common, pool = free_subnets()
@@ -192,6 +194,7 @@ def start_fleet(request, tmp_path_factory, prefix: str, edit: Callable[[dict], N
     data["provider"]["public_cidr"] = public
     data["common"]["cidr"] = common
     data["vpn"]["pool"] = pool
+    prepare(tmp)
     inventory = tmp / "inventory.yaml"
     inventory.write_text(yaml.safe_dump(data, sort_keys=False))
     f = E2EFleet(name=name, inventory=inventory, home=tmp / "home", client=client, tmp=tmp)
