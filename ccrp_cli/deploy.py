@@ -22,7 +22,7 @@ import json
 import tarfile
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from collections.abc import Callable
 
 from .clones import CloneResult, StateWriter, same
 from .errors import CcrpError, InputError
@@ -331,7 +331,7 @@ def _drop_older_builds(client, fleet: Fleet, keep: str) -> None:
         if keep not in image.tags:
             try:
                 client.images.remove(image.id, force=False)
-            except Exception:  # noqa: BLE001 - in use or gone: gc finds it later
+            except Exception:  # noqa: BLE001, S110 - in use or gone: gc finds it later
                 pass
 
 
@@ -346,7 +346,7 @@ def health(provider, robot: str, nodes: list[str], seconds: float, interval: flo
     first: dict[str, int] = {}
     end = time.monotonic() + seconds
     while True:
-        rc, out = provider.exec(robot, ["systemctl", "show", "--property", "Id,ActiveState,SubState,NRestarts", *units],
+        _, out = provider.exec(robot, ["systemctl", "show", "--property", "Id,ActiveState,SubState,NRestarts", *units],
                                 timeout=20)
         shown = {}
         for block in out.strip().split("\n\n"):
