@@ -21,8 +21,8 @@ import io
 import json
 import tarfile
 import time
-from dataclasses import dataclass, field
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 from .clones import CloneResult, StateWriter, same
 from .errors import CcrpError, InputError
