@@ -272,8 +272,12 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         relay = relay_config_file(fleet, state, robot, writer.live())
         know = knowledge_files(fleet, state, robot, writer.live())  # [] when it shares no dataset
         settings = [relay, autostop_file(fleet, view.robot), *know]
-        # The robot's own nodes (docs/workloads.md): their units and the index of them.
-        nodes = node_files(fleet.inventory, view.robot, (state.snapshot or {}).get("software", NO_SOFTWARE))
+        # The robot's own nodes (docs/workloads.md): their units and the index of them. A clone
+        # kept runs the software it has (`ccrp deploy` may have changed it since its snapshot).
+        software = (state.snapshot or {}).get("software", NO_SOFTWARE)
+        if not record.created and rec.software:
+            software = rec.software
+        nodes = node_files(fleet.inventory, view.robot, software)
         probed = [*secrets, applied, *settings, *(api or [absent_config()]), *(() if know else [no_knowledge()]),
                   *(nodes or [absent_index()])]
         # A clone that was running already: cloud-init's result, the digests of what ccrp put there
@@ -319,6 +323,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         # The snapshot's id (one image may carry several names): a reused clone keeps its own.
         image=((state.snapshot or {}).get("id") or image) if record.created else rec.image,
         software=(state.snapshot or {}).get("software", NO_SOFTWARE) if record.created else rec.software,
+        packages=(state.snapshot or {}).get("packages") if record.created else rec.packages,
         addresses={"public": endpoint or "", "common": str(view.addr.common_ip),
                    "vpn": str(view.addr.clone_vpn_ip), "robot_vpn": str(view.addr.robot_vpn_ip)},
     )

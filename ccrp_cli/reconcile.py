@@ -11,7 +11,7 @@ from .errors import CcrpError, InputError
 from .fleet import Fleet
 from .models.state import RobotRecord
 from .providers.base import CloneState
-from .workloads import NO_SOFTWARE, check_snapshot, stale_snapshot
+from .workloads import NO_SOFTWARE, check_snapshot, snapshot_software, stale_snapshot
 
 
 def plan(fleet: Fleet, provider) -> list[dict]:
@@ -23,6 +23,8 @@ def plan(fleet: Fleet, provider) -> list[dict]:
     index = fleet.pki.load_index() if fleet.pki.exists() else None
     revoked = {name for name in members if index and fleet.pki.revoked_since(name, index)}
     stale = stale_snapshot(fleet, state)
+    # A clone `ccrp deploy` brought to the inventory's software runs it, whatever its snapshot holds.
+    inventory_software = snapshot_software(fleet.inventory, fleet.path).digest if stale is not None else None
     for name in members:
         rec = actual.get(name)
         if name in revoked:
@@ -36,22 +38,25 @@ def plan(fleet: Fleet, provider) -> list[dict]:
         else:
             action = "configure"
         rows.append({"robot": name, "action": action, "provider_id": rec.provider_id if rec else None,
-                     "software": _software_note(state, name, stale) if rec is not None else None})
+                     "software": _software_note(state, name, stale, inventory_software) if rec is not None else None})
     for name, rec in actual.items():
         if name not in members:
             rows.append({"robot": name, "action": "delete (not in fleet)", "provider_id": rec.provider_id})
     return rows
 
 
-def _software_note(state, robot: str, stale: str | None) -> str | None:
+def _software_note(state, robot: str, stale: str | None, inventory_software: str | None = None) -> str | None:
     """Whether robot's clone runs the inventory's software (docs/workloads.md): None when it does."""
+    rec = state.robots.get(robot)
     if stale is not None:
-        return f"{stale}: build a new snapshot, then re-create the clone"
-    rec, want = state.robots.get(robot), (state.snapshot or {}).get("software", NO_SOFTWARE)
+        if rec is not None and rec.software is not None and rec.software == inventory_software:
+            return None  # deployed (`ccrp deploy`)
+        return f"{stale}: ccrp deploy, or build a new snapshot and re-create the clone"
+    want = (state.snapshot or {}).get("software", NO_SOFTWARE)
     # A clone from before software digests were recorded (None) ran no software of the user's.
     have = (rec.software or NO_SOFTWARE) if rec is not None else want
     if have != want:
-        return f"runs software {have}, the snapshot holds {want}: re-create the clone"
+        return f"runs software {have}, the snapshot holds {want}: ccrp deploy, or re-create the clone"
     return None
 
 

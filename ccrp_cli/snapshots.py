@@ -27,7 +27,7 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     started from a stock cloud image would (slower: the reason for snapshots, see bench/)."""
     from .providers.docker import images
     from .recipes import platform
-    from .workloads import snapshot_software
+    from .workloads import packages_record, snapshot_software
 
     inv = fleet.inventory
     plat = platform(inv.ros.distro, provider.kind)
@@ -41,15 +41,7 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
         if not provider.has_image(base):
             images.build_base_image(client, base, images.BASE_PACKAGES + images.BARE_PACKAGES, progress)
     elif not provider.has_image(base):
-        if base != images.DEFAULT_BASE:
-            progress(f"pulling base image {base}")
-            try:
-                client.images.pull(base)
-            except Exception as exc:  # noqa: BLE001 - registry errors vary
-                raise CcrpError(f"cannot pull base image {base}: {exc}", hint="check provider.base_image") from None
-        else:
-            # ccrp's own base: Debian packages only, with the recipe's packages already in.
-            images.build_base_image(client, base, sorted(set(images.BASE_PACKAGES + plat.packages)), progress)
+        images.ensure_base(client, base, plat, progress)
     tag = f"{image_repo(fleet)}:{'bare-' if bare else ''}{_stamp()}"
     progress(f"building snapshot {tag} from {base}")
     digest = software.digest if software is not None else NO_SOFTWARE
@@ -58,7 +50,9 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat, software), labels,
                              progress, images.build_context(plat, progress, inv.ros.distro, software))
     record = provider.snapshot_record(client.images.get(tag))
-    _use(fleet, record, bare, software=digest)
+    # What `ccrp deploy` cannot change on a clone made from it (apt, pip): it compares them.
+    held = {} if software is None else {"packages": packages_record(software)}
+    _use(fleet, record, bare, software=digest, **held)
     return record
 
 

@@ -190,6 +190,12 @@ class SnapshotSoftware:
         return h.hexdigest()[:16]
 
 
+def packages_record(software: SnapshotSoftware) -> str:
+    """What a snapshot holds that `ccrp deploy` cannot change on its clones (the Debian packages
+    and wheels, for one distro), as state.json records it: deploy compares it with the inventory's."""
+    return json.dumps({"distro": software.distro, "apt": software.apt, "pip": software.pip}, separators=(",", ":"))
+
+
 def snapshot_software(inv: Inventory, inv_path: Path | None) -> SnapshotSoftware:
     """Read and check everything the snapshot will hold, before anything is built or changed."""
     spec = inv.snapshot_software()

@@ -12,7 +12,7 @@ import typer.main
 
 from .. import __version__
 from ..errors import BAD_INPUT, CcrpError
-from . import bench, clone, dashboard, doctor, fleet, gc, init, knowledge, logs, render, robot, snapshot, status, topics, vpn
+from . import bench, clone, dashboard, deploy, doctor, fleet, gc, init, knowledge, logs, render, robot, snapshot, status, topics, vpn
 
 app = typer.Typer(
     name="ccrp",
@@ -37,6 +37,7 @@ app.command("gc")(gc.gc)
 app.command("doctor")(doctor.doctor)
 app.command("topics")(topics.topics)
 app.command("logs")(logs.logs)
+app.command("deploy")(deploy.deploy)
 app.command("dashboard")(dashboard.dashboard)
 
 

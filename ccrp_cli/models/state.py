@@ -31,11 +31,14 @@ class RobotRecord(BaseModel):
     image: str | None = None
     # The digest of the user's software that snapshot held (docs/workloads.md).
     software: str | None = None
+    # The apt/pip packages that snapshot held (workloads.packages_record): `ccrp deploy` changes
+    # the workspace only, so it refuses an inventory whose packages differ.
+    packages: str | None = None
 
     def clear_clone(self) -> None:
         """The clone is gone; the robot keeps its slot (and so its addresses)."""
         self.phase, self.provider_id, self.public_endpoint, self.addresses, self.image = "planned", None, None, {}, None
-        self.software = None
+        self.software = self.packages = None
 
 
 class FleetState(BaseModel):

@@ -195,7 +195,7 @@ def start_fleet(request, tmp_path_factory, prefix: str, edit: Callable[[dict], N
     data["common"]["cidr"] = common
     data["vpn"]["pool"] = pool
     for rel, source in (copy or {}).items():
-        shutil.copytree(source, tmp / rel)
+        shutil.copytree(source, tmp / rel, ignore=shutil.ignore_patterns("build", "install", "log", "__pycache__"))
     inventory = tmp / "inventory.yaml"
     inventory.write_text(yaml.safe_dump(data, sort_keys=False))
     f = E2EFleet(name=name, inventory=inventory, home=tmp / "home", client=client, tmp=tmp)

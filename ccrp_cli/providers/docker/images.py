@@ -4,6 +4,7 @@ unreachable) and the golden clone image built from a snapshot recipe."""
 from __future__ import annotations
 
 import io
+import re
 import shutil
 import subprocess
 import tempfile
@@ -40,6 +41,40 @@ def build_base_image(client, tag: str, packages: list[str], progress=lambda msg:
         with open(out, "rb") as fh:
             client.api.import_image_from_data(fh.read(), repository=repo, tag=tagname,
                                               changes=['CMD ["/lib/systemd/systemd"]'])
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+# A line saying what went wrong: a Python exception, a compiler's or CMake's error.
+_ERROR_LINE = re.compile(r"\b[A-Z]\w*(Error|Exception)\b:|: (fatal )?error:|CMake Error|^E: ")
+
+
+def step_error(output: str) -> str:
+    """The line of a failed build step's output that says why: the last error-looking one, else
+    the last line that is not Docker's own."""
+    lines = [" ".join(_ANSI.sub("", line).split()) for line in output.splitlines()]
+    lines = [line for line in lines if line and not line.startswith(("--->", "Removing intermediate", "Running in "))]
+    errors = [line for line in lines if _ERROR_LINE.search(line)]
+    return (errors or lines or [""])[-1][:300]
+
+
+def ensure_base(client, base: str, plat: Platform, progress=lambda msg: None) -> None:
+    """The image a clone image is built FROM: pulled, or for ccrp's own base built from Debian
+    packages with the recipe's packages already in."""
+    import docker
+
+    try:
+        client.images.get(base)
+        return
+    except docker.errors.ImageNotFound:
+        pass
+    if base != DEFAULT_BASE:
+        progress(f"pulling base image {base}")
+        try:
+            client.images.pull(base)
+        except Exception as exc:  # noqa: BLE001 - registry errors vary
+            raise CcrpError(f"cannot pull base image {base}: {exc}", hint="check provider.base_image") from None
+    else:
+        build_base_image(client, base, sorted(set(BASE_PACKAGES + plat.packages)), progress)
 
 
 def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, software=None) -> str:
@@ -110,18 +145,26 @@ def _recipe_context(plat: Platform, progress, distro: str) -> dict[str, bytes]:
 
 
 def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progress=lambda msg: None,
-                      files: dict[str, bytes] | None = None) -> str:
-    """docker build from an in-memory context: the Dockerfile and `files`."""
+                      files: dict[str, bytes] | None = None, what: str = "snapshot build") -> str:
+    """docker build from an in-memory context: the Dockerfile and `files`. A failed step is one
+    line: the error its tool printed (Docker itself only says "returned a non-zero code")."""
     entries = [("Dockerfile", text.encode(), 0o644), *((name, data, 0o644) for name, data in (files or {}).items())]
     buf = io.BytesIO(tar_files(entries))
     image_id = None
+    step, said = "", ""  # the step running and what it printed (its tail)
     for chunk in client.api.build(fileobj=buf, custom_context=True, tag=tag, labels=labels, rm=True,
                                   forcerm=True, decode=True):
         if "error" in chunk:
-            raise CcrpError(f"snapshot build failed: {chunk['error'].strip()}")
-        line = chunk.get("stream", "").strip()
-        if line.startswith("Step "):
-            progress(line)
+            cause = step_error(said)
+            if cause:
+                raise CcrpError(f"{what} failed: {cause} (at {' '.join(step.split())[:80]})")
+            raise CcrpError(f"{what} failed: {' '.join(chunk['error'].split())[:400]}")
+        stream = chunk.get("stream", "")
+        if stream.strip().startswith("Step "):
+            step, said = stream.strip(), ""
+            progress(step)
+        else:
+            said = (said + stream)[-20000:]
         if "aux" in chunk and "ID" in chunk["aux"]:
             image_id = chunk["aux"]["ID"]
     return image_id or client.images.get(tag).id

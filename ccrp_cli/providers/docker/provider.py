@@ -317,6 +317,9 @@ class DockerProvider(DockerHost):
         owned += [OwnedResource(kind="network", id=n.name, name=n.name) for n in self.client.networks.list(filters=label)]
         owned += [OwnedResource(kind="image", id=s.id, name=s.name, robot=None if s.source == "build" else s.source)
                   for s in self.list_snapshots()]
+        # `ccrp deploy`'s build of the workspace (deploy.py): cache only, no state records it.
+        owned += [OwnedResource(kind="image", id=i.id.removeprefix("sha256:")[:12], name=(i.tags or ["<untagged>"])[0])
+                  for i in self.client.images.list(filters=self._filters("deploy"))]
         return owned
 
     def delete_owned(self, resource: OwnedResource) -> None:

@@ -1,0 +1,35 @@
+"""ccrp deploy: a changed workspace or `run` list onto the running clones (docs/workloads.md)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from . import options, output
+
+
+def deploy(
+    inventory: options.Inventory,
+    robot: Annotated[str | None, typer.Option("--robot", "-r", help="Only this robot's clone.")] = None,
+    type_: Annotated[str | None, typer.Option("--type", help="Only the clones of robots of this type.")] = None,
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="Say what would change on each clone; build and "
+                                                            "push nothing.")] = False,
+    as_json: options.Json = False,
+) -> None:
+    """Put the inventory's workspace and `run` nodes on the running clones without re-creating them:
+    built once here in the clone image, pushed to each clone, the changed nodes restarted; a node
+    that does not stay up puts its clone back on the previous version. apt/pip changes need a new
+    snapshot and new clones."""
+    from .. import deploy as core
+    from ..providers import get_provider
+
+    fleet = options.open_fleet(inventory)
+    core.targets(fleet, fleet.store.load_state(), robot, type_)  # a bad --robot / --type: exit 2 before anything
+    provider = get_provider(fleet.inventory)
+    if dry_run:
+        items = core.deploy(fleet, provider, output.info, robot, type_, dry_run=True)
+    else:
+        with fleet.store.lock():
+            items = core.deploy(fleet, provider, output.info, robot, type_)
+    raise typer.Exit(output.results(items, as_json))

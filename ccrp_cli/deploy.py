@@ -1,0 +1,475 @@
+"""ccrp deploy (docs/workloads.md, Deploy): a changed workspace or `run` list onto running clones,
+without re-creating them.
+
+The workspace is built once, on this machine, in the clone image (the snapshot's Dockerfile with
+the current software: Docker's layer cache runs only the software's layers), and its install
+space (/opt/ccrp/workspace) read out of the image as a tar. Every clone runs the same Debian 12
+platform, so the same tar serves every backend. Each clone gets it base64-encoded as a root-only
+file, and one fixed script (DEPLOY_SH, names and digests as argv words) unpacks it beside the
+current one and swaps them; then the node units are brought in line (workloads.apply_nodes: only
+those whose inputs changed restart) and each restarted unit must stay up for HEALTH_SECONDS. A
+unit that does not is reported with its last journal lines, and the clone goes back to the
+workspace and units it had: the previous version keeps running.
+
+apt and pip packages are the snapshot's: a change of them needs a new snapshot and new clones.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import tarfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from .clones import CloneResult, StateWriter, same
+from .errors import CcrpError, InputError
+from .fleet import Fleet
+from .providers.base import CloneState, owner_labels
+from .render.bundles import BundleFile
+from .workloads import (
+    INDEX,
+    NO_SOFTWARE,
+    WORKSPACE,
+    SnapshotSoftware,
+    absent_index,
+    apply_nodes,
+    node_files,
+    packages_record,
+    read_journal,
+    snapshot_software,
+    unit_name,
+)
+
+Progress = Callable[[str], None]
+
+DEPLOY_DIR = "/var/lib/ccrp/deploy"  # root-only (0700): the pushed tar, the previous units, the digest
+HEALTH_SECONDS = 3.0  # a restarted node must stay active this long, without an automatic restart
+HEALTH_INTERVAL = 0.5
+JOURNAL_LINES = 5  # of a failing node's log, in its robot's result
+MAX_INSTALL_BYTES = 256 << 20  # the install space's tar, pushed to every clone
+
+# On the clone, as root: $1 the action, then its argv words (a digest: hex; node names:
+# [a-z][a-z0-9-]*). D: what deploy keeps; W: the install space; U: the units; I: the index.
+#   probe [PATH...]     what the clone runs: its workspace digest, the index, sha256 of PATHs
+#   stage DIGEST|-      unpack D/DIGEST.tar.b64 into W.new (- : no new workspace); keep the units
+#                       and index as they are in D/prev, for a rollback
+#   swap DIGEST         W -> W.prev, W.new -> W; D/current says DIGEST
+#   rollback yes|no N.. the workspace back (yes: it was swapped), the units and index of D/prev
+#                       back, nodes N restarted and every previous node started
+#   commit              forget W.prev and D/prev
+DEPLOY_SH = r"""set -eu
+D=/var/lib/ccrp/deploy W=/opt/ccrp/workspace U=/etc/systemd/system I=/etc/ccrp/workloads.json
+act=$1; shift
+case $act in
+probe)
+  printf '== current\n'; cat "$D/current" 2>/dev/null || true
+  printf '\n== index\n'; cat "$I" 2>/dev/null || true
+  printf '\n== digests\n'; [ $# -eq 0 ] || sha256sum "$@" 2>/dev/null || true
+  ;;
+stage)
+  mkdir -p -m 0700 "$D"
+  rm -rf "$D/prev" "$W.new"
+  mkdir -m 0700 "$D/prev"
+  for f in "$U"/ccrp-run-*.service "$I"; do
+    [ -e "$f" ] || continue
+    cp -p "$f" "$D/prev/"
+  done
+  if [ "$1" != - ]; then
+    mkdir -p "$W.new"
+    base64 -d "$D/$1.tar.b64" | tar -x --no-same-owner -C "$W.new" --strip-components=1
+    rm -f "$D/$1.tar.b64"
+  fi
+  ;;
+stage-clean)
+  rm -rf "$W.new" "$D/prev" "$D"/*.tar.b64
+  ;;
+swap)
+  rm -rf "$W.prev"
+  if [ -e "$W" ]; then mv "$W" "$W.prev"; fi
+  mv "$W.new" "$W"
+  if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else rm -f "$D/current.prev"; fi
+  echo "$1" > "$D/current"
+  ;;
+rollback)
+  if [ "$1" = yes ]; then
+    rm -rf "$W.failed"
+    if [ -e "$W" ]; then mv "$W" "$W.failed"; fi
+    if [ -e "$W.prev" ]; then mv "$W.prev" "$W"; fi
+    rm -rf "$W.failed"
+    if [ -e "$D/current.prev" ]; then mv "$D/current.prev" "$D/current"; else rm -f "$D/current"; fi
+  fi
+  shift
+  for f in "$U"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    n=${f##*/}
+    [ -e "$D/prev/$n" ] && continue
+    systemctl disable --now "$n" >/dev/null 2>&1 || true
+    rm -f "$f"
+  done
+  for f in "$D/prev"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    cp -p "$f" "$U/"
+  done
+  if [ -e "$D/prev/workloads.json" ]; then cp -p "$D/prev/workloads.json" "$I"; else rm -f "$I"; fi
+  systemctl daemon-reload
+  for f in "$D/prev"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    systemctl enable "${f##*/}" 2>/dev/null
+  done
+  for n in "$@"; do
+    [ -e "$U/ccrp-run-$n.service" ] || continue
+    systemctl restart "ccrp-run-$n.service"
+  done
+  for f in "$D/prev"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    systemctl start "${f##*/}"
+  done
+  ;;
+commit)
+  rm -rf "$W.prev" "$D/prev" "$D/current.prev"
+  ;;
+*)
+  echo "unknown action $act" >&2; exit 2
+  ;;
+esac
+"""
+
+
+def _script(provider, robot: str, action: str, *words: str, timeout: float = 180) -> str:
+    rc, out = provider.exec(robot, ["sh", "-c", DEPLOY_SH, "ccrp-deploy", action, *words], timeout=timeout)
+    if rc != 0:
+        raise CcrpError(f"deploy step {action} failed on robot {robot!r}'s clone: {' '.join(out.split())[-300:]}")
+    return out
+
+
+# -- what each clone runs, and what would change --------------------------------------------------
+
+@dataclass
+class Change:
+    """One clone: the software it runs (old) and the inventory's (new), its node files as they
+    should be, the sha256 of those it holds, and the nodes that start, restart or stop."""
+
+    robot: str
+    old: str
+    new: str
+    files: list[BundleFile]
+    have: dict[str, str]
+    start: list[str] = field(default_factory=list)
+    restart: list[str] = field(default_factory=list)
+    stop: list[str] = field(default_factory=list)
+
+    @property
+    def workspace(self) -> bool:
+        return self.old != self.new
+
+    @property
+    def nodes_current(self) -> bool:
+        if not self.files:
+            return INDEX not in self.have  # none wanted: current once none is there
+        return same(self.have, self.files)
+
+    @property
+    def current(self) -> bool:
+        return not self.workspace and self.nodes_current
+
+    def summary(self) -> str:
+        parts = [f"workspace {self.old} -> {self.new}"] if self.workspace else [f"workspace {self.new} (unchanged)"]
+        for word, names in (("start", self.start), ("restart", self.restart), ("stop", self.stop)):
+            if names:
+                parts.append(f"{word} {', '.join(names)}")
+        return "; ".join(parts)
+
+
+def probe(fleet: Fleet, provider, state, robot: str, new: str) -> Change:
+    """What robot's clone runs (one round trip) against the inventory's software `new`."""
+    files = node_files(fleet.inventory, fleet.robot(state, robot), new)
+    probed = files or [absent_index()]
+    out = _script(provider, robot, "probe", *(f.dest for f in probed), timeout=30)
+    _, _, rest = out.partition("== current\n")
+    current, _, rest = rest.partition("\n== index\n")
+    index_text, _, digests = rest.partition("\n== digests\n")
+    have = {line.split()[1]: line.split()[0] for line in digests.splitlines() if len(line.split()) == 2}
+    try:
+        index = json.loads(index_text) if index_text.strip() else {}
+    except ValueError:
+        index = {}
+    old_nodes = index.get("nodes", {}) if isinstance(index, dict) else {}
+    # The clone's workspace: the digest deploy last wrote, else the one its units were made with
+    # (its snapshot's), else what state says.
+    rec = state.robots[robot]
+    old = (current.strip() or (index.get("software") if isinstance(index, dict) else None)
+           or rec.software or (state.snapshot or {}).get("software", NO_SOFTWARE))
+    new_nodes = json.loads(files[-1].content)["nodes"] if files else {}
+    return Change(robot, str(old), new, files, have,
+                  start=[n for n in new_nodes if n not in old_nodes],
+                  restart=[n for n in new_nodes if n in old_nodes and old_nodes[n] != new_nodes[n]],
+                  stop=[n for n in old_nodes if n not in new_nodes])
+
+
+# -- which clones -----------------------------------------------------------------------------------
+
+def targets(fleet: Fleet, state, robot: str | None, type_: str | None) -> list[str]:
+    """The robots --robot / --type name (every member without them); unknown ones: exit 2."""
+    members = fleet.members(state)
+    if robot is not None and type_ is not None:
+        raise InputError("give --robot or --type, not both")
+    if robot is not None:
+        return [fleet.robot(state, robot).name]
+    if type_ is not None:
+        picked = [r.name for r in members if r.type == type_]
+        if not picked:
+            types = sorted({r.type for r in members})
+            raise InputError(f"no robot of fleet {fleet.name!r} has type {type_!r}", hint=f"types: {', '.join(types) or 'none'}")
+        return picked
+    return [r.name for r in members]
+
+
+def check_packages(state, robots: list[str], software: SnapshotSoftware) -> None:
+    """Refuse (before anything) when the inventory's apt/pip packages are not those each clone's
+    snapshot holds: deploy changes the workspace and the nodes, never the packages."""
+    want = packages_record(software)
+    snap = state.snapshot or {}
+    for robot in robots:
+        rec = state.robots.get(robot)
+        if rec is None or not rec.provider_id:
+            continue
+        have = rec.packages or (snap.get("packages") if rec.image and rec.image in (snap.get("id"), snap.get("image")) else None)
+        if have is None:
+            if rec.software == software.digest:
+                continue  # the digest covers the packages: the same ones
+            raise InputError(f"robot {robot!r}'s clone does not record the apt/pip packages its snapshot holds "
+                             "(made before ccrp deploy)", hint="build a new snapshot and re-create the clones")
+        if have != want:
+            raise InputError(f"the inventory's apt/pip packages are not those robot {robot!r}'s clone has "
+                             f"({_package_diff(have, want)}): deploy changes the workspace and the nodes only",
+                             hint="build a new snapshot and re-create the clones (ccrp snapshot build, then "
+                                  "ccrp clone delete and ccrp clone create)")
+
+
+def _package_diff(have: str, want: str) -> str:
+    try:
+        old, new = json.loads(have), json.loads(want)
+    except ValueError:
+        return "unreadable record"
+    parts = []
+    if old.get("distro") != new.get("distro"):
+        parts.append(f"distro {old.get('distro')} -> {new.get('distro')}")
+    for kind in ("apt", "pip"):
+        added = [p for p in new.get(kind, []) if p not in old.get(kind, [])]
+        gone = [p for p in old.get(kind, []) if p not in new.get(kind, [])]
+        parts += [f"{kind} + {p}" for p in added] + [f"{kind} - {p}" for p in gone]
+    return ", ".join(parts[:6]) + (", ..." if len(parts) > 6 else "") or "reordered"
+
+
+# -- the build --------------------------------------------------------------------------------------
+
+def local_docker(provider):
+    """The Docker engine that builds the workspace: the provider's on Docker, this machine's else."""
+    if provider.kind == "docker":
+        return provider.client
+    try:
+        import docker
+
+        client = docker.from_env(timeout=600)
+        client.ping()
+        return client
+    except Exception as exc:  # noqa: BLE001 - no engine, no socket, no permission: all the same to the user
+        raise CcrpError(f"ccrp deploy builds the workspace in the clone image with a local Docker engine, and none "
+                        f"answers ({type(exc).__name__})",
+                        hint="start Docker on this machine (or set DOCKER_HOST), then run ccrp deploy again") from None
+
+
+def deploy_repo(fleet: Fleet) -> str:
+    return f"ccrp/{fleet.name}-deploy"
+
+
+def build_install_space(fleet: Fleet, provider, software: SnapshotSoftware, progress: Progress) -> bytes:
+    """The tar of the install space (top directory `workspace/`) built from `software` in the
+    fleet's clone image."""
+    if software.build_type is None:  # no workspace (any more): an empty install space
+        buf = io.BytesIO()
+        with tarfile.open(fileobj=buf, mode="w") as tar:
+            info = tarfile.TarInfo("workspace")
+            info.type, info.mode = tarfile.DIRTYPE, 0o755
+            tar.addfile(info)
+        return buf.getvalue()
+    from .providers.docker import images
+    from .recipes import platform
+
+    client = local_docker(provider)
+    inv = fleet.inventory
+    # The Docker backend's platform and base on every backend: the same Debian 12 and ROS as the
+    # cloud recipes install (docs/clouds.md).
+    plat = platform(inv.ros.distro, "docker")
+    base = getattr(inv.provider, "base_image", None) or images.DEFAULT_BASE
+    images.ensure_base(client, base, plat, progress)
+    tag = f"{deploy_repo(fleet)}:{software.digest}"
+    progress(f"building workspace {software.digest} in the clone image ({tag}); only the software's layers run")
+    labels = owner_labels(fleet.name, "deploy") | {"ccrp-software": software.digest}
+    images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat, software), labels,
+                             progress, images.build_context(plat, progress, inv.ros.distro, software), what="deploy build")
+    # Read out of a container made from the image and never started.
+    container = client.containers.create(tag, labels=owner_labels(fleet.name, "deploy"))
+    try:
+        stream, _ = container.get_archive(WORKSPACE)
+        data = b"".join(stream)
+    finally:
+        container.remove(force=True)
+    _drop_older_builds(client, fleet, tag)
+    if len(data) > MAX_INSTALL_BYTES:
+        raise CcrpError(f"the workspace's install space is {len(data) >> 20} MB, more than deploy pushes "
+                        f"({MAX_INSTALL_BYTES >> 20} MB)", hint="build a new snapshot and re-create the clones")
+    return data
+
+
+def _drop_older_builds(client, fleet: Fleet, keep: str) -> None:
+    """One deploy image per fleet: the last (its layers are the next build's cache)."""
+    for image in client.images.list(filters={"label": [f"ccrp-fleet={fleet.name}", "ccrp-role=deploy"]}):
+        if keep not in image.tags:
+            try:
+                client.images.remove(image.id, force=False)
+            except Exception:  # noqa: BLE001, S110 - in use or gone: gc finds it later
+                pass
+
+
+# -- on each clone ----------------------------------------------------------------------------------
+
+def health(provider, robot: str, nodes: list[str], seconds: float, interval: float) -> tuple[str, str] | None:
+    """(unit, why) of the first of `nodes` that is not active, or restarted by systemd, during
+    `seconds`; None when all stayed up."""
+    units = [unit_name(n) for n in nodes]
+    if not units:
+        return None
+    first: dict[str, int] = {}
+    end = time.monotonic() + seconds
+    while True:
+        _, out = provider.exec(robot, ["systemctl", "show", "--property", "Id,ActiveState,SubState,NRestarts", *units],
+                                timeout=20)
+        shown = {}
+        for block in out.strip().split("\n\n"):
+            props = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
+            if props.get("Id"):
+                shown[props["Id"]] = props
+        for unit in units:
+            props = shown.get(unit, {})
+            state = f"{props.get('ActiveState', '?')}/{props.get('SubState', '?')}"
+            if props.get("ActiveState") != "active":
+                return unit, f"is {state}"
+            restarts = int(props.get("NRestarts", "0") or 0)
+            if restarts > first.setdefault(unit, restarts):
+                return unit, f"restarted {restarts - first[unit]} time(s)"
+        if time.monotonic() >= end:
+            return None
+        time.sleep(interval)
+
+
+def apply(provider, writer: StateWriter, change: Change, tar_b64: str | None, progress: Progress) -> CloneResult:
+    """Bring one clone to the inventory's software and nodes; back to what it ran if a restarted
+    node fails its health check."""
+    t0 = time.monotonic()
+    robot = change.robot
+    if change.current:
+        if writer.state.robots[robot].software != change.new:  # state lost track: the clone says
+            writer.update(robot, software=change.new)
+        return CloneResult(robot, "current", f"software {change.new}", time.monotonic() - t0)
+    if change.workspace:
+        assert tar_b64 is not None
+        provider.exec(robot, ["mkdir", "-p", "-m", "0700", DEPLOY_DIR], timeout=30)
+        provider.push_files(robot, [BundleFile(f"{change.new}.tar.b64", tar_b64, 0o600,
+                                               f"{DEPLOY_DIR}/{change.new}.tar.b64")], restart=[])
+    try:
+        _script(provider, robot, "stage", change.new if change.workspace else "-")
+    except CcrpError:
+        _quietly(lambda: _script(provider, robot, "stage-clean"))  # nothing was swapped: only the staging goes
+        raise
+    swapped, restarted = False, []
+    try:
+        if change.workspace:
+            _script(provider, robot, "swap", change.new)
+            swapped = True
+        # A changed workspace changes every node's digest (it is one of their inputs): all restart.
+        restarted = apply_nodes(provider, robot, change.files, change.have)
+        failing = health(provider, robot, restarted, HEALTH_SECONDS, HEALTH_INTERVAL)
+    except BaseException as exc:
+        back = _rollback(provider, robot, swapped, restarted or change.start + change.restart)
+        if not isinstance(exc, Exception):
+            raise  # Ctrl-C: the clone is back as it was; the interruption goes on
+        why = exc.one_line() if isinstance(exc, CcrpError) else f"{type(exc).__name__}: {exc}"
+        raise CcrpError(f"{why}; {back}") from None
+    if failing is not None:
+        unit, why = failing
+        try:
+            entries, _ = read_journal(provider, robot, [unit], JOURNAL_LINES)
+            lines = " | ".join(e["message"] for e in entries[-JOURNAL_LINES:]) or "(no journal lines)"
+        except CcrpError as exc:
+            lines = f"(journal unreadable: {exc.message})"
+        back = _rollback(provider, robot, swapped, restarted)
+        detail = f"{unit} {why} after the deploy; {back}; its last lines: {lines}"
+        progress(f"[{robot}] failed: {detail}")
+        return CloneResult(robot, "failed", detail, time.monotonic() - t0)
+    _quietly(lambda: _script(provider, robot, "commit"))
+    writer.update(robot, software=change.new)
+    progress(f"[{robot}] deployed: {change.summary()}")
+    return CloneResult(robot, "deployed", change.summary(), time.monotonic() - t0)
+
+
+def _rollback(provider, robot: str, swapped: bool, restarted: list[str]) -> str:
+    try:
+        _script(provider, robot, "rollback", "yes" if swapped else "no", *restarted)
+        return "rolled back: the previous version runs"
+    except CcrpError as exc:
+        return f"the rollback failed too ({exc.message}): ccrp clone exec --robot {robot} -- systemctl status 'ccrp-run-*'"
+
+
+def _quietly(fn: Callable[[], object]) -> None:
+    try:
+        fn()
+    except CcrpError:
+        pass  # tidying up only: the clone runs what it should
+
+
+# -- the command --------------------------------------------------------------------------------------
+
+def deploy(fleet: Fleet, provider, progress: Progress, robot: str | None = None, type_: str | None = None,
+           dry_run: bool = False) -> list[CloneResult]:
+    """`ccrp deploy`: the caller holds the fleet lock unless dry_run."""
+    from .reconcile import _fan_out
+
+    state = fleet.store.load_state()
+    names = targets(fleet, state, robot, type_)
+    software = snapshot_software(fleet.inventory, fleet.path)  # read and checked before anything
+    check_packages(state, names, software)
+    running = {n for n, rec in provider.query().items() if rec.state is CloneState.RUNNING}
+    results: dict[str, CloneResult] = {}
+    for name in names:
+        if name not in running:
+            # One robot asked for by name must be deployable; in a whole fleet, a stopped clone is not a failure.
+            results[name] = CloneResult(name, "failed" if robot else "skipped",
+                                        "no running clone: ccrp fleet up (or ccrp clone start) first")
+    live = [n for n in names if n in running]
+    changes: dict[str, Change] = {}
+
+    def look(name: str) -> CloneResult:
+        changes[name] = probe(fleet, provider, state, name, software.digest)
+        return CloneResult(name, "probed")
+
+    for r in _fan_out(look, live, progress, provider):
+        if r.action == "failed":
+            results[r.robot] = r
+    if dry_run:
+        for name, ch in changes.items():
+            results[name] = CloneResult(name, "current" if ch.current else "would deploy",
+                                        f"software {ch.new}" if ch.current else ch.summary())
+        return [results[n] for n in names]
+    tar_b64 = None
+    if any(ch.workspace for ch in changes.values()):
+        # One build for every clone; a failure leaves every clone as it was.
+        tar_b64 = base64.b64encode(build_install_space(fleet, provider, software, progress)).decode()
+    writer = StateWriter(fleet, state)
+    todo = [n for n in live if n in changes]
+    for r in _fan_out(lambda n: apply(provider, writer, changes[n], tar_b64, progress), todo, progress, provider):
+        results[r.robot] = r
+    return [results[n] for n in names]

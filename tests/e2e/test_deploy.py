@@ -1,0 +1,141 @@
+"""End to end on Docker: `ccrp deploy` (docs/workloads.md, Deploy) on the offloading example's ROS 2
+fleet (examples/offload/ros2.yaml, robot nao1 only, copied to a temporary directory with free
+subnets). A new VERSION of the workspace reaches the running clone without re-creating it; a
+workspace that does not build fails in one line and changes nothing; a node that exits at once
+fails the deploy, and the clone keeps running the previous version. Swept away at the end, even
+on failure."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import ROOT
+from tests.e2e.fleet import NO_DOCKER, E2EFleet, exec_in, start_fleet, wait_for
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
+]
+
+OFFLOAD = ROOT / "examples" / "offload"
+PACKAGE = Path("ros2/ws/src/ccrp_offload")
+
+
+def _offload(data: dict) -> None:
+    """examples/offload/ros2.yaml with start_fleet's fleet name and networks, and nao1 alone."""
+    example = yaml.safe_load((OFFLOAD / "ros2.yaml").read_text())
+    keep = {k: data[k] for k in ("fleet", "provider", "vpn", "common")}
+    data.clear()
+    data.update(example)
+    data.update(keep)
+    data["robots"] = [r for r in example["robots"] if r["name"] == "nao1"]
+
+
+@pytest.fixture(scope="module")
+def fleet(request, tmp_path_factory) -> E2EFleet:
+    return start_fleet(request, tmp_path_factory, "e2d", _offload, copy={"ros2": OFFLOAD / "ros2"})
+
+
+@pytest.fixture(scope="module")
+def up(fleet: E2EFleet) -> str:
+    """fleet up; the id of nao1's clone container."""
+    proc = fleet.inv("fleet", "up", "--json")
+    assert proc.returncode == 0, f"fleet up exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr[-3000:]}"
+    wait_for("mapper 1.0 on nao1's clone", lambda: _started(fleet, "1.0"), timeout=60)
+    return fleet.container("clone", "nao1").id
+
+
+def _starts(fleet: E2EFleet, version: str) -> int:
+    proc = fleet.inv("logs", "--robot", "nao1", "mapper", "--lines", "200")
+    return proc.stdout.count(f"ccrp_offload {version} started")
+
+
+def _started(fleet: E2EFleet, version: str, more_than: int = 0) -> tuple[bool, str]:
+    proc = fleet.inv("logs", "--robot", "nao1", "mapper", "--lines", "200")
+    return proc.stdout.count(f"ccrp_offload {version} started") > more_than, proc.stdout[-1500:] + proc.stderr[-500:]
+
+
+def _set_version(fleet: E2EFleet, version: str) -> None:
+    init = fleet.tmp / PACKAGE / "ccrp_offload" / "__init__.py"
+    text = init.read_text()
+    start = text.index('VERSION = "')
+    end = text.index('"', start + len('VERSION = "'))
+    init.write_text(text[:start] + f'VERSION = "{version}"' + text[end + 1:])
+
+
+def _software(fleet: E2EFleet) -> str | None:
+    state = json.loads((fleet.home / fleet.name / "state.json").read_text())
+    return state["robots"]["nao1"].get("software")
+
+
+def _active(fleet: E2EFleet) -> str:
+    return exec_in(fleet.container("clone", "nao1"), ["systemctl", "is-active", "ccrp-run-mapper.service"])[1].strip()
+
+
+def test_a_new_version_reaches_the_running_clone(fleet: E2EFleet, up: str) -> None:
+    before = _software(fleet)
+    _set_version(fleet, "1.1")
+    dry = fleet.json("deploy", "--dry-run")
+    assert [(r["robot"], r["action"]) for r in dry] == [("nao1", "would deploy")], dry
+    assert "restart mapper" in dry[0]["detail"] and _software(fleet) == before, dry
+    t0 = time.monotonic()
+    proc = fleet.inv("deploy", "--json")
+    took = time.monotonic() - t0
+    assert proc.returncode == 0, f"deploy exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr[-3000:]}"
+    [row] = json.loads(proc.stdout)
+    assert row["action"] == "deployed" and "restart mapper" in row["detail"], row
+    assert fleet.container("clone", "nao1").id == up  # the same clone, not a new one
+    wait_for("mapper 1.1 on nao1's clone", lambda: _started(fleet, "1.1"), timeout=60)
+    after = _software(fleet)
+    assert after != before and after in row["detail"], (before, after, row)
+    # fleet plan no longer says the clone runs other software than the inventory's.
+    plan = {r["robot"]: r for r in fleet.json("fleet", "plan")}
+    assert plan["nao1"]["software"] is None, plan
+    again = fleet.json("deploy")
+    assert [r["action"] for r in again] == ["current"], again
+    print(f"deploy of VERSION 1.1 took {took:.1f} s")
+
+
+def test_a_workspace_that_does_not_build_changes_nothing(fleet: E2EFleet, up: str) -> None:
+    setup = fleet.tmp / PACKAGE / "setup.py"
+    good = setup.read_text()
+    before = _software(fleet)
+    setup.write_text('raise RuntimeError("ccrp e2e: a broken setup.py")\n' + good)
+    try:
+        proc = fleet.inv("deploy")
+    finally:
+        setup.write_text(good)
+    assert proc.returncode == 1, (proc.returncode, proc.stderr[-2000:])
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("ccrp: error:")]
+    assert len(errors) == 1 and "deploy build failed" in errors[0] and "broken setup.py" in errors[0], proc.stderr[-2000:]
+    assert _software(fleet) == before and fleet.container("clone", "nao1").id == up
+    assert _active(fleet) == "active"
+    assert fleet.json("deploy", "--dry-run")[0]["action"] == "current"
+
+
+def test_a_node_that_exits_at_once_is_rolled_back(fleet: E2EFleet, up: str) -> None:
+    inventory = fleet.inventory.read_text()
+    data = yaml.safe_load(inventory)
+    data["software"]["run"][0]["command"] = ["python3", "-c", "raise SystemExit(3)"]
+    before, starts = _software(fleet), _starts(fleet, "1.1")
+    fleet.inventory.write_text(yaml.safe_dump(data, sort_keys=False))
+    try:
+        proc = fleet.inv("deploy", "--json")
+    finally:
+        fleet.inventory.write_text(inventory)
+    assert proc.returncode == 1, (proc.returncode, proc.stdout, proc.stderr[-2000:])
+    [row] = json.loads(proc.stdout)
+    assert row["robot"] == "nao1" and row["action"] == "failed", row
+    assert "ccrp-run-mapper.service" in row["detail"] and "rolled back" in row["detail"], row
+    # The previous unit runs again, with the version deployed before.
+    assert _active(fleet) == "active"
+    unit = exec_in(fleet.container("clone", "nao1"), ["cat", "/etc/systemd/system/ccrp-run-mapper.service"])[1]
+    assert "ccrp_offload.scan_to_map" in unit and "SystemExit" not in unit, unit
+    wait_for("mapper 1.1 started again", lambda: _started(fleet, "1.1", starts), timeout=60)
+    assert _software(fleet) == before and fleet.container("clone", "nao1").id == up
+    assert fleet.json("deploy", "--dry-run")[0]["action"] == "current"

@@ -1,0 +1,322 @@
+"""ccrp deploy (docs/workloads.md, Deploy): the workspace and nodes onto running clones. The clones
+here are directories: pushed files land under them and deploy's scripts run for real, with the
+clone's paths moved under the directory and a stand-in systemctl; the build is replaced by a tar."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import subprocess
+import tarfile
+from pathlib import Path
+
+import pytest
+import yaml
+
+from ccrp_cli import deploy
+from ccrp_cli.errors import InputError
+from ccrp_cli.fleet import Fleet
+from ccrp_cli.providers.base import CloneRecord, CloneState
+from ccrp_cli.workloads import INDEX, node_files, packages_record, snapshot_software
+from tests.conftest import LAB
+from tests.unit.inprocess_cli import run_ccrp_inprocess
+
+CATKIN_XML = """<?xml version="1.0"?>
+<package format="2"><name>mapper</name><version>1.0.0</version><description>x</description>
+<maintainer email="a@b.c">a</maintainer><license>MIT</license><buildtool_depend>catkin</buildtool_depend></package>
+"""
+MOVED = re.compile(r"(/etc/systemd/system|/etc/ccrp|/opt/ccrp|/var/lib/ccrp)")
+MAPPER = "/etc/systemd/system/ccrp-run-mapper.service"
+
+
+def install_tar(text: str) -> bytes:
+    """An install space as deploy reads it out of the image: the directory `workspace/`."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for name, data in (("workspace", None), ("workspace/setup.sh", text.encode())):
+            info = tarfile.TarInfo(name)
+            if data is None:
+                info.type, info.mode = tarfile.DIRTYPE, 0o755
+                tar.addfile(info)
+            else:
+                info.size, info.mode = len(data), 0o644
+                tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+class Clones:
+    """A fake provider whose clones are directories (root/<robot>), recording pushes and execs."""
+
+    kind = "docker"
+    max_parallel = 4
+
+    def __init__(self, root: Path, robots: list[str]) -> None:
+        self.root, self.robots = root, robots
+        self.pushes: list[tuple[str, str, int]] = []
+        self.execs: list[tuple[str, list[str]]] = []
+        self.states: dict[str, tuple[str, str, int]] = {}  # unit -> (ActiveState, SubState, NRestarts)
+        self.bin = root / "bin"
+        self.bin.mkdir(parents=True)
+        (self.bin / "systemctl").write_text('#!/bin/sh\necho "$@" >> "$CALLS"\n')
+        (self.bin / "systemctl").chmod(0o755)
+
+    def at(self, robot: str, path: str) -> Path:
+        return self.root / robot / path.lstrip("/")
+
+    def calls(self, robot: str) -> list[str]:
+        log = self.root / robot / "calls"
+        return log.read_text().splitlines() if log.exists() else []
+
+    def query(self) -> dict[str, CloneRecord]:
+        return {r: CloneRecord(robot=r, provider_id=f"id-{r}", state=CloneState.RUNNING, status="running")
+                for r in self.robots}
+
+    def push_files(self, robot: str, files: list, restart=()) -> None:
+        for f in files:
+            self.pushes.append((robot, f.dest, f.mode))
+            path = self.at(robot, f.dest)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(f.content)
+            path.chmod(f.mode)
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
+        self.execs.append((robot, argv))
+        if argv[:2] == ["systemctl", "show"]:
+            blocks = []
+            for unit in argv[4:]:
+                active, sub, restarts = self.states.get(unit, ("active", "running", 0))
+                blocks.append(f"Id={unit}\nActiveState={active}\nSubState={sub}\nNRestarts={restarts}\n")
+            return 0, "\n".join(blocks)
+        if argv[0] == "journalctl":
+            return 0, "\n".join(json.dumps({"__CURSOR": str(i), "_SYSTEMD_UNIT": argv[-3], "MESSAGE": f"line {i}"})
+                                for i in range(8))
+        base = str(self.root / robot)
+        moved = [MOVED.sub(lambda m: base + m.group(1), word) for word in argv]
+        proc = subprocess.run(moved, capture_output=True, text=True, check=False,
+                              env={"PATH": f"{self.bin}:/usr/bin:/bin", "CALLS": f"{base}/calls"})
+        return proc.returncode, (proc.stdout + proc.stderr).replace(base, "")  # paths as the clone has them
+
+    def scripts(self, robot: str | None = None) -> list[str]:
+        """The deploy actions run, in order."""
+        return [argv[4] for r, argv in self.execs if argv[:2] == ["sh", "-c"] and argv[3] == "ccrp-deploy"
+                and (robot is None or r == robot)]
+
+
+def write_inventory(tmp_path: Path, **software) -> Path:
+    data = yaml.safe_load(LAB.read_text())
+    data.pop("services", None)
+    for robot in data["robots"]:
+        robot.pop("services", None)
+    data["software"] = {"workspace": "ws", "run": [{"name": "mapper", "command": ["mapper"]}], **software}
+    path = tmp_path / "inventory.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@pytest.fixture
+def fleet(tmp_path, ccrp_home):
+    """The lab fleet with a catkin workspace, its clones made from its snapshot (units, index and
+    install space in place), each clone a directory of `Clones`."""
+    pkg = tmp_path / "ws" / "src" / "mapper"
+    pkg.mkdir(parents=True)
+    (pkg / "package.xml").write_text(CATKIN_XML)
+    (pkg / "main.cpp").write_text("int main(){}")
+    path = write_inventory(tmp_path)
+    fleet = Fleet.open(path)
+    sw = snapshot_software(fleet.inventory, path)
+    state = fleet.load_allocated()
+    state.snapshot = {"image": "ccrp/lab-clone:1", "id": "abc", "software": sw.digest, "packages": packages_record(sw)}
+    names = [r.name for r in fleet.members(state)]
+    clones = Clones(tmp_path / "clones", names)
+    for name in names:
+        rec = state.robots[name]
+        rec.phase, rec.provider_id, rec.image = "ready", f"id-{name}", "abc"
+        rec.software, rec.packages = sw.digest, packages_record(sw)
+        clones.push_files(name, node_files(fleet.inventory, fleet.robot(state, name), sw.digest))
+        clones.at(name, "/opt/ccrp/workspace").mkdir(parents=True)
+        clones.at(name, "/opt/ccrp/workspace/setup.sh").write_text("v1")
+    fleet.store.save_state(state)
+    clones.pushes.clear()
+    return fleet, clones, sw.digest
+
+
+def change_workspace(fleet: Fleet) -> str:
+    (fleet.path.parent / "ws" / "src" / "mapper" / "main.cpp").write_text("int main(){return 1;}")
+    fleet = Fleet.open(fleet.path)
+    return snapshot_software(fleet.inventory, fleet.path).digest
+
+
+@pytest.fixture
+def built(monkeypatch):
+    """deploy's build, replaced by an install space whose setup.sh says v2; records its calls."""
+    calls = []
+
+    def build(fleet, provider, software, progress):
+        calls.append(software.digest)
+        return install_tar("v2")
+
+    monkeypatch.setattr(deploy, "build_install_space", build)
+    monkeypatch.setattr(deploy, "HEALTH_SECONDS", 0.2)
+    monkeypatch.setattr(deploy, "HEALTH_INTERVAL", 0.05)
+    return calls
+
+
+def test_a_changed_workspace_reaches_the_clones_and_restarts_their_nodes(fleet, built):
+    fleet, clones, old = fleet
+    new = change_workspace(fleet)
+    results = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, type_="nao")
+    assert [(r.robot, r.action) for r in results] == [("nao1", "deployed"), ("nao2", "deployed")], results
+    assert built == [new]  # one build for every clone
+    assert f"workspace {old} -> {new}" in results[0].detail and "restart mapper" in results[0].detail
+    for robot in ("nao1", "nao2"):
+        assert clones.at(robot, "/opt/ccrp/workspace/setup.sh").read_text() == "v2"
+        for gone in ("/opt/ccrp/workspace.prev", "/opt/ccrp/workspace.new", f"/var/lib/ccrp/deploy/{new}.tar.b64",
+                     "/var/lib/ccrp/deploy/prev"):
+            assert not clones.at(robot, gone).exists(), gone
+        assert clones.at(robot, "/var/lib/ccrp/deploy/current").read_text().strip() == new
+        assert json.loads(clones.at(robot, INDEX).read_text())["software"] == new
+        assert "restart ccrp-run-mapper.service" in clones.calls(robot)
+        assert clones.scripts(robot) == ["probe", "stage", "swap", "commit"]
+        # The tar went as a root-only file of deploy's own directory.
+        assert (robot, f"/var/lib/ccrp/deploy/{new}.tar.b64", 0o600) in clones.pushes
+    assert clones.scripts("turtlebot1") == []  # not of the type
+    state = Fleet.open(fleet.path).store.load_state()
+    assert state.robots["nao1"].software == new and state.robots["turtlebot1"].software == old
+    # Again: nothing to do, nothing built or pushed.
+    clones.pushes.clear()
+    again = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert [(r.robot, r.action) for r in again] == [("nao1", "current")] and built == [new] and clones.pushes == []
+
+
+def test_a_changed_run_list_restarts_only_that_node_without_a_build(fleet, built, tmp_path):
+    fleet, clones, _ = fleet
+    write_inventory(tmp_path, run=[{"name": "mapper", "command": ["mapper", "--fast"]}, {"name": "faces", "command": ["faces"]}])
+    [result] = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao2")
+    assert result.action == "deployed" and "start faces" in result.detail and "restart mapper" in result.detail, result
+    assert built == [] and clones.scripts("nao2") == ["probe", "stage", "commit"]  # no workspace swapped
+    assert clones.at("nao2", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+    assert "--fast" in clones.at("nao2", MAPPER).read_text()
+
+
+def test_a_node_that_does_not_stay_up_puts_the_clone_back(fleet, built):
+    fleet, clones, old = fleet
+    unit_before = clones.at("nao1", MAPPER).read_text()
+    index_before = clones.at("nao1", INDEX).read_text()
+    change_workspace(fleet)
+    clones.states["ccrp-run-mapper.service"] = ("activating", "auto-restart", 2)
+    from ccrp_cli.cli import output
+
+    [result] = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert result.action == "failed", result
+    assert "ccrp-run-mapper.service is activating/auto-restart" in result.detail and "rolled back" in result.detail
+    assert "line 7" in result.detail and "line 2" not in result.detail  # its last 5 journal lines
+    # The previous workspace, units and index, and the node restarted on them.
+    assert clones.at("nao1", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+    assert clones.at("nao1", MAPPER).read_text() == unit_before
+    assert clones.at("nao1", INDEX).read_text() == index_before
+    assert not clones.at("nao1", "/var/lib/ccrp/deploy/current").exists()
+    assert not clones.at("nao1", "/opt/ccrp/workspace.prev").exists()
+    assert clones.scripts("nao1") == ["probe", "stage", "swap", "rollback"]
+    calls = clones.calls("nao1")
+    assert calls.count("restart ccrp-run-mapper.service") == 2  # the new version, then the previous one
+    assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == old
+    assert output.results([result], as_json=True) == 1
+
+
+def test_a_node_restarted_by_systemd_during_the_check_fails_it(fleet, built):
+    fleet, clones, _ = fleet
+    change_workspace(fleet)
+    seen = []
+
+    def flapping(robot, argv, timeout=60, real=clones.exec):
+        if argv[:2] == ["systemctl", "show"]:
+            seen.append(1)
+            clones.states["ccrp-run-mapper.service"] = ("active", "running", len(seen))
+        return real(robot, argv, timeout)
+
+    clones.exec = flapping
+    [result] = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert result.action == "failed" and "restarted 1 time(s)" in result.detail, result
+
+
+def test_an_apt_or_pip_change_is_refused_before_anything(fleet, built, tmp_path):
+    fleet, clones, _ = fleet
+    write_inventory(tmp_path, apt=["htop"])
+    with pytest.raises(InputError) as refused:
+        deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None)
+    line = refused.value.one_line()
+    assert "apt + htop" in line and "build a new snapshot and re-create the clones" in line and "\n" not in line
+    assert clones.execs == [] and built == []
+
+
+def test_dry_run_says_what_would_change_and_changes_nothing(fleet, built, tmp_path):
+    fleet, clones, old = fleet
+    new = change_workspace(fleet)
+    before = {r: clones.at(r, MAPPER).read_text() for r in clones.robots}
+    results = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, dry_run=True)
+    assert {r.action for r in results} == {"would deploy"}
+    assert results[0].detail == f"workspace {old} -> {new}; restart mapper", results[0]
+    assert built == [] and clones.pushes == [] and set(clones.scripts()) == {"probe"}
+    assert {r: clones.at(r, MAPPER).read_text() for r in clones.robots} == before
+    assert all(clones.calls(r) == [] for r in clones.robots)
+    assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == old
+
+
+def test_the_install_space_swap_and_rollback_for_real(tmp_path):
+    """DEPLOY_SH alone: stage and swap keep the previous workspace, rollback brings it back and
+    removes a unit the failed version added."""
+    clones = Clones(tmp_path, ["r"])
+    clones.at("r", "/opt/ccrp/workspace").mkdir(parents=True)
+    clones.at("r", "/opt/ccrp/workspace/setup.sh").write_text("v1")
+    clones.at("r", "/etc/systemd/system").mkdir(parents=True)
+    clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("old a")
+    clones.exec("r", ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
+    import base64
+
+    clones.at("r", f"{deploy.DEPLOY_DIR}/d2.tar.b64").write_text(base64.b64encode(install_tar("v2")).decode())
+    for action in (["stage", "d2"], ["swap", "d2"]):
+        deploy._script(clones, "r", *action)
+    assert clones.at("r", "/opt/ccrp/workspace/setup.sh").read_text() == "v2"
+    assert clones.at("r", "/opt/ccrp/workspace.prev/setup.sh").read_text() == "v1"
+    clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("new a")
+    clones.at("r", "/etc/systemd/system/ccrp-run-b.service").write_text("new b")
+    deploy._script(clones, "r", "rollback", "yes", "a", "b")
+    assert clones.at("r", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+    assert clones.at("r", "/etc/systemd/system/ccrp-run-a.service").read_text() == "old a"
+    assert not clones.at("r", "/etc/systemd/system/ccrp-run-b.service").exists()
+    calls = clones.calls("r")
+    assert "disable --now ccrp-run-b.service" in calls and "restart ccrp-run-a.service" in calls
+    assert "restart ccrp-run-b.service" not in calls
+    assert not clones.at("r", "/opt/ccrp/workspace.prev").exists()
+
+
+def test_bad_targets_are_one_line(fleet, built, tmp_path):
+    fleet, clones, _ = fleet
+    for kwargs, words in (({"robot": "ghost"}, "not in fleet"), ({"type_": "drone"}, "has type"),
+                          ({"robot": "nao1", "type_": "nao"}, "not both")):
+        with pytest.raises(InputError, match=words):
+            deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, **kwargs)
+    assert clones.execs == []
+    for args in (["--robot", "ghost"], ["--type", "drone"]):
+        code, _, err = run_ccrp_inprocess("deploy", "-i", str(fleet.path), *args, home=tmp_path / "home")
+        assert code == 2 and len(err.splitlines()) == 1 and err.startswith("ccrp: error: "), (args, err)
+
+
+def test_a_clone_from_before_deploy_without_a_record_is_refused(fleet, built):
+    fleet, clones, _ = fleet
+    change_workspace(fleet)
+    state = fleet.store.load_state()
+    state.snapshot.pop("packages")
+    state.robots["nao1"].packages = None
+    fleet.store.save_state(state)
+    with pytest.raises(InputError, match="does not record"):
+        deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+
+
+def test_snapshot_packages_digest_is_what_deploy_compares(fleet):
+    fleet, _, digest = fleet
+    sw = snapshot_software(fleet.inventory, fleet.path)
+    record = json.loads(packages_record(sw))
+    assert record == {"distro": "noetic", "apt": sw.apt, "pip": sw.pip} and sw.digest == digest
+    assert fleet.store.load_state().snapshot["packages"] == packages_record(sw)
