@@ -23,7 +23,7 @@ from ..alerts import ERROR_DAYS, WARN_DAYS, _alert, pki_alerts, row_alerts  # no
 ROW_FIELDS = (
     "robot", "clone", "phase", "status", "state", "public_ip", "common_ip", "vpn_subnet", "vpn_connected",
     "secrets", "robot_address", "robot_rtt_ms", "master_reachable", "robot_nodes", "stale_nodes", "relay_running",
-    "relay_peers", "revoked_at", "autostop_idle_s", "stopped_idle", "watchdog", "power",
+    "relay_peers", "revoked_at", "autostop_idle_s", "stopped_idle", "watchdog", "power", "nodes",
 )
 
 

@@ -216,7 +216,8 @@ def page(fleet: E2EFleet, sim, tmp_path_factory):
 
 def test_the_dashboard_shows_the_jazzy_robot_on_its_graph_and_drives_it(fleet: E2EFleet, page) -> None:
     """The page on a ROS 2 fleet: the robot's node on its clone's graph (the Graph column, not a
-    master), a key press driving the robot through the rclpy operator, its camera's frame."""
+    master), the robot's own node running on its clone (Clone nodes), a key press driving the
+    robot through the rclpy operator, its camera's frame."""
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
 
@@ -224,6 +225,7 @@ def test_the_dashboard_shows_the_jazzy_robot_on_its_graph_and_drives_it(fleet: E
          lambda d: cell(d, "nao1", "vpn").startswith("connected") and "/nao1_demo" in cell(d, "nao1", "nodes")
          and cell(d, "nao1", "master") == "yes" and cell(d, "nao1", "watchdog").startswith("connected since"), 30)
     assert page.find_element(By.ID, "col-master").text == "Graph"
+    assert cell(page, "nao1", "own") == "mapper active"
     press(page, "nao1", "button:not(.danger)", "Drive")
     pressed = time.time()
     page.find_element(By.TAG_NAME, "body").send_keys(Keys.ARROW_UP)

@@ -117,6 +117,15 @@ function powerCell(row) {
   return [text, p.silent ? "warn" : p.relay === "on" ? "ok" : "off"];
 }
 
+function ownNodesCell(row) {
+  // The robot's own software on its clone (docs/workloads.md): each node's unit state and restarts.
+  const nodes = row.nodes || [];
+  if (!nodes.length) return ["-", "off"];
+  const text = nodes.map((n) => n.name + " " + n.state + (n.restarts ? ` (${n.restarts} restarts)` : "")).join(", ");
+  const bad = nodes.some((n) => n.state === "failed" || (n.restarts || 0) >= 3);
+  return [text, bad ? "bad" : nodes.every((n) => n.state === "active") ? "ok" : "warn"];
+}
+
 function stateCell(row) {
   // row.state is ccrp's word for it on every provider; row.status the provider's (ACTIVE, exited...)
   const cls = row.state === "running" ? "ok" : row.state === "stopped" ? "warn" : "bad";
@@ -138,9 +147,9 @@ function renderFleet(data) {
       [row.robot, ""], [row.clone + (row.public_ip ? ` (${row.public_ip})` : ""), ""], stateCell(row),
       vpnCell(row), [row.status === "running" ? (row.master_reachable ? "yes" : "no") : "-",
                      row.status !== "running" ? "off" : row.master_reachable ? "ok" : "bad"],
-      nodesCell(row), relayCell(row), watchdogCell(row), powerCell(row),
+      nodesCell(row), ownNodesCell(row), relayCell(row), watchdogCell(row), powerCell(row),
     ];
-    const names = ["robot", "clone", "state", "vpn", "master", "nodes", "relay", "watchdog", "power"];
+    const names = ["robot", "clone", "state", "vpn", "master", "nodes", "own", "relay", "watchdog", "power"];
     cells.forEach(([text, cls], i) => { const td = el("td", text, cls); td.dataset.col = names[i]; tr.append(td); });
     const actions = el("td", null, "actions");
     actions.dataset.col = "actions";
