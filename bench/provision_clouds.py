@@ -12,6 +12,8 @@ the contract harnesses (tests/contract/harness_<kind>.py):
 
   bootstrap  from an empty fleet (network, security group / firewall, key pair, routes), then
              again as every later `fleet up` runs it (reuse: reads only);
+  quotas     the fakes' quotas raised to N clones' worth (make_room); on openstack and gcp the
+             check `fleet up` makes before creating (ccrp_cli/quotas.py) is timed too, apart;
   fan-out    run_instance for every robot on the bounded pool of `fleet up` (reconcile._fan_out,
              provider.max_parallel workers), for 1, N/4, N/2 and N clones, each on a fresh fake:
              wall time, API calls (total and per clone), ratio to one clone, and that every robot
@@ -48,6 +50,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # the harnesses live in tests/contract
 
+from ccrp_cli import quotas  # noqa: E402
 from ccrp_cli.clones import CloneResult  # noqa: E402
 from ccrp_cli.models.inventory import Inventory  # noqa: E402
 from ccrp_cli.reconcile import _fan_out  # noqa: E402
@@ -76,13 +79,20 @@ def fleet_specs(harness, n: int) -> dict:
 
 
 def make_room(harness, n: int) -> None:
-    """The fakes enforce quotas (OpenStack 100 instances, GCE 24 vCPUs): give the project N
-    clones' worth, as an operator would ask the cloud for before a fleet of N."""
+    """The fakes enforce quotas as small as a new project's (OpenStack 100 instances, 200 cores,
+    400 GB of RAM, 50 floating IPs; GCE 24 vCPUs, 8 reserved and 8 in-use external addresses):
+    give the project N clones' worth, as an operator would ask the cloud for before a fleet of N.
+    moto enforces none of the limits it reports."""
     fake = getattr(harness, "fake", None)
-    if hasattr(fake, "max_instances"):
-        fake.max_instances = max(fake.max_instances, n)
-    if hasattr(fake, "cpu_quota"):
-        fake.cpu_quota = max(fake.cpu_quota, 4 * n)
+    for attr, per_clone in (("max_instances", 1), ("max_cores", 2), ("max_ram", 4096), ("max_fips", 1),  # m1.small
+                            ("cpu_quota", 4), ("address_quota", 1), ("in_use_address_quota", 1)):
+        if hasattr(fake, attr):
+            setattr(fake, attr, max(getattr(fake, attr), per_clone * n))
+
+
+# Fakes whose quotas make_room raises: there the benchmark also times the check `fleet up` makes
+# before creating (ccrp_cli/quotas.py). moto's limits are fixed (5 Elastic IPs), so not on aws.
+QUOTA_CHECKED = ("openstack", "gcp")
 
 
 def fake_cpu(harness) -> float | None:
@@ -113,6 +123,11 @@ def run(kind: str, n: int, delay: float) -> dict:
         h.delay(delay)
         boot_s, boot_calls, _ = timed(h, h.provider.bootstrap)
         reuse_s, reuse_calls, _ = timed(h, h.provider.bootstrap)
+        quota = None
+        if kind in QUOTA_CHECKED:  # refused (QuotaError) if make_room left a quota short
+            quota_s, quota_calls, uses = timed(h, lambda: quotas.check(h.provider, list(specs), progress))
+            quota = {"wall_s": round(quota_s, 2), "calls": sum(quota_calls.values()),
+                     "quotas": {u.quota.name: [u.quota.limit, u.quota.used, u.need] for u in uses}}
         errors_before = server_errors(h) or {}
         cpu0, fake0 = time.process_time(), fake_cpu(h)
         wall, calls, results = timed(h, lambda: _fan_out(
@@ -144,6 +159,9 @@ def run(kind: str, n: int, delay: float) -> dict:
             "instances_per_robot": {str(k): v for k, v in sorted(instances.items())},
             "bootstrap": {"wall_s": round(boot_s, 2), "calls": sum(boot_calls.values()),
                           "reuse_wall_s": round(reuse_s, 2), "reuse_calls": sum(reuse_calls.values())},
+            # The quota check before the fan-out (not in wall_s): its time, calls and each quota's
+            # [limit, used, what the N clones need].
+            "quota_check": quota,
         }
 
 
@@ -156,7 +174,7 @@ def bench_provider(kind: str, n: int, delay: float) -> dict:
         progress(f"{kind}: {size} clones in {r['wall_s']:.1f} s, {r['calls']} calls "
                  f"({r['calls_per_clone']}/clone), {len(r['failed'])} failed, one instance each: "
                  f"{r['exactly_one_instance']}, CPU {r['cpu_s']} s here, {r['fake_process_cpu_s']} s in the "
-                 f"fake's process, 5xx: {r['server_5xx']}")
+                 f"fake's process, 5xx: {r['server_5xx']}, quota check: {r['quota_check']}")
     # The same N with no injected latency: what the fake and the SDK cost in CPU on this host,
     # which a real cloud spends on its own servers instead.
     cpu = run(kind, n, 0.0)
@@ -170,6 +188,7 @@ def bench_provider(kind: str, n: int, delay: float) -> dict:
     return {
         "max_parallel": full["workers"] if n > 1 else None,
         "bootstrap": full["bootstrap"],
+        "quota_check": full["quota_check"],
         "runs": {str(s): r for s, r in runs.items()},
         "no_latency": {k: cpu[k] for k in ("clones", "wall_s", "calls", "cpu_s", "fake_process_cpu_s",
                                             "server_5xx", "failed")},

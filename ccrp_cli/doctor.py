@@ -55,7 +55,7 @@ def run(fleet: Fleet) -> list[Check]:
         provider, check = _provider(fleet)
         checks.append(check)
     if provider is not None:
-        checks += _credentials(provider) + _quotas(provider) + [_snapshot(fleet, provider)]
+        checks += _credentials(provider) + _quotas(fleet, provider) + [_snapshot(fleet, provider)]
         if Ability.LOCAL_BUILD in provider.abilities:
             checks.append(_snapshot_images(provider))
     if kind == "docker" and shutil.which("mmdebstrap") is None:
@@ -92,18 +92,24 @@ def _credentials(provider) -> list[Check]:
         return [_failed("credentials", exc)]
 
 
-QUOTA_HINT = {"aws": "the Service Quotas console", "gcp": "IAM & Admin > Quotas", "openstack": "your cloud's admin"}
+def _quotas(fleet: Fleet, provider) -> list[Check]:
+    """Each quota the fleet's clones draw on: its limit and use now, and what the clones not
+    created yet take of it (the numbers `fleet up` checks before it creates anything)."""
+    from . import quotas
 
-
-def _quotas(provider) -> list[Check]:
     try:
-        quotas = provider.quotas()
+        state = fleet.store.load_state()
+        missing = quotas.new_clones(fleet, provider, [r.name for r in fleet.members(state)])
+        found = quotas.uses(provider, missing)
     except CcrpError as exc:
         return [Check("quotas", WARN, exc.message, exc.hint or "grant read access to quotas to see them")]
     return [
-        Check(f"quota {q.name}", OK if q.need <= q.limit else FAIL, f"limit {q.limit:g}, fleet needs {q.need:g}",
-              "" if q.need <= q.limit else f"raise the quota ({QUOTA_HINT.get(provider.kind, 'your cloud')}) or shrink the fleet")
-        for q in quotas
+        Check(f"quota {u.quota.name} in {u.quota.scope}", FAIL if u.short else OK,
+              f"limit {u.quota.limit:g}, used {u.quota.used:g}; the fleet's {len(missing)} clone(s) not created "
+              f"yet need {u.need:g}",
+              f"{u.quota.hint or quotas.HOW_TO_RAISE.get(provider.kind, 'raise it')}, or shrink the fleet"
+              if u.short else "")
+        for u in found
     ]
 
 

@@ -11,6 +11,7 @@ from .errors import CcrpError, InputError
 from .fleet import Fleet
 from .models.state import RobotRecord
 from .providers.base import CloneState
+from .quotas import check_growth
 from .workloads import NO_SOFTWARE, check_snapshot, snapshot_software, stale_snapshot
 
 
@@ -80,14 +81,19 @@ def _fan_out(fn, robots: list[str], progress: Progress, provider) -> list[CloneR
         return list(pool.map(run, robots))
 
 
-def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None) -> list[CloneResult]:
-    """Create or reuse every member's clone; delete clones of robots no longer in the fleet."""
+def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None,
+       quotas_checked: bool = False) -> list[CloneResult]:
+    """Create or reuse every member's clone; delete clones of robots no longer in the fleet.
+    Refused (QuotaError) before anything is created when the clones it would create need more
+    of a cloud quota than is free; `quotas_checked`: the caller did that already."""
     state = fleet.load_allocated()
     check_snapshot(fleet, state, provider.kind)  # before any clone changes
     writer = StateWriter(fleet, state)
-    provider.bootstrap()
     members = [r.name for r in fleet.members(state)]
     targets = [r for r in members if only is None or r in only]
+    if not quotas_checked:
+        check_growth(fleet, provider, targets, progress)
+    provider.bootstrap()
     # Every missing certificate in one write (ensure_clone then finds them): per robot, this
     # costs the same in a fleet of 10 or of 1,000.
     plan = fleet.plan(state)
@@ -158,6 +164,10 @@ def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneRe
             new.append(name)
         k += 1
     if new:
+        # Quotas before growth: the new robots (and any member whose clone is missing) are held
+        # against the cloud's quotas before they are recorded or anything is created.
+        kept = [r.name for r in fleet.members(state) if r.name not in removed]
+        check_growth(fleet, provider, kept + new, progress)
         existing = {n: r.index for n, r in state.robots.items()}
         slots = allocate(inv, [*existing, *new], existing)
         for name in new:
@@ -165,7 +175,7 @@ def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneRe
         fleet.store.save_state(state)
     writer = StateWriter(fleet, state)
     results = _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), removed, progress, provider)
-    return results + up(fleet, provider, progress)
+    return results + up(fleet, provider, progress, quotas_checked=bool(new))
 
 
 def down(fleet: Fleet, provider, progress: Progress) -> list[str]:

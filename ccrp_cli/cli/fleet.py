@@ -95,10 +95,36 @@ def down(inventory: options.Inventory, as_json: options.Json = False) -> None:
 
 @app.command()
 def plan(inventory: options.Inventory, as_json: options.Json = False) -> None:
-    """Show what `fleet up` would change. Read-only."""
+    """Show what `fleet up` would change, and the cloud quotas the clones it creates draw on. Read-only."""
     from .. import reconcile
 
     fleet, provider = options.open_provider(inventory)
     rows = reconcile.plan(fleet, provider)
     output.emit(rows, as_json, ["ROBOT", "ACTION", "ID", "SOFTWARE"],
                 [(r["robot"], r["action"], r["provider_id"], r.get("software") or "") for r in rows])
+    if not as_json:
+        quota_table(provider, [r["robot"] for r in rows if r["action"] == "create"])
+
+
+def quota_table(provider, creating: list[str]) -> None:
+    """The quotas the clones to create draw on (limit, use, what they take), and the refusal
+    `fleet up` would answer with when one is short (ccrp_cli/quotas.py)."""
+    from .. import quotas
+    from ..errors import CcrpError
+
+    try:
+        found = quotas.uses(provider, creating)
+    except CcrpError as exc:
+        output.warn(f"cannot read the {provider.kind} quotas: {exc.one_line()}")
+        return
+    if not found:
+        return
+    output.table(
+        ["QUOTA", "WHERE", "LIMIT", "USED", "PER CLONE", "THIS NEEDS", "FREE AFTER"],
+        [(u.quota.name, u.quota.scope, f"{u.quota.limit:g}", f"{u.quota.used:g}", f"{u.quota.per_clone:g}",
+          f"{u.need:g}", f"{u.after:g}" + (" (short)" if u.short else "")) for u in found],
+        title=f"quotas: {len(creating)} clone{'s' * (len(creating) != 1)} to create",
+    )
+    refused = quotas.refusal(provider.kind, found, creating)
+    if refused is not None:
+        output.warn(f"`fleet up` would refuse, creating nothing: {refused.one_line()}")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
-from typing import Literal, Protocol
+from typing import Iterable, Literal, Protocol, Sequence
 
 from pydantic import BaseModel
 
@@ -128,11 +128,27 @@ class OwnedResource(BaseModel):
 
 
 class Quota(BaseModel):
-    """One quota a fleet consumes, for `ccrp doctor`."""
+    """One quota that new clones draw on, in the cloud's own numbers (Provider.quotas). The core
+    (ccrp_cli/quotas.py) holds what a command will create against it before it creates anything;
+    `fleet plan` and `ccrp doctor` show it."""
 
-    name: str
+    name: str  # the cloud's own name for it: STATIC_ADDRESSES, cores, EC2-VPC Elastic IPs...
+    scope: str  # where it counts, for messages: "region europe-west1", "project of cloud 'lab'"
     limit: float
-    need: float  # current usage plus what the clones not created yet will add
+    used: float  # in use now, by this fleet and by anything else under the same quota
+    per_clone: float  # what one new clone of the fleet's default size takes
+    # Robots (of those asked about) whose new clone takes another amount than per_clone: a
+    # robot's own instance_type, or the public address it holds already from an earlier attempt (0).
+    per_robot: dict[str, float] = {}
+    hint: str = ""  # where this quota is raised, when the cloud names a place
+
+    @property
+    def free(self) -> float:
+        return max(self.limit - self.used, 0.0)
+
+    def need(self, robots: Iterable[str]) -> float:
+        """What creating the clones of `robots` takes of this quota."""
+        return float(sum(self.per_robot.get(r, self.per_clone) for r in robots))
 
 
 class Ability(str, Enum):
@@ -190,6 +206,8 @@ class Provider(Protocol):
     # Public keys for the clone's login user; None where the transport needs no login (Docker API).
     def login_keys(self) -> list[str] | None: ...
     def check_credentials(self) -> str: ...
-    def quotas(self) -> list[Quota]: ...
+    # The quotas new clones draw on, with what creating the clones of `robots` takes of each;
+    # [] where the backend has no quota to check (Docker). ccrp_cli/quotas.py decides.
+    def quotas(self, robots: Sequence[str] = ()) -> list[Quota]: ...
     def close(self) -> None: ...
 

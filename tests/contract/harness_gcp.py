@@ -11,7 +11,9 @@ are GCE's: an access config without natIP gets an ephemeral IP, released when th
 and replaced by another at its next start; one with natIP must name a RESERVED address of the
 region, which then is IN_USE by the instance and keeps its IP across stop/start; an address in
 use cannot be released; an ephemeral IP can be promoted (addresses.insert with its IP); reserved
-addresses count against a regional STATIC_ADDRESSES quota.
+addresses count against a regional STATIC_ADDRESSES quota, external IPs held by instances against
+IN_USE_ADDRESSES (both 8 by default, as in a new project); regions.get reports each quota's limit
+and its usage counted from what exists.
 """
 
 from __future__ import annotations
@@ -95,7 +97,7 @@ def _not_found(link: str):
 class FakeProject:
     """One GCE project with one region, driven through autospecced compute_v1 clients."""
 
-    def __init__(self, cpu_quota: float = 24, address_quota: int = 8) -> None:
+    def __init__(self, cpu_quota: float = 24, address_quota: int = 8, in_use_address_quota: int = 8) -> None:
         self.lock = threading.RLock()
         self.rng = random.Random(7)
         self.instances: dict[tuple[str, str], c.Instance] = {}
@@ -105,7 +107,8 @@ class FakeProject:
         self.routes: dict[str, c.Route] = {}
         self.images: dict[str, c.Image] = {}
         self.addresses: dict[str, c.Address] = {}  # reserved external addresses of REGION
-        self.address_quota = address_quota
+        self.address_quota = address_quota  # STATIC_ADDRESSES: reserved addresses
+        self.in_use_address_quota = in_use_address_quota  # IN_USE_ADDRESSES: external IPs instances hold
         self._external = 0  # where the next external IP is looked for
         self.replies: dict[str, c.Operation] = {}  # requestId -> the operation GCE answered with
         self.calls: Counter = Counter()
@@ -291,7 +294,13 @@ class FakeProject:
         return inst
 
     def _vcpus(self) -> int:
-        return sum(VCPUS.get(tail(i.machine_type), 2) for i in self.instances.values())
+        """The CPUS quota's usage: the vCPUs of every instance but the stopped (TERMINATED) ones."""
+        return sum(VCPUS.get(tail(i.machine_type), 2) for i in self.instances.values() if i.status != "TERMINATED")
+
+    def _in_use_addresses(self) -> int:
+        """The IN_USE_ADDRESSES quota's usage: external IPs held by instances, ephemeral or reserved."""
+        return sum(1 for i in self.instances.values() for nic in i.network_interfaces for a in nic.access_configs
+                   if a.nat_i_p)
 
     def _instances_insert(self, request=None, **kw):
         req = _request(c.InsertInstanceRequest, request, kw)
@@ -330,6 +339,10 @@ class FakeProject:
         if self._vcpus() + VCPUS.get(tail(inst.machine_type), 2) > self.cpu_quota:
             return self._operation(link, "insert", req.request_id, 403, "QUOTA_EXCEEDED",
                                    f"Quota 'CPUS' exceeded.  Limit: {self.cpu_quota} in region {REGION}.")
+        if self._in_use_addresses() + len(nic.access_configs) > self.in_use_address_quota:
+            return self._operation(link, "insert", req.request_id, 403, "QUOTA_EXCEEDED",
+                                   f"Quota 'IN_USE_ADDRESSES' exceeded.  Limit: {self.in_use_address_quota} in "
+                                   f"region {REGION}.")
         if req.zone in self.exhausted:
             return self._operation(link, "insert", req.request_id, 503, "ZONE_RESOURCE_POOL_EXHAUSTED",
                                    f"The zone 'projects/{PROJECT}/zones/{req.zone}' does not have enough resources "
@@ -647,9 +660,8 @@ class FakeProject:
         return c.Region(name=REGION, status="UP", self_link=self._link(f"regions/{REGION}"),
                         zones=[self._link(f"zones/{z}") for z in ZONES],
                         quotas=[c.Quota(metric="CPUS", limit=self.cpu_quota, usage=self._vcpus()),
-                                c.Quota(metric="IN_USE_ADDRESSES", limit=8, usage=sum(
-                                    1 for i in self.instances.values() for nic in i.network_interfaces
-                                    for a in nic.access_configs if a.nat_i_p)),
+                                c.Quota(metric="IN_USE_ADDRESSES", limit=self.in_use_address_quota,
+                                        usage=self._in_use_addresses()),
                                 c.Quota(metric="STATIC_ADDRESSES", limit=self.address_quota, usage=len(self.addresses))])
 
     def _machine_types_get(self, request=None, **kw):

@@ -9,7 +9,8 @@ refuses: a fixed IP used twice, a router with interfaces, a subnet or network st
 user-data over Nova's limit, and servers the scheduler cannot place ("No valid host was found").
 
 Knobs for tests: `throttle(fraction)` (429/503 before the fake), `delay(seconds)`, `no_capacity`
-zones, `max_instances`, `fail_fip_for` robots, `fail_next` operations; `calls` counts (METHOD, path template).
+zones, the project's quotas (`max_instances`, `max_cores`, `max_ram`, `max_fips`), `fail_fip_for`
+robots, `fail_next` operations; `calls` counts (METHOD, path template).
 
 Two transports share one request handler (`handle`): requests-mock mounted on a Connection's
 session in this process (`attach`), or a real HTTP server on 127.0.0.1 for other processes
@@ -31,8 +32,8 @@ own (ubuntu-20.04) cannot boot: such a server goes to ERROR. The image's default
 `vendor_data=cloudboot.vendor_data_default_user("ubuntu")` renames it as an operator's vendor-data
 could (ccrp logs in as `ubuntu`, the Ubuntu images' user).
 Not enforced when booting: security groups (every container port is open to the host and to the
-other containers on its networks), allowed-address pairs and port security, quotas beyond the
-instance count, routers (every network reaches the outside through Docker's NAT, router or not).
+other containers on its networks), allowed-address pairs and port security, routers (every network
+reaches the outside through Docker's NAT, router or not).
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ HOSTS = ("identity", "compute", "network", "image")
 
 
 # Path segments that name one resource: after these collections, or anything that is a UUID.
-_NAMED = {"servers", "flavors", "os-keypairs", "images", "tags", "networks", "subnets", "routers", "ports",
+_NAMED = {"servers", "flavors", "os-keypairs", "images", "tags", "networks", "subnets", "routers", "ports", "quotas",
           "floatingips", "security-groups", "security-group-rules"}
 
 
@@ -98,7 +99,13 @@ class FakeOpenStack(NeutronApi):
         self._n = 0
         self.delay_s = 0.0
         self.no_capacity: set[str] = set()  # zones where the scheduler finds no host
+        # The project's quotas (Nova: instances, cores, RAM in MB; Neutron: floating IPs), enforced
+        # at create and reported with their usage (compute /limits, network /quotas/<id>/details)
+        # from what exists. Small, as a new project's are: the benchmark raises them.
         self.max_instances = 100
+        self.max_cores = 200
+        self.max_ram = 409_600
+        self.max_fips = 50
         self.fail_fip_for: set[str] = set()  # robots whose next floating IP request fails
         self.fail_next: dict[tuple[str, str], tuple[int, str]] = {}  # (METHOD, "host:/template") -> one error
         # name -> resource dict, per collection (Neutron/Glance/Nova shapes, as on the wire)
@@ -290,11 +297,11 @@ class FakeOpenStack(NeutronApi):
                 return None
             return {"keypair": kp}
         if head == "limits":
-            used = len(self.servers)
+            used = self.compute_usage()
             return {"limits": {"rate": [], "absolute": {
-                "maxTotalInstances": self.max_instances, "totalInstancesUsed": used,
-                "maxTotalCores": 2 * self.max_instances, "totalCoresUsed": 2 * used,
-                "maxTotalRAMSize": 4096 * self.max_instances, "totalRAMUsed": 4096 * used}}}
+                "maxTotalInstances": self.max_instances, "totalInstancesUsed": used["instances"],
+                "maxTotalCores": self.max_cores, "totalCoresUsed": used["cores"],
+                "maxTotalRAMSize": self.max_ram, "totalRAMUsed": used["ram"]}}}
         if head == "os-availability-zone":
             return {"availabilityZoneInfo": [{"zoneName": z, "zoneState": {"available": True}, "hosts": None}
                                              for z in ("az1", "az2", "az3")]}
@@ -320,10 +327,22 @@ class FakeOpenStack(NeutronApi):
             return self._server_action(server, body, context)
         return {"server": self._show_server(server)}
 
+    def compute_usage(self) -> dict[str, int]:
+        """What the project's servers take of its compute quotas (any status but deleted, as Nova counts)."""
+        flavors = [self.flavors.get(s["flavor"]["id"], {}) for s in self.servers.values()]
+        return {"instances": len(flavors), "cores": sum(f.get("vcpus", 0) for f in flavors),
+                "ram": sum(f.get("ram", 0) for f in flavors)}
+
     def _create_server(self, req: dict) -> dict:
         if len(self.servers) >= self.max_instances:
             raise ApiError(403, f"Quota exceeded for instances: Requested 1, but already used "
                                 f"{len(self.servers)} of {self.max_instances} instances", "Forbidden")
+        flavor = self.flavors.get(req.get("flavorRef", ""))
+        used = self.compute_usage()
+        for what, size, limit in (("cores", "vcpus", self.max_cores), ("ram", "ram", self.max_ram)):
+            if flavor is not None and used[what] + flavor[size] > limit:
+                raise ApiError(403, f"Quota exceeded for {what}: Requested {flavor[size]}, but already used "
+                                    f"{used[what]} of {limit} {what}", "Forbidden")
         self._get(self.images, req.get("imageRef", ""), "image")
         self._get(self.flavors, req.get("flavorRef", ""), "flavor")
         if req.get("key_name") and req["key_name"] not in self.keypairs:

@@ -35,6 +35,8 @@ class NeutronApi:
                 {"href": self._href("network", "/v2.0/"), "rel": "self"}]}]}
         parts = path.removeprefix("/v2.0").strip("/").split("/")
         kind = parts[0]
+        if kind == "quotas" and method == "GET" and len(parts) in (2, 3):
+            return self._quota(parts[1], details=parts[2:] == ["details"])
         collection = {"networks": "networks", "subnets": "subnets", "routers": "routers", "ports": "ports",
                       "floatingips": "fips", "security-groups": "sgs", "security-group-rules": None}.get(kind, "")
         if collection == "":
@@ -138,7 +140,19 @@ class NeutronApi:
         used = {f["ip_address"] for p in self.ports.values() for f in p["fixed_ips"]} | {subnet["gateway_ip"]}
         return str(next(h for h in ipaddress.IPv4Network(subnet["cidr"]).hosts() if str(h) not in used))
 
+    def _quota(self, project: str, details: bool) -> dict:
+        """The project's Neutron quotas: the floating IPs' from max_fips and what exists, the rest
+        unlimited (-1); with details, the usage too."""
+        if project != self.project_id:
+            raise ApiError(404, f"Project {project} could not be found.")
+        fips = {"limit": self.max_fips, "used": len(self.fips), "reserved": 0}
+        if details:
+            return {"quota": {"floatingip": fips}}
+        return {"quota": {"floatingip": self.max_fips, "project_id": project}}
+
     def _create_fips(self, req: dict) -> dict:
+        if len(self.fips) >= self.max_fips:
+            raise ApiError(409, "Quota exceeded for resources: ['floatingip'].", "OverQuota")
         ext = self._get(self.networks, req["floating_network_id"], "network")
         if not ext["router:external"]:
             raise ApiError(400, f"Network {ext['id']} is not a valid external network")

@@ -47,7 +47,7 @@ def _faults(fake: FakeOpenStack) -> dict:
     from contextlib import contextmanager as cm
 
     @cm
-    def quota():  # Nova refuses the next server: the project is at its instance quota
+    def quota():  # the project at its instance quota, as Nova's limits report: ccrp refuses up front
         before = fake.max_instances
         fake.max_instances = len(fake.servers)
         try:

@@ -111,7 +111,9 @@ def test_doctor_cli_on_moto(fleet_on_moto, ccrp, ccrp_home):
     assert proc.returncode == 1  # no snapshot recorded yet
     assert rows["sdk boto3"]["status"] == "ok" and rows["credentials"]["status"] == "ok"
     assert "123456789012" in rows["credentials"]["detail"]  # moto's account
-    assert rows["quota Elastic IPs (one per clone)"]["status"] == "ok"
+    eips = "quota EC2-VPC Elastic IPs in region us-east-1"
+    assert rows[eips]["status"] == "ok"
+    assert rows[eips]["detail"] == "limit 5, used 1; the fleet's 1 clone(s) not created yet need 1"
     assert rows["snapshot"]["status"] == "fail" and "snapshot bake" in rows["snapshot"]["hint"]
 
     from ccrp_cli.fleet import Fleet
@@ -125,13 +127,15 @@ def test_doctor_cli_on_moto(fleet_on_moto, ccrp, ccrp_home):
     assert rows["snapshot"] == {"check": "snapshot", "status": "ok", "detail": image, "hint": ""}
     assert proc.returncode == 0, proc.stdout
 
-    # Six clones need six Elastic IPs; the account (moto's default, like AWS's) allows five.
+    # Six clones need six Elastic IPs; the account (moto's default, like AWS's) allows five, and
+    # robot1's clone holds one of them already.
     (path.parent / "big").mkdir()
     big = write_inventory(path.parent / "big", 6)
     proc = ccrp("doctor", "-i", str(big), "--json")
     rows = {r["check"]: r for r in json.loads(proc.stdout)}
-    assert rows["quota Elastic IPs (one per clone)"]["status"] == "fail" and proc.returncode == 1
-    assert "limit 5, fleet needs 6" in rows["quota Elastic IPs (one per clone)"]["detail"]
+    assert rows[eips]["status"] == "fail" and proc.returncode == 1
+    assert rows[eips]["detail"] == "limit 5, used 1; the fleet's 5 clone(s) not created yet need 5"
+    assert "L-0263D0A3" in rows[eips]["hint"]
 
 
 def test_doctor_unknown_profile_is_a_failed_row(aws_env, ccrp, tmp_path):

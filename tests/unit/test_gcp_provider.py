@@ -66,7 +66,8 @@ def test_quota_is_a_region_error_with_a_hint_and_no_zone_hopping(tmp_path):
     assert [r.zone for r in inserts(h) if r.instance_resource.name.endswith("robot2")] == [ZONES[0]]
     assert h.instances_for("robot2") == 0
     # Five robots in the inventory, one clone up: 2 vCPUs used, 8 more needed, 2 allowed.
-    assert ("CPUS in europe-west2", 2.0, 10.0) in [(q.name, q.limit, q.need) for q in h.provider.quotas()]
+    missing = ["robot2", "robot3", "robot4", "robot5"]
+    assert ("CPUS", 2.0, 2.0, 8.0) in [(q.name, q.limit, q.used, q.need(missing)) for q in h.provider.quotas(missing)]
 
 
 def test_firewall_rules_are_the_vpn_port_operator_ssh_and_the_common_network(h):
@@ -415,7 +416,9 @@ def test_address_quota_is_one_line_creates_nothing_and_doctor_counts_it(tmp_path
     assert "GCE quota exceeded in europe-west2" in line and "Quota 'STATIC_ADDRESSES' exceeded" in line
     assert h.owned_ids("robot2") == set() and set(h.fake.addresses) == {"ccrp-ct-cri-robot1"}
     # Five robots, one address reserved: four more needed, one allowed.
-    assert ("STATIC_ADDRESSES in europe-west2", 1.0, 5.0) in [(q.name, q.limit, q.need) for q in h.provider.quotas()]
+    missing = ["robot2", "robot3", "robot4", "robot5"]
+    assert ("STATIC_ADDRESSES", 1.0, 1.0, 4.0) in [(q.name, q.limit, q.used, q.need(missing))
+                                                    for q in h.provider.quotas(missing)]
 
 
 def test_clone_of_an_earlier_ccrp_keeps_its_ephemeral_ip_as_its_reserved_address(h):

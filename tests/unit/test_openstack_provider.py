@@ -214,11 +214,13 @@ def test_console_output_and_credentials(h):
     h.provider.run_instance(h.spec("robot1", 1))
     assert "BEGIN SSH HOST KEY FINGERPRINTS" in h.provider.console_output("robot1")
     assert "authenticated" in h.provider.check_credentials()
-    quotas = {q.name: q for q in h.provider.quotas()}
-    assert (quotas["instances"].limit, quotas["cores"].limit) == (100, 200)
-    # one server exists; the inventory's robots not created yet each add one server and its flavor
-    missing = [r for r in h.provider.inv.robots if r.name not in h.provider.query()]
-    assert quotas["instances"].need == 1 + len(missing) and quotas["cores"].need == 2 * (1 + len(missing))
+    missing = [r.name for r in h.provider.inv.robots if r.name not in h.provider.query()]
+    quotas = {q.name: q for q in h.provider.quotas(missing)}
+    # Nova's limits and Neutron's floating IPs, their usage counted from the one server there is;
+    # each clone not created yet takes a server, its flavor's 2 vCPUs and 4096 MB, a floating IP.
+    assert {n: (q.limit, q.used, q.need(missing)) for n, q in quotas.items()} == {
+        "instances": (100, 1, len(missing)), "cores": (200, 2, 2 * len(missing)),
+        "ram (MB)": (409_600, 4096, 4096 * len(missing)), "floating-ips": (50, 1, len(missing))}
 
 
 def test_missing_sdk_names_the_extra(monkeypatch, tmp_path):

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+from collections.abc import Sequence
 from pathlib import Path
 
 from ...errors import CcrpError
@@ -27,6 +28,16 @@ from .images import Images
 from .owned import KINDS, LIVE, Owned
 
 GONE = ["shutting-down", "terminated"]
+# Instance families counted by "Running On-Demand Standard (A, C, D, H, I, M, R, T, Z) instances"
+# (L-1216C47A); these first letters begin other families, which have quotas of their own.
+STANDARD_LETTERS = "acdhimrtz"
+NOT_STANDARD = ("mac", "inf", "dl", "trn", "hpc")
+
+
+def is_standard(instance_type: str) -> bool:
+    family = instance_type.split(".")[0].lower()
+    return family[:1] in STANDARD_LETTERS and not family.startswith(NOT_STANDARD)
+
 # EC2's instance states in ccrp's words.
 STATES = {"pending": CloneState.PENDING, "running": CloneState.RUNNING, "stopping": CloneState.STOPPING,
           "stopped": CloneState.STOPPED, "shutting-down": CloneState.DELETING, "terminated": CloneState.DELETING}
@@ -53,6 +64,7 @@ class AwsProvider(Images, Owned, CloudProvider):
         self._config = config = Config(retries={"total_max_attempts": 1}, connect_timeout=10, read_timeout=60)
         self.ec2 = self.session.client("ec2", config=config)
         self._net: network.Network | None = None
+        self._service_quotas = None  # its client, made when quotas are first read
 
     # -- errors ------------------------------------------------------------------------------
     def classify_error(self, exc: BaseException):
@@ -125,8 +137,7 @@ class AwsProvider(Images, Owned, CloudProvider):
         return self._complete(self._launch(spec, net, payload, generation=len(seen)), spec, net, created=True)
 
     def _launch(self, spec: CloneSpec, net: network.Network, user_data: bytes, generation: int) -> dict:
-        robot = self.inv.robot(spec.robot)
-        instance_type = (robot.instance_type if robot and robot.instance_type else self.settings.instance_type)
+        instance_type = self._instance_type(spec.robot)
         # ClientToken makes a retried RunInstances (lost answer, throttling) return the same
         # instance. A token stays bound to its instance after termination, so a relaunch after
         # a rollback takes the next generation (the count of its terminated predecessors).
@@ -274,30 +285,73 @@ class AwsProvider(Images, Owned, CloudProvider):
         ident = self.api("get caller identity", sts.get_caller_identity)
         return f"account {ident['Account']} as {ident['Arn']}"
 
-    def quotas(self) -> list[Quota]:
-        """(quota, limit, what the fleet needs) where the API tells the limit."""
-        robots = max(len(self.inv.robots), 1)
+    def quotas(self, robots: Sequence[str] = ()) -> list[Quota]:
+        """The account's quotas in the region that a clone draws on, with what the clones of
+        `robots` take: an Elastic IP (none for a robot that holds one already), counted against
+        `vpc-max-elastic-ips` (DescribeAccountAttributes) and the region's addresses; its instance
+        type's vCPUs against Running On-Demand Standard instances (Service Quotas L-1216C47A) and
+        the running standard instances, or, where Service Quotas does not answer, one instance
+        against `max-instances`."""
+        where = f"region {self.settings.region}"
         attrs = self.api("describe account attributes", self.ec2.describe_account_attributes)["AccountAttributes"]
         values = {a["AttributeName"]: a["AttributeValues"][0]["AttributeValue"] for a in attrs if a.get("AttributeValues")}
         found: list[Quota] = []
         if values.get("vpc-max-elastic-ips", "").isdigit():
-            found.append(Quota(name="Elastic IPs (one per clone)", limit=float(values["vpc-max-elastic-ips"]), need=robots))
+            eips = self.api("describe Elastic IPs", self.ec2.describe_addresses)["Addresses"]
+            held = {tags.as_dict(a).get(LABEL_ROBOT) for a in eips if tags.owned_by(a, self.fleet)}
+            found.append(Quota(name="EC2-VPC Elastic IPs", scope=where, limit=float(values["vpc-max-elastic-ips"]),
+                               used=len(eips), per_clone=1, per_robot={r: 0.0 for r in robots if r in held},
+                               hint="raise EC2-VPC Elastic IPs (L-0263D0A3) in the Service Quotas console"))
+        running = self._running_on_demand()
+        types = {r: self._instance_type(r) for r in robots}
         vcpus = self._vcpu_quota()
         if vcpus is not None:
-            per_clone = self.api("describe instance types", self.ec2.describe_instance_types,
-                                 InstanceTypes=[self.settings.instance_type])["InstanceTypes"][0]["VCpuInfo"]["DefaultVCpus"]
-            found.append(Quota(name="running on-demand standard vCPUs", limit=vcpus, need=robots * per_clone))
+            sizes = self._type_vcpus({i["InstanceType"] for i in running} | set(types.values())
+                                     | {self.settings.instance_type})
+
+            def standard(instance_type: str) -> float:
+                return float(sizes[instance_type]) if is_standard(instance_type) else 0.0
+
+            per = standard(self.settings.instance_type)
+            found.append(Quota(
+                name="Running On-Demand Standard instances (vCPUs)", scope=where, limit=vcpus,
+                used=sum(standard(i["InstanceType"]) for i in running), per_clone=per,
+                per_robot={r: n for r, t in types.items() if (n := standard(t)) != per},
+                hint="raise Running On-Demand Standard instances (L-1216C47A) in the Service Quotas console"))
         elif values.get("max-instances", "").isdigit():
-            found.append(Quota(name="running instances", limit=float(values["max-instances"]), need=robots))
+            found.append(Quota(name="max-instances (running instances)", scope=where,
+                               limit=float(values["max-instances"]), used=len(running), per_clone=1))
         return found
+
+    def _instance_type(self, robot: str) -> str:
+        override = self.inv.robot(robot)
+        return (override.instance_type if override and override.instance_type else self.settings.instance_type)
+
+    def _running_on_demand(self) -> list[dict]:
+        """Every pending or running On-Demand instance of the account in the region (what the
+        running-instance quotas count), the fleet's and anyone else's."""
+        pages = self.api("describe instances", lambda: list(self.ec2.get_paginator("describe_instances").paginate(
+            Filters=[{"Name": "instance-state-name", "Values": ["pending", "running"]}])))
+        return [i for page in pages for r in page.get("Reservations", []) for i in r["Instances"]
+                if i.get("InstanceLifecycle") not in ("spot", "scheduled")]
+
+    def _type_vcpus(self, instance_types: set[str]) -> dict[str, int]:
+        """instance type -> its default vCPUs (DescribeInstanceTypes, 100 types a call)."""
+        names, sizes = sorted(instance_types), {}
+        for k in range(0, len(names), 100):
+            for t in self.api("describe instance types", self.ec2.describe_instance_types,
+                              InstanceTypes=names[k:k + 100])["InstanceTypes"]:
+                sizes[t["InstanceType"]] = t["VCpuInfo"]["DefaultVCpus"]
+        return sizes
 
     def _vcpu_quota(self) -> float | None:
         """Service Quotas L-1216C47A (Running On-Demand Standard instances, in vCPUs), if readable."""
         from botocore.exceptions import BotoCoreError, ClientError
 
         try:
-            sq = self.session.client("service-quotas")
-            return float(self.api("get service quota", sq.get_service_quota, ServiceCode="ec2",
+            if self._service_quotas is None:
+                self._service_quotas = self.session.client("service-quotas", config=self._config)
+            return float(self.api("get service quota", self._service_quotas.get_service_quota, ServiceCode="ec2",
                                   QuotaCode="L-1216C47A")["Quota"]["Value"])
         except (CcrpError, BotoCoreError, ClientError):
             return None  # no permission, or not offered here: fall back to account attributes

@@ -162,8 +162,10 @@ class DockerProvider(DockerHost):
         version = self.client.version()  # the engine answering is the credential
         return f"Docker {version.get('Version', '?')} (API {version.get('ApiVersion', '?')})"
 
-    def quotas(self) -> list[Quota]:
-        return []  # this host's CPUs and memory are the limit: see `fleet scale` in docs/benchmarks.md
+    def quotas(self, robots=()) -> list[Quota]:
+        # No quota to check before growth: this host's CPUs and memory are the limit (`fleet
+        # scale` in docs/benchmarks.md), and the engine answers at once when one runs out.
+        return []
 
     def close(self) -> None:
         self.client.close()

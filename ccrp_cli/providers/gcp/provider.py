@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -39,6 +40,17 @@ MAX_REPLAYS = 20
 # the Google guest agent instead of cloud-init, so an instance booted from one gets a startup-script
 # (templates/gcp/startup-script) that installs cloud-init; a baked snapshot has it already.
 STOCK_IMAGES = "projects/debian-cloud/"
+# Machine families whose vCPUs count against the regional CPUS quota; every other family has a
+# quota of its own (N2_CPUS, C3_CPUS...).
+CPUS_FAMILIES = ("e2", "n1", "f1", "g1", "custom")
+
+
+def cpu_metric(machine_type: str) -> str:
+    """The regional quota a machine type's vCPUs count against."""
+    family = machine_type.split("-")[0].lower()
+    return "CPUS" if family in CPUS_FAMILIES else f"{family.upper()}_CPUS"
+
+
 # GCE's instance states in ccrp's words (TERMINATED is GCE's "stopped").
 STATES = {"PROVISIONING": CloneState.PENDING, "STAGING": CloneState.PENDING, "REPAIRING": CloneState.PENDING,
           "RUNNING": CloneState.RUNNING, "STOPPING": CloneState.STOPPING, "SUSPENDING": CloneState.STOPPING,
@@ -62,6 +74,7 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
         self._clients = clients
         self._lock = threading.Lock()
         self._subnet_link: str | None = None
+        self._machine_cpus: dict[str, int] = {}  # machine type -> vCPUs
 
     @property
     def c(self) -> Clients:
@@ -427,21 +440,44 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
             region = self._call("get region", self.c.regions.get, project=self.project, region=self.region)
             return f"project {self.project}, region {region.name}: {region.status}"
 
-    def quotas(self) -> list[Quota]:
-        """(quota, limit, what the fleet needs) for `ccrp doctor`: the region's current usage plus
-        what the clones not yet created will add."""
+    def quotas(self, robots: Sequence[str] = ()) -> list[Quota]:
+        """The region's quotas a clone draws on (regions.get: GCE's own limit and usage), with
+        what the clones of `robots` take: an instance, its machine type's vCPUs (CPUS, or the
+        family's own quota: N2_CPUS...), an external IP in use and a reserved one (none for a
+        robot whose address is reserved already)."""
         with self._errors(f"quotas of {self.region}"):
             region = self._call("get region", self.c.regions.get, project=self.project, region=self.region)
-            missing = [r.name for r in self.inv.robots if r.name not in self.query()]
-            reserved = {a.name for a in self._addresses()}
-            adds = {"CPUS": sum(self._vcpus(self._machine_type(r)) for r in missing),
-                    "IN_USE_ADDRESSES": len(missing), "INSTANCES": len(missing),
-                    "STATIC_ADDRESSES": sum(self.names.address(r) not in reserved for r in missing)}
-            return [Quota(name=f"{q.metric} in {self.region}", limit=q.limit, need=q.usage + adds[q.metric])
-                    for q in region.quotas if q.metric in adds]
+            reserved = {a.name for a in self._addresses()} if robots else set()
+            machine = {r: self._machine_type(r) for r in robots}
+            default = self.settings.machine_type  # type: ignore[union-attr]
+
+            def cpus(machine_type: str, metric: str) -> float:
+                return float(self._vcpus(machine_type)) if cpu_metric(machine_type) == metric else 0.0
+
+            found = []
+            for q in region.quotas:
+                if q.metric in ("INSTANCES", "IN_USE_ADDRESSES"):
+                    per, each = 1.0, {}
+                elif q.metric == "STATIC_ADDRESSES":
+                    per, each = 1.0, {r: 0.0 for r in robots if self.names.address(r) in reserved}
+                elif q.metric.endswith("CPUS") and q.metric != "CPUS_ALL_REGIONS":
+                    per = cpus(default, q.metric)
+                    each = {r: n for r, m in machine.items() if (n := cpus(m, q.metric)) != per}
+                    if not per and not each:
+                        continue  # another family's CPUs: none of these clones draws on it
+                else:
+                    continue
+                found.append(Quota(
+                    name=q.metric, scope=f"region {self.region}", limit=q.limit, used=q.usage, per_clone=per,
+                    per_robot=each,
+                    hint=f"request more in the console: IAM & Admin > Quotas, {q.metric} in {self.region}"))
+            return found
 
     def _vcpus(self, machine_type: str) -> int:
-        zone = self.settings.zones[0]  # type: ignore[union-attr]
-        found = self._call("get machine type", self.c.machine_types.get, project=self.project, zone=zone,
-                           machine_type=machine_type)
-        return found.guest_cpus
+        """The machine type's vCPUs, looked up once per type."""
+        if machine_type not in self._machine_cpus:
+            zone = self.settings.zones[0]  # type: ignore[union-attr]
+            self._machine_cpus[machine_type] = self._call(
+                "get machine type", self.c.machine_types.get, project=self.project, zone=zone,
+                machine_type=machine_type).guest_cpus
+        return self._machine_cpus[machine_type]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import base64
 import threading
+from collections.abc import Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -228,9 +229,7 @@ class OpenStackProvider(Images, Owned, CloudProvider):
     def _boot(self, spec: CloneSpec, port, user_data: str, zone: str, created: list):
         """One server in one zone, until ACTIVE. A server the scheduler could not place goes to
         ERROR: delete it and raise ServerFault so across_zones tries the next zone."""
-        flavor_name = getattr(self.inv.robot(spec.robot), "instance_type", None) or self.settings.flavor
-        flavor = self._cached(f"flavor:{flavor_name}", lambda: self._find("flavor", flavor_name, self.compute.find_flavor,
-                                                                          "provider.flavor: `openstack flavor list`"))
+        flavor = self._flavor(spec.robot)
         image = self._find("image", spec.image, self.image.find_image, "ccrp snapshot list / ccrp snapshot build")
         extra = {"availability_zone": zone} if zone else {}
         server = self.api("create server", self.compute.create_server, name=self.server_name(spec.robot, spec.role),
@@ -346,18 +345,46 @@ class OpenStackProvider(Images, Owned, CloudProvider):
             self.api("authenticate", self.conn.authorize)
             return f"cloud {self.settings.cloud!r}: authenticated, project {self.conn.current_project_id}"
 
-    def quotas(self) -> list[Quota]:
-        """The compute quotas a fleet consumes: current usage plus the clones not created yet."""
-        with self._errors("compute limits"):
+    def quotas(self, robots: Sequence[str] = ()) -> list[Quota]:
+        """The project's quotas a clone draws on, with what the clones of `robots` take: Nova's
+        compute limits (instances, cores, RAM: limit and usage, /limits) for a server of the robot's
+        flavor, and Neutron's floating IPs (limit and usage, /quotas/<project>/details) for its
+        public address (none for a robot holding one already; left out where Neutron has no quota
+        details). -1 is unlimited: left out."""
+        scope = f"project of cloud {self.settings.cloud!r}"
+        hint = "ask the cloud's admin to raise it (`openstack quota show` lists the project's quotas)"
+        with self._errors("quotas"):
             a = self.api("compute limits", self.compute.get_limits).absolute
-            existing = self.query()
-            flavors = [getattr(r, "instance_type", None) or self.settings.flavor
-                       for r in self.inv.robots if r.name not in existing]
-            vcpus = ram = 0
-            for name in flavors:
-                flavor = self._cached(f"flavor:{name}", lambda n=name: self._find(
-                    "flavor", n, self.compute.find_flavor, "provider.flavor: `openstack flavor list`"))
-                vcpus, ram = vcpus + flavor.vcpus, ram + flavor.ram
-            return [Quota(name="instances", limit=a.instances, need=a.instances_used + len(flavors)),
-                    Quota(name="cores", limit=a.total_cores, need=a.total_cores_used + vcpus),
-                    Quota(name="RAM (MB)", limit=a.total_ram, need=a.total_ram_used + ram)]
+            fips = self._floating_ip_quota()
+            held = {t.split("=", 1)[1] for f in (self.owned("fips", "clone") if robots else [])
+                    for t in f.tags if t.startswith(f"{LABEL_ROBOT}=")}
+            flavors = {r: self._flavor(r) for r in robots}
+            default = self._flavor(None)
+            rows = [("instances", a.instances, a.instances_used, lambda f: 1.0),
+                    ("cores", a.total_cores, a.total_cores_used, lambda f: float(f.vcpus)),
+                    ("ram (MB)", a.total_ram, a.total_ram_used, lambda f: float(f.ram))]
+            found = [Quota(name=name, scope=scope, limit=limit, used=used, per_clone=size(default),
+                           per_robot={r: size(f) for r, f in flavors.items() if size(f) != size(default)}, hint=hint)
+                     for name, limit, used, size in rows if limit is not None and limit >= 0]
+            if fips.get("limit") is not None and fips["limit"] >= 0:
+                found.append(Quota(name="floating-ips", scope=scope, limit=fips["limit"], used=fips.get("used") or 0,
+                                   per_clone=1, per_robot={r: 0.0 for r in robots if r in held}, hint=hint))
+            return found
+
+    def _floating_ip_quota(self) -> dict:
+        """Neutron's {limit, used, reserved} of floating IPs for the project; {} where the cloud
+        has no `quota_details` extension (or does not show them to the project)."""
+        from openstack.exceptions import ForbiddenException, NotFoundException
+
+        project = self.api("authenticate", lambda: self.conn.current_project_id)
+        try:
+            return self.api("network quota", self.network.get_quota, project, details=True).floating_ips or {}
+        except (NotFoundException, ForbiddenException):
+            return {}
+
+    def _flavor(self, robot: str | None):
+        """The flavor of the robot's server (the fleet's, for None), looked up once per name."""
+        name = getattr(self.inv.robot(robot), "instance_type", None) if robot else None
+        name = name or self.settings.flavor
+        return self._cached(f"flavor:{name}", lambda: self._find("flavor", name, self.compute.find_flavor,
+                                                                 "provider.flavor: `openstack flavor list`"))
