@@ -112,8 +112,12 @@ def install_key(user_data: bytes) -> str | None:
 
 
 def baked_disk(client, key: str) -> str | None:
-    """The run's kept builder disk for this install key, if `warm_bake` made it."""
-    found = client.images.list(filters={"label": [f"{BAKED}={key}", f"{BAKED_RUN}={test_run()}"]})
+    """The run's kept builder disk for this install key, if `warm_bake` made it. Matched on its own
+    run label too: a snapshot captured from a server booted from the disk inherits its other
+    labels, and a later builder started from that snapshot made one cloud's images children of
+    another's (their cleanups then met Docker's 409)."""
+    found = client.images.list(filters={"label": [f"{BAKED}={key}", f"{BAKED_RUN}={test_run()}",
+                                                  f"{LABEL}=testrun-{test_run()}"]})
     return found[0].id if found else None
 
 
@@ -457,7 +461,8 @@ class CloudBoot:
         container = self._container(server_id)
         repo = f"{LABEL}/{self.run}-{''.join(c if c.isalnum() or c in '-_.' else '-' for c in image_name.lower())}"[:120]
         tag = secrets.token_hex(4)
-        container.commit(repository=repo, tag=tag, conf={"Labels": {**self.labels}})
+        # Its run's label, and not the kept disk's marks it would inherit (baked_disk).
+        container.commit(repository=repo, tag=tag, conf={"Labels": {**self.labels, BAKED: "", BAKED_RUN: ""}})
         ref = f"{repo}:{tag}"
         with self.lock:
             if self.closed:
@@ -500,8 +505,7 @@ class CloudBoot:
                 pass
         # Newest first: an image committed from a server booted from one of this run's images is
         # that image's child, and Docker refuses to remove a parent before its children (409
-        # "image has dependent child images"), whatever order it lists them in (two cloud
-        # scenarios' cleanups failed so in one run).
+        # "image has dependent child images"), whatever order it lists them in.
         for i in sorted(self.client.images.list(filters=f), key=lambda i: i.attrs.get("Created", ""), reverse=True):
             self._remove_image_tree(i.id)
         with self.lock:
