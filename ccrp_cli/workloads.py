@@ -241,7 +241,7 @@ def node_unit(node: RunNode, digest: str) -> str:
     if node.cpu is not None:
         limits.append(f"CPUQuota={round(node.cpu * 100)}%")
     if node.memory is not None:
-        limits.append(f"MemoryMax={node.memory}")
+        limits.append(f"MemoryMax={node.memory}")  # bytes
     return static("systemd/ccrp-run.service").format(
         name=node.name, exec=" ".join([ROS_RUN, *(systemd_word(w) for w in node.command)]), restart=node.restart,
         limits="\n".join(limits), digest=digest)

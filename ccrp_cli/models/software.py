@@ -17,6 +17,7 @@ from pydantic import AfterValidator, BeforeValidator, Field, StringConstraints, 
 
 from ..errors import shown
 from .strict import Strict
+from .values import Size
 
 # Debian policy 5.6.1: lower case letters, digits, + - . ; at least two characters, a letter or digit first.
 DebPackage = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9+.-]{1,99}$")]
@@ -85,8 +86,6 @@ Argv = Annotated[
     BeforeValidator(_argv), AfterValidator(_words), Field(min_length=1, max_length=64),
 ]
 
-_MEMORY = re.compile(r"([0-9]{1,6})([KMG])", re.ASCII)
-
 
 class RunNode(Strict):
     """A node kept running on the clone: the unit ccrp-run-<name>, as the `ros` user, in the
@@ -98,8 +97,8 @@ class RunNode(Strict):
     restart: Literal["on-failure", "always", "no"] = "on-failure"
     # CPU cores the node may use (CPUQuota), e.g. 0.5 or 2.
     cpu: Annotated[float, Field(strict=True, gt=0, le=256)] | None = None
-    # Memory it may use (MemoryMax), e.g. 512M or 2G.
-    memory: Annotated[str, StringConstraints(pattern=_MEMORY.pattern)] | None = None
+    # Memory it may use (MemoryMax), a size as elsewhere in the inventory: 512MiB, 2GB.
+    memory: Size | None = None
 
     @field_validator("cpu", mode="before")
     @classmethod

@@ -95,6 +95,7 @@ def test_software_merges_fleet_then_type_then_robot():
     ({"run": [{"name": "m", "command": []}]}, "at least 1"),
     ({"run": [{"name": "m", "command": ["a"]}, {"name": "m", "command": ["b"]}]}, "given twice"),
     ({"run": [{"name": "m", "command": ["a"], "memory": "lots"}]}, "memory"),
+    ({"run": [{"name": "m", "command": ["a"], "memory": 512}]}, "no unit"),
     ({"run": [{"name": "m", "command": ["a"], "cpu": True}]}, "CPU cores"),
     ({"apt": ["Bad_Name"]}, "apt"),
     ({"apt": ["ros-core; rm -rf /"]}, "apt"),
@@ -198,10 +199,10 @@ def test_a_missing_or_empty_workspace_is_one_line(tmp_path):
 def test_a_command_reaches_systemd_word_for_word():
     assert systemd_word('a "b" $HOME %n \\x') == '"a \\"b\\" $$HOME %%n \\\\x"'
     inv = inventory(lab(software={"run": [{"name": "mapper", "command": ["python3", "-m", "pkg.node", "--name=$X"],
-                                           "cpu": 0.5, "memory": "512M", "restart": "always"}]}))
+                                           "cpu": 0.5, "memory": "512MiB", "restart": "always"}]}))
     text = node_unit(inv.software.run[0], "d1")
     assert 'ExecStart=/usr/local/lib/ccrp/ros-run "python3" "-m" "pkg.node" "--name=$$X"' in text
-    assert "User=ros" in text and "CPUQuota=50%" in text and "MemoryMax=512M" in text and "Restart=always" in text
+    assert "User=ros" in text and "CPUQuota=50%" in text and "MemoryMax=536870912" in text and "Restart=always" in text
 
 
 def test_node_files_restart_only_what_changed():
