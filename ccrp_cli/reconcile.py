@@ -23,9 +23,10 @@ def plan(fleet: Fleet, provider) -> list[dict]:
     rows = []
     index = fleet.pki.load_index() if fleet.pki.exists() else None
     revoked = {name for name in members if index and fleet.pki.revoked_since(name, index)}
-    stale = stale_snapshot(fleet, state)
-    # A clone `ccrp deploy` brought to the inventory's software runs it, whatever its snapshot holds.
-    inventory_software = snapshot_software(fleet.inventory, fleet.path).digest if stale is not None else None
+    # The workspace read and hashed once. A clone `ccrp deploy` brought to the inventory's software
+    # runs it, whatever its snapshot holds.
+    inventory_software = snapshot_software(fleet.inventory, fleet.path).digest
+    stale = stale_snapshot(fleet, state, inventory_software)
     for name in members:
         rec = actual.get(name)
         if name in revoked:

@@ -208,9 +208,10 @@ def snapshot_software(inv: Inventory, inv_path: Path | None) -> SnapshotSoftware
     return out
 
 
-def stale_snapshot(fleet, state) -> str | None:
-    """Why the fleet's snapshot cannot serve the inventory's software (None when it can)."""
-    want = snapshot_software(fleet.inventory, fleet.path).digest
+def stale_snapshot(fleet, state, want: str | None = None) -> str | None:
+    """Why the fleet's snapshot cannot serve the inventory's software (None when it can). `want`:
+    the inventory's digest when the caller has it (reading it hashes the whole workspace)."""
+    want = want or snapshot_software(fleet.inventory, fleet.path).digest
     have = (state.snapshot or {}).get("software", NO_SOFTWARE)
     if want == have:
         return None
