@@ -107,7 +107,7 @@ def cleanup_fleet(fleet: str) -> None:
 
     client = docker.from_env()
     flt = {"label": f"ccrp-fleet={fleet}"}
-    for c in client.containers.list(all=True, filters=flt):
+    for c in client.containers.list(ignore_removed=True, all=True, filters=flt):
         c.remove(force=True, v=True)
     for n in client.networks.list(filters=flt):
         n.remove()

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from . import options, output
+from . import options
 
 
 def logs(

@@ -84,17 +84,17 @@ class DockerHarness(Knobs):
     def _clones(self, robot: str):
         f = self._labelled(robot)
         f["label"].append(f"{LABEL_ROLE}=clone")
-        return self.raw.containers.list(all=True, filters=f)
+        return self.raw.containers.list(ignore_removed=True, all=True, filters=f)
 
     def instance_roles(self, robot: str) -> list[str]:
-        return [c.labels.get(LABEL_ROLE, "") for c in self.raw.containers.list(all=True, filters=self._labelled(robot))]
+        return [c.labels.get(LABEL_ROLE, "") for c in self.raw.containers.list(ignore_removed=True, all=True, filters=self._labelled(robot))]
 
     def instances_for(self, robot: str) -> int:
         return len(self._clones(robot))
 
     def owned_ids(self, robot: str | None = None) -> set[str]:
         f = self._labelled(robot)
-        ids = {c.id[:12] for c in self.raw.containers.list(all=True, filters=f)}
+        ids = {c.id[:12] for c in self.raw.containers.list(ignore_removed=True, all=True, filters=f)}
         ids |= {v.name for v in self.raw.volumes.list(filters=f)}
         if robot is None:
             ids |= {n.name for n in self.raw.networks.list(filters=f)}
@@ -125,7 +125,7 @@ class DockerHarness(Knobs):
 
     def public_ingress(self) -> set[tuple[str, int, str]]:
         rules = set()
-        for c in self.raw.containers.list(all=True, filters=self._labelled()):
+        for c in self.raw.containers.list(ignore_removed=True, all=True, filters=self._labelled()):
             for port, bindings in (c.attrs["NetworkSettings"]["Ports"] or {}).items():
                 number, proto = port.split("/")
                 for b in bindings or []:

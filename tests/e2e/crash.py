@@ -229,7 +229,7 @@ class CrashFleet:
         flt = {"label": [f"{LABEL}={self.name}"]}
         c = self.client
         for what, items, remove in (
-            ("container", lambda: c.containers.list(all=True, filters=flt), lambda o: o.remove(force=True, v=True)),
+            ("container", lambda: c.containers.list(ignore_removed=True, all=True, filters=flt), lambda o: o.remove(force=True, v=True)),
             ("volume", lambda: c.volumes.list(filters=flt), lambda o: o.remove(force=True)),
             ("network", lambda: c.networks.list(filters=flt), lambda o: o.remove()),
             ("image", lambda: c.images.list(filters=flt), lambda o: c.images.remove(o.id, force=True)),
@@ -239,7 +239,7 @@ class CrashFleet:
                     remove(obj)
                 except Exception as exc:  # noqa: BLE001 - keep sweeping
                     self.log.append(f"could not remove {what} {getattr(obj, 'name', obj)}: {exc}")
-        left = ([f"container {o.name}" for o in c.containers.list(all=True, filters=flt)]
+        left = ([f"container {o.name}" for o in c.containers.list(ignore_removed=True, all=True, filters=flt)]
                 + [f"volume {o.name}" for o in c.volumes.list(filters=flt)]
                 + [f"network {o.name}" for o in c.networks.list(filters=flt)]
                 + [f"image {o.tags or o.id}" for o in c.images.list(filters=flt)])

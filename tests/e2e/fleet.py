@@ -106,7 +106,7 @@ class E2EFleet:
         return {"label": [f"{FLEET_LABEL}={self.name}", *(f"ccrp-{k}={v}" for k, v in labels.items())]}
 
     def containers(self, **labels: str) -> list:
-        return self.client.containers.list(all=True, filters=self.labelled(**labels))
+        return self.client.containers.list(ignore_removed=True, all=True, filters=self.labelled(**labels))
 
     def container(self, role: str, robot: str):
         found = self.containers(role=role, robot=robot)
@@ -157,9 +157,9 @@ def sweep(client, fleet: str) -> list[str]:
             problems.append(f"{what}: {exc}")
 
     images = client.images.list(filters=by_label)
-    containers = {c.id: c for c in client.containers.list(all=True, filters=by_label)}
+    containers = {c.id: c for c in client.containers.list(ignore_removed=True, all=True, filters=by_label)}
     for image in images:
-        for c in client.containers.list(all=True, filters={"ancestor": image.id}):
+        for c in client.containers.list(ignore_removed=True, all=True, filters={"ancestor": image.id}):
             containers[c.id] = c
     # Simulated power devices first: each holds its robot's power-line volume, which goes with the robot.
     for c in sorted(containers.values(), key=lambda c: c.labels.get("ccrp-role") != "power-sim"):
@@ -171,7 +171,7 @@ def sweep(client, fleet: str) -> list[str]:
     for image in images:
         attempt(f"image {image.tags or image.id}", lambda i=image: client.images.remove(i.id, force=True))
     left = (
-        [f"container {c.name}" for c in client.containers.list(all=True, filters=by_label)]
+        [f"container {c.name}" for c in client.containers.list(ignore_removed=True, all=True, filters=by_label)]
         + [f"volume {v.name}" for v in client.volumes.list(filters=by_label)]
         + [f"network {n.name}" for n in client.networks.list(filters=by_label)]
         + [f"image {i.tags or i.id}" for i in client.images.list(filters=by_label)]
@@ -361,7 +361,7 @@ JOURNAL_UNITS = ["-u", "ccrp-*", "-u", "openvpn*", "-u", "cloud-final.service"]
 
 def containers_labelled(client, label: str, running: bool = False) -> list:
     try:
-        found = client.containers.list(all=not running, filters={"label": label})
+        found = client.containers.list(ignore_removed=True, all=not running, filters={"label": label})
     except docker.errors.DockerException:
         return []
     return sorted(found, key=lambda c: c.name)

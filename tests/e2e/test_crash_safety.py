@@ -70,7 +70,7 @@ def test_two_fleet_ups_at_once_the_second_waits_then_reuses(crash_fleet):
     robots = sorted(crash_fleet.state_robots())
     # Give the first run work to do: the clone of one robot is gone.
     gone = robots[-1]
-    for c in crash_fleet.client.containers.list(all=True, filters={"label": [
+    for c in crash_fleet.client.containers.list(ignore_removed=True, all=True, filters={"label": [
             f"ccrp-fleet={crash_fleet.name}", "ccrp-role=clone", f"ccrp-robot={gone}"]}):
         c.remove(force=True, v=True)
     lock = crash_fleet.home / crash_fleet.name / ".lock"

@@ -1024,7 +1024,7 @@ def test_fleet_down_leaves_nothing(fleet: E2EFleet, up):
     assert any("cri-nao1" in r for r in removed), removed
     by_label = {"label": [f"{FLEET_LABEL}={fleet.name}"]}
     left = (
-        [c.name for c in fleet.client.containers.list(all=True, filters=by_label)]
+        [c.name for c in fleet.client.containers.list(ignore_removed=True, all=True, filters=by_label)]
         + [n.name for n in fleet.client.networks.list(filters=by_label)]
         + [v.name for v in fleet.client.volumes.list(filters=by_label)]
     )

@@ -67,7 +67,7 @@ def served(tmp_path_factory):
     client = docker.from_env(timeout=60)  # booting_cloud's cleanup left nothing of the run
     run = {"label": f"ccrp-fake={boot.run}"}
     try:
-        assert (client.containers.list(all=True, filters=run), client.networks.list(filters=run),
+        assert (client.containers.list(ignore_removed=True, all=True, filters=run), client.networks.list(filters=run),
                 client.images.list(filters=run)) == ([], [], [])
     finally:
         client.close()
@@ -265,7 +265,7 @@ def test_servers_boot_console_ssh_snapshot_and_go(served):
     conn.image.delete_image(image)
     client = boot.client
     run = {"label": f"ccrp-fake={boot.run}"}
-    assert client.containers.list(all=True, filters=run) == []
+    assert client.containers.list(ignore_removed=True, all=True, filters=run) == []
     assert client.images.list(filters=run) == []
     assert [n.name for n in client.networks.list(filters=run)] == [fake.fip_network]  # the fake's own, until cleanup
     print("timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()))

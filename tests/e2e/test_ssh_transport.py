@@ -82,7 +82,7 @@ def client():
     c = docker.from_env(timeout=300)
     yield c
     # Whatever a test left behind, even after a failure.
-    for ctr in c.containers.list(all=True, filters={"label": f"ccrp-test-run={RUN}"}):
+    for ctr in c.containers.list(ignore_removed=True, all=True, filters={"label": f"ccrp-test-run={RUN}"}):
         ctr.remove(force=True, v=True)
     for img in c.images.list(filters={"label": f"ccrp-test-run={RUN}"}):
         c.images.remove(img.id, force=True)

@@ -483,7 +483,7 @@ class CloudBoot:
     def leftovers(self) -> list[str]:
         """What of this run still exists on the engine (containers, networks, images)."""
         f = {"label": f"{LABEL}={self.run}"}
-        return ([f"container {c.name}" for c in self.client.containers.list(all=True, filters=f)]
+        return ([f"container {c.name}" for c in self.client.containers.list(ignore_removed=True, all=True, filters=f)]
                 + [f"network {n.name}" for n in self.client.networks.list(filters=f)]
                 + [f"image {i.id[:19]}" for i in self.client.images.list(filters=f)])
 
@@ -493,7 +493,7 @@ class CloudBoot:
         with self.lock:
             self.closed = True
         f = {"label": f"{LABEL}={self.run}"}
-        for c in self.client.containers.list(all=True, filters=f):
+        for c in self.client.containers.list(ignore_removed=True, all=True, filters=f):
             try:
                 c.remove(force=True, v=True)
             except docker.errors.NotFound:
@@ -552,7 +552,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"run {run}: left {boot.leftovers() or 'nothing'}")
         return 0
     runs: Counter = Counter()
-    for kind in (client.containers.list(all=True, filters={"label": LABEL}), client.networks.list(filters={"label": LABEL}),
+    for kind in (client.containers.list(ignore_removed=True, all=True, filters={"label": LABEL}), client.networks.list(filters={"label": LABEL}),
                  client.images.list(filters={"label": LABEL})):
         for obj in kind:
             runs[(obj.attrs.get("Config") or obj.attrs).get("Labels", {}).get(LABEL)] += 1

@@ -16,7 +16,7 @@ def open_backend(tmp_path: Path, fleet: str):
     label = {"label": [f"ccrp-fleet={fleet}"]}
 
     def owned() -> list[str]:
-        return ([f"container {c.name}" for c in client.containers.list(all=True, filters=label)]
+        return ([f"container {c.name}" for c in client.containers.list(ignore_removed=True, all=True, filters=label)]
                 + [f"volume {v.name}" for v in client.volumes.list(filters=label)]
                 + [f"network {n.name}" for n in client.networks.list(filters=label)])
 
@@ -27,7 +27,7 @@ def open_backend(tmp_path: Path, fleet: str):
     try:
         yield Backend(kind="docker", inventory=inv, home=tmp_path / "home", owned=owned)
     finally:
-        for c in client.containers.list(all=True, filters=label):
+        for c in client.containers.list(ignore_removed=True, all=True, filters=label):
             c.remove(force=True, v=True)
         for v in client.volumes.list(filters=label):
             v.remove(force=True)
