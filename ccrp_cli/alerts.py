@@ -8,6 +8,8 @@ from __future__ import annotations
 import datetime as dt
 from typing import Any
 
+from .models.status import StatusRow
+
 # A certificate or the CRL this close to its end is an alert (as `ccrp vpn list` warns of the CRL);
 # under ERROR_DAYS it is an error.
 WARN_DAYS = 30
@@ -18,23 +20,21 @@ def _alert(level: str, kind: str, robot: str | None, text: str) -> dict:
     return {"level": level, "kind": kind, "robot": robot, "text": text}
 
 
-def row_alerts(row: dict) -> list[dict]:
+def row_alerts(row: StatusRow) -> list[dict]:
     """Alerts of one robot from its status row: clone down, robot disconnected, relay peer down,
     robot brainless (its watchdog lost the clone: most often because the clone is down)."""
     alerts = clone_alerts(row)
-    p = row.get("power") or {}
-    if p.get("robot") == "off":  # switched off on purpose: not a disconnection to warn of
+    robot, p, w = row.robot, row.power, row.watchdog
+    if p is not None and p.robot == "off":  # switched off on purpose: not a disconnection to warn of
         alerts = [a for a in alerts if a["kind"] != "robot-disconnected"]
-        alerts.append(_alert("info", "robot-powered-off", row["robot"],
-                             f"{row['robot']} is powered off (its power device reported it at {p['reported_at'][11:19]} UTC)"))
-    if p.get("silent"):
-        alerts.append(_alert("warning", "power-device-silent", row["robot"],
-                             f"the power device of {row['robot']} has not reported for {p['age_s']:.0f} s (it reports every 3 s)"))
-    w = row.get("watchdog") or {}
-    if w.get("state") == "brainless":
-        robot = row["robot"]
-        since = f" since {w['since'][11:19]} UTC" if w.get("since") else ""
-        motors = f" (motors {w['motors']})" if w.get("motors") else ""
+        alerts.append(_alert("info", "robot-powered-off", robot,
+                             f"{robot} is powered off (its power device reported it at {(p.reported_at or '')[11:19]} UTC)"))
+    if p is not None and p.silent:
+        alerts.append(_alert("warning", "power-device-silent", robot,
+                             f"the power device of {robot} has not reported for {p.age_s or 0:.0f} s (it reports every 3 s)"))
+    if w is not None and w.state == "brainless":
+        since = f" since {w.since[11:19]} UTC" if w.since else ""
+        motors = f" (motors {w.motors})" if w.motors else ""
         alerts.append(_alert("error", "robot-brainless", robot,
                              f"{robot} is brainless{since}: its watchdog lost the clone and ran its fallback{motors}"))
     return alerts
@@ -44,45 +44,44 @@ def row_alerts(row: dict) -> list[dict]:
 RESTART_LOOP = 3
 
 
-def clone_alerts(row: dict) -> list[dict]:
-    robot, status = row["robot"], row["status"]
+def clone_alerts(row: StatusRow) -> list[dict]:
+    robot, status = row.robot, row.status
     if status == "stopped (idle)":
         return [_alert("info", "clone-stopped-idle", robot,
                        f"clone of {robot} stopped itself: its robot stayed away (start it to bring it back)")]
     if status == "absent":
-        if row.get("revoked_at"):
-            return [_alert("info", "robot-revoked", robot, f"{robot} is revoked since {row['revoked_at'][:10]}")]
-        if row.get("phase") == "planned":
+        if row.revoked_at:
+            return [_alert("info", "robot-revoked", robot, f"{robot} is revoked since {row.revoked_at[:10]}")]
+        if row.phase == "planned":
             return [_alert("info", "clone-absent", robot, f"{robot} has no clone yet (fleet up creates it)")]
         return [_alert("error", "clone-down", robot, f"clone of {robot} is gone (fleet up creates it again)")]
-    if row.get("unreachable"):
+    if row.unreachable:
         return [_alert("error", "clone-unreachable", robot,
                        f"clone of {robot} is listed {status.split(' (')[0]} but does not answer (booting, or shutting down)")]
     if status != "running":
         return [_alert("error", "clone-down", robot, f"clone of {robot} is down ({status})")]
     alerts = []
-    if row.get("secrets") is False:
+    if row.secrets is False:
         alerts.append(_alert("error", "clone-keys-gone", robot, f"clone of {robot} lost its keys (fleet up pushes them)"))
-    if not row.get("master_reachable"):
-        what = "ROS master" if row.get("ros_distro", "noetic") == "noetic" else "ROS 2 graph"  # docs/ros2.md
+    if not row.master_reachable:
+        what = "ROS master" if row.ros_distro == "noetic" else "ROS 2 graph"  # docs/ros2.md
         alerts.append(_alert("error", "master-down", robot, f"{what} of {robot}'s clone does not answer"))
-    if row.get("revoked_at"):
-        if row.get("vpn_connected"):
+    if row.revoked_at:
+        if row.vpn_connected:
             alerts.append(_alert("error", "revoked-connected", robot,
                                  f"{robot} is revoked but still connected (run vpn revoke again if it stays)"))
         else:
-            alerts.append(_alert("info", "robot-revoked", robot, f"{robot} is revoked since {row['revoked_at'][:10]}"))
-    elif not row.get("vpn_connected"):
-        stale = row.get("stale_nodes") or []
-        extra = f"; stale nodes on its master: {', '.join(stale)}" if stale else ""
+            alerts.append(_alert("info", "robot-revoked", robot, f"{robot} is revoked since {row.revoked_at[:10]}"))
+    elif not row.vpn_connected:
+        extra = f"; stale nodes on its master: {', '.join(row.stale_nodes)}" if row.stale_nodes else ""
         alerts.append(_alert("warning", "robot-disconnected", robot, f"{robot} is not connected to its clone{extra}"))
-    for node in row.get("nodes") or []:  # the robot's own software (docs/workloads.md)
-        if node["state"] == "failed" or (node.get("restarts") or 0) >= RESTART_LOOP:
+    for node in row.nodes or []:  # the robot's own software (docs/workloads.md)
+        if node.state == "failed" or (node.restarts or 0) >= RESTART_LOOP:
             alerts.append(_alert("error", "node-failing", robot,
-                                 f"node {node['name']} on {robot}'s clone is {node['state']} after {node.get('restarts') or 0} "
-                                 f"restart(s): ccrp logs --robot {robot} {node['name']}"))
-    peers = row.get("relay_peers") or {}
-    if peers and not row.get("relay_running"):
+                                 f"node {node.name} on {robot}'s clone is {node.state} after {node.restarts or 0} "
+                                 f"restart(s): ccrp logs --robot {robot} {node.name}"))
+    peers = row.relay_peers
+    if peers and not row.relay_running:
         alerts.append(_alert("error", "relay-down", robot, f"relay of {robot}'s clone is not running: nothing is shared"))
     else:
         down = sorted(p for p, up in peers.items() if not up)
@@ -134,8 +133,8 @@ def pki_alerts(pki, robots: list[str], now: dt.datetime | None = None) -> list[d
 LEVELS = {"error": 0, "warning": 1, "info": 2}
 
 
-def fleet_alerts(fleet, rows: list[dict]) -> list[dict]:
+def fleet_alerts(fleet, rows: list[StatusRow]) -> list[dict]:
     """Every alert of the fleet, from its status rows and its PKI, most serious first."""
     alerts = [a for row in rows for a in row_alerts(row)]
-    alerts += pki_alerts(fleet.pki, [r["robot"] for r in rows])
+    alerts += pki_alerts(fleet.pki, [r.robot for r in rows])
     return sorted(alerts, key=lambda a: LEVELS[a["level"]])

@@ -13,6 +13,7 @@ from .errors import CcrpError
 from .fleet import Fleet
 from .sharing import relay_config
 from .power import parse_report
+from .models.status import StatusRow
 from .providers.base import CloneState
 
 
@@ -52,7 +53,7 @@ def wait_connected(provider, robot: str, timeout: float) -> dict:
     return {"robot": robot, "seconds": round(time.monotonic() - t0, 2), "address": client["real_address"], "nodes": nodes}
 
 
-def fleet_status(fleet: Fleet, provider) -> list[dict]:
+def fleet_status(fleet: Fleet, provider) -> list[StatusRow]:
     state = fleet.store.load_state()
     actual = provider.query()
     plan = fleet.plan(state)
@@ -60,64 +61,54 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
     index = fleet.pki.load_index() if fleet.pki.exists() else None
     revoked = {r: fleet.pki.revoked_since(r, index) for r in plan} if index else {}
 
-    def one(robot: str) -> dict:
+    def one(robot: str) -> StatusRow:
         rec = actual.get(robot)
         a = plan[robot]
-        row = {
-            "robot": robot,
-            "clone": a.clone_host,
-            "phase": state.robots[robot].phase if robot in state.robots else "planned",
-            "status": rec.status if rec else "absent",
-            "state": rec.state.value if rec else "absent",  # ccrp's word for it, the same on every provider
-            "public_ip": rec.public_ip if rec else None,
-            "common_ip": str(a.common_ip),
-            "vpn_subnet": str(a.vpn_subnet),
-            "vpn_connected": False,
-            "secrets": None,
-            "robot_address": None,
-            "robot_rtt_ms": None,  # one ICMP echo from the clone to the robot through its tunnel
-            "master_reachable": False,
-            # ROS 2 has no master: master_reachable then says whether the clone's graph answered.
-            "ros_distro": fleet.inventory.ros.distro,
-            "robot_nodes": [],
-            "stale_nodes": [],
-            "relay_running": False,
-            "relay_peers": {},
-            "revoked_at": revoked[robot].isoformat() if revoked.get(robot) else None,
-            "autostop_idle_s": fleet.inventory.idle_of(fleet.robot(state, robot)) or None,
-            "stopped_idle": None,
-            "unreachable": None,
-            "api_manager": api_manager_row(fleet.inventory, fleet.robot(state, robot), None),
-            "knowledge": knowledge_row(fleet, state, robot, None),
-            # The robot's own nodes (docs/workloads.md): None where it runs none.
-            "nodes": None,
-        }
+        row = StatusRow(
+            robot=robot,
+            clone=a.clone_host,
+            phase=state.robots[robot].phase if robot in state.robots else "planned",
+            status=rec.status if rec else "absent",
+            state=rec.state.value if rec else "absent",
+            public_ip=rec.public_ip if rec else None,
+            common_ip=str(a.common_ip),
+            vpn_subnet=str(a.vpn_subnet),
+            ros_distro=fleet.inventory.ros.distro,
+            revoked_at=revoked[robot].isoformat() if revoked.get(robot) else None,
+            autostop_idle_s=fleet.inventory.idle_of(fleet.robot(state, robot)) or None,
+            api_manager=api_manager_row(fleet.inventory, fleet.robot(state, robot), None),
+            knowledge=knowledge_row(fleet, state, robot, None),
+        )
         if rec and rec.state is CloneState.STOPPED:
             note = provider.stop_note(robot)
             if note:  # its robot stayed away: the clone's autostop agent powered it off
-                row["status"], row["stopped_idle"] = "stopped (idle)", note
+                row.status, row.stopped_idle = "stopped (idle)", note
         if rec and rec.state is CloneState.RUNNING:
             try:
                 h = health(provider, robot)
-            except CcrpError as exc:
-                # Running to the cloud but not answering: booting, or shutting down (autostop, a
-                # poweroff). One such clone must not hide the others' status.
-                row["status"], row["unreachable"] = f"{rec.status} (unreachable)", exc.one_line()
-                return row
-            client, nodes = robot_link(h, robot)
-            row["vpn_connected"] = client is not None
-            # The master keeps a node registered after its robot's session ended: without the
-            # session, it is a name on the master, not a robot that answers.
-            row["robot_nodes"], row["stale_nodes"] = (nodes, []) if client else ([], nodes)
-            row["secrets"] = h.get("secrets")
-            row["robot_address"] = client["real_address"] if client else None
-            row["robot_rtt_ms"] = client.get("rtt_ms") if client else None
-            row["master_reachable"] = h["master"]["reachable"]
-            row["relay_running"], row["relay_peers"] = relay_link(h, list(relay_config(fleet, state, robot)["peers"]))
-            row["api_manager"] = api_manager_row(fleet.inventory, fleet.robot(state, robot), h)
-            row["knowledge"] = knowledge_row(fleet, state, robot, h)
-            row["power"] = parse_report(h.get("power") or "")  # None: no device reported since the clone booted
-            row["nodes"] = h.get("nodes") or None
+                client, nodes = robot_link(h, robot)
+                # The master keeps a node registered after its robot's session ended: without the
+                # session, it is a name on the master, not a robot that answers.
+                update = {
+                    "vpn_connected": client is not None,
+                    "robot_nodes": nodes if client else [], "stale_nodes": [] if client else nodes,
+                    "secrets": h.get("secrets"),
+                    "robot_address": client["real_address"] if client else None,
+                    "robot_rtt_ms": client.get("rtt_ms") if client else None,
+                    "master_reachable": h["master"]["reachable"],
+                    "api_manager": api_manager_row(fleet.inventory, fleet.robot(state, robot), h),
+                    "knowledge": knowledge_row(fleet, state, robot, h),
+                    "power": parse_report(h.get("power") or ""),  # None: no device reported since the clone booted
+                    "nodes": h.get("nodes") or None,
+                }
+                update["relay_running"], update["relay_peers"] = relay_link(h, list(relay_config(fleet, state, robot)["peers"]))
+                row = StatusRow.model_validate(row.model_dump() | update)
+            except (CcrpError, KeyError, TypeError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
+                # Running to the cloud but not answering (booting, or shutting down: autostop, a
+                # poweroff), or answering with a report that is not one. One such clone must not
+                # hide the others' status.
+                why = exc.one_line() if isinstance(exc, CcrpError) else f"its health report is malformed ({type(exc).__name__})"
+                row.status, row.unreachable = f"{rec.status} (unreachable)", why
         return row
 
     robots = list(plan)
@@ -130,5 +121,5 @@ def fleet_status(fleet: Fleet, provider) -> list[dict]:
         rows = list(pool.map(one, robots))
         seen = sims.result()
     for row in rows:
-        watchdog.join(row, seen.get(row["robot"]))
+        watchdog.join(row, seen.get(row.robot))
     return rows

@@ -13,6 +13,8 @@ import datetime as dt
 import logging
 from concurrent.futures import ThreadPoolExecutor
 
+from .models.status import Power, StatusRow, Watchdog
+
 log = logging.getLogger("ccrp.watchdog")
 
 STATE_FILE = "/run/ccrp/clone-state"  # CCRP_WATCHDOG_STATE's default, which the bundle keeps
@@ -40,21 +42,21 @@ def _files(out: str) -> dict[str, str]:
 
 # The power column of a simulated robot whose device has not started yet (the first `ccrp robot
 # power` starts it): its power is on.
-NO_DEVICE_YET = {"relay": None, "robot": None, "reported_at": None, "age_s": None, "silent": False}
+NO_DEVICE_YET = Power()
 
 
-def parse(out: str) -> dict:
-    """The READ command's output -> {"state", "since", "source", "motors"}."""
+def parse(out: str) -> Watchdog:
+    """The READ command's output, as the robot's watchdog."""
     files = {path: rest.split() for path, rest in _files(out).items()}
     state, motors = files.get(STATE_FILE) or [], files.get(MOTORS_FILE) or []
     word = STATES.get(state[0]) if state else None
-    return {"state": word or "starting",  # no file yet: the watchdog has not decided (first seconds)
-            "since": _when(state[1]) if word and len(state) > 1 else None,
-            "source": "simulated robot",
-            "motors": motors[0] if motors else "enabled"}  # the hook has never run: as the robot started
+    return Watchdog(state=word or "starting",  # no file yet: the watchdog has not decided (first seconds)
+                    since=_when(state[1]) if word and len(state) > 1 else None,
+                    source="simulated robot",
+                    motors=motors[0] if motors else "enabled")  # the hook has never run: as the robot started
 
 
-def simulated(fleet, provider) -> dict[str, dict]:
+def simulated(fleet, provider) -> dict[str, Watchdog]:
     """robot -> its watchdog's state, for the fleet's simulated robots running on this host."""
     from .providers.base import LABEL_ROBOT
     from .simulated import Sims
@@ -67,7 +69,7 @@ def simulated(fleet, provider) -> dict[str, dict]:
         log.debug("no simulated robots read: %s", exc)
         return {}
 
-    def one(robot: str) -> tuple[str, dict | None]:
+    def one(robot: str) -> tuple[str, Watchdog | None]:
         try:
             rc, out = sims.exec(robot, READ, timeout=10)
         except Exception as exc:  # noqa: BLE001 - removed meanwhile: no state, the others still count
@@ -83,43 +85,41 @@ def simulated(fleet, provider) -> dict[str, dict]:
         return {r: s for r, s in pool.map(one, robots) if s is not None}
 
 
-def join(row: dict, sim: dict | None) -> None:
+def join(row: StatusRow, sim: Watchdog | None) -> None:
     """A status row's watchdog and power columns, from its simulated robot's watchdog (`sim`, None
-    for a robot not simulated here) and its power device's report on the clone (row["power"])."""
-    row["watchdog"] = sim or inferred(row)
-    p = row.setdefault("power", None)
+    for a robot not simulated here) and its power device's report on the clone (row.power)."""
+    row.watchdog = sim or inferred(row)
+    p = row.power
     if p is None and sim is not None:  # a simulated robot gets its device at the first `robot power`
-        row["power"] = NO_DEVICE_YET
-    elif p is not None and p["robot"] == "off":  # no watchdog runs on a robot powered off
-        row["watchdog"] = {"state": "off", "since": p["reported_at"], "source": "power device", "motors": None}
+        row.power = NO_DEVICE_YET
+    elif p is not None and p.robot == "off":  # no watchdog runs on a robot powered off
+        row.watchdog = Watchdog(state="off", since=p.reported_at, source="power device")
 
 
-def inferred(row: dict) -> dict:
+def inferred(row: StatusRow) -> Watchdog:
     """A robot without a simulated robot here: what its clone's side tells."""
-    if row.get("vpn_connected") and row.get("master_reachable"):
-        return {"state": "connected", "since": None, "source": "clone", "motors": None}
-    return {"state": "unknown", "since": None, "source": "clone", "motors": None}
+    return Watchdog(state="connected" if row.vpn_connected and row.master_reachable else "unknown", source="clone")
 
 
-def power_cell(p: dict | None) -> str:
+def power_cell(p: Power | None) -> str:
     """`ccrp status`'s POWER column."""
     if not p:
         return "-"
-    if p["relay"] is None:
+    if p.relay is None:
         return "on (device not started)"
-    text = p["relay"] if p["robot"] in ("running", "off") else f"{p['relay']} (robot {p['robot']})"
-    return text + (f" (device silent for {p['age_s']:.0f} s)" if p.get("silent") else "")
+    text = p.relay if p.robot in ("running", "off") else f"{p.relay} (robot {p.robot})"
+    return text + (f" (device silent for {p.age_s:.0f} s)" if p.silent else "")
 
 
-def cell(w: dict | None) -> str:
+def cell(w: Watchdog | None) -> str:
     """`ccrp status`'s WATCHDOG column."""
-    if not w or w["state"] == "unknown":
+    if not w or w.state == "unknown":
         return "-"
-    if w["state"] == "off":
+    if w.state == "off":
         return "off (robot powered off)"
-    text = w["state"]
-    if w.get("since"):
-        text += f" since {w['since'][11:19]}"
-    if w["state"] == "brainless" and w.get("motors"):
-        text += f" (motors {w['motors']})"
-    return text + (" (seen from clone)" if w["source"] == "clone" else "")
+    text = w.state
+    if w.since:
+        text += f" since {w.since[11:19]}"
+    if w.state == "brainless" and w.motors:
+        text += f" (motors {w.motors})"
+    return text + (" (seen from clone)" if w.source == "clone" else "")

@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from ..models.status import StatusRow
 from ..alerts import ERROR_DAYS, WARN_DAYS, _alert, pki_alerts, row_alerts  # noqa: F401 - the page's alerts
 
 # The fields of a `fleet_status` row the page gets (a whitelist: a field added to `ccrp status`
@@ -27,9 +28,9 @@ ROW_FIELDS = (
 )
 
 
-def public_row(row: dict) -> dict:
+def public_row(row: StatusRow) -> dict:
     # `unreachable` is the error of the failed health check: the page gets only whether it failed.
-    return {k: row.get(k) for k in ROW_FIELDS} | {"unreachable": bool(row.get("unreachable"))}
+    return row.model_dump(mode="json", include=set(ROW_FIELDS)) | {"unreachable": bool(row.unreachable)}
 
 
 class Broker:
@@ -102,7 +103,7 @@ class Monitor(threading.Thread):
     """Polls `read()` (the fleet's status rows) every `interval` seconds and publishes the fleet
     event: rows, alerts and when it was read. A failed read becomes an alert, not a dead thread."""
 
-    def __init__(self, broker: Broker, read: Callable[[], list[dict]], pki_check: Callable[[list[str]], list[dict]],
+    def __init__(self, broker: Broker, read: Callable[[], list[StatusRow]], pki_check: Callable[[list[str]], list[dict]],
                  interval: float, fleet_name: str, provider_kind: str, ros2: bool = False) -> None:
         super().__init__(name="ccrp-dashboard-monitor", daemon=True)
         self.broker, self.read, self.pki_check = broker, read, pki_check
@@ -115,14 +116,15 @@ class Monitor(threading.Thread):
         t0 = time.monotonic()
         alerts: list[dict] = []
         try:
-            rows = [public_row(r) for r in self.read()]
+            read = self.read()
         except Exception as exc:  # noqa: BLE001 - shown on the page; the next poll tries again
-            rows = None
+            read = None
             alerts.append(_alert("error", "status-failed", None, f"reading the fleet's status failed: {_one_line(exc)}"))
-        for row in rows or []:
+        for row in read or []:
             alerts.extend(row_alerts(row))
+        rows = [public_row(r) for r in read] if read is not None else None
         try:
-            alerts.extend(self.pki_check([r["robot"] for r in rows or []]))
+            alerts.extend(self.pki_check([r.robot for r in read or []]))
         except Exception as exc:  # noqa: BLE001
             alerts.append(_alert("error", "pki-failed", None, f"reading the fleet's PKI failed: {_one_line(exc)}"))
         self.reads += 1

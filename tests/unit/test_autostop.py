@@ -161,7 +161,28 @@ def test_status_shows_a_clone_stopped_idle_and_one_that_does_not_answer(lab_up):
     from ccrp_cli.status import fleet_status
 
     fleet, _ = lab_up
-    rows = {r["robot"]: r for r in fleet_status(fleet, Clones())}
-    assert rows["nao1"]["status"] == "stopped (idle)" and "not connected for 31 s" in rows["nao1"]["stopped_idle"]
-    assert rows["nao2"]["status"] == "ACTIVE (unreachable)" and "port 22" in rows["nao2"]["unreachable"]
-    assert rows["turtlebot1"]["master_reachable"] is True and rows["turtlebot1"]["unreachable"] is None
+    rows = {r.robot: r for r in fleet_status(fleet, Clones())}
+    assert rows["nao1"].status == "stopped (idle)" and "not connected for 31 s" in rows["nao1"].stopped_idle
+    assert rows["nao2"].status == "ACTIVE (unreachable)" and "port 22" in rows["nao2"].unreachable
+    assert rows["turtlebot1"].master_reachable is True and rows["turtlebot1"].unreachable is None
+
+
+class Garbled(Clones):
+    """nao2 answers with a health report that is not one (a node without a name, a power device
+    word ccrp does not know): what a tampered agent's status file on the clone could give."""
+
+    def exec(self, robot, argv, timeout=60):
+        if robot == "nao2":
+            return 0, json.dumps({"vpn": {"up": True, "clients": []}, "master": {"reachable": True, "nodes": {}},
+                                  "nodes": [{"state": "active"}]})
+        return super().exec(robot, argv, timeout)
+
+
+def test_a_malformed_health_report_marks_its_row_not_the_whole_status(lab_up):
+    from ccrp_cli.status import fleet_status
+
+    fleet, _ = lab_up
+    rows = {r.robot: r for r in fleet_status(fleet, Garbled())}
+    assert rows["nao2"].status == "ACTIVE (unreachable)"
+    assert rows["nao2"].unreachable == "its health report is malformed (ValidationError)" and rows["nao2"].nodes is None
+    assert rows["turtlebot1"].master_reachable is True and rows["turtlebot1"].unreachable is None

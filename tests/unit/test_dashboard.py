@@ -20,6 +20,7 @@ from fastapi.testclient import TestClient  # noqa: E402
 from ccrp_cli.dashboard.app import Actions, Teleop, create_app  # noqa: E402
 from ccrp_cli.dashboard.auth import Auth, allowed_hosts  # noqa: E402
 from ccrp_cli.dashboard.events import Broker, Monitor, pki_alerts, row_alerts  # noqa: E402
+from ccrp_cli.models.status import StatusRow  # noqa: E402
 from ccrp_cli.dashboard.server import parse_bind  # noqa: E402
 from ccrp_cli.errors import InputError  # noqa: E402
 
@@ -28,13 +29,13 @@ PORT = 8080
 BASE = f"http://127.0.0.1:{PORT}"
 
 
-def row(robot="nao1", **changes) -> dict:
-    base = {"robot": robot, "clone": f"cri-{robot}", "phase": "ready", "status": "running", "public_ip": "172.30.0.3",
-            "common_ip": "10.90.0.10", "vpn_subnet": "10.80.1.0/24", "vpn_connected": True, "secrets": True,
-            "robot_address": "172.30.0.5:5000", "master_reachable": True, "robot_nodes": [f"/{robot}_demo"],
-            "stale_nodes": [], "relay_running": True, "relay_peers": {"nao2": True}, "revoked_at": None,
-            "autostop_idle_s": None, "stopped_idle": None, "unreachable": None, "password": "never-shown"}
-    return base | changes
+def row(robot="nao1", **changes) -> StatusRow:
+    base = {"robot": robot, "clone": f"cri-{robot}", "phase": "ready", "status": "running", "state": "running",
+            "public_ip": "172.30.0.3", "common_ip": "10.90.0.10", "vpn_subnet": "10.80.1.0/24", "vpn_connected": True,
+            "secrets": True, "robot_address": "172.30.0.5:5000", "master_reachable": True, "ros_distro": "noetic",
+            "robot_nodes": [f"/{robot}_demo"], "relay_running": True, "relay_peers": {"nao2": True},
+            "api_manager": {"running": True, "backend": "opencv", "last_error": "a backend's answer, not for the page"}}
+    return StatusRow(**(base | changes))
 
 
 class Dashboard:
@@ -598,7 +599,8 @@ def test_the_page_gets_every_row_field_it_reads():
     assert {"state", "robot_rtt_ms", "vpn_connected"} <= read
     assert read <= set(ROW_FIELDS) | {"unreachable"}, read - set(ROW_FIELDS)
     assert public_row(row(state="stopped", robot_rtt_ms=1.5))["state"] == "stopped"
-    assert "password" not in public_row(row())
+    assert "api_manager" not in public_row(row())  # not in the whitelist: never on the page
+    assert public_row(row(unreachable="exec failed: boom"))["unreachable"] is True  # whether, not the error
 
 
 def test_the_guard_closes_a_websocket_before_any_app_sees_it_and_lets_lifespan_through():

@@ -181,10 +181,12 @@ def test_watchdog_icmp_check_answers_for_loopback_and_not_for_a_silent_address()
 
 def test_a_ros2_clone_whose_graph_does_not_answer_is_named_so():
     from ccrp_cli.alerts import clone_alerts
+    from ccrp_cli.models.status import StatusRow
 
-    row = {"robot": "nao1", "status": "running", "secrets": True, "master_reachable": False, "vpn_connected": True}
-    assert "ROS master of nao1's clone" in clone_alerts(row)[0]["text"]
-    assert "ROS 2 graph of nao1's clone" in clone_alerts(row | {"ros_distro": "jazzy"})[0]["text"]
+    row = dict(robot="nao1", clone="cri-nao1", phase="ready", status="running", state="running", common_ip="10.90.0.10",
+               vpn_subnet="10.80.1.0/24", secrets=True, master_reachable=False, vpn_connected=True)
+    assert "ROS master of nao1's clone" in clone_alerts(StatusRow(**row, ros_distro="noetic"))[0]["text"]
+    assert "ROS 2 graph of nao1's clone" in clone_alerts(StatusRow(**row, ros_distro="jazzy"))[0]["text"]
 
 
 def test_bench_is_refused_on_a_ros2_fleet_in_one_line(jazzy):

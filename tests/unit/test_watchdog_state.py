@@ -9,6 +9,7 @@ import json
 
 from ccrp_cli import watchdog
 from ccrp_cli.alerts import fleet_alerts, row_alerts
+from ccrp_cli.models.status import Power, StatusRow
 from ccrp_cli.providers.base import LABEL_ROBOT
 
 T = 1795000000.25
@@ -20,31 +21,32 @@ def out(state: str | None, motors: str | None) -> str:
 
 
 def test_the_state_files_of_a_simulated_robot():
-    assert watchdog.parse(out(f"ok {T}", None)) == {
+    assert watchdog.parse(out(f"ok {T}", None)).model_dump() == {
         "state": "connected", "since": SINCE, "source": "simulated robot", "motors": "enabled"}
     got = watchdog.parse(out(f"lost {T}", f"stopped {T}"))
-    assert got["state"] == "brainless" and got["since"] == SINCE and got["motors"] == "stopped"
-    assert watchdog.parse(out(None, None))["state"] == "starting"  # before the watchdog's first check
-    assert watchdog.parse(out("garbage", None))["state"] == "starting"
-    assert watchdog.parse(out(f"ok {T}", None))["since"].endswith("+00:00")
-    assert watchdog.parse(out("lost notatime", None)) == {
+    assert got.state == "brainless" and got.since == SINCE and got.motors == "stopped"
+    assert watchdog.parse(out(None, None)).state == "starting"  # before the watchdog's first check
+    assert watchdog.parse(out("garbage", None)).state == "starting"
+    assert watchdog.parse(out(f"ok {T}", None)).since.endswith("+00:00")
+    assert watchdog.parse(out("lost notatime", None)).model_dump() == {
         "state": "brainless", "since": None, "source": "simulated robot", "motors": "enabled"}
 
 
 def test_a_real_robot_is_seen_from_its_clone():
-    assert watchdog.inferred({"vpn_connected": True, "master_reachable": True})["state"] == "connected"
-    assert watchdog.inferred({"vpn_connected": False, "master_reachable": True})["state"] == "unknown"
-    assert watchdog.inferred({"vpn_connected": True, "master_reachable": False})["state"] == "unknown"
-    assert watchdog.cell(watchdog.inferred({"vpn_connected": True, "master_reachable": True})) == "connected (seen from clone)"
-    assert watchdog.cell(watchdog.inferred({})) == "-"
+    assert watchdog.inferred(base_row()).state == "connected"
+    assert watchdog.inferred(base_row(vpn_connected=False)).state == "unknown"
+    assert watchdog.inferred(base_row(master_reachable=False)).state == "unknown"
+    assert watchdog.cell(watchdog.inferred(base_row())) == "connected (seen from clone)"
+    assert watchdog.cell(watchdog.inferred(base_row(vpn_connected=False))) == "-"
     assert watchdog.cell(watchdog.parse(out(f"lost {T}", f"stopped {T}"))) == f"brainless since {SINCE[11:19]} (motors stopped)"
 
 
-def base_row(**changes) -> dict:
-    row = {"robot": "nao1", "status": "running", "phase": "ready", "vpn_connected": True, "secrets": True,
-           "master_reachable": True, "relay_running": True, "relay_peers": {}, "revoked_at": None,
-           "stale_nodes": [], "watchdog": watchdog.parse(out(f"ok {T}", None))}
-    return row | changes
+def base_row(**changes) -> StatusRow:
+    row = {"robot": "nao1", "clone": "cri-nao1", "status": "running", "state": "running", "phase": "ready",
+           "common_ip": "10.90.0.10", "vpn_subnet": "10.80.1.0/24", "ros_distro": "noetic", "vpn_connected": True,
+           "secrets": True, "master_reachable": True, "relay_running": True,
+           "watchdog": watchdog.parse(out(f"ok {T}", None))}
+    return StatusRow(**(row | changes))
 
 
 def test_a_brainless_robot_is_an_alert_also_when_its_clone_is_down():
@@ -55,7 +57,7 @@ def test_a_brainless_robot_is_an_alert_also_when_its_clone_is_down():
     assert alerts[1]["level"] == "error" and alerts[1]["robot"] == "nao1"
     assert alerts[1]["text"] == (f"nao1 is brainless since {SINCE[11:19]} UTC: its watchdog lost the clone and ran "
                                  "its fallback (motors stopped)")
-    assert [a["kind"] for a in row_alerts(base_row(watchdog=watchdog.inferred({})))] == []
+    assert [a["kind"] for a in row_alerts(base_row(watchdog=watchdog.inferred(base_row(vpn_connected=False))))] == []
 
 
 class Host:
@@ -95,7 +97,8 @@ def test_simulated_robots_are_read_in_their_containers(lab_up):
     fleet, _ = lab_up
     host = Host()
     got = watchdog.simulated(fleet, host)
-    assert got == {"nao1": {"state": "brainless", "since": SINCE, "source": "simulated robot", "motors": "stopped"}}
+    assert {r: w.model_dump() for r, w in got.items()} == {
+        "nao1": {"state": "brainless", "since": SINCE, "source": "simulated robot", "motors": "stopped"}}
     assert host.listed["filters"] == {"label": ["role=robot-sim"]} and "all" not in host.listed  # running ones
     assert all(role == "robot-sim" and argv == watchdog.READ for _, argv, role in host.ran)
     assert watchdog.simulated(fleet, object()) == {}  # no Docker to ask: no simulated robots
@@ -124,10 +127,10 @@ def test_the_power_device_report_and_what_it_changes(lab_up):
     report = lambda relay, robot, t: json.dumps({"relay": relay, "robot": robot, "t": t, "device_t": t})  # noqa: E731
     p = power.parse_report(report("off", "off", now - 1))
     assert p["relay"] == "off" and p["robot"] == "off" and not p["silent"] and p["age_s"] < 3
-    assert watchdog.power_cell(p) == "off"
+    assert watchdog.power_cell(Power(**p)) == "off"
     silent = power.parse_report(report("on", "running", now - 30))
-    assert silent["silent"] and watchdog.power_cell(silent).startswith("on (device silent for")
-    assert watchdog.power_cell(power.parse_report(report("on", "starting", now))) == "on (robot starting)"
+    assert silent["silent"] and watchdog.power_cell(Power(**silent)).startswith("on (device silent for")
+    assert watchdog.power_cell(Power(**power.parse_report(report("on", "starting", now)))) == "on (robot starting)"
     assert watchdog.power_cell(watchdog.NO_DEVICE_YET) == "on (device not started)"
     assert watchdog.power_cell(None) == "-"
     for bad in ("", "{", '{"relay": "maybe", "robot": "off", "t": 1}', '{"relay": "on", "robot": "off"}'):
@@ -135,21 +138,22 @@ def test_the_power_device_report_and_what_it_changes(lab_up):
     # Powered off on purpose: an info alert instead of the disconnection warning; a silent device warns.
     off = base_row(vpn_connected=False, power=p, watchdog={"state": "off", "since": p["reported_at"],
                                                            "source": "power device", "motors": None})
+    assert off.power.relay == "off" and off.watchdog.state == "off"
     assert [(a["level"], a["kind"]) for a in row_alerts(off)] == [("info", "robot-powered-off")]
     assert [a["kind"] for a in row_alerts(base_row(power=silent))] == ["power-device-silent"]
-    assert watchdog.cell(off["watchdog"]) == "off (robot powered off)"
+    assert watchdog.cell(off.watchdog) == "off (robot powered off)"
     # Joined into a status row: a robot its device reports off runs no watchdog, whatever its
     # simulated robot's state file says; a simulated robot without a device yet has power on.
     lost = watchdog.parse(out(f"lost {T}", f"stopped {T}"))
     row = base_row(vpn_connected=False, power=p)
     watchdog.join(row, lost)
-    assert row["watchdog"]["state"] == "off" and row["watchdog"]["source"] == "power device"
-    row = {k: v for k, v in base_row().items() if k not in ("power", "watchdog")}
+    assert row.watchdog.state == "off" and row.watchdog.source == "power device"
+    row = base_row(watchdog=None)
     watchdog.join(row, lost)
-    assert row["watchdog"] == lost and row["power"] == watchdog.NO_DEVICE_YET
-    real = {k: v for k, v in base_row(vpn_connected=False).items() if k not in ("power", "watchdog")}
+    assert row.watchdog == lost and row.power == watchdog.NO_DEVICE_YET
+    real = base_row(vpn_connected=False, watchdog=None)
     watchdog.join(real, None)  # a real robot without a device: no power column
-    assert real["power"] is None and real["watchdog"]["state"] == "unknown"
+    assert real.power is None and real.watchdog.state == "unknown"
 
 
 def test_robot_power_refuses_bad_input(ccrp, tmp_path, lab_up):

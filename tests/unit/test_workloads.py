@@ -286,8 +286,10 @@ def test_health_reports_each_node_with_its_restarts(tmp_path, monkeypatch):
                     {"name": "faces", "state": "activating", "sub": "auto-restart", "restarts": 7, "digest": "d2"}]
     assert health.nodes(str(tmp_path / "none.json")) is None
     from ccrp_cli.alerts import clone_alerts
+    from ccrp_cli.models.status import StatusRow
 
-    row = {"robot": "nao1", "status": "running", "master_reachable": True, "vpn_connected": True, "nodes": rows}
+    row = StatusRow(robot="nao1", clone="cri-nao1", phase="ready", status="running", state="running", ros_distro="noetic",
+                    common_ip="10.90.0.10", vpn_subnet="10.80.1.0/24", master_reachable=True, vpn_connected=True, nodes=rows)
     assert [a["text"] for a in clone_alerts(row) if a["kind"] == "node-failing"] == [
         "node faces on nao1's clone is activating after 7 restart(s): ccrp logs --robot nao1 faces"]
 
