@@ -365,10 +365,11 @@ def test_google_vision_without_its_key_is_counted_not_fatal(tmp_path):
 
 def test_status_table_cell():
     from ccrp_cli.cli.status import api_cell
+    from ccrp_cli.models.status import ApiManager
 
     row = {"running": True, "backend": "opencv", "calls": 12, "errors": 1, "last_latency_ms": 38.9}
-    assert api_cell(row) == "opencv: 12 calls, 1 errors, last 38.9 ms"
-    assert api_cell({**row, "running": False}) == "opencv: not running"
+    assert api_cell(ApiManager(**row)) == "opencv: 12 calls, 1 errors, last 38.9 ms"
+    assert api_cell(ApiManager(**{**row, "running": False})) == "opencv: not running"
     assert api_cell(None) == "-"
 
 

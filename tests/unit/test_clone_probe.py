@@ -112,6 +112,9 @@ def test_health_times_a_round_trip_to_the_robot_and_status_shows_it():
         pytest.skip("a raw ICMP socket needs root, as health.py has on a clone")
     rtt = health.echo_ms("127.0.0.1")
     assert rtt is not None and 0 < rtt < 500
-    row = {"vpn_connected": True, "robot_address": "172.30.0.5:1194", "robot_rtt_ms": 12.345}
-    assert vpn_cell(row) == "connected 172.30.0.5:1194, rtt 12.3 ms"
-    assert vpn_cell({**row, "robot_rtt_ms": None}) == "connected 172.30.0.5:1194"
+    from ccrp_cli.models.status import StatusRow
+
+    row = dict(robot="nao1", clone="cri-nao1", phase="ready", status="running", state="running", common_ip="10.90.0.10",
+               vpn_subnet="10.80.1.0/24", ros_distro="noetic", vpn_connected=True, robot_address="172.30.0.5:1194")
+    assert vpn_cell(StatusRow(**row, robot_rtt_ms=12.345)) == "connected 172.30.0.5:1194, rtt 12.3 ms"
+    assert vpn_cell(StatusRow(**row)) == "connected 172.30.0.5:1194"

@@ -769,6 +769,7 @@ def test_merge_refuses_what_is_not_a_bag(tmp_path):
 def test_status_row_and_cell(lab):
     from ccrp_cli.cli.status import knowledge_cell
     from ccrp_cli.knowledge import knowledge_row
+    from ccrp_cli.models.status import Knowledge
 
     state = lab.store.load_state()
     for robot in ("nao1", "nao2", "turtlebot1"):
@@ -781,9 +782,9 @@ def test_status_row_and_cell(lab):
               "datasets": {"faces": {"items": 3, "tombstones": 1, "bytes": 10}}, "last_reconcile": 5.0}
     row = knowledge_row(lab, state, "nao1", {"knowledge": report})
     assert row["running"] and row["peers"] == {"nao2": True, "turtlebot1": False} and row["errors"] == 1
-    assert knowledge_cell(row) == "faces 3, peers 1/2 (down: turtlebot1)"
+    assert knowledge_cell(Knowledge(**row)) == "faces 3, peers 1/2 (down: turtlebot1)"
     stopped = knowledge_row(lab, state, "nao1", {"knowledge": {"running": False, "configured": True}})
-    assert knowledge_cell(stopped) == "not running" and stopped["peers"] == {"nao2": False, "turtlebot1": False}
+    assert knowledge_cell(Knowledge(**stopped)) == "not running" and stopped["peers"] == {"nao2": False, "turtlebot1": False}
     assert knowledge_cell(None) == "-"
     lone = parse_inventory({**BASE, "robots": [{"name": "nao1"}], "services": {"knowledge": {"datasets": {"faces": {"robots": "all"}}}}}, "x")
     assert lone.datasets_of("nao1") == {}  # nobody to share with: no agent, no status cell
