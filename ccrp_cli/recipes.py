@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import cache
+from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict
@@ -36,6 +37,9 @@ class RosdepEntry(BaseModel):
 class Recipe(BaseModel):
     model_config = ConfigDict(extra="forbid")
     distro: str
+    # 1: ROS 1 (a master per clone); 2: ROS 2 (no master, DDS discovery confined to the tunnel,
+    # docs/ros2.md). Everything ccrp does differently per distro follows from this and the recipe.
+    ros: Literal[1, 2]
     platforms: dict[str, Platform]
     # package.xml keys (rosdep's names) -> Debian packages or wheels; a key missing here is refused.
     rosdep: dict[str, RosdepEntry] = {}
@@ -48,7 +52,21 @@ def recipe(distro: str) -> Recipe:
     path = data_dir("snapshots") / f"{distro}.yaml"
     if not path.exists():
         raise InputError(f"no snapshot recipe for ROS distro {distro!r} ({path})")
-    return Recipe.model_validate(yaml.safe_load(path.read_text()))
+    out = Recipe.model_validate(yaml.safe_load(path.read_text()))
+    if out.distro != distro:  # the file's name is the distro an inventory names
+        raise InputError(f"snapshot recipe {path} says distro {out.distro!r}, not {distro!r}")
+    return out
+
+
+@cache
+def distros() -> dict[str, int]:
+    """Every ROS distro ccrp builds, name -> ROS version: one recipe each (snapshots/<distro>.yaml),
+    so a new distro is a new recipe, not code."""
+    return {path.stem: recipe(path.stem).ros for path in sorted(data_dir("snapshots").glob("*.yaml"))}
+
+
+def is_ros2(distro: str) -> bool:
+    return distros().get(distro) == 2
 
 
 def platform(distro: str, provider: str) -> Platform:
