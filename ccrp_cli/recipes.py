@@ -24,6 +24,9 @@ class Platform(BaseModel):
     pip: list[str] = []
     # What `pip` requires that PyPI has only as pure-Python source (built into wheels for Docker).
     pip_source: list[str] = []
+    # The wheel platform tags a Docker image's wheels are fetched for (pip takes only the tags it
+    # is given): eclipse-zenoh's and OpenCV's manylinux2014; a ROS 2 distro's wheels add theirs.
+    wheel_platforms: list[str] = ["manylinux2014_x86_64"]
 
 
 class RosdepEntry(BaseModel):
