@@ -27,6 +27,11 @@ class Platform(BaseModel):
     # The wheel platform tags a Docker image's wheels are fetched for (pip takes only the tags it
     # is given): eclipse-zenoh's and OpenCV's manylinux2014; a ROS 2 distro's wheels add theirs.
     wheel_platforms: list[str] = ["manylinux2014_x86_64"]
+    # The base image has the distro installed under /opt/ros/<distro> already (an apt install of
+    # ROS 2): no venv and nothing written over it; ccrp's agents run against that ROS (docs/ros2.md).
+    ros_installed: bool = False
+    # Clouds only: a platform ccrp does not build a Docker image of (it bakes from the user's image).
+    clouds_only: bool = False
 
 
 class RosdepEntry(BaseModel):
@@ -72,8 +77,9 @@ def is_ros2(distro: str) -> bool:
     return distros().get(distro) == 2
 
 
-def platform(distro: str, provider: str) -> Platform:
-    """The recipe's platform a backend's clones run (its ProviderInfo.platform: debian-bookworm on
-    all four, so a clone behaves the same everywhere; Debian 12's OpenVPN 2.6 takes the rendered
-    server.conf, Ubuntu 20.04's 2.4 refused its data-ciphers)."""
-    return recipe(distro).platforms[info(provider).platform]
+def platform(distro: str, provider: str, name: str | None = None) -> Platform:
+    """The recipe's platform a backend's clones run: `name` (the inventory's `ros.platform`), else
+    the backend's ProviderInfo.platform (debian-bookworm on all four, so a clone behaves the same
+    everywhere; Debian 12's OpenVPN 2.6 takes the rendered server.conf, Ubuntu 20.04's 2.4 refused
+    its data-ciphers)."""
+    return recipe(distro).platforms[name or info(provider).platform]

@@ -171,6 +171,9 @@ class RosSettings(Strict):
     # inventory written before `ccrp init` chose Jazzy keeps its distro.
     distro: Distro = "noetic"
     master_port: Port = 11311  # ROS 1 only
+    # The recipe's platform the clones run (snapshots/<distro>.yaml `platforms:`); default: the
+    # backend's (debian-bookworm). ubuntu-noble-ros: your image with ROS 2 installed (clouds).
+    platform: Annotated[str, Field(pattern=r"^[a-z0-9][a-z0-9-]{0,39}$")] | None = None
 
     @property
     def ros2(self) -> bool:
@@ -328,6 +331,21 @@ class Inventory(Strict):
         if self.services.knowledge is not None:
             # Its agent runs on the system python, whose Zenoh only a ROS 1 image installs.
             raise ValueError(f"services.knowledge is not built into ros.distro {d}'s clone image yet (docs/ros2.md)")
+        return self
+
+    @model_validator(mode="after")
+    def _platform_known(self) -> "Inventory":
+        from ..recipes import recipe
+
+        name = self.ros.platform
+        if name is None:
+            return self
+        platforms = recipe(self.ros.distro).platforms
+        if name not in platforms:
+            raise ValueError(f"ros.platform {name} is not one of ros.distro {self.ros.distro}'s ({', '.join(platforms)})")
+        if platforms[name].clouds_only and self.provider.kind == "docker":
+            raise ValueError(f"ros.platform {name} is for clouds (baked from your own image); Docker clones run "
+                             f"{', '.join(n for n, p in platforms.items() if not p.clouds_only)}")
         return self
 
     @model_validator(mode="after")

@@ -117,6 +117,84 @@ def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_
     assert proof[proof.index(python):][:5] == [python, "-m", "pip", "show", f"ros-{distro}-rclpy"], proof
 
 
+@pytest.mark.skipif(shutil.which("cloud-init") is None, reason="cloud-init not installed (apt-get install cloud-init)")
+@pytest.mark.parametrize("kind", ["aws", "gcp", "openstack"])
+def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(ccrp_home, tmp_path, kind):
+    """`ros.platform: ubuntu-noble-ros`: the base image has ROS 2 Jazzy under /opt/ros/jazzy (apt).
+    Its builder and a bare clone write nothing over that prefix (no venv, no setup.sh of ours): the
+    agents' packages go to the system python, /opt/ros/jazzy/bin/python becomes a launcher only where
+    none is, and the bake proves the image's ROS as the agents start it."""
+    from ccrp_cli import vpn
+
+    data = yaml.safe_load((ROOT / "inventories" / f"{kind}.yaml").read_text())
+    data["ros"] = {"distro": "jazzy", "platform": "ubuntu-noble-ros"}
+    path = tmp_path / "ccrp.yaml"
+    path.write_text(yaml.safe_dump(data))
+    fleet = Fleet.open(path)
+    vpn.init(fleet)
+    plat = cloudinit.platform("jazzy", kind, "ubuntu-noble-ros")
+    assert plat.ros_installed and "ros-jazzy-ros-base" in plat.packages and "python3-venv" not in plat.packages
+    view = clone_view(fleet, fleet.store.load_state(), fleet.inventory.robots[0].name)
+    keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"]
+    texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef"),
+             "bare": cloudinit.user_data(view, install_packages=True, login_keys=keys)}
+    launcher = ["sh", "-c", '[ -e "$0/bin/python" ] || ln -s "$1" "$0/bin/python"', "/opt/ros/jazzy",
+                "/usr/local/lib/ccrp/ros-python"]
+    for what, text in texts.items():
+        data = yaml.safe_load(text)
+        runcmd = data["runcmd"]
+        assert not [c for c in runcmd if "venv" in c or any("ros2-setup" in a for a in c)], (what, runcmd)
+        assert not [f["path"] for f in data["write_files"] if f["path"].startswith("/opt/ros")], what
+        assert ["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip] in runcmd, runcmd
+        assert launcher in runcmd and runcmd.index(launcher) > runcmd.index(["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3",
+                                                                              "install", "--no-cache-dir", *plat.pip])
+        assert "ros-jazzy-ros-base" in data["packages"]
+        fit_user_data(kind, text)
+        f = tmp_path / f"{what}.yaml"
+        f.write_text(text)
+        proc = subprocess.run(["cloud-init", "schema", "--config-file", str(f)], capture_output=True, text=True)
+        assert proc.returncode == 0 and "Valid cloud-config" in proc.stdout, what + proc.stdout + proc.stderr
+    assert cloudinit.bake_proofs(fleet.inventory) == ["apt", "locale", "pip", "ros"]
+    proof = next(c for c in yaml.safe_load(texts["builder"])["runcmd"] if "ros-ok" in " ".join(c))
+    assert proof[4:6] == ["/opt/ros/jazzy/bin/python", "-c"] and "import rclpy, zenoh, cv2" in proof[6], proof
+
+
+def test_the_launcher_runs_the_system_python_in_the_distros_own_setup(tmp_path):
+    """templates/image/ros-python, linked as <prefix>/bin/python: <prefix>/setup.sh is sourced (the
+    prefix is the link's), then python3 runs with the arguments."""
+    prefix = tmp_path / "opt" / "ros" / "jazzy"
+    (prefix / "bin").mkdir(parents=True)
+    (prefix / "setup.sh").write_text('export CCRP_SEEN_SETUP="$AMENT_PREFIX_PATH:sourced"\n')
+    launcher = tmp_path / "ros-python"  # installed 0755 by cloud-init (write_files)
+    launcher.write_text((ROOT / "templates" / "image" / "ros-python").read_text())
+    launcher.chmod(0o755)
+    (prefix / "bin" / "python").symlink_to(launcher)
+    proc = subprocess.run([str(prefix / "bin" / "python"), "-c", "import os, sys; print(os.environ['CCRP_SEEN_SETUP'], sys.argv[1])",
+                           "arg"], capture_output=True, text=True, env={"PATH": "/usr/bin:/bin", "AMENT_PREFIX_PATH": "x"})
+    assert proc.returncode == 0 and proc.stdout.split() == ["x:sourced", "arg"], proc.stderr
+
+
+def test_the_own_ros2_platform_is_refused_on_docker_and_without_a_base_image(ccrp_home, tmp_path):
+    from ccrp_cli import snapshots
+
+    data = yaml.safe_load(JAZZY.read_text())
+    data["ros"]["platform"] = "ubuntu-noble-ros"
+    with pytest.raises(InputError, match="ros.platform ubuntu-noble-ros is for clouds"):
+        parse_inventory(data, "lab-jazzy.yaml")
+    data["ros"]["platform"] = "ubuntu-jammy"
+    with pytest.raises(InputError, match="not one of ros.distro jazzy's"):
+        parse_inventory(data, "lab-jazzy.yaml")
+    cloud = yaml.safe_load((ROOT / "inventories" / "aws.yaml").read_text())
+    cloud["ros"] = {"distro": "jazzy", "platform": "ubuntu-noble-ros"}
+    path = tmp_path / "ccrp.yaml"
+    path.write_text(yaml.safe_dump(cloud))
+    fleet = Fleet.open(path)
+    # No provider call is made before the refusal: the stock Debian image has no ROS 2 to use.
+    with pytest.raises(InputError, match="bakes from your image with ROS jazzy installed") as err:
+        snapshots.bake(fleet, None, lambda msg: None)
+    assert "--base-image" in err.value.hint
+
+
 def test_domain_comes_from_the_slot_and_stays_below_the_ephemeral_ports():
     assert [network.ros_domain(k) for k in (1, 2, 100, 101, 255)] == [1, 2, 100, 1, 55]
     assert network.rtps_ports(1) == (7650, 7899)
