@@ -313,3 +313,52 @@ def test_a_jazzy_edge_bundle_installs_its_guard_under_a_staging_root(jazzy, tmp_
     assert subprocess.run(["sh", "-n", str(root / "usr/local/lib/ccrp/ccrp-rtps-guard")]).returncode == 0
     assert subprocess.run(["sh", str(root / "usr/local/lib/ccrp/ccrp-rtps-guard"), "sideways"],
                           capture_output=True).returncode == 2
+
+
+def test_a_robot_with_its_own_ros2_at_another_prefix_needs_only_the_bundles_env_and_guard(jazzy, tmp_path):
+    """A real robot's ROS 2 is its own (an apt install, a source build under its home...): the edge
+    bundle brings nothing of the wheels. Installed (under a staging root), its profile script gives a
+    shell whose own ROS 2 lives at another prefix the robot's domain, range, peer and RMW, and keeps
+    that install's paths; the RTPS guard fences by ports and addresses alone, whatever the prefix
+    (run here with a stand-in iptables that records its calls)."""
+    view = clone_view(jazzy, jazzy.store.load_state(), "nao2")
+    files = bundles.edge_bundle(view, jazzy.pki.credentials("nao2"), "203.0.113.10")
+    assert not [f.name for f in files if "ros-jazzy-" in f.content or "/opt/ros/jazzy" in f.content]
+    out = bundles.write_bundle(tmp_path / "bundle", files, {"robot": "nao2"})
+    root = tmp_path / "root"
+    path = "/usr/bin:/bin:/usr/sbin:/sbin"
+    assert subprocess.run(["sh", str(out / "install.sh")], env={"CCRP_ROOT": str(root), "PATH": path},
+                          capture_output=True).returncode == 0
+    # The robot's own install, elsewhere than /opt/ros/<distro> (which does not exist here).
+    own = tmp_path / "home" / "nao" / "ros2_jazzy" / "install"
+    own.mkdir(parents=True)
+    (own / "setup.sh").write_text(f'export AMENT_PREFIX_PATH={own}\nexport LD_LIBRARY_PATH={own}/lib\n')
+    profile = (root / "etc/profile.d/ccrp-ros.sh").read_text().replace("/etc/ccrp/", f"{root}/etc/ccrp/")
+    (tmp_path / "profile.sh").write_text(profile)
+    shown = subprocess.run(["sh", "-c", f'. "{own}/setup.sh"; . "{tmp_path}/profile.sh"; env'], env={"PATH": path},
+                           capture_output=True, text=True)
+    env = dict(line.split("=", 1) for line in shown.stdout.splitlines() if "=" in line)
+    assert (env["ROS_DISTRO"], env["ROS_DOMAIN_ID"], env["ROS_AUTOMATIC_DISCOVERY_RANGE"], env["RMW_IMPLEMENTATION"]) == \
+        ("jazzy", str(network.ros_domain(view.addr.index)), "LOCALHOST", "rmw_fastrtps_cpp"), env
+    assert env["ROS_STATIC_PEERS"] == str(view.addr.clone_vpn_ip)
+    assert env["AMENT_PREFIX_PATH"] == str(own) and env["LD_LIBRARY_PATH"] == f"{own}/lib"
+    # The guard: a stand-in iptables and getent; its files under the staging root.
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    calls = tmp_path / "calls"
+    (bin_dir / "iptables").write_text(f'#!/bin/sh\necho "$*" >> {calls}\ncase "$*" in *" -C "*) exit 1;; esac\n')
+    (bin_dir / "getent").write_text("#!/bin/sh\necho '203.0.113.10 STREAM x'\n")
+    for tool in ("iptables", "getent"):
+        (bin_dir / tool).chmod(0o755)
+    guard = (root / "usr/local/lib/ccrp/ccrp-rtps-guard").read_text()
+    guard = guard.replace("/etc/ccrp/", f"{root}/etc/ccrp/").replace("/run/ccrp", f"{tmp_path}/run")
+    (tmp_path / "guard").write_text(guard)
+    proc = subprocess.run(["sh", str(tmp_path / "guard"), "up"], env={"PATH": f"{bin_dir}:/usr/bin:/bin"},
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    lo, hi = network.rtps_ports(view.addr.index)
+    inserted = [line for line in calls.read_text().splitlines() if line.startswith("-w -I OUTPUT")]
+    assert inserted == [f"-w -I OUTPUT -p udp --dport {lo}:{hi} -j CCRP-RTPS", "-w -I OUTPUT -p udp -d 239.255.0.1 -j CCRP-RTPS",
+                        "-w -I OUTPUT -p udp -d 203.0.113.10 ! --dport 1194 -j CCRP-RTPS"], calls.read_text()
+    chain = [line for line in calls.read_text().splitlines() if line.startswith("-w -A CCRP-RTPS")]
+    assert chain == ["-w -A CCRP-RTPS -o lo -j RETURN", "-w -A CCRP-RTPS -o ccrpvpn -j RETURN", "-w -A CCRP-RTPS -j DROP"]
