@@ -16,7 +16,9 @@ from ccrp_cli.recipes import platform, recipe
 
 def test_jazzy_recipe_loads_beside_noetics():
     jazzy = recipe("jazzy")
-    assert jazzy.distro == "jazzy" and list(jazzy.platforms) == list(recipe("noetic").platforms) == ["debian-bookworm"]
+    assert jazzy.distro == "jazzy" and list(recipe("noetic").platforms) == ["debian-bookworm"]
+    # Jazzy also has the user's own image with ROS 2 installed (clouds only: docs/ros2.md).
+    assert list(jazzy.platforms) == ["debian-bookworm", "ubuntu-noble-ros"] and jazzy.platforms["ubuntu-noble-ros"].clouds_only
     plat = platform("jazzy", "docker")
     assert {"ros-jazzy-rclpy", "ros-jazzy-rmw-fastrtps-cpp", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs",
             "ros-jazzy-geometry-msgs"} <= {p.split("==")[0] for p in plat.pip}
