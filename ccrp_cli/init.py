@@ -12,6 +12,8 @@ from .store import ccrp_home
 # Where each pool is looked for, and the size of one: the lab's choices first.
 SEARCH = {"public": ("172.30.0.0/15", 24), "common": ("10.90.0.0/16", 24), "vpn": ("10.80.0.0/12", 16)}
 PROVIDERS = ("docker", "openstack", "gcp", "aws")
+# A new fleet is ROS 2, on the current LTS (docs/ros2.md); `--distro noetic` for a ROS 1 fleet.
+DEFAULT_DISTRO = "jazzy"
 
 
 def docker_subnets() -> list[ipaddress.IPv4Network]:
@@ -86,12 +88,15 @@ def default_fleet() -> str:
     return name if NAME_RE.fullmatch(name) else "lab"
 
 
-def write(path: Path, provider: str, robots: list[str], fleet: str) -> dict:
+def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str = DEFAULT_DISTRO) -> dict:
     from .models.names import check_name
+    from .recipes import distros
     from .render.templates import render
 
     if provider not in PROVIDERS:
         raise InputError(f"--provider {shown(provider)}: choose from {', '.join(PROVIDERS)}")
+    if distro not in distros():
+        raise InputError(f"--distro {shown(distro)}: choose from {', '.join(distros())}")
     check_name(fleet, "fleet name")
     for name in robots:
         check_name(name)
@@ -102,8 +107,10 @@ def write(path: Path, provider: str, robots: list[str], fleet: str) -> dict:
     used = used_networks()
     pools = {"public": free("public", used) if provider == "docker" else None,
              "common": free("common", used), "vpn_pool": free("vpn", used)}
-    text = render("init/ccrp.yaml.j2", fleet=fleet, provider=provider, robots=robots, **pools)
+    others = [d for d in distros() if d != distro]
+    text = render("init/ccrp.yaml.j2", fleet=fleet, provider=provider, robots=robots, distro=distro,
+                  ros2=distros()[distro] == 2, others=others, **pools)
     with cannot_write(path):
         with open(path, "x") as fh:  # exclusive: a file made meanwhile is not overwritten either
             fh.write(text)
-    return {"path": str(path), "fleet": fleet, "provider": provider, "robots": robots, **pools}
+    return {"path": str(path), "fleet": fleet, "provider": provider, "distro": distro, "robots": robots, **pools}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import cache
+from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict
@@ -23,6 +24,14 @@ class Platform(BaseModel):
     pip: list[str] = []
     # What `pip` requires that PyPI has only as pure-Python source (built into wheels for Docker).
     pip_source: list[str] = []
+    # The wheel platform tags a Docker image's wheels are fetched for (pip takes only the tags it
+    # is given): eclipse-zenoh's and OpenCV's manylinux2014; a ROS 2 distro's wheels add theirs.
+    wheel_platforms: list[str] = ["manylinux2014_x86_64"]
+    # The base image has the distro installed under /opt/ros/<distro> already (an apt install of
+    # ROS 2): no venv and nothing written over it; ccrp's agents run against that ROS (docs/ros2.md).
+    ros_installed: bool = False
+    # Clouds only: a platform ccrp does not build a Docker image of (it bakes from the user's image).
+    clouds_only: bool = False
 
 
 class RosdepEntry(BaseModel):
@@ -36,6 +45,9 @@ class RosdepEntry(BaseModel):
 class Recipe(BaseModel):
     model_config = ConfigDict(extra="forbid")
     distro: str
+    # 1: ROS 1 (a master per clone); 2: ROS 2 (no master, DDS discovery confined to the tunnel,
+    # docs/ros2.md). Everything ccrp does differently per distro follows from this and the recipe.
+    ros: Literal[1, 2]
     platforms: dict[str, Platform]
     # package.xml keys (rosdep's names) -> Debian packages or wheels; a key missing here is refused.
     rosdep: dict[str, RosdepEntry] = {}
@@ -48,11 +60,26 @@ def recipe(distro: str) -> Recipe:
     path = data_dir("snapshots") / f"{distro}.yaml"
     if not path.exists():
         raise InputError(f"no snapshot recipe for ROS distro {distro!r} ({path})")
-    return Recipe.model_validate(yaml.safe_load(path.read_text()))
+    out = Recipe.model_validate(yaml.safe_load(path.read_text()))
+    if out.distro != distro:  # the file's name is the distro an inventory names
+        raise InputError(f"snapshot recipe {path} says distro {out.distro!r}, not {distro!r}")
+    return out
 
 
-def platform(distro: str, provider: str) -> Platform:
-    """The recipe's platform a backend's clones run (its ProviderInfo.platform: debian-bookworm on
-    all four, so a clone behaves the same everywhere; Debian 12's OpenVPN 2.6 takes the rendered
-    server.conf, Ubuntu 20.04's 2.4 refused its data-ciphers)."""
-    return recipe(distro).platforms[info(provider).platform]
+@cache
+def distros() -> dict[str, int]:
+    """Every ROS distro ccrp builds, name -> ROS version: one recipe each (snapshots/<distro>.yaml),
+    so a new distro is a new recipe, not code."""
+    return {path.stem: recipe(path.stem).ros for path in sorted(data_dir("snapshots").glob("*.yaml"))}
+
+
+def is_ros2(distro: str) -> bool:
+    return distros().get(distro) == 2
+
+
+def platform(distro: str, provider: str, name: str | None = None) -> Platform:
+    """The recipe's platform a backend's clones run: `name` (the inventory's `ros.platform`), else
+    the backend's ProviderInfo.platform (debian-bookworm on all four, so a clone behaves the same
+    everywhere; Debian 12's OpenVPN 2.6 takes the rendered server.conf, Ubuntu 20.04's 2.4 refused
+    its data-ciphers)."""
+    return recipe(distro).platforms[name or info(provider).platform]

@@ -110,6 +110,7 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     from .errors import InputError
     from .providers import Ability, require
     from .providers.base import CloneSpec
+    from .recipes import platform
     from .render.cloudinit import bake_proofs, builder_user_data
     from .render.limits import fit_user_data
 
@@ -124,7 +125,12 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
                          f"so far; {kind}'s bake does not install it yet",
                          hint="remove software: from this cloud inventory, or run the fleet on the Docker backend "
                               "(docs/workloads.md, Not yet)")
-    base = base_image or getattr(inv.provider, "image", None) or DEFAULT_BASE[kind]
+    base = base_image or getattr(inv.provider, "image", None)
+    if base is None and platform(inv.ros.distro, kind, inv.ros.platform).ros_installed:
+        # The stock Debian image has no ROS 2 to use: the platform is the user's own image.
+        raise InputError(f"ros.platform {inv.ros.platform} bakes from your image with ROS {inv.ros.distro} installed "
+                         f"under /opt/ros/{inv.ros.distro}", hint="pass --base-image, or set provider.image")
+    base = base or DEFAULT_BASE[kind]
     # A cloud may name its images indirectly (AWS: an SSM parameter): the state records what was used.
     base = provider.resolve_image(base)
     if not provider.has_image(base):

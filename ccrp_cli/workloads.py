@@ -124,25 +124,24 @@ class Resolved:
 def resolve(distro: str, packages: list[Package]) -> Resolved:
     """Each package.xml key to the Debian packages (ROS 1: Debian's ROS) or wheels (ROS 2) the
     recipe's `rosdep:` table names; a key with no entry is an error naming it and its package."""
-    from .models.inventory import ROS2_DISTROS
-    from .recipes import recipe
+    from .recipes import is_ros2, recipe
 
     table = recipe(distro).rosdep
     out = Resolved()
     for pkg in packages:
-        if distro in ROS2_DISTROS and pkg.build_type != "ament_python":
+        if is_ros2(distro) and pkg.build_type != "ament_python":
             raise InputError(f"package {shown(pkg.name)} ({pkg.path}) is {shown(pkg.build_type)}: a ROS 2 workspace here builds "
                              "ament_python packages only (the ROS 2 wheels have no rclcpp)")
-        if distro not in ROS2_DISTROS and pkg.build_type != "catkin":
+        if not is_ros2(distro) and pkg.build_type != "catkin":
             raise InputError(f"package {shown(pkg.name)} ({pkg.path}) is {shown(pkg.build_type)}: a ROS 1 workspace builds catkin packages")
         for key in pkg.depends:
-            if key in ("rclcpp", "rclcpp_components", "ament_cmake") and distro in ROS2_DISTROS:
+            if key in ("rclcpp", "rclcpp_components", "ament_cmake") and is_ros2(distro):
                 raise InputError(f"package {shown(pkg.name)} depends on {key}: the ROS 2 wheels have no rclcpp (C++); "
                                  "write the node in Python (rclpy)")
             entry = table.get(key)
             if entry is None:
                 raise InputError(f"package {shown(pkg.name)} depends on {shown(key)}, which resolves to no "
-                                 f"{'wheel' if distro in ROS2_DISTROS else 'Debian package'} for {distro}",
+                                 f"{'wheel' if is_ros2(distro) else 'Debian package'} for {distro}",
                                  hint="add what it needs under software.apt or software.pip, and remove the key "
                                       "from package.xml, or name a key of the recipe's rosdep table")
             out.apt += [p for p in entry.apt if p not in out.apt]

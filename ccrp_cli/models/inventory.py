@@ -9,6 +9,7 @@ from pydantic import Field, field_validator, model_validator
 
 from ..providers import REGISTRY
 from ..errors import shown
+from .distro import Distro, RobotRos
 from .names import Name, Topic
 from .software import Software, TypeSettings, merge
 from .strict import Strict
@@ -147,6 +148,8 @@ class Robot(Strict):
     services: Services = Services()
     # Added to the fleet's and its type's software (docs/workloads.md).
     software: Software | None = None
+    # The ROS the robot itself runs, when said: the fleet's distro, or refused (one distro per fleet).
+    ros: RobotRos | None = None
 
 
 class RobotTemplate(Strict):
@@ -159,21 +162,24 @@ class RobotTemplate(Strict):
     max: Annotated[StrictInt, Field(ge=1, le=1000)] = 50
     autostop: Autostop | None = None
     software: Software | None = None
-
-
-# ROS 2 distros ccrp runs (docs/ros2.md): no master; discovery confined to the robot's tunnel.
-ROS2_DISTROS = ("jazzy",)
+    ros: RobotRos | None = None
 
 
 class RosSettings(Strict):
     # One distro for the whole fleet, robots and clones alike (snapshots/<distro>.yaml): ROS 1
-    # Noetic, or ROS 2 Jazzy from the ros-jazzy-* wheels.
-    distro: Literal["noetic", "jazzy"] = "noetic"
+    # Noetic, or ROS 2 Jazzy or Kilted from the ros-<distro>-* wheels. Noetic when not given, so an
+    # inventory written before `ccrp init` chose Jazzy keeps its distro.
+    distro: Distro = "noetic"
     master_port: Port = 11311  # ROS 1 only
+    # The recipe's platform the clones run (snapshots/<distro>.yaml `platforms:`); default: the
+    # backend's (debian-bookworm). ubuntu-noble-ros: your image with ROS 2 installed (clouds).
+    platform: Annotated[str, Field(pattern=r"^[a-z0-9][a-z0-9-]{0,39}$")] | None = None
 
     @property
     def ros2(self) -> bool:
-        return self.distro in ROS2_DISTROS
+        from ..recipes import is_ros2
+
+        return is_ros2(self.distro)
 
 
 class VpnSettings(Strict):
@@ -325,6 +331,35 @@ class Inventory(Strict):
         if self.services.knowledge is not None:
             # Its agent runs on the system python, whose Zenoh only a ROS 1 image installs.
             raise ValueError(f"services.knowledge is not built into ros.distro {d}'s clone image yet (docs/ros2.md)")
+        return self
+
+    @model_validator(mode="after")
+    def _platform_known(self) -> "Inventory":
+        from ..recipes import recipe
+
+        name = self.ros.platform
+        if name is None:
+            return self
+        platforms = recipe(self.ros.distro).platforms
+        if name not in platforms:
+            raise ValueError(f"ros.platform {name} is not one of ros.distro {self.ros.distro}'s ({', '.join(platforms)})")
+        if platforms[name].clouds_only and self.provider.kind == "docker":
+            raise ValueError(f"ros.platform {name} is for clouds (baked from your own image); Docker clones run "
+                             f"{', '.join(n for n, p in platforms.items() if not p.clouds_only)}")
+        return self
+
+    @model_validator(mode="after")
+    def _one_distro(self) -> "Inventory":
+        """A robot runs its fleet's ROS distro: its clone is built for that one distro, and a ROS 1
+        robot cannot reach a ROS 2 clone at all (nor a Humble robot confine its discovery as a
+        Jazzy clone expects: docs/ros2.md). Said per robot, per type or for the template."""
+        d = self.ros.distro
+        said = [(f"types.{t}", s.ros) for t, s in self.types.items()] + \
+               [(f"robot {r.name!r}", r.ros) for r in self.robots] + [("template", self.template.ros if self.template else None)]
+        for where, ros in said:
+            if ros is not None and ros.distro != d:
+                raise ValueError(f"{where} runs ROS {ros.distro}, the fleet ros.distro {d}: a fleet has one distro, "
+                                 "robots and clones alike; give those robots a fleet of their own")
         return self
 
     @model_validator(mode="after")

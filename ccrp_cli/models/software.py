@@ -16,6 +16,7 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, BeforeValidator, Field, StringConstraints, field_validator
 
 from ..errors import shown
+from .distro import RobotRos
 from .strict import Strict
 from .values import Size
 
@@ -131,6 +132,7 @@ class TypeSettings(Strict):
     """What every robot of a type shares (`types.<type>:`)."""
 
     software: Software | None = None
+    ros: RobotRos | None = None  # the ROS its robots run, when said: the fleet's (models/distro.py)
 
 
 def merge(*levels: Software | None) -> Software:

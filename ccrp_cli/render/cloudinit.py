@@ -233,13 +233,21 @@ def image_config(inv: Inventory) -> dict[str, Any]:
     recipe's packages from Debian's archive, the relay agent and its pinned Zenoh from pip, and the
     locale. A clone of a bare image runs it at first boot; `snapshot bake` runs it once on a builder
     instance."""
-    plat = platform(inv.ros.distro, inv.provider.kind)
+    plat = platform(inv.ros.distro, inv.provider.kind, inv.ros.platform)
     # cloud-init's locale module is off here: it runs (config stage) before the packages are
     # installed (final stage) and fails where the image has not generated the locale yet. runcmd
     # sets it after the packages, when locale-gen and pip3 exist.
     data: dict[str, Any] = {"locale": "false", "package_update": True, "packages": list(plat.packages)}
     data["write_files"], data["runcmd"] = [], [["sh", "-c", LOCALE_SETUP]]
-    if plat.pip and inv.ros.ros2:
+    if plat.ros_installed:
+        # The image's own ROS 2 under /opt/ros/<distro> (an apt install, its setup.sh), used as it is:
+        # the agents' packages go to the system python, and /opt/ros/<distro>/bin/python (what ccrp's
+        # agents start) is a launcher that sources the distro's setup.sh, made only where none is.
+        prefix = ros2_prefix(inv.ros.distro)
+        data["write_files"].append(_file(f"{CCRP_LIB}/ros-python", static("image/ros-python"), "0755"))
+        data["runcmd"] += [["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip],
+                           ["sh", "-c", '[ -e "$0/bin/python" ] || ln -s "$1" "$0/bin/python"', prefix, f"{CCRP_LIB}/ros-python"]]
+    elif plat.pip and inv.ros.ros2:
         # The ros-<distro>-* wheels in a venv at the distro's prefix, as the Docker image has them
         # (templates/docker/ros2-venv.j2), from the index here; the agents come with the clone's user-data.
         prefix = ros2_prefix(inv.ros.distro)
@@ -274,13 +282,14 @@ LOCALE_SH = f'grep -qx "LANG={LOCALE}" /etc/default/locale && locale -a | grep -
 
 def bake_proofs(inv: Inventory) -> list[str]:
     """What a builder's console must show (as "ccrp-bake <token> <what>-ok") before it is captured."""
-    return ["apt", "locale"] + (["pip"] if platform(inv.ros.distro, inv.provider.kind).pip else [])
+    plat = platform(inv.ros.distro, inv.provider.kind, inv.ros.platform)
+    return ["apt", "locale"] + (["pip"] if plat.pip else []) + (["ros"] if plat.ros_installed else [])
 
 
 def builder_user_data(inv: Inventory, token: str) -> str:
     """User-data of the instance `snapshot bake` captures: the image config, a proof on the console
     per install step, and a final message carrying the token. No fleet, robot or key in it."""
-    plat = platform(inv.ros.distro, inv.provider.kind)
+    plat = platform(inv.ros.distro, inv.provider.kind, inv.ros.platform)
     data = image_config(inv)
     # ccrp-topic, as in every Docker image; in snapshots only (a bare clone's user-data has no room
     # left for it: EC2 takes 16 KiB).
@@ -289,8 +298,13 @@ def builder_user_data(inv: Inventory, token: str) -> str:
     data["runcmd"] += [_proof(token, "apt", ["sh", "-c", INSTALLED_SH, "installed", *data["packages"]]),
                        _proof(token, "locale", ["sh", "-c", LOCALE_SH])]
     if "pip" in bake_proofs(inv):
-        python = f"{ros2_prefix(inv.ros.distro)}/bin/python" if inv.ros.ros2 else "python3"
+        python = f"{ros2_prefix(inv.ros.distro)}/bin/python" if inv.ros.ros2 and not plat.ros_installed else "python3"
         data["runcmd"] += [_proof(token, "pip", [python, "-m", "pip", "show", *pip_names])]
+    if "ros" in bake_proofs(inv):
+        # The image's ROS as ccrp's agents start it: rclpy, the RMW ros.env names, and Zenoh import.
+        data["runcmd"] += [_proof(token, "ros", [f"{ros2_prefix(inv.ros.distro)}/bin/python", "-c",
+                                                 "import rclpy, zenoh, cv2; from rclpy.impl.implementation_singleton "
+                                                 "import rclpy_implementation"])]
     data["runcmd"] += [
         ["apt-get", "clean"],
         # Every clone must get its own machine-id on first boot (DHCP client ids derive from it).

@@ -9,11 +9,16 @@ robot, and captures on both ends' public interface see nothing but OpenVPN. nao1
 and nao2 imports it: the relay agents carry it to nao2's clone as /nao1/chatter with its type and
 QoS, and nothing else of nao1's; robot nao2, started last, gets it from its own clone, while a
 capture on the clone network sees the relay's TLS only. Swept away at the end, even on failure.
+
+Kilted, the second ROS 2 distro, runs the same fleet's core path (its own snapshot, the two clones,
+robot nao1, its /chatter on its clone and on nao2's, the captures): opt-in with CCRP_E2E_KILTED=1,
+since its image's first build and its fleet add minutes to the suite (docs/ros2.md, Kilted).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -97,21 +102,41 @@ OFFLOAD = ROOT / "examples" / "offload"
 MAPPER = {"name": "mapper", "command": ["python3", "-m", "ccrp_offload.scan_to_map"]}
 
 
-def _jazzy(data: dict) -> None:
-    """inventories/lab.yaml's networks (start_fleet fills them in), on Jazzy, with nao1 and nao2:
-    nao1 exports /chatter (not its /camera/image_raw), nao2 imports it; every clone runs the
-    offloading example's mapper node."""
+def _lab_on(distro: str, data: dict) -> None:
+    """inventories/lab.yaml's networks (start_fleet fills them in), on a ROS 2 distro, with nao1 and
+    nao2: nao1 exports /chatter (not its /camera/image_raw), nao2 imports it; on Jazzy every clone
+    runs the offloading example's mapper node."""
     for key in set(data) - {"fleet", "provider", "vpn", "common"}:
         del data[key]
-    data["ros"] = {"distro": "jazzy"}
+    data["ros"] = {"distro": distro}
     data["robots"] = [{"name": "nao1", "type": "nao", "exports": ["/chatter"]},
                       {"name": "nao2", "type": "nao", "imports": {"nao1": ["/chatter"]}}]
-    data["software"] = {"workspace": "ws", "run": [MAPPER]}
+    if distro == "jazzy":
+        data["software"] = {"workspace": "ws", "run": [MAPPER]}
 
 
-@pytest.fixture(scope="module")
+KILTED = pytest.param("kilted", marks=pytest.mark.skipif(
+    os.environ.get("CCRP_E2E_KILTED") != "1", reason="opt-in: CCRP_E2E_KILTED=1 (a Kilted image and fleet: minutes)"))
+
+
+@pytest.fixture(scope="module", params=["jazzy", KILTED])
 def fleet(request, tmp_path_factory) -> E2EFleet:
-    return start_fleet(request, tmp_path_factory, "e2j", _jazzy, copy={"ws": OFFLOAD / "ros2" / "ws"})
+    distro = request.param
+    return start_fleet(request, tmp_path_factory, "e2j" if distro == "jazzy" else "e2k", lambda d: _lab_on(distro, d),
+                       copy={"ws": OFFLOAD / "ros2" / "ws"} if distro == "jazzy" else None)
+
+
+def _distro(fleet: E2EFleet) -> str:
+    import yaml
+
+    return yaml.safe_load(fleet.inventory.read_text())["ros"]["distro"]
+
+
+def _jazzy_only(fleet: E2EFleet) -> None:
+    """The rest of the path (camera, teleop, dashboard, robot nao2, the fleet's software) is the
+    same code on every ROS 2 distro: run on Jazzy alone, to keep the Kilted run short."""
+    if _distro(fleet) != "jazzy":
+        pytest.skip("Jazzy only: Kilted runs the core path (clone, robot, shared topic)")
 
 
 @pytest.fixture(scope="module")
@@ -132,6 +157,9 @@ def test_a_jazzy_clone_serves_without_a_master(fleet: E2EFleet, up) -> None:
     env = dict(line.split("=", 1) for line in exec_in(clone, ["cat", "/etc/ccrp/ros.env"])[1].split())
     vpn = fleet.plan()["nao1"]
     assert env["ROS_DOMAIN_ID"] == "1" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert env["ROS_DISTRO"] == _distro(fleet)
+    rc, rclpy = exec_in(clone, [f"/opt/ros/{_distro(fleet)}/bin/pip", "show", f"ros-{_distro(fleet)}-rclpy"])
+    assert rc == 0 and f"Name: ros-{_distro(fleet)}-rclpy" in rclpy, rclpy  # the distro's own wheels
     assert env["ROS_STATIC_PEERS"] == vpn["robot_vpn_ip"] and "ROS_MASTER_URI" not in env
     # No new UDP leaves but through the tunnel (or loopback; DNS and NTP excepted).
     rc, rules = exec_in(clone, ["iptables", "-w", "-S", "OUTPUT"])
@@ -182,6 +210,7 @@ def test_a_jazzy_robot_connects_and_its_node_is_on_its_clone(fleet: E2EFleet, si
 def test_the_camera_view_reads_a_frame_of_the_jazzy_robot_on_its_clone(fleet: E2EFleet, sim) -> None:
     """`ccrp robot camera` (the dashboard's camera view): an rclpy reader on the clone takes one
     frame of the robot's /camera/image_raw and encodes it with the venv's OpenCV."""
+    _jazzy_only(fleet)
     out = fleet.tmp / "nao1.jpg"
     frame = fleet.json("robot", "camera", "--robot", "nao1", "--out", str(out), "--timeout", "10")
     assert (frame["width"], frame["height"], frame["encoding"], frame["frame_id"]) == (320, 240, "rgb8", "nao1_camera"), frame
@@ -195,6 +224,7 @@ def test_the_camera_view_reads_a_frame_of_the_jazzy_robot_on_its_clone(fleet: E2
 def test_teleop_reaches_the_jazzy_robot_and_is_acknowledged(fleet: E2EFleet, sim) -> None:
     """`ccrp robot teleop` (the dashboard's drive keys): a Twist published by an rclpy operator on
     the clone, received by the robot's demo node, acknowledged on /cmd_vel/ack."""
+    _jazzy_only(fleet)
     robot = fleet.container("robot-sim", "nao1")
     got = fleet.json("robot", "teleop", "--robot", "nao1", "--linear", "0.35", "--angular", "-0.5", "--timeout", "15")
     assert got["acknowledged"] is True and got["round_trip_ms"] > 0, got
@@ -207,6 +237,7 @@ def test_teleop_reaches_the_jazzy_robot_and_is_acknowledged(fleet: E2EFleet, sim
 @pytest.fixture
 def page(fleet: E2EFleet, sim, tmp_path_factory):
     """The fleet's dashboard open in a headless chromium (tests/e2e/browser.py)."""
+    _jazzy_only(fleet)
     if MISSING is not None:
         pytest.skip(MISSING)
     with running_dashboard(fleet) as dashboard, chromium(tmp_path_factory.mktemp("chromium")) as driver:
@@ -264,6 +295,7 @@ def test_a_topic_nao1_exports_reaches_nao2s_clone_with_its_type_and_qos(fleet: E
 def test_what_nao2_imports_reaches_robot_nao2_itself(fleet: E2EFleet, sim) -> None:
     """The whole path of a shared topic: robot nao1 -> its clone -> nao2's clone -> robot nao2, whose
     discovery, confined to its own tunnel, finds /nao1/chatter through its clone alone."""
+    _jazzy_only(fleet)
     fleet.json("robot", "sim", "--robot", "nao2", "--wait", "120")
     try:
         robot2 = fleet.container("robot-sim", "nao2")
@@ -301,6 +333,7 @@ def test_the_robots_own_node_on_its_clone_answers_its_scan_with_a_map(fleet: E2E
     workspace's node on its clone (the snapshot built it, fleet up started it as ccrp-run-mapper)
     publishes /map back, which the robot receives through its tunnel. `status` shows the node,
     `logs` its output."""
+    _jazzy_only(fleet)
     from ccrp_cli.providers.docker.archive import tar_files
     from ccrp_cli.providers.docker.wheels import cache_dir
 
@@ -336,6 +369,7 @@ def test_the_robots_own_node_on_its_clone_answers_its_scan_with_a_map(fleet: E2E
 def test_a_clone_made_again_from_the_snapshot_runs_the_same_software(fleet: E2EFleet, up) -> None:
     """nao2's clone deleted and created again: its node starts at boot from the snapshot, with
     nothing installed, at the digest the snapshot holds; plan names no clone with other software."""
+    _jazzy_only(fleet)
     fleet.inv("clone", "delete", "--robot", "nao2", check=True)
     fleet.inv("clone", "create", "--robot", "nao2", check=True)
     state = json.loads((fleet.home / fleet.name / "state.json").read_text())
@@ -354,6 +388,7 @@ def test_a_clone_made_again_from_the_snapshot_runs_the_same_software(fleet: E2EF
 def test_a_node_dropped_from_the_inventory_leaves_the_clones(fleet: E2EFleet, up) -> None:
     """fleet up after the run list lost mapper: its unit is stopped and removed on every clone, and
     status and logs no longer name it."""
+    _jazzy_only(fleet)
     import yaml
 
     data = yaml.safe_load(fleet.inventory.read_text())

@@ -34,11 +34,27 @@ def test_init_writes_an_inventory_that_validates(here, provider):
 def test_init_never_overwrites_and_refuses_bad_input(here):
     (here / "ccrp.yaml").write_text("mine\n")
     for argv in (("init",), ("init", "-o", "a.yaml", "--provider", "azure"), ("init", "-o", "b.yaml", "--robots", "nao1,NAO2"),
-                 ("init", "-o", "c.yaml", "--robots", "nao1,nao1"), ("init", "-o", "d.yaml", "--fleet", "My Fleet")):
+                 ("init", "-o", "c.yaml", "--robots", "nao1,nao1"), ("init", "-o", "d.yaml", "--fleet", "My Fleet"),
+                 ("init", "-o", "e.yaml", "--distro", "humble")):
         code, _, err = run_ccrp_inprocess(*argv, home=here / "home")
         assert code == 2 and err.startswith("ccrp: error: ") and err.count("\n") == 1, (argv, err)
     assert (here / "ccrp.yaml").read_text() == "mine\n"
     assert sorted(p.name for p in here.iterdir()) == ["ccrp.yaml"]
+
+
+def test_init_makes_a_ros2_fleet_and_says_how_to_pick_noetic(here):
+    """A new fleet is ROS 2 Jazzy (the current LTS); the output names the flag for a ROS 1 fleet,
+    and that flag gives one."""
+    code, out, err = run_ccrp_inprocess("init", "--json", home=here / "home")
+    assert code == 0, err
+    inv = load_inventory(here / "ccrp.yaml")
+    assert (inv.ros.distro, inv.ros.ros2, json.loads(out)["distro"]) == ("jazzy", True, "jazzy")
+    assert "ccrp init --distro noetic" in err, err
+    code, _, err = run_ccrp_inprocess("init", "-o", "ros1.yaml", "--distro", "noetic", home=here / "home")
+    assert code == 0, err
+    inv = load_inventory(here / "ros1.yaml")
+    assert (inv.ros.distro, inv.ros.ros2) == ("noetic", False)
+    assert "--distro noetic" not in err
 
 
 def test_init_pools_avoid_the_fleets_in_ccrp_home(here):

@@ -7,17 +7,57 @@ import secrets
 import subprocess
 from pathlib import Path
 
+import pytest
+
+from ccrp_cli.errors import InputError
 from ccrp_cli.providers.docker import images, ros2, wheels
 from ccrp_cli.recipes import platform, recipe
 
 
 def test_jazzy_recipe_loads_beside_noetics():
     jazzy = recipe("jazzy")
-    assert jazzy.distro == "jazzy" and list(jazzy.platforms) == list(recipe("noetic").platforms) == ["debian-bookworm"]
+    assert jazzy.distro == "jazzy" and list(recipe("noetic").platforms) == ["debian-bookworm"]
+    # Jazzy also has the user's own image with ROS 2 installed (clouds only: docs/ros2.md).
+    assert list(jazzy.platforms) == ["debian-bookworm", "ubuntu-noble-ros"] and jazzy.platforms["ubuntu-noble-ros"].clouds_only
     plat = platform("jazzy", "docker")
     assert {"ros-jazzy-rclpy", "ros-jazzy-rmw-fastrtps-cpp", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs",
             "ros-jazzy-geometry-msgs"} <= {p.split("==")[0] for p in plat.pip}
     assert "python3-venv" in plat.packages and not any(p.startswith(("ros-", "python3-rospy")) for p in plat.packages)
+
+
+def test_the_distros_are_the_recipes_and_a_new_one_is_a_file(monkeypatch, tmp_path):
+    """The distro list is data: snapshots/<distro>.yaml, each saying its ROS version. A recipe
+    copied under a new name is a distro the inventory takes, ROS 2, whose Docker image gets the
+    venv at /opt/ros/<name> and whose wheels are fetched for the tags the recipe names."""
+    import shutil
+
+    from ccrp_cli import recipes
+    from ccrp_cli.loader import parse_inventory
+
+    assert recipes.distros() == {"jazzy": 2, "kilted": 2, "noetic": 1}
+    kilted = platform("kilted", "docker")
+    assert {p.split("==")[0] for p in kilted.pip} >= {"ros-kilted-rclpy", "ros-kilted-rmw-fastrtps-cpp",
+                                                      "ros-kilted-std-msgs", "ros-kilted-sensor-msgs"}
+    assert kilted.wheel_platforms == ["manylinux2014_x86_64", "manylinux_2_28_x86_64"]
+    assert platform("noetic", "docker").wheel_platforms == ["manylinux2014_x86_64"]
+    data = tmp_path / "snapshots"
+    shutil.copytree(recipes.data_dir("snapshots"), data)
+    (data / "rolling.yaml").write_text((data / "kilted.yaml").read_text().replace("kilted", "rolling"))
+    monkeypatch.setattr(recipes, "data_dir", lambda name: data)
+    for cached in (recipes.recipe, recipes.distros):
+        cached.cache_clear()
+    try:
+        inv = parse_inventory({"fleet": "lab", "provider": {"kind": "docker"}, "ros": {"distro": "rolling"}}, "x.yaml")
+        assert inv.ros.ros2 and recipes.is_ros2("rolling") and not recipes.is_ros2("noetic")
+        text = images.dockerfile("lab", "rolling", images.DEFAULT_BASE, platform("rolling", "docker"))
+        assert "python3 -m venv /opt/ros/rolling" in text and "ros-rolling-rclpy" in text
+        (data / "bad.yaml").write_text((data / "noetic.yaml").read_text())  # names another distro inside
+        recipes.distros.cache_clear()
+        with pytest.raises(InputError, match="says distro 'noetic', not 'bad'"):
+            recipes.distros()
+    finally:
+        for cached in (recipes.recipe, recipes.distros):
+            cached.cache_clear()
 
 
 def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch, tmp_path):

@@ -55,23 +55,48 @@ def test_what_a_jazzy_fleet_cannot_have_yet_is_refused(change, expected):
         parse_inventory(data, "lab-jazzy.yaml")
 
 
+@pytest.mark.parametrize("where, said", [
+    ("robots", {"name": "nao1", "type": "nao", "ros": {"distro": "noetic"}}),
+    ("types", {"nao": {"ros": {"distro": "humble"}}}),
+    ("template", {"prefix": "robot", "ros": {"distro": "kilted"}}),
+])
+def test_a_robot_of_another_distro_than_its_fleet_is_refused_in_one_line(ccrp_home, tmp_path, where, said):
+    """One distro per fleet, robots and clones alike: a robot (or type, or the template) saying it
+    runs another ROS is refused by `fleet validate` in one line; saying the fleet's is fine."""
+    from tests.conftest import run_ccrp
+
+    data = yaml.safe_load(JAZZY.read_text())
+    data[where] = [said] if where == "robots" else said
+    path = tmp_path / "ccrp.yaml"
+    path.write_text(yaml.safe_dump(data))
+    proc = run_ccrp("fleet", "validate", "-i", str(path), home=ccrp_home)
+    distro = said.get("ros", {}).get("distro") or said["nao"]["ros"]["distro"]
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert f"runs ROS {distro}, the fleet ros.distro jazzy: a fleet has one distro" in proc.stderr, proc.stderr
+    same = yaml.safe_load(yaml.safe_dump(data).replace(f"distro: {distro}", "distro: jazzy"))
+    assert parse_inventory(same, "same.yaml").ros.distro == "jazzy"
+
+
 @pytest.mark.skipif(shutil.which("cloud-init") is None, reason="cloud-init not installed (apt-get install cloud-init)")
-@pytest.mark.parametrize("kind", ["aws", "gcp", "openstack"])
-def test_a_jazzy_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_schema(ccrp_home, tmp_path, kind):
+# Kilted on AWS alone (the smallest user-data limit): its user-data differs from Jazzy's only in
+# the recipe's names, and each schema check takes about 7 s here.
+@pytest.mark.parametrize("kind, distro", [("aws", "jazzy"), ("gcp", "jazzy"), ("openstack", "jazzy"), ("aws", "kilted")])
+def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_schema(ccrp_home, tmp_path, kind, distro):
     """A cloud's image (`snapshot bake`'s builder, or a bare clone's first boot) gets the same venv as
-    the Docker image: the recipe's wheels from the index, then ros2-setup writes its setup.sh."""
+    the Docker image: the recipe's wheels from the index, then ros2-setup writes its setup.sh. Each
+    ROS 2 distro the same way, from its recipe."""
     from ccrp_cli import vpn
 
     data = yaml.safe_load((ROOT / "inventories" / f"{kind}.yaml").read_text())
-    data["ros"]["distro"] = "jazzy"
+    data["ros"]["distro"] = distro
     path = tmp_path / "ccrp.yaml"
     path.write_text(yaml.safe_dump(data))
     fleet = Fleet.open(path)
     vpn.init(fleet)
-    plat = cloudinit.platform("jazzy", kind)
-    venv = [["python3", "-m", "venv", "/opt/ros/jazzy"],
-            ["/opt/ros/jazzy/bin/pip", "install", "--no-cache-dir", *plat.pip, "empy==3.3.4"],
-            ["sh", "/usr/local/lib/ccrp/ros2-setup", "/opt/ros/jazzy", "jazzy"]]
+    plat = cloudinit.platform(distro, kind)
+    venv = [["python3", "-m", "venv", f"/opt/ros/{distro}"],
+            [f"/opt/ros/{distro}/bin/pip", "install", "--no-cache-dir", *plat.pip, "empy==3.3.4"],
+            ["sh", "/usr/local/lib/ccrp/ros2-setup", f"/opt/ros/{distro}", distro]]
     view = clone_view(fleet, fleet.store.load_state(), fleet.inventory.robots[0].name)
     keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"]
     texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef"),
@@ -80,7 +105,7 @@ def test_a_jazzy_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init
     for what, text in texts.items():
         runcmd = yaml.safe_load(text)["runcmd"]
         assert all(step in runcmd for step in venv) == (what != "snapshot"), (what, runcmd)
-        assert "ros-jazzy-rclpy==7.1.6" not in text or what != "snapshot"
+        assert plat.pip[0] not in text or what != "snapshot"
         fit_user_data(kind, text)
         f = tmp_path / f"{what}.yaml"
         f.write_text(text)
@@ -88,8 +113,86 @@ def test_a_jazzy_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init
         assert proc.returncode == 0 and "Valid cloud-config" in proc.stdout, what + proc.stdout + proc.stderr
     # The bake proves the venv's packages, not the system python's.
     proof = next(c for c in yaml.safe_load(texts["builder"])["runcmd"] if "pip-ok" in " ".join(c))
-    assert proof[proof.index("/opt/ros/jazzy/bin/python"):][:5] == ["/opt/ros/jazzy/bin/python", "-m", "pip", "show",
-                                                                    "ros-jazzy-rclpy"], proof
+    python = f"/opt/ros/{distro}/bin/python"
+    assert proof[proof.index(python):][:5] == [python, "-m", "pip", "show", f"ros-{distro}-rclpy"], proof
+
+
+@pytest.mark.skipif(shutil.which("cloud-init") is None, reason="cloud-init not installed (apt-get install cloud-init)")
+@pytest.mark.parametrize("kind", ["aws", "gcp", "openstack"])
+def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(ccrp_home, tmp_path, kind):
+    """`ros.platform: ubuntu-noble-ros`: the base image has ROS 2 Jazzy under /opt/ros/jazzy (apt).
+    Its builder and a bare clone write nothing over that prefix (no venv, no setup.sh of ours): the
+    agents' packages go to the system python, /opt/ros/jazzy/bin/python becomes a launcher only where
+    none is, and the bake proves the image's ROS as the agents start it."""
+    from ccrp_cli import vpn
+
+    data = yaml.safe_load((ROOT / "inventories" / f"{kind}.yaml").read_text())
+    data["ros"] = {"distro": "jazzy", "platform": "ubuntu-noble-ros"}
+    path = tmp_path / "ccrp.yaml"
+    path.write_text(yaml.safe_dump(data))
+    fleet = Fleet.open(path)
+    vpn.init(fleet)
+    plat = cloudinit.platform("jazzy", kind, "ubuntu-noble-ros")
+    assert plat.ros_installed and "ros-jazzy-ros-base" in plat.packages and "python3-venv" not in plat.packages
+    view = clone_view(fleet, fleet.store.load_state(), fleet.inventory.robots[0].name)
+    keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"]
+    texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef"),
+             "bare": cloudinit.user_data(view, install_packages=True, login_keys=keys)}
+    launcher = ["sh", "-c", '[ -e "$0/bin/python" ] || ln -s "$1" "$0/bin/python"', "/opt/ros/jazzy",
+                "/usr/local/lib/ccrp/ros-python"]
+    for what, text in texts.items():
+        data = yaml.safe_load(text)
+        runcmd = data["runcmd"]
+        assert not [c for c in runcmd if "venv" in c or any("ros2-setup" in a for a in c)], (what, runcmd)
+        assert not [f["path"] for f in data["write_files"] if f["path"].startswith("/opt/ros")], what
+        assert ["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip] in runcmd, runcmd
+        assert launcher in runcmd and runcmd.index(launcher) > runcmd.index(["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3",
+                                                                              "install", "--no-cache-dir", *plat.pip])
+        assert "ros-jazzy-ros-base" in data["packages"]
+        fit_user_data(kind, text)
+        f = tmp_path / f"{what}.yaml"
+        f.write_text(text)
+        proc = subprocess.run(["cloud-init", "schema", "--config-file", str(f)], capture_output=True, text=True)
+        assert proc.returncode == 0 and "Valid cloud-config" in proc.stdout, what + proc.stdout + proc.stderr
+    assert cloudinit.bake_proofs(fleet.inventory) == ["apt", "locale", "pip", "ros"]
+    proof = next(c for c in yaml.safe_load(texts["builder"])["runcmd"] if "ros-ok" in " ".join(c))
+    assert proof[4:6] == ["/opt/ros/jazzy/bin/python", "-c"] and "import rclpy, zenoh, cv2" in proof[6], proof
+
+
+def test_the_launcher_runs_the_system_python_in_the_distros_own_setup(tmp_path):
+    """templates/image/ros-python, linked as <prefix>/bin/python: <prefix>/setup.sh is sourced (the
+    prefix is the link's), then python3 runs with the arguments."""
+    prefix = tmp_path / "opt" / "ros" / "jazzy"
+    (prefix / "bin").mkdir(parents=True)
+    (prefix / "setup.sh").write_text('export CCRP_SEEN_SETUP="$AMENT_PREFIX_PATH:sourced"\n')
+    launcher = tmp_path / "ros-python"  # installed 0755 by cloud-init (write_files)
+    launcher.write_text((ROOT / "templates" / "image" / "ros-python").read_text())
+    launcher.chmod(0o755)
+    (prefix / "bin" / "python").symlink_to(launcher)
+    proc = subprocess.run([str(prefix / "bin" / "python"), "-c", "import os, sys; print(os.environ['CCRP_SEEN_SETUP'], sys.argv[1])",
+                           "arg"], capture_output=True, text=True, env={"PATH": "/usr/bin:/bin", "AMENT_PREFIX_PATH": "x"})
+    assert proc.returncode == 0 and proc.stdout.split() == ["x:sourced", "arg"], proc.stderr
+
+
+def test_the_own_ros2_platform_is_refused_on_docker_and_without_a_base_image(ccrp_home, tmp_path):
+    from ccrp_cli import snapshots
+
+    data = yaml.safe_load(JAZZY.read_text())
+    data["ros"]["platform"] = "ubuntu-noble-ros"
+    with pytest.raises(InputError, match="ros.platform ubuntu-noble-ros is for clouds"):
+        parse_inventory(data, "lab-jazzy.yaml")
+    data["ros"]["platform"] = "ubuntu-jammy"
+    with pytest.raises(InputError, match="not one of ros.distro jazzy's"):
+        parse_inventory(data, "lab-jazzy.yaml")
+    cloud = yaml.safe_load((ROOT / "inventories" / "aws.yaml").read_text())
+    cloud["ros"] = {"distro": "jazzy", "platform": "ubuntu-noble-ros"}
+    path = tmp_path / "ccrp.yaml"
+    path.write_text(yaml.safe_dump(cloud))
+    fleet = Fleet.open(path)
+    # No provider call is made before the refusal: the stock Debian image has no ROS 2 to use.
+    with pytest.raises(InputError, match="bakes from your image with ROS jazzy installed") as err:
+        snapshots.bake(fleet, None, lambda msg: None)
+    assert "--base-image" in err.value.hint
 
 
 def test_domain_comes_from_the_slot_and_stays_below_the_ephemeral_ports():
@@ -212,3 +315,52 @@ def test_a_jazzy_edge_bundle_installs_its_guard_under_a_staging_root(jazzy, tmp_
     assert subprocess.run(["sh", "-n", str(root / "usr/local/lib/ccrp/ccrp-rtps-guard")]).returncode == 0
     assert subprocess.run(["sh", str(root / "usr/local/lib/ccrp/ccrp-rtps-guard"), "sideways"],
                           capture_output=True).returncode == 2
+
+
+def test_a_robot_with_its_own_ros2_at_another_prefix_needs_only_the_bundles_env_and_guard(jazzy, tmp_path):
+    """A real robot's ROS 2 is its own (an apt install, a source build under its home...): the edge
+    bundle brings nothing of the wheels. Installed (under a staging root), its profile script gives a
+    shell whose own ROS 2 lives at another prefix the robot's domain, range, peer and RMW, and keeps
+    that install's paths; the RTPS guard fences by ports and addresses alone, whatever the prefix
+    (run here with a stand-in iptables that records its calls)."""
+    view = clone_view(jazzy, jazzy.store.load_state(), "nao2")
+    files = bundles.edge_bundle(view, jazzy.pki.credentials("nao2"), "203.0.113.10")
+    assert not [f.name for f in files if "ros-jazzy-" in f.content or "/opt/ros/jazzy" in f.content]
+    out = bundles.write_bundle(tmp_path / "bundle", files, {"robot": "nao2"})
+    root = tmp_path / "root"
+    path = "/usr/bin:/bin:/usr/sbin:/sbin"
+    assert subprocess.run(["sh", str(out / "install.sh")], env={"CCRP_ROOT": str(root), "PATH": path},
+                          capture_output=True).returncode == 0
+    # The robot's own install, elsewhere than /opt/ros/<distro> (which does not exist here).
+    own = tmp_path / "home" / "nao" / "ros2_jazzy" / "install"
+    own.mkdir(parents=True)
+    (own / "setup.sh").write_text(f'export AMENT_PREFIX_PATH={own}\nexport LD_LIBRARY_PATH={own}/lib\n')
+    profile = (root / "etc/profile.d/ccrp-ros.sh").read_text().replace("/etc/ccrp/", f"{root}/etc/ccrp/")
+    (tmp_path / "profile.sh").write_text(profile)
+    shown = subprocess.run(["sh", "-c", f'. "{own}/setup.sh"; . "{tmp_path}/profile.sh"; env'], env={"PATH": path},
+                           capture_output=True, text=True)
+    env = dict(line.split("=", 1) for line in shown.stdout.splitlines() if "=" in line)
+    assert (env["ROS_DISTRO"], env["ROS_DOMAIN_ID"], env["ROS_AUTOMATIC_DISCOVERY_RANGE"], env["RMW_IMPLEMENTATION"]) == \
+        ("jazzy", str(network.ros_domain(view.addr.index)), "LOCALHOST", "rmw_fastrtps_cpp"), env
+    assert env["ROS_STATIC_PEERS"] == str(view.addr.clone_vpn_ip)
+    assert env["AMENT_PREFIX_PATH"] == str(own) and env["LD_LIBRARY_PATH"] == f"{own}/lib"
+    # The guard: a stand-in iptables and getent; its files under the staging root.
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    calls = tmp_path / "calls"
+    (bin_dir / "iptables").write_text(f'#!/bin/sh\necho "$*" >> {calls}\ncase "$*" in *" -C "*) exit 1;; esac\n')
+    (bin_dir / "getent").write_text("#!/bin/sh\necho '203.0.113.10 STREAM x'\n")
+    for tool in ("iptables", "getent"):
+        (bin_dir / tool).chmod(0o755)
+    guard = (root / "usr/local/lib/ccrp/ccrp-rtps-guard").read_text()
+    guard = guard.replace("/etc/ccrp/", f"{root}/etc/ccrp/").replace("/run/ccrp", f"{tmp_path}/run")
+    (tmp_path / "guard").write_text(guard)
+    proc = subprocess.run(["sh", str(tmp_path / "guard"), "up"], env={"PATH": f"{bin_dir}:/usr/bin:/bin"},
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    lo, hi = network.rtps_ports(view.addr.index)
+    inserted = [line for line in calls.read_text().splitlines() if line.startswith("-w -I OUTPUT")]
+    assert inserted == [f"-w -I OUTPUT -p udp --dport {lo}:{hi} -j CCRP-RTPS", "-w -I OUTPUT -p udp -d 239.255.0.1 -j CCRP-RTPS",
+                        "-w -I OUTPUT -p udp -d 203.0.113.10 ! --dport 1194 -j CCRP-RTPS"], calls.read_text()
+    chain = [line for line in calls.read_text().splitlines() if line.startswith("-w -A CCRP-RTPS")]
+    assert chain == ["-w -A CCRP-RTPS -o lo -j RETURN", "-w -A CCRP-RTPS -o ccrpvpn -j RETURN", "-w -A CCRP-RTPS -j DROP"]

@@ -81,12 +81,11 @@ def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, softwar
     """A ROS 2 distro's image has its `pip` list (the ros-<distro>-* wheels) in a venv at
     /opt/ros/<distro> (docs/ros2.md) instead of the ROS 1 agents in /usr/local. The fleet's own
     software (workloads.SnapshotSoftware), when it has some, comes last (templates/docker/software.j2)."""
-    from ...models.inventory import ROS2_DISTROS
-    from ...recipes import recipe
+    from ...recipes import is_ros2, recipe
     from ...render.cloudinit import LOCALE_SETUP
     from ...workloads import WORKSPACE
 
-    prefix = f"/opt/ros/{distro}" if distro in ROS2_DISTROS and plat.pip else ""
+    prefix = f"/opt/ros/{distro}" if is_ros2(distro) and plat.pip else ""
     extra: dict = {"software": None}
     if software is not None and not software.empty:
         extra = {"software": software, "sw_apt": software.apt, "sw_pip": _software_pip(software),
@@ -108,13 +107,11 @@ def build_context(plat: Platform, progress=lambda msg: None, distro: str = "noet
     image has the wheels only (its agents are ROS 1 only so far), fetched with their own platform tags.
     With the fleet's software: its workspace and the wheels of its `pip` list, from the same cache."""
     tool = {"ccrp-topic": static("image/ccrp-topic").encode()}  # every image has it
-    return tool | _recipe_context(plat, progress, distro) | _software_context(software, progress, distro)
+    return tool | _recipe_context(plat, progress, distro) | _software_context(software, progress, plat)
 
 
-def _software_context(software, progress, distro: str) -> dict[str, bytes]:
-    from ...models.inventory import ROS2_DISTROS
+def _software_context(software, progress, plat: Platform) -> dict[str, bytes]:
     from . import wheels
-    from .ros2 import WHEEL_PLATFORMS
 
     if software is None or software.empty:
         return {}
@@ -122,26 +119,25 @@ def _software_context(software, progress, distro: str) -> dict[str, bytes]:
     pip = _software_pip(software)
     if pip:
         progress(f"fetching wheels for the fleet's software: {', '.join(pip)}")
-        platforms = WHEEL_PLATFORMS if distro in ROS2_DISTROS else ("manylinux2014_x86_64",)
-        files |= {f"software-{name}": data for name, data in wheels.fetch(pip, platforms).items()}
+        files |= {f"software-{name}": data for name, data in wheels.fetch(pip, tuple(plat.wheel_platforms)).items()}
     return files
 
 
 def _recipe_context(plat: Platform, progress, distro: str) -> dict[str, bytes]:
-    from ...models.inventory import ROS2_DISTROS
+    from ...recipes import is_ros2
     from ...render.cloudinit import IMAGE_AGENTS, agent_source
 
     if not plat.pip:
         return {}
     progress(f"fetching wheels for the clone image: {', '.join(plat.pip)}")
-    if distro in ROS2_DISTROS:
+    if is_ros2(distro):
         from .ros2 import venv_context
 
         return venv_context(plat)
     from . import wheels
 
     agents = {f"{name}.py": agent_source(name).encode() for name in IMAGE_AGENTS}
-    return agents | wheels.fetch(plat.pip, ("manylinux2014_x86_64",))
+    return agents | wheels.fetch(plat.pip, tuple(plat.wheel_platforms))
 
 
 def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progress=lambda msg: None,

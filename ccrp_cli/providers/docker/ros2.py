@@ -9,9 +9,6 @@ from ...recipes import Platform
 from ...render.templates import render, static
 from . import wheels
 
-# The ros-jazzy-* wheels are tagged manylinux_2_28, eclipse-zenoh manylinux2014.
-WHEEL_PLATFORMS = ("manylinux2014_x86_64", "manylinux_2_28_x86_64")
-
 
 def dockerfile(distro: str, base_image: str, plat: Platform) -> str:
     """The recipe's packages, and its `pip` list (the ros-<distro>-* wheels) in a venv at
@@ -23,7 +20,7 @@ def dockerfile(distro: str, base_image: str, plat: Platform) -> str:
 
 def venv_context(plat: Platform) -> dict[str, bytes]:
     """The build-context files of the venv step (templates/docker/ros2-venv.j2): the wheels of the
-    recipe's `pip` list and of everything they require (wheels.fetch, for the image's python on
-    WHEEL_PLATFORMS), its `pip_source` packages built into wheels here, so the image build needs no
+    recipe's `pip` list and of everything they require (wheels.fetch, for the image's python on the
+    recipe's `wheel_platforms`), its `pip_source` packages built into wheels here, so the image build needs no
     index and no compiler; and the ros2-setup script."""
-    return wheels.fetch(plat.pip, WHEEL_PLATFORMS, plat.pip_source) | {"ros2-setup": static("image/ros2-setup").encode()}
+    return wheels.fetch(plat.pip, tuple(plat.wheel_platforms), plat.pip_source) | {"ros2-setup": static("image/ros2-setup").encode()}
