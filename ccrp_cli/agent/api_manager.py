@@ -539,6 +539,7 @@ def main() -> None:
             time.sleep(1)
     finally:
         service.stop.set()
+        worker.join(timeout=5)  # its publish, if it is in one, before the ROS side goes
         service.ros.close()
 
 

@@ -10,6 +10,7 @@ reliable and volatile, as rclpy's default publisher.
 from __future__ import annotations
 
 import os
+import signal
 import tempfile
 import threading
 
@@ -20,8 +21,11 @@ def stamp_of(msg) -> float:
 
 
 class Ros2:
-    """One node, spun by an executor thread (the image callback); the service's worker thread
-    publishes, which rclpy allows while it spins."""
+    """One node, spun by a thread of its own (the image callback); the service's worker thread
+    publishes, which rclpy allows while it spins. A stop (SIGTERM, from systemd) ends the spinning
+    thread before the node and rclpy are shut down: rclpy's own SIGTERM handling with a thread
+    still inside the executor made the process abort at exit ("terminate called without an active
+    exception", SIGABRT; seen in tests/e2e/test_jazzy_fleet.py)."""
 
     def __init__(self, cfg: dict, on_image) -> None:
         # The relay's Fast DDS profile (UDP only: shared memory does not cross users, and this
@@ -37,19 +41,27 @@ class Ros2:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from rclpy.signals import SignalHandlerOptions
         from sensor_msgs.msg import Image
         from std_msgs.msg import String
 
         self.rclpy, self.String = rclpy, String
-        rclpy.init()
+        self.stop = threading.Event()
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        signal.signal(signal.SIGTERM, lambda *_: self.stop.set())
+        signal.signal(signal.SIGINT, lambda *_: self.stop.set())
         self.node = rclpy.create_node("ccrp_api_manager")
         self.pub = self.node.create_publisher(String, cfg["output"], 10)
         newest = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
         self.node.create_subscription(Image, cfg["input"], on_image, newest)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
-        self.spinner = threading.Thread(target=self.executor.spin, name="rclpy", daemon=True)
+        self.spinner = threading.Thread(target=self.spin, name="rclpy", daemon=True)
         self.spinner.start()
+
+    def spin(self) -> None:
+        while not self.stop.is_set():
+            self.executor.spin_once(timeout_sec=0.1)
 
     def publish(self, text: str) -> None:
         self.pub.publish(self.String(data=text))
@@ -57,9 +69,11 @@ class Ros2:
     stamp = staticmethod(stamp_of)
 
     def ok(self) -> bool:
-        return self.rclpy.ok()
+        return not self.stop.is_set() and self.rclpy.ok()
 
     def close(self) -> None:
+        self.stop.set()
+        self.spinner.join()
         self.executor.shutdown()
         self.node.destroy_node()
         self.rclpy.try_shutdown()

@@ -440,6 +440,12 @@ def test_a_face_learned_on_nao2_is_named_to_robot_nao1_by_its_rclpy_api_manager(
         for me, other in (("nao1", "nao2"), ("nao2", "nao1")):
             know = rows[me]["knowledge"]
             assert know["running"] and know["peers"] == {other: True} and know["datasets"]["faces"]["items"] == 1, know
+        # Stopped, the agent ends cleanly (rclpy's node and spinner thread shut down: nothing aborts).
+        clone = fleet.container("clone", "nao1")
+        exec_in(clone, ["systemctl", "stop", "ccrp-api-manager.service"])
+        _, result = exec_in(clone, ["systemctl", "show", "-p", "Result", "--value", "ccrp-api-manager.service"])
+        assert result.strip() == "success", f"{result}\n{journals()}"
+        exec_in(clone, ["systemctl", "start", "ccrp-api-manager.service"])
     finally:
         fleet.inv("knowledge", "remove", "--robot", "nao2", "--dataset", "faces", "grace.png")
 
