@@ -15,6 +15,7 @@ from .render.view import API_USER, CCRP_ETC, SECRETS_DIR
 
 API_UNIT = "ccrp-api-manager.service"
 API_CONFIG = f"{CCRP_ETC}/api_manager.json"
+AGENT_DIR = "/usr/local/lib/ccrp"  # where the Noetic snapshot has the agent, and fleet up pushes a ROS 2 one
 API_STATUS = "/run/ccrp-api-manager/status.json"  # agent/health.py has its own copy
 GOOGLE_KEY = f"{SECRETS_DIR}/google-vision.json"
 # Retries of a failed backend call (agent/api_manager.py Caller): attempts per frame, then backoff
@@ -53,11 +54,18 @@ def google_key(path: str) -> str:
 
 def api_manager_files(inv: Inventory, robot: Robot) -> list[BundleFile]:
     """What `fleet up` pushes for robot's API manager: its config, and its Vision key when it has
-    one. [] when the clone runs none."""
+    one; on a ROS 2 clone the agent too (api_manager.py and its rclpy side), as the knowledge agent
+    is pushed: a bare cloud clone's user-data carries its image's agents, and with these a Jazzy
+    one would not fit AWS's 16 KiB. [] when the clone runs none."""
     cfg = api_manager_config(inv, robot)
     if cfg is None:
         return []
     files = [BundleFile("api_manager.json", json.dumps(cfg, indent=1, sort_keys=True) + "\n", 0o644, API_CONFIG)]
+    if inv.ros.ros2:
+        from .render.cloudinit import agent_source
+
+        files += [BundleFile(f"{name}.py", agent_source(name), 0o644, f"{AGENT_DIR}/{name}.py")
+                  for name in ("api_manager", "api_manager_ros2")]
     setting = inv.api_manager_of(robot)
     if setting is not None and setting.backend == "google-vision" and setting.google_vision.credentials:
         files.append(BundleFile("google-vision.json", google_key(setting.google_vision.credentials), 0o640, GOOGLE_KEY,
@@ -70,9 +78,10 @@ def absent_config() -> BundleFile:
     return BundleFile("api_manager.json", "", 0o644, API_CONFIG)
 
 
-# Whether a clone can run the service: its unit (user-data), its agent (snapshot) and its user.
-HAS_AGENT_SH = (f"test -e /etc/systemd/system/{API_UNIT} && test -e /usr/local/lib/ccrp/api_manager.py "
-                f"&& getent passwd {API_USER} >/dev/null")
+# Whether a clone can run the service: its unit (user-data), its agent (snapshot; pushed with the
+# config on ROS 2: HAS_UNIT_SH) and its user.
+HAS_UNIT_SH = f"test -e /etc/systemd/system/{API_UNIT} && getent passwd {API_USER} >/dev/null"
+HAS_AGENT_SH = f"{HAS_UNIT_SH} && test -e {AGENT_DIR}/api_manager.py"
 # Turns the service off on a clone: its config and key gone, the unit stopped.
 OFF_SH = f'rm -f "{API_CONFIG}" "{GOOGLE_KEY}" && systemctl stop {API_UNIT}'
 
@@ -84,7 +93,8 @@ def apply_api_manager(provider, robot: str, files: list[BundleFile], have: dict[
 
     if files:
         if not same(have, files):
-            rc, _ = provider.exec(robot, ["sh", "-c", HAS_AGENT_SH], timeout=30)
+            pushes_agent = any(f.dest == f"{AGENT_DIR}/api_manager.py" for f in files)
+            rc, _ = provider.exec(robot, ["sh", "-c", HAS_UNIT_SH if pushes_agent else HAS_AGENT_SH], timeout=30)
             if rc != 0:
                 raise CcrpError(
                     f"robot {robot!r}'s clone has no API manager: it was made from an older snapshot or user-data",

@@ -282,22 +282,90 @@ def merge_bag_files(paths: list[Path], out: Path, names: list[str] | None = None
             "topics": sorted({k[0] for k in conns}), "out": str(out)}
 
 
+def merge_bag2_files(paths: list[Path], out: Path, names: list[str] | None = None) -> dict:
+    """Write one ROS 2 bag (a rosbag2 directory `out`, MCAP storage: Jazzy's default) with every
+    message of `paths` (rosbag2 storage files, *.mcap or *.db3, each read without its
+    metadata.yaml; shown in errors as `names`), in time order. Connections are one per (topic,
+    type), with the first bag's serialization format and QoS; a message met twice (same topic,
+    type, time and bytes) is written once. Types come from the bags' own definitions."""
+    import hashlib
+    import shutil
+    from contextlib import ExitStack
+
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import MessageDefinitionFormat
+    from rosbags.rosbag2 import Reader, Writer
+    from rosbags.rosbag2.writer import StoragePlugin
+    from rosbags.typesys import Stores, get_typestore
+
+    names = names or [p.name for p in paths]
+    for p, name in zip(paths, names):
+        try:
+            with Reader(p):
+                pass
+        except Exception as exc:  # noqa: BLE001 - rosbags raises what the bytes make it
+            raise CcrpError(f"{shown(name)} is not a ROS 2 bag: {type(exc).__name__}: {shown(str(exc), 120)}",
+                            hint="merge takes the dataset's items named *.mcap or *.db3 (rosbag2 storage files); "
+                                 "remove or rename this one") from None
+    count = dups = 0
+    seen: set[tuple] = set()
+    conns: dict[tuple[str, str], object] = {}
+    try:
+        with ExitStack() as stack:
+            # Bags without type definitions (a db3 of a distro before Iron) are read as Jazzy's types.
+            reader = stack.enter_context(AnyReader(paths, default_typestore=get_typestore(Stores.ROS2_JAZZY)))
+            writer = stack.enter_context(Writer(out, version=9, storage_plugin=StoragePlugin.MCAP))
+            types = reader.typestore
+            for c in reader.connections:
+                k = (c.topic, c.msgtype)
+                if k not in conns:
+                    msgdef = (c.msgdef.data if c.msgdef.format != MessageDefinitionFormat.NONE
+                              else types.generate_msgdef(c.msgtype, ros_version=2)[0])
+                    conns[k] = writer.add_connection(c.topic, c.msgtype, msgdef=msgdef, rihs01=types.hash_rihs01(c.msgtype),
+                                                     serialization_format=c.ext.serialization_format,
+                                                     offered_qos_profiles=c.ext.offered_qos_profiles)
+            for c, t, data in reader.messages():
+                k = (c.topic, c.msgtype)
+                mark = (k, t, hashlib.sha256(data).digest())
+                if mark in seen:
+                    dups += 1
+                    continue
+                seen.add(mark)
+                writer.write(conns[k], t, data)
+                count += 1
+    except Exception as exc:  # noqa: BLE001 - a bag rosbags could open but not read through, or types it cannot join
+        shutil.rmtree(out, ignore_errors=True)
+        raise CcrpError(f"cannot merge the dataset's ROS 2 bags: {type(exc).__name__}: {shown(str(exc), 200)}") from None
+    return {"bags": len(paths), "messages": count, "duplicates": dups,
+            "topics": sorted({k[0] for k in conns}), "out": str(out)}
+
+
+def bag_suffixes(ros2: bool) -> tuple[str, ...]:
+    """The dataset items `merge` takes as bags: ROS 1 bags, or rosbag2 storage files."""
+    return (".mcap", ".db3") if ros2 else (".bag",)
+
+
 def merge(fleet: Fleet, provider, robot: str, dataset: str, out: Path) -> dict:
-    """The dataset's bags (items named *.bag) on robot's clone, fetched and merged into `out`."""
+    """The dataset's bags on robot's clone, fetched and merged into `out`: items named *.bag into a
+    ROS 1 bag on a ROS 1 fleet, *.mcap and *.db3 into a rosbag2 directory on a ROS 2 one."""
     import hashlib
     import tempfile
 
     _check(fleet, robot, dataset)
+    ros2 = fleet.inventory.ros.ros2
     if out.exists():
-        raise InputError(f"{shown(str(out))} exists already", hint="name a new file with --out")
+        raise InputError(f"{shown(str(out))} exists already",
+                         hint="name a new directory with --out" if ros2 else "name a new file with --out")
     try:
         import rosbags  # noqa: F401
     except ImportError:
         raise InputError("ccrp knowledge merge needs the rosbags library", hint="pip install 'ccrp[rosbag]'") from None
+    suffixes = bag_suffixes(ros2)
     bags = [i for i in _ctl(provider, robot, {"op": "list", "dataset": dataset})["items"]
-            if i["name"].lower().endswith(".bag")]
+            if i["name"].lower().endswith(suffixes)]
     if not bags:
-        raise InputError(f"dataset {dataset!r} on robot {robot!r} has no bags (items named *.bag)")
+        kinds = " or ".join(f"*{x}" for x in suffixes)
+        raise InputError(f"dataset {dataset!r} on robot {robot!r} has no bags (items named {kinds})")
     with tempfile.TemporaryDirectory() as tmp:
         paths = []
         for k, item in enumerate(bags):
@@ -309,10 +377,12 @@ def merge(fleet: Fleet, provider, robot: str, dataset: str, out: Path) -> dict:
             if hashlib.sha256(data).hexdigest() != item["sha256"]:
                 raise CcrpError(f"cannot fetch {shown(item['name'])} from robot {robot!r}'s clone (removed meanwhile?)",
                                 hint=f"ccrp knowledge list -i INVENTORY --robot {robot} --dataset {dataset}")
-            path = Path(tmp) / f"{k}.bag"
+            # rosbags tells a storage file's kind by its suffix.
+            path = Path(tmp) / f"{k}{Path(item['name']).suffix.lower() if ros2 else '.bag'}"
             path.write_bytes(data)
             paths.append(path)
-        return merge_bag_files(paths, out, [i["name"] for i in bags])
+        names = [i["name"] for i in bags]
+        return merge_bag2_files(paths, out, names) if ros2 else merge_bag_files(paths, out, names)
 
 
 def knowledge_row(fleet: Fleet, state: FleetState, robot: str, health: dict | None) -> dict | None:

@@ -1,5 +1,7 @@
 #!/usr/bin/python3
-"""ccrp API manager: runs ON a clone (system python3 + rospy + cv2, nothing from ccrp).
+"""ccrp API manager: runs ON a clone (system python3 + rospy + cv2, or on a ROS 2 clone rclpy and cv2
+from the distro's venv, which ros-run puts on the path, with api_manager_ros2.py beside this file;
+nothing from ccrp).
 
 Subscribes to the robot's camera topic (sensor_msgs/Image), sends at most `rate` images a second
 to a detection backend, drops the matches under `min_confidence` and publishes the best one on the
@@ -412,23 +414,47 @@ def write_atomic(path: str, text: str) -> None:
     os.replace(tmp, path)
 
 
-class Service:
-    def __init__(self, cfg: dict) -> None:
+class Ros1:
+    """The rospy side: the robot's images in (on_image), the results out. Built by Service."""
+
+    def __init__(self, cfg: dict, on_image) -> None:
         import rospy
         from sensor_msgs.msg import Image
         from std_msgs.msg import String
 
-        self.cfg, self.rospy = cfg, rospy
+        rospy.init_node("ccrp_api_manager", anonymous=False, disable_signals=True)
+        self.rospy, self.String = rospy, String
+        self.pub = rospy.Publisher(cfg["output"], String, queue_size=10)
+        # queue_size=1 and a large buffer: only the newest image matters; older ones are dropped.
+        rospy.Subscriber(cfg["input"], Image, on_image, queue_size=1, buff_size=2 ** 24)
+
+    def publish(self, text: str) -> None:
+        self.pub.publish(self.String(data=text))
+
+    @staticmethod
+    def stamp(msg) -> float:
+        return msg.header.stamp.to_sec()
+
+    def ok(self) -> bool:
+        return not self.rospy.is_shutdown()
+
+    def close(self) -> None:
+        self.rospy.signal_shutdown("stopped")
+
+
+class Service:
+    """The frames, the backend calls and the counters; `ros` (Ros1, or api_manager_ros2.Ros2) is the
+    ROS side, made with the service's on_image."""
+
+    def __init__(self, cfg: dict, ros=Ros1) -> None:
+        self.cfg = cfg
         self.stats = Stats(cfg["backend"])
         self.stop = threading.Event()
         self.new = threading.Event()
         self.latest = None
         self.backend = None
         self.caller = None
-        self.pub = rospy.Publisher(cfg["output"], String, queue_size=10)
-        # queue_size=1 and a large buffer: only the newest image matters; older ones are dropped.
-        rospy.Subscriber(cfg["input"], Image, self.on_image, queue_size=1, buff_size=2 ** 24)
-        self.String = String
+        self.ros = ros(cfg, self.on_image)
 
     def on_image(self, msg) -> None:
         with self.stats.lock:
@@ -484,8 +510,8 @@ class Service:
         best = best_match(matches, float(self.cfg["min_confidence"]))
         if best is None:
             return
-        stamp = msg.header.stamp.to_sec() or time.time()
-        self.pub.publish(self.String(data=result_json(best, self.stats.backend, ms, stamp, msg.width, msg.height)))
+        stamp = self.ros.stamp(msg) or time.time()
+        self.ros.publish(result_json(best, self.stats.backend, ms, stamp, msg.width, msg.height))
         with self.stats.lock:
             self.stats.published += 1
 
@@ -494,15 +520,18 @@ def main() -> None:
     path = sys.argv[1] if len(sys.argv) > 1 else DEFAULT_CONFIG
     with open(path) as fh:
         cfg = json.load(fh)
-    import rospy
-
-    rospy.init_node("ccrp_api_manager", anonymous=False, disable_signals=True)
-    service = Service(cfg)
+    # A ROS 1 clone's environment names its master (ros.env); a ROS 2 clone's has none, and has
+    # api_manager_ros2.py beside this file (docs/services.md).
+    if os.environ.get("ROS_MASTER_URI"):
+        ros = Ros1
+    else:
+        from api_manager_ros2 import Ros2 as ros
+    service = Service(cfg, ros)
     worker = threading.Thread(target=service.run, name="api-manager", daemon=True)
     worker.start()
     log(f"{cfg['input']} -> {cfg['backend']} at {cfg['rate']} Hz -> {cfg['output']} (min confidence {cfg['min_confidence']})")
     try:
-        while not rospy.is_shutdown() and worker.is_alive():
+        while service.ros.ok() and worker.is_alive():
             try:
                 write_atomic(cfg["status"], json.dumps(service.stats.snapshot()))
             except OSError as exc:
@@ -510,6 +539,8 @@ def main() -> None:
             time.sleep(1)
     finally:
         service.stop.set()
+        worker.join(timeout=5)  # its publish, if it is in one, before the ROS side goes
+        service.ros.close()
 
 
 if __name__ == "__main__":

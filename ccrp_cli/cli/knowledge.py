@@ -85,9 +85,11 @@ def sync(inventory: options.Inventory, robot: options.Robot, dataset: Dataset, a
 
 @app.command("merge")
 def merge(inventory: options.Inventory, robot: options.Robot, dataset: Dataset,
-          out: Annotated[Path, typer.Option("--out", "-o", help="The merged bag to write (a new file).")],
+          out: Annotated[Path, typer.Option("--out", "-o", help="The merged bag to write (new: a file for ROS 1, "
+                                                                "a rosbag2 directory for ROS 2).")],
           as_json: options.Json = False) -> None:
-    """Merge the dataset's bags (items named *.bag) into one ROS 1 bag, in time order, each message once."""
+    """Merge the dataset's bags into one bag of the fleet's ROS, in time order, each message once: items named
+    *.bag into a ROS 1 bag, or on a ROS 2 fleet *.mcap and *.db3 (rosbag2 storage files) into a rosbag2 directory."""
     from .. import knowledge
 
     fleet, provider = _open(inventory)

@@ -319,21 +319,6 @@ class Inventory(Strict):
         return self
 
     @model_validator(mode="after")
-    def _ros2_supported(self) -> "Inventory":
-        """What a ROS 2 fleet cannot have yet: the API manager (a rospy agent), knowledge sync.
-        Refused here rather than booted half-working."""
-        if not self.ros.ros2:
-            return self
-        d = self.ros.distro
-        if any(self.api_manager_of(r) for r in self.robots) or self.services.api_manager is not None and \
-                self.services.api_manager.enabled:
-            raise ValueError(f"services.api_manager is ROS 1 only so far; turn it off for ros.distro {d}")
-        if self.services.knowledge is not None:
-            # Its agent runs on the system python, whose Zenoh only a ROS 1 image installs.
-            raise ValueError(f"services.knowledge is not built into ros.distro {d}'s clone image yet (docs/ros2.md)")
-        return self
-
-    @model_validator(mode="after")
     def _platform_known(self) -> "Inventory":
         from ..recipes import recipe
 

@@ -28,7 +28,8 @@ def agent_source(name: str) -> str:
     return (Path(__file__).resolve().parent.parent / "agent" / f"{name}.py").read_text()
 
 # The agents a snapshot holds (their Python packages come with the recipe's pip list); autostop's is
-# small and stdlib-only, and comes with the user-data instead.
+# small and stdlib-only, and comes with the user-data instead. A ROS 2 image holds none: its relay
+# comes with the user-data, its API manager with its config (api_manager.py api_manager_files).
 IMAGE_AGENTS = ("relay", "api_manager")
 
 PRIVATE_KEY_MARKERS = ("PRIVATE KEY", "OpenVPN Static key")
@@ -110,11 +111,11 @@ POWER_SOCKET = "ccrp-power.socket"
 
 
 def clone_units(inv: Inventory) -> list[str]:
-    """The clone's systemd units. A ROS 2 clone has no master, and no API manager (a rospy agent)
-    or knowledge agent yet (the inventory refuses their settings for ROS 2); its relay runs on rclpy."""
+    """The clone's systemd units. A ROS 2 clone has no master; its relay and API manager run on
+    rclpy, its knowledge agent on the venv's Zenoh (each through ros-run)."""
     if inv.ros.ros2:
         return ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service",
-                "ccrp-power.service"]
+                "ccrp-power.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
     return ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-rosmaster.service", "ccrp-relay.service",
             "ccrp-autostop.service", "ccrp-power.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
 

@@ -441,3 +441,22 @@ def warm_snapshot(client, distro: str) -> str:
         images.build_clone_image(client, tag, images.dockerfile("cache", distro, images.DEFAULT_BASE, plat),
                                  {"ccrp-test-cache": distro}, files=images.build_context(plat, distro=distro))
     return tag
+
+
+def face_frame() -> bytes:
+    """A 320x240 bgr8 frame with a face: Grace Hopper, from matplotlib's sample data (nothing downloaded)."""
+    cv2 = pytest.importorskip("cv2")
+    mpl = pytest.importorskip("matplotlib")
+    img = cv2.imread(str(Path(mpl.get_data_path()) / "sample_data" / "grace_hopper.jpg"))
+    return cv2.resize(img[:384], (320, 240)).tobytes()
+
+
+def face_photo(path: Path) -> Path:
+    """Grace Hopper's portrait at another crop and scale than face_frame's: what an operator teaches
+    the face-recognition backend (`ccrp knowledge add`, a photo named after the person)."""
+    cv2 = pytest.importorskip("cv2")
+    mpl = pytest.importorskip("matplotlib")
+    portrait = cv2.imread(str(Path(mpl.get_data_path()) / "sample_data" / "grace_hopper.jpg"))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.resize(portrait[20:420, 30:560], (400, 300)))
+    return path

@@ -66,6 +66,7 @@ from tests.e2e.fleet import (
     ROBOTS,
     connected,
     exec_in,
+    face_frame,
     master_probe,
     agent_journals,
     relay_through,
@@ -643,14 +644,6 @@ while not got and time.monotonic() < deadline:
     time.sleep(0.2)
 print(json.dumps({"after_s": round(got[0][0] - t0, 2), "result": json.loads(got[0][1])} if got else None))
 """
-
-
-def face_frame() -> bytes:
-    """A 320x240 bgr8 frame with a face: Grace Hopper, from matplotlib's sample data (nothing downloaded)."""
-    cv2 = pytest.importorskip("cv2")
-    mpl = pytest.importorskip("matplotlib")
-    img = cv2.imread(str(Path(mpl.get_data_path()) / "sample_data" / "grace_hopper.jpg"))
-    return cv2.resize(img[:384], (320, 240)).tobytes()
 
 
 def set_api_manager(fleet: E2EFleet, robot: str, setting: dict | None) -> None:

@@ -27,7 +27,7 @@ import pytest
 from tests.e2e.browser import MISSING, cell, chromium, press, received_commands, running_dashboard, wait
 from tests.e2e.fleet import CAPTURE as COMMON_CAPTURE
 from tests.conftest import ROOT
-from tests.e2e.fleet import NO_DOCKER, E2EFleet, exec_in, agent_journals, start_fleet, wait_for
+from tests.e2e.fleet import NO_DOCKER, E2EFleet, exec_in, agent_journals, face_frame, face_photo, start_fleet, wait_for
 
 pytestmark = [
     pytest.mark.slow,
@@ -99,6 +99,7 @@ def _graph_qos(container) -> dict:
 # The robots' own software (docs/workloads.md): the offloading example's ament_python workspace,
 # whose node on each clone turns the robot's /scan into /map.
 OFFLOAD = ROOT / "examples" / "offload"
+FACE_TOPIC = "/e2e/face"
 MAPPER = {"name": "mapper", "command": ["python3", "-m", "ccrp_offload.scan_to_map"]}
 
 
@@ -113,6 +114,12 @@ def _lab_on(distro: str, data: dict) -> None:
                       {"name": "nao2", "type": "nao", "imports": {"nao1": ["/chatter"]}}]
     if distro == "jazzy":
         data["software"] = {"workspace": "ws", "run": [MAPPER]}
+        # The platform services on ROS 2 (docs/services.md): nao1's API manager recognises faces of the
+        # dataset both clones share. Its camera is a topic of the test's own (the demo node's
+        # /camera/image_raw shows no face).
+        data["services"] = {"knowledge": {"datasets": {"faces": {"robots": "all"}}}}
+        data["robots"][0]["services"] = {"api_manager": {"input": FACE_TOPIC, "backend": "face-recognition", "rate": 2,
+                                                         "min_confidence": 0.5}}
 
 
 KILTED = pytest.param("kilted", marks=pytest.mark.skipif(
@@ -400,3 +407,110 @@ def test_a_node_dropped_from_the_inventory_leaves_the_clones(fleet: E2EFleet, up
         assert "ccrp-run-mapper" not in units, units
         assert fleet.status()[robot]["nodes"] is None
     assert fleet.inv("logs", "--robot", "nao1").returncode == 2  # no node of its own any more
+
+
+# -- the API manager and knowledge sync on Jazzy (docs/services.md) ----------------------------------
+
+# Runs in the simulated robot (rclpy, no OpenCV there): publishes the raw bgr8 frame in /root/face.bgr
+# on FACE_TOPIC at 5 Hz until a result (with the label argv[3], if given) arrives on the API
+# manager's topic through the VPN, then prints it with the seconds since the first frame.
+ROBOT_CAMERA = r"""
+import array, json, sys, time, rclpy
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+rclpy.init(); node = rclpy.create_node("e2e_camera")
+got, want = [], sys.argv[3] if len(sys.argv) > 3 else None
+node.create_subscription(String, sys.argv[1], lambda m: (want is None or json.loads(m.data)["label"] == want)
+                         and got.append((time.monotonic(), m.data)), 10)
+pub = node.create_publisher(Image, sys.argv[4], 1)
+data = array.array("B", open("/root/face.bgr", "rb").read())
+t0, deadline = time.monotonic(), time.monotonic() + float(sys.argv[2])
+while not got and time.monotonic() < deadline:
+    msg = Image(height=240, width=320, encoding="bgr8", step=960, data=data)
+    msg.header.stamp = node.get_clock().now().to_msg()
+    pub.publish(msg)
+    end = time.monotonic() + 0.2
+    while time.monotonic() < end:
+        rclpy.spin_once(node, timeout_sec=0.05)
+print(json.dumps({"after_s": round(got[0][0] - t0, 2), "result": json.loads(got[0][1])} if got else None))
+"""
+
+
+def _robot_camera(robot, frame: bytes, label: str = "", timeout: int = 60) -> dict | None:
+    from ccrp_cli.providers.docker.archive import tar_files
+
+    robot.put_archive("/root", tar_files([("face.bgr", frame, 0o644), ("camera.py", ROBOT_CAMERA.encode(), 0o644)]))
+    rc, out = _robot_sh(robot, f"python3 /root/camera.py /api_manager/result {timeout - 5} '{label}' {FACE_TOPIC}",
+                        timeout)
+    assert rc == 0, out[-1500:]
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_a_face_learned_on_nao2_is_named_to_robot_nao1_by_its_rclpy_api_manager(fleet: E2EFleet, sim) -> None:
+    """The thesis's face recognition on Jazzy: nao1's API manager (rclpy, the venv's OpenCV) gets
+    the robot's frame through the tunnel and answers "unknown" on /api_manager/result; the face
+    taught on nao2 (`ccrp knowledge add`) reaches nao1's clone by knowledge sync (the agent on the
+    venv's Zenoh), and the robot then hears her name."""
+    _jazzy_only(fleet)
+    robot, frame = fleet.container("robot-sim", "nao1"), face_frame()
+    photo = face_photo(fleet.tmp / "faces" / "grace.png")
+    journals = lambda: agent_journals(fleet, ["nao1"], "api-manager") + agent_journals(fleet, ["nao1", "nao2"], "knowledge")  # noqa: E731
+    try:
+        seen = _robot_camera(robot, frame, "unknown")
+        assert seen is not None, f"no result reached robot nao1\n{journals()}"
+        result = seen["result"]
+        assert (result["backend"], result["width"], result["height"]) == ("face-recognition", 320, 240), result
+        assert 60 < result["box"][0] < 140 and 100 < result["box"][2] < 180, result
+        fleet.log.append(f"Jazzy API manager: first result on the robot {seen['after_s']} s after its first frame, "
+                         f"backend latency {result['latency_ms']} ms")
+        t0 = time.monotonic()
+        fleet.inv("knowledge", "add", "--robot", "nao2", "--dataset", "faces", str(photo), check=True)
+        seen = _robot_camera(robot, frame, "grace")
+        assert seen is not None, f"robot nao1 never heard her name\n{journals()}"
+        fleet.log.append(f"Jazzy face recognition: a face taught on nao2 named to robot nao1 "
+                         f"{time.monotonic() - t0:.1f} s after `knowledge add` (LBPH distance {seen['result']['distance']})")
+        rows = fleet.status()
+        api = rows["nao1"]["api_manager"]
+        assert api["running"] and api["backend"] == "face-recognition" and api["published"] >= 2, api
+        assert rows["nao2"]["api_manager"] is None
+        for me, other in (("nao1", "nao2"), ("nao2", "nao1")):
+            know = rows[me]["knowledge"]
+            assert know["running"] and know["peers"] == {other: True} and know["datasets"]["faces"]["items"] == 1, know
+        # Stopped, the agent ends cleanly (rclpy's node and spinner thread shut down: nothing aborts).
+        clone = fleet.container("clone", "nao1")
+        exec_in(clone, ["systemctl", "stop", "ccrp-api-manager.service"])
+        _, result = exec_in(clone, ["systemctl", "show", "-p", "Result", "--value", "ccrp-api-manager.service"])
+        assert result.strip() == "success", f"{result}\n{journals()}"
+        exec_in(clone, ["systemctl", "start", "ccrp-api-manager.service"])
+    finally:
+        fleet.inv("knowledge", "remove", "--robot", "nao2", "--dataset", "faces", "grace.png")
+
+
+def test_rosbag2_items_of_two_jazzy_clones_merge_into_one_rosbag2(fleet: E2EFleet, up) -> None:
+    """`ccrp knowledge merge` on a Jazzy fleet: the rosbag2 storage files (MCAP) added on each clone
+    are synced to the other, and merged, from nao1's clone, into one rosbag2 directory in time
+    order, each message once, which rosbags reads back."""
+    _jazzy_only(fleet)
+    pytest.importorskip("rosbags")
+    from tests.unit.helpers import read_bag2, write_bag2
+
+    bags = [fleet.tmp / "bags" / "a" / "nao1-faces.mcap", fleet.tmp / "bags" / "b" / "nao2-faces.mcap"]
+    for b in bags:
+        b.parent.mkdir(parents=True, exist_ok=True)
+    write_bag2(bags[0], [("/faces", 1000, "alice"), ("/faces", 3000, "bob")])
+    write_bag2(bags[1], [("/faces", 2000, "carol"), ("/faces", 3000, "bob")])
+    try:
+        fleet.inv("knowledge", "add", "--robot", "nao1", "--dataset", "faces", str(bags[0]), check=True)
+        t0 = time.monotonic()
+        fleet.inv("knowledge", "add", "--robot", "nao2", "--dataset", "faces", str(bags[1]), check=True)
+        names = lambda: {i["name"] for i in fleet.json("knowledge", "list", "--robot", "nao1", "--dataset", "faces")}  # noqa: E731
+        wait_for("nao2's bag on nao1's clone", lambda: (
+            {"nao1-faces.mcap", "nao2-faces.mcap"} <= (n := names()), (n, agent_journals(fleet, ["nao1", "nao2"], "knowledge"))), 20)
+        fleet.log.append(f"Jazzy knowledge: an item added on nao2 listed on nao1 {time.monotonic() - t0:.2f} s later")
+        out = fleet.tmp / "bags" / "merged"
+        merged = fleet.json("knowledge", "merge", "--robot", "nao1", "--dataset", "faces", "--out", str(out))
+        assert (merged["bags"], merged["messages"], merged["duplicates"], merged["topics"]) == (2, 3, 1, ["/faces"]), merged
+        assert (out / "metadata.yaml").exists()
+        assert read_bag2(out) == [("/faces", 1000, "alice"), ("/faces", 2000, "carol"), ("/faces", 3000, "bob")]
+    finally:
+        fleet.inv("knowledge", "remove", "--robot", "nao1", "--dataset", "faces", "nao1-faces.mcap", "nao2-faces.mcap")

@@ -54,3 +54,38 @@ def read_bag(path: Path) -> list[tuple[str, int, str]]:
     store = get_typestore(Stores.ROS1_NOETIC)
     with Reader(path) as r:
         return [(c.topic, t, store.deserialize_ros1(data, c.msgtype).data) for c, t, data in r.messages()]
+
+
+def write_bag2(path: Path, messages: list[tuple[str, int, str]], storage: str = "mcap") -> None:
+    """A rosbag2 storage file (`path`, *.mcap or *.db3) of std_msgs/String messages (topic, time in
+    ns, text), as `ros2 bag record` leaves in its directory: written as a bag, its storage file taken."""
+    import shutil
+    import tempfile
+
+    from rosbags.rosbag2 import Writer
+    from rosbags.rosbag2.writer import StoragePlugin
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    String = store.types["std_msgs/msg/String"]
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = Path(tmp) / "bag"
+        with Writer(bag, version=9, storage_plugin=plugin) as w:
+            conns = {}
+            for topic, t, text in messages:
+                if topic not in conns:
+                    conns[topic] = w.add_connection(topic, "std_msgs/msg/String", typestore=store)
+                w.write(conns[topic], t, store.serialize_cdr(String(data=text), "std_msgs/msg/String"))
+        (storage_file,) = [p for p in bag.iterdir() if p.name != "metadata.yaml"]
+        shutil.copy(storage_file, path)
+
+
+def read_bag2(path: Path) -> list[tuple[str, int, str]]:
+    """The messages of a rosbag2 bag (a directory with its metadata.yaml, or a storage file)."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    with Reader(path) as r:
+        return [(c.topic, t, store.deserialize_cdr(data, c.msgtype).data) for c, t, data in r.messages()]

@@ -130,6 +130,31 @@ def test_fleet_up_pushes_a_changed_config_restarting_the_agent_and_turns_it_off(
     assert p.pushed == [] and p.execs == []
 
 
+def test_on_a_jazzy_fleet_fleet_up_pushes_the_agent_and_its_rclpy_side_with_the_config():
+    """A ROS 2 clone's image holds no agents: the API manager comes with its config (so a bare
+    cloud clone's user-data stays under AWS's limit), and a changed agent restarts it."""
+    import hashlib
+
+    fleet = inv(ros={"distro": "jazzy"}, services={"api_manager": {"backend": "face-recognition"}})
+    files = service.api_manager_files(fleet, fleet.robots[0])
+    dests = [f.dest for f in files]
+    assert dests == [service.API_CONFIG, "/usr/local/lib/ccrp/api_manager.py", "/usr/local/lib/ccrp/api_manager_ros2.py"]
+    assert "from api_manager_ros2 import Ros2" in files[1].content and "import rclpy" in files[2].content
+    p = Recorder()
+    service.apply_api_manager(p, "nao1", files, {})
+    # Asks for the unit and user only: the agent is in the push.
+    assert p.pushed == [(dests, [service.API_UNIT])] and p.execs == [["sh", "-c", service.HAS_UNIT_SH]]
+    have = {f.dest: hashlib.sha256(f.content.encode()).hexdigest() for f in files}
+    service.apply_api_manager(p := Recorder(), "nao1", files, have)
+    assert p.pushed == []
+    have["/usr/local/lib/ccrp/api_manager_ros2.py"] = "0" * 64  # an older agent there
+    service.apply_api_manager(p, "nao1", files, have)
+    assert p.pushed == [(dests, [service.API_UNIT])]
+    # Noetic's snapshot has the agent: only the config goes.
+    noetic = inv(services={"api_manager": {}})
+    assert [f.dest for f in service.api_manager_files(noetic, noetic.robots[0])] == [service.API_CONFIG]
+
+
 def test_status_row():
     fleet = inv(services={"api_manager": {"backend": "opencv"}})
     robot = fleet.robots[0]
@@ -375,10 +400,13 @@ def test_status_table_cell():
 
 def test_a_frame_goes_to_the_backend_and_the_best_match_is_published():
     """Service.step, without ROS: a backend that cannot load is counted and tried again later; a
-    frame's best match is published as JSON; nothing is published under the threshold."""
+    frame's best match is published as JSON through the ROS side (ROS 1's, or ROS 2's with its
+    sec/nanosec stamp); nothing is published under the threshold."""
     import threading
     import time
     from types import SimpleNamespace
+
+    from ccrp_cli.agent import api_manager_ros2
 
     published = []
     svc = agent.Service.__new__(agent.Service)
@@ -386,8 +414,7 @@ def test_a_frame_goes_to_the_backend_and_the_best_match_is_published():
     svc.stats, svc.stop = agent.Stats("flaky"), threading.Event()
     svc.backend = svc.caller = None
     svc.next_call, svc.load_failures = 0.0, 0
-    svc.pub = SimpleNamespace(publish=published.append)
-    svc.String = lambda data: data
+    svc.ros = SimpleNamespace(publish=published.append, stamp=agent.Ros1.stamp)
     frame = SimpleNamespace(encoding="mono8", data=bytes(6), width=3, height=2, step=3,
                             header=SimpleNamespace(stamp=SimpleNamespace(to_sec=lambda: 12.5)))
     svc.step(frame)  # no backend "flaky": counted as a load error, next try in 2 s
@@ -398,6 +425,14 @@ def test_a_frame_goes_to_the_backend_and_the_best_match_is_published():
     assert json.loads(published[0]) == {"label": "face", "confidence": 0.9, "box": [0, 0, 1, 1], "backend": "flaky",
                                         "latency_ms": json.loads(published[0])["latency_ms"], "stamp": 12.5,
                                         "width": 3, "height": 2}
+    # A ROS 2 image: its data an array of bytes, its stamp in sec and nanosec.
+    import array
+
+    svc.ros = SimpleNamespace(publish=published.append, stamp=api_manager_ros2.Ros2.stamp)
+    frame2 = SimpleNamespace(encoding="rgb8", data=array.array("B", bytes(18)), width=3, height=2, step=9,
+                             header=SimpleNamespace(stamp=SimpleNamespace(sec=12, nanosec=750_000_000)))
+    svc.step(frame2)
+    assert json.loads(published[1])["stamp"] == 12.75 and svc.stats.published == 2
     svc.cfg["min_confidence"] = 0.95
     svc.step(frame)
-    assert len(published) == 1 and svc.stats.published == 1
+    assert len(published) == 2 and svc.stats.published == 2

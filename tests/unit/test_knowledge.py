@@ -4,6 +4,7 @@ disk (no partial item ever), and three agents for real on loopback over mutual T
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import itertools
 import json
@@ -19,7 +20,7 @@ import pytest
 from ccrp_cli.agent import knowledge as agent
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.loader import parse_inventory
-from tests.unit.helpers import read_bag, write_bag
+from tests.unit.helpers import read_bag, read_bag2, write_bag, write_bag2
 
 BASE = {"fleet": "f", "provider": {"kind": "docker"}, "robots": [{"name": "nao1"}, {"name": "nao2"}, {"name": "tb1"}]}
 
@@ -77,9 +78,9 @@ def test_a_bad_setting_is_one_line(setting, why):
     assert why in line and "\n" not in line, line
 
 
-def test_knowledge_is_ros1_only_so_far():
-    with pytest.raises(CcrpError, match="services.knowledge is not built into ros.distro jazzy's clone image"):
-        inv(ros={"distro": "jazzy"}, services={"knowledge": {"datasets": {"faces": {"robots": "all"}}}})
+def test_knowledge_is_taken_on_a_jazzy_fleet():
+    jazzy = inv(ros={"distro": "jazzy"}, services={"knowledge": {"datasets": {"faces": {"robots": "all"}}}})
+    assert jazzy.ros.ros2 and set(jazzy.services.knowledge.datasets) == {"faces"}
 
 
 def test_knowledge_is_fleet_wide_only():
@@ -762,6 +763,65 @@ def test_merge_refuses_what_is_not_a_bag(tmp_path):
     with pytest.raises(CcrpError, match="'x.bag' is not a ROS 1 bag"):
         merge_bag_files([tmp_path / "x.bag"], tmp_path / "out.bag")
     assert not (tmp_path / "out.bag").exists()
+
+
+def test_merge_ros2_storage_files_into_one_rosbag2_in_time_order_each_message_once(tmp_path):
+    """A Jazzy fleet's merge: rosbag2 storage files (MCAP, Jazzy's default, and SQLite) read alone,
+    written as one rosbag2 directory (metadata.yaml and MCAP) that rosbags reads back."""
+    pytest.importorskip("rosbags")
+    from ccrp_cli.knowledge import merge_bag2_files
+
+    write_bag2(tmp_path / "nao1.mcap", [("/faces", 1, "alice"), ("/faces", 5, "bob"), ("/map", 7, "m1")])
+    write_bag2(tmp_path / "nao2.db3", [("/faces", 3, "carol"), ("/faces", 5, "bob"), ("/faces", 9, "dave")], "db3")
+    out = tmp_path / "merged"
+    result = merge_bag2_files([tmp_path / "nao1.mcap", tmp_path / "nao2.db3"], out)
+    assert (result["bags"], result["messages"], result["duplicates"], result["topics"]) == (2, 5, 1, ["/faces", "/map"])
+    assert (out / "metadata.yaml").exists() and [p.suffix for p in out.iterdir() if p.name != "metadata.yaml"] == [".mcap"]
+    assert read_bag2(out) == [("/faces", 1, "alice"), ("/faces", 3, "carol"), ("/faces", 5, "bob"),
+                              ("/map", 7, "m1"), ("/faces", 9, "dave")]
+    # Its storage file, merged again with one of its sources, adds nothing.
+    (merged,) = [p for p in out.iterdir() if p.suffix == ".mcap"]
+    again = merge_bag2_files([merged, tmp_path / "nao2.db3"], tmp_path / "again")
+    assert (again["messages"], again["duplicates"]) == (5, 3)
+
+
+def test_merge_refuses_what_is_not_a_ros2_bag(tmp_path):
+    pytest.importorskip("rosbags")
+    from ccrp_cli.knowledge import merge_bag2_files
+
+    (tmp_path / "x.mcap").write_bytes(b"\x89MCAP0\r\n not an mcap")
+    with pytest.raises(CcrpError, match="'x.mcap' is not a ROS 2 bag"):
+        merge_bag2_files([tmp_path / "x.mcap"], tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_merge_on_a_jazzy_fleet_takes_the_rosbag2_items_and_writes_a_rosbag2(tmp_path):
+    """knowledge.merge picks the items a fleet's ROS records (*.mcap, *.db3 on Jazzy; *.bag on
+    Noetic), fetches each through the provider's exec and writes the bag of that ROS."""
+    pytest.importorskip("rosbags")
+    from types import SimpleNamespace
+
+    from ccrp_cli import knowledge
+
+    bag, ros1 = tmp_path / "a.mcap", tmp_path / "b.bag"
+    write_bag2(bag, [("/faces", 2, "erin")])
+    write_bag(ros1, [("/faces", 1, "frank")])
+    objects = {hashlib.sha256(p.read_bytes()).hexdigest(): p.read_bytes() for p in (bag, ros1)}
+    items = [{"name": p.name, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()} for p in (bag, ros1)]
+
+    class Provider:
+        def exec(self, robot, argv, timeout=None):
+            return 0, base64.b64encode(objects[argv[-1].rsplit("/", 1)[1]]).decode()
+
+    for distro, out, want in (("jazzy", tmp_path / "m2", [("/faces", 2, "erin")]),
+                              ("noetic", tmp_path / "m1.bag", [("/faces", 1, "frank")])):
+        fleet = SimpleNamespace(inventory=inv(ros={"distro": distro},
+                                              services={"knowledge": {"datasets": {"faces": {"robots": "all"}}}}))
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(knowledge, "_check", lambda *a: None)
+            mp.setattr(knowledge, "_ctl", lambda *a: {"items": items})
+            result = knowledge.merge(fleet, Provider(), "nao1", "faces", out)
+        assert result["bags"] == 1 and (read_bag2(out) if distro == "jazzy" else read_bag(out)) == want, result
 
 
 # -- ccrp status ----------------------------------------------------------------------------------

@@ -43,10 +43,7 @@ def test_lab_jazzy_is_the_thesis_lab_on_jazzy():
 
 
 @pytest.mark.parametrize("change, expected", [
-    (lambda d: d.update(services={"api_manager": {}}), "services.api_manager is ROS 1 only"),
     (lambda d: d["ros"].update(distro="humble"), "ros.distro"),
-    (lambda d: d.update(services={"knowledge": {"datasets": {"faces": {"robots": ["nao1", "nao2"]}}}}),
-     "services.knowledge is not built into"),
 ])
 def test_what_a_jazzy_fleet_cannot_have_yet_is_refused(change, expected):
     data = yaml.safe_load(JAZZY.read_text())
@@ -75,6 +72,27 @@ def test_a_robot_of_another_distro_than_its_fleet_is_refused_in_one_line(ccrp_ho
     assert f"runs ROS {distro}, the fleet ros.distro jazzy: a fleet has one distro" in proc.stderr, proc.stderr
     same = yaml.safe_load(yaml.safe_dump(data).replace(f"distro: {distro}", "distro: jazzy"))
     assert parse_inventory(same, "same.yaml").ros.distro == "jazzy"
+
+
+def test_a_jazzy_fleet_takes_the_api_manager_and_knowledge_sync():
+    """As a Noetic fleet does (docs/services.md): no longer refused for ROS 2."""
+    data = yaml.safe_load(JAZZY.read_text())
+    data["services"] = {"api_manager": {"backend": "face-recognition"},
+                        "knowledge": {"datasets": {"faces": {"robots": ["nao1", "nao2"]}}}}
+    inv = parse_inventory(data, "lab-jazzy.yaml")
+    assert inv.api_manager_of(inv.robots[0]).backend == "face-recognition"
+    assert set(inv.datasets_of("nao1", ["nao1", "nao2"])) == {"faces"}
+
+
+def test_a_jazzy_image_has_what_the_api_manager_needs_and_user_data_its_units(ccrp_home):
+    """The image's venv has OpenCV (cv2.face, the cascades) and the Vision client, as Noetic's; the
+    agent itself comes with its config (unit/test_api_manager.py), not in the image's files."""
+    plat = cloudinit.platform("jazzy", "docker")
+    names = [p.split("==")[0] for p in plat.pip]
+    assert {"opencv-contrib-python-headless", "google-cloud-vision"} <= set(names), names
+    inv = Fleet.open(JAZZY).inventory
+    written = {f["path"] for f in cloudinit.image_config(inv)["write_files"]}
+    assert not [p for p in written if p.endswith(".py")], written
 
 
 @pytest.mark.skipif(shutil.which("cloud-init") is None, reason="cloud-init not installed (apt-get install cloud-init)")
@@ -233,18 +251,26 @@ def _noetic(jazzy):
     return fleet, fleet.store.load_state(), "nao1"
 
 
-def test_a_jazzy_clone_runs_no_master_or_api_manager_and_an_rclpy_relay(jazzy):
+def test_a_jazzy_clone_runs_no_master_and_rclpy_agents(jazzy):
     view = clone_view(jazzy, jazzy.store.load_state(), "nao2")
     data = cloudinit.user_data_dict(view)
     starts = [c[3:] for c in data["runcmd"] if c[:3] == ["systemctl", "enable", "--now"]]
     assert starts[0] == ["ccrp-power.socket"]  # alone and first (unit/test_power_device.py)
     enabled = starts[1]
     assert enabled == ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service",
-                       "ccrp-power.service"]
+                       "ccrp-power.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
     paths = {f["path"] for f in data["write_files"]}
     assert "/usr/local/lib/ccrp/ros2_graph.py" in paths and "/etc/systemd/system/ccrp-rosmaster.service" not in paths
-    # The image holds no agents (only the wheels' venv): the relay comes with the user-data.
+    # The relay comes with the user-data (the API manager is in the image, the knowledge agent is
+    # pushed by fleet up).
     assert {"/usr/local/lib/ccrp/relay.py", "/usr/local/lib/ccrp/relay_ros2.py"} <= paths
+    assert "/usr/local/lib/ccrp/api_manager.py" not in paths
+    # Both new units run their agent in the clone's ROS environment, as the relay's does: ros-run
+    # sources the distro's setup.sh, which puts the venv (rclpy, cv2, Zenoh) on python3's path.
+    units = {f["path"].rsplit("/", 1)[1]: f["content"] for f in data["write_files"] if f["path"].endswith(".service")}
+    for unit in ("ccrp-api-manager.service", "ccrp-knowledge.service"):
+        assert "EnvironmentFile=/etc/ccrp/ros.env" in units[unit]
+        assert "ExecStart=/usr/local/lib/ccrp/ros-run /usr/bin/python3 " in units[unit], units[unit]
     assert clones.serving_port(jazzy.inventory) == "ros2"
 
 
