@@ -112,7 +112,8 @@ class Bench:
 
     def background(self, robot: str, unit: str, args: list[str]) -> None:
         """Run an agent role as a transient unit on the clone (stopped by `stop_units`)."""
-        run_unit(lambda argv: self.clones.exec(robot, argv), unit, [*IN_ROS, *args], f"the clone of {robot!r}", ["--collect"])
+        run_unit(lambda argv: self.clones.exec(robot, argv), unit, [*IN_ROS, *args], f"the clone of {robot!r}",
+                 bench_unit_options(unit))
 
     def stop_units(self, robots: list[str], unit: str) -> None:
         _parallel(lambda r: self.clones.exec(r, ["systemctl", "stop", unit]), robots)
@@ -136,22 +137,21 @@ class Bench:
         return str(self.sims.link(robot) or "none (this host's network)")
 
 
-def ros1_only(fleet: Fleet, what: str) -> None:
-    """The bench agent (templates/bench/ccrp-bench) is rospy: refused on a ROS 2 fleet in one line."""
-    distro = fleet.inventory.ros.distro
-    if fleet.inventory.ros.ros2:
-        raise InputError(f"{what} is ROS 1 only so far; fleet {fleet.name!r} runs ROS 2 ({distro})",
-                         hint="on a ROS 2 clone, ccrp clone exec --robot ROBOT -- ccrp-topic pub|echo|list (docs/ros2.md)")
-
-
 @contextmanager
 def bench(fleet: Fleet, progress: Progress) -> Iterator[Bench]:
-    ros1_only(fleet, "ccrp bench")
     b = Bench(fleet, progress)
     try:
         yield b
     finally:
         b.cleanup()
+
+
+def bench_unit_options(unit: str) -> list[str]:
+    """A bench role's transient unit: its ROS logs in a runtime directory of its own, gone with the
+    unit (a unit has no HOME, without which rclpy cannot start: its logging needs a directory)."""
+    run = f"/run/{unit}"
+    return ["--collect", "--property", f"RuntimeDirectory={unit}", "--setenv", f"HOME={run}",
+            "--setenv", f"ROS_HOME={run}", "--setenv", f"ROS_LOG_DIR={run}/log"]
 
 
 def _json(result: tuple[int, str], where: str) -> dict:

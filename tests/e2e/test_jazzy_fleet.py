@@ -8,7 +8,9 @@ its /chatter reaches `ccrp-topic echo` on the clone and the clone's `ccrp-topic 
 robot, and captures on both ends' public interface see nothing but OpenVPN. nao1 exports /chatter
 and nao2 imports it: the relay agents carry it to nao2's clone as /nao1/chatter with its type and
 QoS, and nothing else of nao1's; robot nao2, started last, gets it from its own clone, while a
-capture on the clone network sees the relay's TLS only. Swept away at the end, even on failure.
+capture on the clone network sees the relay's TLS only. The thesis's evaluation runs as on Noetic
+(tests/e2e/test_evaluation.py): `bench rtt` and `bench teleop` see an emulated link, `bench qos`
+shows a clone per robot flat and a shared server growing. Swept away at the end, even on failure.
 
 Kilted, the second ROS 2 distro, runs the same fleet's core path (its own snapshot, the two clones,
 robot nao1, its /chatter on its clone and on nao2's, the captures): opt-in with CCRP_E2E_KILTED=1,
@@ -514,3 +516,64 @@ def test_rosbag2_items_of_two_jazzy_clones_merge_into_one_rosbag2(fleet: E2EFlee
         assert read_bag2(out) == [("/faces", 1000, "alice"), ("/faces", 2000, "carol"), ("/faces", 3000, "bob")]
     finally:
         fleet.inv("knowledge", "remove", "--robot", "nao1", "--dataset", "faces", "nao1-faces.mcap", "nao2-faces.mcap")
+
+
+# -- the thesis's evaluation on Jazzy (docs/evaluation.md), as tests/e2e/test_evaluation.py on Noetic --
+
+JAZZY_LINK_MS = 80
+
+
+def test_bench_rtt_and_teleop_on_jazzy_see_the_emulated_link(fleet: E2EFleet, sim) -> None:
+    """`bench rtt` and `bench teleop` on the Jazzy robot under an 80 ms emulated link: every
+    round trip (ICMP both ways, the rclpy request/reply through the tunnel) sees it, commands
+    arrive half a round trip after they were sent, and camera frames (fragmented DDS datagrams
+    through the tunnel and the link) arrive too."""
+    _jazzy_only(fleet)
+    fleet.inv("robot", "sim", "--robot", "nao1", "--link", str(JAZZY_LINK_MS), check=True)
+    try:
+        rtt = {"public" if r["path"].startswith("public") else r["probe"]: r
+               for r in fleet.json("bench", "rtt", "--robot", "nao1", "--samples", "20")}
+        teleop = {r["stream"].split()[0]: r for r in fleet.json("bench", "teleop", "--robot", "nao1", "--duration", "4")}
+    finally:
+        fleet.inv("robot", "sim", "--robot", "nao1", "--link", "none", check=True)
+    assert set(rtt) == {"public", "icmp", "ros topic"}, rtt
+    for probe, row in rtt.items():
+        assert row["samples"] >= 19 and JAZZY_LINK_MS - 2 <= row["p50_ms"] <= JAZZY_LINK_MS + 25, (probe, rtt)
+        assert row["link"].startswith(f"{JAZZY_LINK_MS}/0/0"), row
+    command, video = teleop["command"], teleop["video"]
+    assert command["samples"] >= 20 and JAZZY_LINK_MS / 2 - 2 <= command["p50_ms"] <= JAZZY_LINK_MS / 2 + 20, command
+    assert video["samples"] >= 5 and video["p50_ms"] >= JAZZY_LINK_MS / 2 - 2, video
+    assert command["sent"] >= command["samples"] and video["sent"] >= video["samples"]
+
+
+def test_bench_qos_on_jazzy_clone_per_robot_stays_flat_shared_server_does_not(fleet: E2EFleet, sim) -> None:
+    """The thesis's claim on ROS 2: with a clone per robot the response time stays flat from 1 to
+    2 robots, with one shared server it grows; the fleet is left as found (robot nao2, which the
+    bench starts, removed; nao1's own link back; no bench unit or worker rule on the clones).
+    Medians, not means: a single slow reply on this shared 2-core machine moves a 4 s round's mean."""
+    _jazzy_only(fleet)
+    fleet.inv("robot", "sim", "--robot", "nao1", "--link", "20", check=True)  # nao1's own link, to get back
+    try:
+        rows = fleet.json("bench", "qos", "--robots", "1..2", "--task-ms", "200", "--duration", "4", "--link", "40")
+    finally:
+        own = fleet.container("robot-sim", "nao1")
+        link_unit = exec_in(own, ["systemctl", "show", "ccrp-link", "--property", "Description", "--value"])[1]
+        fleet.inv("robot", "sim", "--robot", "nao1", "--link", "none")
+    by = {(r["model"], r["robots"]): r for r in rows}
+    assert set(by) == {("cbm", 1), ("cbm", 2), ("pbm", 1), ("pbm", 2)}, rows
+    for r in rows:
+        assert r["samples"] >= 5 and r["lost"] == 0 and r["task_ms"] == 200 and r["link"] == "40/0/0", r
+    cbm1, cbm2, pbm2 = by["cbm", 1]["p50_ms"], by["cbm", 2]["p50_ms"], by["pbm", 2]["p50_ms"]
+    assert 240 <= cbm1 <= 300, rows  # the task + the 40 ms round trip
+    assert abs(cbm2 - cbm1) / cbm1 < 0.10, rows
+    assert pbm2 >= 1.4 * cbm2, rows
+
+    assert not fleet.containers(role="robot-sim", robot="nao2")
+    assert link_unit.startswith("20/0/0"), link_unit
+    for robot in ("nao1", "nao2"):
+        clone = fleet.container("clone", robot)
+        for unit in ("ccrp-bench-serve", "ccrp-bench-worker"):
+            _, state = exec_in(clone, ["systemctl", "is-active", unit])
+            assert state.strip() != "active", (robot, unit)
+        _, rules = exec_in(clone, ["iptables", "-w", "-S", "INPUT"])
+        assert "7460" not in rules, rules

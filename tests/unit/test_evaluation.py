@@ -91,3 +91,38 @@ def test_bad_bench_input_is_one_line_and_touches_nothing(tmp_path, argv):
 def test_unknown_robot_is_refused_before_docker(tmp_path):
     code, _, err = run_ccrp_inprocess("bench", "rtt", "-i", str(LAB), "-r", "ghost", home=tmp_path / "home")
     assert code == 2 and "ghost" in err and err.count("\n") == 1, err
+
+
+def _ipv4(body: bytes, flags: int = 0) -> bytes:
+    import struct
+
+    header = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + len(body), 0x1234, flags, 64, 17, 0,
+                         bytes([10, 0, 0, 2]), bytes([203, 0, 113, 7]))
+    return header + body
+
+
+def test_the_link_fragments_what_is_larger_than_the_path_mtu():
+    """ccrp-link sends outgoing packets again from a raw socket with the header included, which
+    does not fragment: an OpenVPN datagram carrying a full 1500-byte tunnel packet (ROS 2's image
+    fragments) was lost on every emulated link. It now splits them as the kernel would."""
+    import runpy
+    import struct
+
+    from tests.conftest import ROOT
+
+    link = runpy.run_path(str(ROOT / "templates" / "sim" / "ccrp-link"), run_name="ccrp_link")
+    body = bytes(range(256)) * 6 + b"tail"  # 1540 bytes: 1560 with the header, over 1500
+    pieces = link["fragments"](_ipv4(body), 1500)
+    assert len(pieces) == 2 and all(len(p) <= 1500 for p in pieces)
+    got = b""
+    for i, piece in enumerate(pieces):
+        length, ident, flags = struct.unpack_from("!HHH", piece, 2)
+        assert length == len(piece) and ident == 0x1234
+        assert bool(flags & 0x2000) == (i == 0) and (flags & 0x1FFF) * 8 == len(got)
+        assert link["checksum"](piece[:20]) == 0  # a valid header checksum sums to zero
+        got += piece[20:]
+    assert got == body
+    small = _ipv4(b"x" * 100)
+    assert link["fragments"](small, 1500) == [small]
+    dont = _ipv4(body, flags=0x4000)  # DF: kept whole (and lost, as on a real path)
+    assert link["fragments"](dont, 1500) == [dont]

@@ -318,12 +318,57 @@ def test_a_ros2_clone_whose_graph_does_not_answer_is_named_so():
     assert "ROS 2 graph of nao1's clone" in clone_alerts(StatusRow(**row, ros_distro="jazzy"))[0]["text"]
 
 
-def test_bench_is_refused_on_a_ros2_fleet_in_one_line(jazzy):
+class _Ends:
+    """Both ends of the bench, faked: the simulated robot (Sims) and its clone (the provider),
+    answering the agent's roles as it prints them."""
+
+    def __init__(self, fleet, provider=None):
+        self.clones, self.ran, self.pushed = self, [], []
+
+    def running(self, robot):
+        return True
+
+    def query(self):
+        return {"nao2": object()}
+
+    def push(self, robot, files):
+        self.pushed.append(("robot", [f.dest for f in files]))
+
+    def push_files(self, robot, files, restart=()):
+        self.pushed.append(("clone", [f.dest for f in files]))
+
+    def exec(self, robot, argv, timeout=60):
+        import json
+
+        self.ran.append(argv)
+        if "ping" in argv or "client" in argv:
+            return 0, "rclpy noise\n" + json.dumps({"samples_ms": [1.0, 2.0, 3.0], "lost": 0}) + "\n"
+        return 0, ""
+
+    def clone_address(self, robot):
+        return "203.0.113.7"
+
+    def link(self, robot):
+        return None
+
+
+def test_bench_runs_on_a_ros2_fleet_with_the_same_agent(jazzy, monkeypatch):
+    """`ccrp bench` refused a ROS 2 fleet (its agent was rospy only). Now the same agent runs on
+    both ends in the machine's ROS environment (it takes rclpy where ros.env names no master), its
+    clone units with a runtime directory for ROS logs: rclpy cannot start without one."""
     from ccrp_cli import evaluation
 
-    with pytest.raises(InputError, match="ccrp bench is ROS 1 only so far"):
-        with evaluation.bench(jazzy, lambda m: None):
-            pass
+    ends = _Ends(jazzy)
+    monkeypatch.setattr(evaluation, "Sims", lambda fleet: ends)
+    rows = evaluation.rtt(jazzy, "nao2", samples=3)
+    assert [(r["probe"], r["samples"]) for r in rows] == [("icmp", 3), ("icmp", 3), ("ros topic", 3)], rows
+    assert ("robot", [evaluation.AGENT]) in ends.pushed and ("clone", [evaluation.AGENT]) in ends.pushed
+    (unit,) = [a for a in ends.ran if a[0] == "systemd-run"]
+    assert unit[unit.index(evaluation.IN_ROS[0]):] == [*evaluation.IN_ROS, "serve"]
+    options = unit[:unit.index(evaluation.IN_ROS[0])]
+    assert "RuntimeDirectory=ccrp-bench-serve" in options and "HOME=/run/ccrp-bench-serve" in options, options
+    client = next(a for a in ends.ran if "client" in a)
+    assert client[:len(evaluation.IN_ROS)] == evaluation.IN_ROS
 
 
 def test_a_jazzy_edge_bundle_installs_its_guard_under_a_staging_root(jazzy, tmp_path):
