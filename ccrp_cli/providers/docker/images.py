@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import re
+import shlex
 import shutil
 import subprocess
 import tempfile
@@ -89,7 +90,8 @@ def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, softwar
     prefix = f"/opt/ros/{distro}" if distro in ROS2_DISTROS and plat.pip else ""
     extra: dict = {"software": None}
     if software is not None and not software.empty:
-        extra = {"software": software, "sw_apt": software.apt, "sw_pip": software_pip(software),
+        # Quoted: a RUN line is a shell's, where `numpy<2` reads a file "2" and `numpy>=1.24` writes one.
+        extra = {"software": software, "sw_apt": software.apt, "sw_pip": [shlex.quote(p) for p in software_pip(software)],
                  "build_apt": recipe(distro).build_tools.apt, "prefix": WORKSPACE,
                  "pip_command": f"{prefix}/bin/pip" if prefix else "PIP_BREAK_SYSTEM_PACKAGES=1 pip3",
                  "package_dirs": sorted({p.path.rsplit("/", 1)[0] if "/" in p.path else "." for p in software.packages})}
