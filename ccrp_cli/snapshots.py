@@ -202,6 +202,7 @@ def install_software(provider, builder, software: SnapshotSoftware, progress: Pr
     root-only file, then templates/image/software-bake.sh installs the packages, builds it into
     /opt/ccrp/workspace and takes the builder's login away."""
     import base64
+    import re
     import time
 
     from .render.bundles import BundleFile
@@ -219,9 +220,13 @@ def install_software(provider, builder, software: SnapshotSoftware, progress: Pr
     rc, out = provider.exec(BUILDER, ["env", *env, "sh", "-c", static("image/software-bake.sh"), "ccrp-software"],
                             timeout=timeout)
     if rc != 0 or "ccrp-software built" not in out:
-        steps = [line[3:] for line in out.splitlines() if line.startswith("== ")]
-        tail = " | ".join(line.strip() for line in out.strip().splitlines()[-5:])[-400:]
-        raise CcrpError(f"the builder could not build the software (at {steps[-1] if steps else 'the start'}): {tail}",
+        lines = [line.strip() for line in out.strip().splitlines() if line.strip()]
+        steps = [line[3:] for line in lines if line.startswith("== ")]
+        # The first line saying error (CMake's, apt's E:, pip's ERROR:) and the last ones: the build
+        # tools' own summary lines ("Invoking cmake failed") rarely say why.
+        first = next((line for line in lines if re.search(r"\berror\b|^E: ", line, re.IGNORECASE)), None)
+        said = " | ".join(([first] if first and first not in lines[-3:] else []) + lines[-3:])[-500:]
+        raise CcrpError(f"the builder could not build the software (at {steps[-1] if steps else 'the start'}): {said}",
                         hint="the same recipe builds on Docker: `ccrp snapshot build` on a Docker inventory shows "
                              "the error faster; check software.apt/pip and the workspace")
     progress(f"software {software.digest} built on the builder after {time.monotonic() - t0:.0f} s")

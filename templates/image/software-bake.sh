@@ -14,7 +14,9 @@
 # taken away (its key and sudo rule, both from the builder's user-data): the snapshot must not
 # carry them; a clone's own user-data gives its login the fleet's key again.
 set -euf
-W=/opt/ccrp/workspace B=/var/lib/ccrp/bake S=/tmp/ccrp-ws
+# The sources and the build beside the tar, not in /tmp: an image may mount /tmp noexec (the fake
+# clouds do), and catkin runs what it generates there.
+W=/opt/ccrp/workspace B=/var/lib/ccrp/bake S=/var/lib/ccrp/bake/ws
 export DEBIAN_FRONTEND=noninteractive
 step() { echo "== $*"; }
 step "apt"
@@ -49,7 +51,7 @@ ament_python)
 none) ;;
 *) echo "unknown build type $CCRP_BUILD" >&2; exit 2 ;;
 esac
-rm -rf "$S" "$B"
+rm -rf "$B"
 apt-get clean
 step "login removed"
 rm -f /etc/sudoers.d/90-cloud-init-users

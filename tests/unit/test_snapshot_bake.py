@@ -332,8 +332,10 @@ def test_bake_builds_the_software_on_the_builder_and_records_its_digest(ccrp_hom
 def test_a_failed_software_build_names_its_step_and_captures_nothing(ccrp_home, tmp_path):
     fleet = _software_fleet(tmp_path)
     cloud = FakeCloud("openstack", [DONE])
-    cloud.build_result = (100, "== apt\n== catkin_make install\nmake: *** [all] Error 2\n")
-    with pytest.raises(CcrpError, match=r"could not build the software \(at catkin_make install\).*Error 2"):
+    cloud.build_result = (100, "== apt\n== catkin_make install\nCMake Error at toplevel.cmake:11: boom\n"
+                               "-- Configuring incomplete\n####\nInvoking \"cmake\" failed\n")
+    with pytest.raises(CcrpError, match=r"could not build the software \(at catkin_make install\): "
+                                        r"CMake Error at toplevel.cmake:11: boom \| .*Invoking \"cmake\" failed"):
         _bake(fleet, cloud)
     assert "create_snapshot" not in cloud.calls and cloud.calls[-1] == "terminate" and cloud.instances == {}
     assert fleet.store.load_state().snapshot is None
