@@ -95,9 +95,10 @@ def test_the_snapshots_software_runs_on_every_clone(run):
         time.sleep(2)
         said = [json.loads(line)["message"] for line in run.ccrp("logs", "--robot", "nao2", "hello", "--json").stdout.splitlines()]
     assert any("from the snapshot's workspace" in m for m in said), said
-    # The install space came with the snapshot; the build tools the builder used did not.
+    # The install space came with the snapshot; the sources and build tree the builder used did not.
     run.ccrp("clone", "exec", "--robot", "nao1", "--", "sh", "-c",
-             "test -x /opt/ccrp/workspace/lib/ccrp_hello/hello && ! command -v g++ && systemctl is-active ccrp-run-hello")
+             "test -x /opt/ccrp/workspace/lib/ccrp_hello/hello && ! test -e /var/lib/ccrp/bake "
+             "&& systemctl is-active ccrp-run-hello")
     node = run.b.inventory.parent / "ws" / "src" / "ccrp_hello" / "scripts" / "hello"
     original = node.read_text()
     node.write_text(original + "# changed\n")
