@@ -103,9 +103,10 @@ def deploy_json(home: Path, inventory: Path, *args: str) -> tuple[float, list[di
 
 def deploy_bench(args) -> dict:
     """--deploy N: one clone vs N, each deploy a fresh one-line change of the node."""
-    sys.path.insert(0, str(ROOT / "bench"))
-    from crash_scale import free_subnets
+    sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
     from docker_fleet import cleanup_fleet
+
+    from tests.e2e.fleet import free_subnets
 
     n = args.deploy
     fleet = "bdp" + secrets.token_hex(3)
