@@ -346,3 +346,20 @@ def test_bake_without_software_never_logs_in(fleet):
     _bake(fleet, cloud)
     assert "connect" not in cloud.calls and "build" not in cloud.calls
     assert fleet.store.load_state().snapshot["software"] == "none"
+
+
+def test_a_baked_snapshot_goes_stale_when_the_workspace_changes(ccrp_home, tmp_path):
+    """fleet up refuses (check_snapshot), and fleet plan names the clones (stale_snapshot), once the
+    inventory's workspace is not the one the cloud snapshot was baked with; the hint is the cloud's."""
+    from ccrp_cli.workloads import check_snapshot, stale_snapshot
+
+    fleet = _software_fleet(tmp_path)
+    _bake(fleet, FakeCloud("openstack", [DONE]))
+    state = fleet.store.load_state()
+    assert stale_snapshot(fleet, state) is None
+    check_snapshot(fleet, state, "openstack")  # current: no refusal
+    (tmp_path / "ws" / "src/hello/scripts/hello").write_text("print('changed')\n")
+    assert "the snapshot holds software" in stale_snapshot(fleet, state)
+    with pytest.raises(InputError, match="clones made from it would not have it") as err:
+        check_snapshot(fleet, state, "openstack")
+    assert err.value.hint == "ccrp snapshot bake -i INVENTORY first"
