@@ -42,10 +42,11 @@ FLEET = "bench" + "".join(secrets.choice(string.ascii_lowercase + string.digits)
 
 
 def inventory() -> dict:
-    sys.path.insert(0, str(ROOT / "bench"))
-    from crash_scale import free_subnets
+    # Pools no Docker network, route or fleet of this host overlaps: as `ccrp init` picks them.
+    from ccrp_cli.init import free, used_networks
 
-    public, common, pool = free_subnets()
+    used = used_networks()
+    public, common, pool = free("public", used), free("common", used), free("vpn", used)
     return {
         "fleet": FLEET,
         "provider": {"kind": "docker", "public_cidr": public},

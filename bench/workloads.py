@@ -13,6 +13,16 @@ CCRP_HOME and a copy of the workspace, and removes the images it built at the en
 
 Run: .venv/bin/python bench/workloads.py [--rounds 3] [--cold-rounds 1] [--out PATH]
 Writes bench/results/workloads.json.
+
+With --deploy N: `ccrp deploy` of a Python-only change (one line of the example's node) to one
+running clone (--robot nao1) and to all N, side by side: each round changes the node, deploys it to
+one clone, changes it again and deploys to all N (target: N=10 at most 2x of 1). Each deploy builds
+the change once (only the workspace's layer runs) and pushes it to its clones in parallel. The
+fleet (N clones of examples/offload/ros2.yaml's software, subnets no Docker network here uses)
+is removed at the end, even on failure.
+
+Run: .venv/bin/python bench/workloads.py --deploy 10 [--rounds 3] [--out PATH]
+Writes bench/results/workloads_deploy.json.
 """
 
 from __future__ import annotations
@@ -81,12 +91,81 @@ def cold_build(inventory: Path) -> float:
         client.close()
 
 
+def deploy_json(home: Path, inventory: Path, *args: str) -> tuple[float, list[dict]]:
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "ccrp_cli", "deploy", *args, "--json", "-i", str(inventory)],
+                          capture_output=True, text=True, env={**os.environ, "CCRP_HOME": str(home)}, timeout=1800)
+    wall = time.monotonic() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"ccrp deploy {' '.join(args)} failed ({proc.returncode}): {proc.stderr[-1500:]}")
+    return wall, json.loads(proc.stdout)
+
+
+def deploy_bench(args) -> dict:
+    """--deploy N: one clone vs N, each deploy a fresh one-line change of the node."""
+    sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
+    from docker_fleet import cleanup_fleet
+
+    from tests.e2e.fleet import free_subnets
+
+    n = args.deploy
+    fleet = "bdp" + secrets.token_hex(3)
+    tmp = Path(tempfile.mkdtemp(prefix="ccrp-bench-deploy-"))
+    home = tmp / "home"
+    one, many, up_s = [], [], None
+    try:
+        shutil.copytree(EXAMPLE / "ros2", tmp / "ros2")
+        data = yaml.safe_load((EXAMPLE / "ros2.yaml").read_text())
+        public, common, pool = free_subnets()
+        data |= {"fleet": fleet, "provider": {"kind": "docker", "public_cidr": public}, "common": {"cidr": common},
+                 "robots": [{"name": f"nao{i}", "type": "nao"} for i in range(1, n + 1)]}
+        data["vpn"]["pool"] = pool
+        inventory = tmp / "inventory.yaml"
+        inventory.write_text(yaml.safe_dump(data, sort_keys=False))
+        ccrp(home, inventory, "vpn", "init")
+        ccrp(home, inventory, "snapshot", "build")
+        up_s = ccrp(home, inventory, "fleet", "up")
+        node = tmp / NODE
+        for k in range(args.rounds):
+            for target, runs in ((["--robot", "nao1"], one), ([], many)):
+                node.write_text(node.read_text() + f"\n# bench round {k} {secrets.token_hex(4)}\n")
+                wall, rows = deploy_json(home, inventory, *target)
+                assert all(r["action"] == "deployed" for r in rows) and len(rows) == (1 if target else n), rows
+                runs.append({"wall_s": round(wall, 1), "clone_s": sorted(round(r["seconds"], 1) for r in rows)})
+    finally:
+        try:
+            ccrp(home, inventory, "fleet", "down")
+        except (SystemExit, NameError):
+            pass  # what is left carries the fleet's labels: removed below
+        cleanup_fleet(fleet)
+        shutil.rmtree(tmp, ignore_errors=True)
+    med = statistics.median
+    one_s, many_s = med(r["wall_s"] for r in one), med(r["wall_s"] for r in many)
+    return {
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "example": "examples/offload/ros2.yaml (ament_python): a one-line change of scan_to_map.py",
+        "clones": n, "rounds": args.rounds, "fleet_up_s": round(up_s, 1) if up_s else None,
+        "deploy_1_s": {"median": round(one_s, 1), "runs": one},
+        f"deploy_{n}_s": {"median": round(many_s, 1), "runs": many},
+        f"ratio_{n}_over_1": round(many_s / one_s, 2),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--cold-rounds", type=int, default=1)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "workloads.json")
+    ap.add_argument("--deploy", type=int, metavar="N", help="deploy to 1 clone vs N instead of the snapshot builds")
+    ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    if args.deploy:
+        result = deploy_bench(args)
+        out = args.out or ROOT / "bench" / "results" / "workloads_deploy.json"
+        out.write_text(json.dumps(result, indent=2) + "\n")
+        print(json.dumps(result, indent=2))
+        return
+    args.out = args.out or ROOT / "bench" / "results" / "workloads.json"
 
     fleet = "bwl" + secrets.token_hex(3)
     tmp = Path(tempfile.mkdtemp(prefix="ccrp-bench-workloads-"))

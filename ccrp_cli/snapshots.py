@@ -8,7 +8,7 @@ from typing import Callable
 from .errors import CcrpError
 from .fleet import Fleet
 from .providers.base import SnapshotRecord
-from .workloads import NO_SOFTWARE
+from .workloads import NO_SOFTWARE, SnapshotSoftware
 
 Progress = Callable[[str], None]
 
@@ -117,14 +117,10 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     inv = fleet.inventory
     kind = inv.provider.kind
     require(kind, Ability.BAKE, hint=f"on {kind} the golden image is built locally: `ccrp snapshot build`")
-    from .workloads import snapshot_software
+    from .workloads import packages_record, snapshot_software
 
-    if not snapshot_software(inv, fleet.path).empty:
-        # Honest until a builder installs and builds it: its clones would start nodes whose code is missing.
-        raise InputError(f"software: (the robots' own packages and workspace) is built into Docker snapshots only "
-                         f"so far; {kind}'s bake does not install it yet",
-                         hint="remove software: from this cloud inventory, or run the fleet on the Docker backend "
-                              "(docs/workloads.md, Not yet)")
+    # The fleet's own software, read and checked before any builder starts.
+    software = snapshot_software(inv, fleet.path)
     base = base_image or getattr(inv.provider, "image", None)
     if base is None and platform(inv.ros.distro, kind, inv.ros.platform).ros_installed:
         # The stock Debian image has no ROS 2 to use: the platform is the user's own image.
@@ -136,15 +132,18 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     if not provider.has_image(base):
         raise InputError(f"base image {base} not found on {kind}", hint=BASE_HINT[kind])
     token = secrets.token_hex(8)
-    user_data = builder_user_data(inv, token)
+    # With software, ccrp logs in to build it after cloud-init: the builder's login gets the key.
+    user_data = builder_user_data(inv, token, login_keys=None if software.empty else provider.login_keys())
     fit_user_data(kind, user_data)
     spec = CloneSpec(robot=BUILDER, hostname="ccrp-builder", image=base, user_data=user_data,
                      instance_id=f"{fleet.name}-builder-{token}", common_ip=_builder_common_ip(inv), role="builder")
     provider.bootstrap()
     progress(f"booting the builder from {base}; it installs ROS {inv.ros.distro} and the recipe (10-20 min)")
     try:
-        provider.run_instance(spec)
+        builder = provider.run_instance(spec)
         _wait_baked(provider, token, bake_proofs(inv), timeout, poll, progress)
+        if not software.empty:
+            install_software(provider, builder, software, progress, timeout)
         name = f"ccrp-{fleet.name}-{inv.ros.distro}-{_stamp()}"
         progress(f"capturing snapshot {name}")
         record = provider.create_snapshot(BUILDER, name)
@@ -155,8 +154,87 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     # What run_instance is given: GCE boots from an image's name, AWS and OpenStack from its id
     # (Glance names need not be unique).
     image = record.name if kind == "gcp" else record.id
-    _use(fleet, record, image=image, region=_region(inv), base=base, name=record.name)
+    # As `snapshot build` records it: fleet up refuses a snapshot whose software is not the
+    # inventory's, fleet plan names clones made with another, deploy compares the packages.
+    held = {} if software.empty else {"packages": packages_record(software)}
+    _use(fleet, record, image=image, region=_region(inv), base=base, name=record.name, software=software.digest,
+         **held)
     return record
+
+
+BAKE_DIR = "/var/lib/ccrp/bake"  # on the builder: the workspace's tar; removed by the build
+
+
+def software_env(software: SnapshotSoftware) -> dict[str, str]:
+    """What templates/image/software-bake.sh is given: the same lists the Docker snapshot's
+    software layers take (providers/docker/images.py dockerfile)."""
+    from .providers.docker.images import software_pip
+    from .recipes import is_ros2, recipe
+    from .render.cloudinit import ros2_prefix
+    from .render.view import LOGIN_USER
+
+    ros2 = is_ros2(software.distro)
+    prefix = ros2_prefix(software.distro)
+    return {
+        "CCRP_BUILD": software.build_type or "none",
+        "CCRP_APT": " ".join(software.apt),
+        "CCRP_BUILD_APT": " ".join(recipe(software.distro).build_tools.apt),
+        "CCRP_PIP": " ".join(software_pip(software)),
+        "CCRP_PIP_CMD": f"{prefix}/bin/pip" if ros2 else "env PIP_BREAK_SYSTEM_PACKAGES=1 pip3",
+        "CCRP_PYTHON": f"{prefix}/bin/python" if ros2 else "python3",
+        "CCRP_DIRS": " ".join(sorted({p.path.rsplit("/", 1)[0] if "/" in p.path else "." for p in software.packages})),
+        "CCRP_LOGIN": LOGIN_USER,
+    }
+
+
+def workspace_tar(software: SnapshotSoftware) -> bytes:
+    """The workspace's source files (what its digest covers) as a tar."""
+    import io
+    import tarfile
+
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+        for rel, data in software.workspace:
+            info = tarfile.TarInfo(rel)
+            info.size, info.mode = len(data), 0o644
+            tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def install_software(provider, builder, software: SnapshotSoftware, progress: Progress, timeout: float) -> None:
+    """The fleet's software on the builder, over SSH after cloud-init installed the recipe (user-data
+    has a size limit, and the workspace is the user's whole source): its workspace pushed as a
+    root-only file, then templates/image/software-bake.sh installs the packages, builds it into
+    /opt/ccrp/workspace and takes the builder's login away."""
+    import base64
+    import re
+    import time
+
+    from .render.bundles import BundleFile
+    from .render.templates import static
+
+    t0 = time.monotonic()
+    progress(f"building software {software.digest} on the builder")
+    provider.connect(BUILDER, builder)
+    if software.build_type is not None:
+        provider.exec(BUILDER, ["mkdir", "-p", "-m", "0700", BAKE_DIR], timeout=30)
+        tar = base64.b64encode(workspace_tar(software)).decode()
+        provider.push_files(BUILDER, [BundleFile("workspace.tar.b64", tar, 0o600, f"{BAKE_DIR}/workspace.tar.b64")],
+                            restart=[])
+    env = [f"{k}={v}" for k, v in software_env(software).items()]
+    rc, out = provider.exec(BUILDER, ["env", *env, "sh", "-c", static("image/software-bake.sh"), "ccrp-software"],
+                            timeout=timeout)
+    if rc != 0 or "ccrp-software built" not in out:
+        lines = [line.strip() for line in out.strip().splitlines() if line.strip()]
+        steps = [line[3:] for line in lines if line.startswith("== ")]
+        # The first line saying error (CMake's, apt's E:, pip's ERROR:) and the last ones: the build
+        # tools' own summary lines ("Invoking cmake failed") rarely say why.
+        first = next((line for line in lines if re.search(r"\berror\b|^E: ", line, re.IGNORECASE)), None)
+        said = " | ".join(([first] if first and first not in lines[-3:] else []) + lines[-3:])[-500:]
+        raise CcrpError(f"the builder could not build the software (at {steps[-1] if steps else 'the start'}): {said}",
+                        hint="the same recipe builds on Docker: `ccrp snapshot build` on a Docker inventory shows "
+                             "the error faster; check software.apt/pip and the workspace")
+    progress(f"software {software.digest} built on the builder after {time.monotonic() - t0:.0f} s")
 
 
 def _wait_baked(provider, token: str, proofs: list[str], timeout: float, poll: float, progress: Progress) -> None:

@@ -222,8 +222,7 @@ def check_snapshot(fleet, state, provider_kind: str) -> None:
     """Refuse to create or update clones whose snapshot lacks the inventory's software."""
     why = stale_snapshot(fleet, state)
     if why is not None and state.snapshot:
-        hint = ("ccrp snapshot build -i INVENTORY first" if provider_kind == "docker"
-                else "a cloud's bake does not build software: yet (docs/workloads.md, Not yet)")
+        hint = f"ccrp snapshot {'build' if provider_kind == 'docker' else 'bake'} -i INVENTORY first"
         raise InputError(f"{why}: clones made from it would not have it", hint=hint)
 
 

@@ -179,6 +179,29 @@ class CloudProvider:
         rc, out = ssh.exec([*ssh.sudo, "timeout", str(left), "cloud-init", "status", "--wait", "--long"], timeout=left + 30)
         check_cloud_init(robot, rc, out, timeout)
 
+    def connect(self, robot: str, rec: CloneRecord, timeout: float = 300) -> None:
+        """Open the SSH session to an instance query() does not list as a clone (the builder of
+        `snapshot bake`), from the record run_instance returned: its host keys pinned from its
+        console, as a clone's. exec and push_files then reach it by `robot` while it stays up."""
+        from ..retry import PollTimeout, poll
+        from ..transport.ssh import fingerprints_from_console
+
+        if not rec.public_ip:
+            raise CcrpError(f"the {self.kind} instance {rec.provider_id} has no public IP to log in over")
+
+        def keys_shown() -> tuple[bool, frozenset[str]]:
+            pins = fingerprints_from_console(self.console_output(robot) or "")
+            return bool(pins), pins
+
+        try:
+            pins = poll(keys_shown, timeout=timeout, interval=CONSOLE_POLL)
+        except PollTimeout:
+            if not self.trust_on_first_use:
+                raise CcrpError(f"{self.kind} instance {rec.provider_id}: cloud-init printed no SSH host keys on its "
+                                "console in time", hint=f"set {TOFU_ENV}=1 to trust its SSH key on first use") from None
+            pins = frozenset()
+        self._session(robot, rec, pins)
+
     def _run(self, robot: str, fn):
         """fn(session); once more on a fresh connection if the cached one broke before starting."""
         from ..transport.ssh import ChannelOpenError

@@ -287,9 +287,12 @@ def bake_proofs(inv: Inventory) -> list[str]:
     return ["apt", "locale"] + (["pip"] if plat.pip else []) + (["ros"] if plat.ros_installed else [])
 
 
-def builder_user_data(inv: Inventory, token: str) -> str:
+def builder_user_data(inv: Inventory, token: str, login_keys: list[str] | None = None) -> str:
     """User-data of the instance `snapshot bake` captures: the image config, a proof on the console
-    per install step, and a final message carrying the token. No fleet, robot or key in it."""
+    per install step, and a final message carrying the token. No fleet, robot or private key in it.
+    `login_keys`: a bake with software: (the fleet's packages and workspace) logs in over SSH after
+    cloud-init to build it; the login gets the operator key and sudo, which the build's last step
+    takes away before the capture (templates/image/software-bake.sh)."""
     plat = platform(inv.ros.distro, inv.provider.kind, inv.ros.platform)
     data = image_config(inv)
     # ccrp-topic, as in every Docker image; in snapshots only (a bare clone's user-data has no room
@@ -315,7 +318,7 @@ def builder_user_data(inv: Inventory, token: str) -> str:
     # with the cloud's key pair and sudo, and the snapshot would carry that login into every clone.
     # The builder creates ccrp's login user instead, with no key and no sudo: a clone's user-data
     # gives it both (cloud-init applies them to a user that exists).
-    data["users"] = [{"name": LOGIN_USER, "shell": "/bin/bash", "lock_passwd": True}]
+    data["users"] = [login_user(login_keys) if login_keys else {"name": LOGIN_USER, "shell": "/bin/bash", "lock_passwd": True}]
     data["final_message"] = f"ccrp-bake {token} finished after $UPTIME s"
     return dump(data)
 

@@ -108,7 +108,18 @@ def install_key(user_data: bytes) -> str | None:
     if user_data[:2] == b"\x1f\x8b":
         user_data = gzip.decompress(user_data)
     found = BAKE_TOKEN.search(user_data)
-    return hashlib.sha256(user_data.replace(found.group(1), b"")).hexdigest()[:16] if found else None
+    if not found:
+        return None
+    # Its login user aside too: a bake with software: gives that user the fleet's key and sudo (to
+    # build over SSH after cloud-init), which changes nothing cloud-init installs, and cloud-init
+    # applies them to the kept disk's existing user.
+    import json
+
+    import yaml
+
+    data = yaml.safe_load(user_data.replace(found.group(1), b""))
+    data.pop("users", None)
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def baked_disk(client, key: str) -> str | None:

@@ -50,6 +50,60 @@ template:
 """
 
 
+# The robot's own software (docs/workloads.md) in small, for a backend whose scenario builds it into
+# its snapshot: a catkin package holding one rospy node, which prints a line and publishes /hello
+# every 2 s. Its unit is ccrp-run-hello on every clone.
+HELLO_NODE = """#!/usr/bin/env python3
+import rospy
+from std_msgs.msg import String
+
+rospy.init_node("hello")
+pub = rospy.Publisher("/hello", String, queue_size=1, latch=True)
+n = 0
+while not rospy.is_shutdown():
+    print(f"hello {n} from the snapshot's workspace", flush=True)
+    pub.publish(String(data=f"hello {n}"))
+    n += 1
+    rospy.sleep(2.0)
+"""
+HELLO_WORKSPACE = {
+    "src/ccrp_hello/package.xml": """<?xml version="1.0"?>
+<package format="2">
+  <name>ccrp_hello</name>
+  <version>0.0.1</version>
+  <description>ccrp's scenario node</description>
+  <maintainer email="ccrp@example.org">ccrp</maintainer>
+  <license>MIT</license>
+  <buildtool_depend>catkin</buildtool_depend>
+  <exec_depend>rospy</exec_depend>
+</package>
+""",
+    "src/ccrp_hello/CMakeLists.txt": """cmake_minimum_required(VERSION 3.0.2)
+project(ccrp_hello)
+find_package(catkin REQUIRED)
+catkin_package()
+catkin_install_python(PROGRAMS scripts/hello DESTINATION ${CATKIN_PACKAGE_BIN_DESTINATION})
+""",
+    "src/ccrp_hello/scripts/hello": HELLO_NODE,
+}
+HELLO_SOFTWARE = """software:
+  workspace: ws
+  run:
+    - name: hello
+      command: [/opt/ccrp/workspace/lib/ccrp_hello/hello]
+"""
+
+
+def hello_software(directory: Path) -> str:
+    """Writes the workspace into `directory`/ws (beside the inventory); returns the inventory's
+    `software:` naming it."""
+    for rel, text in HELLO_WORKSPACE.items():
+        path = directory / "ws" / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return HELLO_SOFTWARE
+
+
 @dataclass
 class Backend:
     kind: str
@@ -67,6 +121,8 @@ class Backend:
     # Docker labels of the containers the fleet runs in beside its own `ccrp-fleet` one (a fake
     # cloud's servers): what a failing scenario prints the journals and consoles of.
     labels: list[str] = field(default_factory=list)
+    # The nodes of the inventory's software: (its snapshot carries them; each clone runs them).
+    nodes: list[str] = field(default_factory=list)
 
     def ccrp(self, *args: str, timeout: float = 900) -> subprocess.CompletedProcess:
         if self.runner is not None:

@@ -11,7 +11,7 @@ from tests.fakes.cloudboot import CloudBoot
 from tests.fakes.openstack_cloud import BOOT_IMAGE, FakeOpenStack
 from tests.fakes.openstack_http import OpenStackHttp
 
-from .backend import Backend, free_cidr, inventory_text
+from .backend import Backend, free_cidr, hello_software, inventory_text
 
 CLOUD = "fakestack"
 
@@ -26,10 +26,13 @@ def open_backend(tmp_path: Path, fleet: str, distro: str = "noetic"):
             provider = (f"  kind: openstack\n  cloud: {CLOUD}\n  flavor: m1.small\n  image: {BOOT_IMAGE}\n"
                         f"  external_network: public\n  operator_cidr: {fake.fip_cidr}\n  zones: [az1, az2]\n")
             inv = tmp_path / "inventory.yaml"
-            inv.write_text(inventory_text(fleet, provider, common, "10.85.0.0/16", distro))
+            # ROS 1 only: OpenStack's bake builds the fleet's software on its builder (docs/workloads.md).
+            software = hello_software(tmp_path) if distro == "noetic" else ""
+            inv.write_text(inventory_text(fleet, provider, common, "10.85.0.0/16", distro) + software)
             yield Backend(kind="openstack", inventory=inv, home=tmp_path / "home",
                           env={"OS_CLIENT_CONFIG_FILE": str(clouds)}, owned=lambda: _owned(fake, fleet),
-                          faults=_faults(fake), sim_network=fake.fip_network, labels=[f"ccrp-fake={boot.run}"])
+                          faults=_faults(fake), sim_network=fake.fip_network, labels=[f"ccrp-fake={boot.run}"],
+                          nodes=["hello"] if software else [])
 
 
 def _owned(fake: FakeOpenStack, fleet: str) -> list[str]:

@@ -82,6 +82,36 @@ def test_fleet_plan_then_up_twice(run):
     run.done.add("up")
 
 
+def test_the_snapshots_software_runs_on_every_clone(run):
+    """software: built into the snapshot (on a cloud by `snapshot bake`'s builder, over SSH after
+    cloud-init; docs/workloads.md): each clone made from it runs the node with nothing installed,
+    its output is in `ccrp logs`, and a changed workspace makes `fleet plan` name every clone and
+    `fleet up` refuse the snapshot."""
+    if not run.b.nodes:
+        pytest.skip(f"the {run.b.kind} scenario's inventory has no software:")
+    run.needs("up")
+    deadline, said = time.monotonic() + 60, []
+    while not any("from the snapshot's workspace" in m for m in said) and time.monotonic() < deadline:
+        time.sleep(2)
+        said = [json.loads(line)["message"] for line in run.ccrp("logs", "--robot", "nao2", "hello", "--json").stdout.splitlines()]
+    assert any("from the snapshot's workspace" in m for m in said), said
+    # The install space came with the snapshot; the sources and build tree the builder used did not.
+    run.ccrp("clone", "exec", "--robot", "nao1", "--", "sh", "-c",
+             "test -x /opt/ccrp/workspace/lib/ccrp_hello/hello && ! test -e /var/lib/ccrp/bake "
+             "&& systemctl is-active ccrp-run-hello")
+    node = run.b.inventory.parent / "ws" / "src" / "ccrp_hello" / "scripts" / "hello"
+    original = node.read_text()
+    node.write_text(original + "# changed\n")
+    try:
+        stale = {r["robot"]: r["software"] for r in run.json("fleet", "plan")}
+        refused = run.ccrp("fleet", "up", code=2)
+    finally:
+        node.write_text(original)
+    assert all(stale[r] and "the snapshot holds software" in stale[r] for r in ROBOTS), stale
+    assert "clones made from it would not have it" in refused.stderr and "snapshot bake" in refused.stderr
+    assert [r["software"] for r in run.json("fleet", "plan")] == [None, None]
+
+
 def test_status_shows_every_clone_running_with_its_master(run):
     run.needs("up")
     rows = run.status()
@@ -211,6 +241,8 @@ def test_clone_restart_and_stop(run):
                 and time.monotonic() < deadline:
             time.sleep(3)
         assert row["vpn_connected"] is True and "/nao1_demo" in row["robot_nodes"], row
+    for node in run.b.nodes:  # the robot's own nodes start at boot, from the snapshot
+        run.ccrp("clone", "exec", "--robot", "nao1", "--", "systemctl", "is-active", f"ccrp-run-{node}")
     assert [r["action"] for r in run.json("clone", "stop", "--robot", "nao2")] == ["stopped"]
     row = run.status()["nao2"]
     assert row["state"] == "stopped" and row["stopped_idle"] is None, row

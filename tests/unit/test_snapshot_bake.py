@@ -80,6 +80,31 @@ class FakeCloud:
         self._maybe_fail("terminate")
         return self.instances.pop(robot, None) is not None
 
+    # -- the SSH transport a bake with software: uses (providers/cloud.py) ----------------------
+    def login_keys(self) -> list[str]:
+        return ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeOperatorKey ccrp-labos"]
+
+    def connect(self, robot: str, rec) -> None:
+        self._maybe_fail("connect")
+        assert robot in self.instances and rec.provider_id == "i-builder"
+
+    pushed: dict[str, object]
+    build_result = (0, "== apt\n== catkin_make install\n== login removed\nccrp-software built\n")
+
+    def push_files(self, robot: str, files: list, restart: list[str] = ()) -> None:
+        self._maybe_fail("push_files")
+        self.pushed = {f.dest: f for f in files}
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
+        assert robot in self.instances
+        if argv[0] == "env":
+            self._maybe_fail("build")
+            self.build_env = dict(w.split("=", 1) for w in argv[1:argv.index("sh")])
+            self.build_argv = argv
+            return self.build_result
+        self._maybe_fail(f"exec {argv[0]}")
+        return 0, ""
+
 
 DONE = ("[  612.1] cloud-init[1502]: ccrp-bake TOKEN apt-ok\n"
         "[  612.9] cloud-init[1502]: ccrp-bake TOKEN locale-ok\n"
@@ -108,7 +133,7 @@ def test_bake_captures_terminates_and_records(fleet):
     assert record.name.startswith("ccrp-labos-noetic-")
     snap = fleet.store.load_state().snapshot
     assert snap == {"image": "img-0", "id": "img-0", "source": "snapshot-builder", "region": "mycloud",
-                    "base": "debian-12-genericcloud-amd64", "name": record.name}
+                    "base": "debian-12-genericcloud-amd64", "name": record.name, "software": "none"}
     assert any("builder terminated" in n for n in notes)
 
 
@@ -247,18 +272,94 @@ def test_docker_is_refused(ccrp_home):
     assert "snapshot build" in err.value.hint
 
 
-def test_bake_refuses_software_it_cannot_build_yet(ccrp_home, tmp_path):
-    """A cloud's bake does not install the robots' own software yet (docs/workloads.md): one line,
-    before any builder starts, instead of clones whose nodes have no code."""
-    import yaml
+WORKSPACE = {
+    "src/hello/package.xml": "<package format='2'><name>hello</name><version>0.0.1</version>"
+                             "<description>d</description><maintainer email='a@b.c'>a</maintainer>"
+                             "<license>MIT</license><buildtool_depend>catkin</buildtool_depend>"
+                             "<exec_depend>rospy</exec_depend></package>",
+    "src/hello/CMakeLists.txt": "cmake_minimum_required(VERSION 3.0.2)\nproject(hello)\n",
+    "src/hello/scripts/hello": "#!/usr/bin/env python3\nprint('hello')\n",
+    "build/junk.o": "build output stays out",
+}
 
-    from ccrp_cli.errors import InputError
 
+def _software_fleet(tmp_path):
     data = yaml.safe_load(INVENTORIES["openstack"].read_text())
-    data["software"] = {"apt": ["htop"]}
+    data["software"] = {"apt": ["htop"], "pip": ["numpy>=1.24"], "workspace": "ws",
+                        "run": [{"name": "hello", "command": ["/opt/ccrp/workspace/lib/hello/hello"]}]}
+    for rel, text in WORKSPACE.items():
+        (tmp_path / "ws" / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "ws" / rel).write_text(text)
     path = tmp_path / "inventory.yaml"
     path.write_text(yaml.safe_dump(data))
-    cloud = FakeCloud("openstack")
-    with pytest.raises(InputError, match="Docker snapshots only"):
-        _bake(Fleet.open(path), cloud)
-    assert cloud.specs == [] and cloud.instances == {}
+    return Fleet.open(path)
+
+
+def test_bake_builds_the_software_on_the_builder_and_records_its_digest(ccrp_home, tmp_path):
+    """software: on a cloud (docs/workloads.md): the builder's login gets the operator key, ccrp
+    SSHes in after cloud-init, pushes the workspace, builds it with the recipe's build tools, and
+    only then captures; the snapshot is recorded with the software's digest and packages as
+    `snapshot build` records them."""
+    import base64
+    import io
+    import tarfile
+
+    from ccrp_cli.workloads import packages_record, snapshot_software
+
+    fleet = _software_fleet(tmp_path)
+    cloud = FakeCloud("openstack", [DONE])
+    _bake(fleet, cloud)
+    assert cloud.calls == ["has_image", "bootstrap", "run_instance", "console_output", "connect", "exec mkdir",
+                           "push_files", "build", "create_snapshot", "terminate"]
+    users = yaml.safe_load(cloud.specs[0].user_data)["users"]
+    assert users == [{"name": "ccrp", "shell": "/bin/bash", "sudo": "ALL=(ALL) NOPASSWD:ALL", "lock_passwd": True,
+                      "ssh_authorized_keys": cloud.login_keys()}]
+    tar_file = cloud.pushed[f"{snapshots.BAKE_DIR}/workspace.tar.b64"]
+    assert tar_file.mode == 0o600
+    with tarfile.open(fileobj=io.BytesIO(base64.b64decode(tar_file.content))) as tar:
+        assert sorted(tar.getnames()) == sorted(k for k in WORKSPACE if not k.startswith("build/"))
+        assert tar.extractfile("src/hello/scripts/hello").read() == WORKSPACE["src/hello/scripts/hello"].encode()
+    env = cloud.build_env
+    assert env["CCRP_BUILD"] == "catkin" and env["CCRP_APT"] == "htop python3-rospy catkin"
+    assert env["CCRP_BUILD_APT"] == "catkin cmake gcc g++ make" and env["CCRP_PIP"] == "numpy>=1.24"
+    assert env["CCRP_LOGIN"] == "ccrp" and "pip3" in env["CCRP_PIP_CMD"]
+    assert cloud.build_argv[-4:-1] == ["sh", "-c", (ROOT / "templates/image/software-bake.sh").read_text()]
+    software = snapshot_software(fleet.inventory, fleet.path)
+    snap = fleet.store.load_state().snapshot
+    assert snap["software"] == software.digest != "none" and snap["packages"] == packages_record(software)
+
+
+def test_a_failed_software_build_names_its_step_and_captures_nothing(ccrp_home, tmp_path):
+    fleet = _software_fleet(tmp_path)
+    cloud = FakeCloud("openstack", [DONE])
+    cloud.build_result = (100, "== apt\n== catkin_make install\nCMake Error at toplevel.cmake:11: boom\n"
+                               "-- Configuring incomplete\n####\nInvoking \"cmake\" failed\n")
+    with pytest.raises(CcrpError, match=r"could not build the software \(at catkin_make install\): "
+                                        r"CMake Error at toplevel.cmake:11: boom \| .*Invoking \"cmake\" failed"):
+        _bake(fleet, cloud)
+    assert "create_snapshot" not in cloud.calls and cloud.calls[-1] == "terminate" and cloud.instances == {}
+    assert fleet.store.load_state().snapshot is None
+
+
+def test_bake_without_software_never_logs_in(fleet):
+    cloud = FakeCloud("openstack", [DONE])
+    _bake(fleet, cloud)
+    assert "connect" not in cloud.calls and "build" not in cloud.calls
+    assert fleet.store.load_state().snapshot["software"] == "none"
+
+
+def test_a_baked_snapshot_goes_stale_when_the_workspace_changes(ccrp_home, tmp_path):
+    """fleet up refuses (check_snapshot), and fleet plan names the clones (stale_snapshot), once the
+    inventory's workspace is not the one the cloud snapshot was baked with; the hint is the cloud's."""
+    from ccrp_cli.workloads import check_snapshot, stale_snapshot
+
+    fleet = _software_fleet(tmp_path)
+    _bake(fleet, FakeCloud("openstack", [DONE]))
+    state = fleet.store.load_state()
+    assert stale_snapshot(fleet, state) is None
+    check_snapshot(fleet, state, "openstack")  # current: no refusal
+    (tmp_path / "ws" / "src/hello/scripts/hello").write_text("print('changed')\n")
+    assert "the snapshot holds software" in stale_snapshot(fleet, state)
+    with pytest.raises(InputError, match="clones made from it would not have it") as err:
+        check_snapshot(fleet, state, "openstack")
+    assert err.value.hint == "ccrp snapshot bake -i INVENTORY first"

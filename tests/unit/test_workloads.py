@@ -148,6 +148,13 @@ def test_a_catkin_workspace_resolves_to_debian_packages_and_changes_the_digest(t
     assert snapshot_software(inventory(lab()), None).digest == NO_SOFTWARE
 
 
+def test_pip_requirements_reach_the_snapshots_pip_as_one_word_each(tmp_path):
+    """A Dockerfile RUN line is a shell's: `numpy<2` unquoted would read a file named 2."""
+    snap = snapshot_software(inventory(lab(software={"pip": ["numpy<2", "scipy>=1.10,!=1.11.0", "rich"]})), None)
+    text = images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "docker"), snap)
+    assert "/tmp/ccrp-software-wheels 'numpy<2' 'scipy!=1.11.0,>=1.10' rich \\\n" in text
+
+
 def test_an_unknown_key_names_itself_and_its_package_before_anything(tmp_path):
     workspace(tmp_path / "ws", "mapper", CATKIN_XML.format(name="mapper", deps="<depend>octomap_server</depend>"))
     with pytest.raises(InputError) as bad:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import re
+import shlex
 import shutil
 import subprocess
 import tempfile
@@ -88,7 +89,8 @@ def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, softwar
     prefix = f"/opt/ros/{distro}" if is_ros2(distro) and plat.pip else ""
     extra: dict = {"software": None}
     if software is not None and not software.empty:
-        extra = {"software": software, "sw_apt": software.apt, "sw_pip": _software_pip(software),
+        # Quoted: a RUN line is a shell's, where `numpy<2` reads a file "2" and `numpy>=1.24` writes one.
+        extra = {"software": software, "sw_apt": software.apt, "sw_pip": [shlex.quote(p) for p in software_pip(software)],
                  "build_apt": recipe(distro).build_tools.apt, "prefix": WORKSPACE,
                  "pip_command": f"{prefix}/bin/pip" if prefix else "PIP_BREAK_SYSTEM_PACKAGES=1 pip3",
                  "package_dirs": sorted({p.path.rsplit("/", 1)[0] if "/" in p.path else "." for p in software.packages})}
@@ -96,7 +98,7 @@ def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, softwar
                   pip=plat.pip, locale_setup=LOCALE_SETUP, ros2_prefix=prefix, **extra)
 
 
-def _software_pip(software) -> list[str]:
+def software_pip(software) -> list[str]:
     # `wheel` builds the ament_python packages in the venv (its setuptools has no bdist_wheel of its own).
     return software.pip + (["wheel"] if software.build_type == "ament_python" else [])
 
@@ -116,7 +118,7 @@ def _software_context(software, progress, plat: Platform) -> dict[str, bytes]:
     if software is None or software.empty:
         return {}
     files = {f"workspace/{rel}": data for rel, data in software.workspace}
-    pip = _software_pip(software)
+    pip = software_pip(software)
     if pip:
         progress(f"fetching wheels for the fleet's software: {', '.join(pip)}")
         files |= {f"software-{name}": data for name, data in wheels.fetch(pip, tuple(plat.wheel_platforms)).items()}

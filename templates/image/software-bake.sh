@@ -1,0 +1,60 @@
+# `ccrp snapshot bake` with software: (docs/workloads.md): the fleet's own packages and workspace
+# on the builder instance, after cloud-init installed the recipe, as templates/docker/software.j2
+# builds them into a Docker snapshot. Run as root over SSH (ccrp_cli/snapshots.py); what it is
+# given comes in the environment, each list as words the inventory's models typed (Debian package
+# names, pip requirements, package directories: no space, no quote), split here with globbing off:
+#   CCRP_BUILD      catkin | ament_python | none
+#   CCRP_APT        the software's Debian packages (software.apt and what package.xml resolves to)
+#   CCRP_BUILD_APT  the recipe's build tools (catkin): installed for the build, purged after it
+#   CCRP_PIP        the software's pip requirements;  CCRP_PIP_CMD: the clone's ROS pip
+#   CCRP_DIRS       the workspace's package directories (ament_python)
+#   CCRP_PYTHON     the ROS 2 venv's python (ament_python)
+#   CCRP_LOGIN      the login user the builder's user-data made (its key goes)
+# The workspace's sources are the base64 tar $B/workspace.tar.b64. Last, the builder's login is
+# taken away (its key and sudo rule, both from the builder's user-data): the snapshot must not
+# carry them; a clone's own user-data gives its login the fleet's key again.
+set -euf
+# The sources and the build beside the tar, not in /tmp: an image may mount /tmp noexec (the fake
+# clouds do), and catkin runs what it generates there.
+W=/opt/ccrp/workspace B=/var/lib/ccrp/bake S=/var/lib/ccrp/bake/ws
+export DEBIAN_FRONTEND=noninteractive
+step() { echo "== $*"; }
+step "apt"
+apt-get update -q >/dev/null
+if [ -n "$CCRP_APT" ]; then apt-get install -y -q --no-install-recommends $CCRP_APT; fi
+if [ -n "$CCRP_PIP" ]; then step "pip"; $CCRP_PIP_CMD install --no-cache-dir $CCRP_PIP; fi
+rm -rf "$S" "$W"
+mkdir -p "$S"
+if [ "$CCRP_BUILD" != none ]; then base64 -d "$B/workspace.tar.b64" | tar -xz --no-same-owner -C "$S"; fi
+case $CCRP_BUILD in
+catkin)
+  # The build tools are the build's only: what they add is purged after it, as the Docker
+  # snapshot keeps its catkin stage out of the image.
+  dpkg-query -W -f '${Package}\n' | sort > "$B/before"
+  step "build tools"
+  apt-get install -y -q --no-install-recommends $CCRP_BUILD_APT
+  dpkg-query -W -f '${Package}\n' | sort > "$B/after"
+  step "catkin_make install"
+  (cd "$S" && catkin_make install -DCMAKE_BUILD_TYPE=Release -DCMAKE_INSTALL_PREFIX="$W" -DCATKIN_ENABLE_TESTING=OFF)
+  added=$(comm -13 "$B/before" "$B/after" | tr '\n' ' ')
+  if [ -n "$added" ]; then step "purge build tools"; apt-get purge -y -q --auto-remove $added >/dev/null; fi
+  ;;
+ament_python)
+  step "pip install (ament_python)"
+  dirs=""
+  for d in $CCRP_DIRS; do dirs="$dirs $S/$d"; done
+  $CCRP_PIP_CMD install --no-index --no-deps --no-build-isolation --no-cache-dir --prefix "$W" $dirs
+  site=$("$CCRP_PYTHON" -c 'import sysconfig; print(sysconfig.get_path("purelib", vars={"base": "'"$W"'"}))')
+  printf '%s\n' "export PYTHONPATH=$site\${PYTHONPATH:+:\$PYTHONPATH}" \
+    "export AMENT_PREFIX_PATH=$W\${AMENT_PREFIX_PATH:+:\$AMENT_PREFIX_PATH}" "export PATH=$W/bin:\$PATH" > "$W/setup.sh"
+  ;;
+none) ;;
+*) echo "unknown build type $CCRP_BUILD" >&2; exit 2 ;;
+esac
+rm -rf "$B"
+apt-get clean
+step "login removed"
+rm -f /etc/sudoers.d/90-cloud-init-users
+home=$(getent passwd "$CCRP_LOGIN" | cut -d: -f6)
+[ -z "$home" ] || rm -rf "$home/.ssh"
+echo "ccrp-software built"
