@@ -55,53 +55,60 @@ def results(items: list) -> list[dict]:
 
 def fleet_actions(inventory: Path) -> dict:
     """The page's actions: each opens the fleet as a CLI run does and calls the CLI's own body
-    (ccrp_cli.actions), which takes the fleet lock."""
+    (ccrp_cli.actions), which takes the fleet lock; the provider it opened is closed after it (a
+    cloud's SSH sessions would pile up in a dashboard left running for days)."""
+    from contextlib import contextmanager
+
     from .. import actions
     from ..fleet import Fleet
     from ..providers import get_provider
 
-    def opened(what: str, say):
+    def fresh(what: str, say) -> Fleet:
         fleet = Fleet.open(inventory)
         fleet.store.command = f"dashboard: {what}"
         fleet.store.on_wait = say
-        return fleet, get_provider(fleet.inventory)
+        return fleet
+
+    @contextmanager
+    def opened(what: str, say):
+        fleet = fresh(what, say)
+        provider = get_provider(fleet.inventory)
+        try:
+            yield fleet, provider
+        finally:
+            provider.close()
 
     def clone_start(args: dict, say) -> list[dict]:
-        fleet, provider = opened(f"clone start {args['robot']}", say)
-        return results(actions.clone_start(fleet, provider, args["robot"], say))
+        with opened(f"clone start {args['robot']}", say) as (fleet, provider):
+            return results(actions.clone_start(fleet, provider, args["robot"], say))
 
     def clone_restart(args: dict, say) -> list[dict]:
-        fleet, provider = opened(f"clone restart {args['robot']}", say)
-        return results(actions.clone_restart(fleet, provider, args["robot"], say))
+        with opened(f"clone restart {args['robot']}", say) as (fleet, provider):
+            return results(actions.clone_restart(fleet, provider, args["robot"], say))
 
     def vpn_revoke(args: dict, say) -> list[dict]:
-        fleet, provider = opened(f"vpn revoke {args['robot']}", say)
-        records = actions.vpn_revoke(fleet, provider, args["robot"], say)
+        with opened(f"vpn revoke {args['robot']}", say) as (fleet, provider):
+            records = actions.vpn_revoke(fleet, provider, args["robot"], say)
         say(f"revoked {len(records)} certificate(s) of robot {args['robot']!r}; CRL re-issued")
         return [{"cn": r["cn"], "profile": r["profile"], "serial": r["serial"]} for r in records]
 
     def fleet_scale(args: dict, say) -> list[dict]:
-        fleet, provider = opened(f"fleet scale {args['size']}", say)
-        return results(actions.fleet_scale(fleet, provider, args["size"], say))
+        with opened(f"fleet scale {args['size']}", say) as (fleet, provider):
+            return results(actions.fleet_scale(fleet, provider, args["size"], say))
 
     def robot_power(args: dict, say) -> dict:
-        fleet, _ = opened(f"robot power {args['state']} {args['robot']}", say)
-        r = actions.robot_power(fleet, args["robot"], args["state"], say)
+        r = actions.robot_power(fresh(f"robot power {args['state']} {args['robot']}", say), args["robot"], args["state"], say)
         say(f"{r['robot']}: power {r['power']}, robot {r['robot_state']} (device report {r['reported_at']})")
         return r
 
     return {"clone-start": clone_start, "clone-restart": clone_restart, "vpn-revoke": vpn_revoke, "fleet-scale": fleet_scale, "robot-power": robot_power}
 
 
-def teleop_sender(inventory: Path):
-    """The drive keys' body: `ccrp robot teleop` (ccrp_cli.actions.robot_teleop) on a fleet opened
-    once: a command changes nothing ccrp records, so it needs no fresh state nor the fleet lock."""
+def teleop_sender(fleet, provider):
+    """The drive keys' body: `ccrp robot teleop` (ccrp_cli.actions.robot_teleop) on the fleet the
+    dashboard opened: a command changes nothing ccrp records, so it needs no fresh state nor the
+    fleet lock."""
     from .. import actions
-    from ..fleet import Fleet
-    from ..providers import get_provider
-
-    fleet = Fleet.open(inventory)
-    provider = get_provider(fleet.inventory)
 
     def send(robot: str, linear: float, angular: float) -> dict:
         # keep: an operator node stays up on the clone between key presses (evaluation.send_command)
@@ -115,17 +122,13 @@ def teleop_sender(inventory: Path):
     return send, close
 
 
-def camera_functions(inventory: Path):
-    """The camera view's bodies on a fleet opened once, as the drive keys' is (they change nothing
-    ccrp records): (read, start). `read` is `ccrp robot camera`'s (ccrp_cli.camera.latest_frame)
-    without its start of the agent: the page's GET starts nothing on a clone. `start` is the Camera
-    button's POST (ccrp_cli.camera.start_camera)."""
+def camera_functions(fleet, provider):
+    """The camera view's bodies on the fleet the dashboard opened, as the drive keys' are (they
+    change nothing ccrp records): (read, start). `read` is `ccrp robot camera`'s
+    (ccrp_cli.camera.latest_frame) without its start of the agent: the page's GET starts nothing on
+    a clone. `start` is the Camera button's POST (ccrp_cli.camera.start_camera)."""
     from ..camera import latest_frame, start_camera
-    from ..fleet import Fleet
-    from ..providers import get_provider
 
-    fleet = Fleet.open(inventory)
-    provider = get_provider(fleet.inventory)
     return (lambda robot: latest_frame(fleet, provider, robot, start=False)), (lambda robot: start_camera(fleet, provider, robot))
 
 
@@ -160,9 +163,11 @@ def serve(inventory: Path, bind: str, token: str | None, interval: float) -> Non
     monitor = Monitor(broker, lambda: fleet_status(fleet, provider), lambda robots: pki_alerts(fleet.pki, robots),
                       interval, fleet.name, fleet.inventory.provider.kind, fleet.inventory.ros.ros2)
     runner = Actions(broker, fleet_actions(inventory), monitor.refresh)
-    send, close = teleop_sender(inventory)
+    # One provider for the status poll, the drive keys and the camera view (thread-safe as
+    # fleet_status's pool needs), closed at shutdown; each action opens and closes its own.
+    send, close = teleop_sender(fleet, provider)
     app = create_app(auth, broker, monitor, runner, fleet.name, Teleop(send, broker, close),
-                     Camera(*camera_functions(inventory)))
+                     Camera(*camera_functions(fleet, provider)))
 
     shown = f"[{host}]" if ":" in host else host
     warn_if_exposed(host)
@@ -179,6 +184,7 @@ def serve(inventory: Path, bind: str, token: str | None, interval: float) -> Non
     finally:
         sock.close()
         monitor.stop()
+        provider.close()
 
 
 def _log_to_stderr() -> None:

@@ -440,15 +440,14 @@ class CameraClones:
 def cam(lab_up, monkeypatch):
     """The app with the camera functions `ccrp dashboard` wires (server.camera_functions), on a
     fake clone at the provider boundary."""
-    from ccrp_cli import providers
     from ccrp_cli.dashboard.app import Camera
     from ccrp_cli.dashboard.server import camera_functions
+    from ccrp_cli.fleet import Fleet
     from tests.conftest import LAB
 
     d = Dashboard()
     d.clones = CameraClones()
-    monkeypatch.setattr(providers, "get_provider", lambda inventory: d.clones)
-    d.app = create_app(d.auth, d.broker, d.monitor, d.actions, "lab", None, Camera(*camera_functions(LAB)))
+    d.app = create_app(d.auth, d.broker, d.monitor, d.actions, "lab", None, Camera(*camera_functions(Fleet.open(LAB), d.clones)))
     with TestClient(d.app, base_url=BASE, follow_redirects=False) as client:
         d.client = client
         yield d
@@ -787,3 +786,35 @@ def test_a_bind_beyond_loopback_warns_that_token_and_cookie_cross_in_clear(host,
     assert host in out.err and "without TLS" in out.err
     assert "token and the session cookie cross the network in clear" in out.err
     assert "SSH tunnel" in out.err and "reverse proxy with TLS" in out.err
+
+
+def test_each_page_action_closes_the_provider_it_opened_even_when_it_fails(lab_up, monkeypatch):
+    """A dashboard runs for days: an action's provider (a cloud's SSH sessions) must not outlive it."""
+    from ccrp_cli import providers
+    from ccrp_cli.dashboard.server import fleet_actions
+    from ccrp_cli.errors import CcrpError
+    from tests.conftest import LAB
+
+    opened: list = []
+
+    class Unreachable:
+        max_parallel = 1
+
+        def __init__(self):
+            self.closed = False
+            opened.append(self)
+
+        def close(self):
+            self.closed = True
+
+        def __getattr__(self, name):  # any use of it: the cloud does not answer
+            raise CcrpError("the cloud does not answer")
+
+    monkeypatch.setattr(providers, "get_provider", lambda inventory: Unreachable())
+    actions = fleet_actions(LAB)
+    for name, args in (("clone-start", {"robot": "nao1"}), ("clone-restart", {"robot": "nao1"}),
+                       ("fleet-scale", {"size": 3})):
+        with pytest.raises(CcrpError):
+            actions[name](args, lambda line: None)
+    assert len(opened) == 3 and all(p.closed for p in opened)
+
