@@ -86,7 +86,7 @@ def clone_images():
 # worker takes a unit and one ahead (xdist's LoadScheduling), so the order is read in threes.
 SLOWEST_FIRST = [
     "tests/scenarios/test_user_path.py/openstack", "tests/e2e/test_docker_fleet.py",
-    "tests/scenarios/test_user_path.py/docker", "tests/scenarios/test_user_path.py/aws",
+    "tests/scenarios/test_user_path.py/aws", "tests/e2e/test_jazzy_fleet.py", "tests/scenarios/test_user_path.py/docker",
     "tests/scenarios/test_user_path.py/gcp", "tests/scenarios/test_jazzy_cloud.py",
     "tests/e2e/test_gce_startup_script.py", "tests/e2e/test_evaluation.py", "tests/e2e/test_dashboard_browser.py",
 ]
