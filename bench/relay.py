@@ -14,7 +14,8 @@ The same for a ROS 2 Jazzy fleet (rclpy probes in the robots' domains, the relay
 one distro after the other in the same run.
 
 Run: .venv/bin/python bench/relay.py [--clones 10] [--seconds 30] [--distros noetic,jazzy]
-Writes bench/results/relay.{json,png} (Noetic) and bench/results/relay-jazzy.{json,png}.
+Writes bench/results/relay.{json,png} (Noetic) and bench/results/relay-jazzy.{json,png}; with both
+distros, relay-jazzy.json's `ratio_to_noetic` is Jazzy's figures over Noetic's of the same run.
 """
 
 from __future__ import annotations
@@ -179,7 +180,25 @@ def main() -> None:
     summary = {}
     for distro in args.distros.split(","):
         summary[distro] = run(args, distro)
+    if "noetic" in summary and len(summary) > 1:
+        for distro, figures in summary.items():
+            if distro != "noetic":
+                figures["ratio_to_noetic"] = ratios(figures, summary["noetic"])
+                path = RESULTS / f"relay-{distro}.json"
+                result = json.loads(path.read_text())
+                result["ratio_to_noetic"] = figures["ratio_to_noetic"]
+                path.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(summary, indent=1))
+
+
+def ratios(figures: dict, noetic: dict) -> dict:
+    """A distro's figures over Noetic's of the same run (issue 28's target: at most 2)."""
+    r = lambda a, b: round(a / b, 2) if a is not None and b else None  # noqa: E731
+    relay, relay1 = figures["latency"]["relay"], noetic["latency"]["relay"]
+    return {"images_p95_median": r(figures["p95_ms_median"], noetic["p95_ms_median"]),
+            "images_p95_worst": r(figures["p95_ms_worst"], noetic["p95_ms_worst"]),
+            "small_relay_p50": r(relay["p50_ms"], relay1["p50_ms"]),
+            "small_relay_p95": r(relay["p95_ms"], relay1["p95_ms"])}
 
 
 def run(args, distro: str) -> dict:

@@ -136,7 +136,9 @@ def agent(monkeypatch):
 
 
 def relay(agent, node):
-    r = types.SimpleNamespace(ros=types.SimpleNamespace(node=node), session=Session(), cfg={"robot": "nao1"})
+    watched = []
+    ros = types.SimpleNamespace(node=node, watched=watched, watch=watched.append, unwatch=watched.remove)
+    r = types.SimpleNamespace(ros=ros, session=Session(), cfg={"robot": "nao1"})
     r.key = lambda source, topic: f"ccrp/lab/{source}/{topic.strip('/')}"
     return r
 
@@ -191,6 +193,7 @@ def test_an_export_subscribes_raw_once_published_with_the_publishers_type_and_qo
     export.poll()
     export.poll()  # unchanged: subscribed once
     assert node.subs == [(String, "/chatter", QoSProfile(100, ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE), True)]
+    assert r.ros.watched == [("sub", 1)]  # its samples are taken by the agent's spinner
     export.forward(b"\x00\x01\x00\x00hi")
     export.forward(b"\x00\x01\x00\x00ho")
     assert r.session.puts == [
@@ -202,7 +205,7 @@ def test_an_export_subscribes_raw_once_published_with_the_publishers_type_and_qo
     # Its publisher came back transient-local and reliable: subscribed again with that QoS.
     node.publishers["/chatter"] = [Info("std_msgs/msg/String", "RELIABLE", "TRANSIENT_LOCAL")]
     export.poll()
-    assert node.destroyed == [("sub", 1)]
+    assert node.destroyed == [("sub", 1)] and r.ros.watched == [("sub", 2)]
     assert node.subs[-1][2] == QoSProfile(100, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
 
 
@@ -248,3 +251,155 @@ def test_the_agents_fastdds_profile_is_udp_unicast_to_this_host_and_the_robot(ag
     peers = [a.text for a in root.findall(".//f:initialPeersList//f:address", ns)]
     assert peers == ["127.0.0.1", "10.81.1.2"]  # a name is left out, a repeat once
     assert root.find(".//f:metatrafficMulticastLocatorList", ns) is None and "SHM" not in text
+    # An image's datagrams all fit in its sockets (the kernel's default buffer dropped some).
+    assert int(root.find(".//f:transport_descriptor/f:receiveBufferSize", ns).text) == 2 * 1024 * 1024
+
+
+class Handle:
+    """An rclpy entity's handle: held (a context manager) while waited on; destroyed, it refuses."""
+
+    def __init__(self, owner, pointer):
+        self.owner, self.pointer, self.held, self.destroyed = owner, pointer, 0, False
+
+    def __enter__(self):
+        if self.destroyed:
+            raise InvalidHandle(self.pointer)
+        self.held += 1
+        return self
+
+    def __exit__(self, *exc):
+        self.held -= 1
+
+    def take_message(self, msg_type, raw):
+        assert raw and msg_type is String
+        return (self.owner.queue.pop(0), "info") if self.owner.queue else None
+
+
+class InvalidHandle(Exception):
+    pass
+
+
+class Sub:
+    def __init__(self, pointer, callback, topic="/chatter"):
+        self.handle, self.callback, self.topic_name = Handle(self, pointer), callback, topic
+        self.msg_type, self.raw, self.queue = String, True, []
+
+
+class Guard:
+    def __init__(self):
+        self.handle, self.triggered = Handle(self, "guard"), False
+
+    def trigger(self):
+        self.triggered = True
+
+
+class Context:
+    def __init__(self):
+        self.handle, self.up = Handle(self, "context"), True
+
+    def ok(self):
+        return self.up
+
+
+def spinner_world(agent, rounds):
+    """A Spinner on stand-ins: each wait (the middleware) runs the next of `rounds`, which may
+    queue samples or change the watched subscriptions; the context goes down after the last."""
+    node = types.SimpleNamespace(context=Context(), guards=[])
+    node.create_guard_condition = lambda cb: node.guards.append(Guard()) or node.guards[-1]
+    waits = []
+
+    class WaitSet:
+        def __init__(self, subs, guards, *rest_and_context):
+            assert guards == 1 and rest_and_context[:4] == (0, 0, 0, 0)
+            self.subs, self.guards = [], []
+
+        def clear_entities(self):
+            self.subs, self.guards = [], []
+
+        def add_subscription(self, handle):
+            assert handle.held and not handle.destroyed  # held while waited on, as rclpy wants
+            self.subs.append(handle)
+
+        def add_guard_condition(self, handle):
+            self.guards.append(handle)
+
+        def wait(self, timeout):
+            waits.append([h.pointer for h in self.subs])
+            if not rounds:
+                node.context.up = False
+            else:
+                rounds.pop(0)()
+
+        def get_ready_entities(self, kind):
+            if kind == "subscription":
+                return [h.pointer for h in self.subs if h.owner.queue]
+            guard = node.guards[0]
+            ready, guard.triggered = guard.triggered, False
+            return ["guard"] if ready else []
+
+    spinner = agent.Spinner(node, types.SimpleNamespace(WaitSet=WaitSet), InvalidHandle)
+    return spinner, waits
+
+
+def test_the_spinner_takes_every_waiting_sample_and_follows_the_subscriptions(agent):
+    got = []
+    a = Sub("a", lambda data: got.append(("a", data)))
+    b = Sub("b", lambda data: got.append(("b", data)), "/odom")
+    spinner, waits = None, None
+
+    def two_samples_at_once():
+        a.queue.extend([b"1", b"2"])
+
+    def b_comes():
+        spinner.watch(b)
+        b.queue.append(b"3")
+
+    def a_goes():
+        spinner.unwatch(a)
+        a.queue.append(b"last")  # already waiting: taken, as rclpy destroys a once it is let go
+
+    def after_a():
+        a.handle.destroyed = True
+        a.queue.append(b"lost")
+
+    spinner, waits = spinner_world(agent, [two_samples_at_once, b_comes, lambda: None, a_goes, after_a])
+    spinner.watch(a)
+    spinner.changed.triggered = False
+    spinner.run()
+    # b's sample waited for the wait set that has b: taken after the list was read again.
+    assert got == [("a", b"1"), ("a", b"2"), ("b", b"3"), ("a", b"last")]
+    assert waits == [["a"], ["a"], ["a", "b"], ["a", "b"], ["b"], ["b"]]
+    assert a.handle.held == b.handle.held == 0
+
+
+def test_a_callback_that_fails_loses_its_sample_not_the_topic(agent, capsys):
+    got = []
+
+    def callback(data):
+        if data == b"bad":
+            raise ValueError("no")
+        got.append(data)
+    sub = Sub("a", callback)
+    spinner, _ = spinner_world(agent, [lambda: sub.queue.extend([b"bad", b"good"]), lambda: sub.queue.append(b"next")])
+    spinner.watch(sub)
+    spinner.run()
+    assert got == [b"good", b"next"]
+    assert "/chatter: dropped a sample: ValueError: no" in capsys.readouterr().err
+
+
+def test_a_subscription_destroyed_before_the_spinner_holds_it_is_passed_over(agent):
+    sub = Sub("a", lambda data: None)
+    sub.handle.destroyed = True  # the main loop destroyed it between watch() and the wait
+    spinner, waits = spinner_world(agent, [])
+    spinner.watch(sub)
+    attempts = []
+    real_spin = spinner.spin
+
+    def spin(context, subs):
+        attempts.append(list(subs))
+        if len(attempts) == 2:
+            spinner.unwatch(sub)
+        return real_spin(context, subs)
+    spinner.spin = spin
+    spinner.run()
+    assert attempts == [[sub], [sub], []] and waits == [[]]
