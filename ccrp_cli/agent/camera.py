@@ -94,8 +94,11 @@ class Ros2:
 
     def __init__(self):
         import rclpy
+        from rclpy.signals import SignalHandlerOptions
 
-        rclpy.init()
+        # No rclpy signal handlers: SIGTERM (systemctl stop) ends the agent at once, as the relay's
+        # (relay_ros2.py); rclpy's would shut its context under the spinner thread.
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         self.rclpy, self.node, self.stop = rclpy, rclpy.create_node("ccrp_camera"), threading.Event()
         self.lock = threading.Lock()  # the node is not thread-safe: spin and subscribe take turns
         self.spinner = threading.Thread(target=self.spin, daemon=True)

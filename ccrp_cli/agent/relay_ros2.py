@@ -290,8 +290,13 @@ class Ros2:
         from rclpy.impl.implementation_singleton import rclpy_implementation
         from rclpy.parameter import Parameter
 
+        from rclpy.signals import SignalHandlerOptions
+
         self.rclpy = rclpy
-        rclpy.init()
+        # No rclpy signal handlers: SIGTERM (systemctl stop) ends the agent at once, as on ROS 1
+        # (rospy's disable_signals). With them, the main loop ended while the spinner thread still
+        # waited in rcl, and systemd waited its 90 s stop timeout before killing the agent.
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         # Nothing asks the agent's node for parameters, its type descriptions or its log: without
         # those services and /rosout it has no DDS endpoints beyond the relayed topics.
         self.node = rclpy.create_node(

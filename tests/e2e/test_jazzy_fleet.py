@@ -299,6 +299,16 @@ def test_a_topic_nao1_exports_reaches_nao2s_clone_with_its_type_and_qos(fleet: E
     assert list(json.loads(status)["exports"]) == ["/chatter"], status
     rows = fleet.status()
     assert rows["nao2"]["relay_peers"] == {"nao1": True} and rows["nao1"]["relay_peers"] == {"nao2": True}, rows
+    # Restarted, the agent stops at once and cleanly (no wait for systemd's stop timeout, no abort),
+    # and the topic flows again.
+    t0 = time.monotonic()
+    rc, out = exec_in(clone2, ["systemctl", "restart", "ccrp-relay.service"], timeout=120)
+    took = time.monotonic() - t0
+    _, result = exec_in(clone2, ["systemctl", "show", "-p", "Result", "--value", "ccrp-relay.service"])
+    assert rc == 0 and took < 15 and result.strip() == "success", (rc, out, took, result)
+    rc, out = exec_in(clone2, ["ccrp-topic", "echo", "/nao1/chatter", "-n", "1", "-t", "40"], timeout=60)
+    assert rc == 0 and "hello from nao1" in out, f"{out}\n{agent_journals(fleet, ['nao2'])}"
+    fleet.log.append(f"Jazzy relay restarted in {took:.1f} s")
 
 
 def test_what_nao2_imports_reaches_robot_nao2_itself(fleet: E2EFleet, sim) -> None:
