@@ -69,26 +69,47 @@ FAKES = {
         HistoryPolicy = enum.Enum("HistoryPolicy", "KEEP_LAST KEEP_ALL")
         ReliabilityPolicy = enum.Enum("ReliabilityPolicy", "RELIABLE BEST_EFFORT")
     """,
+    "geometry_msgs/__init__.py": "",
+    "geometry_msgs/msg.py": """
+        class _Any:
+            def __init__(self, **kw):
+                self.__dict__.update(kw)
+            def __getattr__(self, name):
+                value = _Any()
+                setattr(self, name, value)
+                return value
+        TwistStamped = _Any
+    """,
+    "sensor_msgs/__init__.py": "",
+    "sensor_msgs/msg.py": "from geometry_msgs.msg import _Any as Image\n",
     "rospy/__init__.py": """
         from _fakelog import log
         def init_node(name, anonymous=False, disable_signals=False):
             log("init_node", name)
+        import os, time
+        _start = time.time()
         class Publisher:
             def __init__(self, topic, cls, queue_size=None, tcp_nodelay=False):
                 log("publisher", topic, {"queue_size": queue_size, "tcp_nodelay": tcp_nodelay})
+                self.topic = topic
             def publish(self, msg):
-                pass
+                log("publish", self.topic, time.time() - _start)
             def get_num_connections(self):
-                return 0
+                # A subscriber connects FAKE_CONNECT_AFTER s after the process started (never: unset).
+                after = os.environ.get("FAKE_CONNECT_AFTER")
+                return int(after is not None and time.time() - _start >= float(after))
         class Subscriber:
             def __init__(self, topic, cls, cb, queue_size=None, tcp_nodelay=False):
                 log("subscription", topic, {"queue_size": queue_size, "tcp_nodelay": tcp_nodelay})
             def get_num_connections(self):
                 return 0
         def spin():
-            import time
             while True:
                 time.sleep(1)
+        class Time:
+            @staticmethod
+            def from_sec(t):
+                return t
     """,
 }
 
@@ -134,3 +155,18 @@ def test_on_ros1_the_agent_takes_rospy_with_the_same_streams(fakes):
     bulk = {"queue_size": 100, "tcp_nodelay": False}
     assert calls == [["init_node", "ccrp_bench_serve"], ["publisher", "/ccrp_bench/reply", bulk],
                      ["subscription", "/ccrp_bench/request", bulk]]
+
+
+def test_a_teleop_role_starts_its_clock_once_the_other_end_has_connected(fakes):
+    """Both ends start together and a node's connection takes seconds on a loaded host: the robot's
+    camera waits for the operator's subscription before its `--duration` runs (a run whose
+    connection took the whole duration measured nothing: 0 commands in a 3 s bench)."""
+    log = fakes / "calls.jsonl"
+    env = {"PATH": os.environ["PATH"], "PYTHONPATH": str(fakes / "fakes"), "FAKE_ROS_LOG": str(log),
+           "ROS_MASTER_URI": "http://cri-nao1:11311", "FAKE_CONNECT_AFTER": "1.0"}
+    proc = subprocess.run([sys.executable, str(AGENT), "teleop-robot", "--duration", "0.6"], env=env,
+                          capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 0, proc.stderr
+    sent = [c[2] for c in map(json.loads, log.read_text().splitlines()) if c[0] == "publish"]
+    assert sent and min(sent) >= 1.0 and json.loads(proc.stdout.splitlines()[-1])["frames_sent"] == len(sent)
+
