@@ -229,11 +229,30 @@ def sync(fleet: Fleet, provider, robot: str, dataset: str) -> dict:
 
 # -- merge: one rosbag from a dataset's bags (the thesis's merge_bag) -------------------------------
 
+class _Once:
+    """What a merge writes: each message once. One met again (same connection, time and bytes, as
+    two clones' copies of one recording are) is counted as a duplicate instead."""
+
+    def __init__(self) -> None:
+        self.seen: set[tuple] = set()
+        self.count = self.dups = 0
+
+    def write(self, writer, conn, key, t: int, data: bytes) -> None:
+        import hashlib
+
+        mark = (key, t, hashlib.sha256(data).digest())
+        if mark in self.seen:
+            self.dups += 1
+            return
+        self.seen.add(mark)
+        writer.write(conn, t, data)
+        self.count += 1
+
+
 def merge_bag_files(paths: list[Path], out: Path, names: list[str] | None = None) -> dict:
     """Write one ROS 1 bag with every message of `paths` (shown in errors as `names`), in time
     order. Connections are one per (topic, type, md5sum); a message met twice (same connection,
     time and bytes: two clones recorded the same, or a bag merged before) is written once."""
-    import hashlib
     import heapq
     from contextlib import ExitStack
 
@@ -242,8 +261,7 @@ def merge_bag_files(paths: list[Path], out: Path, names: list[str] | None = None
     def ident(c) -> tuple[str, str, str]:
         return c.topic, c.msgtype, c.digest
 
-    count = dups = 0
-    seen: set[tuple] = set()
+    once = _Once()
     try:
         with ExitStack() as stack:
             readers = []
@@ -265,20 +283,14 @@ def merge_bag_files(paths: list[Path], out: Path, names: list[str] | None = None
                                                                 latching=getattr(c.ext, "latching", None))
             streams = [((t, i, ident(c), data) for c, t, data in r.messages()) for i, r in enumerate(readers)]
             for t, _i, k, data in heapq.merge(*streams, key=lambda m: (m[0], m[1])):
-                mark = (k, t, hashlib.sha256(data).digest())
-                if mark in seen:
-                    dups += 1
-                    continue
-                seen.add(mark)
-                writer.write(conns[k], t, data)
-                count += 1
+                once.write(writer, conns[k], k, t, data)
     except ReaderError as exc:
         out.unlink(missing_ok=True)
         raise CcrpError(f"cannot read a bag of the dataset: {shown(str(exc), 200)}") from None
     except CcrpError:
         out.unlink(missing_ok=True)
         raise
-    return {"bags": len(paths), "messages": count, "duplicates": dups,
+    return {"bags": len(paths), "messages": once.count, "duplicates": once.dups,
             "topics": sorted({k[0] for k in conns}), "out": str(out)}
 
 
@@ -288,7 +300,6 @@ def merge_bag2_files(paths: list[Path], out: Path, names: list[str] | None = Non
     metadata.yaml; shown in errors as `names`), in time order. Connections are one per (topic,
     type), with the first bag's serialization format and QoS; a message met twice (same topic,
     type, time and bytes) is written once. Types come from the bags' own definitions."""
-    import hashlib
     import shutil
     from contextlib import ExitStack
 
@@ -307,8 +318,7 @@ def merge_bag2_files(paths: list[Path], out: Path, names: list[str] | None = Non
             raise CcrpError(f"{shown(name)} is not a ROS 2 bag: {type(exc).__name__}: {shown(str(exc), 120)}",
                             hint="merge takes the dataset's items named *.mcap or *.db3 (rosbag2 storage files); "
                                  "remove or rename this one") from None
-    count = dups = 0
-    seen: set[tuple] = set()
+    once = _Once()
     conns: dict[tuple[str, str], object] = {}
     try:
         with ExitStack() as stack:
@@ -326,17 +336,11 @@ def merge_bag2_files(paths: list[Path], out: Path, names: list[str] | None = Non
                                                      offered_qos_profiles=c.ext.offered_qos_profiles)
             for c, t, data in reader.messages():
                 k = (c.topic, c.msgtype)
-                mark = (k, t, hashlib.sha256(data).digest())
-                if mark in seen:
-                    dups += 1
-                    continue
-                seen.add(mark)
-                writer.write(conns[k], t, data)
-                count += 1
+                once.write(writer, conns[k], k, t, data)
     except Exception as exc:  # noqa: BLE001 - a bag rosbags could open but not read through, or types it cannot join
         shutil.rmtree(out, ignore_errors=True)
         raise CcrpError(f"cannot merge the dataset's ROS 2 bags: {type(exc).__name__}: {shown(str(exc), 200)}") from None
-    return {"bags": len(paths), "messages": count, "duplicates": dups,
+    return {"bags": len(paths), "messages": once.count, "duplicates": once.dups,
             "topics": sorted({k[0] for k in conns}), "out": str(out)}
 
 

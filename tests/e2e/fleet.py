@@ -460,3 +460,48 @@ def face_photo(path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), cv2.resize(portrait[20:420, 30:560], (400, 300)))
     return path
+
+
+# -- the thesis's evaluation, the same on every distro's fleet (test_evaluation, test_jazzy_fleet) --
+
+
+def check_teleop(rows: dict, link_ms: float) -> None:
+    """`bench teleop` rows by stream under a `link_ms` round trip: commands arrive half a round
+    trip after they were sent, camera frames come through the link too."""
+    command, video = rows["command"], rows["video"]
+    assert command["samples"] >= 20 and link_ms / 2 - 2 <= command["p50_ms"] <= link_ms / 2 + 20, command
+    assert video["samples"] >= 5 and video["p50_ms"] >= link_ms / 2 - 2, video
+    assert command["sent"] >= command["samples"] and video["sent"] >= video["samples"]
+
+
+def bench_qos_flat(fleet: E2EFleet, stat: str, cbm_max: float) -> None:
+    """`bench qos` for 1 and 2 robots on a 40 ms link: with a clone per robot (CBM) the `stat` of
+    the response time stays flat, with one shared server (PBM) it grows; the fleet is left as found
+    (robot nao2, which the bench starts, removed; nao1's own link back; no bench unit or worker
+    rule on the clones)."""
+    fleet.inv("robot", "sim", "--robot", "nao1", "--link", "20", check=True)  # nao1's own link, to get back
+    try:
+        rows = fleet.json("bench", "qos", "--robots", "1..2", "--task-ms", "200", "--duration", "4", "--link", "40")
+    finally:
+        own = fleet.container("robot-sim", "nao1")
+        link_unit = exec_in(own, ["systemctl", "show", "ccrp-link", "--property", "Description", "--value"])[1]
+        fleet.inv("robot", "sim", "--robot", "nao1", "--link", "none")
+    by = {(r["model"], r["robots"]): r for r in rows}
+    assert set(by) == {("cbm", 1), ("cbm", 2), ("pbm", 1), ("pbm", 2)}, rows
+    for r in rows:
+        assert r["samples"] >= 5 and r["lost"] == 0 and r["task_ms"] == 200 and r["link"] == "40/0/0", r
+    cbm1, cbm2, pbm2 = by["cbm", 1][stat], by["cbm", 2][stat], by["pbm", 2][stat]
+    assert 240 <= cbm1 <= cbm_max, rows  # the task + the 40 ms round trip
+    assert abs(cbm2 - cbm1) / cbm1 < 0.10, rows
+    assert pbm2 >= 1.4 * cbm2, rows
+
+    assert not fleet.containers(role="robot-sim", robot="nao2")
+    assert link_unit.startswith("20/0/0"), link_unit
+    for robot in ("nao1", "nao2"):
+        clone = fleet.container("clone", robot)
+        for unit in ("ccrp-bench-serve", "ccrp-bench-worker"):
+            _, state = exec_in(clone, ["systemctl", "is-active", unit])
+            assert state.strip() != "active", (robot, unit)
+        _, rules = exec_in(clone, ["iptables", "-w", "-S", "INPUT"])
+        assert "7460" not in rules, rules
+
