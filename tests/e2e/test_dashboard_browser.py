@@ -408,10 +408,12 @@ def test_a_stopped_clone_is_an_alert_and_start_brings_it_back(fleet, dashboard, 
          lambda d: not cell(d, "nao1", "state").startswith("running")
          and d.find_elements(By.CSS_SELECTOR, '#alerts li[data-kind="clone-down"][data-robot="nao1"]'), 30)
     # Its robot's watchdog lost its brain and ran the fallback hook: shown on the page and by status.
-    wait(browser, "nao1 shown brainless with its alert",
+    # The watchdog writes its state before it runs the hooks, so the page may show "brainless"
+    # with the motors still enabled for a moment: wait for both.
+    wait(browser, "nao1 shown brainless, motors stopped, with its alert",
          lambda d: cell(d, "nao1", "watchdog").startswith("brainless since")
+         and "(motors stopped)" in cell(d, "nao1", "watchdog")
          and d.find_elements(By.CSS_SELECTOR, '#alerts li[data-kind="robot-brainless"][data-robot="nao1"]'), 30)
-    assert "(motors stopped)" in cell(browser, "nao1", "watchdog")
     row = fleet.status()["nao1"]
     w = row["watchdog"]
     assert w["state"] == "brainless" and w["motors"] == "stopped" and w["source"] == "simulated robot", w
