@@ -11,7 +11,7 @@ from pathlib import Path
 from .errors import CcrpError, shown
 from .models.inventory import Inventory, Robot
 from .render.bundles import BundleFile
-from .render.view import API_USER, CCRP_ETC, SECRETS_DIR
+from .layout import API_USER, CCRP_ETC, SECRETS_DIR
 
 API_UNIT = "ccrp-api-manager.service"
 API_CONFIG = f"{CCRP_ETC}/api_manager.json"
@@ -62,7 +62,7 @@ def api_manager_files(inv: Inventory, robot: Robot) -> list[BundleFile]:
         return []
     files = [BundleFile("api_manager.json", json.dumps(cfg, indent=1, sort_keys=True) + "\n", 0o644, API_CONFIG)]
     if inv.ros.ros2:
-        from .render.cloudinit import agent_source
+        from .resources import agent_source
 
         files += [BundleFile(f"{name}.py", agent_source(name), 0o644, f"{AGENT_DIR}/{name}.py")
                   for name in ("api_manager", "api_manager_ros2")]
@@ -89,7 +89,7 @@ OFF_SH = f'rm -f "{API_CONFIG}" "{GOOGLE_KEY}" && systemctl stop {API_UNIT}'
 def apply_api_manager(provider, robot: str, files: list[BundleFile], have: dict[str, str]) -> None:
     """Bring robot's clone in line with `files` (api_manager_files), given the digests of what it
     holds: push and restart the agent when they differ, or turn the service off."""
-    from .clones import same
+    from .probe import same
 
     if files:
         if not same(have, files):

@@ -166,7 +166,7 @@ def start_agent(provider, robot: str) -> None:
     """The camera agent on the clone, (re)started from this ccrp's copy of it."""
     from .evaluation import ROS_PRELUDE
     from .render.bundles import BundleFile
-    from .render.view import CCRP_LIB
+    from .layout import CCRP_LIB
     from .simulated import run_unit
 
     source = (Path(__file__).parent / "agent" / "camera.py").read_text()

@@ -11,17 +11,16 @@ import json
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 from .errors import CcrpError
 from .fleet import Fleet, clone_view
 from .models.names import clone_host
 from .models.state import FleetState
+from .probe import HEALTH_SCRIPT, files_current, health, remote_digests, same
 from .providers.base import CloneSpec, CloneState, Provider, cloud_init_clean
 
 Progress = Callable[[str], None]
-HEALTH_SCRIPT = (Path(__file__).parent / "agent" / "health.py").read_text
 
 
 class StateWriter:
@@ -67,37 +66,13 @@ class CloneResult:
         return (self.robot, self.action, f"{self.seconds:.1f}s", self.detail)
 
 
-def health(provider: Provider, robot: str) -> dict:
-    rc, out = provider.exec(robot, ["python3", "-c", HEALTH_SCRIPT()], timeout=20)
-    try:
-        return json.loads(out.strip().splitlines()[-1])
-    except (ValueError, IndexError):
-        return {"vpn": {"up": False, "clients": []}, "master": {"reachable": False, "nodes": {}}, "error": out[-200:]}
-
-
-def remote_digests(provider: Provider, robot: str, files: list) -> dict[str, str]:
-    """path -> sha256 of those of `files` that the clone holds (a missing one is left out)."""
-    _, out = provider.exec(robot, ["sha256sum", *(f.dest for f in files)], timeout=20)
-    return {line.split()[1]: line.split()[0] for line in out.splitlines() if len(line.split()) == 2}
-
-
-def same(have: dict[str, str], files: list) -> bool:
-    return all(have.get(f.dest) == hashlib.sha256(f.content.encode()).hexdigest() for f in files)
-
-
-def files_current(provider: Provider, robot: str, files: list) -> bool:
-    """True when the clone already holds exactly these files: re-running `fleet up` then leaves
-    OpenVPN (and the robot's live session) and the relay alone."""
-    return same(remote_digests(provider, robot, files), files)
-
-
 def applied_marker(files: list):
     """The file pushed after `files` once their groups are set and the units restarted. A run
     killed between copying the files and restarting OpenVPN (which starts only when its key is
     there) leaves files that match and a server that never started: without the marker the next
     run took them for done, and the clone failed `not serving` on every run after."""
     from .render.bundles import BundleFile
-    from .render.view import SECRETS_DIR
+    from .layout import SECRETS_DIR
 
     listing = "".join(f"{f.dest} {f.group} {f.mode:o} {hashlib.sha256(f.content.encode()).hexdigest()}\n" for f in files)
     return BundleFile(".applied", hashlib.sha256(listing.encode()).hexdigest() + "\n", 0o600, f"{SECRETS_DIR}/.applied")
@@ -109,7 +84,7 @@ SECRETS_DIR_SH = 'install -d -m "$1" -o root -g openvpn "$0" && stat -c %d / "$0
 
 
 def prepare_secrets_dir(provider: Provider, robot: str) -> None:
-    from .render.view import SECRETS_DIR
+    from .layout import SECRETS_DIR
 
     # 0751: the relay's user opens relay.key by name but cannot list the directory.
     rc, out = provider.exec(robot, ["sh", "-c", SECRETS_DIR_SH, SECRETS_DIR, "0751"], timeout=30)
@@ -195,7 +170,7 @@ def serving_port(inv) -> str:
 def probe(provider: Provider, robot: str, master_port: int | str, files: list) -> Probe | None:
     """What `fleet up` must know of a running clone, in one command: None when the probe could not
     run (the caller then asks the long way)."""
-    from .render.view import MGMT_SOCKET
+    from .layout import MGMT_SOCKET
 
     try:
         rc, out = provider.exec(robot, ["bash", "-c", PROBE_SH, MGMT_SOCKET, str(master_port),
@@ -214,7 +189,7 @@ def probe(provider: Provider, robot: str, master_port: int | str, files: list) -
 def wait_serving(provider: Provider, robot: str, master_port: int | str, timeout: float = 60) -> None:
     """Until the VPN server runs and the ROS master answers inside the clone (ROS 2: its
     environment works, see SERVING_SH)."""
-    from .render.view import MGMT_SOCKET
+    from .layout import MGMT_SOCKET
 
     rc, out = provider.exec(robot, ["bash", "-c", WAIT_SERVING_SH, MGMT_SOCKET, str(master_port)], timeout=timeout)
     if rc != 0 or out.split()[-2:] != ["vpn=yes", "master=yes"]:
@@ -234,8 +209,8 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     """Create or reuse the clone of `robot`, push its secrets, wait until it serves."""
     from .api_manager import absent_config, api_manager_files, apply_api_manager
     from .knowledge import absent_config as no_knowledge, apply_knowledge, knowledge_files
+    from .providers import info
     from .render import bundles
-    from .render.limits import fit_user_data
     from .workloads import NO_SOFTWARE, absent_index, apply_nodes, node_files
 
     t0 = time.monotonic()
@@ -250,7 +225,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     # A bare snapshot gets the recipe's packages from cloud-init at first boot.
     bare = bool(state.snapshot and state.snapshot.get("bare"))
     user_data = clone_user_data(view, provider, bare)
-    fit_user_data(provider.kind, user_data)
+    info(provider.kind).fit_user_data(user_data)
     # The API manager's config and key ([] when the robot has none: then its absence is checked).
     api = api_manager_files(fleet.inventory, view.robot)
     image = snapshot_image(state)
@@ -351,7 +326,7 @@ def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: 
 
 def relay_config_file(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None):
     from .render.bundles import BundleFile
-    from .render.view import CCRP_ETC
+    from .layout import CCRP_ETC
     from .sharing import relay_config_text
 
     return BundleFile("relay.json", relay_config_text(fleet, state, robot, live), 0o644, f"{CCRP_ETC}/relay.json")
@@ -360,7 +335,7 @@ def relay_config_file(fleet: Fleet, state: FleetState, robot: str, live: set[str
 def autostop_file(fleet: Fleet, robot):
     """The clone's autostop setting (agent/autostop.py reads it at every check)."""
     from .render.bundles import BundleFile
-    from .render.view import CCRP_ETC
+    from .layout import CCRP_ETC
 
     text = json.dumps({"robot": robot.name, "idle": fleet.inventory.idle_of(robot)}) + "\n"
     return BundleFile("autostop.json", text, 0o644, f"{CCRP_ETC}/autostop.json")

@@ -24,15 +24,16 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from .clones import CloneResult, StateWriter, same
+from .clones import CloneResult, StateWriter
 from .errors import CcrpError, InputError
 from .fleet import Fleet
+from .layout import WORKSPACE
+from .probe import same
 from .providers.base import CloneState, owner_labels
 from .render.bundles import BundleFile
 from .workloads import (
     INDEX,
     NO_SOFTWARE,
-    WORKSPACE,
     SnapshotSoftware,
     absent_index,
     apply_nodes,
@@ -296,6 +297,7 @@ def build_install_space(fleet: Fleet, provider, software: SnapshotSoftware, prog
             info.type, info.mode = tarfile.DIRTYPE, 0o755
             tar.addfile(info)
         return buf.getvalue()
+    from .providers import REGISTRY
     from .providers.docker import images
     from .recipes import platform
 
@@ -303,7 +305,7 @@ def build_install_space(fleet: Fleet, provider, software: SnapshotSoftware, prog
     inv = fleet.inventory
     # The Docker backend's platform and base on every backend: the same Debian 12 and ROS as the
     # cloud recipes install (docs/clouds.md).
-    plat = platform(inv.ros.distro, "docker")
+    plat = platform(inv.ros.distro, REGISTRY["docker"].platform)
     base = getattr(inv.provider, "base_image", None) or images.DEFAULT_BASE
     images.ensure_base(client, base, plat, progress)
     tag = f"{deploy_repo(fleet)}:{software.digest}"

@@ -15,7 +15,7 @@ from typing import Callable, Iterator
 
 from .errors import CcrpError, InputError, shown
 from .fleet import Fleet
-from .render.view import CCRP_LIB
+from .layout import CCRP_LIB
 from .simulated import Sims, run_unit
 
 Progress = Callable[[str], None]
@@ -87,7 +87,7 @@ class Bench:
         """Each robot has a clone, a running simulated robot (started here if needed) and the
         agent on both ends."""
         from .render.bundles import BundleFile
-        from .render.templates import static
+        from .templates import static
 
         clones = self.clones.query()
         for robot in robots:
@@ -307,7 +307,7 @@ def send_command(fleet: Fleet, provider, robot: str, linear: float, angular: flo
     import json
 
     from .render.bundles import BundleFile
-    from .render.templates import static
+    from .templates import static
 
     check_command(linear, angular, topic)
     fleet.robot(fleet.store.load_state(), robot)

@@ -91,7 +91,7 @@ def default_fleet() -> str:
 def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str = DEFAULT_DISTRO) -> dict:
     from .models.names import check_name
     from .recipes import distros
-    from .render.templates import render
+    from .templates import render
 
     if provider not in PROVIDERS:
         raise InputError(f"--provider {shown(provider)}: choose from {', '.join(PROVIDERS)}")

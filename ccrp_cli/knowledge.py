@@ -20,7 +20,7 @@ from .errors import CcrpError, InputError, shown
 from .fleet import Fleet
 from .models.state import FleetState
 from .render.bundles import BundleFile
-from .render.view import CCRP_ETC, CCRP_LIB, SECRETS_DIR
+from .layout import CCRP_ETC, CCRP_LIB, SECRETS_DIR
 
 UNIT = "ccrp-knowledge.service"
 CONFIG = f"{CCRP_ETC}/knowledge.json"
@@ -71,7 +71,7 @@ def knowledge_files(fleet: Fleet, state: FleetState, robot: str, live: set[str] 
     no dataset. The agent (stdlib + the Zenoh the relay's snapshot has) comes with its config, not
     in user-data: a bare cloud image's user-data, which carries the image's agents, would not fit
     AWS's 16 KiB with it (measured: 22.9 KiB gzipped, 15.8 KiB without)."""
-    from .render.cloudinit import agent_source
+    from .resources import agent_source
 
     cfg = knowledge_config(fleet, state, robot, live)
     if cfg is None:
@@ -93,7 +93,7 @@ def apply_knowledge(provider, robot: str, files: list[BundleFile], have: dict[st
     changed or the relay's TLS files were just pushed (`restart`), start it where only its config
     is new (a running agent re-reads the file), or turn it off where the clone shares no dataset
     any more."""
-    from .clones import same
+    from .probe import same
 
     if files:
         restart = restart or not same(have, [f for f in files if f.dest == AGENT])

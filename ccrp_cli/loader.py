@@ -13,7 +13,7 @@ from pydantic import ValidationError
 
 from .errors import InputError, shown
 from .models.inventory import Inventory
-from .providers import REGISTRY
+from .providers.registry import REGISTRY
 
 # Bounds on what an inventory may cost to read (docs/inventory.md: Limits). PyYAML (pure Python)
 # composes about 40,000 nodes a second: the node bound keeps a hostile file near a quarter of a

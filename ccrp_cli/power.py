@@ -94,7 +94,8 @@ def push_passwd(fleet: Fleet, provider, robot: str, say: Say) -> None:
     password hash, or without them once the device is revoked. OpenVPN's checks read the file at
     every handshake: nothing restarts, the robot's session stays. A clone not running gets it with
     its other secrets when it is next brought up."""
-    from .clones import applied_marker, files_current
+    from .clones import applied_marker
+    from .probe import files_current
     from .providers.base import CloneState
     from .render import bundles
 

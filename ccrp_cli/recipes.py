@@ -9,7 +9,6 @@ import yaml
 from pydantic import BaseModel, ConfigDict
 
 from .errors import InputError
-from .providers import info
 from .resources import data_dir
 
 
@@ -77,9 +76,9 @@ def is_ros2(distro: str) -> bool:
     return distros().get(distro) == 2
 
 
-def platform(distro: str, provider: str, name: str | None = None) -> Platform:
-    """The recipe's platform a backend's clones run: `name` (the inventory's `ros.platform`), else
-    the backend's ProviderInfo.platform (debian-bookworm on all four, so a clone behaves the same
-    everywhere; Debian 12's OpenVPN 2.6 takes the rendered server.conf, Ubuntu 20.04's 2.4 refused
-    its data-ciphers)."""
-    return recipe(distro).platforms[name or info(provider).platform]
+def platform(distro: str, name: str) -> Platform:
+    """The recipe's platform `name`: the inventory's `ros.platform`, else the backend's
+    ProviderInfo.platform (Inventory.clone_platform); debian-bookworm on all four backends, so a
+    clone behaves the same everywhere (Debian 12's OpenVPN 2.6 takes the rendered server.conf,
+    Ubuntu 20.04's 2.4 refused its data-ciphers)."""
+    return recipe(distro).platforms[name]

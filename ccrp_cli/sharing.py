@@ -55,7 +55,7 @@ def zenoh_id(fleet: str, robot: str) -> str:
 def relay_config(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> dict:
     """/etc/ccrp/relay.json of robot's clone. Not secret: the TLS files it names come as secrets.
     `live`: the clones taken as up (by default those state calls ready)."""
-    from .render.view import CCRP_ETC, SECRETS_DIR
+    from .layout import CCRP_ETC, SECRETS_DIR
 
     inv = fleet.inventory
     plan = fleet.plan(state)

@@ -105,7 +105,7 @@ class Sims:
         """(Re)create the robot's simulated robot; with `wait`, until its node is on its clone."""
         from .clones import snapshot_image
         from .providers.docker import robots as containers
-        from .render.templates import static
+        from .templates import static
         from .robots import edge_files
 
         if self.own_network and network:
@@ -127,7 +127,7 @@ class Sims:
         progress(f"simulated robot {robot!r} ({cid}) installed its bundle and dials {endpoint}")
         result = {"robot": robot, "container": cid, "endpoint": endpoint, "network": net}
         if wait > 0:
-            from .status import wait_connected
+            from .probe import wait_connected
 
             result |= wait_connected(self.clones, robot, wait)
             result["seconds"] = round(time.monotonic() - t0, 2)  # from container start to node registered
@@ -178,7 +178,7 @@ class Sims:
     def set_link(self, robot: str, link: Link | None) -> None:
         """Shape (or, with None, stop shaping) the running robot's path to its clone, in place."""
         from .render.bundles import BundleFile
-        from .render.templates import static
+        from .templates import static
 
         execute = lambda argv: self.exec(robot, argv)  # noqa: E731
         if link is None:

@@ -25,12 +25,13 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     """Build the golden clone image (docker) and record it for new clones. A `bare` snapshot has
     only systemd and cloud-init: its clones install the recipe's packages at boot, as a clone
     started from a stock cloud image would (slower: the reason for snapshots, see bench/)."""
+    from .providers import info
     from .providers.docker import images
     from .recipes import platform
     from .workloads import packages_record, snapshot_software
 
     inv = fleet.inventory
-    plat = platform(inv.ros.distro, provider.kind)
+    plat = platform(inv.ros.distro, info(provider.kind).platform)
     # The fleet's own software, read and checked before anything is built (a bare snapshot has none:
     # its clones install ccrp's recipe at boot, and fleet up then refuses an inventory with software).
     software = None if bare else snapshot_software(inv, fleet.path)
@@ -108,11 +109,10 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     import secrets
 
     from .errors import InputError
-    from .providers import Ability, require
+    from .providers import Ability, info, require
     from .providers.base import CloneSpec
     from .recipes import platform
     from .render.cloudinit import bake_proofs, builder_user_data
-    from .render.limits import fit_user_data
 
     inv = fleet.inventory
     kind = inv.provider.kind
@@ -122,7 +122,7 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     # The fleet's own software, read and checked before any builder starts.
     software = snapshot_software(inv, fleet.path)
     base = base_image or getattr(inv.provider, "image", None)
-    if base is None and platform(inv.ros.distro, kind, inv.ros.platform).ros_installed:
+    if base is None and platform(inv.ros.distro, inv.clone_platform).ros_installed:
         # The stock Debian image has no ROS 2 to use: the platform is the user's own image.
         raise InputError(f"ros.platform {inv.ros.platform} bakes from your image with ROS {inv.ros.distro} installed "
                          f"under /opt/ros/{inv.ros.distro}", hint="pass --base-image, or set provider.image")
@@ -134,7 +134,7 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
     token = secrets.token_hex(8)
     # With software, ccrp logs in to build it after cloud-init: the builder's login gets the key.
     user_data = builder_user_data(inv, token, login_keys=None if software.empty else provider.login_keys())
-    fit_user_data(kind, user_data)
+    info(kind).fit_user_data(user_data)
     spec = CloneSpec(robot=BUILDER, hostname="ccrp-builder", image=base, user_data=user_data,
                      instance_id=f"{fleet.name}-builder-{token}", common_ip=_builder_common_ip(inv), role="builder")
     provider.bootstrap()
@@ -171,7 +171,7 @@ def software_env(software: SnapshotSoftware) -> dict[str, str]:
     from .providers.docker.images import software_pip
     from .recipes import is_ros2, recipe
     from .render.cloudinit import ros2_prefix
-    from .render.view import LOGIN_USER
+    from .layout import LOGIN_USER
 
     ros2 = is_ros2(software.distro)
     prefix = ros2_prefix(software.distro)
@@ -211,7 +211,7 @@ def install_software(provider, builder, software: SnapshotSoftware, progress: Pr
     import time
 
     from .render.bundles import BundleFile
-    from .render.templates import static
+    from .templates import static
 
     t0 = time.monotonic()
     progress(f"building software {software.digest} on the builder")

@@ -2,27 +2,17 @@
 
 from __future__ import annotations
 
-import time
 from concurrent.futures import ThreadPoolExecutor
-from urllib.parse import urlparse
 
 from .api_manager import api_manager_row
 from .knowledge import knowledge_row
-from .clones import health
 from .errors import CcrpError
 from .fleet import Fleet
 from .sharing import relay_config
 from .power import parse_report
 from .models.status import StatusRow
+from .probe import health, robot_link
 from .providers.base import CloneState
-
-
-def robot_link(h: dict, robot: str) -> tuple[dict | None, list[str]]:
-    """From a clone's health: the robot's VPN client entry (or None) and its nodes on the master."""
-    client = next((c for c in h["vpn"]["clients"] if c["cn"] == robot), None)
-    # A robot node advertises an XML-RPC URI on the robot's own hostname.
-    nodes = sorted(n for n, uri in h["master"]["nodes"].items() if urlparse(uri).hostname == robot)
-    return client, nodes
 
 
 def relay_link(h: dict, expected: list[str]) -> tuple[bool, dict[str, bool]]:
@@ -34,23 +24,6 @@ def relay_link(h: dict, expected: list[str]) -> tuple[bool, dict[str, bool]]:
     if relay.get("running"):
         return True, dict(relay.get("peers") or {})
     return False, dict.fromkeys(sorted(expected), False)
-
-
-def wait_connected(provider, robot: str, timeout: float) -> dict:
-    """Until the robot's VPN session is up and at least one of its nodes is on its clone's master."""
-    from .retry import PollTimeout, poll
-
-    def linked() -> tuple[bool, tuple]:
-        client, nodes = robot_link(health(provider, robot), robot)
-        return bool(client and nodes), (client, nodes)
-
-    t0 = time.monotonic()
-    try:
-        client, nodes = poll(linked, timeout=timeout, interval=0.25)
-    except PollTimeout:
-        raise CcrpError(f"robot {robot!r} did not connect to its clone within {timeout:.0f} s",
-                        hint=f"ccrp clone exec --robot {robot} -- journalctl -u ccrp-openvpn -n 50") from None
-    return {"robot": robot, "seconds": round(time.monotonic() - t0, 2), "address": client["real_address"], "nodes": nodes}
 
 
 def fleet_status(fleet: Fleet, provider) -> list[StatusRow]:

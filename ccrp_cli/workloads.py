@@ -19,9 +19,8 @@ from .errors import CcrpError, InputError, shown
 from .models.inventory import Inventory, Robot
 from .models.software import RunNode, Software
 from .render.bundles import BundleFile
-from .render.templates import static
+from .templates import static
 
-WORKSPACE = "/opt/ccrp/workspace"  # the install space (catkin) / build output, in the snapshot
 UNIT_DIR = "/etc/systemd/system"
 UNIT_PREFIX = "ccrp-run-"
 INDEX = "/etc/ccrp/workloads.json"  # the nodes ccrp put on this clone, with their digests
@@ -288,7 +287,7 @@ def absent_index() -> BundleFile:
 def apply_nodes(provider, robot: str, files: list[BundleFile], have: dict[str, str]) -> list[str]:
     """Push the units that changed and (re)start them; stop and remove the nodes no longer
     named. Returns the nodes restarted or started anew."""
-    from .clones import same
+    from .probe import same
 
     if not files:
         if INDEX in have:  # it ran nodes before: none now

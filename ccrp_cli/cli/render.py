@@ -20,12 +20,12 @@ def cloud_init(
     """Print the clone's cloud-init user-data (no private key; checked against the provider's limit)."""
     from ..fleet import clone_view
     from ..render import cloudinit
-    from ..render.limits import fit_user_data
+    from ..providers import info
 
     fleet = options.open_fleet(inventory)
     view = clone_view(fleet, fleet.store.load_state(), robot)
     text = cloudinit.user_data(view, install_packages=bare)
-    fit_user_data(fleet.inventory.provider.kind, text)
+    info(fleet.inventory.provider.kind).fit_user_data(text)
     typer.echo(text, nl=False)
 
 

@@ -7,7 +7,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import Field, field_validator, model_validator
 
-from ..providers import REGISTRY
+from ..providers.registry import REGISTRY
 from ..errors import shown
 from .distro import Distro, RobotRos
 from .names import Name, Topic
@@ -285,6 +285,12 @@ class Inventory(Strict):
             if robot in group and len(group) > 1:
                 out[ds] = group
         return out
+
+    @property
+    def clone_platform(self) -> str:
+        """The recipe's platform the clones run (snapshots/<distro>.yaml `platforms:`): `ros.platform`,
+        else the backend's (its ProviderInfo.platform)."""
+        return self.ros.platform or REGISTRY[self.provider.kind].platform
 
     def may_share_knowledge(self, robot: str) -> bool:
         """Whether robot's clone may take part in knowledge sync (its firewall opens the port)."""

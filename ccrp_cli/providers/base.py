@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import gzip
+import json
 from dataclasses import dataclass
 from enum import Enum
 from typing import Iterable, Literal, Protocol, Sequence
 
 from pydantic import BaseModel
+
+from ..errors import CcrpError
+from ..layout import AUTOSTOP_BOOT_LINE, AUTOSTOP_MARK
 
 # Labels / tags on every resource ccrp creates; list, delete and gc filter on them.
 LABEL_MANAGED = "ccrp-managed"
@@ -25,8 +30,6 @@ def owner_labels(fleet: str, role: str, robot: str | None = None) -> dict[str, s
 def check_cloud_init(robot: str, rc: int, out: str, timeout: float) -> None:
     """Judge `cloud-init status --wait --long` run on a clone (any transport): a one-line error
     with cloud-init's own detail unless it finished."""
-    from ..errors import CcrpError
-
     if rc == 124:
         raise CcrpError(f"clone cri-{robot}: cloud-init did not finish within {timeout:.0f} s")
     if rc not in (0, 2):  # 2: finished with recoverable errors (cloud-init >= 23.4)
@@ -38,18 +41,13 @@ def check_cloud_init(robot: str, rc: int, out: str, timeout: float) -> None:
 def autostop_note(text: str) -> str | None:
     """The last line the clone's autostop agent wrote (agent/autostop.py), without its mark; None
     when that is the line it writes at start (the clone stopped otherwise during that boot)."""
-    from ..agent.autostop import BOOT_LINE
-    from ..render.view import AUTOSTOP_MARK
-
     lines = [line.split(AUTOSTOP_MARK, 1)[1].strip() for line in text.splitlines() if AUTOSTOP_MARK in line]
-    return lines[-1] if lines and lines[-1] != BOOT_LINE else None
+    return lines[-1] if lines and lines[-1] != AUTOSTOP_BOOT_LINE else None
 
 
 def cloud_init_clean(result_json: str) -> bool:
     """cloud-init's /run/cloud-init/result.json (written when its last stage ends) says it finished
     with no errors."""
-    import json
-
     try:
         return json.loads(result_json)["v1"]["errors"] == []
     except (ValueError, KeyError, TypeError):
@@ -172,6 +170,22 @@ class ProviderInfo:
     user_data_gzip: bool  # whether cloud-init's gzip payload is accepted
     sdk_modules: tuple[tuple[str, str], ...]  # (import name, pip extra) `ccrp doctor` checks
     platform: str = "debian-bookworm"  # the snapshot recipe's platform its clones run (snapshots/*.yaml)
+
+    def fit_user_data(self, text: str) -> tuple[bytes, bool]:
+        """The user-data payload to send and whether it is gzipped, checked before any API call; an
+        error when it cannot fit this backend's limit."""
+        raw = text.encode()
+        if len(raw) <= self.user_data_limit:
+            return raw, False
+        if self.user_data_gzip:
+            packed = gzip.compress(raw, mtime=0)
+            if len(packed) <= self.user_data_limit:
+                return packed, True
+        raise CcrpError(
+            f"cloud-init user-data is {len(raw)} bytes, over {self.kind}'s limit of {self.user_data_limit} bytes"
+            + (" even gzipped" if self.user_data_gzip else ""),
+            hint="share fewer topics per robot or move large files into the snapshot",
+        )
 
 
 class Provider(Protocol):

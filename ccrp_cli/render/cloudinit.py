@@ -12,25 +12,15 @@ from typing import Any
 import yaml
 
 from ..errors import CcrpError
+from ..layout import (API_USER, CCRP_ETC, CCRP_LIB, IMAGE_AGENTS, KNOWLEDGE_USER, LOCALE, LOCALE_SETUP, LOGIN_USER,
+                      POWER_PORT, POWER_USER, RELAY_USER, SECRETS_DIR, VPN_DIR)
 from ..models.inventory import Inventory
 from ..models.names import power_name
 from ..recipes import platform
+from ..resources import agent_source
+from ..templates import render, static
 from . import network, openvpn
-from .templates import render, static
-from .view import (API_USER, CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, LOGIN_USER, POWER_PORT, POWER_USER, RELAY_USER,
-                   SECRETS_DIR, VPN_DIR, CloneView)
-
-
-def agent_source(name: str) -> str:
-    """Code that runs on a clone (ccrp_cli/agent/<name>.py), shipped as a file."""
-    from pathlib import Path
-
-    return (Path(__file__).resolve().parent.parent / "agent" / f"{name}.py").read_text()
-
-# The agents a snapshot holds (their Python packages come with the recipe's pip list); autostop's is
-# small and stdlib-only, and comes with the user-data instead. A ROS 2 image holds none: its relay
-# comes with the user-data, its API manager with its config (api_manager.py api_manager_files).
-IMAGE_AGENTS = ("relay", "api_manager")
+from .view import CloneView
 
 PRIVATE_KEY_MARKERS = ("PRIVATE KEY", "OpenVPN Static key")
 
@@ -220,21 +210,13 @@ def every_boot_bootcmd() -> list[list[str]]:
     ]
 
 
-# The locale of every clone image, set as templates/docker/Dockerfile.j2 sets it (it renders this
-# same command): generated once in the image and recorded in /etc/default/locale, so cloud-init's
-# locale module finds it set and no clone runs locale-gen at boot (seconds of CPU each).
-LOCALE = "en_US.UTF-8"
-LOCALE_SETUP = (f"sed -i 's/^# *\\({LOCALE} UTF-8\\)/\\1/' /etc/locale.gen && locale-gen >/dev/null "
-                f"&& update-locale LANG={LOCALE}")
-
-
 def image_config(inv: Inventory) -> dict[str, Any]:
     """What a snapshot holds beyond its base image, as cloud-config: what the Docker snapshot holds
     (templates/docker/Dockerfile.j2), installed on a stock Debian 12 cloud image. That is the
     recipe's packages from Debian's archive, the relay agent and its pinned Zenoh from pip, and the
     locale. A clone of a bare image runs it at first boot; `snapshot bake` runs it once on a builder
     instance."""
-    plat = platform(inv.ros.distro, inv.provider.kind, inv.ros.platform)
+    plat = platform(inv.ros.distro, inv.clone_platform)
     # cloud-init's locale module is off here: it runs (config stage) before the packages are
     # installed (final stage) and fails where the image has not generated the locale yet. runcmd
     # sets it after the packages, when locale-gen and pip3 exist.
@@ -283,7 +265,7 @@ LOCALE_SH = f'grep -qx "LANG={LOCALE}" /etc/default/locale && locale -a | grep -
 
 def bake_proofs(inv: Inventory) -> list[str]:
     """What a builder's console must show (as "ccrp-bake <token> <what>-ok") before it is captured."""
-    plat = platform(inv.ros.distro, inv.provider.kind, inv.ros.platform)
+    plat = platform(inv.ros.distro, inv.clone_platform)
     return ["apt", "locale"] + (["pip"] if plat.pip else []) + (["ros"] if plat.ros_installed else [])
 
 
@@ -293,7 +275,7 @@ def builder_user_data(inv: Inventory, token: str, login_keys: list[str] | None =
     `login_keys`: a bake with software: (the fleet's packages and workspace) logs in over SSH after
     cloud-init to build it; the login gets the operator key and sudo, which the build's last step
     takes away before the capture (templates/image/software-bake.sh)."""
-    plat = platform(inv.ros.distro, inv.provider.kind, inv.ros.platform)
+    plat = platform(inv.ros.distro, inv.clone_platform)
     data = image_config(inv)
     # ccrp-topic, as in every Docker image; in snapshots only (a bare clone's user-data has no room
     # left for it: EC2 takes 16 KiB).

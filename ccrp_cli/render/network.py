@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .templates import render
+from ..templates import render
 from .view import CloneView
 
 HOSTS_BEGIN, HOSTS_END = "# BEGIN ccrp", "# END ccrp"

@@ -5,7 +5,7 @@ from __future__ import annotations
 from ..errors import InputError
 from ..models.values import parse_endpoint
 from ..pki.store import RobotCredentials
-from .templates import render
+from ..templates import render
 from .view import CloneView
 
 ROBOT_CREDENTIALS_PATH = "/etc/ccrp/vpn-credentials"

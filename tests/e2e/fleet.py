@@ -422,7 +422,7 @@ def ensure_base(client) -> None:
     if missing():
         with host_lock("ccrp-base"):
             if missing():  # another worker may have built it meanwhile
-                packages = sorted(set(images.BASE_PACKAGES + platform("noetic", "docker").packages))
+                packages = sorted(set(images.BASE_PACKAGES + platform("noetic", "debian-bookworm").packages))
                 images.build_base_image(client, images.DEFAULT_BASE, packages)
 
 
@@ -434,7 +434,7 @@ def warm_snapshot(client, distro: str) -> str:
     from ccrp_cli.recipes import platform
     from tests.locks import host_lock
 
-    plat = platform(distro, "docker")
+    plat = platform(distro, "debian-bookworm")
     tag = SNAPSHOT_CACHE.format(distro=distro)
     ensure_base(client)
     with host_lock(f"snapshot-{distro}"):

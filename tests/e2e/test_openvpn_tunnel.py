@@ -28,7 +28,7 @@ from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.pki.store import RobotCredentials
 from ccrp_cli.render import openvpn
 from ccrp_cli.render.bundles import clone_secrets, edge_bundle, write_bundle
-from ccrp_cli.render.templates import static
+from ccrp_cli.templates import static
 from ccrp_cli.render.view import CloneView
 
 OPENVPN = "/usr/sbin/openvpn"

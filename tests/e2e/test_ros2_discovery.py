@@ -86,7 +86,7 @@ def pair(client):
     tag, name = f"ccrp-test/jazzy:{run}", f"ccrp-test-ros2-{run}"
     containers, network = [], None
     try:
-        plat = platform(DISTRO, "docker")
+        plat = platform(DISTRO, "debian-bookworm")
         plat = plat.model_copy(update={"packages": [*plat.packages, "tcpdump"]})
         images.build_clone_image(client, tag, ros2.dockerfile(DISTRO, images.DEFAULT_BASE, plat), LABELS,
                                  files=ros2.venv_context(plat))

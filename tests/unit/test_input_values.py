@@ -240,7 +240,7 @@ def test_inventory_strings_are_refused_or_one_token(tmp_path, leaf, data):
         from ccrp_cli.providers.docker.images import dockerfile
         from ccrp_cli.recipes import platform
 
-        text = dockerfile("lab", "noetic", value, platform("noetic", "docker"))
+        text = dockerfile("lab", "noetic", value, platform("noetic", "debian-bookworm"))
         # The value is one token of the first FROM; the others name the Dockerfile's own stages.
         assert [line for line in text.splitlines() if line.startswith("FROM")] == [
             f"FROM {value} AS clone", "FROM clone AS agents", "FROM clone AS image"]

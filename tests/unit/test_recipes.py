@@ -19,7 +19,7 @@ def test_jazzy_recipe_loads_beside_noetics():
     assert jazzy.distro == "jazzy" and list(recipe("noetic").platforms) == ["debian-bookworm"]
     # Jazzy also has the user's own image with ROS 2 installed (clouds only: docs/ros2.md).
     assert list(jazzy.platforms) == ["debian-bookworm", "ubuntu-noble-ros"] and jazzy.platforms["ubuntu-noble-ros"].clouds_only
-    plat = platform("jazzy", "docker")
+    plat = platform("jazzy", "debian-bookworm")
     assert {"ros-jazzy-rclpy", "ros-jazzy-rmw-fastrtps-cpp", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs",
             "ros-jazzy-geometry-msgs"} <= {p.split("==")[0] for p in plat.pip}
     assert "python3-venv" in plat.packages and not any(p.startswith(("ros-", "python3-rospy")) for p in plat.packages)
@@ -35,11 +35,11 @@ def test_the_distros_are_the_recipes_and_a_new_one_is_a_file(monkeypatch, tmp_pa
     from ccrp_cli.loader import parse_inventory
 
     assert recipes.distros() == {"jazzy": 2, "kilted": 2, "noetic": 1}
-    kilted = platform("kilted", "docker")
+    kilted = platform("kilted", "debian-bookworm")
     assert {p.split("==")[0] for p in kilted.pip} >= {"ros-kilted-rclpy", "ros-kilted-rmw-fastrtps-cpp",
                                                       "ros-kilted-std-msgs", "ros-kilted-sensor-msgs"}
     assert kilted.wheel_platforms == ["manylinux2014_x86_64", "manylinux_2_28_x86_64"]
-    assert platform("noetic", "docker").wheel_platforms == ["manylinux2014_x86_64"]
+    assert platform("noetic", "debian-bookworm").wheel_platforms == ["manylinux2014_x86_64"]
     data = tmp_path / "snapshots"
     shutil.copytree(recipes.data_dir("snapshots"), data)
     (data / "rolling.yaml").write_text((data / "kilted.yaml").read_text().replace("kilted", "rolling"))
@@ -49,7 +49,7 @@ def test_the_distros_are_the_recipes_and_a_new_one_is_a_file(monkeypatch, tmp_pa
     try:
         inv = parse_inventory({"fleet": "lab", "provider": {"kind": "docker"}, "ros": {"distro": "rolling"}}, "x.yaml")
         assert inv.ros.ros2 and recipes.is_ros2("rolling") and not recipes.is_ros2("noetic")
-        text = images.dockerfile("lab", "rolling", images.DEFAULT_BASE, platform("rolling", "docker"))
+        text = images.dockerfile("lab", "rolling", images.DEFAULT_BASE, platform("rolling", "debian-bookworm"))
         assert "python3 -m venv /opt/ros/rolling" in text and "ros-rolling-rclpy" in text
         (data / "bad.yaml").write_text((data / "noetic.yaml").read_text())  # names another distro inside
         recipes.distros.cache_clear()
@@ -61,7 +61,7 @@ def test_the_distros_are_the_recipes_and_a_new_one_is_a_file(monkeypatch, tmp_pa
 
 
 def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch, tmp_path):
-    plat = platform("jazzy", "docker")
+    plat = platform("jazzy", "debian-bookworm")
     text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, plat)
     assert "FROM clone AS ros2\n" in text and "COPY --from=ros2 /opt/ros/jazzy /opt/ros/jazzy\n" in text
     assert "python3 -m venv /opt/ros/jazzy" in text and "sh /tmp/ccrp-ros2-setup /opt/ros/jazzy jazzy" in text
@@ -78,7 +78,7 @@ def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch, tmp
 def test_every_image_has_ccrp_topic_and_it_refuses_bad_usage_in_one_line():
     import sys
 
-    assert set(images.build_context(platform("noetic", "docker").model_copy(update={"pip": []}))) == {"ccrp-topic"}
+    assert set(images.build_context(platform("noetic", "debian-bookworm").model_copy(update={"pip": []}))) == {"ccrp-topic"}
     from tests.conftest import ROOT
 
     tool = str(ROOT / "templates" / "image" / "ccrp-topic")
@@ -89,13 +89,13 @@ def test_every_image_has_ccrp_topic_and_it_refuses_bad_usage_in_one_line():
 
 
 def test_ros2_layer_installs_the_wheels_in_a_venv_with_a_setup_file():
-    plat = platform("jazzy", "docker")
+    plat = platform("jazzy", "debian-bookworm")
     text = ros2.dockerfile("jazzy", images.DEFAULT_BASE, plat)
     assert text.startswith("# ROS 2 jazzy") and f"FROM {images.DEFAULT_BASE}\n" in text
     assert f"for p in {' '.join(plat.packages)}; do" in text
     assert "python3 -m venv /opt/ros/jazzy" in text and f"--find-links /tmp/ccrp-wheels {' '.join(plat.pip)}" in text
     assert "sh /tmp/ccrp-ros2-setup /opt/ros/jazzy jazzy" in text
-    assert "venv" not in images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "docker"))
+    assert "venv" not in images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "debian-bookworm"))
 
 
 def test_venv_context_asks_for_bookworms_python_and_builds_only_the_source_packages(monkeypatch, tmp_path):
@@ -107,7 +107,7 @@ def test_venv_context_asks_for_bookworms_python_and_builds_only_the_source_packa
 
     monkeypatch.setenv("CCRP_CACHE", str(tmp_path))
     monkeypatch.setattr(wheels.subprocess, "run", run)
-    zenoh_only = platform("jazzy", "docker").model_copy(update={"pip": ["eclipse-zenoh==1.10.2"], "pip_source": []})
+    zenoh_only = platform("jazzy", "debian-bookworm").model_copy(update={"pip": ["eclipse-zenoh==1.10.2"], "pip_source": []})
     assert set(ros2.venv_context(zenoh_only)) == {"ros2-setup"}
     assert [c[0] for c in calls] == ["download"]
     download = calls[0]
@@ -115,7 +115,7 @@ def test_venv_context_asks_for_bookworms_python_and_builds_only_the_source_packa
     assert [download[i + 1] for i, a in enumerate(download) if a == "--platform"] == ["manylinux2014_x86_64",
                                                                                      "manylinux_2_28_x86_64"]
     calls.clear()
-    ros2.venv_context(platform("jazzy", "docker"))
+    ros2.venv_context(platform("jazzy", "debian-bookworm"))
     assert [c[0] for c in calls] == ["wheel", "download"] and calls[0][-1] == "empy==3.3.4"
 
 

@@ -19,8 +19,8 @@ import yaml
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.render import bundles, cloudinit, network, openvpn
-from ccrp_cli.render.limits import fit_user_data
-from ccrp_cli.render.view import SECRETS_DIR
+from ccrp_cli.providers import info
+from ccrp_cli.layout import SECRETS_DIR
 from tests.conftest import INVENTORIES, ROOT
 
 GOLDEN = ROOT / "tests" / "golden"
@@ -116,7 +116,7 @@ def test_every_user_data_passes_cloud_init_schema(ccrp_home, tmp_path):
             text = cloudinit.user_data(view, install_packages=bare, login_keys=keys)
             assert text.startswith("#cloud-config\n")
             assert "PRIVATE KEY" not in text and "Static key" not in text
-            fit_user_data(view.inv.provider.kind, text)
+            info(view.inv.provider.kind).fit_user_data(text)
             f = tmp_path / f"{stem}-{view.name}-{bare}.yaml"
             f.write_text(text)
             proc = subprocess.run(["cloud-init", "schema", "--config-file", str(f)], capture_output=True, text=True)
@@ -155,17 +155,17 @@ def test_user_data_never_carries_key_material(view, monkeypatch):
 
 def test_user_data_size_limits():
     small = "#cloud-config\n" + "a: b\n"
-    assert fit_user_data("aws", small) == (small.encode(), False)
+    assert info("aws").fit_user_data(small) == (small.encode(), False)
     # Repetitive text gzips well: over AWS's raw limit, gzip makes it fit.
     big = "#cloud-config\n" + "x: " + "y" * 20_000 + "\n"
-    payload, gz = fit_user_data("aws", big)
+    payload, gz = info("aws").fit_user_data(big)
     assert gz and len(payload) <= 16_384
     # GCE does not take gzip: refused with the figure and the limit.
     random_text = os.urandom(200_000).hex()
     with pytest.raises(CcrpError, match=r"over gcp's limit of 262144 bytes"):
-        fit_user_data("gcp", random_text)
+        info("gcp").fit_user_data(random_text)
     with pytest.raises(CcrpError, match=r"over aws's limit of 16384 bytes even gzipped"):
-        fit_user_data("aws", random_text[:40_000])
+        info("aws").fit_user_data(random_text[:40_000])
 
 
 def test_clone_secrets_bundle(lab, view, tmp_path):
@@ -298,7 +298,7 @@ def test_cloud_image_config_installs_what_the_docker_snapshot_has():
 
     from ccrp_cli.loader import load_inventory
 
-    docker_plat = platform("noetic", "docker")
+    docker_plat = platform("noetic", "debian-bookworm")
     dockerfile = images.dockerfile("lab", "noetic", images.DEFAULT_BASE, docker_plat)
     for path in INVENTORIES:
         inv = load_inventory(path)

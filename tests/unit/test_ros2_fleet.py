@@ -16,7 +16,7 @@ from ccrp_cli.errors import InputError
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.loader import parse_inventory
 from ccrp_cli.render import bundles, cloudinit, network
-from ccrp_cli.render.limits import fit_user_data
+from ccrp_cli.providers import info
 from tests.conftest import ROOT
 
 JAZZY = ROOT / "inventories" / "lab-jazzy.yaml"
@@ -87,7 +87,7 @@ def test_a_jazzy_fleet_takes_the_api_manager_and_knowledge_sync():
 def test_a_jazzy_image_has_what_the_api_manager_needs_and_user_data_its_units(ccrp_home):
     """The image's venv has OpenCV (cv2.face, the cascades) and the Vision client, as Noetic's; the
     agent itself comes with its config (unit/test_api_manager.py), not in the image's files."""
-    plat = cloudinit.platform("jazzy", "docker")
+    plat = cloudinit.platform("jazzy", "debian-bookworm")
     names = [p.split("==")[0] for p in plat.pip]
     assert {"opencv-contrib-python-headless", "google-cloud-vision"} <= set(names), names
     inv = Fleet.open(JAZZY).inventory
@@ -111,7 +111,7 @@ def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_
     path.write_text(yaml.safe_dump(data))
     fleet = Fleet.open(path)
     vpn.init(fleet)
-    plat = cloudinit.platform(distro, kind)
+    plat = cloudinit.platform(distro, fleet.inventory.clone_platform)
     venv = [["python3", "-m", "venv", f"/opt/ros/{distro}"],
             [f"/opt/ros/{distro}/bin/pip", "install", "--no-cache-dir", *plat.pip, "empy==3.3.4"],
             ["sh", "/usr/local/lib/ccrp/ros2-setup", f"/opt/ros/{distro}", distro]]
@@ -124,7 +124,7 @@ def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_
         runcmd = yaml.safe_load(text)["runcmd"]
         assert all(step in runcmd for step in venv) == (what != "snapshot"), (what, runcmd)
         assert plat.pip[0] not in text or what != "snapshot"
-        fit_user_data(kind, text)
+        info(kind).fit_user_data(text)
         f = tmp_path / f"{what}.yaml"
         f.write_text(text)
         proc = subprocess.run(["cloud-init", "schema", "--config-file", str(f)], capture_output=True, text=True)
@@ -150,7 +150,7 @@ def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(cc
     path.write_text(yaml.safe_dump(data))
     fleet = Fleet.open(path)
     vpn.init(fleet)
-    plat = cloudinit.platform("jazzy", kind, "ubuntu-noble-ros")
+    plat = cloudinit.platform("jazzy", "ubuntu-noble-ros")
     assert plat.ros_installed and "ros-jazzy-ros-base" in plat.packages and "python3-venv" not in plat.packages
     view = clone_view(fleet, fleet.store.load_state(), fleet.inventory.robots[0].name)
     keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"]
@@ -167,7 +167,7 @@ def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(cc
         assert launcher in runcmd and runcmd.index(launcher) > runcmd.index(["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3",
                                                                               "install", "--no-cache-dir", *plat.pip])
         assert "ros-jazzy-ros-base" in data["packages"]
-        fit_user_data(kind, text)
+        info(kind).fit_user_data(text)
         f = tmp_path / f"{what}.yaml"
         f.write_text(text)
         proc = subprocess.run(["cloud-init", "schema", "--config-file", str(f)], capture_output=True, text=True)

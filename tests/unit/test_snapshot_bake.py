@@ -16,7 +16,8 @@ from ccrp_cli.errors import CcrpError, InputError
 from ccrp_cli.fleet import Fleet
 from ccrp_cli.providers.base import CloneRecord, CloneState, SnapshotRecord
 from ccrp_cli.recipes import platform
-from ccrp_cli.render.cloudinit import LOCALE_SETUP, PRIVATE_KEY_MARKERS
+from ccrp_cli.layout import LOCALE_SETUP
+from ccrp_cli.render.cloudinit import PRIVATE_KEY_MARKERS
 from tests.conftest import ROOT
 
 INVENTORIES = {k: ROOT / "inventories" / f"{k}.yaml" for k in ("openstack", "gcp", "aws")}
@@ -146,11 +147,11 @@ def test_builder_spec_and_user_data(fleet, tmp_path):
     token = re.search(r"ccrp-bake (\w+) finished after \$UPTIME s", ud).group(1)
     # What the Docker snapshot has, from Debian's archive only: no third-party apt source.
     data = yaml.safe_load(ud)
-    assert data["packages"] == platform("noetic", "docker").packages and "apt" not in data
+    assert data["packages"] == platform("noetic", "debian-bookworm").packages and "apt" not in data
     assert "packages.ros.org" not in ud and "ros-core" in data["packages"] and "openvpn" in data["packages"]
     assert ["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir",
-            *platform("noetic", "docker").pip] in data["runcmd"]
-    assert "eclipse-zenoh==1.10.2" in platform("noetic", "docker").pip
+            *platform("noetic", "debian-bookworm").pip] in data["runcmd"]
+    assert "eclipse-zenoh==1.10.2" in platform("noetic", "debian-bookworm").pip
     assert [f["path"] for f in data["write_files"]] == ["/usr/local/lib/ccrp/relay.py", "/usr/local/lib/ccrp/api_manager.py",
                                                         "/usr/local/bin/ccrp-topic"]
     assert ["sh", "-c", LOCALE_SETUP] in data["runcmd"]

@@ -19,7 +19,6 @@ from pathlib import Path
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
-from ...render.limits import fit_user_data
 from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Quota
 from ..cloud import CloudProvider
 from . import INFO, network, tags
@@ -133,7 +132,7 @@ class AwsProvider(Images, Owned, CloudProvider):
             if inst["State"]["Name"] == "stopped":
                 self.api("start instance", self.ec2.start_instances, InstanceIds=[inst["InstanceId"]])
             return self._complete(inst, spec, net, created=False)
-        payload, _gzipped = fit_user_data("aws", spec.user_data)  # cloud-init detects gzip itself
+        payload, _gzipped = INFO.fit_user_data(spec.user_data)  # cloud-init detects gzip itself
         return self._complete(self._launch(spec, net, payload, generation=len(seen)), spec, net, created=True)
 
     def _launch(self, spec: CloneSpec, net: network.Network, user_data: bytes, generation: int) -> dict:

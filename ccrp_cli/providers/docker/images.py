@@ -12,8 +12,10 @@ import tempfile
 from pathlib import Path
 
 from ...errors import CcrpError
+from ...layout import IMAGE_AGENTS, LOCALE_SETUP, WORKSPACE
 from ...recipes import Platform
-from ...render.templates import render, static
+from ...resources import agent_source
+from ...templates import render, static
 from .archive import tar_files
 
 DEFAULT_BASE = "ccrp/base:bookworm"
@@ -83,8 +85,6 @@ def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, softwar
     /opt/ros/<distro> (docs/ros2.md) instead of the ROS 1 agents in /usr/local. The fleet's own
     software (workloads.SnapshotSoftware), when it has some, comes last (templates/docker/software.j2)."""
     from ...recipes import is_ros2, recipe
-    from ...render.cloudinit import LOCALE_SETUP
-    from ...workloads import WORKSPACE
 
     prefix = f"/opt/ros/{distro}" if is_ros2(distro) and plat.pip else ""
     extra: dict = {"software": None}
@@ -127,7 +127,6 @@ def _software_context(software, progress, plat: Platform) -> dict[str, bytes]:
 
 def _recipe_context(plat: Platform, progress, distro: str) -> dict[str, bytes]:
     from ...recipes import is_ros2
-    from ...render.cloudinit import IMAGE_AGENTS, agent_source
 
     if not plat.pip:
         return {}

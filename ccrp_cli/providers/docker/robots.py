@@ -6,7 +6,7 @@ engine's `bridge`, NATed like a robot on the internet)."""
 from __future__ import annotations
 
 from ...errors import CcrpError
-from ...render.templates import static
+from ...templates import static
 from ..base import owner_labels
 from .archive import tar_files
 from .host import DockerHost
@@ -20,7 +20,7 @@ SIM_IMAGE = "ccrp/robot-sim:{distro}"
 def sim_image(host: DockerHost, distro: str, progress=lambda msg: None) -> str:
     """The local image simulated robots of a cloud fleet run, built from the recipe if missing."""
     from ...recipes import platform
-    from . import images
+    from . import INFO, images
 
     # Its Dockerfile is a clone image's (images.dockerfile): a ROS 2 distro's has the ROS 2 venv.
     tag = SIM_IMAGE.format(distro=distro)
@@ -29,7 +29,7 @@ def sim_image(host: DockerHost, distro: str, progress=lambda msg: None) -> str:
         return tag
     except host._NotFound:
         pass
-    plat = platform(distro, "docker")
+    plat = platform(distro, INFO.platform)
     try:
         host.client.images.get(images.DEFAULT_BASE)
     except host._NotFound:

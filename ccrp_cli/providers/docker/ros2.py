@@ -6,7 +6,7 @@ here is the plain layer without a clone's configuration (tests/e2e/test_ros2_dis
 from __future__ import annotations
 
 from ...recipes import Platform
-from ...render.templates import render, static
+from ...templates import render, static
 from . import wheels
 
 

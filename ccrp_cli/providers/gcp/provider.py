@@ -17,8 +17,7 @@ from pathlib import Path
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
-from ...render.limits import fit_user_data
-from ...render.templates import static
+from ...templates import static
 from ...retry import ErrorClass, across_zones
 from ..base import (LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Quota,
                     owner_labels)
@@ -225,7 +224,7 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
     def run_instance(self, spec: CloneSpec) -> CloneRecord:
         """Create (or reuse) the robot's clone, its reserved external address and its VPN route;
         on failure, delete what this attempt created."""
-        payload, _ = fit_user_data("gcp", spec.user_data)  # before any API call
+        payload, _ = INFO.fit_user_data(spec.user_data)  # before any API call
         name = self.names.instance(spec.robot, spec.role)
         with self._errors(f"clone {name}"):
             found = self._find(spec.robot, spec.role)

@@ -163,9 +163,7 @@ class OpenStackProvider(Images, Owned, CloudProvider):
     # -- clones ---------------------------------------------------------------------------------
     def run_instance(self, spec: CloneSpec) -> CloneRecord:
         """Create the clone or reuse what exists of it; roll back only what this attempt created."""
-        from ...render.limits import fit_user_data
-
-        payload, _gzipped = fit_user_data("openstack", spec.user_data)  # cloud-init inflates gzip itself
+        payload, _gzipped = INFO.fit_user_data(spec.user_data)  # cloud-init inflates gzip itself
         user_data = base64.b64encode(payload).decode()
         created: list[tuple[str, object]] = []
         what = f"clone of {spec.robot}"

@@ -7,7 +7,7 @@ from typing import Any
 
 import jinja2
 
-from ..resources import data_dir
+from .resources import data_dir
 
 
 @cache
