@@ -1,4 +1,6 @@
-"""Every user-facing failure is a CcrpError: a code (exit status), one-line message and a hint."""
+"""Every user-facing failure is a CcrpError: a code (exit status), one-line message and a hint.
+failure() is the one translation of any exception into that, for the CLI (cli/main.py, and its
+--json envelope) and the dashboard alike."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ OK = 0
 FAILED = 1
 BAD_INPUT = 2
 PARTIAL = 3
+INTERRUPTED = 130  # Ctrl-C, as a shell reports it
 
 
 class CcrpError(Exception):
@@ -25,11 +28,42 @@ class CcrpError(Exception):
         return text
 
 
+    def envelope(self) -> dict:
+        """What `--json` prints on stdout for a failure (README: Commands)."""
+        return {"error": {"code": self.code, "message": " ".join(self.message.split()),
+                          "hint": " ".join(self.hint.split()) if self.hint else None}}
+
+
 class InputError(CcrpError):
     """Bad input: inventory, names, options. Exit code 2; nothing was changed."""
 
     def __init__(self, message: str, *, hint: str | None = None) -> None:
         super().__init__(message, hint=hint, code=BAD_INPUT)
+
+
+class Interrupted(CcrpError):
+    """Ctrl-C (or an aborted prompt): every step ccrp takes leaves its state on disk consistent."""
+
+    def __init__(self) -> None:
+        super().__init__("interrupted; state on disk is consistent, run the command again to continue",
+                         code=INTERRUPTED)
+
+
+def failure(exc: BaseException) -> CcrpError:
+    """Any exception as the failure a user is shown: a CcrpError as it is, Ctrl-C as Interrupted,
+    anything else (a bug, an SDK's own error) as its type and text with exit code 1. The CLI lets
+    the last kind end in a traceback; the dashboard, which goes on, shows it in one line."""
+    if isinstance(exc, CcrpError):
+        return exc
+    if isinstance(exc, KeyboardInterrupt):
+        return Interrupted()
+    return CcrpError(f"{type(exc).__name__}: {exc}")
+
+
+def one_line(exc: BaseException, limit: int | None = None) -> str:
+    """failure(exc) in one line, cut to `limit` characters with an ellipsis."""
+    text = failure(exc).one_line()
+    return text if limit is None or len(text) <= limit else text[: limit - 1] + "…"
 
 
 # A user's value echoed in an error is cut to this many characters: a 100k-character name must not

@@ -11,8 +11,9 @@ import typer
 import typer.main
 
 from .. import __version__
-from ..errors import BAD_INPUT, CcrpError
+from ..errors import BAD_INPUT, CcrpError, InputError, Interrupted
 from . import bench, clone, dashboard, deploy, doctor, fleet, gc, init, knowledge, logs, render, robot, snapshot, status, topics, vpn
+from .output import failed, wants_json
 
 app = typer.Typer(
     name="ccrp",
@@ -65,24 +66,33 @@ def command() -> click.Command:
 
 
 def run() -> None:
-    """Console entry point: every failure a user can cause ends in one line on stderr."""
+    """Console entry point: every failure a user can cause ends in one line on stderr (and, with
+    --json, in the error envelope on stdout: output.failed)."""
     try:
         # Without standalone mode, `raise typer.Exit(n)` in a command comes back as a return value.
         code = command()(standalone_mode=False)
         sys.exit(code if isinstance(code, int) else 0)
-    except CcrpError as exc:
-        print(f"ccrp: error: {exc.one_line()}", file=sys.stderr)
-        sys.exit(exc.code)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
+    except CcrpError as exc:
+        error = exc
     except (typer.Abort, KeyboardInterrupt):
-        print("ccrp: interrupted; state on disk is consistent, run the command again to continue", file=sys.stderr)
-        sys.exit(130)
+        error = Interrupted()
     except typer.TyperException as exc:  # usage errors from the parser
-        ctx = getattr(exc, "ctx", None)
-        if type(exc).__name__ == "NoArgsIsHelpError" and ctx is not None:
-            typer.echo(ctx.get_help())
+        error = _usage_error(exc)
+        if error is None:  # a command group without its command: its help
             sys.exit(BAD_INPUT)
-        where = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
-        print(f"ccrp: error: {exc.format_message()}{where}", file=sys.stderr)
-        sys.exit(BAD_INPUT if ctx is not None else exc.exit_code)
+    failed(error, wants_json(sys.argv[1:]))
+    sys.exit(error.code)
+
+
+def _usage_error(exc: typer.TyperException) -> CcrpError | None:
+    """A usage error from the parser as a failure (exit 2 when it names the command, else the
+    parser's own code); None after printing the help of a group called without its command."""
+    ctx = getattr(exc, "ctx", None)
+    if type(exc).__name__ == "NoArgsIsHelpError" and ctx is not None:
+        typer.echo(ctx.get_help())
+        return None
+    if ctx is None:
+        return CcrpError(exc.format_message(), code=exc.exit_code)
+    return InputError(f"{exc.format_message()} (see `{ctx.command_path} --help`)")

@@ -7,6 +7,8 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from ..errors import CcrpError, Interrupted
+
 
 def err(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
@@ -23,6 +25,22 @@ def warn(message: str) -> None:
 def emit_json(data: Any) -> None:
     json.dump(data, sys.stdout, indent=2, default=str)
     sys.stdout.write("\n")
+
+
+def wants_json(args: Sequence[str]) -> bool:
+    """Whether the command line asks for JSON: `--json` among ccrp's own arguments (those before a
+    `--`, after which `clone exec` passes a command's). Read from the command line, not from the
+    parsed option, so a command that fails while its options are parsed answers in JSON too."""
+    args = list(args)
+    return "--json" in (args[: args.index("--")] if "--" in args else args)
+
+
+def failed(exc: CcrpError, as_json: bool) -> None:
+    """A command that failed: its one line on stderr and, with --json, the error envelope on stdout
+    ({"error": {"code": exit code, "message", "hint"}}), so a script reading stdout gets JSON either way."""
+    err(f"ccrp: {exc.message}" if isinstance(exc, Interrupted) else f"ccrp: error: {exc.one_line()}")
+    if as_json:
+        emit_json(exc.envelope())
 
 
 def table(columns: Sequence[str], rows: Sequence[Sequence[Any]], title: str | None = None) -> None:

@@ -47,7 +47,8 @@ from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingRes
 from pydantic import BaseModel, ConfigDict, Field
 
 from .auth import Auth, Guard
-from .events import Broker, Monitor, sse
+from ..errors import one_line
+from .events import SHOWN, Broker, Monitor, sse
 
 log = logging.getLogger("ccrp.dashboard")
 
@@ -98,7 +99,7 @@ class Teleop:
         try:
             result = {"ok": True, **self.send(robot, linear, angular)}
         except Exception as exc:  # noqa: BLE001 - reported on the page, the server goes on
-            result = {"ok": False, "robot": robot, "linear": linear, "angular": angular, "error": _one_line(exc)}
+            result = {"ok": False, "robot": robot, "linear": linear, "angular": angular, "error": one_line(exc, SHOWN)}
         finally:
             with self.lock:
                 self.busy.discard(robot)
@@ -112,7 +113,7 @@ class Teleop:
             try:
                 self.close()
             except Exception as exc:  # noqa: BLE001 - the server is ending: say so, end anyway
-                log.warning("teleop operators not stopped: %s", _one_line(exc))
+                log.warning("teleop operators not stopped: %s", one_line(exc, SHOWN))
 
 
 # Reads one camera frame, starting nothing: robot -> ccrp_cli.camera.Frame (raises camera.NoFrame,
@@ -239,7 +240,7 @@ class Actions:
             if failed:
                 action.error = "; ".join(failed)
         except Exception as exc:  # noqa: BLE001 - reported on the page, the server goes on
-            action.state, action.error = "failed", _one_line(exc)
+            action.state, action.error = "failed", one_line(exc, SHOWN)
         action.ended_at = _now()
         log.info("action %d %s: %s", action.id, action.state, action.title)
         self._publish(action)
@@ -259,12 +260,6 @@ def _failed_items(result: Any) -> list[str]:
         return []
     return [f"{r.get('robot')}: {r.get('detail') or 'failed'}" for r in result
             if isinstance(r, dict) and r.get("action") == "failed"]
-
-
-def _one_line(exc: BaseException) -> str:
-    from .events import _one_line as one
-
-    return one(exc)
 
 
 def _static(name: str) -> bytes:
@@ -321,7 +316,7 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
         try:
             args = ARGS[kind].model_validate_json(await request.body())
         except ValueError as exc:
-            return JSONResponse({"error": f"bad arguments: {_one_line(exc)[:200]}"}, status_code=400)
+            return JSONResponse({"error": f"bad arguments: {one_line(exc, 200)}"}, status_code=400)
         action = actions.submit(kind, args.model_dump())
         return JSONResponse(action.public(), status_code=202)
 
@@ -341,7 +336,7 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
         try:
             args = TeleopArg.model_validate_json(await request.body())
         except ValueError as exc:
-            return JSONResponse({"error": f"bad arguments: {_one_line(exc)[:200]}"}, status_code=400)
+            return JSONResponse({"error": f"bad arguments: {one_line(exc, 200)}"}, status_code=400)
         if not teleop.claim(args.robot):
             return JSONResponse({"error": f"a command to {args.robot} is still on its way"}, status_code=409)
         loop = asyncio.get_running_loop()
@@ -368,7 +363,7 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
             return None, JSONResponse({"error": exc.one_line(), "why": exc.why}, status_code=503,
                                       headers={"Cache-Control": "no-store"})
         except Exception as exc:  # noqa: BLE001 - the provider failed: said on the page, the server goes on
-            return None, JSONResponse({"error": _one_line(exc)}, status_code=502, headers={"Cache-Control": "no-store"})
+            return None, JSONResponse({"error": one_line(exc, SHOWN)}, status_code=502, headers={"Cache-Control": "no-store"})
 
     @app.post("/api/camera/{robot}/start")
     async def camera_start(robot: str) -> JSONResponse:

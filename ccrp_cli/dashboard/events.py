@@ -16,8 +16,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from ..errors import one_line
 from ..models.status import StatusRow
 from ..alerts import ERROR_DAYS, WARN_DAYS, _alert, pki_alerts, row_alerts  # noqa: F401 - the page's alerts
+
+# Characters of a failure's line (errors.one_line) the page shows.
+SHOWN = 300
 
 # The fields of a `fleet_status` row the page gets (a whitelist: a field added to `ccrp status`
 # later reaches the page only when it is added here).
@@ -119,14 +123,14 @@ class Monitor(threading.Thread):
             read = self.read()
         except Exception as exc:  # noqa: BLE001 - shown on the page; the next poll tries again
             read = None
-            alerts.append(_alert("error", "status-failed", None, f"reading the fleet's status failed: {_one_line(exc)}"))
+            alerts.append(_alert("error", "status-failed", None, f"reading the fleet's status failed: {one_line(exc, SHOWN)}"))
         for row in read or []:
             alerts.extend(row_alerts(row))
         rows = [public_row(r) for r in read] if read is not None else None
         try:
             alerts.extend(self.pki_check([r.robot for r in read or []]))
         except Exception as exc:  # noqa: BLE001
-            alerts.append(_alert("error", "pki-failed", None, f"reading the fleet's PKI failed: {_one_line(exc)}"))
+            alerts.append(_alert("error", "pki-failed", None, f"reading the fleet's PKI failed: {one_line(exc, SHOWN)}"))
         self.reads += 1
         return {
             "fleet": self.fleet_name, "provider": self.provider_kind, "ros2": self.ros2, "rows": rows, "alerts": alerts,
@@ -147,10 +151,3 @@ class Monitor(threading.Thread):
     def stop(self) -> None:
         self.stopping.set()
         self.wake.set()
-
-
-def _one_line(exc: BaseException) -> str:
-    one_line = getattr(exc, "one_line", None)
-    text = one_line() if callable(one_line) else f"{type(exc).__name__}: {exc}"
-    text = " ".join(text.split())
-    return text if len(text) <= 300 else text[:299] + "…"
