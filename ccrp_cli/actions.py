@@ -17,15 +17,15 @@ def clone_start(fleet, provider, robot: str, say: Say) -> list:
     """`ccrp clone start`: start the robot's stopped clone, push its keys again, wait until it serves."""
     from . import reconcile
     from .errors import InputError
-    from .providers.base import CloneState
+    from .providers.base import Origin
 
     fleet.robot(fleet.store.load_state(), robot)
-    rec = provider.query().get(robot)
-    if rec is None:
+    # Asked first: `fleet up` would create a clone that does not exist, and `clone start` must not.
+    if robot not in provider.query():
         raise InputError(f"robot {robot!r} has no clone to start", hint=f"ccrp clone create --robot {robot}")
     with fleet.store.lock():
         items = reconcile.up(fleet, provider, say, only=[robot])
-    if rec.state is CloneState.STOPPED and items[0].action == "reused":
+    if items[0].origin is Origin.RESUMED:  # the provider started it (it was running: `reused`)
         items[0].action = "started"
     return items
 

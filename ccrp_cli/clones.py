@@ -18,7 +18,7 @@ from .fleet import Fleet, clone_view
 from .models.names import clone_host
 from .models.state import FleetState
 from .probe import HEALTH_SCRIPT, files_current, health, remote_digests, same
-from .providers.base import CloneSpec, CloneState, Provider, cloud_init_clean
+from .providers.base import CloneSpec, CloneState, Origin, Provider, cloud_init_clean
 
 Progress = Callable[[str], None]
 
@@ -61,6 +61,7 @@ class CloneResult:
     action: str  # created | reused | deleted | absent | failed
     detail: str = ""
     seconds: float = 0.0
+    origin: Origin | None = None  # what the provider did to have the clone (ensure_clone)
 
     def row(self) -> tuple:
         return (self.robot, self.action, f"{self.seconds:.1f}s", self.detail)
@@ -257,8 +258,8 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
                   *(nodes or [absent_index()])]
         # A clone that was running already: cloud-init's result, the digests of what ccrp put there
         # and whether it serves, in one round trip. Anything not as it should be is then done the
-        # long way below, as for a new clone.
-        seen = None if record.created else probe(provider, robot, port, probed)
+        # long way below, as for a new clone. A clone just created or started boots first.
+        seen = probe(provider, robot, port, probed) if record.origin is Origin.REUSED else None
         if seen is None or not seen.booted:
             provider.wait_ready(robot, timeout=1200 if bare else 300)
             seen = probe(provider, robot, port, probed)
@@ -304,7 +305,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     )
     took = time.monotonic() - t0
     progress(f"[{robot}] clone {view.addr.clone_host} ready in {took:.1f}s ({endpoint})")
-    return CloneResult(robot, "created" if record.created else "reused", endpoint or "", took)
+    return CloneResult(robot, "created" if record.created else "reused", endpoint or "", took, record.origin)
 
 
 def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, revoked: CcrpError,

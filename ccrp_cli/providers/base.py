@@ -87,6 +87,15 @@ class CloneState(str, Enum):
         return table.get(word, cls.UNKNOWN)
 
 
+class Origin(str, Enum):
+    """What run_instance did to have the robot's clone: each provider says it, so the core never
+    asks the provider again to tell a started clone from one that was running."""
+
+    CREATED = "created"  # none existed: this call made it (a failed create rolls back only these)
+    RESUMED = "resumed"  # it existed stopped: this call started it (it boots again)
+    REUSED = "reused"  # it existed running, or on its way there: left as it was
+
+
 class CloneRecord(BaseModel):
     """What exists for one robot, as the provider sees it."""
 
@@ -96,7 +105,11 @@ class CloneRecord(BaseModel):
     status: str  # the provider's own word, kept for messages (running, exited, ACTIVE...)
     public_ip: str | None = None
     common_ip: str | None = None
-    created: bool = False  # this call created it (rollback only touches these)
+    origin: Origin | None = None  # set by run_instance; None on what query() lists
+
+    @property
+    def created(self) -> bool:
+        return self.origin is Origin.CREATED
 
 
 class SnapshotRecord(BaseModel):
@@ -194,6 +207,7 @@ class Provider(Protocol):
     max_parallel: int  # clones `fleet up` creates at once
 
     def bootstrap(self) -> None: ...
+    # Create the robot's clone, or start or reuse the one it has; the record's origin says which.
     def run_instance(self, spec: CloneSpec) -> CloneRecord: ...
     def wait_ready(self, robot: str, timeout: float) -> None: ...
     def query(self) -> dict[str, CloneRecord]: ...

@@ -13,6 +13,7 @@ from ccrp_cli.errors import CcrpError
 from ccrp_cli.gc import find_leaks
 from ccrp_cli.providers import info
 from ccrp_cli.models.state import FleetState, RobotRecord
+from ccrp_cli.providers.base import Origin
 from ccrp_cli.snapshots import BUILDER
 
 from .harness import FLEET
@@ -26,6 +27,7 @@ def create(harness, robot: str):
 def test_create_is_idempotent(harness):
     first = create(harness, "robot1")
     again = create(harness, "robot1")
+    assert first.origin is Origin.CREATED and again.origin is Origin.REUSED
     assert first.created and not again.created
     assert again.provider_id == first.provider_id
     assert harness.instances_for("robot1") == 1
@@ -78,7 +80,7 @@ def test_stop_keeps_the_clone_and_create_starts_it_again(harness):
     assert harness.provider.stop_instance("robot1") is False  # stopped already
     assert harness.provider.stop_instance("robot3") is False  # no clone at all
     again = create(harness, "robot1")
-    assert again.provider_id == first.provider_id and not again.created
+    assert again.provider_id == first.provider_id and again.origin is Origin.RESUMED  # started, not made
     retry.poll(lambda: (harness.provider.query()["robot1"].state is CloneState.RUNNING, None), timeout=120, interval=0.5)
     assert harness.instances_for("robot1") == 1
     # The robot's installed bundle dials the clone's public IP: stop/start must not change it.
@@ -105,8 +107,8 @@ def test_builder_is_labelled_as_such_and_never_taken_for_a_clone(harness):
     spec = harness.spec("robot1", 1).model_copy(
         update={"robot": BUILDER, "hostname": "ccrp-builder", "role": "builder", "vpn_subnet": None,
                 "instance_id": f"{FLEET}-builder-contract", "common_ip": harness.spec("robot2", 2).common_ip})
-    assert harness.provider.run_instance(spec).created
-    assert not harness.provider.run_instance(spec).created  # idempotent as a clone's create
+    assert harness.provider.run_instance(spec).origin is Origin.CREATED
+    assert harness.provider.run_instance(spec).origin is Origin.REUSED  # idempotent as a clone's create
     assert harness.instance_roles(BUILDER) == ["builder"]
     assert set(harness.provider.query()) == {"robot1"}
     snap = harness.provider.create_snapshot(BUILDER, f"ccrp-{FLEET}-noetic-contract")

@@ -13,7 +13,7 @@ pytest.importorskip("google.cloud.compute_v1")
 from google.api_core import exceptions  # noqa: E402
 
 from ccrp_cli.errors import CcrpError  # noqa: E402
-from ccrp_cli.providers.base import CloneSpec  # noqa: E402
+from ccrp_cli.providers.base import CloneSpec, Origin  # noqa: E402
 from ccrp_cli.providers.gcp.errors import classify  # noqa: E402
 from ccrp_cli.retry import ErrorClass  # noqa: E402
 from tests.contract.harness_gcp import PUBLIC_IMAGE, ZONES, FakeProject, GcpHarness, inventory  # noqa: E402
@@ -184,7 +184,8 @@ def test_stopped_clone_is_started_and_reused(h):
     (inst,) = h.fake.instances.values()
     inst.status = "TERMINATED"
     again = h.provider.run_instance(spec("robot1", 1))
-    assert not again.created and again.provider_id == first.provider_id and again.status == "RUNNING"
+    assert again.origin is Origin.RESUMED and again.provider_id == first.provider_id and again.status == "RUNNING"
+    assert h.provider.run_instance(spec("robot1", 1)).origin is Origin.REUSED  # running: left as it was
 
 
 def test_foreign_instance_with_the_clone_name_is_refused_and_untouched(h):

@@ -12,7 +12,7 @@ import sys
 import pytest
 
 from ccrp_cli.errors import CcrpError
-from ccrp_cli.providers.base import LABEL_FLEET, LABEL_ROBOT
+from ccrp_cli.providers.base import LABEL_FLEET, LABEL_ROBOT, Origin
 from ccrp_cli.retry import ErrorClass
 from tests.contract.harness_openstack import make_harness
 from tests.fakes.openstack_cloud import NO_VALID_HOST
@@ -256,7 +256,8 @@ def test_a_stopped_clone_is_started_and_an_errored_one_is_left_for_the_operator(
     first = h.provider.run_instance(h.spec("robot1", 1))
     h.fake.servers[first.provider_id]["status"] = "SHUTOFF"
     rec = h.provider.run_instance(h.spec("robot1", 1))
-    assert rec.provider_id == first.provider_id and rec.status == "ACTIVE" and not rec.created
+    assert rec.provider_id == first.provider_id and rec.status == "ACTIVE" and rec.origin is Origin.RESUMED
+    assert first.origin is Origin.CREATED and h.provider.run_instance(h.spec("robot1", 1)).origin is Origin.REUSED
     h.fake.servers[first.provider_id].update(status="ERROR", fault={"message": "disk failure"})
     with pytest.raises(CcrpError, match="is in ERROR .disk failure"):
         h.provider.run_instance(h.spec("robot1", 1))

@@ -14,7 +14,7 @@ import yaml
 from ccrp_cli import snapshots
 from ccrp_cli.errors import CcrpError, InputError
 from ccrp_cli.fleet import Fleet
-from ccrp_cli.providers.base import CloneRecord, CloneState, SnapshotRecord
+from ccrp_cli.providers.base import CloneRecord, CloneState, Origin, SnapshotRecord
 from ccrp_cli.recipes import platform
 from ccrp_cli.layout import LOCALE_SETUP
 from ccrp_cli.render.cloudinit import PRIVATE_KEY_MARKERS
@@ -61,7 +61,8 @@ class FakeCloud:
         self.instances[spec.robot] = spec  # created before anything can fail, as on a cloud
         self.specs.append(spec)
         self._maybe_fail("run_instance")
-        return CloneRecord(robot=spec.robot, provider_id="i-builder", state=CloneState.RUNNING, status="running", created=True)
+        return CloneRecord(robot=spec.robot, provider_id="i-builder", state=CloneState.RUNNING, status="running",
+                           origin=Origin.CREATED)
 
     def console_output(self, robot: str) -> str:
         self._maybe_fail("console_output")

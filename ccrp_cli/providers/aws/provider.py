@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
-from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Quota
+from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Origin, Quota
 from ..cloud import CloudProvider
 from . import INFO, network, tags
 from .errors import INSTALL_HINT, as_ccrp, classify, error_code
@@ -108,11 +108,11 @@ class AwsProvider(Images, Owned, CloudProvider):
             raise CcrpError(f"fleet {self.fleet!r} has no network on AWS yet", hint="`ccrp fleet up` creates it (bootstrap)")
         return self._net
 
-    def _record(self, inst: dict, created: bool = False, public_ip: str | None = None) -> CloneRecord:
+    def _record(self, inst: dict, origin: Origin | None = None, public_ip: str | None = None) -> CloneRecord:
         return CloneRecord(
             robot=tags.as_dict(inst).get(LABEL_ROBOT, ""), provider_id=inst["InstanceId"],
             state=CloneState.of(inst["State"]["Name"], STATES), status=inst["State"]["Name"], public_ip=public_ip or inst.get("PublicIpAddress"),
-            common_ip=inst.get("PrivateIpAddress"), created=created,
+            common_ip=inst.get("PrivateIpAddress"), origin=origin,
         )
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -128,12 +128,13 @@ class AwsProvider(Images, Owned, CloudProvider):
         seen = self._instances(spec.robot, spec.role, states=LIVE + GONE)
         existing = [i for i in seen if i["State"]["Name"] in LIVE]
         if existing:
-            inst = existing[0]
+            inst, origin = existing[0], Origin.REUSED
             if inst["State"]["Name"] == "stopped":
                 self.api("start instance", self.ec2.start_instances, InstanceIds=[inst["InstanceId"]])
-            return self._complete(inst, spec, net, created=False)
+                origin = Origin.RESUMED
+            return self._complete(inst, spec, net, origin)
         payload, _gzipped = INFO.fit_user_data(spec.user_data)  # cloud-init detects gzip itself
-        return self._complete(self._launch(spec, net, payload, generation=len(seen)), spec, net, created=True)
+        return self._complete(self._launch(spec, net, payload, generation=len(seen)), spec, net, Origin.CREATED)
 
     def _launch(self, spec: CloneSpec, net: network.Network, user_data: bytes, generation: int) -> dict:
         instance_type = self._instance_type(spec.robot)
@@ -161,7 +162,7 @@ class AwsProvider(Images, Owned, CloudProvider):
             generation += 1
         raise CcrpError(f"clone {spec.hostname}: AWS keeps returning terminated instances for its client token")
 
-    def _complete(self, inst: dict, spec: CloneSpec, net: network.Network, created: bool) -> CloneRecord:
+    def _complete(self, inst: dict, spec: CloneSpec, net: network.Network, origin: Origin) -> CloneRecord:
         iid = inst["InstanceId"]
         new_eip: dict | None = None
         step = "disable source/dest check"
@@ -181,13 +182,13 @@ class AwsProvider(Images, Owned, CloudProvider):
                 self.api(step, self.ec2.associate_address, AllocationId=eip["AllocationId"], InstanceId=iid,
                          AllowReassociation=True)
         except Exception as exc:
-            undone = self._roll_back(iid if created else None, new_eip)
+            undone = self._roll_back(iid if origin is Origin.CREATED else None, new_eip)
             raise CcrpError(
                 f"clone {spec.hostname}: {step} failed ({getattr(exc, 'message', exc)}); "
                 f"rolled back {', '.join(undone) or 'nothing'}",
                 hint=getattr(exc, "hint", None),
             ) from exc
-        return self._record(inst, created=created, public_ip=eip["PublicIp"])
+        return self._record(inst, origin=origin, public_ip=eip["PublicIp"])
 
     def _roll_back(self, instance_id: str | None, eip: dict | None) -> list[str]:
         """Remove what the failed attempt created; keep going on errors (best effort, reported)."""

@@ -12,7 +12,8 @@ from ...models.inventory import Inventory
 from ...layout import AUTOSTOP_NOTE, VPN_DIR
 from ...store import FleetStore, ensure_state_id, read_state_id
 from ..base import (
-    LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, OwnedResource, Quota, SnapshotRecord,
+    LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota,
+    SnapshotRecord,
     autostop_note, check_cloud_init, cloud_init_clean, owner_labels,
 )
 from . import INFO
@@ -82,7 +83,7 @@ class DockerProvider(DockerHost):
                 ) from None
 
     # -- clones -------------------------------------------------------------------------------
-    def _record(self, c, created: bool = False) -> CloneRecord:
+    def _record(self, c, origin: Origin | None = None) -> CloneRecord:
         nets = c.attrs.get("NetworkSettings", {}).get("Networks", {})
         return CloneRecord(
             robot=c.labels.get(LABEL_ROBOT, ""),
@@ -91,7 +92,7 @@ class DockerProvider(DockerHost):
             status=c.status,
             public_ip=(nets.get(self.public_net) or {}).get("IPAddress") or None,
             common_ip=(nets.get(self.common_net) or {}).get("IPAddress") or None,
-            created=created,
+            origin=origin,
         )
 
     def run_instance(self, spec: CloneSpec) -> CloneRecord:
@@ -104,10 +105,11 @@ class DockerProvider(DockerHost):
             self._remove(existing, None)
             existing = None
         if existing is not None:
-            if existing.status != "running":
-                existing.start()
-                existing.reload()
-            return self._record(existing)
+            if existing.status == "running":
+                return self._record(existing, Origin.REUSED)
+            existing.start()
+            existing.reload()
+            return self._record(existing, Origin.RESUMED)
         self._ensure_image(spec.image)
         volume = self.volume_name(spec.robot)
         labels = owner_labels(self.fleet, "clone", spec.robot)
@@ -150,7 +152,7 @@ class DockerProvider(DockerHost):
             if isinstance(exc, self._APIError):
                 raise CcrpError(f"clone {spec.hostname}: {exc.explanation or exc}; rolled back its container and volume") from exc
             raise
-        return self._record(c, created=True)
+        return self._record(c, Origin.CREATED)
 
     def login_keys(self) -> None:
         return None  # the Docker API is the transport: no login user in the clone

@@ -19,7 +19,7 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...templates import static
 from ...retry import ErrorClass, across_zones
-from ..base import (LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Quota,
+from ..base import (LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Origin, Quota,
                     owner_labels)
 from ..cloud import SSH_USER, CloudProvider
 from . import INFO
@@ -271,11 +271,13 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
 
     def _complete(self, spec: CloneSpec, zone: str, name: str, created: bool, address: str = "") -> CloneRecord:
         route_created = False
+        origin = Origin.CREATED if created else Origin.REUSED
         try:
             inst = self._call("get instance", self.c.instances.get, project=self.project, zone=zone, instance=name)
             if inst.status == "TERMINATED":  # GCE's word for stopped: a reused clone someone stopped
                 self._mutate(f"start instance {name}", self.c.instances.start, project=self.project, zone=zone,
                              instance=name)
+                origin = Origin.RESUMED
                 inst = self._call("get instance", self.c.instances.get, project=self.project, zone=zone,
                                   instance=name)
             if not address:  # a reused clone: make sure it answers at its reserved address
@@ -287,7 +289,7 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
             if isinstance(exc, Exception):
                 raise as_ccrp_error(f"clone {name}", exc, self.region) from exc
             raise
-        return self._record(spec.robot, inst, created)
+        return self._record(spec.robot, inst, origin)
 
     def _rollback(self, robot: str, zone: str, instance: str | None, route: bool) -> None:
         """Delete what one failed attempt created; a failure here is logged, never masks the cause."""
@@ -376,12 +378,12 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
             next_hop_instance=inst.self_link, priority=1000, description=self.names.describe("route", spec.robot))
         return self._insert(f"route {name}", self.c.routes.insert, project=self.project, route_resource=route)
 
-    def _record(self, robot: str, inst, created: bool = False) -> CloneRecord:
+    def _record(self, robot: str, inst, origin: Origin | None = None) -> CloneRecord:
         nic = inst.network_interfaces[0] if inst.network_interfaces else None
         public = nic.access_configs[0].nat_i_p if nic and nic.access_configs else ""
         return CloneRecord(robot=robot, provider_id=str(inst.id), state=CloneState.of(inst.status, STATES),
                            status=inst.status, public_ip=public or None,
-                           common_ip=(nic.network_i_p if nic else "") or None, created=created)
+                           common_ip=(nic.network_i_p if nic else "") or None, origin=origin)
 
     def query(self) -> dict[str, CloneRecord]:
         with self._errors("list clones"):

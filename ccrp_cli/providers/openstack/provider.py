@@ -15,7 +15,7 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import across_zones
 from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState,
-                    OwnedResource, Quota, owner_labels)
+                    Origin, OwnedResource, Quota, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, errors, shared
 from .images import Images
@@ -171,7 +171,9 @@ class OpenStackProvider(Images, Owned, CloudProvider):
             try:
                 ext, net, subnet, sg = self._fleet_resources()
                 server = self._server(spec.robot, spec.role)
+                origin = Origin.CREATED
                 if server is not None:
+                    origin = Origin.RESUMED if server.status == "SHUTOFF" else Origin.REUSED  # _revive starts it
                     server = self._revive(server)
                 port = self._port(spec, server, net, subnet, sg, created)
                 if server is None:
@@ -189,8 +191,7 @@ class OpenStackProvider(Images, Owned, CloudProvider):
                 raise err from exc
         word = server.status or "BUILD"
         return CloneRecord(robot=spec.robot, provider_id=server.id, state=CloneState.of(word, STATES), status=word,
-                           public_ip=fip.floating_ip_address, common_ip=port.fixed_ips[0]["ip_address"],
-                           created=any(kind == "instance" for kind, _ in created))
+                           public_ip=fip.floating_ip_address, common_ip=port.fixed_ips[0]["ip_address"], origin=origin)
 
     def _revive(self, server):
         """A reused server must run: start a stopped one; an ERROR one is not ours to replace
