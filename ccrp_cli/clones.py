@@ -15,6 +15,7 @@ from typing import Callable
 
 from .errors import CcrpError
 from .fleet import Fleet, clone_view
+from .layout import CCRP_ETC, MGMT_SOCKET, SECRETS_DIR
 from .models.names import clone_host
 from .models.state import FleetState
 from .probe import HEALTH_SCRIPT, files_current, health, remote_digests, same
@@ -73,7 +74,6 @@ def applied_marker(files: list):
     there) leaves files that match and a server that never started: without the marker the next
     run took them for done, and the clone failed `not serving` on every run after."""
     from .render.bundles import BundleFile
-    from .layout import SECRETS_DIR
 
     listing = "".join(f"{f.dest} {f.group} {f.mode:o} {hashlib.sha256(f.content.encode()).hexdigest()}\n" for f in files)
     return BundleFile(".applied", hashlib.sha256(listing.encode()).hexdigest() + "\n", 0o600, f"{SECRETS_DIR}/.applied")
@@ -85,8 +85,6 @@ SECRETS_DIR_SH = 'install -d -m "$1" -o root -g openvpn "$0" && stat -c %d / "$0
 
 
 def prepare_secrets_dir(provider: Provider, robot: str) -> None:
-    from .layout import SECRETS_DIR
-
     # 0751: the relay's user opens relay.key by name but cannot list the directory.
     rc, out = provider.exec(robot, ["sh", "-c", SECRETS_DIR_SH, SECRETS_DIR, "0751"], timeout=30)
     devices = out.split()[-2:]  # after anything sudo may warn about first
@@ -171,8 +169,6 @@ def serving_port(inv) -> str:
 def probe(provider: Provider, robot: str, master_port: int | str, files: list) -> Probe | None:
     """What `fleet up` must know of a running clone, in one command: None when the probe could not
     run (the caller then asks the long way)."""
-    from .layout import MGMT_SOCKET
-
     try:
         rc, out = provider.exec(robot, ["bash", "-c", PROBE_SH, MGMT_SOCKET, str(master_port),
                                         *(f.dest for f in files)], timeout=20)
@@ -190,8 +186,6 @@ def probe(provider: Provider, robot: str, master_port: int | str, files: list) -
 def wait_serving(provider: Provider, robot: str, master_port: int | str, timeout: float = 60) -> None:
     """Until the VPN server runs and the ROS master answers inside the clone (ROS 2: its
     environment works, see SERVING_SH)."""
-    from .layout import MGMT_SOCKET
-
     rc, out = provider.exec(robot, ["bash", "-c", WAIT_SERVING_SH, MGMT_SOCKET, str(master_port)], timeout=timeout)
     if rc != 0 or out.split()[-2:] != ["vpn=yes", "master=yes"]:
         detail = json.dumps(health(provider, robot))[:300]  # the long way, for the message only
@@ -327,7 +321,6 @@ def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: 
 
 def relay_config_file(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None):
     from .render.bundles import BundleFile
-    from .layout import CCRP_ETC
     from .sharing import relay_config_text
 
     return BundleFile("relay.json", relay_config_text(fleet, state, robot, live), 0o644, f"{CCRP_ETC}/relay.json")
@@ -336,7 +329,6 @@ def relay_config_file(fleet: Fleet, state: FleetState, robot: str, live: set[str
 def autostop_file(fleet: Fleet, robot):
     """The clone's autostop setting (agent/autostop.py reads it at every check)."""
     from .render.bundles import BundleFile
-    from .layout import CCRP_ETC
 
     text = json.dumps({"robot": robot.name, "idle": fleet.inventory.idle_of(robot)}) + "\n"
     return BundleFile("autostop.json", text, 0o644, f"{CCRP_ETC}/autostop.json")
