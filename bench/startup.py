@@ -6,7 +6,13 @@ Measures, interleaved round by round so machine noise hits every command alike:
   import_cli       `python -c "import ccrp_cli.cli.main"`
 then checks with `python -X importtime` that importing the CLI pulls in no cloud SDK.
 
-Run: .venv/bin/python bench/startup.py [--rounds 15] [--warmup 2]
+And the CPU time (user + system, from the child's rusage) of commands that do work on the local
+default, whose cost every `ccrp` call in a script or a test pays: `fleet validate`, `fleet plan`
+and `status` of inventories/lab.yaml (no clone needs to exist; plan and status ask the Docker
+engine). `--baseline PATH` runs those on another checkout of ccrp too (PYTHONPATH), in the same
+rounds, so a change is compared with the code before it in one run.
+
+Run: .venv/bin/python bench/startup.py [--rounds 15] [--warmup 2] [--baseline /path/to/old/checkout]
 Writes bench/results/startup.json.
 """
 
@@ -17,9 +23,12 @@ import datetime as dt
 import json
 import os
 import platform
+import resource
 import statistics
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -34,6 +43,12 @@ COMMANDS: dict[str, list[str]] = {
     "import_openstack": [PYTHON, "-c", "import openstack"],
     "import_cli": [PYTHON, "-c", "import ccrp_cli.cli.main"],
 }
+# Commands that do work: their CPU time is what a script pays per call (the engine must run).
+WORK: dict[str, list[str]] = {
+    "fleet_validate": [PYTHON, "-m", "ccrp_cli", "fleet", "validate", "--json", "-i", "inventories/lab.yaml"],
+    "fleet_plan": [PYTHON, "-m", "ccrp_cli", "fleet", "plan", "--json", "-i", "inventories/lab.yaml"],
+    "status": [PYTHON, "-m", "ccrp_cli", "status", "--json", "-i", "inventories/lab.yaml"],
+}
 # Must never be imported by `import ccrp_cli.cli.main` (docs/architecture.md: start-up cost).
 FORBIDDEN = ("openstack", "google.cloud", "boto3", "botocore", "docker", "paramiko")
 TARGET_RATIO = 0.5
@@ -47,13 +62,16 @@ def _env() -> dict[str, str]:
     return env
 
 
-def time_once(argv: list[str], env: dict[str, str]) -> float:
+def time_once(argv: list[str], env: dict[str, str], cwd: Path = ROOT) -> tuple[float, float]:
+    """(wall, CPU) seconds of one run; CPU is user + system of the child, from rusage."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    proc = subprocess.run(argv, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.run(argv, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     elapsed = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         sys.exit(f"startup bench: {' '.join(argv)} failed ({proc.returncode}): {proc.stderr.decode()[-500:]}")
-    return elapsed
+    return elapsed, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -123,24 +141,41 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--out", type=Path, default=RESULTS / "startup.json")
+    ap.add_argument("--baseline", type=Path, help="another checkout of ccrp whose working commands run alongside")
     args = ap.parse_args()
 
     env = _env()
     for name, argv in COMMANDS.items():
         if not Path(argv[0]).exists():
             sys.exit(f"startup bench: {argv[0]} not found ({name})")
+    # name -> (argv, env, cwd): the start-up commands, then the working ones on this tree (and the
+    # baseline's; run in the tree, as `python -m` puts the working directory first on the path).
+    runs = {n: (argv, env, ROOT) for n, argv in COMMANDS.items()}
+    home = tempfile.mkdtemp(prefix="ccrp-startup-")  # no fleet of the user's is read or written
+    trees = {"": ROOT, **({"baseline_": args.baseline.resolve()} if args.baseline else {})}
+    # `status` reads the fleet's PKI: made once, as a user's `ccrp vpn init`.
+    subprocess.run([PYTHON, "-m", "ccrp_cli", "vpn", "init", "-i", "inventories/lab.yaml"], cwd=ROOT, check=True,
+                   env={**env, "CCRP_HOME": home}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    for prefix, tree in trees.items():
+        for n, argv in WORK.items():
+            runs[f"{prefix}{n}"] = (argv, {**env, "PYTHONPATH": str(tree), "CCRP_HOME": home}, tree)
 
-    names = list(COMMANDS)
+    names = list(runs)
     times: dict[str, list[float]] = {n: [] for n in names}
+    cpu: dict[str, list[float]] = {n: [] for n in names}
     for r in range(args.warmup + args.rounds):
         # Rotate the order every round so no command always runs first (cold) or last.
         k = r % len(names)
         for name in names[k:] + names[:k]:
-            t = time_once(COMMANDS[name], env)
+            wall, used = time_once(*runs[name])
             if r >= args.warmup:
-                times[name].append(t)
+                times[name].append(wall)
+                cpu[name].append(used)
 
+    shutil.rmtree(home, ignore_errors=True)
     stats = {n: summary(v) for n, v in times.items()}
+    cpu_median = {n: statistics.median(v) for n, v in cpu.items()}
+    compared = {n: cpu_median[n] / cpu_median[f"baseline_{n}"] for n in WORK if f"baseline_{n}" in cpu_median}
     ratio = stats["ccrp_help"]["median_s"] / stats["import_openstack"]["median_s"]
     imports = importtime(env)
 
@@ -155,8 +190,12 @@ def main() -> None:
         },
         "rounds": args.rounds,
         "warmup_rounds": args.warmup,
-        "commands": {n: " ".join(Path(a).name if i == 0 else a for i, a in enumerate(argv)) for n, argv in COMMANDS.items()},
+        "commands": {n: " ".join(Path(a).name if i == 0 else a for i, a in enumerate(argv))
+                     for n, argv in {**COMMANDS, **WORK}.items()},
+        "baseline_tree": str(args.baseline) if args.baseline else None,
         "stats": stats,
+        "cpu_median_s": cpu_median,
+        "cpu_ratio_over_baseline": compared,
         "samples_s": times,
         "ratio_ccrp_help_over_import_openstack": ratio,
         "ratio_target": TARGET_RATIO,
@@ -171,6 +210,9 @@ def main() -> None:
     print(f"  {'command':<18}{'median':>9}{'p90':>9}{'min':>9}")
     for n, s in stats.items():
         print(f"  {n:<18}{s['median_s'] * 1000:>7.0f}ms{s['p90_s'] * 1000:>7.0f}ms{s['min_s'] * 1000:>7.0f}ms")
+    print("  CPU per call (user + system, median): " + ", ".join(f"{n} {v * 1000:.0f} ms" for n, v in cpu_median.items()))
+    for n, ratio_n in compared.items():
+        print(f"  {n}: {ratio_n:.2f}x the baseline's CPU")
     print(f"  ratio median(ccrp --help)/median(import openstack) = {ratio:.2f} (target <= {TARGET_RATIO}): "
           f"{'OK' if ratio <= TARGET_RATIO else 'MISSED'}")
     bad = imports["forbidden_imported"]

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from .errors import CcrpError, shown
 from .models.inventory import Inventory, Robot
-from .render.bundles import BundleFile
+from .render.files import BundleFile
 from .layout import API_USER, CCRP_ETC, SECRETS_DIR
 
 API_UNIT = "ccrp-api-manager.service"

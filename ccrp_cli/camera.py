@@ -165,7 +165,7 @@ def _ask(provider, robot: str, topic: str, timeout: float) -> dict:
 def start_agent(provider, robot: str) -> None:
     """The camera agent on the clone, (re)started from this ccrp's copy of it."""
     from .evaluation import ROS_PRELUDE
-    from .render.bundles import BundleFile
+    from .render.files import BundleFile
     from .layout import CCRP_LIB
     from .simulated import run_unit
 

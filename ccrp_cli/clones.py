@@ -73,7 +73,7 @@ def applied_marker(files: list):
     killed between copying the files and restarting OpenVPN (which starts only when its key is
     there) leaves files that match and a server that never started: without the marker the next
     run took them for done, and the clone failed `not serving` on every run after."""
-    from .render.bundles import BundleFile
+    from .render.files import BundleFile
 
     listing = "".join(f"{f.dest} {f.group} {f.mode:o} {hashlib.sha256(f.content.encode()).hexdigest()}\n" for f in files)
     return BundleFile(".applied", hashlib.sha256(listing.encode()).hexdigest() + "\n", 0o600, f"{SECRETS_DIR}/.applied")
@@ -320,7 +320,7 @@ def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: 
 
 
 def relay_config_file(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None):
-    from .render.bundles import BundleFile
+    from .render.files import BundleFile
     from .sharing import relay_config_text
 
     return BundleFile("relay.json", relay_config_text(fleet, state, robot, live), 0o644, f"{CCRP_ETC}/relay.json")
@@ -328,7 +328,7 @@ def relay_config_file(fleet: Fleet, state: FleetState, robot: str, live: set[str
 
 def autostop_file(fleet: Fleet, robot):
     """The clone's autostop setting (agent/autostop.py reads it at every check)."""
-    from .render.bundles import BundleFile
+    from .render.files import BundleFile
 
     text = json.dumps({"robot": robot.name, "idle": fleet.inventory.idle_of(robot)}) + "\n"
     return BundleFile("autostop.json", text, 0o644, f"{CCRP_ETC}/autostop.json")

@@ -30,7 +30,7 @@ from .fleet import Fleet
 from .layout import WORKSPACE
 from .probe import same
 from .providers.base import CloneState, owner_labels
-from .render.bundles import BundleFile
+from .render.files import BundleFile
 from .workloads import (
     INDEX,
     NO_SOFTWARE,

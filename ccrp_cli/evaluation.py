@@ -86,7 +86,7 @@ class Bench:
     def prepare(self, robots: list[str]) -> None:
         """Each robot has a clone, a running simulated robot (started here if needed) and the
         agent on both ends."""
-        from .render.bundles import BundleFile
+        from .render.files import BundleFile
         from .templates import static
 
         clones = self.clones.query()
@@ -306,7 +306,7 @@ def send_command(fleet: Fleet, provider, robot: str, linear: float, angular: flo
     itself after TELEOP_IDLE_S without a command), so the next commands skip starting a ROS node."""
     import json
 
-    from .render.bundles import BundleFile
+    from .render.files import BundleFile
     from .templates import static
 
     check_command(linear, angular, topic)

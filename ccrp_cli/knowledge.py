@@ -19,7 +19,7 @@ from .agent.knowledge import name_problem
 from .errors import CcrpError, InputError, shown
 from .fleet import Fleet
 from .models.state import FleetState
-from .render.bundles import BundleFile
+from .render.files import BundleFile
 from .layout import CCRP_ETC, CCRP_LIB, SECRETS_DIR
 
 UNIT = "ccrp-knowledge.service"

@@ -177,7 +177,7 @@ class Sims:
 
     def set_link(self, robot: str, link: Link | None) -> None:
         """Shape (or, with None, stop shaping) the running robot's path to its clone, in place."""
-        from .render.bundles import BundleFile
+        from .render.files import BundleFile
         from .templates import static
 
         execute = lambda argv: self.exec(robot, argv)  # noqa: E731

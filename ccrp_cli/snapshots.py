@@ -210,7 +210,7 @@ def install_software(provider, builder, software: SnapshotSoftware, progress: Pr
     import re
     import time
 
-    from .render.bundles import BundleFile
+    from .render.files import BundleFile
     from .templates import static
 
     t0 = time.monotonic()

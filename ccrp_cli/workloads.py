@@ -18,7 +18,7 @@ from pathlib import Path
 from .errors import CcrpError, InputError, shown
 from .models.inventory import Inventory, Robot
 from .models.software import RunNode, Software
-from .render.bundles import BundleFile
+from .render.files import BundleFile
 from .templates import static
 
 UNIT_DIR = "/etc/systemd/system"

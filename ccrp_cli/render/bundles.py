@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
 from pathlib import Path
 
 from ..models.names import power_name
@@ -14,16 +13,8 @@ from ..store import atomic_write, ensure_dir
 from . import network, openvpn
 from ..templates import render, static
 from ..layout import RELAY_USER, SECRETS_DIR
+from .files import BundleFile
 from .view import CloneView
-
-
-@dataclass(frozen=True)
-class BundleFile:
-    name: str
-    content: str
-    mode: int
-    dest: str | None = None  # absolute path on the target, for pushed bundles
-    group: str = "root"
 
 
 def clone_secrets(view: CloneView, creds: RobotCredentials) -> list[BundleFile]:

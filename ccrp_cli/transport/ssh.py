@@ -295,7 +295,7 @@ class SshTransport:
         return out
 
     def put_files(self, files: list) -> None:
-        """Install bundle files (render.bundles.BundleFile: dest, content, mode, group) as root:
+        """Install bundle files (render.files.BundleFile: dest, content, mode, group) as root:
         uploaded over SFTP into a fresh 0700 directory of the login user in /dev/shm (memory: a
         key must not touch the disk even while staged), then `sudo install
         -m MODE -o root -g GROUP` to their destination; the directory is removed in any case."""

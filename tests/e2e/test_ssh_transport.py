@@ -42,7 +42,7 @@ from ccrp_cli.providers import cloud  # noqa: E402
 from ccrp_cli.providers.base import CloneRecord, CloneState  # noqa: E402
 from ccrp_cli.providers.docker.archive import tar_files  # noqa: E402
 from ccrp_cli.render import bundles, cloudinit, openvpn  # noqa: E402
-from ccrp_cli.render.bundles import BundleFile  # noqa: E402
+from ccrp_cli.render.files import BundleFile  # noqa: E402
 from ccrp_cli.render.view import SECRETS_DIR, VPN_DIR  # noqa: E402
 from ccrp_cli.transport.ssh import KnownHosts, SshTransport, fingerprint, fingerprints_from_console  # noqa: E402
 

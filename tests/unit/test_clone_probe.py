@@ -8,7 +8,7 @@ import hashlib
 from ccrp_cli import clones, reconcile
 from ccrp_cli.clones import StateWriter, probe, relay_config_file
 from ccrp_cli.providers.base import CloneRecord, CloneState
-from ccrp_cli.render.bundles import BundleFile
+from ccrp_cli.render.files import BundleFile
 from ccrp_cli.sharing import relay_config
 
 RESULT = '{\n "v1": {\n  "datasource": "DataSourceNoCloud",\n  "errors": []\n }\n}\n'
