@@ -27,7 +27,6 @@ class CcrpError(Exception):
             text += f" (hint: {' '.join(self.hint.split())})"
         return text
 
-
     def envelope(self) -> dict:
         """What `--json` prints on stdout for a failure (README: Commands)."""
         return {"error": {"code": self.code, "message": " ".join(self.message.split()),

@@ -274,7 +274,9 @@ def test_cloud_faults_give_per_robot_results_and_a_rerun_converges(run, fault):
         # This fault lowers the project's instance quota, which Nova's limits report: `fleet scale`
         # refuses before creating anything, in one line naming the quota (ccrp_cli/quotas.py). The
         # other clouds' quota faults refuse the create itself without a lower reported quota.
-        assert proc.returncode == 1 and proc.stdout.strip() == "", proc.stderr[-2000:]
+        assert proc.returncode == 1, proc.stderr[-2000:]
+        envelope = json.loads(proc.stdout)["error"]  # --json: the failure on stdout too
+        assert envelope["code"] == 1 and "openstack quota instances" in envelope["message"], envelope
         assert "openstack quota instances in project of cloud" in proc.stderr, proc.stderr[-2000:]
         assert "0 free, this needs 1" in proc.stderr, proc.stderr[-2000:]
         run.ccrp("fleet", "scale", "3")  # converges once the quota is back
