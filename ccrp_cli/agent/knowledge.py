@@ -541,22 +541,44 @@ class Agent:
         self.error(msg)
 
     def fetch(self, ds: str, rec: dict, holder: str) -> bytes | None:
-        """The object of `rec` from `holder`, if it answers with the content the record names:
-        its size (checked before the bytes are copied out of Zenoh's buffer) and its hash."""
-        sha, size = rec["sha256"], rec["size"]
+        """The object of `rec`, asked of `holder` (who sent the record), then of any partner that
+        holds it: objects are named by their hash, so any copy that hashes right is the one the
+        record names, and the record itself still came from who may vouch for it. Zenoh's peer
+        routing can lose a partner's queryable for seconds after another peer leaves or a session
+        reopens, while its events still arrive (eclipse-zenoh/zenoh#2517, #2767): seen here as a
+        fetch from the record's sender with no reply within 30 s after `fleet scale` removed a
+        robot. Each try is bounded by the item's size (5 s plus 1 s a MB, at most FETCH_TIMEOUT)."""
         if holder == self.cfg["robot"]:
             return None
-        for reply in self.session.get(self.k(ds, holder, "blob", sha), timeout=FETCH_TIMEOUT):
+        timeout = min(FETCH_TIMEOUT, 5.0 + rec["size"] / 1e6)
+        for attempt, who in enumerate((holder, "*", "*")):
+            if attempt:
+                time.sleep(1.0)
+            data = self._ask(ds, rec, who, timeout)
+            if data is not None:
+                return data
+        return None
+
+    def _ask(self, ds: str, rec: dict, who: str, timeout: float) -> bytes | None:
+        """The object of `rec` from `who` (a partner, or `*`: every partner, the first good copy),
+        if one answers with the content the record names: its size (checked before the bytes are
+        copied out of Zenoh's buffer) and its hash."""
+        import zenoh
+
+        sha, size = rec["sha256"], rec["size"]
+        target = zenoh.QueryTarget.ALL if who == "*" else zenoh.QueryTarget.BEST_MATCHING
+        for reply in self.session.get(self.k(ds, who, "blob", sha), target=target, timeout=timeout):
             if reply.ok is None:
                 continue
+            sender = self.writer(reply.ok.key_expr)
             if len(reply.ok.payload) != size:
-                self.refuse((ds, holder, "size", sha), f"{ds}: {holder} sent {len(reply.ok.payload)} bytes for "
+                self.refuse((ds, sender, "size", sha), f"{ds}: {sender} sent {len(reply.ok.payload)} bytes for "
                             f"{rec['name']!r:.120} ({sha[:12]}), whose record says {size}: dropped")
                 continue
             data = reply.ok.payload.to_bytes()
             if hashlib.sha256(data).hexdigest() == sha:
                 return data
-            self.error(f"{ds}: {holder} sent content that does not hash to {sha[:12]}")
+            self.error(f"{ds}: {sender} sent content that does not hash to {sha[:12]}")
         return None
 
     def take(self, ds: str, records: list, sender: str) -> int:
@@ -590,8 +612,8 @@ class Agent:
             if d.missing(rec):
                 data = self.fetch(ds, rec, sender)
                 if data is None:
-                    self.error(f"{ds}: {rec['name']} ({rec['sha256'][:12]}) not fetched from {sender}; "
-                               "the next reconciliation tries again")
+                    self.error(f"{ds}: {rec['name']} ({rec['sha256'][:12]}) not fetched from {sender} or another "
+                               "partner; the next reconciliation tries again")
                     continue
                 try:
                     with self.lock:

@@ -467,6 +467,25 @@ def test_reconciliation_repairs_what_a_stopped_clone_missed(agents):
     assert reply["ok"] and reply["items"] == 1 and reply["tombstones"] == 1, reply
 
 
+def test_an_object_its_sender_does_not_serve_comes_from_another_partner(agents):
+    """Zenoh's routing can lose a partner's queryable for a while (after another peer leaves),
+    while its records still arrive: the object then comes from any partner holding it, checked
+    against the hash the sender's record names."""
+    start, tmp = agents
+    nao1, nao2 = start("nao1"), start("nao2")
+    until("nao1 answering nao2", lambda: answering(nao2, "nao1"), 10)
+    nao1({"op": "add", "dataset": "faces", "name": "bob.jpg"}, b"bob as nao1 saw him", tmp)
+    until("bob on nao2", lambda: names(nao2) == [("bob.jpg", "nao1")])
+    blob = next(d for d in nao1.agent.decls if str(d.key_expr).endswith("/nao1/blob/*"))
+    blob.undeclare()  # nao1 serves its index, but no object any more
+    nao1.agent.decls.remove(blob)
+    tb = start("turtlebot1")  # down until now: it learns bob from nao1's index
+    until("nao1 and nao2 answering turtlebot1", lambda: answering(tb, "nao1") and answering(tb, "nao2"), 10)
+    tb.agent.reconcile()
+    assert names(tb) == [("bob.jpg", "nao1")]
+    assert (tmp / "turtlebot1" / "faces" / "files" / "bob.jpg").read_bytes() == b"bob as nao1 saw him"
+
+
 def test_a_transfer_cut_midway_leaves_no_item(agents, monkeypatch):
     """A holder that sends content which does not hash to what its record says (a transfer cut
     short, a corrupt disk) gives no item; a later reconciliation with a good holder does."""
