@@ -456,8 +456,11 @@ class Agent:
             d.undeclare()
         self.decls = []
         if self.session is not None:
-            self.session.close()
-            self.session = None
+            old, self.session = self.session, None
+            try:
+                old.close()
+            except Exception as exc:  # noqa: BLE001 - as in relay.py: a close that times out on a gone peer
+                log(f"closing the previous session: {type(exc).__name__}: {exc}")
         self.session = zenoh.open(zenoh_config(self.cfg))
         me = self.cfg["robot"]
         for ds in self.datasets:
@@ -827,10 +830,11 @@ def main() -> None:
     next_reconcile = time.monotonic() + cfg["reconcile"]
     while True:
         try:
-            if os.stat(path).st_mtime != mtime:
-                mtime = os.stat(path).st_mtime
+            changed = os.stat(path).st_mtime
+            if changed != mtime:
                 with open(path) as fh:
                     agent.apply(json.load(fh))
+                mtime = changed  # only once applied: a config that failed is applied again next second
             agent.watch_peers()
             if time.monotonic() >= next_reconcile:
                 agent.jobs.put(("reconcile",))

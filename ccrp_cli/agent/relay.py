@@ -195,8 +195,14 @@ class Relay:
         for local in list(self.imports):
             self.imports.pop(local).close()
         if self.session is not None:
-            self.session.close()
-            self.session = None
+            old, self.session = self.session, None
+            try:
+                old.close()
+            except Exception as exc:  # noqa: BLE001 - the new session opens whatever the old one does
+                # Zenoh's close can time out on a link to a peer that is gone (a deleted clone):
+                # seen here as "close operation timed out", after which the relay had neither its
+                # old session nor a new one, and no exports or imports, until the next config.
+                log(f"closing the previous session: {type(exc).__name__}: {exc}")
         # If this raises, endpoints stay as they were and the next apply() tries again.
         self.session, self.endpoints = zenoh.open(zenoh_config(cfg)), endpoints
 
@@ -273,10 +279,11 @@ def main() -> None:
     while ros.ok():
         try:
             relay.poll()
-            if os.stat(path).st_mtime != mtime:
-                mtime = os.stat(path).st_mtime
+            changed = os.stat(path).st_mtime
+            if changed != mtime:
                 with open(path) as fh:
                     relay.apply(json.load(fh))
+                mtime = changed  # only once applied: a config that failed is applied again next second
             write_atomic(cfg["status"], json.dumps(relay.status()))
         except Exception as exc:  # noqa: BLE001 - keep relaying; report and retry next second
             log(f"{type(exc).__name__}: {exc}")
