@@ -12,13 +12,14 @@ from .aws import INFO as _AWS
 from .base import Ability, ProviderInfo
 from .docker import INFO as _DOCKER
 from .gcp import INFO as _GCP
+from .libvirt import INFO as _LIBVIRT
 from .openstack import INFO as _OPENSTACK
 
 if TYPE_CHECKING:
     from ..models.inventory import Inventory
     from .base import Provider
 
-REGISTRY: dict[str, ProviderInfo] = {i.kind: i for i in (_DOCKER, _OPENSTACK, _GCP, _AWS)}
+REGISTRY: dict[str, ProviderInfo] = {i.kind: i for i in (_DOCKER, _OPENSTACK, _GCP, _AWS, _LIBVIRT)}
 
 
 def info(kind: str) -> ProviderInfo:
