@@ -218,3 +218,101 @@ def test_golden_needs_its_tools(monkeypatch, tmp_path):
     with pytest.raises(CcrpError) as err:
         goldens.build(object(), "ccrp/vmlab-clone:1", tmp_path)
     assert "qemu-img" in err.value.message and "qemu-utils" in err.value.hint
+
+
+# -- what the fleet owns, against a stand-in connection (names and metadata as libvirt returns them) -----
+
+class _Vol:
+    def __init__(self, name):
+        self._name = name
+
+    def name(self):
+        return self._name
+
+
+class _Pool:
+    def __init__(self, names):
+        self.vols = [_Vol(n) for n in names]
+
+    def refresh(self, flags):
+        return 0
+
+    def isActive(self):
+        return True
+
+    def listAllVolumes(self, flags):
+        return self.vols
+
+
+class _Dom:
+    def __init__(self, name, labels, uuid):
+        self._xml = xmldefs.domain(domain_spec(name=name, labels=labels))
+        self._name, self._uuid = name, uuid
+
+    def name(self):
+        return self._name
+
+    def UUIDString(self):
+        return self._uuid
+
+    def XMLDesc(self, flags):
+        return self._xml
+
+
+class _Net(_Vol):
+    pass
+
+
+class _Conn:
+    def __init__(self, doms, pool, nets):
+        self.doms, self.pool, self.nets = doms, pool, nets
+
+    def listAllDomains(self, flags):
+        return self.doms
+
+    def listAllNetworks(self, flags):
+        return self.nets
+
+    def storagePoolLookupByName(self, name):
+        return self.pool
+
+
+def stand_in(tmp_path, volumes, domains, networks):
+    inv = inventory(tmp_path)
+    p = object.__new__(provider.LibvirtProvider)
+    p.inv, p.fleet, p.workdir, p.settings = inv, inv.fleet, tmp_path, inv.provider
+    p.libvirt = type("sdk", (), {"libvirtError": type("libvirtError", (Exception,), {})})
+    p.conn = _Conn(domains, _Pool(volumes), [_Net(n) for n in networks])
+    return p
+
+
+def test_list_owned_and_the_leak_rule(tmp_path):
+    from ccrp_cli.gc import find_leaks
+    from ccrp_cli.models.state import FleetState
+
+    golden = "ccrp-vmlab-golden-20261126040000"
+    p = stand_in(tmp_path, volumes=[
+        f"{golden}.qcow2", f"{golden}.vmlinuz", f"{golden}.initrd",  # a snapshot and its boot files
+        "ccrp-vmlab-golden-20250101000000.initrd",  # a boot file whose snapshot is gone
+        "ccrp-vmlab-cri-nao1.qcow2", "ccrp-vmlab-cri-nao1-seed.iso", "ccrp-vmlab-cri-nao1.console",
+        "ccrp-vmlab-cri-nao2.qcow2",  # left by a robot that has no clone
+        "ccrp-vmlab2-cri-nao1.qcow2", "debian.qcow2",  # another fleet's, not ccrp's
+    ], domains=[
+        _Dom("ccrp-vmlab-cri-nao1", owner_labels("vmlab", "clone", "nao1"), "uuid-1"),
+        _Dom("ccrp-vmlab-cri-nao3", owner_labels("other", "clone", "nao3"), "uuid-3"),  # labels of another fleet
+        _Dom("mine", owner_labels("vmlab", "clone", "nao1"), "uuid-4"),  # not named as ccrp names them
+    ], networks=["ccrp-vmlab-public", "ccrp-vmlab-common", "ccrp-vmlab2-public", "default"])
+    owned = p.list_owned()
+    assert [(r.kind, r.name, r.robot) for r in owned] == [
+        ("instance", "ccrp-vmlab-cri-nao1", "nao1"),
+        ("volume", "ccrp-vmlab-golden-20250101000000.initrd", None),
+        ("volume", "ccrp-vmlab-cri-nao1.qcow2", "nao1"), ("volume", "ccrp-vmlab-cri-nao1-seed.iso", "nao1"),
+        ("volume", "ccrp-vmlab-cri-nao1.console", "nao1"), ("volume", "ccrp-vmlab-cri-nao2.qcow2", "nao2"),
+        ("network", "ccrp-vmlab-public", None), ("network", "ccrp-vmlab-common", None),
+        ("image", f"{golden}.qcow2", None),
+    ]
+    state = FleetState.model_validate({"fleet": "vmlab", "robots": {"nao1": {"index": 1, "provider_id": "uuid-1", "phase": "ready"}}})
+    state.snapshot = {"image": f"{golden}.qcow2", "id": f"{golden}.qcow2"}
+    leaks = find_leaks(state, owned, [])
+    assert sorted(r.name for r in leaks) == ["ccrp-vmlab-cri-nao2.qcow2", "ccrp-vmlab-golden-20250101000000.initrd"]
+    assert p.leftovers() == [f"{'domain' if r.kind == 'instance' else r.kind} {r.name}" for r in owned if r.kind != "image"]

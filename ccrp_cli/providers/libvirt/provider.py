@@ -36,6 +36,8 @@ STATES = {"nostate": CloneState.PENDING, "running": CloneState.RUNNING, "blocked
           "paused": CloneState.STOPPED, "shutdown": CloneState.STOPPING, "shutoff": CloneState.STOPPED,
           "crashed": CloneState.ERROR, "pmsuspended": CloneState.STOPPED}
 GOLDEN = re.compile(r"^ccrp-(?P<fleet>[a-z][a-z0-9]*)-golden-(?:(?P<robot>[a-z][a-z0-9]*)-)?(?P<stamp>\d{14})\.qcow2$")
+# A clone's volumes after `ccrp-<fleet>-cri-`: its robot, then what it is (LibvirtProvider.clone_volumes).
+CLONE_VOLUME = re.compile(r"^(?P<robot>[a-z][a-z0-9]*)(\.qcow2|-seed\.iso|\.console)$")
 CONSOLE_TAIL = 4 << 20  # bytes of a console log read at most (its last boots)
 PROBE_MARK = re.compile(r"Run /init as init process|Freeing unused kernel")
 PROBE_TIMEOUT = 20.0  # a guest that works gets there in about a second under KVM, two under TCG
@@ -231,22 +233,27 @@ class LibvirtProvider(CloudProvider):
     def _accel_cache(self) -> Path:
         return self.workdir / "libvirt-accel.json"
 
+    def _probed(self) -> dict[str, str]:
+        try:
+            cached = json.loads(self._accel_cache.read_text())
+        except (OSError, ValueError):
+            return {}
+        return cached if isinstance(cached, dict) else {}
+
     def accel(self, kernel: str, initrd: str) -> str:
         """kvm or tcg: the inventory's choice, else what a probe boot found on this host (kept in the
-        fleet store per URI, so the probe runs once)."""
+        fleet store per URI, so the probe runs once; delete libvirt-accel.json to probe again)."""
         if self.settings.accel != "auto":
             return self.settings.accel
         with self._lock:
             if self._accel:
                 return self._accel
-            try:
-                cached = json.loads(self._accel_cache.read_text())
-            except (OSError, ValueError):
-                cached = {}
+            cached = self._probed()
             if cached.get(self.settings.uri) not in ("kvm", "tcg"):
                 from ...store import atomic_write
 
-                cached[self.settings.uri] = self.probe_kvm(kernel, initrd)[0]
+                cached[self.settings.uri], why = self.probe_kvm(kernel, initrd)
+                cached[f"{self.settings.uri} why"] = why
                 atomic_write(self._accel_cache, json.dumps(cached) + "\n")
             self._accel = cached[self.settings.uri]
             return self._accel
@@ -523,11 +530,15 @@ class LibvirtProvider(CloudProvider):
             found = [OwnedResource(kind="instance", id=d.UUIDString(), name=d.name(), robot=i.labels.get(LABEL_ROBOT))
                      for d, i in self._domains()]
             pool = self._refreshed(self._pool())
-            for vol in pool.listAllVolumes(0):
-                if self._owns_name(vol.name()):
-                    m = GOLDEN.match(vol.name())
-                    kind = "image" if m or vol.name().startswith(self.name("golden") + "-") else "volume"
-                    found.append(OwnedResource(kind=kind, id=vol.name(), name=vol.name(), robot=m["robot"] if m else None))
+            names = [v.name() for v in pool.listAllVolumes(0) if self._owns_name(v.name())]
+            goldens = {n.removesuffix(".qcow2") for n in names if GOLDEN.match(n)}
+            for name in names:
+                stem, dot, ext = name.rpartition(".")
+                if m := GOLDEN.match(name):  # a snapshot; its kernel and initramfs go with it
+                    found.append(OwnedResource(kind="image", id=name, name=name, robot=m["robot"]))
+                elif not (ext in ("vmlinuz", "initrd") and stem in goldens):
+                    m = CLONE_VOLUME.match(name.removeprefix(self.name("cri") + "-"))
+                    found.append(OwnedResource(kind="volume", id=name, name=name, robot=m["robot"] if m else None))
             found += [OwnedResource(kind="network", id=n.name(), name=n.name())
                       for n in self.conn.listAllNetworks(0) if n.name() in (self.public_net, self.common_net)]
             order = ("instance", "volume", "network", "image")
@@ -596,8 +607,13 @@ class LibvirtProvider(CloudProvider):
         with self._errors(f"libvirt at {self.settings.uri}"):
             v = self.conn.getLibVersion()
             host = self.conn.getHostname()
-            return (f"libvirt {v // 1_000_000}.{v // 1000 % 1000}.{v % 1000} on {host} ({self.settings.uri}), "
-                    f"accel {self.settings.accel}{' (' + self._accel + ')' if self._accel else ''}")
+            probed = self._probed()
+            accel = self.settings.accel
+            if accel == "auto":
+                found = probed.get(self.settings.uri)
+                accel = f"auto: {found} ({probed.get(self.settings.uri + ' why', '')})" if found else \
+                    "auto (probed at the first clone's boot)"
+            return f"libvirt {v // 1_000_000}.{v // 1000 % 1000}.{v % 1000} on {host} ({self.settings.uri}), accel {accel}"
 
     def quotas(self, robots: Sequence[str] = ()) -> list[Quota]:
         """The libvirt host's memory: what every running domain has, against what it has in all.
