@@ -316,3 +316,17 @@ def test_list_owned_and_the_leak_rule(tmp_path):
     leaks = find_leaks(state, owned, [])
     assert sorted(r.name for r in leaks) == ["ccrp-vmlab-cri-nao2.qcow2", "ccrp-vmlab-golden-20250101000000.initrd"]
     assert p.leftovers() == [f"{'domain' if r.kind == 'instance' else r.kind} {r.name}" for r in owned if r.kind != "image"]
+
+
+def test_ssh_is_let_in_from_the_host_on_the_nat_network(tmp_path, ccrp_home):
+    """The clone's firewall admits SSH from provider.operator_cidr only: by default the libvirt host's
+    address on the fleet's NAT network (ccrp's SSH comes from there)."""
+    from ccrp_cli.fleet import Fleet, clone_view
+    from ccrp_cli.render.network import firewall_rules
+
+    inv = inventory(tmp_path, public_cidr="192.168.151.0/24")
+    assert inv.provider.operator_cidr == ipaddress.IPv4Network("192.168.151.1/32")
+    assert inventory(tmp_path, operator_cidr="203.0.113.0/24").provider.operator_cidr == ipaddress.IPv4Network("203.0.113.0/24")
+    fleet = Fleet.open(tmp_path / "ccrp.yaml")
+    rules, _ = firewall_rules(clone_view(fleet, fleet.store.load_state(), "nao1"))
+    assert "-A INPUT -p tcp -s 203.0.113.0/24 --dport 22 -j ACCEPT" in rules

@@ -272,7 +272,8 @@ class LibvirtProvider(CloudProvider):
         try:
             dom = self.conn.createXML(xmldefs.probe_domain(self.name("kvm-probe"), kernel, initrd, log_path), 0)
         except self.libvirt.libvirtError as exc:
-            return "tcg", f"a KVM guest did not start ({self._message(exc)[:120]})"
+            # QEMU's own line says why ("failed to set MSR 0x10a to 0x69" without vmx/svm): after libvirt's words.
+            return "tcg", f"a KVM guest did not start ({self._message(exc).split('qemu-system-x86_64: ')[-1][:160]})"
         t0, seen = time.monotonic(), ""
         try:
             while time.monotonic() - t0 < PROBE_TIMEOUT:

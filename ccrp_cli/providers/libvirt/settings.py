@@ -6,7 +6,7 @@ import ipaddress
 import re
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, Field
+from pydantic import AfterValidator, Field, model_validator
 
 from ...models.strict import Strict
 from ...errors import shown
@@ -49,7 +49,16 @@ class LibvirtSettings(Strict):
     # The fleet's NAT network (plays the clouds' public network): the host is its first address,
     # clones get theirs from its DHCP range.
     public_cidr: ipaddress.IPv4Network = ipaddress.IPv4Network("192.168.150.0/24")
+    # Where SSH to the clones may come from (their firewall, templates/clone/firewall.rules.j2): by
+    # default the libvirt host's own address on the NAT network, the one way in from outside it.
+    operator_cidr: ipaddress.IPv4Network | None = None
     # The storage pool (a directory on the libvirt host) holding golden volumes, overlays, seeds
     # and consoles; created by `fleet up` when missing, shared by fleets, never removed by ccrp.
     pool: Annotated[str, AfterValidator(_pool)] = "ccrp"
     pool_dir: Annotated[str, AfterValidator(_dir)] = "/var/lib/libvirt/images/ccrp"
+
+    @model_validator(mode="after")
+    def _operator_is_the_host(self) -> "LibvirtSettings":
+        if self.operator_cidr is None:
+            self.operator_cidr = ipaddress.IPv4Network(f"{next(self.public_cidr.hosts())}/32")
+        return self
