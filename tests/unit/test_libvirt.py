@@ -330,3 +330,17 @@ def test_ssh_is_let_in_from_the_host_on_the_nat_network(tmp_path, ccrp_home):
     fleet = Fleet.open(tmp_path / "ccrp.yaml")
     rules, _ = firewall_rules(clone_view(fleet, fleet.store.load_state(), "nao1"))
     assert "-A INPUT -p tcp -s 203.0.113.0/24 --dport 22 -j ACCEPT" in rules
+
+
+def test_public_address_is_reserved_at_the_common_offset(tmp_path):
+    p = stand_in(tmp_path, [], [], [])
+    p.inv = inventory(tmp_path, public_cidr="192.168.151.0/24")
+    p.settings = p.inv.provider
+    assert p.public_ip("10.90.0.10") == "192.168.151.10"  # common.cidr 10.90.0.0/24, clone k at .9 + k
+    with pytest.raises(CcrpError, match="no counterpart"):
+        p.public_ip("10.90.1.10")
+    host = ET.fromstring(xmldefs.dhcp_host("52:54:00:00:00:01", "192.168.151.10", "cri-nao1"))
+    assert host.attrib == {"mac": "52:54:00:00:00:01", "name": "cri-nao1", "ip": "192.168.151.10"}
+    net = ET.fromstring(xmldefs.nat_network("n", "b", ipaddress.IPv4Network("192.168.151.0/24")))
+    net.find("ip/dhcp").append(host)
+    assert xmldefs.dhcp_hosts(ET.tostring(net, encoding="unicode")) == {"52:54:00:00:00:01": "192.168.151.10"}

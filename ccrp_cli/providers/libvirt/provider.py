@@ -40,7 +40,11 @@ GOLDEN = re.compile(r"^ccrp-(?P<fleet>[a-z][a-z0-9]*)-golden-(?:(?P<robot>[a-z][
 CLONE_VOLUME = re.compile(r"^(?P<robot>[a-z][a-z0-9]*)(\.qcow2|-seed\.iso|\.console)$")
 CONSOLE_TAIL = 4 << 20  # bytes of a console log read at most (its last boots)
 PROBE_MARK = re.compile(r"Run /init as init process|Freeing unused kernel")
-PROBE_TIMEOUT = 20.0  # a guest that works gets there in about a second under KVM, two under TCG
+PROBE_TIMEOUT = 20.0
+# Waits on an emulated (TCG) guest get this many times the time ccrp's callers give a VM: its first
+# boot took 272 s to the end of cloud-init on this 2-core machine under load (docs/libvirt.md),
+# where `fleet up` gives a clone 300 s, and every command in it runs several times slower.
+TCG_SLOWDOWN = 3  # a guest that works gets there in about a second under KVM, two under TCG
 
 
 def _sdk():
@@ -76,6 +80,7 @@ class LibvirtProvider(CloudProvider):
                             hint="start libvirtd (scripts/libvirt.sh) or check provider.uri") from None
         self._lock = threading.Lock()
         self._accel: str | None = None
+        self._emulated: dict[str, bool] = {}  # robot -> its domain runs under TCG
 
     # -- errors ------------------------------------------------------------------------------
     def _message(self, exc: BaseException) -> str:
@@ -269,13 +274,15 @@ class LibvirtProvider(CloudProvider):
         pool = self._pool()
         log_name = self.name("kvm-probe") + xmldefs.CONSOLE_SUFFIX
         log_path = f"{xmldefs.pool_path(pool.XMLDesc(0))}/{log_name}"
-        try:
-            dom = self.conn.createXML(xmldefs.probe_domain(self.name("kvm-probe"), kernel, initrd, log_path), 0)
-        except self.libvirt.libvirtError as exc:
-            # QEMU's own line says why ("failed to set MSR 0x10a to 0x69" without vmx/svm): after libvirt's words.
-            return "tcg", f"a KVM guest did not start ({self._message(exc).split('qemu-system-x86_64: ')[-1][:160]})"
-        t0, seen = time.monotonic(), ""
-        try:
+        t0, seen, dom = time.monotonic(), "", None
+        try:  # virtlogd writes the log even for a guest QEMU could not start: it goes in any case
+            try:
+                dom = self.conn.createXML(xmldefs.probe_domain(self.name("kvm-probe"), kernel, initrd, log_path), 0)
+            except self.libvirt.libvirtError as exc:
+                # QEMU's own line says why ("failed to set MSR 0x10a to 0x69" without vmx/svm), after libvirt's words.
+                said = self._message(exc).split("qemu-system-x86_64: ")
+                why = next((part for part in said if part.startswith("error: ")), said[-1])
+                return "tcg", f"a KVM guest did not start ({why.strip()[:160]})"
             while time.monotonic() - t0 < PROBE_TIMEOUT:
                 vol = self._vol(self._refreshed(pool), log_name)
                 seen = self._download(vol).decode(errors="replace") if vol is not None else ""
@@ -285,10 +292,11 @@ class LibvirtProvider(CloudProvider):
                     break
                 time.sleep(0.5)
         finally:
-            try:
-                dom.destroy()
-            except self.libvirt.libvirtError:
-                pass  # ended by itself (panic=-1, on_reboot destroy)
+            if dom is not None:
+                try:
+                    dom.destroy()
+                except self.libvirt.libvirtError:
+                    pass  # ended by itself (panic=-1, on_reboot destroy)
             self._delete_vol(self._refreshed(pool), log_name)
         return "tcg", f"a KVM guest did not reach its initramfs in {PROBE_TIMEOUT:.0f} s ({seen.strip()[-80:]!r})"
 
@@ -308,19 +316,52 @@ class LibvirtProvider(CloudProvider):
         found = self._domains(robot, "clone")
         return found[0] if found else (None, None)
 
-    def _lease(self, mac: str) -> str | None:
+    def public_ip(self, common_ip: str) -> str:
+        """The clone's public address: at its common address's offset in provider.public_cidr (the
+        addressing plan gives each clone its own), reserved for its MAC on the NAT network."""
+        import ipaddress
+
+        pub = self.settings.public_cidr
+        offset = int(ipaddress.IPv4Address(common_ip)) - int(self.inv.common.cidr.network_address)
+        hosts = pub.num_addresses - 2
+        if not 2 <= offset <= hosts:  # .1 is the host's
+            raise CcrpError(f"clone address {common_ip} has no counterpart in provider.public_cidr {pub}",
+                            hint="give provider.public_cidr at least as many addresses as common.cidr")
+        return str(pub.network_address + offset)
+
+    def _reserve(self, mac: str, ip: str, hostname: str) -> None:
         net = self._network(self.public_net)
-        if net is None or not net.isActive():
-            return None
-        leases = [lease for lease in net.DHCPLeases(mac, 0) if lease.get("type") == self.libvirt.VIR_IP_ADDR_TYPE_IPV4]
-        return max(leases, key=lambda lease: lease.get("expirytime", 0))["ipaddr"] if leases else None
+        if net is None:
+            raise CcrpError(f"fleet {self.fleet!r} has no network {self.public_net}", hint="run `ccrp fleet up`")
+        have = xmldefs.dhcp_hosts(net.XMLDesc(0))
+        if have.get(mac) == ip:
+            return
+        lv, flags = self.libvirt, self.libvirt.VIR_NETWORK_UPDATE_AFFECT_CONFIG
+        flags |= lv.VIR_NETWORK_UPDATE_AFFECT_LIVE if net.isActive() else 0
+        if mac in have:
+            self._unreserve(mac)
+        self.api("reserve the public address", net.update, lv.VIR_NETWORK_UPDATE_COMMAND_ADD_LAST,
+                 lv.VIR_NETWORK_SECTION_IP_DHCP_HOST, -1, xmldefs.dhcp_host(mac, ip, hostname), flags)
+
+    def _unreserve(self, mac: str) -> None:
+        net = self._network(self.public_net)
+        if net is None or mac not in (have := xmldefs.dhcp_hosts(net.XMLDesc(0))):
+            return
+        lv, flags = self.libvirt, self.libvirt.VIR_NETWORK_UPDATE_AFFECT_CONFIG
+        flags |= lv.VIR_NETWORK_UPDATE_AFFECT_LIVE if net.isActive() else 0
+        self.api("release the public address", net.update, lv.VIR_NETWORK_UPDATE_COMMAND_DELETE,
+                 lv.VIR_NETWORK_SECTION_IP_DHCP_HOST, -1, xmldefs.dhcp_host(mac, have[mac], ""), flags)
+
+    def _reserved(self, mac: str) -> str | None:
+        net = self._network(self.public_net)
+        return xmldefs.dhcp_hosts(net.XMLDesc(0)).get(mac) if net is not None else None
 
     def _record(self, dom, info: xmldefs.DomainInfo, created: bool = False) -> CloneRecord:
         word = WORDS[dom.state(0)[0]] if dom.state(0)[0] < len(WORDS) else "unknown"
         mac = info.macs.get(self.public_net)
         return CloneRecord(robot=info.labels.get(LABEL_ROBOT, ""), provider_id=dom.UUIDString(),
                            state=CloneState.of(word, STATES), status=word,
-                           public_ip=self._lease(mac) if mac else None, common_ip=info.common_ip, created=created)
+                           public_ip=self._reserved(mac) if mac else None, common_ip=info.common_ip, created=created)
 
     def query(self) -> dict[str, CloneRecord]:
         with self._errors("list clones"):
@@ -335,6 +376,27 @@ class LibvirtProvider(CloudProvider):
             raise CcrpError(f"golden volume {image} (with its .vmlinuz and .initrd) is not in storage pool {self.settings.pool}",
                             hint="import the fleet's snapshot (docs/libvirt.md)")
         return tuple(v.path() for v in vols)  # type: ignore[return-value]
+
+    def _slowdown(self, robot: str) -> int:
+        """TCG_SLOWDOWN for a clone emulated by TCG (its domain type is qemu), else 1."""
+        with self._lock:
+            known = self._emulated.get(robot)
+        if known is None:
+            dom, _info = self._domain(robot)
+            if dom is None:
+                return 1
+            import xml.etree.ElementTree as ET
+
+            known = ET.fromstring(dom.XMLDesc(0)).get("type") == "qemu"
+            with self._lock:
+                self._emulated[robot] = known
+        return TCG_SLOWDOWN if known else 1
+
+    def wait_ready(self, robot: str, timeout: float = 600) -> None:
+        super().wait_ready(robot, timeout * self._slowdown(robot))
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
+        return super().exec(robot, argv, timeout * self._slowdown(robot))
 
     def has_image(self, image: str) -> bool:
         try:
@@ -380,6 +442,7 @@ class LibvirtProvider(CloudProvider):
         self.api("create the overlay", pool.createXML, xmldefs.volume(vols["disk"], capacity, "qcow2", backing=disk_path), 0)
         created.append(vols["disk"])
         public_mac, common_mac = self.macs(spec.robot)
+        self._reserve(public_mac, self.public_ip(spec.common_ip), spec.hostname)
         iso = seed.seed_iso(spec.user_data, spec.instance_id, spec.hostname,
                             seed.network_config(public_mac, common_mac, spec.common_ip, self.inv.common.cidr))
         self._upload(pool, vols["seed"], iso, "raw")
@@ -431,7 +494,10 @@ class LibvirtProvider(CloudProvider):
     def terminate(self, robot: str) -> bool:
         """The robot's VM and its volumes (overlay, seed, console)."""
         with self._errors(f"delete clone of {robot}"):
+            with self._lock:
+                self._emulated.pop(robot, None)
             existed = self._remove_domain(robot)
+            self._unreserve(self.macs(robot)[0])
             pool = self._refreshed(self._pool())
             for name in self.clone_volumes(robot).values():
                 self._delete_vol(pool, name)

@@ -70,8 +70,15 @@ def isolated_network(name: str, bridge: str) -> str:
     return dump(net)
 
 
-def network_name_of(xml: str) -> str:
-    return ET.fromstring(xml).findtext("name") or ""
+def dhcp_host(mac: str, ip: str, name: str) -> str:
+    """A reservation on the NAT network: the clone's public address is fixed, as a floating IP is,
+    across reboots and re-creations (a new machine-id would otherwise get a new lease)."""
+    return dump(ET.Element("host", mac=mac, name=name, ip=ip))
+
+
+def dhcp_hosts(xml: str) -> dict[str, str]:
+    """A network's reservations: MAC -> IP."""
+    return {h.get("mac", "").lower(): h.get("ip", "") for h in ET.fromstring(xml).findall("ip/dhcp/host")}
 
 
 # -- storage --------------------------------------------------------------------------------------------
