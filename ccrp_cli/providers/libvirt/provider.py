@@ -58,6 +58,16 @@ def _sdk():
     return libvirt
 
 
+def _listening(host: str, port: int = 22) -> bool:
+    import socket
+
+    try:
+        socket.create_connection((host, port), timeout=2).close()
+        return True
+    except OSError:
+        return False
+
+
 def stamp() -> str:
     return dt.datetime.now(dt.timezone.utc).strftime("%Y%m%d%H%M%S")
 
@@ -393,7 +403,21 @@ class LibvirtProvider(CloudProvider):
         return TCG_SLOWDOWN if known else 1
 
     def wait_ready(self, robot: str, timeout: float = 600) -> None:
-        super().wait_ready(robot, timeout * self._slowdown(robot))
+        """As on a cloud; a clone started again (its host keys known already) first gets until its
+        sshd listens: the SSH transport's own retries (about 25 s) end sooner than a TCG boot does."""
+        from ...retry import PollTimeout, poll
+        from ...transport.ssh import KnownHosts
+
+        timeout *= self._slowdown(robot)
+        deadline = time.monotonic() + timeout
+        rec = self.query().get(robot)
+        if rec is not None and rec.public_ip and KnownHosts(self.known_hosts_path).keys(rec.provider_id):
+            try:
+                poll(lambda: (_listening(rec.public_ip), None), timeout=timeout, interval=2.0)
+            except PollTimeout:
+                raise CcrpError(f"clone of {robot}: nothing listens on {rec.public_ip}:22 after {timeout:.0f} s",
+                                hint=f"ccrp clone exec --robot {robot} -- systemctl status ssh, or read its console") from None
+        super().wait_ready(robot, max(1.0, deadline - time.monotonic()))
 
     def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
         return super().exec(robot, argv, timeout * self._slowdown(robot))
