@@ -512,14 +512,24 @@ class LibvirtProvider(CloudProvider):
             dom, _info = self._domain(robot)
             if dom is None or dom.state(0)[0] != self.libvirt.VIR_DOMAIN_RUNNING:
                 return False
+            self._forget_session(robot)
             self.api("shut down domain", dom.shutdown)
             return True
+
+    def _forget_session(self, robot: str) -> None:
+        """Close the SSH connection to a clone going down: paramiko still took the old one for
+        active after the VM's power-off, and the first command after a restart was reset."""
+        with self._ssh_lock:
+            ssh = self._ssh.pop(robot, None)
+        if ssh is not None:
+            ssh.close()
 
     def terminate(self, robot: str) -> bool:
         """The robot's VM and its volumes (overlay, seed, console)."""
         with self._errors(f"delete clone of {robot}"):
             with self._lock:
                 self._emulated.pop(robot, None)
+            self._forget_session(robot)
             existed = self._remove_domain(robot)
             self._unreserve(self.macs(robot)[0])
             pool = self._refreshed(self._pool())
