@@ -591,13 +591,17 @@ class LibvirtProvider(CloudProvider):
                 self._delete_vol(pool, extra)
 
     def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        """The clone's disk flattened into a new golden volume (libvirt copies it through its backing
-        chain), with the kernel and initramfs it boots; the VM is paused meanwhile, so the copy is
-        as consistent as a cloud's snapshot of a running server."""
+        """The stopped clone's disk flattened into a new golden volume (libvirt copies it through
+        its backing chain), with the kernel and initramfs it boots. A running clone is refused:
+        QEMU holds its disk's write lock, and the copy (`qemu-img convert`) failed on it even with
+        the VM paused (measured)."""
         with self._errors(f"snapshot of {robot}"):
-            dom, info = self._domain(robot)
+            dom, _info = self._domain(robot)
             if dom is None:
                 raise CcrpError(f"robot {robot!r} has no clone", hint=f"ccrp clone create --robot {robot}")
+            if dom.isActive():
+                raise CcrpError(f"the clone of {robot} is running: a libvirt snapshot copies a stopped clone's disk",
+                                hint=f"ccrp clone stop --robot {robot}, then snapshot it")
             pool = self._refreshed(self._pool())
             target = f"{self.name('golden', robot, stamp())}.qcow2"
             stem = target.removesuffix(".qcow2")
@@ -607,9 +611,6 @@ class LibvirtProvider(CloudProvider):
             sources = [(pool.storageVolLookupByName(self.clone_volumes(robot)["disk"]), target, "qcow2")]
             sources += [(self.conn.storageVolLookupByPath(os_.findtext(tag)), f"{stem}.{ext}", "raw")
                         for tag, ext in (("kernel", "vmlinuz"), ("initrd", "initrd"))]
-            paused = dom.state(0)[0] == self.libvirt.VIR_DOMAIN_RUNNING
-            if paused:
-                self.api("pause domain", dom.suspend)
             done = []
             try:
                 for src, new, fmt in sources:
@@ -619,9 +620,6 @@ class LibvirtProvider(CloudProvider):
                 for new in done:
                     self._delete_vol(pool, new)
                 raise
-            finally:
-                if paused:
-                    self.api("resume domain", dom.resume)
             return self._snapshot_record(pool.storageVolLookupByName(target))
 
     # -- everything owned ------------------------------------------------------------------------
