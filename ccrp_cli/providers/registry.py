@@ -8,10 +8,11 @@ from .aws import INFO as _AWS
 from .base import Ability, ProviderInfo
 from .docker import INFO as _DOCKER
 from .gcp import INFO as _GCP
+from .libvirt import INFO as _LIBVIRT
 from .openstack import INFO as _OPENSTACK
 from ..errors import InputError
 
-REGISTRY: dict[str, ProviderInfo] = {i.kind: i for i in (_DOCKER, _OPENSTACK, _GCP, _AWS)}
+REGISTRY: dict[str, ProviderInfo] = {i.kind: i for i in (_DOCKER, _OPENSTACK, _GCP, _AWS, _LIBVIRT)}
 
 
 def info(kind: str) -> ProviderInfo:
@@ -20,5 +21,9 @@ def info(kind: str) -> ProviderInfo:
 
 def require(kind: str, ability: Ability, hint: str) -> None:
     """Exit 2 with one line, before any SDK is loaded, when the backend cannot do what a command needs."""
-    if ability not in REGISTRY[kind].abilities:
+    abilities = REGISTRY[kind].abilities
+    if ability not in abilities:
+        images = {Ability.LOCAL_BUILD, Ability.BAKE}
+        if ability in images and not abilities & images:  # a backend whose image path is not there yet
+            hint = f"the {kind} backend makes no snapshot with ccrp yet: see docs/{kind}.md"
         raise InputError(f"the {kind} provider cannot do {ability.value}", hint=hint)

@@ -286,7 +286,7 @@ def test_every_backend_runs_the_one_debian_platform():
     from ccrp_cli.providers import REGISTRY
     from ccrp_cli.recipes import recipe
 
-    assert {k: i.platform for k, i in REGISTRY.items()} == dict.fromkeys(("docker", "openstack", "gcp", "aws"), "debian-bookworm")
+    assert {k: i.platform for k, i in REGISTRY.items()} == dict.fromkeys(("docker", "openstack", "gcp", "aws", "libvirt"), "debian-bookworm")
     assert list(recipe("noetic").platforms) == ["debian-bookworm"]
 
 

@@ -1,0 +1,170 @@
+"""The golden volume of a libvirt fleet, made from the fleet's Docker snapshot image (the recipe
+built from Debian packages by `ccrp snapshot build`): no image is downloaded.
+
+One layer over the snapshot adds what a VM needs and a container does not (a kernel and its
+initramfs, udev, sshd, sudo, systemd-networkd, cloud-init's network and SSH modules); the layer's
+file system is exported, written into an ext4 file system image (`mkfs.ext4 -d`: no loop mount,
+no privileges beyond reading the tree) and converted to qcow2. The kernel and initramfs are kept
+beside it: clones boot them directly (no bootloader), with the whole disk as their root.
+
+Tools on the operator's machine: the Docker engine, tar, mkfs.ext4 (e2fsprogs), qemu-img
+(qemu-utils). Everything is run with argument lists, never through a shell."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ...errors import CcrpError
+
+# What a VM needs beyond the container snapshot: the cloud kernel (virtio drivers, a small module
+# set) with initramfs-tools, udev (modules for the devices it finds), sshd (the transport), sudo
+# (the login user's), e2fsprogs (fsck of the root at boot).
+VM_PACKAGES = ["linux-image-cloud-amd64", "udev", "openssh-server", "sudo", "e2fsprogs"]
+
+# cloud-init in the VM: the container snapshot's module lists (templates/docker/Dockerfile.j2) and,
+# as on the clouds, `ssh` (host keys made at first boot; Ed25519 and ECDSA only: an RSA key costs
+# seconds in an emulated guest) and `keys-to-console` (their fingerprints on the serial console, which
+# ccrp pins them from). The network is cloud-init's again (the seed's network-config), rendered for
+# systemd-networkd.
+CLOUD_CFG = """\
+datasource_list: [ NoCloud, None ]
+system_info:
+  network:
+    renderers: [ networkd ]
+ssh_genkeytypes: [ ed25519, ecdsa ]
+ssh_deletekeys: true
+ssh_pwauth: false
+cloud_init_modules: [ bootcmd, write-files, set_hostname, update_hostname, update_etc_hosts, users-groups, ssh ]
+cloud_config_modules: [ locale, apt-configure, runcmd ]
+cloud_final_modules: [ package-update-upgrade-install, write-files-deferred, scripts-per-once, scripts-per-boot, scripts-per-instance, scripts-user, ssh-authkey-fingerprints, keys-to-console, final-message ]
+"""
+
+DOCKERFILE = """\
+# A ccrp snapshot made a VM's root file system (ccrp_cli/providers/libvirt/goldens.py).
+FROM {base}
+RUN apt-get update \\
+ && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends {packages} \\
+ && rm -rf /var/lib/apt/lists/*
+COPY 90-ccrp.cfg /etc/cloud/cloud.cfg.d/90-ccrp.cfg
+COPY fstab /etc/fstab
+RUN rm -f /etc/ssh/ssh_host_* \\
+ && systemctl unmask cloud-init-local.service systemd-logind.service \\
+ && systemctl enable systemd-networkd.service ssh.service cloud-init-local.service cloud-init.service \\
+      cloud-config.service cloud-final.service \\
+ && rm -rf /var/lib/cloud/instance /var/lib/cloud/instances \\
+ && : > /etc/machine-id
+"""
+FSTAB = "/dev/vda / ext4 defaults,errors=remount-ro 0 1\n"
+DISK_BYTES = 8 << 30  # the root file system's size: the recipe takes about 1.5 GB of it
+
+
+@dataclass
+class Golden:
+    qcow2: Path
+    kernel: Path
+    initrd: Path
+    virtual_size: int
+    seconds: dict[str, float] = field(default_factory=dict)  # step -> wall time
+
+    @property
+    def directory(self) -> Path:
+        return self.qcow2.parent
+
+
+def _tool(name: str, package: str) -> str:
+    path = shutil.which(name)
+    if path is None:
+        raise CcrpError(f"{name} is not installed (it writes the golden volume)", hint=f"apt-get install {package}")
+    return path
+
+
+def _run(argv: list[str], what: str) -> None:
+    proc = subprocess.run(argv, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise CcrpError(f"{what} failed: {(proc.stderr or proc.stdout).strip()[-300:]}")
+
+
+def build(client, snapshot_image: str, out_dir: Path, progress=lambda msg: None, disk_bytes: int = DISK_BYTES,
+          keep_layer: bool = False) -> Golden:
+    """The golden qcow2, kernel and initramfs in `out_dir`, from `snapshot_image` (a Docker image
+    `ccrp snapshot build` made). Timings of each step in Golden.seconds."""
+    from ..docker.images import build_clone_image
+
+    tar, mkfs, qemu_img = _tool("tar", "tar"), _tool("mkfs.ext4", "e2fsprogs"), _tool("qemu-img", "qemu-utils")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    seconds: dict[str, float] = {}
+    tag = f"{snapshot_image.rsplit(':', 1)[0]}:vm-{int(time.time())}"
+    t0 = time.monotonic()
+    progress(f"adding a kernel, sshd and networkd to {snapshot_image} ({tag})")
+    build_clone_image(client, tag, DOCKERFILE.format(base=snapshot_image, packages=" ".join(VM_PACKAGES)),
+                      {"ccrp-libvirt-golden": snapshot_image}, progress,
+                      files={"90-ccrp.cfg": CLOUD_CFG.encode(), "fstab": FSTAB.encode()}, what="golden volume layer")
+    seconds["vm layer (docker build)"] = time.monotonic() - t0
+    container = None
+    try:
+        with tempfile.TemporaryDirectory(prefix="ccrp-golden-", dir=out_dir) as tmp:
+            root = Path(tmp) / "root"
+            root.mkdir()
+            t0 = time.monotonic()
+            container = client.containers.create(tag, command=["/bin/true"])
+            _export(container, tar, root)
+            seconds["export + untar"] = time.monotonic() - t0
+            kernel, initrd = _boot_files(root, out_dir)
+            t0 = time.monotonic()
+            raw = Path(tmp) / "root.img"
+            with open(raw, "wb") as fh:
+                fh.truncate(disk_bytes)  # sparse
+            progress(f"writing the root file system ({disk_bytes >> 30} GiB ext4, sparse)")
+            _run([mkfs, "-F", "-q", "-L", "ccrp-root", "-d", str(root), str(raw)], "mkfs.ext4 -d")
+            seconds["mkfs.ext4 -d"] = time.monotonic() - t0
+            t0 = time.monotonic()
+            qcow2 = out_dir / "golden.qcow2"
+            _run([qemu_img, "convert", "-f", "raw", "-O", "qcow2", str(raw), str(qcow2)], "qemu-img convert")
+            seconds["qemu-img convert"] = time.monotonic() - t0
+    finally:
+        if container is not None:
+            container.remove(force=True)
+        if not keep_layer:
+            client.images.remove(tag, force=True)
+    return Golden(qcow2=qcow2, kernel=kernel, initrd=initrd, virtual_size=disk_bytes, seconds=seconds)
+
+
+def _export(container, tar: str, root: Path) -> None:
+    """`docker export` streamed into tar (owners, modes, xattrs such as file capabilities kept)."""
+    proc = subprocess.Popen([tar, "--numeric-owner", "--xattrs", "--xattrs-include=*", "-xpf", "-", "-C", str(root)],
+                            stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+    err: list[bytes] = []
+    reader = threading.Thread(target=lambda: err.append(proc.stderr.read()), daemon=True)
+    reader.start()
+    try:
+        for chunk in container.export():
+            proc.stdin.write(chunk)
+    except BrokenPipeError:
+        pass
+    finally:
+        proc.stdin.close()
+        rc = proc.wait()
+        reader.join()
+    if rc != 0:
+        raise CcrpError(f"unpacking the snapshot's files failed: {b''.join(err).decode(errors='replace').strip()[-300:]}")
+
+
+def _boot_files(root: Path, out_dir: Path) -> tuple[Path, Path]:
+    """The kernel and initramfs of the tree (one each: the layer installs one kernel), copied out."""
+    kernels = sorted((root / "boot").glob("vmlinuz-*"))
+    initrds = sorted((root / "boot").glob("initrd.img-*"))
+    if len(kernels) != 1 or len(initrds) != 1:
+        raise CcrpError(f"the golden tree has {len(kernels)} kernels and {len(initrds)} initramfs images, not one each")
+    kernel, initrd = out_dir / "vmlinuz", out_dir / "initrd.img"
+    shutil.copyfile(kernels[0], kernel)
+    shutil.copyfile(initrds[0], initrd)
+    os.chmod(kernel, 0o644)
+    os.chmod(initrd, 0o644)
+    return kernel, initrd

@@ -1,0 +1,732 @@
+"""libvirt provider: a clone is a VM on the libvirt host of `provider.uri` (qemu:///system by
+default; a remote host over qemu+ssh:// as libvirt supports it). Its disk is a qcow2 overlay backed
+by the fleet's golden volume (copy-on-write: a clone's disk costs only its writes), it boots the
+golden volume's kernel and initramfs directly, and cloud-init reads a NoCloud seed (an ISO volume)
+with the user-data ccrp renders for the clouds. Its public side is the fleet's NAT network (the
+host reaches it; its address is a DHCP lease), its common side an isolated network with the static
+address of the addressing plan. Transport is SSH with host keys pinned from the serial console,
+which virtlogd writes into the storage pool (read back through libvirt, so remote hosts work too).
+
+Every file the provider makes lives in one storage pool as a volume; every name starts with
+`ccrp-<fleet>-`. Domains carry the fleet's labels in their metadata (xmldefs.py)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import re
+import threading
+import time
+from collections.abc import Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+from ...errors import CcrpError
+from ...models.inventory import Inventory
+from ...retry import ErrorClass
+from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin,
+                    OwnedResource, Quota, SnapshotRecord, owner_labels)
+from ..cloud import CloudProvider
+from . import INFO, seed, xmldefs
+from .settings import LibvirtSettings
+
+# virDomainState (dom.state()[0]) -> libvirt's word, then ccrp's.
+WORDS = ("nostate", "running", "blocked", "paused", "shutdown", "shutoff", "crashed", "pmsuspended")
+STATES = {"nostate": CloneState.PENDING, "running": CloneState.RUNNING, "blocked": CloneState.RUNNING,
+          "paused": CloneState.STOPPED, "shutdown": CloneState.STOPPING, "shutoff": CloneState.STOPPED,
+          "crashed": CloneState.ERROR, "pmsuspended": CloneState.STOPPED}
+GOLDEN = re.compile(r"^ccrp-(?P<fleet>[a-z][a-z0-9]*)-golden-(?:(?P<robot>[a-z][a-z0-9]*)-)?(?P<stamp>\d{14})\.qcow2$")
+# A clone's volumes after `ccrp-<fleet>-cri-`: its robot, then what it is (LibvirtProvider.clone_volumes).
+CLONE_VOLUME = re.compile(r"^(?P<robot>[a-z][a-z0-9]*)(\.qcow2|-seed\.iso|\.console)$")
+CONSOLE_TAIL = 4 << 20  # bytes of a console log read at most (its last boots)
+PROBE_MARK = re.compile(r"Run /init as init process|Freeing unused kernel")
+PROBE_TIMEOUT = 20.0
+# Waits on an emulated (TCG) guest get this many times the time ccrp's callers give a VM: its first
+# boot took 272 s to the end of cloud-init on this 2-core machine under load (docs/libvirt.md),
+# where `fleet up` gives a clone 300 s, and every command in it runs several times slower.
+TCG_SLOWDOWN = 3  # a guest that works gets there in about a second under KVM, two under TCG
+
+
+def _sdk():
+    try:
+        import libvirt
+    except ImportError:
+        raise CcrpError("the libvirt Python binding is not installed",
+                        hint="pip install 'ccrp[libvirt]' (it builds against libvirt-dev: scripts/libvirt.sh)") from None
+    # libvirt prints every error on stderr by default; ours become one-line CcrpErrors instead.
+    libvirt.registerErrorHandler(lambda _ctx, _err: None, None)
+    return libvirt
+
+
+def _listening(host: str, port: int = 22) -> bool:
+    import socket
+
+    try:
+        socket.create_connection((host, port), timeout=2).close()
+        return True
+    except OSError:
+        return False
+
+
+def stamp() -> str:
+    return dt.datetime.now(dt.timezone.utc).strftime("%Y%m%d%H%M%S")
+
+
+class LibvirtProvider(CloudProvider):
+    kind = "libvirt"
+    abilities = INFO.abilities
+    # VMs boot on the libvirt host's CPUs (emulated ones, under TCG): a few at a time.
+    max_parallel = 4
+    boot_timeout = 900
+
+    def __init__(self, inv: Inventory, workdir: Path) -> None:
+        super().__init__(inv, workdir)
+        self.settings: LibvirtSettings = inv.provider  # type: ignore[assignment]
+        self.libvirt = _sdk()
+        try:
+            self.conn = self.libvirt.open(self.settings.uri)
+        except self.libvirt.libvirtError as exc:
+            raise CcrpError(f"cannot connect to libvirt at {self.settings.uri}: {self._message(exc)}",
+                            hint="start libvirtd (scripts/libvirt.sh) or check provider.uri") from None
+        self._lock = threading.Lock()
+        self._accel: str | None = None
+        self._emulated: dict[str, bool] = {}  # robot -> its domain runs under TCG
+
+    # -- errors ------------------------------------------------------------------------------
+    def _message(self, exc: BaseException) -> str:
+        text = exc.get_error_message() if hasattr(exc, "get_error_message") else str(exc)
+        return " ".join(str(text or exc).split())[:300]
+
+    def classify_error(self, exc: BaseException) -> ErrorClass:
+        # A pool refreshed while a volume is being written ("asynchronous jobs running") and a
+        # dropped RPC connection are worth another try; anything else is libvirt's real answer.
+        if isinstance(exc, self.libvirt.libvirtError):
+            text = self._message(exc)
+            if "asynchronous jobs running" in text or exc.get_error_code() == self.libvirt.VIR_ERR_RPC:
+                return ErrorClass.RETRYABLE
+        return ErrorClass.FATAL
+
+    def _missing(self, exc: BaseException, *codes: str) -> bool:
+        return isinstance(exc, self.libvirt.libvirtError) and exc.get_error_code() in {
+            getattr(self.libvirt, c) for c in codes}
+
+    @contextmanager
+    def _errors(self, what: str):
+        try:
+            yield
+        except self.libvirt.libvirtError as exc:
+            raise CcrpError(f"{what}: {self._message(exc)}") from exc
+
+    # -- names ---------------------------------------------------------------------------------
+    def name(self, *parts: str) -> str:
+        return "-".join(("ccrp", self.fleet, *parts))
+
+    @property
+    def public_net(self) -> str:
+        return self.name("public")
+
+    @property
+    def common_net(self) -> str:
+        return self.name("common")
+
+    def domain_name(self, robot: str) -> str:
+        return self.name("cri", robot)
+
+    def clone_volumes(self, robot: str) -> dict[str, str]:
+        base = self.domain_name(robot)
+        return {"disk": f"{base}.qcow2", "seed": f"{base}-seed.iso", "console": f"{base}{xmldefs.CONSOLE_SUFFIX}"}
+
+    def macs(self, robot: str) -> tuple[str, str]:
+        return (xmldefs.mac_address(self.fleet, robot, "public"), xmldefs.mac_address(self.fleet, robot, "common"))
+
+    def _owns_name(self, name: str) -> bool:
+        return name.startswith(self.name() + "-")
+
+    def _is_owned(self, labels: dict[str, str], robot: str | None = None) -> bool:
+        return (labels.get(LABEL_MANAGED) == "true" and labels.get(LABEL_FLEET) == self.fleet
+                and (robot is None or labels.get(LABEL_ROBOT) == robot))
+
+    # -- storage -------------------------------------------------------------------------------
+    def _pool(self, create: bool = False):
+        try:
+            pool = self.api("look up the storage pool", self.conn.storagePoolLookupByName, self.settings.pool)
+        except self.libvirt.libvirtError as exc:
+            if not create or not self._missing(exc, "VIR_ERR_NO_STORAGE_POOL"):
+                raise
+            pool = self.api("define the storage pool", self.conn.storagePoolDefineXML,
+                            xmldefs.dir_pool(self.settings.pool, self.settings.pool_dir), 0)
+            self.api("build the storage pool", pool.build, 0)
+            pool.setAutostart(1)
+        if not pool.isActive():
+            if not create:
+                raise CcrpError(f"storage pool {self.settings.pool} is not active", hint="run `ccrp fleet up`")
+            self.api("start the storage pool", pool.create, 0)
+        return pool
+
+    def _vol(self, pool, name: str):
+        try:
+            return pool.storageVolLookupByName(name)
+        except self.libvirt.libvirtError as exc:
+            if self._missing(exc, "VIR_ERR_NO_STORAGE_VOL"):
+                return None
+            raise
+
+    def _refreshed(self, pool):
+        self.api("refresh the storage pool", pool.refresh, 0)
+        return pool
+
+    def _upload(self, pool, name: str, data: bytes | Path, fmt: str, capacity: int | None = None):
+        """A new volume holding `data` (bytes, or a local file streamed in pieces) through libvirt's
+        stream API, so the libvirt host may be another machine."""
+        size = len(data) if isinstance(data, bytes) else Path(data).stat().st_size
+        vol = self.api(f"create volume {name}", pool.createXML, xmldefs.volume(name, capacity or size, fmt), 0)
+        try:
+            stream = self.conn.newStream(0)
+            vol.upload(stream, 0, size, 0)
+            if isinstance(data, bytes):
+                view = memoryview(data)
+                sent = 0
+                while sent < size:
+                    sent += stream.send(bytes(view[sent:sent + (1 << 20)]))
+            else:
+                with open(data, "rb") as fh:
+                    stream.sendAll(lambda _s, n, f: f.read(n), fh)
+            stream.finish()
+        except BaseException:
+            vol.delete(0)
+            raise
+        return vol
+
+    def _download(self, vol, offset: int = 0) -> bytes:
+        chunks: list[bytes] = []
+        stream = self.conn.newStream(0)
+        vol.download(stream, offset, 0, 0)
+        stream.recvAll(lambda _s, buf, _o: chunks.append(buf), None)
+        stream.finish()
+        return b"".join(chunks)
+
+    def _delete_vol(self, pool, name: str) -> bool:
+        vol = self._vol(pool, name)
+        if vol is None:
+            return False
+        self.api(f"delete volume {name}", vol.delete, 0)
+        return True
+
+    # -- networks ------------------------------------------------------------------------------
+    def _network(self, name: str):
+        try:
+            return self.conn.networkLookupByName(name)
+        except self.libvirt.libvirtError as exc:
+            if self._missing(exc, "VIR_ERR_NO_NETWORK"):
+                return None
+            raise
+
+    def bootstrap(self) -> None:
+        """The storage pool (shared by fleets), the fleet's NAT and isolated networks: created or
+        reused, started, set to autostart."""
+        public = self.settings.public_cidr
+        for what, cidr in (("common.cidr", self.inv.common.cidr), ("vpn.pool", self.inv.vpn.pool)):
+            if public.overlaps(cidr):
+                raise CcrpError(f"provider.public_cidr {public} overlaps {what} {cidr}", hint="change one of them")
+        with self._errors(f"bootstrap of fleet {self.fleet}"):
+            self._pool(create=True)
+            for name, xml in ((self.public_net, xmldefs.nat_network(self.public_net, xmldefs.bridge_name(self.fleet, "public"), public)),
+                              (self.common_net, xmldefs.isolated_network(self.common_net, xmldefs.bridge_name(self.fleet, "common")))):
+                net = self._network(name)
+                if net is None:
+                    try:
+                        net = self.api(f"define network {name}", self.conn.networkDefineXML, xml)
+                    except self.libvirt.libvirtError as exc:
+                        raise CcrpError(f"cannot define libvirt network {name}: {self._message(exc)}",
+                                        hint="another network uses that range: change provider.public_cidr") from None
+                if not net.isActive():
+                    self.api(f"start network {name}", net.create)
+                net.setAutostart(1)
+
+    # -- acceleration ---------------------------------------------------------------------------
+    @property
+    def _accel_cache(self) -> Path:
+        return self.workdir / "libvirt-accel.json"
+
+    def _probed(self) -> dict[str, str]:
+        try:
+            cached = json.loads(self._accel_cache.read_text())
+        except (OSError, ValueError):
+            return {}
+        return cached if isinstance(cached, dict) else {}
+
+    def accel(self, kernel: str, initrd: str) -> str:
+        """kvm or tcg: the inventory's choice, else what a probe boot found on this host (kept in the
+        fleet store per URI, so the probe runs once; delete libvirt-accel.json to probe again)."""
+        if self.settings.accel != "auto":
+            return self.settings.accel
+        with self._lock:
+            if self._accel:
+                return self._accel
+            cached = self._probed()
+            if cached.get(self.settings.uri) not in ("kvm", "tcg"):
+                from ...store import atomic_write
+
+                cached[self.settings.uri], why = self.probe_kvm(kernel, initrd)
+                cached[f"{self.settings.uri} why"] = why
+                atomic_write(self._accel_cache, json.dumps(cached) + "\n")
+            self._accel = cached[self.settings.uri]
+            return self._accel
+
+    def probe_kvm(self, kernel: str, initrd: str) -> tuple[str, str]:
+        """("kvm" | "tcg", why): boot a disk-less KVM guest with the golden kernel and wait for it to
+        start its initramfs. A /dev/kvm that opens is not enough: without vmx/svm a guest hangs
+        early or QEMU aborts setting an MSR (docs/libvirt.md)."""
+        try:
+            self.conn.getDomainCapabilities(None, "x86_64", None, "kvm", 0)
+        except self.libvirt.libvirtError as exc:
+            return "tcg", f"libvirt offers no KVM here ({self._message(exc)[:120]})"
+        pool = self._pool()
+        log_name = self.name("kvm-probe") + xmldefs.CONSOLE_SUFFIX
+        log_path = f"{xmldefs.pool_path(pool.XMLDesc(0))}/{log_name}"
+        t0, seen, dom = time.monotonic(), "", None
+        try:  # virtlogd writes the log even for a guest QEMU could not start: it goes in any case
+            try:
+                dom = self.conn.createXML(xmldefs.probe_domain(self.name("kvm-probe"), kernel, initrd, log_path), 0)
+            except self.libvirt.libvirtError as exc:
+                # QEMU's own line says why ("failed to set MSR 0x10a to 0x69" without vmx/svm), after libvirt's words.
+                said = self._message(exc).split("qemu-system-x86_64: ")
+                why = next((part for part in said if part.startswith("error: ")), said[-1])
+                return "tcg", f"a KVM guest did not start ({why.strip()[:160]})"
+            while time.monotonic() - t0 < PROBE_TIMEOUT:
+                vol = self._vol(self._refreshed(pool), log_name)
+                seen = self._download(vol).decode(errors="replace") if vol is not None else ""
+                if PROBE_MARK.search(seen):
+                    return "kvm", f"a KVM guest started its initramfs in {time.monotonic() - t0:.1f} s"
+                if not dom.isActive():
+                    break
+                time.sleep(0.5)
+        finally:
+            if dom is not None:
+                try:
+                    dom.destroy()
+                except self.libvirt.libvirtError:
+                    pass  # ended by itself (panic=-1, on_reboot destroy)
+            self._delete_vol(self._refreshed(pool), log_name)
+        return "tcg", f"a KVM guest did not reach its initramfs in {PROBE_TIMEOUT:.0f} s ({seen.strip()[-80:]!r})"
+
+    # -- clones ---------------------------------------------------------------------------------
+    def _domains(self, robot: str | None = None, role: str | None = None) -> list:
+        """This fleet's domains: name prefix AND metadata labels."""
+        found = []
+        for dom in self.conn.listAllDomains(0):
+            if not self._owns_name(dom.name()):
+                continue
+            info = xmldefs.domain_info(dom.XMLDesc(0))
+            if self._is_owned(info.labels, robot) and (role is None or info.labels.get(LABEL_ROLE) == role):
+                found.append((dom, info))
+        return found
+
+    def _domain(self, robot: str):
+        found = self._domains(robot, "clone")
+        return found[0] if found else (None, None)
+
+    def public_ip(self, common_ip: str) -> str:
+        """The clone's public address: at its common address's offset in provider.public_cidr (the
+        addressing plan gives each clone its own), reserved for its MAC on the NAT network."""
+        import ipaddress
+
+        pub = self.settings.public_cidr
+        offset = int(ipaddress.IPv4Address(common_ip)) - int(self.inv.common.cidr.network_address)
+        hosts = pub.num_addresses - 2
+        if not 2 <= offset <= hosts:  # .1 is the host's
+            raise CcrpError(f"clone address {common_ip} has no counterpart in provider.public_cidr {pub}",
+                            hint="give provider.public_cidr at least as many addresses as common.cidr")
+        return str(pub.network_address + offset)
+
+    def _reserve(self, mac: str, ip: str, hostname: str) -> None:
+        net = self._network(self.public_net)
+        if net is None:
+            raise CcrpError(f"fleet {self.fleet!r} has no network {self.public_net}", hint="run `ccrp fleet up`")
+        have = xmldefs.dhcp_hosts(net.XMLDesc(0))
+        if have.get(mac) == ip:
+            return
+        lv, flags = self.libvirt, self.libvirt.VIR_NETWORK_UPDATE_AFFECT_CONFIG
+        flags |= lv.VIR_NETWORK_UPDATE_AFFECT_LIVE if net.isActive() else 0
+        if mac in have:
+            self._unreserve(mac)
+        self.api("reserve the public address", net.update, lv.VIR_NETWORK_UPDATE_COMMAND_ADD_LAST,
+                 lv.VIR_NETWORK_SECTION_IP_DHCP_HOST, -1, xmldefs.dhcp_host(mac, ip, hostname), flags)
+
+    def _unreserve(self, mac: str) -> None:
+        net = self._network(self.public_net)
+        if net is None or mac not in (have := xmldefs.dhcp_hosts(net.XMLDesc(0))):
+            return
+        lv, flags = self.libvirt, self.libvirt.VIR_NETWORK_UPDATE_AFFECT_CONFIG
+        flags |= lv.VIR_NETWORK_UPDATE_AFFECT_LIVE if net.isActive() else 0
+        self.api("release the public address", net.update, lv.VIR_NETWORK_UPDATE_COMMAND_DELETE,
+                 lv.VIR_NETWORK_SECTION_IP_DHCP_HOST, -1, xmldefs.dhcp_host(mac, have[mac], ""), flags)
+
+    def _reserved(self, mac: str) -> str | None:
+        net = self._network(self.public_net)
+        return xmldefs.dhcp_hosts(net.XMLDesc(0)).get(mac) if net is not None else None
+
+    def _record(self, dom, info: xmldefs.DomainInfo, origin: Origin | None = None) -> CloneRecord:
+        word = WORDS[dom.state(0)[0]] if dom.state(0)[0] < len(WORDS) else "unknown"
+        mac = info.macs.get(self.public_net)
+        return CloneRecord(robot=info.labels.get(LABEL_ROBOT, ""), provider_id=dom.UUIDString(),
+                           state=CloneState.of(word, STATES), status=word,
+                           public_ip=self._reserved(mac) if mac else None, common_ip=info.common_ip, origin=origin)
+
+    def query(self) -> dict[str, CloneRecord]:
+        with self._errors("list clones"):
+            return {r.robot: r for r in (self._record(d, i) for d, i in self._domains(role="clone"))}
+
+    def golden(self, image: str) -> tuple[str, str, str]:
+        """The golden volume's path, and its kernel's and initramfs's (volumes beside it)."""
+        pool = self._pool()
+        stem = image.removesuffix(".qcow2")
+        vols = [self._vol(pool, n) for n in (image, f"{stem}.vmlinuz", f"{stem}.initrd")]
+        if not image.endswith(".qcow2") or any(v is None for v in vols):
+            raise CcrpError(f"golden volume {image} (with its .vmlinuz and .initrd) is not in storage pool {self.settings.pool}",
+                            hint="import the fleet's snapshot (docs/libvirt.md)")
+        return tuple(v.path() for v in vols)  # type: ignore[return-value]
+
+    def _slowdown(self, robot: str) -> int:
+        """TCG_SLOWDOWN for a clone emulated by TCG (its domain type is qemu), else 1."""
+        with self._lock:
+            known = self._emulated.get(robot)
+        if known is None:
+            dom, _info = self._domain(robot)
+            if dom is None:
+                return 1
+            import xml.etree.ElementTree as ET
+
+            known = ET.fromstring(dom.XMLDesc(0)).get("type") == "qemu"
+            with self._lock:
+                self._emulated[robot] = known
+        return TCG_SLOWDOWN if known else 1
+
+    def wait_ready(self, robot: str, timeout: float = 600) -> None:
+        """As on a cloud; a clone started again (its host keys known already) first gets until its
+        sshd listens: the SSH transport's own retries (about 25 s) end sooner than a TCG boot does."""
+        from ...retry import PollTimeout, poll
+        from ...transport.ssh import KnownHosts
+
+        timeout *= self._slowdown(robot)
+        deadline = time.monotonic() + timeout
+        rec = self.query().get(robot)
+        if rec is not None and rec.public_ip and KnownHosts(self.known_hosts_path).keys(rec.provider_id):
+            try:
+                poll(lambda: (_listening(rec.public_ip), None), timeout=timeout, interval=2.0)
+            except PollTimeout:
+                raise CcrpError(f"clone of {robot}: nothing listens on {rec.public_ip}:22 after {timeout:.0f} s",
+                                hint=f"ccrp clone exec --robot {robot} -- systemctl status ssh, or read its console") from None
+        super().wait_ready(robot, max(1.0, deadline - time.monotonic()))
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
+        return super().exec(robot, argv, timeout * self._slowdown(robot))
+
+    def has_image(self, image: str) -> bool:
+        try:
+            self.golden(image)
+            return True
+        except CcrpError:
+            return False
+
+    def run_instance(self, spec: CloneSpec) -> CloneRecord:
+        """Define and start the clone's VM, or start the one that exists; roll back only what this
+        attempt created."""
+        INFO.fit_user_data(spec.user_data)
+        with self._errors(f"clone of {spec.robot}"):
+            dom, info = self._domain(spec.robot)
+            if dom is not None:
+                state = dom.state(0)[0]
+                if state == self.libvirt.VIR_DOMAIN_PAUSED:
+                    self.api("resume domain", dom.resume)
+                elif not dom.isActive():
+                    self.api("start domain", dom.create)
+                    return self._record(dom, info, Origin.RESUMED)
+                return self._record(dom, info, Origin.REUSED)
+            created: list[str] = []
+            pool = self._pool()
+            try:
+                dom = self._define(spec, pool, created)
+                self.api("start domain", dom.create)
+            except BaseException as exc:
+                left = self._rollback(pool, spec.robot, created)
+                if left and isinstance(exc, CcrpError):
+                    exc.message += f" (rollback left {', '.join(left)}: `ccrp gc` removes them)"
+                raise
+            return self._record(dom, xmldefs.domain_info(dom.XMLDesc(0)), Origin.CREATED)
+
+    def _define(self, spec: CloneSpec, pool, created: list[str]):
+        disk_path, kernel, initrd = self.golden(spec.image)
+        vols = self.clone_volumes(spec.robot)
+        for stale in vols.values():  # left by an attempt that died before defining its domain
+            self._delete_vol(self._refreshed(pool), stale)
+        golden = pool.storageVolLookupByName(spec.image)
+        capacity = golden.info()[1]
+        self.api("create the overlay", pool.createXML, xmldefs.volume(vols["disk"], capacity, "qcow2", backing=disk_path), 0)
+        created.append(vols["disk"])
+        public_mac, common_mac = self.macs(spec.robot)
+        self._reserve(public_mac, self.public_ip(spec.common_ip), spec.hostname)
+        iso = seed.seed_iso(spec.user_data, spec.instance_id, spec.hostname,
+                            seed.network_config(public_mac, common_mac, spec.common_ip, self.inv.common.cidr))
+        self._upload(pool, vols["seed"], iso, "raw")
+        created.append(vols["seed"])
+        console = f"{xmldefs.pool_path(pool.XMLDesc(0))}/{vols['console']}"
+        created.append(vols["console"])  # virtlogd makes it at the first start
+        xml = xmldefs.domain(xmldefs.DomainSpec(
+            name=self.domain_name(spec.robot), title=f"ccrp clone of robot {spec.robot} (fleet {self.fleet})",
+            labels=owner_labels(self.fleet, spec.role, spec.robot), common_ip=spec.common_ip,
+            accel=self.accel(kernel, initrd), memory_mb=self.settings.memory_mb, vcpus=self.settings.vcpus,
+            pool=self.settings.pool, disk=vols["disk"], seed=vols["seed"], kernel=kernel, initrd=initrd,
+            console_log=console,
+            nics=(xmldefs.Nic(self.public_net, public_mac), xmldefs.Nic(self.common_net, common_mac))))
+        dom = self.api("define domain", self.conn.defineXML, xml)
+        created.append(f"domain:{self.domain_name(spec.robot)}")
+        return dom
+
+    def _rollback(self, pool, robot: str, created: list[str]) -> list[str]:
+        left = []
+        for item in reversed(created):
+            try:
+                if item.startswith("domain:"):
+                    self._remove_domain(robot)
+                else:
+                    self._delete_vol(self._refreshed(pool), item)
+            except Exception:  # noqa: BLE001 - best effort: report, never mask the real failure
+                left.append(item)
+        return left
+
+    def _remove_domain(self, robot: str) -> bool:
+        dom, _info = self._domain(robot)
+        if dom is None:
+            return False
+        if dom.isActive():
+            self.api("destroy domain", dom.destroy)
+        self.api("undefine domain", dom.undefine)
+        return True
+
+    def stop_instance(self, robot: str) -> bool:
+        """The ACPI power button: systemd in the clone shuts it down (autostop's poweroff ends the
+        same way)."""
+        with self._errors(f"stop clone of {robot}"):
+            dom, _info = self._domain(robot)
+            if dom is None or dom.state(0)[0] != self.libvirt.VIR_DOMAIN_RUNNING:
+                return False
+            self._forget_session(robot)
+            self.api("shut down domain", dom.shutdown)
+            return True
+
+    def _forget_session(self, robot: str) -> None:
+        """Close the SSH connection to a clone going down: paramiko still took the old one for
+        active after the VM's power-off, and the first command after a restart was reset."""
+        with self._ssh_lock:
+            ssh = self._ssh.pop(robot, None)
+        if ssh is not None:
+            ssh.close()
+
+    def terminate(self, robot: str) -> bool:
+        """The robot's VM and its volumes (overlay, seed, console)."""
+        with self._errors(f"delete clone of {robot}"):
+            with self._lock:
+                self._emulated.pop(robot, None)
+            self._forget_session(robot)
+            existed = self._remove_domain(robot)
+            self._unreserve(self.macs(robot)[0])
+            pool = self._refreshed(self._pool())
+            for name in self.clone_volumes(robot).values():
+                self._delete_vol(pool, name)
+            return existed
+
+    def console_output(self, robot: str) -> str:
+        """The serial console as virtlogd logged it (every boot: the last ones up to CONSOLE_TAIL)."""
+        with self._errors(f"console of {robot}"):
+            vol = self._vol(self._refreshed(self._pool()), self.clone_volumes(robot)["console"])
+            if vol is None:
+                return ""
+            size = vol.info()[1]
+            return self._download(vol, max(0, size - CONSOLE_TAIL)).decode(errors="replace")
+
+    # -- snapshots: golden volumes --------------------------------------------------------------
+    def import_golden(self, qcow2: Path, kernel: Path, initrd: Path, virtual_size: int, robot: str | None = None) -> SnapshotRecord:
+        """Upload a golden disk (goldens.py builds it) with its kernel and initramfs as the fleet's
+        volumes; a failure leaves none of the three."""
+        name = f"{self.name('golden', *([robot] if robot else []), stamp())}.qcow2"
+        stem = name.removesuffix(".qcow2")
+        with self._errors(f"import of {name}"):
+            pool = self._pool()
+            done = []
+            try:
+                for vol, path, fmt, size in ((name, qcow2, "qcow2", virtual_size), (f"{stem}.vmlinuz", kernel, "raw", None),
+                                             (f"{stem}.initrd", initrd, "raw", None)):
+                    self._upload(pool, vol, path, fmt, size)
+                    done.append(vol)
+            except BaseException:
+                for vol in done:
+                    self._delete_vol(pool, vol)
+                raise
+            return self._snapshot_record(self._refreshed(pool).storageVolLookupByName(name))
+
+    def _snapshot_record(self, vol) -> SnapshotRecord:
+        m = GOLDEN.match(vol.name())
+        when = dt.datetime.strptime(m["stamp"], "%Y%m%d%H%M%S").isoformat() if m else ""
+        return SnapshotRecord(id=vol.name(), name=vol.name(), created=when, source=(m["robot"] if m else None) or "build",
+                              size_mb=round(vol.info()[2] / 1e6, 1))
+
+    def list_snapshots(self) -> list[SnapshotRecord]:
+        with self._errors("list snapshots"):
+            pool = self._refreshed(self._pool())
+            vols = [v for v in pool.listAllVolumes(0) if (m := GOLDEN.match(v.name())) and m["fleet"] == self.fleet]
+            return sorted((self._snapshot_record(v) for v in vols), key=lambda s: s.created)
+
+    def delete_snapshot(self, snapshot_id: str) -> None:
+        m = GOLDEN.match(snapshot_id)
+        if not m or m["fleet"] != self.fleet:
+            raise CcrpError(f"{snapshot_id} is not a snapshot of fleet {self.fleet!r}", hint="ccrp snapshot list")
+        with self._errors(f"delete snapshot {snapshot_id}"):
+            pool = self._refreshed(self._pool())
+            if not self._delete_vol(pool, snapshot_id):
+                raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list")
+            stem = snapshot_id.removesuffix(".qcow2")
+            for extra in (f"{stem}.vmlinuz", f"{stem}.initrd"):
+                self._delete_vol(pool, extra)
+
+    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
+        """The stopped clone's disk flattened into a new golden volume (libvirt copies it through
+        its backing chain), with the kernel and initramfs it boots. A running clone is refused:
+        QEMU holds its disk's write lock, and the copy (`qemu-img convert`) failed on it even with
+        the VM paused (measured)."""
+        with self._errors(f"snapshot of {robot}"):
+            dom, _info = self._domain(robot)
+            if dom is None:
+                raise CcrpError(f"robot {robot!r} has no clone", hint=f"ccrp clone create --robot {robot}")
+            if dom.isActive():
+                raise CcrpError(f"the clone of {robot} is running: a libvirt snapshot copies a stopped clone's disk",
+                                hint=f"ccrp clone stop --robot {robot}, then snapshot it")
+            pool = self._refreshed(self._pool())
+            target = f"{self.name('golden', robot, stamp())}.qcow2"
+            stem = target.removesuffix(".qcow2")
+            import xml.etree.ElementTree as ET
+
+            os_ = ET.fromstring(dom.XMLDesc(0)).find("os")
+            sources = [(pool.storageVolLookupByName(self.clone_volumes(robot)["disk"]), target, "qcow2")]
+            sources += [(self.conn.storageVolLookupByPath(os_.findtext(tag)), f"{stem}.{ext}", "raw")
+                        for tag, ext in (("kernel", "vmlinuz"), ("initrd", "initrd"))]
+            done = []
+            try:
+                for src, new, fmt in sources:
+                    self.api(f"copy volume {new}", pool.createXMLFrom, xmldefs.volume(new, src.info()[1], fmt), src, 0)
+                    done.append(new)
+            except BaseException:
+                for new in done:
+                    self._delete_vol(pool, new)
+                raise
+            return self._snapshot_record(pool.storageVolLookupByName(target))
+
+    # -- everything owned ------------------------------------------------------------------------
+    def list_owned(self) -> list[OwnedResource]:
+        """Domains (by metadata), then volumes and networks (by name), in deletion order."""
+        with self._errors("list owned resources"):
+            found = [OwnedResource(kind="instance", id=d.UUIDString(), name=d.name(), robot=i.labels.get(LABEL_ROBOT))
+                     for d, i in self._domains()]
+            pool = self._refreshed(self._pool())
+            names = [v.name() for v in pool.listAllVolumes(0) if self._owns_name(v.name())]
+            goldens = {n.removesuffix(".qcow2") for n in names if GOLDEN.match(n)}
+            for name in names:
+                stem, dot, ext = name.rpartition(".")
+                if m := GOLDEN.match(name):  # a snapshot; its kernel and initramfs go with it
+                    found.append(OwnedResource(kind="image", id=name, name=name, robot=m["robot"]))
+                elif not (ext in ("vmlinuz", "initrd") and stem in goldens):
+                    m = CLONE_VOLUME.match(name.removeprefix(self.name("cri") + "-"))
+                    found.append(OwnedResource(kind="volume", id=name, name=name, robot=m["robot"] if m else None))
+            found += [OwnedResource(kind="network", id=n.name(), name=n.name())
+                      for n in self.conn.listAllNetworks(0) if n.name() in (self.public_net, self.common_net)]
+            order = ("instance", "volume", "network", "image")
+            return sorted(found, key=lambda r: order.index(r.kind))
+
+    def delete_owned(self, resource: OwnedResource) -> None:
+        with self._errors(f"delete {resource.kind} {resource.id}"):
+            if resource.kind == "instance":
+                try:
+                    dom = self.conn.lookupByUUIDString(resource.id)
+                except self.libvirt.libvirtError as exc:
+                    if self._missing(exc, "VIR_ERR_NO_DOMAIN"):
+                        raise CcrpError(f"instance {resource.id} is gone") from None
+                    raise
+                if not self._owns_name(dom.name()) or not self._is_owned(xmldefs.domain_info(dom.XMLDesc(0)).labels):
+                    raise CcrpError(f"domain {dom.name()} is not fleet {self.fleet!r}'s; not deleting it")
+                if dom.isActive():
+                    dom.destroy()
+                dom.undefine()
+            elif not self._owns_name(resource.id):
+                raise CcrpError(f"{resource.kind} {resource.id} is not fleet {self.fleet!r}'s; not deleting it")
+            elif resource.kind == "image":
+                self.delete_snapshot(resource.id) if GOLDEN.match(resource.id) else \
+                    self._delete_vol(self._refreshed(self._pool()), resource.id)
+            elif resource.kind == "volume":
+                if not self._delete_vol(self._refreshed(self._pool()), resource.id):
+                    raise CcrpError(f"volume {resource.id} is gone")
+            elif resource.kind == "network":
+                if resource.id not in (self.public_net, self.common_net):
+                    raise CcrpError(f"network {resource.id} is not fleet {self.fleet!r}'s; not deleting it")
+                self._remove_network(resource.id)
+            else:
+                raise CcrpError(f"unknown resource kind {resource.kind!r}")
+
+    def _remove_network(self, name: str) -> bool:
+        net = self._network(name)
+        if net is None:
+            return False
+        if net.isActive():
+            self.api(f"stop network {name}", net.destroy)
+        self.api(f"undefine network {name}", net.undefine)
+        return True
+
+    def teardown(self) -> list[str]:
+        """Every domain, volume and network of the fleet; golden volumes stay (snapshots outlive
+        the fleet's clones, as on the clouds)."""
+        with self._errors(f"teardown of fleet {self.fleet}"):
+            doomed = [r for r in self.list_owned() if r.kind != "image"]
+            for r in doomed:
+                if r.kind == "instance":
+                    self.delete_owned(r)
+            pool = self._refreshed(self._pool())
+            for r in doomed:
+                if r.kind == "volume":
+                    self._delete_vol(pool, r.id)
+                elif r.kind == "network":
+                    self._remove_network(r.id)
+            return [f"{'domain' if r.kind == 'instance' else r.kind} {r.name or r.id}" for r in doomed]
+
+    def leftovers(self) -> list[str]:
+        return [f"{'domain' if r.kind == 'instance' else r.kind} {r.name or r.id}"
+                for r in self.list_owned() if r.kind != "image"]
+
+    # -- doctor, quotas ---------------------------------------------------------------------------
+    def check_credentials(self) -> str:
+        with self._errors(f"libvirt at {self.settings.uri}"):
+            v = self.conn.getLibVersion()
+            host = self.conn.getHostname()
+            probed = self._probed()
+            accel = self.settings.accel
+            if accel == "auto":
+                found = probed.get(self.settings.uri)
+                accel = f"auto: {found} ({probed.get(self.settings.uri + ' why', '')})" if found else \
+                    "auto (probed at the first clone's boot)"
+            return f"libvirt {v // 1_000_000}.{v // 1000 % 1000}.{v % 1000} on {host} ({self.settings.uri}), accel {accel}"
+
+    def quotas(self, robots: Sequence[str] = ()) -> list[Quota]:
+        """The libvirt host's memory: what every running domain has, against what it has in all.
+        vCPUs are not held (libvirt runs more vCPUs than cores, only slower), nor disk (overlays
+        are thin and grow with each clone's writes)."""
+        with self._errors("host memory"):
+            total_mb = self.conn.getInfo()[1]
+            used_kib = sum(d.info()[2] for d in self.conn.listAllDomains(self.libvirt.VIR_CONNECT_LIST_DOMAINS_ACTIVE))
+            return [Quota(name="memory (MiB)", scope=f"libvirt host {self.settings.uri}", limit=float(total_mb),
+                          used=round(used_kib / 1024, 1), per_clone=float(self.settings.memory_mb),
+                          hint="lower provider.memory_mb, or give the host more memory")]
+
+    def close(self) -> None:
+        super().close()
+        try:
+            self.conn.close()
+        except self.libvirt.libvirtError:
+            pass

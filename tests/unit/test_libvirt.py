@@ -1,0 +1,358 @@
+"""The libvirt backend without libvirt: its inventory settings, the XML it hands libvirt (parsed
+back: names, ownership metadata, disks and backing files, NICs, console), the NoCloud seed, the
+golden volume's layer, and the one-line error when the binding is missing."""
+
+from __future__ import annotations
+
+import ipaddress
+import shutil
+import sys
+import xml.etree.ElementTree as ET
+
+import pytest
+import yaml
+
+from ccrp_cli.errors import CcrpError, InputError
+from ccrp_cli.loader import load_inventory
+from ccrp_cli.providers import REGISTRY
+from ccrp_cli.providers.base import CloneState, owner_labels
+from ccrp_cli.providers.libvirt import goldens, provider, seed, xmldefs
+
+
+def inventory(tmp_path, **settings):
+    data = {"fleet": "vmlab", "provider": {"kind": "libvirt", **settings}, "robots": [{"name": "nao1"}]}
+    path = tmp_path / "ccrp.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return load_inventory(path)
+
+
+def domain_spec(**over) -> xmldefs.DomainSpec:
+    base = dict(name="ccrp-vmlab-cri-nao1", title="ccrp clone of robot nao1 (fleet vmlab)",
+                labels=owner_labels("vmlab", "clone", "nao1"), common_ip="10.90.0.10", accel="tcg", memory_mb=2048,
+                vcpus=2, pool="ccrp", disk="ccrp-vmlab-cri-nao1.qcow2", seed="ccrp-vmlab-cri-nao1-seed.iso",
+                kernel="/pool/ccrp-vmlab-golden-20261126040000.vmlinuz",
+                initrd="/pool/ccrp-vmlab-golden-20261126040000.initrd",
+                console_log="/pool/ccrp-vmlab-cri-nao1.console",
+                nics=(xmldefs.Nic("ccrp-vmlab-public", "52:54:00:aa:bb:cc"),
+                      xmldefs.Nic("ccrp-vmlab-common", "52:54:00:dd:ee:ff")))
+    return xmldefs.DomainSpec(**(base | over))
+
+
+# -- settings -------------------------------------------------------------------------------------------
+
+def test_settings_defaults_and_registry(tmp_path):
+    inv = inventory(tmp_path)
+    p = inv.provider
+    assert (p.kind, p.uri, p.accel, p.memory_mb, p.vcpus, p.pool) == ("libvirt", "qemu:///system", "auto", 2048, 2, "ccrp")
+    assert p.public_cidr == ipaddress.IPv4Network("192.168.150.0/24")
+    info = REGISTRY["libvirt"]
+    assert info.factory == "libvirt.provider:LibvirtProvider" and ("libvirt", "libvirt") in info.sdk_modules
+    assert info.platform == "debian-bookworm" and not info.abilities
+
+
+@pytest.mark.parametrize("field,value", [
+    ("uri", "qemu:///system; rm -rf /"), ("uri", "not a uri"), ("accel", "hvf"), ("memory_mb", 64),
+    ("vcpus", 0), ("pool", "../etc"), ("pool_dir", "relative/dir"), ("pool_dir", "/var/../etc"),
+])
+def test_bad_settings_are_one_line_errors(tmp_path, field, value):
+    with pytest.raises(InputError) as err:
+        inventory(tmp_path, **{field: value})
+    assert "\n" not in err.value.one_line() and "provider" in err.value.one_line()
+
+
+def test_remote_uri_accepted(tmp_path):
+    assert inventory(tmp_path, uri="qemu+ssh://ops@lab1.example/system", accel="tcg").provider.uri.startswith("qemu+ssh://")
+
+
+# -- domain XML ------------------------------------------------------------------------------------------
+
+def test_domain_xml_round_trip():
+    text = xmldefs.domain(domain_spec())
+    info = xmldefs.domain_info(text)
+    assert info.name == "ccrp-vmlab-cri-nao1"
+    assert info.labels == {"ccrp-managed": "true", "ccrp-fleet": "vmlab", "ccrp-role": "clone", "ccrp-robot": "nao1"}
+    assert info.common_ip == "10.90.0.10"
+    assert info.macs == {"ccrp-vmlab-public": "52:54:00:aa:bb:cc", "ccrp-vmlab-common": "52:54:00:dd:ee:ff"}
+    assert info.volumes == ("ccrp-vmlab-cri-nao1.qcow2", "ccrp-vmlab-cri-nao1-seed.iso")
+    assert (info.memory_mb, info.vcpus) == (2048, 2)
+
+
+def test_domain_xml_devices():
+    dom = ET.fromstring(xmldefs.domain(domain_spec()))
+    assert dom.get("type") == "qemu" and dom.find("cpu") is None  # TCG: QEMU's default CPU model
+    assert dom.findtext("os/kernel").endswith(".vmlinuz") and dom.findtext("os/initrd").endswith(".initrd")
+    assert "root=/dev/vda" in dom.findtext("os/cmdline") and "console=ttyS0" in dom.findtext("os/cmdline")
+    disks = dom.findall("devices/disk")
+    assert [(d.find("target").get("dev"), d.find("driver").get("type"), d.find("readonly") is not None)
+            for d in disks] == [("vda", "qcow2", False), ("vdb", "raw", True)]
+    assert all(d.find("source").get("pool") == "ccrp" for d in disks)
+    assert dom.find("devices/serial/log").get("file") == "/pool/ccrp-vmlab-cri-nao1.console"
+    assert dom.find("devices/rng/backend").text == "/dev/urandom"
+    assert dom.findtext("on_poweroff") == "destroy" and dom.find("features/acpi") is not None
+    kvm = ET.fromstring(xmldefs.domain(domain_spec(accel="kvm")))
+    assert kvm.get("type") == "kvm" and kvm.find("cpu").get("mode") == "host-passthrough"
+
+
+def test_names_are_elements_not_markup():
+    """A name is text in an element: markup in it stays text (names are checked before, too)."""
+    text = xmldefs.domain(domain_spec(title="a</title><devices/>"))
+    assert ET.fromstring(text).findtext("title") == "a</title><devices/>"
+    assert len(ET.fromstring(text).findall("devices")) == 1
+
+
+def test_domain_without_metadata_is_nobodys():
+    info = xmldefs.domain_info("<domain type='kvm'><name>other</name><memory unit='KiB'>1048576</memory></domain>")
+    assert info.labels == {} and info.common_ip is None and info.memory_mb == 1024
+
+
+def test_overlay_volume_names_its_backing_file():
+    vol = ET.fromstring(xmldefs.volume("ccrp-vmlab-cri-nao1.qcow2", 8 << 30, "qcow2",
+                                       backing="/pool/ccrp-vmlab-golden-20261126040000.qcow2"))
+    assert vol.findtext("name") == "ccrp-vmlab-cri-nao1.qcow2"
+    assert vol.find("capacity").text == str(8 << 30) and vol.find("capacity").get("unit") == "bytes"
+    assert vol.find("target/format").get("type") == "qcow2"
+    assert vol.findtext("backingStore/path") == "/pool/ccrp-vmlab-golden-20261126040000.qcow2"
+    assert vol.find("backingStore/format").get("type") == "qcow2"
+    assert ET.fromstring(xmldefs.volume("seed.iso", 1000, "raw")).find("backingStore") is None
+
+
+def test_networks():
+    cidr = ipaddress.IPv4Network("192.168.150.0/24")
+    nat = ET.fromstring(xmldefs.nat_network("ccrp-vmlab-public", xmldefs.bridge_name("vmlab", "public"), cidr))
+    assert nat.findtext("name") == "ccrp-vmlab-public" and nat.find("forward").get("mode") == "nat"
+    assert nat.find("ip").get("address") == "192.168.150.1" and nat.find("ip").get("netmask") == "255.255.255.0"
+    assert (nat.find("ip/dhcp/range").get("start"), nat.find("ip/dhcp/range").get("end")) == ("192.168.150.2", "192.168.150.254")
+    iso = ET.fromstring(xmldefs.isolated_network("ccrp-vmlab-common", xmldefs.bridge_name("vmlab", "common")))
+    assert iso.find("forward") is None and iso.find("ip") is None  # no route out, no host address
+    names = {xmldefs.bridge_name(f, r) for f in ("vmlab", "a" * 31, "vmlab2") for r in ("public", "common")}
+    assert len(names) == 6 and all(len(n) <= 15 for n in names)
+
+
+def test_macs_are_stable_local_and_distinct():
+    a = xmldefs.mac_address("vmlab", "nao1", "public")
+    assert a == xmldefs.mac_address("vmlab", "nao1", "public") and a.startswith("52:54:00:")
+    assert len({a, xmldefs.mac_address("vmlab", "nao1", "common"), xmldefs.mac_address("vmlab", "nao2", "public")}) == 3
+
+
+def test_probe_domain_has_no_disk_and_ends_itself():
+    dom = ET.fromstring(xmldefs.probe_domain("ccrp-vmlab-kvm-probe", "/k", "/i", "/pool/p.console"))
+    assert dom.get("type") == "kvm" and dom.find("devices/disk") is None
+    assert "panic=-1" in dom.findtext("os/cmdline") and dom.findtext("on_reboot") == "destroy"
+
+
+# -- seed ------------------------------------------------------------------------------------------------
+
+def test_network_config_names_interfaces_by_mac():
+    cfg = yaml.safe_load(seed.network_config("52:54:00:00:00:01", "52:54:00:00:00:02", "10.90.0.10",
+                                             ipaddress.IPv4Network("10.90.0.0/24")))
+    assert cfg["version"] == 2
+    assert cfg["ethernets"]["public"] == {"match": {"macaddress": "52:54:00:00:00:01"}, "dhcp4": True}
+    common = cfg["ethernets"]["common"]
+    assert common["match"] == {"macaddress": "52:54:00:00:00:02"} and common["addresses"] == ["10.90.0.10/24"]
+    assert "gateway4" not in common and "routes" not in common
+
+
+def test_meta_data():
+    assert yaml.safe_load(seed.meta_data("vmlab-nao1-1", "cri-nao1")) == {"instance-id": "vmlab-nao1-1",
+                                                                           "local-hostname": "cri-nao1"}
+
+
+@pytest.mark.skipif(not any(shutil.which(t[0]) for t in seed.ISO_TOOLS), reason="neither genisoimage nor xorriso installed")
+def test_seed_iso_is_labelled_cidata_and_holds_the_files():
+    iso = seed.seed_iso("#cloud-config\nhostname: cri-nao1\n", "vmlab-nao1-1", "cri-nao1", "version: 2\n")
+    pvd = iso[16 * 2048:17 * 2048]  # ISO 9660's primary volume descriptor
+    assert pvd[1:6] == b"CD001" and pvd[40:72].decode().strip() == "cidata"
+    assert b"#cloud-config\nhostname: cri-nao1\n" in iso and b"instance-id: vmlab-nao1-1" in iso
+
+
+def test_no_iso_tool_is_one_line(monkeypatch):
+    monkeypatch.setattr(seed.shutil, "which", lambda name: None)
+    with pytest.raises(CcrpError, match="genisoimage"):
+        seed.seed_iso("#cloud-config\n", "i", "h", "version: 2\n")
+
+
+# -- provider pieces that need no libvirt -------------------------------------------------------------------
+
+def test_every_libvirt_state_has_a_ccrp_state():
+    assert set(provider.WORDS) == set(provider.STATES)
+    assert provider.STATES["shutoff"] is CloneState.STOPPED and provider.STATES["running"] is CloneState.RUNNING
+    assert CloneState.UNKNOWN not in provider.STATES.values()
+
+
+@pytest.mark.parametrize("name,fleet,robot", [
+    ("ccrp-vmlab-golden-20261126040000.qcow2", "vmlab", None),
+    ("ccrp-vmlab-golden-nao1-20261126040000.qcow2", "vmlab", "nao1"),
+    ("ccrp-vmlab-golden-20261126040000.vmlinuz", None, None),
+    ("ccrp-vmlab-cri-nao1.qcow2", None, None),
+])
+def test_golden_volume_names(name, fleet, robot):
+    m = provider.GOLDEN.match(name)
+    assert (m["fleet"] if m else None, m["robot"] if m else None) == (fleet, robot)
+
+
+def test_missing_binding_is_one_line(tmp_path, monkeypatch):
+    from ccrp_cli.providers import get_provider
+
+    monkeypatch.setitem(sys.modules, "libvirt", None)  # import libvirt -> ImportError
+    with pytest.raises(CcrpError) as err:
+        get_provider(inventory(tmp_path), tmp_path)
+    assert "libvirt Python binding" in err.value.message and "ccrp[libvirt]" in err.value.hint
+
+
+# -- golden volume ---------------------------------------------------------------------------------------
+
+def test_golden_layer_and_cloud_config():
+    text = goldens.DOCKERFILE.format(base="ccrp/vmlab-clone:20261126040000", packages=" ".join(goldens.VM_PACKAGES))
+    assert text.splitlines()[1] == "FROM ccrp/vmlab-clone:20261126040000"
+    assert "linux-image-cloud-amd64" in text and "rm -f /etc/ssh/ssh_host_*" in text
+    cfg = yaml.safe_load(goldens.CLOUD_CFG)
+    assert cfg["datasource_list"] == ["NoCloud", "None"]
+    assert "ssh" in cfg["cloud_init_modules"] and "keys-to-console" in cfg["cloud_final_modules"]
+    assert "bootcmd" in cfg["cloud_init_modules"]  # the secrets tmpfs (render/cloudinit.py every_boot_bootcmd)
+    assert cfg["system_info"]["network"]["renderers"] == ["networkd"] and "network" not in cfg
+    assert goldens.FSTAB.split()[:3] == ["/dev/vda", "/", "ext4"]
+
+
+def test_golden_needs_its_tools(monkeypatch, tmp_path):
+    monkeypatch.setattr(goldens.shutil, "which", lambda name: None if name == "qemu-img" else f"/usr/bin/{name}")
+    with pytest.raises(CcrpError) as err:
+        goldens.build(object(), "ccrp/vmlab-clone:1", tmp_path)
+    assert "qemu-img" in err.value.message and "qemu-utils" in err.value.hint
+
+
+# -- what the fleet owns, against a stand-in connection (names and metadata as libvirt returns them) -----
+
+class _Vol:
+    def __init__(self, name):
+        self._name = name
+
+    def name(self):
+        return self._name
+
+
+class _Pool:
+    def __init__(self, names):
+        self.vols = [_Vol(n) for n in names]
+
+    def refresh(self, flags):
+        return 0
+
+    def isActive(self):
+        return True
+
+    def listAllVolumes(self, flags):
+        return self.vols
+
+
+class _Dom:
+    def __init__(self, name, labels, uuid):
+        self._xml = xmldefs.domain(domain_spec(name=name, labels=labels))
+        self._name, self._uuid = name, uuid
+
+    def name(self):
+        return self._name
+
+    def UUIDString(self):
+        return self._uuid
+
+    def XMLDesc(self, flags):
+        return self._xml
+
+
+class _Net(_Vol):
+    pass
+
+
+class _Conn:
+    def __init__(self, doms, pool, nets):
+        self.doms, self.pool, self.nets = doms, pool, nets
+
+    def listAllDomains(self, flags):
+        return self.doms
+
+    def listAllNetworks(self, flags):
+        return self.nets
+
+    def storagePoolLookupByName(self, name):
+        return self.pool
+
+
+def stand_in(tmp_path, volumes, domains, networks):
+    inv = inventory(tmp_path)
+    p = object.__new__(provider.LibvirtProvider)
+    p.inv, p.fleet, p.workdir, p.settings = inv, inv.fleet, tmp_path, inv.provider
+    p.libvirt = type("sdk", (), {"libvirtError": type("libvirtError", (Exception,), {})})
+    p.conn = _Conn(domains, _Pool(volumes), [_Net(n) for n in networks])
+    return p
+
+
+def test_list_owned_and_the_leak_rule(tmp_path):
+    from ccrp_cli.gc import find_leaks
+    from ccrp_cli.models.state import FleetState
+
+    golden = "ccrp-vmlab-golden-20261126040000"
+    p = stand_in(tmp_path, volumes=[
+        f"{golden}.qcow2", f"{golden}.vmlinuz", f"{golden}.initrd",  # a snapshot and its boot files
+        "ccrp-vmlab-golden-20250101000000.initrd",  # a boot file whose snapshot is gone
+        "ccrp-vmlab-cri-nao1.qcow2", "ccrp-vmlab-cri-nao1-seed.iso", "ccrp-vmlab-cri-nao1.console",
+        "ccrp-vmlab-cri-nao2.qcow2",  # left by a robot that has no clone
+        "ccrp-vmlab2-cri-nao1.qcow2", "debian.qcow2",  # another fleet's, not ccrp's
+    ], domains=[
+        _Dom("ccrp-vmlab-cri-nao1", owner_labels("vmlab", "clone", "nao1"), "uuid-1"),
+        _Dom("ccrp-vmlab-cri-nao3", owner_labels("other", "clone", "nao3"), "uuid-3"),  # labels of another fleet
+        _Dom("mine", owner_labels("vmlab", "clone", "nao1"), "uuid-4"),  # not named as ccrp names them
+    ], networks=["ccrp-vmlab-public", "ccrp-vmlab-common", "ccrp-vmlab2-public", "default"])
+    owned = p.list_owned()
+    assert [(r.kind, r.name, r.robot) for r in owned] == [
+        ("instance", "ccrp-vmlab-cri-nao1", "nao1"),
+        ("volume", "ccrp-vmlab-golden-20250101000000.initrd", None),
+        ("volume", "ccrp-vmlab-cri-nao1.qcow2", "nao1"), ("volume", "ccrp-vmlab-cri-nao1-seed.iso", "nao1"),
+        ("volume", "ccrp-vmlab-cri-nao1.console", "nao1"), ("volume", "ccrp-vmlab-cri-nao2.qcow2", "nao2"),
+        ("network", "ccrp-vmlab-public", None), ("network", "ccrp-vmlab-common", None),
+        ("image", f"{golden}.qcow2", None),
+    ]
+    state = FleetState.model_validate({"fleet": "vmlab", "robots": {"nao1": {"index": 1, "provider_id": "uuid-1", "phase": "ready"}}})
+    state.snapshot = {"image": f"{golden}.qcow2", "id": f"{golden}.qcow2"}
+    leaks = find_leaks(state, owned, [])
+    assert sorted(r.name for r in leaks) == ["ccrp-vmlab-cri-nao2.qcow2", "ccrp-vmlab-golden-20250101000000.initrd"]
+    assert p.leftovers() == [f"{'domain' if r.kind == 'instance' else r.kind} {r.name}" for r in owned if r.kind != "image"]
+
+
+def test_ssh_is_let_in_from_the_host_on_the_nat_network(tmp_path, ccrp_home):
+    """The clone's firewall admits SSH from provider.operator_cidr only: by default the libvirt host's
+    address on the fleet's NAT network (ccrp's SSH comes from there)."""
+    from ccrp_cli.fleet import Fleet, clone_view
+    from ccrp_cli.render.network import firewall_rules
+
+    inv = inventory(tmp_path, public_cidr="192.168.151.0/24")
+    assert inv.provider.operator_cidr == ipaddress.IPv4Network("192.168.151.1/32")
+    assert inventory(tmp_path, operator_cidr="203.0.113.0/24").provider.operator_cidr == ipaddress.IPv4Network("203.0.113.0/24")
+    fleet = Fleet.open(tmp_path / "ccrp.yaml")
+    rules, _ = firewall_rules(clone_view(fleet, fleet.store.load_state(), "nao1"))
+    assert "-A INPUT -p tcp -s 203.0.113.0/24 --dport 22 -j ACCEPT" in rules
+
+
+def test_public_address_is_reserved_at_the_common_offset(tmp_path):
+    p = stand_in(tmp_path, [], [], [])
+    p.inv = inventory(tmp_path, public_cidr="192.168.151.0/24")
+    p.settings = p.inv.provider
+    assert p.public_ip("10.90.0.10") == "192.168.151.10"  # common.cidr 10.90.0.0/24, clone k at .9 + k
+    with pytest.raises(CcrpError, match="no counterpart"):
+        p.public_ip("10.90.1.10")
+    host = ET.fromstring(xmldefs.dhcp_host("52:54:00:00:00:01", "192.168.151.10", "cri-nao1"))
+    assert host.attrib == {"mac": "52:54:00:00:00:01", "name": "cri-nao1", "ip": "192.168.151.10"}
+    net = ET.fromstring(xmldefs.nat_network("n", "b", ipaddress.IPv4Network("192.168.151.0/24")))
+    net.find("ip/dhcp").append(host)
+    assert xmldefs.dhcp_hosts(ET.tostring(net, encoding="unicode")) == {"52:54:00:00:00:01": "192.168.151.10"}
+
+
+def test_snapshot_commands_on_libvirt_refuse_in_one_line_until_the_golden_build_is_wired(ccrp, tmp_path):
+    """The preview backend has neither image ability: `snapshot build` and `bake` say so, and where
+    to read why, before any connection is made."""
+    inv = tmp_path / "lv.yaml"
+    inv.write_text("fleet: lvtest\nprovider:\n  kind: libvirt\nros:\n  distro: noetic\nrobots:\n  - name: nao1\n")
+    for command in ("build", "bake"):
+        proc = ccrp("snapshot", command, "-i", str(inv))
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert f"the libvirt provider cannot do snapshot {command}" in proc.stderr, proc.stderr
+        assert "docs/libvirt.md" in proc.stderr, proc.stderr
