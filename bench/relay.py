@@ -127,6 +127,37 @@ def probe(client, robot: str, spec: dict, distro: str) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
+# Read in a clone before and after the probes: its network namespace's UDP counters (RcvbufErrors:
+# datagrams dropped because a socket's receive buffer was full) and the relay agent's CPU time.
+_COUNTERS = ("cat /proc/net/snmp; pid=$(systemctl show -p MainPID --value ccrp-relay.service); "
+             "echo relay $(cut -d' ' -f14,15 /proc/$pid/stat)")
+
+
+def parse_counters(text: str, ticks: int) -> dict:
+    """{udp_in, udp_rcvbuf_errors, udp_in_errors, relay_cpu_s} from _COUNTERS' output."""
+    lines = text.splitlines()
+    udp = [line.split()[1:] for line in lines if line.startswith("Udp:")]
+    fields = dict(zip(udp[0], map(int, udp[1]))) if len(udp) >= 2 else {}
+    relay = next((line.split()[1:] for line in lines if line.startswith("relay ")), [])
+    cpu = sum(map(int, relay)) / ticks if len(relay) == 2 else None
+    return {"udp_in": fields.get("InDatagrams"), "udp_rcvbuf_errors": fields.get("RcvbufErrors"),
+            "udp_in_errors": fields.get("InErrors"), "relay_cpu_s": cpu}
+
+
+def counters(client, robot: str) -> dict:
+    c = client.containers.get(f"ccrp-{FLEET}-cri-{robot}")
+    figures = parse_counters(c.exec_run(["sh", "-c", _COUNTERS]).output.decode(errors="replace"),
+                             os.sysconf("SC_CLK_TCK"))
+    # The container's CPU time (every process in it, the probes included), from the engine.
+    figures["clone_cpu_s"] = c.stats(stream=False)["cpu_stats"]["cpu_usage"]["total_usage"] / 1e9
+    return figures
+
+
+def counters_delta(before: dict, after: dict) -> dict:
+    return {k: round(after[k] - before[k], 2) if after[k] is not None and before[k] is not None else None
+            for k in before}
+
+
 def stream_stats(sent: int, seen: dict[str, float], warmup: int, cooldown: int = 0) -> dict:
     """Loss over the messages sent after the warm-up ones and before the last `cooldown` ones (the
     probes start one `docker exec` after another, so a receiver may stop listening before a
@@ -230,10 +261,12 @@ def run(args, distro: str) -> dict:
             probe_spec = {"publish": {"topic": "/probe", "kind": "probe", "hz": 20}, "subscribe": {},
                           "seconds": args.seconds, "settle": 6}
             with ThreadPoolExecutor(len(robots) + 1) as pool:
+                before = dict(zip(robots, pool.map(lambda r: counters(client, r), robots)))
                 futures = {r: pool.submit(probe, client, r, specs[r], distro) for r in robots}
                 probe_sender = pool.submit(probe, client, "bot1", probe_spec, distro)
                 out = {r: f.result() for r, f in futures.items()}
                 sent_probe = probe_sender.result()["sent"]
+                after = dict(zip(robots, pool.map(lambda r: counters(client, r), robots)))
         finally:
             try:
                 cli("fleet", "down")
@@ -262,12 +295,20 @@ def run(args, distro: str) -> dict:
     t["lost_total"] = sum(s["lost"] for s in streams.values())
     t["p95_ms_worst"] = max(s["p95_ms"] or 0 for s in streams.values())
     t["p95_ms_median"] = statistics.median(s["p95_ms"] or 0 for s in streams.values())
+    # While the probes ran (settle, seconds and their tail): what each clone's kernel dropped
+    # in full UDP receive buffers (ROS 2's DDS hops; ROS 1's are TCP), and the CPU time spent.
+    clones = {r: counters_delta(before[r], after[r]) for r in robots}
+    total = lambda k: round(sum(c[k] for c in clones.values() if c[k] is not None), 2)  # noqa: E731
+    result["clones"] = {"udp_rcvbuf_errors": total("udp_rcvbuf_errors"), "udp_in": total("udp_in"),
+                        "relay_cpu_s": total("relay_cpu_s"), "clone_cpu_s": total("clone_cpu_s"),
+                        "per_clone": clones}
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = "relay" if distro == "noetic" else f"relay-{distro}"
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2) + "\n")
     plot(result, RESULTS / f"{stem}.png")
     return {"latency": result["latency"], "lost_total": t["lost_total"], "p95_ms_worst": t["p95_ms_worst"],
-            "p95_ms_median": t["p95_ms_median"]}
+            "p95_ms_median": t["p95_ms_median"],
+            "clones": {k: v for k, v in result["clones"].items() if k != "per_clone"}}
 
 
 if __name__ == "__main__":

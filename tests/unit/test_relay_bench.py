@@ -28,3 +28,24 @@ def test_ratios_are_the_distros_figures_over_noetics():
     # A stream with nothing received has no figure: no ratio rather than a division by zero.
     assert bench.ratios(figures(None, 9.0, 1.5, 3.0), figures(2.0, 0, 1.0, 1.2))["images_p95_median"] is None
     assert bench.ratios(jazzy, figures(2.0, 0, 1.0, 1.2))["images_p95_worst"] is None
+
+
+SNMP = """Ip: Forwarding DefaultTTL
+Ip: 1 64
+Udp: InDatagrams NoPorts InErrors OutDatagrams RcvbufErrors SndbufErrors InCsumErrors IgnoredMulti MemErrors
+Udp: 5120 3 12 4800 11 0 0 0 0
+UdpLite: InDatagrams NoPorts InErrors OutDatagrams RcvbufErrors SndbufErrors InCsumErrors IgnoredMulti MemErrors
+UdpLite: 0 0 0 0 0 0 0 0 0
+relay 250 130
+"""
+
+
+def test_a_clones_counters_are_its_udp_drops_and_the_relays_cpu_time():
+    bench = load()
+    figures = bench.parse_counters(SNMP, 100)
+    assert figures == {"udp_in": 5120, "udp_rcvbuf_errors": 11, "udp_in_errors": 12, "relay_cpu_s": 3.8}
+    # No relay process (its unit not running): no CPU figure rather than a wrong one.
+    assert bench.parse_counters(SNMP.replace("relay 250 130", "relay"), 100)["relay_cpu_s"] is None
+    after = {**figures, "udp_rcvbuf_errors": 15, "relay_cpu_s": 5.05, "clone_cpu_s": 9.0}
+    delta = bench.counters_delta({**figures, "clone_cpu_s": 2.5}, after)
+    assert delta == {"udp_in": 0, "udp_rcvbuf_errors": 4, "udp_in_errors": 0, "relay_cpu_s": 1.25, "clone_cpu_s": 6.5}
