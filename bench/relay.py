@@ -16,6 +16,13 @@ one distro after the other in the same run.
 Run: .venv/bin/python bench/relay.py [--clones 10] [--seconds 30] [--distros noetic,jazzy]
 Writes bench/results/relay.{json,png} (Noetic) and bench/results/relay-jazzy.{json,png}; with both
 distros, relay-jazzy.json's `ratio_to_noetic` is Jazzy's figures over Noetic's of the same run.
+
+  last hop    (--last-hop IMAGE, a ROS 2 clone image) the importing agent's publish to a subscriber
+              on its clone, alone, in one container of IMAGE: serialized 320x240 images published
+              as the agent publishes them (another user, the agent's Fast DDS profile from
+              ccrp_cli/agent/relay_ros2.py) to the probe's rclpy subscriber as root; per variant,
+              p50/p95 from the stamp and the datagrams the kernel dropped in full receive buffers.
+              Writes bench/results/relay-last-hop.json.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import datetime as dt
 import json
 import os
 import platform
+import re
 import statistics
 import sys
 import tempfile
@@ -127,6 +135,37 @@ def probe(client, robot: str, spec: dict, distro: str) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
+# Read in a clone before and after the probes: its network namespace's UDP counters (RcvbufErrors:
+# datagrams dropped because a socket's receive buffer was full) and the relay agent's CPU time.
+_COUNTERS = ("cat /proc/net/snmp; pid=$(systemctl show -p MainPID --value ccrp-relay.service); "
+             "echo relay $(cut -d' ' -f14,15 /proc/$pid/stat)")
+
+
+def parse_counters(text: str, ticks: int) -> dict:
+    """{udp_in, udp_rcvbuf_errors, udp_in_errors, relay_cpu_s} from _COUNTERS' output."""
+    lines = text.splitlines()
+    udp = [line.split()[1:] for line in lines if line.startswith("Udp:")]
+    fields = dict(zip(udp[0], map(int, udp[1]))) if len(udp) >= 2 else {}
+    relay = next((line.split()[1:] for line in lines if line.startswith("relay ")), [])
+    cpu = sum(map(int, relay)) / ticks if len(relay) == 2 else None
+    return {"udp_in": fields.get("InDatagrams"), "udp_rcvbuf_errors": fields.get("RcvbufErrors"),
+            "udp_in_errors": fields.get("InErrors"), "relay_cpu_s": cpu}
+
+
+def counters(client, robot: str) -> dict:
+    c = client.containers.get(f"ccrp-{FLEET}-cri-{robot}")
+    figures = parse_counters(c.exec_run(["sh", "-c", _COUNTERS]).output.decode(errors="replace"),
+                             os.sysconf("SC_CLK_TCK"))
+    # The container's CPU time (every process in it, the probes included), from the engine.
+    figures["clone_cpu_s"] = c.stats(stream=False)["cpu_stats"]["cpu_usage"]["total_usage"] / 1e9
+    return figures
+
+
+def counters_delta(before: dict, after: dict) -> dict:
+    return {k: round(after[k] - before[k], 2) if after[k] is not None and before[k] is not None else None
+            for k in before}
+
+
 def stream_stats(sent: int, seen: dict[str, float], warmup: int, cooldown: int = 0) -> dict:
     """Loss over the messages sent after the warm-up ones and before the last `cooldown` ones (the
     probes start one `docker exec` after another, so a receiver may stop listening before a
@@ -171,12 +210,134 @@ def plot(result: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+# --last-hop: run as root in the image (`python3 -c LAST_HOP DIR VARIANT`). DIR holds the profiles;
+# the writer publishes bytes (rclpy publishes them raw, as the importing agent does).
+_LAST_HOP_WRITER = r"""
+import sys, time
+import rclpy
+from builtin_interfaces.msg import Time
+from rclpy.qos import QoSProfile
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import Image
+from std_msgs.msg import Header
+rclpy.init()
+node = rclpy.create_node("last_hop_writer")
+pub = node.create_publisher(Image, "/image", QoSProfile(depth=100))
+end = time.time() + 10
+while pub.get_subscription_count() < 1 and time.time() < end:
+    time.sleep(0.05)
+time.sleep(1)
+data, hz, count = bytes(320 * 240 * 3), float(sys.argv[1]), int(sys.argv[2])
+nxt = time.time()
+for n in range(1, count + 1):
+    now = time.time()
+    h = Header(frame_id=str(n), stamp=Time(sec=int(now), nanosec=int((now % 1) * 1e9)))
+    pub.publish(serialize_message(Image(header=h, height=240, width=320, encoding="rgb8", step=960, data=data)))
+    nxt += 1.0 / hz
+    time.sleep(max(0.0, nxt - time.time()))
+time.sleep(1)
+rclpy.shutdown()
+"""
+LAST_HOP = r"""
+import json, os, subprocess, sys, time
+d, variant, distro = sys.argv[1], sys.argv[2], sys.argv[3]
+hz, count = 10.0, int(sys.argv[4])
+python = f"/opt/ros/{distro}/bin/python"
+def udp():
+    rows = [line.split() for line in open("/proc/net/snmp") if line.startswith("Udp:")]
+    return dict(zip(rows[0][1:], map(int, rows[1][1:])))
+os.makedirs("/tmp/log", mode=0o777, exist_ok=True)
+os.chmod("/tmp/log", 0o777)
+base = {**os.environ, "ROS_DOMAIN_ID": "42", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp", "HOME": "/tmp",
+        "ROS_LOG_DIR": "/tmp/log", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+agent = {"FASTRTPS_DEFAULT_PROFILES_FILE": f"{d}/agent.xml", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SYSTEM_DEFAULT"}
+writer_env, reader_env, demote = dict(base), dict(base), True
+if variant == "shared_memory":  # the writer as the subscriber's user, as rmw sets it up: no profile
+    demote = False
+else:
+    writer_env.update(agent, FASTRTPS_DEFAULT_PROFILES_FILE=f"{d}/{variant}.xml")
+if variant == "subscriber_2mb":  # the subscriber's sockets as large as the agent's own
+    reader_env.update(agent)
+if variant == "agent_paced":  # its flow controller applies to asynchronous writers only
+    writer_env["RMW_FASTRTPS_PUBLICATION_MODE"] = "ASYNCHRONOUS"
+def nobody():
+    os.setgid(65534)
+    os.setuid(65534)
+before = udp()
+reader = subprocess.Popen([python, "-c", PROBE, json.dumps({"subscribe": {"/image": "image"}, "seconds": count / hz + 8, "settle": 0})],
+                          env=reader_env, stdout=subprocess.PIPE, text=True)
+time.sleep(1.5)
+writer = subprocess.Popen([python, "-c", WRITER, str(hz), str(count)], env=writer_env, preexec_fn=nobody if demote else None)
+time.sleep(4)
+ss = subprocess.run(["ss", "-uamn"], capture_output=True, text=True).stdout
+writer.wait()
+seen = json.loads(reader.communicate()[0].strip().splitlines()[-1])["seen"]["/image"]
+after = udp()
+print(json.dumps({"seen": seen, "rcvbuf_errors": after["RcvbufErrors"] - before["RcvbufErrors"],
+                  "udp_in": after["InDatagrams"] - before["InDatagrams"],
+                  "socket_rb": sorted({int(x.split("rb")[1].split(",")[0]) for x in ss.split() if x.startswith("skmem:")})}))
+"""
+LAST_HOP_VARIANTS = ("agent", "agent_writer_defaults", "agent_paced", "shared_memory", "subscriber_2mb")
+# Tried, not taken: the agent's writers paced to one 64 KB datagram per millisecond.
+_PACED = """      <flow_controller_descriptor_list><flow_controller_descriptor><name>ccrp_paced</name>
+        <max_bytes_per_period>65536</max_bytes_per_period><period_ms>1</period_ms>
+      </flow_controller_descriptor></flow_controller_descriptor_list>
+    </rtps>"""
+_PACED_WRITER = "<publishMode><kind>ASYNCHRONOUS</kind><flow_controller_name>ccrp_paced</flow_controller_name></publishMode>"
+
+
+def last_hop_profiles(profile: str) -> dict[str, str]:
+    """The writer's Fast DDS profile per variant, from the agent's."""
+    return {"agent": profile, "subscriber_2mb": profile,
+            # The agent's profile before its writers answered NACKs at once.
+            "agent_writer_defaults": re.sub(r"\s*<data_writer .*?</data_writer>", "", profile, flags=re.S),
+            "agent_paced": profile.replace("    </rtps>", _PACED, 1).replace("<times>", f"<qos>{_PACED_WRITER}</qos><times>")}
+
+
+def last_hop(image: str, distro: str, count: int, rounds: int) -> None:
+    """The last hop alone (module docstring), each variant `rounds` times, interleaved."""
+    import subprocess
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "ccrp_cli" / "agent"))
+    import relay_ros2
+
+    runs = {v: [] for v in LAST_HOP_VARIANTS}
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chmod(tmp, 0o755)
+        for name, text in last_hop_profiles(relay_ros2.fastdds_profile("")).items():
+            (Path(tmp) / f"{name}.xml").write_text(text)
+        script = LAST_HOP.replace("PROBE, json", f"{PROBE2!r}, json").replace("WRITER, str", f"{_LAST_HOP_WRITER!r}, str")
+        for _ in range(rounds):
+            for variant in LAST_HOP_VARIANTS:
+                out = subprocess.run(["docker", "run", "--rm", "--name", f"relaybench-last-hop-{os.getpid()}",
+                                      "-v", f"{tmp}:/bench:ro", "--entrypoint", "python3", image, "-c", script,
+                                      "/bench", variant, distro, str(count)],
+                                     capture_output=True, text=True, timeout=300)
+                if out.returncode != 0:
+                    raise SystemExit(f"last hop {variant} failed: {out.stderr[-800:]}")
+                got = json.loads(out.stdout.strip().splitlines()[-1])
+                stats = stream_stats(count, got.pop("seen"), 5)
+                runs[variant].append({**{k: stats[k] for k in ("sent", "received", "lost", "p50_ms", "p95_ms", "max_ms")}, **got})
+                print(f"last hop {variant}: {runs[variant][-1]}", file=sys.stderr)
+    result = {"benchmark": "relay last hop", "image": image,
+              "when": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+              "machine": {"cpus": os.cpu_count(), "kernel": platform.release(), "load": os.getloadavg()},
+              "images": count, "hz": 10, "runs": runs}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "relay-last-hop.json").write_text(json.dumps(result, indent=2) + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--clones", type=int, default=10)
     ap.add_argument("--seconds", type=float, default=30)
     ap.add_argument("--distros", default="noetic,jazzy", help="run the benchmark for each, one after the other")
+    ap.add_argument("--last-hop", metavar="IMAGE", help="only the importing agent's last hop, in a ROS 2 clone image")
+    ap.add_argument("--rounds", type=int, default=2, help="--last-hop: runs of each variant")
     args = ap.parse_args()
+    if args.last_hop:
+        distro = next(d for d in args.distros.split(",") if d != "noetic")  # the image's
+        return last_hop(args.last_hop, distro, 105, args.rounds)
     summary = {}
     for distro in args.distros.split(","):
         summary[distro] = run(args, distro)
@@ -230,10 +391,12 @@ def run(args, distro: str) -> dict:
             probe_spec = {"publish": {"topic": "/probe", "kind": "probe", "hz": 20}, "subscribe": {},
                           "seconds": args.seconds, "settle": 6}
             with ThreadPoolExecutor(len(robots) + 1) as pool:
+                before = dict(zip(robots, pool.map(lambda r: counters(client, r), robots)))
                 futures = {r: pool.submit(probe, client, r, specs[r], distro) for r in robots}
                 probe_sender = pool.submit(probe, client, "bot1", probe_spec, distro)
                 out = {r: f.result() for r, f in futures.items()}
                 sent_probe = probe_sender.result()["sent"]
+                after = dict(zip(robots, pool.map(lambda r: counters(client, r), robots)))
         finally:
             try:
                 cli("fleet", "down")
@@ -262,12 +425,20 @@ def run(args, distro: str) -> dict:
     t["lost_total"] = sum(s["lost"] for s in streams.values())
     t["p95_ms_worst"] = max(s["p95_ms"] or 0 for s in streams.values())
     t["p95_ms_median"] = statistics.median(s["p95_ms"] or 0 for s in streams.values())
+    # While the probes ran (settle, seconds and their tail): what each clone's kernel dropped
+    # in full UDP receive buffers (ROS 2's DDS hops; ROS 1's are TCP), and the CPU time spent.
+    clones = {r: counters_delta(before[r], after[r]) for r in robots}
+    total = lambda k: round(sum(c[k] for c in clones.values() if c[k] is not None), 2)  # noqa: E731
+    result["clones"] = {"udp_rcvbuf_errors": total("udp_rcvbuf_errors"), "udp_in": total("udp_in"),
+                        "relay_cpu_s": total("relay_cpu_s"), "clone_cpu_s": total("clone_cpu_s"),
+                        "per_clone": clones}
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = "relay" if distro == "noetic" else f"relay-{distro}"
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2) + "\n")
     plot(result, RESULTS / f"{stem}.png")
     return {"latency": result["latency"], "lost_total": t["lost_total"], "p95_ms_worst": t["p95_ms_worst"],
-            "p95_ms_median": t["p95_ms_median"]}
+            "p95_ms_median": t["p95_ms_median"],
+            "clones": {k: v for k, v in result["clones"].items() if k != "per_clone"}}
 
 
 if __name__ == "__main__":

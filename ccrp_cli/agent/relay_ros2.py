@@ -160,6 +160,12 @@ class Import2(Import):
 # enough that the sample waited for a NACK and its repair (measured here: p50/p95 2.3/17.9 ms for
 # such an image from a node to the agent, 1.4/1.8 ms with 2 MB). The kernel caps it at
 # net.core.rmem_max (doubled), which Fast DDS accepts.
+# The same overflow happens in the socket of a subscriber on the importing clone, which belongs to
+# the user's node and keeps the kernel's 208 KB (rmw_fastrtps makes its own UDP transport under
+# LOCALHOST, and net.core.rmem_default is not per network namespace: Docker refuses it as a
+# container sysctl). A fragment lost there is repaired when the reader NACKs it; a writer's default
+# wait of 5 ms before it answers a NACK (nackResponseDelay) is waiting for nothing here, so the
+# agent's writers answer at once (measured: docs/ros2.md, The relay's speed).
 RECEIVE_BUFFER = 2 * 1024 * 1024
 FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
@@ -183,6 +189,9 @@ FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
       </builtin>
     </rtps>
   </participant>
+  <data_writer profile_name="ccrp_relay_writer" is_default_profile="true">
+    <times><nackResponseDelay><sec>0</sec><nanosec>0</nanosec></nackResponseDelay></times>
+  </data_writer>
 </profiles>
 """
 

@@ -253,6 +253,11 @@ def test_the_agents_fastdds_profile_is_udp_unicast_to_this_host_and_the_robot(ag
     assert root.find(".//f:metatrafficMulticastLocatorList", ns) is None and "SHM" not in text
     # An image's datagrams all fit in its sockets (the kernel's default buffer dropped some).
     assert int(root.find(".//f:transport_descriptor/f:receiveBufferSize", ns).text) == 2 * 1024 * 1024
+    # Its writers answer a subscriber's NACK of a lost fragment at once (the default waits 5 ms).
+    writer = root.find("f:data_writer", ns)
+    assert writer.get("is_default_profile") == "true"
+    delay = writer.find("f:times/f:nackResponseDelay", ns)
+    assert (delay.find("f:sec", ns).text, delay.find("f:nanosec", ns).text) == ("0", "0")
 
 
 class Handle:
