@@ -13,30 +13,9 @@ from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE
 from .archive import tar_files
 
 
-def _import_docker():
-    """The Docker SDK, imported without paramiko unless DOCKER_HOST is an ssh:// URL: docker-py
-    imports paramiko (and paramiko invoke) at import time for that one transport when it is
-    installed, as every cloud extra installs it, which was a quarter of a second of CPU on every
-    command that talks to the engine (bench/startup.py). Without it, docker-py leaves ssh://
-    out, as it does where paramiko is not installed."""
-    import os
-    import sys
-
-    if "docker" in sys.modules or "paramiko" in sys.modules or os.environ.get("DOCKER_HOST", "").startswith("ssh://"):
-        import docker
-
-        return docker
-    sys.modules["paramiko"] = None  # type: ignore[assignment] - `import paramiko` raises ImportError
-    try:
-        import docker
-    finally:
-        del sys.modules["paramiko"]
-    return docker
-
-
 def _client():
     try:
-        docker = _import_docker()
+        import docker
         from docker.errors import DockerException
     except ImportError:  # pragma: no cover - docker is a core dependency
         raise CcrpError("the Docker SDK is not installed", hint="pip install 'ccrp[docker]'") from None
