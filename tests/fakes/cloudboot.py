@@ -144,7 +144,10 @@ def warm_bake(user_data: bytes, timeout: float = 1800, client=None, progress=pri
         if disk:
             return disk
         for old in client.images.list(filters={"label": f"{BAKED}={key}"}):  # an earlier run's
-            client.images.remove(old.id, force=True)
+            try:
+                client.images.remove(old.id, force=True)
+            except docker.errors.APIError:  # 409: a killed run left a snapshot made from it; never ours
+                pass
         with CloudBoot(client=client, progress=progress) as boot:
             net, cidr = boot.claim_network("bake", "172.24.0.0/16")
             ip = str(list(ipaddress.IPv4Network(cidr).hosts())[1])
