@@ -19,17 +19,9 @@ APT_PACKAGES=(
   tini                   # reaps what libvirtd leaves behind where no init does (see below)
   libvirt-dev pkg-config gcc python3-dev  # to build libvirt-python (PyPI has no wheel of it)
 )
-missing=()
-for pkg in "${APT_PACKAGES[@]}"; do
-  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
-done
-if ((${#missing[@]})); then
-  echo "ccrp libvirt: installing ${missing[*]}" >&2
-  export DEBIAN_FRONTEND=noninteractive
-  apt-get update -qq
-  # No recommends: they add LVM, parted, the Xen/VirtualBox/LXC drivers and more, none of which ccrp uses.
-  apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
-fi
+# Without recommends: they add LVM, parted, the Xen/VirtualBox/LXC drivers and more, none of which ccrp uses.
+. scripts/apt-missing.sh
+apt_install_missing "ccrp libvirt" "${APT_PACKAGES[@]}"
 
 if [ -x "$PYTHON" ] && ! "$PYTHON" -c 'import libvirt' 2>/dev/null; then
   echo "ccrp libvirt: building the Python binding (pip extra libvirt)" >&2

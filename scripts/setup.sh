@@ -15,16 +15,8 @@ APT_PACKAGES=(
   chromium chromium-driver  # the dashboard's browser test (headless, driven by selenium)
 )
 
-missing=()
-for pkg in "${APT_PACKAGES[@]}"; do
-  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
-done
-if ((${#missing[@]})); then
-  echo "ccrp setup: installing ${missing[*]}" >&2
-  export DEBIAN_FRONTEND=noninteractive
-  apt-get update -qq
-  apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
-fi
+. scripts/apt-missing.sh
+apt_install_missing "ccrp setup" "${APT_PACKAGES[@]}"
 
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
