@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -12,6 +13,7 @@ from .fleet import Fleet
 from .models.state import RobotRecord
 from .providers.base import CloneState
 from .quotas import check_growth
+from .retry import PollTimeout, poll
 from .workloads import NO_SOFTWARE, check_snapshot, snapshot_software, stale_snapshot
 
 
@@ -102,9 +104,53 @@ def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None
     results = _fan_out(lambda r: ensure_clone(fleet, provider, writer, r, progress), targets, progress, provider)
     if only is None:
         strays = [name for name in provider.query() if name not in members]
-        results += _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), strays, progress, provider)
+        results += retire(fleet, provider, writer, strays, progress, forget=True)
     reshare(fleet, provider, progress, writer.relay_current)
     return results
+
+
+# The agents on a clone that reopen a Zenoh session when their peer list changes, by their reports.
+PEER_REPORTS = ("/run/ccrp-relay/status.json", "/run/ccrp-knowledge/status.json")
+DRAIN_TIMEOUT = 10.0
+
+
+def retire(fleet: Fleet, provider, writer: StateWriter, robots: list[str], progress: Progress,
+           forget: bool) -> list[CloneResult]:
+    """Delete the robots' clones once their partners have let go of them. A partner's relay and
+    knowledge agents open a new Zenoh session when their peer list changes; closing the old one
+    takes milliseconds while the leaving clone still answers, but once it is gone Zenoh waits 10 s
+    on the dead link and then gave up the close half done: the links to the other partners were
+    not dialled again within 20 s (seen in CI). So: the leaving clones drop out of every relay
+    config first, the partners are given up to DRAIN_TIMEOUT s to apply that, then they go."""
+    if not robots:
+        return []
+    for robot in robots:
+        if robot in writer.state.robots:
+            writer.update(robot, phase="deleting")  # out of every relay config (relay_config's `live`)
+    drain(provider, reshare(fleet, provider, progress), set(robots), progress)
+    return _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget), robots, progress, provider)
+
+
+def drain(provider, partners: list[str], leaving: set[str], progress: Progress) -> None:
+    """Wait until no agent report on `partners` names a `leaving` peer (a report missing, or over
+    10 s old, is an agent that is not running: nothing to wait for)."""
+    def holding(robot: str) -> bool:
+        for path in PEER_REPORTS:
+            rc, out = provider.exec(robot, ["cat", path], timeout=10)
+            try:
+                report = json.loads(out) if rc == 0 else {}
+            except ValueError:
+                continue
+            if time.time() - report.get("time", 0) < 10 and leaving & set(report.get("peers") or {}):
+                return True
+        return False
+
+    try:
+        poll(lambda: (not (left := [r for r in partners if holding(r)]), left), timeout=DRAIN_TIMEOUT, interval=0.5)
+    except CcrpError as exc:  # a partner that stopped answering: its links go with it anyway
+        progress(f"not waiting for partners to let go: {exc.one_line()}")
+    except PollTimeout as exc:
+        progress(f"{', '.join(exc.last)} still linked to {', '.join(sorted(leaving))} after {exc.seconds:.0f} s; deleting anyway")
 
 
 def reshare(fleet: Fleet, provider, progress: Progress, known: dict[str, str] | None = None) -> list[str]:
@@ -175,7 +221,7 @@ def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneRe
             state.robots[name] = RobotRecord(index=slots[name], origin="template")
         fleet.store.save_state(state)
     writer = StateWriter(fleet, state)
-    results = _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget=True), removed, progress, provider)
+    results = retire(fleet, provider, writer, removed, progress, forget=True)
     return results + up(fleet, provider, progress, quotas_checked=bool(new))
 
 

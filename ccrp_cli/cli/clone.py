@@ -66,14 +66,12 @@ def delete(inventory: options.Inventory, robot: options.Robot, as_json: options.
     with fleet.store.lock():
         state = fleet.store.load_state()
         existed = robot in provider.query()
-        from .. import clones
+        from ..clones import StateWriter
+        from ..reconcile import retire
 
-        item = clones.delete_clone(fleet, provider, clones.StateWriter(fleet, state), robot, forget=False)
+        [item] = retire(fleet, provider, StateWriter(fleet, state), [robot], output.info, forget=False)
         if not existed:
             item.action = "absent"
-        from ..reconcile import reshare
-
-        reshare(fleet, provider, output.info)  # the other clones drop it
     raise typer.Exit(output.results([item], as_json))
 
 
