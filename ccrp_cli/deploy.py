@@ -271,10 +271,10 @@ def local_docker(provider):
     """The Docker engine that builds the workspace: the provider's on Docker, this machine's else."""
     if provider.kind == "docker":
         return provider.client
-    try:
-        import docker
+    from .providers.sdk import docker_module
 
-        client = docker.from_env(timeout=600)
+    try:
+        client = docker_module().from_env(timeout=600)
         client.ping()
         return client
     except Exception as exc:  # noqa: BLE001 - no engine, no socket, no permission: all the same to the user

@@ -18,10 +18,10 @@ DEFAULT_DISTRO = "jazzy"
 
 def docker_subnets() -> list[ipaddress.IPv4Network]:
     """The IPv4 subnets of this host's Docker networks (none when no engine answers)."""
-    try:
-        import docker
+    from .providers.sdk import docker_module
 
-        client = docker.from_env(timeout=5)
+    try:
+        client = docker_module().from_env(timeout=5)
     except Exception:  # noqa: BLE001 - no engine here: nothing of Docker's to avoid
         return []
     try:

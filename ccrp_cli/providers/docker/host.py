@@ -14,8 +14,10 @@ from .archive import tar_files
 
 
 def _client():
+    from ..sdk import docker_module
+
     try:
-        import docker
+        docker = docker_module()
         from docker.errors import DockerException
     except ImportError:  # pragma: no cover - docker is a core dependency
         raise CcrpError("the Docker SDK is not installed", hint="pip install 'ccrp[docker]'") from None
