@@ -58,9 +58,9 @@ def run(fleet: Fleet) -> list[Check]:
         checks += _credentials(provider) + _quotas(fleet, provider) + [_snapshot(fleet, provider)]
         if Ability.LOCAL_BUILD in provider.abilities:
             checks.append(_snapshot_images(provider))
-    if kind == "docker" and shutil.which("mmdebstrap") is None:
-        checks.append(Check("tool mmdebstrap", WARN, "not found",
-                            "apt-get install mmdebstrap (builds the base image when it is missing)"))
+    for tool, why in info(kind).host_tools:
+        if shutil.which(tool) is None:
+            checks.append(Check(f"tool {tool}", WARN, "not found", f"apt-get install {tool} ({why})"))
     for tool, why in OPTIONAL_TOOLS.items():
         found = shutil.which(tool)
         checks.append(Check(f"tool {tool}", OK if found else WARN, found or f"not found (optional: {why})",

@@ -151,9 +151,7 @@ def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = No
         _terminate_builder(provider, progress, failing=True)
         raise
     _terminate_builder(provider, progress, failing=False)
-    # What run_instance is given: GCE boots from an image's name, AWS and OpenStack from its id
-    # (Glance names need not be unique).
-    image = record.name if kind == "gcp" else record.id
+    image = record.name if info(kind).image_ref == "name" else record.id  # what run_instance is given
     # As `snapshot build` records it: fleet up refuses a snapshot whose software is not the
     # inventory's, fleet plan names clones made with another, deploy compares the packages.
     held = {} if software.empty else {"packages": packages_record(software)}

@@ -221,7 +221,9 @@ def check_snapshot(fleet, state, provider_kind: str) -> None:
     """Refuse to create or update clones whose snapshot lacks the inventory's software."""
     why = stale_snapshot(fleet, state)
     if why is not None and state.snapshot:
-        hint = f"ccrp snapshot {'build' if provider_kind == 'docker' else 'bake'} -i INVENTORY first"
+        from .providers import Ability, info
+
+        hint = f"ccrp snapshot {'bake' if Ability.BAKE in info(provider_kind).abilities else 'build'} -i INVENTORY first"
         raise InputError(f"{why}: clones made from it would not have it", hint=hint)
 
 

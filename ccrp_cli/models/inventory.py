@@ -7,7 +7,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import Field, field_validator, model_validator
 
-from ..providers.registry import REGISTRY
+from ..providers.registry import REGISTRY, Ability, info
 from ..errors import shown
 from .distro import Distro, RobotRos
 from .names import Name, Topic
@@ -314,9 +314,7 @@ class Inventory(Strict):
 
     @model_validator(mode="after")
     def _networks_disjoint(self) -> "Inventory":
-        nets = {"vpn.pool": self.vpn.pool, "common.cidr": self.common.cidr}
-        if self.provider.kind == "docker":
-            nets["provider.public_cidr"] = self.provider.public_cidr
+        nets = {"vpn.pool": self.vpn.pool, "common.cidr": self.common.cidr, **self.provider.networks()}
         items = list(nets.items())
         for i, (name_a, a) in enumerate(items):
             for name_b, b in items[i + 1 :]:
@@ -334,9 +332,10 @@ class Inventory(Strict):
         platforms = recipe(self.ros.distro).platforms
         if name not in platforms:
             raise ValueError(f"ros.platform {name} is not one of ros.distro {self.ros.distro}'s ({', '.join(platforms)})")
-        if platforms[name].clouds_only and self.provider.kind == "docker":
-            raise ValueError(f"ros.platform {name} is for clouds (baked from your own image); Docker clones run "
-                             f"{', '.join(n for n, p in platforms.items() if not p.clouds_only)}")
+        if platforms[name].clouds_only and Ability.BAKE not in info(self.provider.kind).abilities:
+            # Baked from the user's own image: a backend that bakes nothing runs the others only.
+            raise ValueError(f"ros.platform {name} is for clouds (baked from your own image); {self.provider.kind} "
+                             f"clones run {', '.join(n for n, p in platforms.items() if not p.clouds_only)}")
         return self
 
     @model_validator(mode="after")

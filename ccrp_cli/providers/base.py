@@ -183,6 +183,14 @@ class ProviderInfo:
     user_data_gzip: bool  # whether cloud-init's gzip payload is accepted
     sdk_modules: tuple[tuple[str, str], ...]  # (import name, pip extra) `ccrp doctor` checks
     platform: str = "debian-bookworm"  # the snapshot recipe's platform its clones run (snapshots/*.yaml)
+    # Where a clone keeps the secrets ccrp pushes: "memory" (a tmpfs, gone at reboot: the user-data
+    # makes it at every boot) or "volume" (a Docker volume the container keeps).
+    secrets: Literal["memory", "volume"] = "memory"
+    # What run_instance is given for a captured snapshot: GCE boots from an image's name, the
+    # others from its id (Glance names need not be unique).
+    image_ref: Literal["id", "name"] = "id"
+    # Host tools `ccrp doctor` looks for: (tool, what it is for), a warning when missing.
+    host_tools: tuple[tuple[str, str], ...] = ()
 
     def fit_user_data(self, text: str) -> tuple[bytes, bool]:
         """The user-data payload to send and whether it is gzipped, checked before any API call; an

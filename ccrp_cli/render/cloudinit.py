@@ -16,6 +16,7 @@ from ..layout import (API_USER, CCRP_ETC, CCRP_LIB, IMAGE_AGENTS, KNOWLEDGE_USER
                       POWER_PORT, POWER_USER, RELAY_USER, SECRETS_DIR, VPN_DIR)
 from ..models.inventory import Inventory
 from ..models.names import power_name
+from ..providers.registry import info
 from ..recipes import platform
 from ..resources import agent_source
 from ..templates import render, static
@@ -178,7 +179,7 @@ def user_data_dict(
         ],
         "final_message": f"ccrp clone {a.clone_host} of fleet {view.fleet} configured after $UPTIME s",
     }
-    if view.inv.provider.kind != "docker":
+    if info(view.inv.provider.kind).secrets == "memory":
         # bootcmd runs at every boot, before sshd: ccrp can only push into memory. After a
         # reboot the keys are gone and `ccrp fleet up` pushes them again.
         data["bootcmd"] = every_boot_bootcmd()

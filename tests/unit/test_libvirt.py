@@ -60,6 +60,19 @@ def test_bad_settings_are_one_line_errors(tmp_path, field, value):
     assert "\n" not in err.value.one_line() and "provider" in err.value.one_line()
 
 
+def test_inventory_rules_come_from_the_backends_declarations(tmp_path):
+    """The NAT network is checked against the VPN pool like Docker's public network, and a platform
+    baked from the user's own image is refused as on Docker (libvirt bakes nothing): the rules are
+    the settings' networks() and the registry's abilities, not a branch per kind."""
+    with pytest.raises(InputError, match="overlaps provider.public_cidr"):
+        inventory(tmp_path, public_cidr="10.80.4.0/24")
+    data = {"fleet": "vmlab", "provider": {"kind": "libvirt"}, "ros": {"distro": "jazzy", "platform": "ubuntu-noble-ros"},
+            "robots": [{"name": "nao1"}]}
+    (tmp_path / "ccrp.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(InputError, match="is for clouds .* libvirt clones run debian-bookworm"):
+        load_inventory(tmp_path / "ccrp.yaml")
+
+
 def test_remote_uri_accepted(tmp_path):
     assert inventory(tmp_path, uri="qemu+ssh://ops@lab1.example/system", accel="tcg").provider.uri.startswith("qemu+ssh://")
 

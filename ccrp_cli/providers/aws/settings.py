@@ -5,11 +5,11 @@ from __future__ import annotations
 import ipaddress
 from typing import Literal
 
-from ...models.strict import Strict
+from ...models.strict import ProviderSettings
 from ...models.values import CloudName
 
 
-class AwsSettings(Strict):
+class AwsSettings(ProviderSettings):
     kind: Literal["aws"]
     region: CloudName
     profile: CloudName | None = None

@@ -11,4 +11,6 @@ INFO = ProviderInfo(
     user_data_limit=262_144,  # the NoCloud seed: kept at GCE's size
     user_data_gzip=False,
     sdk_modules=(("docker", "docker"),),
+    secrets="volume",
+    host_tools=(("mmdebstrap", "builds the base image when it is missing"),),
 )

@@ -13,4 +13,5 @@ INFO = ProviderInfo(
     user_data_limit=262_144,  # GCE: 256 KiB per metadata value
     user_data_gzip=False,
     sdk_modules=(("google.cloud.compute_v1", "gcp"), ("paramiko", "gcp")),
+    image_ref="name",
 )

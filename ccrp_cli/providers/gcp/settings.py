@@ -5,11 +5,11 @@ from __future__ import annotations
 import ipaddress
 from typing import Literal
 
-from ...models.strict import Strict
+from ...models.strict import ProviderSettings
 from ...models.values import CloudName
 
 
-class GcpSettings(Strict):
+class GcpSettings(ProviderSettings):
     kind: Literal["gcp"]
     project: CloudName
     region: CloudName

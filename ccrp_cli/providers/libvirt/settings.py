@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, model_validator
 
-from ...models.strict import Strict
+from ...models.strict import ProviderSettings
 from ...errors import shown
 
 # A libvirt connection URI as `virsh -c` takes it: driver[+transport]://[user@][host][:port]/path[?query],
@@ -38,7 +38,7 @@ def _dir(text: str) -> str:
     return text
 
 
-class LibvirtSettings(Strict):
+class LibvirtSettings(ProviderSettings):
     kind: Literal["libvirt"]
     uri: Annotated[str, AfterValidator(_uri)] = "qemu:///system"
     # kvm: hardware virtualisation; tcg: QEMU's emulation (slow, works anywhere); auto: kvm when a
@@ -56,6 +56,9 @@ class LibvirtSettings(Strict):
     # and consoles; created by `fleet up` when missing, shared by fleets, never removed by ccrp.
     pool: Annotated[str, AfterValidator(_pool)] = "ccrp"
     pool_dir: Annotated[str, AfterValidator(_dir)] = "/var/lib/libvirt/images/ccrp"
+
+    def networks(self) -> dict[str, ipaddress.IPv4Network]:
+        return {"provider.public_cidr": self.public_cidr}
 
     @model_validator(mode="after")
     def _operator_is_the_host(self) -> "LibvirtSettings":

@@ -5,11 +5,11 @@ from __future__ import annotations
 import ipaddress
 from typing import Literal
 
-from ...models.strict import Strict
+from ...models.strict import ProviderSettings
 from ...models.values import CloudName
 
 
-class OpenStackSettings(Strict):
+class OpenStackSettings(ProviderSettings):
     kind: Literal["openstack"]
     cloud: CloudName  # entry in clouds.yaml (or OS_CLOUD); never parsed by ccrp
     flavor: CloudName
