@@ -25,22 +25,33 @@ def ccrp_home(tmp_path, monkeypatch) -> Path:
     return home
 
 
+def call_started() -> tuple[float, float]:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime, time.monotonic()
+
+
+def record_call(args, started: tuple[float, float], code: int) -> None:
+    """With CCRP_TEST_CALLS=<file>, one JSON line per `ccrp` process a test started: where the
+    suite's CPU goes (docs/benchmarks.md). The children's rusage counts every child reaped
+    meanwhile, so a call overlapping another is an upper bound."""
+    if not os.environ.get("CCRP_TEST_CALLS"):
+        return
+    cpu, wall = call_started()
+    line = {"test": os.environ.get("PYTEST_CURRENT_TEST", "").split(" ")[0],
+            "argv": [a for a in args if not a.startswith("/")][:3], "cpu": round(cpu - started[0], 3),
+            "wall": round(wall - started[1], 3), "rc": code}
+    with open(os.environ["CCRP_TEST_CALLS"], "a") as fh:
+        fh.write(json.dumps(line) + "\n")
+
+
 def run_ccrp(*args: str, home: Path, cwd: Path = ROOT, check: bool = False) -> subprocess.CompletedProcess:
     env = {**os.environ, "CCRP_HOME": str(home)}
     env.pop("CCRP_INVENTORY", None)
-    cpu0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.monotonic()
+    started = call_started()
     proc = subprocess.run(
         [sys.executable, "-m", "ccrp_cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=120
     )
-    if os.environ.get("CCRP_TEST_CALLS"):
-        # Where the suite's CPU goes (docs/benchmarks.md): one line per CLI call. The children's
-        # rusage counts every child reaped meanwhile, so a call overlapping another is an upper bound.
-        cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        line = {"test": os.environ.get("PYTEST_CURRENT_TEST", "").split(" ")[0], "argv": [a for a in args if not a.startswith("/")][:3],
-                "cpu": round(cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime, 3),
-                "wall": round(time.monotonic() - t0, 3), "rc": proc.returncode}
-        with open(os.environ["CCRP_TEST_CALLS"], "a") as fh:
-            fh.write(json.dumps(line) + "\n")
+    record_call(args, started, proc.returncode)
     if check and proc.returncode != 0:
         raise AssertionError(f"ccrp {' '.join(args)} failed ({proc.returncode}): {proc.stderr}")
     return proc

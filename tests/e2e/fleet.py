@@ -24,6 +24,7 @@ import pytest
 import yaml
 
 from tests.conftest import LAB, run_ccrp
+from tests.inprocess_cli import run_ccrp_inprocess
 from tests.scenarios.backend import free_cidr
 
 def _docker_info() -> str | None:
@@ -114,7 +115,19 @@ class E2EFleet:
         return found[0]
 
     def status(self) -> dict[str, dict]:
-        return {row["robot"]: row for row in self.json("status")}
+        """`ccrp status --json`, run in this process (tests/inprocess_cli.py): the same command and
+        output, without a Python start on every poll of a wait (a `ccrp` process costs ~1.3 s of CPU,
+        mostly imports, that the clones booting beside it need). The CLI's own `status` is proved
+        by the tests that call `fleet.inv("status")`."""
+        t0 = time.monotonic()
+        code, out, err = run_ccrp_inprocess("status", "-i", str(self.inventory), "--json", home=self.home)
+        self.log.append(f"ccrp status --json (in process) -> {code} in {time.monotonic() - t0:.1f}s")
+        if code != 0:
+            pytest.fail(f"`ccrp status --json` exited {code}:\n{err[-3000:]}")
+        try:
+            return {row["robot"]: row for row in json.loads(out)}
+        except ValueError:
+            pytest.fail(f"`ccrp status --json` printed no JSON on stdout:\n{out[:2000]}")
 
     def snapshot_image(self) -> str:
         state = json.loads((self.home / self.name / "state.json").read_text())

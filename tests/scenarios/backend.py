@@ -19,6 +19,9 @@ from typing import Callable
 
 import pytest
 
+from tests.conftest import call_started, record_call
+from tests.inprocess_cli import run_ccrp_inprocess
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -129,8 +132,20 @@ class Backend:
             return self.runner(*args, timeout=timeout)
         env = {**os.environ, "CCRP_HOME": str(self.home), **self.env}
         env.pop("CCRP_INVENTORY", None)
-        return subprocess.run([sys.executable, "-m", "ccrp_cli", *args], cwd=ROOT, env=env, capture_output=True,
+        started = call_started()
+        proc = subprocess.run([sys.executable, "-m", "ccrp_cli", *args], cwd=ROOT, env=env, capture_output=True,
                               text=True, timeout=timeout)
+        record_call(args, started, proc.returncode)
+        return proc
+
+    def observe(self, *args: str) -> subprocess.CompletedProcess:
+        """A read-only command (`status --json`) run in this process: the same command and output
+        without a Python start (and the cloud SDK's import) on every poll of a wait. The user's
+        own calls go through ccrp() above."""
+        if self.runner is not None:
+            return self.runner(*args)
+        code, out, err = run_ccrp_inprocess(*args, home=self.home, env=self.env)
+        return subprocess.CompletedProcess(["ccrp", *args], code, out, err)
 
 
 @contextmanager
@@ -185,7 +200,9 @@ class Run:
         return json.loads(self.ccrp(*args, "--json", code=code).stdout)
 
     def status(self) -> dict[str, dict]:
-        return {r["robot"]: r for r in self.json("status")}
+        proc = self.b.observe("status", "-i", str(self.b.inventory), "--json")
+        assert proc.returncode == 0 and "Traceback" not in proc.stderr, f"ccrp status exited {proc.returncode}:\n{proc.stderr[-3000:]}"
+        return {r["robot"]: r for r in json.loads(proc.stdout)}
 
     def needs(self, *steps: str) -> None:
         missing = [s for s in steps if s not in self.done]

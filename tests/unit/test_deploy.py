@@ -20,7 +20,7 @@ from ccrp_cli.fleet import Fleet
 from ccrp_cli.providers.base import CloneRecord, CloneState
 from ccrp_cli.workloads import INDEX, node_files, packages_record, snapshot_software
 from tests.conftest import LAB
-from tests.unit.inprocess_cli import run_ccrp_inprocess
+from tests.inprocess_cli import run_ccrp_inprocess
 
 CATKIN_XML = """<?xml version="1.0"?>
 <package format="2"><name>mapper</name><version>1.0.0</version><description>x</description>

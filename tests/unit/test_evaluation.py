@@ -8,7 +8,7 @@ from ccrp_cli.errors import InputError
 from ccrp_cli.evaluation import parse_counts, parse_list, summary
 from ccrp_cli.simulated import PRESETS, Link, parse_link
 from tests.conftest import LAB
-from tests.unit.inprocess_cli import run_ccrp_inprocess
+from tests.inprocess_cli import run_ccrp_inprocess
 
 
 @pytest.mark.parametrize("text, link", [

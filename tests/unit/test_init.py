@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from ccrp_cli.loader import load_inventory
-from tests.unit.inprocess_cli import run_ccrp_inprocess
+from tests.inprocess_cli import run_ccrp_inprocess
 
 
 @pytest.fixture

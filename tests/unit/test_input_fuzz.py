@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from ccrp_cli.loader import MAX_BYTES
 from tests.conftest import INVENTORIES
-from tests.unit.inprocess_cli import run_ccrp_inprocess
+from tests.inprocess_cli import run_ccrp_inprocess
 from tests.unit.trees import nodes, replaced
 
 # `make quick` asks for fewer (CCRP_FUZZ_EXAMPLES): the development loop, not the proof `make test` is.

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from ccrp_cli.models.values import Endpoint, check_cloud_name, parse_endpoint
 from tests.conftest import INVENTORIES, LAB, ROOT
-from tests.unit.inprocess_cli import run_ccrp_inprocess
+from tests.inprocess_cli import run_ccrp_inprocess
 from tests.unit.trees import nodes, replaced
 
 # A token in a rendered file: no whitespace, no control character, no quote or backslash.

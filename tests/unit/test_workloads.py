@@ -28,7 +28,7 @@ from ccrp_cli.workloads import (
     systemd_word,
 )
 from tests.conftest import LAB
-from tests.unit.inprocess_cli import run_ccrp_inprocess
+from tests.inprocess_cli import run_ccrp_inprocess
 
 CATKIN_XML = """<?xml version="1.0"?>
 <package format="2">

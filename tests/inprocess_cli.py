@@ -12,14 +12,15 @@ import sys
 from pathlib import Path
 
 
-def run_ccrp_inprocess(*args: str, home: Path) -> tuple[int, str, str]:
-    """(exit code, stdout, stderr) of `ccrp ARGS` with CCRP_HOME=home."""
+def run_ccrp_inprocess(*args: str, home: Path, env: dict[str, str] | None = None) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of `ccrp ARGS` with CCRP_HOME=home and `env` set meanwhile."""
     from ccrp_cli.cli.main import run
 
     out, err = io.StringIO(), io.StringIO()
-    saved_argv, saved_home = sys.argv, os.environ.get("CCRP_HOME")
+    changes = {"CCRP_HOME": str(home), **(env or {})}
+    saved_argv, saved_env = sys.argv, {k: os.environ.get(k) for k in changes}
     sys.argv = ["ccrp", *args]
-    os.environ["CCRP_HOME"] = str(home)
+    os.environ.update(changes)
     code = 0
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -29,8 +30,9 @@ def run_ccrp_inprocess(*args: str, home: Path) -> tuple[int, str, str]:
                 code = exc.code if isinstance(exc.code, int) else 1
     finally:
         sys.argv = saved_argv
-        if saved_home is None:
-            os.environ.pop("CCRP_HOME", None)
-        else:
-            os.environ["CCRP_HOME"] = saved_home
+        for key, value in saved_env.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
     return code, out.getvalue(), err.getvalue()
