@@ -22,11 +22,11 @@ def image_repo(fleet: Fleet) -> str:
 
 
 def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> SnapshotRecord:
-    """Build the golden clone image (docker) and record it for new clones. A `bare` snapshot has
-    only systemd and cloud-init: its clones install the recipe's packages at boot, as a clone
-    started from a stock cloud image would (slower: the reason for snapshots, see bench/)."""
+    """Build the golden clone image on this host (Ability.LOCAL_BUILD: the provider's
+    build_snapshot) and record it for new clones. A `bare` snapshot has only systemd and
+    cloud-init: its clones install the recipe's packages at boot, as a clone started from a stock
+    cloud image would (slower: the reason for snapshots, see bench/)."""
     from .providers import info
-    from .providers.docker import images
     from .recipes import platform
     from .workloads import packages_record, snapshot_software
 
@@ -35,22 +35,8 @@ def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> Sna
     # The fleet's own software, read and checked before anything is built (a bare snapshot has none:
     # its clones install ccrp's recipe at boot, and fleet up then refuses an inventory with software).
     software = None if bare else snapshot_software(inv, fleet.path)
-    base = inv.provider.base_image  # type: ignore[union-attr]
-    client = provider.client
-    if bare:
-        base, plat = f"ccrp/base-bare:{inv.ros.distro}", plat.model_copy(update={"packages": images.BARE_PACKAGES, "pip": []})
-        if not provider.has_image(base):
-            images.build_base_image(client, base, images.BASE_PACKAGES + images.BARE_PACKAGES, progress)
-    elif not provider.has_image(base):
-        images.ensure_base(client, base, plat, progress)
-    tag = f"{image_repo(fleet)}:{'bare-' if bare else ''}{_stamp()}"
-    progress(f"building snapshot {tag} from {base}")
     digest = software.digest if software is not None else NO_SOFTWARE
-    labels = provider.snapshot_labels() | {"ccrp-distro": inv.ros.distro, "ccrp-bare": str(bare).lower(),
-                                           "ccrp-software": digest}
-    images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat, software), labels,
-                             progress, images.build_context(plat, progress, inv.ros.distro, software))
-    record = provider.snapshot_record(client.images.get(tag))
+    record = provider.build_snapshot(image_repo(fleet), inv.ros.distro, plat, software, digest, bare, progress)
     # What `ccrp deploy` cannot change on a clone made from it (apt, pip): it compares them.
     held = {} if software is None else {"packages": packages_record(software)}
     _use(fleet, record, bare, software=digest, **held)
@@ -166,7 +152,6 @@ BAKE_DIR = "/var/lib/ccrp/bake"  # on the builder: the workspace's tar; removed 
 def software_env(software: SnapshotSoftware) -> dict[str, str]:
     """What templates/image/software-bake.sh is given: the same lists the Docker snapshot's
     software layers take (providers/docker/images.py dockerfile)."""
-    from .providers.docker.images import software_pip
     from .recipes import is_ros2, recipe
     from .render.cloudinit import ros2_prefix
     from .layout import LOGIN_USER
@@ -177,7 +162,7 @@ def software_env(software: SnapshotSoftware) -> dict[str, str]:
         "CCRP_BUILD": software.build_type or "none",
         "CCRP_APT": " ".join(software.apt),
         "CCRP_BUILD_APT": " ".join(recipe(software.distro).build_tools.apt),
-        "CCRP_PIP": " ".join(software_pip(software)),
+        "CCRP_PIP": " ".join(software.pip_install),
         "CCRP_PIP_CMD": f"{prefix}/bin/pip" if ros2 else "env PIP_BREAK_SYSTEM_PACKAGES=1 pip3",
         "CCRP_PYTHON": f"{prefix}/bin/python" if ros2 else "python3",
         "CCRP_DIRS": " ".join(sorted({p.path.rsplit("/", 1)[0] if "/" in p.path else "." for p in software.packages})),

@@ -178,6 +178,12 @@ class SnapshotSoftware:
         return self.packages[0].build_type if self.packages else None
 
     @property
+    def pip_install(self) -> list[str]:
+        """What pip installs: the requirements, and `wheel` for ament_python packages (it builds
+        them in the venv, whose setuptools has no bdist_wheel of its own)."""
+        return self.pip + (["wheel"] if self.build_type == "ament_python" else [])
+
+    @property
     def digest(self) -> str:
         if self.empty:
             return NO_SOFTWARE

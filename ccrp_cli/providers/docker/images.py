@@ -90,17 +90,12 @@ def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, softwar
     extra: dict = {"software": None}
     if software is not None and not software.empty:
         # Quoted: a RUN line is a shell's, where `numpy<2` reads a file "2" and `numpy>=1.24` writes one.
-        extra = {"software": software, "sw_apt": software.apt, "sw_pip": [shlex.quote(p) for p in software_pip(software)],
+        extra = {"software": software, "sw_apt": software.apt, "sw_pip": [shlex.quote(p) for p in software.pip_install],
                  "build_apt": recipe(distro).build_tools.apt, "prefix": WORKSPACE,
                  "pip_command": f"{prefix}/bin/pip" if prefix else "PIP_BREAK_SYSTEM_PACKAGES=1 pip3",
                  "package_dirs": sorted({p.path.rsplit("/", 1)[0] if "/" in p.path else "." for p in software.packages})}
     return render("docker/Dockerfile.j2", fleet=fleet, distro=distro, base_image=base_image, packages=plat.packages,
                   pip=plat.pip, locale_setup=LOCALE_SETUP, ros2_prefix=prefix, **extra)
-
-
-def software_pip(software) -> list[str]:
-    # `wheel` builds the ament_python packages in the venv (its setuptools has no bdist_wheel of its own).
-    return software.pip + (["wheel"] if software.build_type == "ament_python" else [])
 
 
 def build_context(plat: Platform, progress=lambda msg: None, distro: str = "noetic", software=None) -> dict[str, bytes]:
@@ -118,7 +113,7 @@ def _software_context(software, progress, plat: Platform) -> dict[str, bytes]:
     if software is None or software.empty:
         return {}
     files = {f"workspace/{rel}": data for rel, data in software.workspace}
-    pip = software_pip(software)
+    pip = software.pip_install
     if pip:
         progress(f"fetching wheels for the fleet's software: {', '.join(pip)}")
         files |= {f"software-{name}": data for name, data in wheels.fetch(pip, tuple(plat.wheel_platforms)).items()}
