@@ -13,7 +13,9 @@ benchmark brings up its own fleet (own subnets and CCRP_HOME) and removes everyt
 The same for a ROS 2 Jazzy fleet (rclpy probes in the robots' domains, the relay's rclpy side),
 one distro after the other in the same run.
 
-Run: .venv/bin/python bench/relay.py [--clones 10] [--seconds 30] [--distros noetic,jazzy]
+Run: .venv/bin/python bench/relay.py [--clones 10] [--seconds 30] [--distros noetic,jazzy] [--host-rmem 4194304]
+(--host-rmem: the host's receive-buffer sysctls during the run, as a VM clone's user-data sets them for
+ROS 2; a container shares the host's kernel and cannot set its own)
 Writes bench/results/relay.{json,png} (Noetic) and bench/results/relay-jazzy.{json,png}; with both
 distros, relay-jazzy.json's `ratio_to_noetic` is Jazzy's figures over Noetic's of the same run.
 
@@ -37,6 +39,7 @@ import statistics
 import sys
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
 import yaml
@@ -334,13 +337,18 @@ def main() -> None:
     ap.add_argument("--distros", default="noetic,jazzy", help="run the benchmark for each, one after the other")
     ap.add_argument("--last-hop", metavar="IMAGE", help="only the importing agent's last hop, in a ROS 2 clone image")
     ap.add_argument("--rounds", type=int, default=2, help="--last-hop: runs of each variant")
+    ap.add_argument("--host-rmem", type=int, metavar="BYTES",
+                    help="the host's net.core.rmem_default and rmem_max during the run (put back after): what a "
+                         "VM clone's user-data sets for ROS 2 (render/cloudinit.py ROS2_RMEM), which a container "
+                         "cannot set for itself")
     args = ap.parse_args()
     if args.last_hop:
         distro = next(d for d in args.distros.split(",") if d != "noetic")  # the image's
         return last_hop(args.last_hop, distro, 105, args.rounds)
     summary = {}
-    for distro in args.distros.split(","):
-        summary[distro] = run(args, distro)
+    with host_rmem(args.host_rmem):
+        for distro in args.distros.split(","):
+            summary[distro] = run(args, distro)
     if "noetic" in summary and len(summary) > 1:
         for distro, figures in summary.items():
             if distro != "noetic":
@@ -350,6 +358,25 @@ def main() -> None:
                 result["ratio_to_noetic"] = figures["ratio_to_noetic"]
                 path.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(summary, indent=1))
+
+
+RMEM = {"default": "/proc/sys/net/core/rmem_default", "max": "/proc/sys/net/core/rmem_max"}
+
+
+@contextmanager
+def host_rmem(size: int | None):
+    """The host's receive-buffer sysctls at `size` meanwhile (None: as they are)."""
+    if size is None:
+        yield
+        return
+    saved = {k: Path(p).read_text() for k, p in RMEM.items()}
+    try:
+        for path in RMEM.values():
+            Path(path).write_text(f"{size}\n")
+        yield
+    finally:
+        for k, path in RMEM.items():
+            Path(path).write_text(saved[k])
 
 
 def ratios(figures: dict, noetic: dict) -> dict:
@@ -412,7 +439,8 @@ def run(args, distro: str) -> dict:
         "benchmark": "relay",
         "distro": distro,
         "when": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "kernel": platform.release()},
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "kernel": platform.release(),
+                    "rmem_default": int(Path(RMEM["default"]).read_text())},
         "seconds": args.seconds,
         "clones_up_s": round(wall, 1),
         "latency": {
@@ -437,7 +465,7 @@ def run(args, distro: str) -> dict:
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2) + "\n")
     plot(result, RESULTS / f"{stem}.png")
     return {"latency": result["latency"], "lost_total": t["lost_total"], "p95_ms_worst": t["p95_ms_worst"],
-            "p95_ms_median": t["p95_ms_median"],
+            "p95_ms_median": t["p95_ms_median"], "rmem_default": result["machine"]["rmem_default"],
             "clones": {k: v for k, v in result["clones"].items() if k != "per_clone"}}
 
 

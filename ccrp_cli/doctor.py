@@ -58,6 +58,8 @@ def run(fleet: Fleet) -> list[Check]:
         checks += _credentials(provider) + _quotas(fleet, provider) + [_snapshot(fleet, provider)]
         if Ability.LOCAL_BUILD in provider.abilities:
             checks.append(_snapshot_images(provider))
+    if inv.ros.ros2 and not info(kind).own_kernel:
+        checks.append(host_receive_buffer())
     for tool, why in info(kind).host_tools:
         if shutil.which(tool) is None:
             checks.append(Check(f"tool {tool}", WARN, "not found", f"apt-get install {tool} ({why})"))
@@ -66,6 +68,26 @@ def run(fleet: Fleet) -> list[Check]:
         checks.append(Check(f"tool {tool}", OK if found else WARN, found or f"not found (optional: {why})",
                             "" if found else f"install {tool} (optional)"))
     return checks
+
+
+RMEM_DEFAULT = "/proc/sys/net/core/rmem_default"
+
+
+def host_receive_buffer(path: str = RMEM_DEFAULT) -> Check:
+    """ROS 2 clones sharing this host's kernel (containers) get its default UDP receive buffer, which
+    no clone can raise for itself (not per network namespace): VM clones get ccrp's from their
+    user-data (render/cloudinit.py ROS2_RMEM)."""
+    from .render.cloudinit import ROS2_RMEM
+
+    try:
+        have = int(open(path).read())
+    except (OSError, ValueError):
+        return Check("host rmem_default", SKIP, f"{path} not readable")
+    if have >= ROS2_RMEM:
+        return Check("host rmem_default", OK, f"{have} bytes")
+    return Check("host rmem_default", WARN,
+                 f"{have} bytes: ROS 2 subscribers on the clones may drop image datagrams (docs/ros2.md)",
+                 f"sysctl -w net.core.rmem_default={ROS2_RMEM} net.core.rmem_max={ROS2_RMEM} (every process of this host)")
 
 
 def _provider(fleet: Fleet):

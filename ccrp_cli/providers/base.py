@@ -189,6 +189,9 @@ class ProviderInfo:
     # What run_instance is given for a captured snapshot: GCE boots from an image's name, the
     # others from its id (Glance names need not be unique).
     image_ref: Literal["id", "name"] = "id"
+    # Whether a clone runs its own kernel (a VM) or shares the host's (a container): only the former
+    # can take kernel settings from its user-data (sysctls such as ROS 2's receive buffers).
+    own_kernel: bool = True
     # Host tools `ccrp doctor` looks for: (tool, what it is for), a warning when missing.
     host_tools: tuple[tuple[str, str], ...] = ()
 

@@ -101,6 +101,19 @@ def _compact_python(src: str) -> str:
 POWER_SOCKET = "ccrp-power.socket"
 
 
+# A ROS 2 subscriber's UDP socket gets the kernel's default receive buffer (rmw_fastrtps sizes none
+# on its own): 208 KB holds three of an image's four 64 KB datagrams, and the kernel drops the
+# fourth whenever the node is slower to read than the burst. With 4 MB, the last hop of the relay
+# dropped none (docs/ros2.md). rmem_max lets the relay agent's profile ask for its 2 MB (doubled).
+ROS2_SYSCTL = "/etc/sysctl.d/60-ccrp-ros2.conf"
+ROS2_RMEM = 4_194_304
+
+
+def ros2_sysctl() -> str:
+    return ("# ccrp: receive buffers for ROS 2's UDP (a 320x240 image is four 64 KB datagrams)\n"
+            f"net.core.rmem_default = {ROS2_RMEM}\nnet.core.rmem_max = {ROS2_RMEM}\n")
+
+
 def clone_units(inv: Inventory) -> list[str]:
     """The clone's systemd units. A ROS 2 clone has no master; its relay and API manager run on
     rclpy, its knowledge agent on the venv's Zenoh (each through ros-run)."""
@@ -148,6 +161,9 @@ def user_data_dict(
         # and its rclpy side come with the user-data, and run on the venv's rclpy and Zenoh.
         files += [_file(f"{CCRP_LIB}/{name}.py", agent_source(name), "0644") for name in ("relay", "relay_ros2")]
 
+    if view.inv.ros.ros2 and info(view.inv.provider.kind).own_kernel:
+        files.append(_file(ROS2_SYSCTL, ros2_sysctl()))
+
     # No "default": the images' own login users differ per cloud, so ccrp defines its own and the
     # image's is not created (keys from the cloud's key pair then go to root, with logins refused).
     users: list[Any] = [login_user(login_keys)] if login_keys else []
@@ -167,6 +183,8 @@ def user_data_dict(
         "users": users,
         "write_files": files,
         "runcmd": [
+            # systemd-sysctl applies it at every later boot; at the first, it ran before the file.
+            *([["sysctl", "-q", "-p", ROS2_SYSCTL]] if any(f["path"] == ROS2_SYSCTL for f in files) else []),
             # 0751: the relay user may open relay.key by name; nobody else may list the secrets.
             ["install", "-d", "-m", "0751", "-o", "root", "-g", "openvpn", VPN_DIR],
             ["install", "-d", "-m", "0755", "-o", "ros", "-g", "ros", "/var/lib/ros"],

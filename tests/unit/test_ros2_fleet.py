@@ -123,6 +123,10 @@ def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_
     for what, text in texts.items():
         runcmd = yaml.safe_load(text)["runcmd"]
         assert all(step in runcmd for step in venv) == (what != "snapshot"), (what, runcmd)
+        if what != "builder":  # a VM clone, its own kernel: ROS 2's receive buffers from its first boot
+            sysctl = next(f for f in yaml.safe_load(text)["write_files"] if f["path"] == cloudinit.ROS2_SYSCTL)
+            assert "net.core.rmem_default = 4194304" in sysctl["content"], sysctl
+            assert ["sysctl", "-q", "-p", cloudinit.ROS2_SYSCTL] in runcmd
         assert plat.pip[0] not in text or what != "snapshot"
         info(kind).fit_user_data(text)
         f = tmp_path / f"{what}.yaml"
@@ -261,6 +265,7 @@ def test_a_jazzy_clone_runs_no_master_and_rclpy_agents(jazzy):
                        "ccrp-power.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
     paths = {f["path"] for f in data["write_files"]}
     assert "/usr/local/lib/ccrp/ros2_graph.py" in paths and "/etc/systemd/system/ccrp-rosmaster.service" not in paths
+    assert cloudinit.ROS2_SYSCTL not in paths  # a container shares the host's kernel: `ccrp doctor` says so
     # The relay comes with the user-data (the API manager is in the image, the knowledge agent is
     # pushed by fleet up).
     assert {"/usr/local/lib/ccrp/relay.py", "/usr/local/lib/ccrp/relay_ros2.py"} <= paths
@@ -435,3 +440,15 @@ def test_a_robot_with_its_own_ros2_at_another_prefix_needs_only_the_bundles_env_
                         "-w -I OUTPUT -p udp -d 203.0.113.10 ! --dport 1194 -j CCRP-RTPS"], calls.read_text()
     chain = [line for line in calls.read_text().splitlines() if line.startswith("-w -A CCRP-RTPS")]
     assert chain == ["-w -A CCRP-RTPS -o lo -j RETURN", "-w -A CCRP-RTPS -o ccrpvpn -j RETURN", "-w -A CCRP-RTPS -j DROP"]
+
+
+def test_doctor_names_the_hosts_receive_buffer_for_ros2_clones_on_docker(tmp_path):
+    from ccrp_cli import doctor
+
+    f = tmp_path / "rmem_default"
+    f.write_text("212992\n")
+    low = doctor.host_receive_buffer(str(f))
+    assert low.status == doctor.WARN and "sysctl -w net.core.rmem_default=4194304" in low.hint
+    f.write_text("4194304\n")
+    assert doctor.host_receive_buffer(str(f)).status == doctor.OK
+    assert doctor.host_receive_buffer(str(tmp_path / "none")).status == doctor.SKIP

@@ -12,5 +12,6 @@ INFO = ProviderInfo(
     user_data_gzip=False,
     sdk_modules=(("docker", "docker"),),
     secrets="volume",
+    own_kernel=False,
     host_tools=(("mmdebstrap", "builds the base image when it is missing"),),
 )
