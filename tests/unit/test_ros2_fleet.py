@@ -126,7 +126,8 @@ def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_
         if what != "builder":  # a VM clone, its own kernel: ROS 2's receive buffers from its first boot
             sysctl = next(f for f in yaml.safe_load(text)["write_files"] if f["path"] == cloudinit.ROS2_SYSCTL)
             assert "net.core.rmem_default = 4194304" in sysctl["content"], sysctl
-            assert ["sysctl", "-q", "-p", cloudinit.ROS2_SYSCTL] in runcmd
+            assert next(c for c in runcmd if c[-1] == cloudinit.ROS2_SYSCTL)[:3] == ["sh", "-c", 'sysctl -q -p "$0" || '
+                                                                                   'echo "ccrp: $0 not applied (no kernel of its own?)"']
         assert plat.pip[0] not in text or what != "snapshot"
         info(kind).fit_user_data(text)
         f = tmp_path / f"{what}.yaml"
