@@ -21,9 +21,5 @@ def info(kind: str) -> ProviderInfo:
 
 def require(kind: str, ability: Ability, hint: str) -> None:
     """Exit 2 with one line, before any SDK is loaded, when the backend cannot do what a command needs."""
-    abilities = REGISTRY[kind].abilities
-    if ability not in abilities:
-        images = {Ability.LOCAL_BUILD, Ability.BAKE}
-        if ability in images and not abilities & images:  # a backend whose image path is not there yet
-            hint = f"the {kind} backend makes no snapshot with ccrp yet: see docs/{kind}.md"
+    if ability not in REGISTRY[kind].abilities:
         raise InputError(f"the {kind} provider cannot do {ability.value}", hint=hint)

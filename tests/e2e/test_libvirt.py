@@ -1,5 +1,5 @@
-"""One VM clone on libvirt, end to end: the golden volume made from the recipe's Docker snapshot
-(providers/libvirt/goldens.py), `ccrp fleet up` creating the clone as a qcow2 overlay booted with a
+"""One VM clone on libvirt, end to end: `ccrp snapshot build` making the golden volume from the
+recipe (its Docker image, then providers/libvirt/goldens.py), `ccrp fleet up` creating the clone as a qcow2 overlay booted with a
 NoCloud seed of the user-data ccrp renders, `ccrp status` saying it serves, and `ccrp fleet down`
 leaving no domain, volume or network of the fleet.
 
@@ -59,15 +59,12 @@ def free_public(used: list[ipaddress.IPv4Network]) -> str:
 
 
 @pytest.fixture(scope="module")
-def vm_fleet(tmp_path_factory, clone_images):
-    """A one-robot libvirt fleet whose snapshot is a golden volume made here; everything of it,
-    golden volumes included, is removed at the end whatever happened."""
-    import docker
-
+def vm_fleet(tmp_path_factory):
+    """A one-robot libvirt fleet whose snapshot is a golden volume `ccrp snapshot build` made;
+    everything of it, golden volumes included, is removed at the end whatever happened."""
     from ccrp_cli.fleet import Fleet
     from ccrp_cli.init import free, used_networks
     from ccrp_cli.providers import get_provider
-    from ccrp_cli.providers.libvirt import goldens
 
     tmp = tmp_path_factory.mktemp("libvirt")
     home = tmp / "home"
@@ -84,17 +81,12 @@ def vm_fleet(tmp_path_factory, clone_images):
     provider = get_provider(fleet.inventory)
     timings: dict[str, float] = {}
     try:
-        client = docker.from_env(timeout=900)
         t0 = time.monotonic()
-        golden = goldens.build(client, clone_images("noetic"), tmp / "golden")
-        timings |= golden.seconds | {"golden build": time.monotonic() - t0}
-        t0 = time.monotonic()
-        provider.bootstrap()  # the storage pool the golden volume goes to
-        record = provider.import_golden(golden.qcow2, golden.kernel, golden.initrd, golden.virtual_size)
-        timings["golden upload"] = time.monotonic() - t0
-        state = fleet.store.load_state()
-        state.snapshot = {"image": record.name, "id": record.id, "source": record.source}
-        fleet.store.save_state(state)
+        built = ccrp(home, "snapshot", "build", "-i", str(path), "--json")
+        timings["snapshot build (recipe image + golden volume)"] = time.monotonic() - t0
+        assert built.returncode == 0, built.stderr[-3000:]
+        state = json.loads((fleet.store.root / "state.json").read_text())
+        [record] = [s for s in provider.list_snapshots() if s.id == state["snapshot"]["image"]]
         yield {"home": home, "path": path, "fleet": fleet, "provider": provider, "timings": timings, "golden": record}
     finally:
         try:

@@ -15,7 +15,7 @@ import yaml
 from ccrp_cli.errors import CcrpError, InputError
 from ccrp_cli.loader import load_inventory
 from ccrp_cli.providers import REGISTRY
-from ccrp_cli.providers.base import CloneState, owner_labels
+from ccrp_cli.providers.base import Ability, CloneState, owner_labels
 from ccrp_cli.providers.libvirt import goldens, provider, seed, xmldefs
 
 
@@ -47,7 +47,7 @@ def test_settings_defaults_and_registry(tmp_path):
     assert p.public_cidr == ipaddress.IPv4Network("192.168.150.0/24")
     info = REGISTRY["libvirt"]
     assert info.factory == "libvirt.provider:LibvirtProvider" and ("libvirt", "libvirt") in info.sdk_modules
-    assert info.platform == "debian-bookworm" and not info.abilities
+    assert info.platform == "debian-bookworm" and info.abilities == {Ability.LOCAL_BUILD}
 
 
 @pytest.mark.parametrize("field,value", [
@@ -359,13 +359,44 @@ def test_public_address_is_reserved_at_the_common_offset(tmp_path):
     assert xmldefs.dhcp_hosts(ET.tostring(net, encoding="unicode")) == {"52:54:00:00:00:01": "192.168.151.10"}
 
 
-def test_snapshot_commands_on_libvirt_refuse_in_one_line_until_the_golden_build_is_wired(ccrp, tmp_path):
-    """The preview backend has neither image ability: `snapshot build` and `bake` say so, and where
-    to read why, before any connection is made."""
+def test_snapshot_bake_on_libvirt_refuses_in_one_line_and_names_build(ccrp, tmp_path):
+    """libvirt makes its golden volume on this machine (`snapshot build`): `bake` says so before any
+    connection is made."""
     inv = tmp_path / "lv.yaml"
     inv.write_text("fleet: lvtest\nprovider:\n  kind: libvirt\nros:\n  distro: noetic\nrobots:\n  - name: nao1\n")
-    for command in ("build", "bake"):
-        proc = ccrp("snapshot", command, "-i", str(inv))
-        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
-        assert f"the libvirt provider cannot do snapshot {command}" in proc.stderr, proc.stderr
-        assert "docs/libvirt.md" in proc.stderr, proc.stderr
+    proc = ccrp("snapshot", "bake", "-i", str(inv))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "the libvirt provider cannot do snapshot bake" in proc.stderr and "ccrp snapshot build" in proc.stderr
+
+
+def test_build_snapshot_builds_the_recipes_image_turns_it_into_a_golden_volume_and_removes_the_image(monkeypatch, tmp_path):
+    """The recipe's image from the Docker backend's own build (same recipe, software, labels), the
+    golden volume from it, uploaded; the intermediate image removed also when the upload fails."""
+    from types import SimpleNamespace
+
+    from ccrp_cli.providers.docker import images
+    from ccrp_cli.providers import sdk
+
+    calls: list = []
+    removed: list = []
+    client = SimpleNamespace(ping=lambda: True, close=lambda: None,
+                             images=SimpleNamespace(remove=lambda tag, force: removed.append(tag)))
+    monkeypatch.setattr(sdk, "docker_module", lambda: SimpleNamespace(from_env=lambda timeout: client,
+                                                                      errors=__import__("docker").errors))
+    monkeypatch.setattr(images, "build_snapshot_image", lambda c, repo, fleet, distro, base, plat, software, bare, labels,
+                        progress: calls.append(("image", repo, fleet, base, bare, labels["ccrp-software"])) or f"{repo}:1")
+    golden = SimpleNamespace(qcow2=tmp_path / "g.qcow2", kernel=tmp_path / "k", initrd=tmp_path / "i", virtual_size=8)
+    golden.qcow2.write_bytes(b"q")
+    monkeypatch.setattr(goldens, "build", lambda c, tag, out, progress: calls.append(("golden", tag)) or golden)
+    fake = SimpleNamespace(fleet="vmlab", settings=SimpleNamespace(pool="ccrp"), _pool=lambda create: calls.append("pool"),
+                           import_golden=lambda *a: calls.append(("import", a[3])) or "record")
+    build = provider.LibvirtProvider.build_snapshot
+    assert build(fake, "ccrp/vmlab-clone", "noetic", None, None, "none", False, print) == "record"
+    assert calls == [("image", "ccrp/vmlab-clone", "vmlab", images.DEFAULT_BASE, False, "none"),
+                     ("golden", "ccrp/vmlab-clone:1"), "pool", ("import", 8)]
+    assert removed == ["ccrp/vmlab-clone:1"]
+
+    fake.import_golden = lambda *a: (_ for _ in ()).throw(CcrpError("upload failed"))
+    with pytest.raises(CcrpError, match="upload failed"):
+        build(fake, "ccrp/vmlab-clone", "noetic", None, None, "none", False, print)
+    assert removed == ["ccrp/vmlab-clone:1"] * 2

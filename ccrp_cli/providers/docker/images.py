@@ -160,3 +160,29 @@ def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progr
         if "aux" in chunk and "ID" in chunk["aux"]:
             image_id = chunk["aux"]["ID"]
     return image_id or client.images.get(tag).id
+
+
+def build_snapshot_image(client, repo: str, fleet: str, distro: str, base: str, plat: Platform, software,
+                         bare: bool, labels: dict[str, str], progress=lambda msg: None) -> str:
+    """The clone image `repo:[bare-]<stamp>` built on this engine from `base` (ccrp's own is made
+    from Debian packages when missing) with the recipe's platform and the fleet's `software` (None:
+    none); returns its tag. A `bare` image has systemd and cloud-init only: its clones install the
+    recipe at boot. The snapshot of the Docker backend, and the root file system of libvirt's."""
+    import datetime as dt
+
+    import docker
+
+    if bare:
+        base, plat = f"ccrp/base-bare:{distro}", plat.model_copy(update={"packages": BARE_PACKAGES, "pip": []})
+        try:
+            client.images.get(base)
+        except docker.errors.ImageNotFound:
+            build_base_image(client, base, BASE_PACKAGES + BARE_PACKAGES, progress)
+    else:
+        ensure_base(client, base, plat, progress)
+    tag = f"{repo}:{'bare-' if bare else ''}{dt.datetime.now(dt.timezone.utc):%Y%m%d%H%M%S}"
+    progress(f"building snapshot {tag} from {base}")
+    labels = labels | {"ccrp-distro": distro, "ccrp-bare": str(bare).lower()}
+    build_clone_image(client, tag, dockerfile(fleet, distro, base, plat, software), labels, progress,
+                      build_context(plat, progress, distro, software))
+    return tag

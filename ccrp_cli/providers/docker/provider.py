@@ -241,24 +241,12 @@ class DockerProvider(DockerHost):
 
     def build_snapshot(self, repo: str, distro: str, plat, software, digest: str, bare: bool,
                        progress) -> SnapshotRecord:
-        """Ability.LOCAL_BUILD: the clone image `repo:<stamp>` built on this engine from the
-        inventory's base image (ccrp's own is made from Debian packages when missing) with the
-        recipe's platform `plat` and the fleet's `software` (None: none; `digest` labels it). A
-        `bare` image has systemd and cloud-init only: its clones install the recipe at boot."""
+        """Ability.LOCAL_BUILD: the clone image built on this engine (images.build_snapshot_image)."""
         from . import images
 
-        base = self.inv.provider.base_image  # type: ignore[union-attr]
-        if bare:
-            base, plat = f"ccrp/base-bare:{distro}", plat.model_copy(update={"packages": images.BARE_PACKAGES, "pip": []})
-            if not self.has_image(base):
-                images.build_base_image(self.client, base, images.BASE_PACKAGES + images.BARE_PACKAGES, progress)
-        elif not self.has_image(base):
-            images.ensure_base(self.client, base, plat, progress)
-        tag = f"{repo}:{'bare-' if bare else ''}{now_tag()}"
-        progress(f"building snapshot {tag} from {base}")
-        labels = self.snapshot_labels() | {"ccrp-distro": distro, "ccrp-bare": str(bare).lower(), "ccrp-software": digest}
-        images.build_clone_image(self.client, tag, images.dockerfile(self.fleet, distro, base, plat, software), labels,
-                                 progress, images.build_context(plat, progress, distro, software))
+        tag = images.build_snapshot_image(self.client, repo, self.fleet, distro, self.inv.provider.base_image,  # type: ignore[union-attr]
+                                          plat, software, bare, self.snapshot_labels() | {"ccrp-software": digest},
+                                          progress)
         return self.snapshot_record(self.client.images.get(tag))
 
     def snapshot_labels(self, robot: str | None = None) -> dict[str, str]:

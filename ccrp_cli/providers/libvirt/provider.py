@@ -546,6 +546,42 @@ class LibvirtProvider(CloudProvider):
             return self._download(vol, max(0, size - CONSOLE_TAIL)).decode(errors="replace")
 
     # -- snapshots: golden volumes --------------------------------------------------------------
+    def build_snapshot(self, repo: str, distro: str, plat, software, digest: str, bare: bool,
+                       progress) -> SnapshotRecord:
+        """Ability.LOCAL_BUILD: the golden volume made on this machine. The recipe's image is built
+        on the local Docker engine as the Docker backend builds its snapshot (the same recipe,
+        software and bare variant; no image is downloaded), goldens.build turns it into a qcow2
+        with its kernel and initramfs, and those are uploaded to the pool. The intermediate image
+        is removed after; the layers under it stay the next build's cache."""
+        import tempfile
+
+        from ..docker.images import DEFAULT_BASE, build_snapshot_image
+        from ..sdk import docker_module
+        from . import goldens
+
+        docker = docker_module()
+        try:
+            client = docker.from_env(timeout=900)
+            client.ping()
+        except docker.errors.DockerException as exc:
+            raise CcrpError(f"the libvirt backend builds its golden volume with a local Docker engine, and none "
+                            f"answers ({type(exc).__name__})", hint="start it: bash scripts/docker-engine.sh") from None
+        tag = build_snapshot_image(client, repo, self.fleet, distro, DEFAULT_BASE, plat, software, bare,
+                                   owner_labels(self.fleet, "snapshot") | {"ccrp-software": digest}, progress)
+        try:
+            with tempfile.TemporaryDirectory(prefix="ccrp-golden-") as tmp:
+                golden = goldens.build(client, tag, Path(tmp), progress)
+                progress(f"uploading the golden volume ({golden.qcow2.stat().st_size >> 20} MB) to pool "
+                         f"{self.settings.pool}")
+                self._pool(create=True)
+                return self.import_golden(golden.qcow2, golden.kernel, golden.initrd, golden.virtual_size)
+        finally:
+            try:
+                client.images.remove(tag, force=True)
+            except docker.errors.APIError:  # in use or gone: `ccrp gc` on Docker finds it
+                pass
+            client.close()
+
     def import_golden(self, qcow2: Path, kernel: Path, initrd: Path, virtual_size: int, robot: str | None = None) -> SnapshotRecord:
         """Upload a golden disk (goldens.py builds it) with its kernel and initramfs as the fleet's
         volumes; a failure leaves none of the three."""
