@@ -68,7 +68,7 @@ def run(n: int, samples: int, size: int, tmp: Path) -> dict:
     cns = fleet.pki.relay_cns()
     index = fleet.pki.load_index()
     ports = {r: free_port() for r in names}
-    ids = {r: "c" + hashlib.sha256(r.encode()).hexdigest()[:31] for r in names}  # no leading 0 (Zenoh)
+    ids = {r: "c" + hashlib.sha256(r.encode()).hexdigest()[:23] for r in names}  # no leading 0 (Zenoh)
     agents = {}
     for r in names:
         c = fleet.pki.current_of(index, "relay", r)

@@ -48,8 +48,11 @@ def key_expr(fleet: str, source: str, topic: str) -> str:
 
 
 def zenoh_id(fleet: str, robot: str) -> str:
-    """A stable Zenoh id per clone, so `ccrp status` can name the peers an agent sees."""
-    return "c" + hashlib.sha256(f"{fleet}/{robot}".encode()).hexdigest()[:31]
+    """The stable part of a clone agent's Zenoh id (24 hex digits), so `ccrp status` can name the
+    peers an agent sees. Each session the agent opens adds 8 random ones (agent/relay.py
+    session_id): a session opened again for a new peer list is a new peer to the others, never
+    taken for the one it replaces while that one's links are still being torn down."""
+    return "c" + hashlib.sha256(f"{fleet}/{robot}".encode()).hexdigest()[:23]
 
 
 def relay_config(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> dict:

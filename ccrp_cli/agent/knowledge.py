@@ -33,6 +33,7 @@ import json
 import os
 import queue
 import re
+import secrets
 import socket
 import stat
 import sys
@@ -342,7 +343,8 @@ def zenoh_config(cfg: dict):
     import zenoh
 
     c = zenoh.Config()
-    c.insert_json5("id", json.dumps(cfg["id"]))
+    # A new id for each session (as relay.py's session_id): the stable part and 8 random hex digits.
+    c.insert_json5("id", json.dumps(cfg["id"] + secrets.token_hex(4)))
     c.insert_json5("mode", '"peer"')
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("scouting/gossip/enabled", "false")
@@ -715,10 +717,11 @@ class Agent:
         return {"ok": False, "error": f"unknown request {str(op)[:40]!r}"}
 
     def status(self) -> dict:
-        connected = {str(z) for z in self.session.info.peers_zid()} if self.session else set()
+        ids = [str(z) for z in self.session.info.peers_zid()] if self.session else []
         with self.lock:
             datasets = {ds: d.stats() for ds, d in self.datasets.items()}
-        return {"time": time.time(), "peers": {n: p["id"] in connected for n, p in self.cfg["peers"].items()},
+        return {"time": time.time(),
+                "peers": {n: any(z.startswith(p["id"]) for z in ids) for n, p in self.cfg["peers"].items()},
                 "datasets": datasets, **self.counts, "last_error": self.last_error,
                 "last_reconcile": self.last_reconcile}
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import secrets
 import sys
 import threading
 import time
@@ -47,9 +48,24 @@ def log(msg: str) -> None:
     print(f"ccrp-relay: {msg}", file=sys.stderr, flush=True)
 
 
+def session_id(stable: str) -> str:
+    """This session's Zenoh id: the clone's stable part (sharing.zenoh_id) and 8 random hex digits.
+    With the stable id alone, a session opened again (a new peer list) was the same peer to the
+    others as the one it replaced: a partner still holding that one's link refused the new one, or
+    dropped the new one's subscriptions with the old link's (seen: a partner not dialled again
+    within 20 s; puts never reaching a clone whose subscriber the partner had dropped)."""
+    return stable + secrets.token_hex(4)
+
+
+def connected_peers(session, peers: dict) -> dict[str, bool]:
+    """Peer name -> whether a session of its clone is linked to ours (by the id's stable part)."""
+    ids = [str(z) for z in session.info.peers_zid()] if session else []
+    return {name: any(z.startswith(p["id"]) for z in ids) for name, p in peers.items()}
+
+
 def zenoh_config(cfg: dict) -> "zenoh.Config":
     c = zenoh.Config()
-    c.insert_json5("id", json.dumps(cfg["id"]))
+    c.insert_json5("id", json.dumps(session_id(cfg["id"])))
     c.insert_json5("mode", '"peer"')
     # Clouds have no multicast; peers come from the config only.
     c.insert_json5("scouting/multicast/enabled", "false")
@@ -236,10 +252,9 @@ class Relay:
                 export.poll()
 
     def status(self) -> dict:
-        connected = {str(z) for z in self.session.info.peers_zid()} if self.session else set()
         return {
             "time": time.time(),
-            "peers": {name: p["id"] in connected for name, p in self.cfg["peers"].items()},
+            "peers": connected_peers(self.session, self.cfg["peers"]),
             "exports": {t: e.count for t, e in self.exports.items()},
             "imports": {t: {"received": i.count, "gaps": i.gaps} for t, i in self.imports.items()},
         }

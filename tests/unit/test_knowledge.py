@@ -13,6 +13,7 @@ import random
 import socket
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -384,9 +385,9 @@ def agents(lab, tmp_path):
                 "key": str(lab.pki.root / c.key_path)}
 
     def start(r, **extra):
-        cfg = {"fleet": "lab", "robot": r, "id": "c" + hashlib.sha256(r.encode()).hexdigest()[:31],
+        cfg = {"fleet": "lab", "robot": r, "id": "c" + hashlib.sha256(r.encode()).hexdigest()[:23],
                "listen": f"tls/127.0.0.1:{ports[r]}", "reconcile": 300,
-               "peers": {p: {"endpoint": f"tls/127.0.0.1:{ports[p]}", "id": "c" + hashlib.sha256(p.encode()).hexdigest()[:31],
+               "peers": {p: {"endpoint": f"tls/127.0.0.1:{ports[p]}", "id": "c" + hashlib.sha256(p.encode()).hexdigest()[:23],
                              "cn": cns[p]} for p in robots if p != r},
                "datasets": {"faces": list(robots)}, "tls": tls(r), "root": str(tmp_path / r),
                "status": str(tmp_path / f"{r}.status"), **extra}
@@ -867,3 +868,26 @@ def test_status_row_and_cell(lab):
     assert knowledge_cell(None) == "-"
     lone = parse_inventory({**BASE, "robots": [{"name": "nao1"}], "services": {"knowledge": {"datasets": {"faces": {"robots": "all"}}}}}, "x")
     assert lone.datasets_of("nao1") == {}  # nobody to share with: no agent, no status cell
+
+
+def test_partners_that_open_new_sessions_at_once_still_get_each_others_events(agents):
+    """A fleet change (a clone deleted) gives both partners a new peer list at the same moment, and
+    each opens a new Zenoh session with an id of its own (the clone's stable part and 8 random hex
+    digits), which `status` still names by the stable part; events flow on the new sessions. (The
+    failure that made session ids per session, an item added on nao2 never reaching nao1's clone
+    after nao1's session was replaced, was seen in containers and not reproduced here: with a
+    stable id this test passes too.)"""
+    start, tmp = agents
+    nao1, nao2 = start("nao1"), start("nao2")  # turtlebot1 is configured as a peer and never starts
+    until("linked", lambda: answering(nao1, "nao2") and answering(nao2, "nao1"), 10)
+    before = {c.agent.session.info.zid() for c in (nao1, nao2)}
+    ids = {r: c.agent.cfg["id"] for r, c in (("nao1", nao1), ("nao2", nao2))}
+    with ThreadPoolExecutor(2) as pool:  # turtlebot1 deleted: both drop it at once
+        list(pool.map(lambda c: c.agent.apply({**c.agent.cfg, "peers": {p: v for p, v in c.agent.cfg["peers"].items()
+                                                                        if p != "turtlebot1"}}), (nao1, nao2)))
+    after = {c.agent.session.info.zid() for c in (nao1, nao2)}
+    assert not before & after and all(str(z).startswith(tuple(ids.values())) for z in after)
+    until("linked again", lambda: nao1.agent.status()["peers"] == {"nao2": True}
+          and nao2.agent.status()["peers"] == {"nao1": True}, 10)
+    nao2({"op": "add", "dataset": "faces", "name": "grace.png"}, b"grace", tmp)
+    until("grace on nao1", lambda: names(nao1) == [("grace.png", "nao2")], 10)

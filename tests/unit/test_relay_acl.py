@@ -49,7 +49,7 @@ def received(agent, listener: dict, dialler_tls: dict, seconds: float = 2.0) -> 
     session = zenoh.open(agent.zenoh_config(listener))
     try:
         session.declare_subscriber("ccrp/lab/**", lambda sample: got.append(sample))
-        dialler = {"id": "c" + "1" * 31, "listen": "tls/127.0.0.1:0", "fleet": "lab", "tls": dialler_tls,
+        dialler = {"id": "c" + "1" * 23, "listen": "tls/127.0.0.1:0", "fleet": "lab", "tls": dialler_tls,
                    "peers": {"nao1": {"endpoint": listener["listen"], "cn": "relay-nao1-1"}}}
         other = zenoh.open(agent.zenoh_config(dialler))
         try:
@@ -68,7 +68,7 @@ def received(agent, listener: dict, dialler_tls: dict, seconds: float = 2.0) -> 
 def test_only_current_partner_certificates_get_data_through(fleet, tmp_path):
     agent = load_agent()
     def listener(admit: list[str]) -> dict:
-        return {"id": "c" + "2" * 31, "fleet": "lab", "listen": f"tls/127.0.0.1:{free_port()}",
+        return {"id": "c" + "2" * 23, "fleet": "lab", "listen": f"tls/127.0.0.1:{free_port()}",
                 "tls": files(fleet, tmp_path, "relay", "nao1"),
                 "peers": {f"p{i}": {"endpoint": "tls/127.0.0.1:9", "cn": cn} for i, cn in enumerate(admit)}}
 

@@ -33,9 +33,9 @@ class Ros:
 
 
 def config(peers: list[str]) -> dict:
-    return {"id": "c" + "1" * 31, "fleet": "lab", "robot": "nao1", "listen": "tls/127.0.0.1:7447",
+    return {"id": "c" + "1" * 23, "fleet": "lab", "robot": "nao1", "listen": "tls/127.0.0.1:7447",
             "tls": {"ca": "/nonexistent/ca", "cert": "/nonexistent/crt", "key": "/nonexistent/key"},
-            "peers": {p: {"endpoint": f"tls/10.0.0.{i + 2}:7447", "cn": f"relay-{p}-1", "id": "c" + str(i) * 31}
+            "peers": {p: {"endpoint": f"tls/10.0.0.{i + 2}:7447", "cn": f"relay-{p}-1", "id": "c" + str(i) * 23}
                       for i, p in enumerate(peers)},
             "exports": ["/faces"], "imports": [{"as": "/nao2/faces", "source": "nao2", "topic": "/faces"}]}
 
@@ -57,3 +57,16 @@ def test_a_session_whose_close_times_out_is_replaced_and_the_topics_declared_aga
     assert len(opened) == 2 and opened[0].closed and relay.session is opened[1]
     assert first_export.closed and not relay.exports["/faces"].closed and "/nao2/faces" in relay.imports
     assert "closing the previous session: RuntimeError: close operation timed out!" in capsys.readouterr().err
+
+
+def test_each_session_has_its_own_zenoh_id_and_peers_are_named_by_the_stable_part():
+    from types import SimpleNamespace
+
+    agent = load_agent()
+    stable = "c" + "a" * 23
+    ids = {agent.session_id(stable) for _ in range(20)}
+    assert len(ids) == 20 and all(len(i) == 32 and i.startswith(stable) for i in ids)
+    session = SimpleNamespace(info=SimpleNamespace(peers_zid=lambda: ["c" + "1" * 23 + "0badf00d"]))
+    peers = config(["nao2", "robot1"])["peers"]  # ids "c0…" and "c1…"
+    assert agent.connected_peers(session, peers) == {"nao2": False, "robot1": True}
+    assert agent.connected_peers(None, peers) == {"nao2": False, "robot1": False}
