@@ -53,19 +53,19 @@ def google_key(path: str) -> str:
 
 
 def api_manager_files(inv: Inventory, robot: Robot) -> list[BundleFile]:
-    """What `fleet up` pushes for robot's API manager: its config, and its Vision key when it has
-    one; on a ROS 2 clone the agent too (api_manager.py and its rclpy side), as the knowledge agent
-    is pushed: a bare cloud clone's user-data carries its image's agents, and with these a Jazzy
-    one would not fit AWS's 16 KiB. [] when the clone runs none."""
+    """What `fleet up` pushes for robot's API manager: its config, its Vision key when it has one,
+    and the agent (api_manager.py, and its rclpy side on ROS 2), as the knowledge agent is pushed:
+    a bare cloud clone's user-data carries only the relay (layout.BOOT_AGENTS), since with the API
+    manager too a Noetic one went over AWS's 16 KiB gzipped. A snapshot's copy is the same file,
+    so it is not sent again. [] when the clone runs none."""
+    from .resources import agent_source
+
     cfg = api_manager_config(inv, robot)
     if cfg is None:
         return []
     files = [BundleFile("api_manager.json", json.dumps(cfg, indent=1, sort_keys=True) + "\n", 0o644, API_CONFIG)]
-    if inv.ros.ros2:
-        from .resources import agent_source
-
-        files += [BundleFile(f"{name}.py", agent_source(name), 0o644, f"{AGENT_DIR}/{name}.py")
-                  for name in ("api_manager", "api_manager_ros2")]
+    names = ("api_manager", "api_manager_ros2") if inv.ros.ros2 else ("api_manager",)
+    files += [BundleFile(f"{name}.py", agent_source(name), 0o644, f"{AGENT_DIR}/{name}.py") for name in names]
     setting = inv.api_manager_of(robot)
     if setting is not None and setting.backend == "google-vision" and setting.google_vision.credentials:
         files.append(BundleFile("google-vision.json", google_key(setting.google_vision.credentials), 0o640, GOOGLE_KEY,
@@ -78,10 +78,9 @@ def absent_config() -> BundleFile:
     return BundleFile("api_manager.json", "", 0o644, API_CONFIG)
 
 
-# Whether a clone can run the service: its unit (user-data), its agent (snapshot; pushed with the
-# config on ROS 2: HAS_UNIT_SH) and its user.
+# Whether a clone can run the service: its unit and its user (user-data); the agent comes with the
+# config (api_manager_files).
 HAS_UNIT_SH = f"test -e /etc/systemd/system/{API_UNIT} && getent passwd {API_USER} >/dev/null"
-HAS_AGENT_SH = f"{HAS_UNIT_SH} && test -e {AGENT_DIR}/api_manager.py"
 # Turns the service off on a clone: its config and key gone, the unit stopped.
 OFF_SH = f'rm -f "{API_CONFIG}" "{GOOGLE_KEY}" && systemctl stop {API_UNIT}'
 
@@ -93,8 +92,7 @@ def apply_api_manager(provider, robot: str, files: list[BundleFile], have: dict[
 
     if files:
         if not same(have, files):
-            pushes_agent = any(f.dest == f"{AGENT_DIR}/api_manager.py" for f in files)
-            rc, _ = provider.exec(robot, ["sh", "-c", HAS_UNIT_SH if pushes_agent else HAS_AGENT_SH], timeout=30)
+            rc, _ = provider.exec(robot, ["sh", "-c", HAS_UNIT_SH], timeout=30)
             if rc != 0:
                 raise CcrpError(
                     f"robot {robot!r}'s clone has no API manager: it was made from an older snapshot or user-data",

@@ -48,6 +48,9 @@ WORKSPACE = "/opt/ccrp/workspace"
 # small and stdlib-only, and comes with the user-data instead. A ROS 2 image holds none: its relay
 # comes with the user-data, its API manager with its config (api_manager.py api_manager_files).
 IMAGE_AGENTS = ("relay", "api_manager")
+# What a bare clone's user-data carries of them (a stock image installing at boot): the API manager
+# is pushed by `fleet up` to the clones that run one (api_manager.api_manager_files).
+BOOT_AGENTS = ("relay",)
 # The locale of every clone image, set by templates/docker/Dockerfile.j2 and the clouds' bake (both
 # run this same command): generated once in the image and recorded in /etc/default/locale, so
 # cloud-init's locale module finds it set and no clone runs locale-gen at boot (seconds of CPU each).

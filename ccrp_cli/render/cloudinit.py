@@ -12,7 +12,7 @@ from typing import Any
 import yaml
 
 from ..errors import CcrpError
-from ..layout import (API_USER, CCRP_ETC, CCRP_LIB, IMAGE_AGENTS, KNOWLEDGE_USER, LOCALE, LOCALE_SETUP, LOGIN_USER,
+from ..layout import (API_USER, BOOT_AGENTS, CCRP_ETC, CCRP_LIB, IMAGE_AGENTS, KNOWLEDGE_USER, LOCALE, LOCALE_SETUP, LOGIN_USER,
                       POWER_PORT, POWER_USER, RELAY_USER, SECRETS_DIR, VPN_DIR)
 from ..models.inventory import Inventory
 from ..models.names import power_name
@@ -205,7 +205,7 @@ def user_data_dict(
         data["bootcmd"] = every_boot_bootcmd()
     if install_packages:
         # A bare base image: install at boot what a snapshot would already contain.
-        image = image_config(view.inv)
+        image = image_config(view.inv, agents=BOOT_AGENTS)  # the API manager comes with `fleet up`
         files += image.pop("write_files")
         data["runcmd"][:0] = image.pop("runcmd")
         data.update(image)
@@ -231,7 +231,7 @@ def every_boot_bootcmd() -> list[list[str]]:
     ]
 
 
-def image_config(inv: Inventory) -> dict[str, Any]:
+def image_config(inv: Inventory, agents: tuple[str, ...] = IMAGE_AGENTS) -> dict[str, Any]:
     """What a snapshot holds beyond its base image, as cloud-config: what the Docker snapshot holds
     (templates/docker/Dockerfile.j2), installed on a stock Debian 12 cloud image. That is the
     recipe's packages from Debian's archive, the relay agent and its pinned Zenoh from pip, and the
@@ -260,7 +260,7 @@ def image_config(inv: Inventory) -> dict[str, Any]:
                            [f"{prefix}/bin/pip", "install", "--no-cache-dir", *plat.pip, *plat.pip_source],
                            ["sh", f"{CCRP_LIB}/ros2-setup", prefix, inv.ros.distro]]
     elif plat.pip:
-        data["write_files"] += [_file(f"{CCRP_LIB}/{name}.py", agent_source(name), "0755") for name in IMAGE_AGENTS]
+        data["write_files"] += [_file(f"{CCRP_LIB}/{name}.py", agent_source(name), "0755") for name in agents]
         # Debian's python is externally managed (PEP 668): pip installs next to it only when told to.
         data["runcmd"].append(["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip])
     return data

@@ -169,7 +169,7 @@ def test_throttling_storm_creates_every_clone_once(harness):
 
 
 def test_states_are_ccrp_words_and_every_declared_call_answers(harness):
-    from ccrp_cli.providers.base import Ability, CloneState, Provider, Quota
+    from ccrp_cli.providers.base import Ability, CloneState, LocalBuild, Provider, Quota
 
     created = create(harness, "robot1")
     rec = harness.provider.query()["robot1"]
@@ -179,6 +179,9 @@ def test_states_are_ccrp_words_and_every_declared_call_answers(harness):
     assert (Ability.LOCAL_BUILD in harness.provider.abilities) != (Ability.BAKE in harness.provider.abilities)
     for name in [n for n in dir(Provider) if not n.startswith("_")]:
         assert hasattr(harness.provider, name), f"{harness.kind} lacks {name}"
+    # An ability is a promise of the calls that go with it.
+    local = [n for n in dir(LocalBuild) if not n.startswith("_")]
+    assert all(hasattr(harness.provider, n) for n in local) == (Ability.LOCAL_BUILD in harness.provider.abilities)
     assert harness.provider.has_image("no-such-image-of-this-fleet") is False
     assert all(isinstance(q, Quota) and q.limit >= 0 for q in harness.provider.quotas())
     harness.provider.teardown()

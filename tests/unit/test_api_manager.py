@@ -74,13 +74,14 @@ def test_pushed_config_and_key_never_in_user_data(tmp_path):
                                           "google_vision": {"credentials": str(key), "endpoint": "http://10.0.0.1:8080"}}})
     files = service.api_manager_files(fleet, fleet.robots[0])
     assert [(f.dest, f.mode, f.group) for f in files] == [
-        (service.API_CONFIG, 0o644, "root"), (service.GOOGLE_KEY, 0o640, "ccrp-api")]
+        (service.API_CONFIG, 0o644, "root"), ("/usr/local/lib/ccrp/api_manager.py", 0o644, "root"),
+        (service.GOOGLE_KEY, 0o640, "ccrp-api")]
     cfg = json.loads(files[0].content)
     assert cfg["google_vision"] == {"endpoint": "http://10.0.0.1:8080", "timeout": 5.0, "credentials": service.GOOGLE_KEY}
     assert cfg["robot"] == "nao1" and cfg["options"] == {"features": "faces"} and "PRIVATE" not in files[0].content
-    assert files[1].content == key.read_text()
-    # opencv needs no key; no API manager, nothing pushed
-    assert len(service.api_manager_files(inv(services={"api_manager": {}}), fleet.robots[0])) == 1
+    assert files[2].content == key.read_text()
+    # opencv needs no key (the config and the agent); no API manager, nothing pushed
+    assert len(service.api_manager_files(inv(services={"api_manager": {}}), fleet.robots[0])) == 2
     assert service.api_manager_files(inv(), fleet.robots[0]) == []
 
 
@@ -114,14 +115,16 @@ def test_fleet_up_pushes_a_changed_config_restarting_the_agent_and_turns_it_off(
     files = service.api_manager_files(fleet, fleet.robots[0])
     p = Recorder()
     service.apply_api_manager(p, "nao1", files, {})
-    assert p.pushed == [([service.API_CONFIG], [service.API_UNIT])] and p.execs == [["sh", "-c", service.HAS_AGENT_SH]]
+    # The agent goes with its config (a bare clone's user-data does not carry it): the unit and user are asked for.
+    assert p.pushed == [([service.API_CONFIG, "/usr/local/lib/ccrp/api_manager.py"], [service.API_UNIT])]
+    assert p.execs == [["sh", "-c", service.HAS_UNIT_SH]]
     # A clone from before the service (no unit, agent or user): one line saying what to do.
     with pytest.raises(CcrpError) as err:
         service.apply_api_manager(Recorder(rc=1), "nao1", files, {})
     assert "older snapshot" in err.value.one_line() and "snapshot build" in err.value.hint
-    have = {service.API_CONFIG: hashlib.sha256(files[0].content.encode()).hexdigest()}
+    have = {f.dest: hashlib.sha256(f.content.encode()).hexdigest() for f in files}
     p = Recorder()
-    service.apply_api_manager(p, "nao1", files, have)  # unchanged: left alone
+    service.apply_api_manager(p, "nao1", files, have)  # unchanged (a snapshot's agent is the same file): left alone
     assert p.pushed == [] and p.execs == []
     service.apply_api_manager(p, "nao1", [], have)  # turned off: removed and stopped
     assert p.execs == [["sh", "-c", service.OFF_SH]] and "systemctl stop ccrp-api-manager.service" in service.OFF_SH
@@ -150,9 +153,10 @@ def test_on_a_jazzy_fleet_fleet_up_pushes_the_agent_and_its_rclpy_side_with_the_
     have["/usr/local/lib/ccrp/api_manager_ros2.py"] = "0" * 64  # an older agent there
     service.apply_api_manager(p, "nao1", files, have)
     assert p.pushed == [(dests, [service.API_UNIT])]
-    # Noetic's snapshot has the agent: only the config goes.
+    # Noetic's agent goes too (a snapshot's copy is the same file: not sent again when current).
     noetic = inv(services={"api_manager": {}})
-    assert [f.dest for f in service.api_manager_files(noetic, noetic.robots[0])] == [service.API_CONFIG]
+    assert [f.dest for f in service.api_manager_files(noetic, noetic.robots[0])] == [
+        service.API_CONFIG, "/usr/local/lib/ccrp/api_manager.py"]
 
 
 def test_status_row():
