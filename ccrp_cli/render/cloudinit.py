@@ -161,7 +161,9 @@ def user_data_dict(
         # and its rclpy side come with the user-data, and run on the venv's rclpy and Zenoh.
         files += [_file(f"{CCRP_LIB}/{name}.py", agent_source(name), "0644") for name in ("relay", "relay_ros2")]
 
-    if view.inv.ros.ros2 and info(view.inv.provider.kind).own_kernel:
+    # A clone with its own kernel takes ROS 2's receive buffers from here (a container cannot).
+    sysctl = view.inv.ros.ros2 and info(view.inv.provider.kind).own_kernel
+    if sysctl:
         files.append(_file(ROS2_SYSCTL, ros2_sysctl()))
 
     # No "default": the images' own login users differ per cloud, so ccrp defines its own and the
@@ -186,7 +188,7 @@ def user_data_dict(
             # systemd-sysctl applies it at every later boot; at the first, it ran before the file. A
             # "VM" that is a container (the fake clouds' servers) cannot: said on the console, not fatal.
             *([["sh", "-c", 'sysctl -q -p "$0" || echo "ccrp: $0 not applied (no kernel of its own?)"', ROS2_SYSCTL]]
-              if any(f["path"] == ROS2_SYSCTL for f in files) else []),
+              if sysctl else []),
             # 0751: the relay user may open relay.key by name; nobody else may list the secrets.
             ["install", "-d", "-m", "0751", "-o", "root", "-g", "openvpn", VPN_DIR],
             ["install", "-d", "-m", "0755", "-o", "ros", "-g", "ros", "/var/lib/ros"],
