@@ -57,3 +57,11 @@ BOOT_AGENTS = ("relay",)
 LOCALE = "en_US.UTF-8"
 LOCALE_SETUP = (f"sed -i 's/^# *\\({LOCALE} UTF-8\\)/\\1/' /etc/locale.gen && locale-gen >/dev/null "
                 f"&& update-locale LANG={LOCALE}")
+
+# A ROS 2 subscriber's UDP socket gets the kernel's default receive buffer (rmw_fastrtps sizes none
+# on its own): 208 KB holds three of an image's four 64 KB datagrams, and the kernel drops the
+# fourth whenever the node is slower to read than the burst. With 4 MB, the last hop of the relay
+# dropped none (docs/ros2.md). rmem_max lets the relay agent's profile ask for its 2 MB (doubled).
+# A clone with its own kernel gets them from its user-data; `ccrp doctor` checks Docker's host.
+ROS2_SYSCTL = "/etc/sysctl.d/60-ccrp-ros2.conf"
+ROS2_RMEM = 4_194_304

@@ -12,7 +12,7 @@ from typing import Any
 import yaml
 
 from ..errors import CcrpError
-from ..layout import (API_USER, BOOT_AGENTS, CCRP_ETC, CCRP_LIB, IMAGE_AGENTS, KNOWLEDGE_USER, LOCALE, LOCALE_SETUP, LOGIN_USER,
+from ..layout import (API_USER, BOOT_AGENTS, CCRP_ETC, ROS2_RMEM, ROS2_SYSCTL, CCRP_LIB, IMAGE_AGENTS, KNOWLEDGE_USER, LOCALE, LOCALE_SETUP, LOGIN_USER,
                       POWER_PORT, POWER_USER, RELAY_USER, SECRETS_DIR, VPN_DIR)
 from ..models.inventory import Inventory
 from ..models.names import power_name
@@ -99,14 +99,6 @@ def _compact_python(src: str) -> str:
 
 
 POWER_SOCKET = "ccrp-power.socket"
-
-
-# A ROS 2 subscriber's UDP socket gets the kernel's default receive buffer (rmw_fastrtps sizes none
-# on its own): 208 KB holds three of an image's four 64 KB datagrams, and the kernel drops the
-# fourth whenever the node is slower to read than the burst. With 4 MB, the last hop of the relay
-# dropped none (docs/ros2.md). rmem_max lets the relay agent's profile ask for its 2 MB (doubled).
-ROS2_SYSCTL = "/etc/sysctl.d/60-ccrp-ros2.conf"
-ROS2_RMEM = 4_194_304
 
 
 def ros2_sysctl() -> str:
