@@ -141,27 +141,28 @@ def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_
 
 
 @pytest.mark.skipif(shutil.which("cloud-init") is None, reason="cloud-init not installed (apt-get install cloud-init)")
+@pytest.mark.parametrize("distro", ["jazzy", "kilted"])
 @pytest.mark.parametrize("kind", ["aws", "gcp", "openstack"])
-def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(ccrp_home, tmp_path, kind):
-    """`ros.platform: ubuntu-noble-ros`: the base image has ROS 2 Jazzy under /opt/ros/jazzy (apt).
+def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(ccrp_home, tmp_path, kind, distro):
+    """`ros.platform: ubuntu-noble-ros`: the base image has ROS 2 under /opt/ros/<distro> (apt).
     Its builder and a bare clone write nothing over that prefix (no venv, no setup.sh of ours): the
     agents' packages go to the system python, /opt/ros/jazzy/bin/python becomes a launcher only where
     none is, and the bake proves the image's ROS as the agents start it."""
     from ccrp_cli import vpn
 
     data = yaml.safe_load((ROOT / "inventories" / f"{kind}.yaml").read_text())
-    data["ros"] = {"distro": "jazzy", "platform": "ubuntu-noble-ros"}
+    data["ros"] = {"distro": distro, "platform": "ubuntu-noble-ros"}
     path = tmp_path / "ccrp.yaml"
     path.write_text(yaml.safe_dump(data))
     fleet = Fleet.open(path)
     vpn.init(fleet)
-    plat = cloudinit.platform("jazzy", "ubuntu-noble-ros")
-    assert plat.ros_installed and "ros-jazzy-ros-base" in plat.packages and "python3-venv" not in plat.packages
+    plat = cloudinit.platform(distro, "ubuntu-noble-ros")
+    assert plat.ros_installed and f"ros-{distro}-ros-base" in plat.packages and "python3-venv" not in plat.packages
     view = clone_view(fleet, fleet.store.load_state(), fleet.inventory.robots[0].name)
     keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"]
     texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef"),
              "bare": cloudinit.user_data(view, install_packages=True, login_keys=keys)}
-    launcher = ["sh", "-c", '[ -e "$0/bin/python" ] || ln -s "$1" "$0/bin/python"', "/opt/ros/jazzy",
+    launcher = ["sh", "-c", '[ -e "$0/bin/python" ] || ln -s "$1" "$0/bin/python"', f"/opt/ros/{distro}",
                 "/usr/local/lib/ccrp/ros-python"]
     for what, text in texts.items():
         data = yaml.safe_load(text)
@@ -171,7 +172,7 @@ def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(cc
         assert ["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3", "install", "--no-cache-dir", *plat.pip] in runcmd, runcmd
         assert launcher in runcmd and runcmd.index(launcher) > runcmd.index(["env", "PIP_BREAK_SYSTEM_PACKAGES=1", "pip3",
                                                                               "install", "--no-cache-dir", *plat.pip])
-        assert "ros-jazzy-ros-base" in data["packages"]
+        assert f"ros-{distro}-ros-base" in data["packages"]
         info(kind).fit_user_data(text)
         f = tmp_path / f"{what}.yaml"
         f.write_text(text)
@@ -179,7 +180,7 @@ def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(cc
         assert proc.returncode == 0 and "Valid cloud-config" in proc.stdout, what + proc.stdout + proc.stderr
     assert cloudinit.bake_proofs(fleet.inventory) == ["apt", "locale", "pip", "ros"]
     proof = next(c for c in yaml.safe_load(texts["builder"])["runcmd"] if "ros-ok" in " ".join(c))
-    assert proof[4:6] == ["/opt/ros/jazzy/bin/python", "-c"] and "import rclpy, zenoh, cv2" in proof[6], proof
+    assert proof[4:6] == [f"/opt/ros/{distro}/bin/python", "-c"] and "import rclpy, zenoh, cv2" in proof[6], proof
 
 
 def test_the_launcher_runs_the_system_python_in_the_distros_own_setup(tmp_path):
