@@ -8,12 +8,15 @@ page). Each returns what the CLI renders: per-robot results or certificate recor
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .providers.base import Lifecycle, Provider
 
 Say = Callable[[str], None]
 
 
-def clone_start(fleet, provider, robot: str, say: Say) -> list:
+def clone_start(fleet, provider: Provider, robot: str, say: Say) -> list:
     """`ccrp clone start`: start the robot's stopped clone, push its keys again, wait until it serves."""
     from . import reconcile
     from .errors import InputError
@@ -30,7 +33,7 @@ def clone_start(fleet, provider, robot: str, say: Say) -> list:
     return items
 
 
-def clone_stop(fleet, provider, robot: str, say: Say, timeout: float = 300) -> list:
+def clone_stop(fleet, provider: Lifecycle, robot: str, say: Say, timeout: float = 300) -> list:
     """`ccrp clone stop`: the provider stops the robot's clone (its disk, addresses and keys stay)
     and ccrp waits until it says stopped. `clone start`, or the next `fleet up`, starts it again."""
     import time
@@ -63,7 +66,7 @@ def clone_stop(fleet, provider, robot: str, say: Say, timeout: float = 300) -> l
     return [CloneResult(robot, "stopped", "", time.monotonic() - t0)]
 
 
-def clone_restart(fleet, provider, robot: str, say: Say) -> list:
+def clone_restart(fleet, provider: Provider, robot: str, say: Say) -> list:
     """`ccrp clone restart`: stop the clone, then `clone start`. The provider stops it, so a clone
     that no longer answers (a hung master, a full disk, lost keys) restarts too."""
     stopped = clone_stop(fleet, provider, robot, say)
@@ -74,7 +77,7 @@ def clone_restart(fleet, provider, robot: str, say: Say) -> list:
     return items
 
 
-def fleet_scale(fleet, provider, size: int, say: Say) -> list:
+def fleet_scale(fleet, provider: Provider, size: int, say: Say) -> list:
     """`ccrp fleet scale SIZE`: grow or shrink the fleet with template robots."""
     from . import reconcile
 
@@ -85,7 +88,7 @@ def fleet_scale(fleet, provider, size: int, say: Say) -> list:
         return reconcile.scale(fleet, provider, size, say)
 
 
-def vpn_revoke(fleet, provider, robot: str, say: Say, cert: str = "client") -> list[dict[str, Any]]:
+def vpn_revoke(fleet, provider: Provider, robot: str, say: Say, cert: str = "client") -> list[dict[str, Any]]:
     """`ccrp vpn revoke`: revoke the robot's certificates, end its session, push the CRL."""
     from . import vpn
 
@@ -103,7 +106,7 @@ def ensure_pki(fleet, say: Say) -> None:
     say(f"fleet {fleet.name!r} had no PKI yet: created its CA {made['ca']} (as `ccrp vpn init`)")
 
 
-def ensure_snapshot(fleet, provider, say: Say) -> None:
+def ensure_snapshot(fleet, provider: Provider, say: Say) -> None:
     """A new Docker fleet's golden image is built by the first command that creates a clone, as
     `ccrp snapshot build` would (the caller holds the fleet lock). A cloud's is baked on purpose
     (`ccrp snapshot bake`: a builder instance, minutes, billed), so there the clone says so."""
@@ -119,7 +122,7 @@ def ensure_snapshot(fleet, provider, say: Say) -> None:
     say(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
 
 
-def robot_teleop(fleet, provider, robot: str, linear: float, angular: float, topic: str = "cmd_vel",
+def robot_teleop(fleet, provider: Lifecycle, robot: str, linear: float, angular: float, topic: str = "cmd_vel",
                  timeout: float = 5.0, keep: bool = False) -> dict:
     """`ccrp robot teleop` and the dashboard's drive keys: one velocity command through the clone.
     No fleet lock: it changes nothing ccrp records, and an operator must not wait behind a scale."""

@@ -7,11 +7,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import CcrpError, shown
 from .models.inventory import Inventory, Robot
 from .render.files import BundleFile
 from .layout import API_USER, CCRP_ETC, SECRETS_DIR
+
+if TYPE_CHECKING:
+    from .providers.base import Reaches
 
 API_UNIT = "ccrp-api-manager.service"
 API_CONFIG = f"{CCRP_ETC}/api_manager.json"
@@ -85,22 +89,22 @@ HAS_UNIT_SH = f"test -e /etc/systemd/system/{API_UNIT} && getent passwd {API_USE
 OFF_SH = f'rm -f "{API_CONFIG}" "{GOOGLE_KEY}" && systemctl stop {API_UNIT}'
 
 
-def apply_api_manager(provider, robot: str, files: list[BundleFile], have: dict[str, str]) -> None:
+def apply_api_manager(provider: Reaches, robot: str, files: list[BundleFile], have: dict[str, str]) -> None:
     """Bring robot's clone in line with `files` (api_manager_files), given the digests of what it
     holds: push and restart the agent when they differ, or turn the service off."""
     from .probe import same
 
     if files:
         if not same(have, files):
-            rc, _ = provider.exec(robot, ["sh", "-c", HAS_UNIT_SH], timeout=30)
+            rc, _ = provider.transport.exec(robot, ["sh", "-c", HAS_UNIT_SH], timeout=30)
             if rc != 0:
                 raise CcrpError(
                     f"robot {robot!r}'s clone has no API manager: it was made from an older snapshot or user-data",
                     hint=f"ccrp snapshot build -i INVENTORY, then ccrp clone delete -i INVENTORY --robot {robot} "
                          f"and ccrp fleet up -i INVENTORY")
-            provider.push_files(robot, files, restart=[API_UNIT])
+            provider.transport.push_files(robot, files, restart=[API_UNIT])
     elif API_CONFIG in have:
-        rc, out = provider.exec(robot, ["sh", "-c", OFF_SH], timeout=30)
+        rc, out = provider.transport.exec(robot, ["sh", "-c", OFF_SH], timeout=30)
         if rc != 0:
             raise CcrpError(f"cannot turn the API manager off on robot {robot!r}'s clone: {out.strip()[-200:]}")
 

@@ -15,8 +15,12 @@ import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import CcrpError, InputError, shown
+
+if TYPE_CHECKING:
+    from .providers.base import Lifecycle, Reaches
 
 DEFAULT_TOPIC = "/camera/image_raw"
 TOPIC_RE = r"/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*"
@@ -85,13 +89,13 @@ def check_topic(topic: str) -> None:
         raise InputError(f"--topic {shown(topic)} is not a ROS topic name", hint=f"e.g. --topic {DEFAULT_TOPIC}")
 
 
-def _check_robot(fleet, provider, robot: str) -> None:
+def _check_robot(fleet, provider: Lifecycle, robot: str) -> None:
     fleet.robot(fleet.store.load_state(), robot)  # a robot of this fleet, or exit 2
     if robot not in provider.query():
         raise NoFrame(f"robot {robot!r} has no clone", "no-clone", hint=f"ccrp clone create -i INVENTORY --robot {robot}")
 
 
-def latest_frame(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0,
+def latest_frame(fleet, provider: Lifecycle, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0,
                  start: bool = True) -> Frame:
     """One frame of `topic` as the robot's clone sees it. No fleet lock: it changes nothing ccrp
     records, and the dashboard polls it. Without `start` (the dashboard's GET) a clone whose agent
@@ -130,7 +134,7 @@ def latest_frame(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeou
     return frame
 
 
-def start_camera(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0) -> dict:
+def start_camera(fleet, provider: Lifecycle, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0) -> dict:
     """The dashboard's Camera button (a POST): the camera agent on the robot's clone, started unless
     one serves, and asked until it does. {"robot", "agent": "running" | "started"}."""
     check_topic(topic)
@@ -148,9 +152,9 @@ def start_camera(fleet, provider, robot: str, topic: str = DEFAULT_TOPIC, timeou
     return {"robot": robot, "agent": "started"}
 
 
-def _ask(provider, robot: str, topic: str, timeout: float) -> dict:
+def _ask(provider: Reaches, robot: str, topic: str, timeout: float) -> dict:
     """The agent's answer through the client (one exec), as a dict."""
-    rc, out = provider.exec(robot, [*ASK_ARGV, topic, f"{timeout:g}"], timeout=timeout + 30)
+    rc, out = provider.transport.exec(robot, [*ASK_ARGV, topic, f"{timeout:g}"], timeout=timeout + 30)
     last = next((ln for ln in reversed(out.strip().splitlines()) if ln.startswith("{")), "")
     try:
         got = json.loads(last)
@@ -162,7 +166,7 @@ def _ask(provider, robot: str, topic: str, timeout: float) -> dict:
     return got
 
 
-def start_agent(provider, robot: str) -> None:
+def start_agent(provider: Reaches, robot: str) -> None:
     """The camera agent on the clone, (re)started from this ccrp's copy of it."""
     from .evaluation import ROS_PRELUDE
     from .render.files import BundleFile
@@ -170,12 +174,12 @@ def start_agent(provider, robot: str) -> None:
     from .simulated import run_unit
 
     source = (Path(__file__).parent / "agent" / "camera.py").read_text()
-    provider.push_files(robot, [BundleFile("camera.py", source, 0o644, f"{CCRP_LIB}/camera.py")], restart=[])
+    provider.transport.push_files(robot, [BundleFile("camera.py", source, 0o644, f"{CCRP_LIB}/camera.py")], restart=[])
     argv = [*ROS_PRELUDE, "ccrp-camera", "/usr/bin/python3", AGENT, SOCKET, str(CAMERA_IDLE_S)]
-    run_unit(lambda cmd: provider.exec(robot, cmd, timeout=30), UNIT, argv, f"the clone of {robot!r}", UNIT_OPTIONS)
+    run_unit(lambda cmd: provider.transport.exec(robot, cmd, timeout=30), UNIT, argv, f"the clone of {robot!r}", UNIT_OPTIONS)
 
 
-def _ask_until_served(provider, robot: str, topic: str, timeout: float) -> dict:
+def _ask_until_served(provider: Reaches, robot: str, topic: str, timeout: float) -> dict:
     """Asks until the agent just started serves (its node and OpenCV load in a second or two)."""
     from .retry import PollTimeout, poll
 
@@ -183,6 +187,6 @@ def _ask_until_served(provider, robot: str, topic: str, timeout: float) -> dict:
         return poll(lambda: ((got := _ask(provider, robot, topic, timeout)).get("why") != "no-agent", got),
                     timeout=30, interval=0.3)
     except PollTimeout:
-        _, log = provider.exec(robot, ["journalctl", "-u", UNIT, "-n", "5", "--no-pager"], timeout=15)
+        _, log = provider.transport.exec(robot, ["journalctl", "-u", UNIT, "-n", "5", "--no-pager"], timeout=15)
         raise NoFrame(f"the camera agent did not start on the clone of {robot!r}: {' '.join(log.split())[-300:]}",
                       "failed") from None

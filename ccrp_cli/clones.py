@@ -19,7 +19,7 @@ from .layout import CCRP_ETC, MGMT_SOCKET, SECRETS_DIR
 from .models.names import clone_host
 from .models.state import FleetState
 from .probe import HEALTH_SCRIPT, files_current, health, remote_digests, same
-from .providers.base import CloneSpec, CloneState, Origin, Provider, cloud_init_clean
+from .providers.base import CloneSpec, CloneState, Housekeeping, Lifecycle, Origin, Provider, Reaches, cloud_init_clean
 
 Progress = Callable[[str], None]
 
@@ -84,9 +84,9 @@ def applied_marker(files: list):
 SECRETS_DIR_SH = 'install -d -m "$1" -o root -g openvpn "$0" && stat -c %d / "$0"'
 
 
-def prepare_secrets_dir(provider: Provider, robot: str) -> None:
+def prepare_secrets_dir(provider: Reaches, robot: str) -> None:
     # 0751: the relay's user opens relay.key by name but cannot list the directory.
-    rc, out = provider.exec(robot, ["sh", "-c", SECRETS_DIR_SH, SECRETS_DIR, "0751"], timeout=30)
+    rc, out = provider.transport.exec(robot, ["sh", "-c", SECRETS_DIR_SH, SECRETS_DIR, "0751"], timeout=30)
     devices = out.split()[-2:]  # after anything sudo may warn about first
     if rc != 0 or len(devices) != 2 or not all(d.isdigit() for d in devices):
         raise CcrpError(f"cannot prepare {SECRETS_DIR} on {clone_host(robot)}: {out.strip()[-200:]}")
@@ -99,10 +99,10 @@ def prepare_secrets_dir(provider: Provider, robot: str) -> None:
         )
 
 
-def kill_session(provider: Provider, robot: str, cn: str | None = None) -> None:
+def kill_session(provider: Reaches, robot: str, cn: str | None = None) -> None:
     """End a live VPN session on the robot's clone (management interface): the robot's, or that
     of `cn` (its power device's)."""
-    rc, out = provider.exec(robot, ["python3", "-c", HEALTH_SCRIPT(), "kill", cn or robot], timeout=20)
+    rc, out = provider.transport.exec(robot, ["python3", "-c", HEALTH_SCRIPT(), "kill", cn or robot], timeout=20)
     if rc != 0:
         raise CcrpError(f"cannot end the VPN session on {clone_host(robot)}: {out.strip()[-200:]}")
 
@@ -166,11 +166,11 @@ def serving_port(inv) -> str:
     return "ros2" if inv.ros.ros2 else str(inv.ros.master_port)
 
 
-def probe(provider: Provider, robot: str, master_port: int | str, files: list) -> Probe | None:
+def probe(provider: Reaches, robot: str, master_port: int | str, files: list) -> Probe | None:
     """What `fleet up` must know of a running clone, in one command: None when the probe could not
     run (the caller then asks the long way)."""
     try:
-        rc, out = provider.exec(robot, ["bash", "-c", PROBE_SH, MGMT_SOCKET, str(master_port),
+        rc, out = provider.transport.exec(robot, ["bash", "-c", PROBE_SH, MGMT_SOCKET, str(master_port),
                                         *(f.dest for f in files)], timeout=20)
     except CcrpError:
         return None
@@ -183,16 +183,16 @@ def probe(provider: Provider, robot: str, master_port: int | str, files: list) -
     return Probe(cloud_init_clean(result), have, tail.split() == ["vpn=yes", "master=yes"])
 
 
-def wait_serving(provider: Provider, robot: str, master_port: int | str, timeout: float = 60) -> None:
+def wait_serving(provider: Reaches, robot: str, master_port: int | str, timeout: float = 60) -> None:
     """Until the VPN server runs and the ROS master answers inside the clone (ROS 2: its
     environment works, see SERVING_SH)."""
-    rc, out = provider.exec(robot, ["bash", "-c", WAIT_SERVING_SH, MGMT_SOCKET, str(master_port)], timeout=timeout)
+    rc, out = provider.transport.exec(robot, ["bash", "-c", WAIT_SERVING_SH, MGMT_SOCKET, str(master_port)], timeout=timeout)
     if rc != 0 or out.split()[-2:] != ["vpn=yes", "master=yes"]:
         detail = json.dumps(health(provider, robot))[:300]  # the long way, for the message only
         raise CcrpError(f"clone {clone_host(robot)} is not serving after {timeout:.0f} s: {detail}")
 
 
-def clone_user_data(view, provider: Provider, bare: bool) -> str:
+def clone_user_data(view, provider: Housekeeping, bare: bool) -> str:
     """A cloud clone gets ccrp's login user (render/view.py LOGIN_USER) with the fleet's operator key:
     the SSH transport logs in as it. A Docker clone has no login user; its transport is the Docker API."""
     from .render import cloudinit
@@ -263,17 +263,17 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         # off while ccrp was still waiting for its master).
         changed = [f for f in settings if not same(have, [f])]
         if changed:
-            provider.push_files(robot, changed, restart=[])  # both agents re-read their file
+            provider.transport.push_files(robot, changed, restart=[])  # both agents re-read their file
         pushed = False
         if not same(have, [*keys, applied]):
             prepare_secrets_dir(provider, robot)
-            provider.push_files(robot, secrets, restart=["ccrp-openvpn.service", "ccrp-relay.service"])
-            provider.push_files(robot, [applied])  # last: until it is there, the next run pushes again
+            provider.transport.push_files(robot, secrets, restart=["ccrp-openvpn.service", "ccrp-relay.service"])
+            provider.transport.push_files(robot, [applied])  # last: until it is there, the next run pushes again
             pushed = True
         elif not same(have, crl):
             # Only the CRL changed (another robot was revoked): OpenVPN re-reads it, the robot's
             # live session stays.
-            provider.push_files(robot, crl, restart=[])
+            provider.transport.push_files(robot, crl, restart=[])
         if pushed or seen is None or not seen.serving:
             wait_serving(provider, robot, port)
         apply_api_manager(provider, robot, api, have)
@@ -302,7 +302,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     return CloneResult(robot, "created" if record.created else "reused", endpoint or "", took, record.origin)
 
 
-def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, revoked: CcrpError,
+def _left_revoked(fleet: Fleet, provider: Lifecycle, writer: StateWriter, robot: str, revoked: CcrpError,
                   progress: Progress) -> CloneResult:
     """A revoked robot stays unenrolled: no certificate, no clone created or configured. A clone
     of it that runs gets the current CRL and the kill again, in case `vpn revoke` could not reach
@@ -313,7 +313,7 @@ def _left_revoked(fleet: Fleet, provider: Provider, writer: StateWriter, robot: 
     writer.fleet.store.save_state(writer.state)  # the caller holds writer.lock
     rec = provider.query().get(robot)
     if rec is not None and rec.state is CloneState.RUNNING:
-        provider.push_files(robot, [crl_file(fleet.pki.crl_path.read_text())], restart=[])
+        provider.transport.push_files(robot, [crl_file(fleet.pki.crl_path.read_text())], restart=[])
         kill_session(provider, robot)
     progress(f"[{robot}] {revoked.message}")
     return CloneResult(robot, "revoked", revoked.message + f" ({revoked.hint})")
@@ -334,7 +334,7 @@ def autostop_file(fleet: Fleet, robot):
     return BundleFile("autostop.json", text, 0o644, f"{CCRP_ETC}/autostop.json")
 
 
-def push_relay_config(fleet: Fleet, provider: Provider, state: FleetState, robot: str, known: str | None = None) -> bool:
+def push_relay_config(fleet: Fleet, provider: Reaches, state: FleetState, robot: str, known: str | None = None) -> bool:
     """Give robot's clone its current relay.json (and knowledge.json where it shares a dataset);
     the agents pick them up without a restart. `known` is what this run already found on (or
     pushed to) the clone: when it is the same, the clone is not asked again. Returns True when a
@@ -344,11 +344,11 @@ def push_relay_config(fleet: Fleet, provider: Provider, state: FleetState, robot
     files = [relay_config_file(fleet, state, robot), *knowledge_files(fleet, state, robot)]
     if "".join(f.content for f in files) == known or files_current(provider, robot, files):
         return False
-    provider.push_files(robot, files, restart=[])
+    provider.transport.push_files(robot, files, restart=[])
     return True
 
 
-def delete_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, forget: bool) -> CloneResult:
+def delete_clone(fleet: Fleet, provider: Lifecycle, writer: StateWriter, robot: str, forget: bool) -> CloneResult:
     t0 = time.monotonic()
     if robot in writer.state.robots:
         writer.update(robot, phase="deleting")

@@ -23,6 +23,7 @@ import tarfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from .clones import CloneResult, StateWriter
 from .errors import CcrpError, InputError
@@ -43,6 +44,9 @@ from .workloads import (
     snapshot_software,
     unit_name,
 )
+
+if TYPE_CHECKING:
+    from .providers.base import Provider, Reaches
 
 Progress = Callable[[str], None]
 
@@ -139,8 +143,8 @@ esac
 """
 
 
-def _script(provider, robot: str, action: str, *words: str, timeout: float = 180) -> str:
-    rc, out = provider.exec(robot, ["sh", "-c", DEPLOY_SH, "ccrp-deploy", action, *words], timeout=timeout)
+def _script(provider: Reaches, robot: str, action: str, *words: str, timeout: float = 180) -> str:
+    rc, out = provider.transport.exec(robot, ["sh", "-c", DEPLOY_SH, "ccrp-deploy", action, *words], timeout=timeout)
     if rc != 0:
         raise CcrpError(f"deploy step {action} failed on robot {robot!r}'s clone: {' '.join(out.split())[-300:]}")
     return out
@@ -184,7 +188,7 @@ class Change:
         return "; ".join(parts)
 
 
-def probe(fleet: Fleet, provider, state, robot: str, new: str) -> Change:
+def probe(fleet: Fleet, provider: Reaches, state, robot: str, new: str) -> Change:
     """What robot's clone runs (one round trip) against the inventory's software `new`."""
     files = node_files(fleet.inventory, fleet.robot(state, robot), new)
     probed = files or [absent_index()]
@@ -267,7 +271,7 @@ def _package_diff(have: str, want: str) -> str:
 
 # -- the build --------------------------------------------------------------------------------------
 
-def local_docker(provider):
+def local_docker(provider: Provider):
     """The Docker engine that builds the workspace: the provider's on Docker, this machine's else."""
     if provider.kind == "docker":
         return provider.client
@@ -287,7 +291,7 @@ def deploy_repo(fleet: Fleet) -> str:
     return f"ccrp/{fleet.name}-deploy"
 
 
-def build_install_space(fleet: Fleet, provider, software: SnapshotSoftware, progress: Progress) -> bytes:
+def build_install_space(fleet: Fleet, provider: Provider, software: SnapshotSoftware, progress: Progress) -> bytes:
     """The tar of the install space (top directory `workspace/`) built from `software` in the
     fleet's clone image."""
     if software.build_type is None:  # no workspace (any more): an empty install space
@@ -339,7 +343,7 @@ def _drop_older_builds(client, fleet: Fleet, keep: str) -> None:
 
 # -- on each clone ----------------------------------------------------------------------------------
 
-def health(provider, robot: str, nodes: list[str], seconds: float, interval: float) -> tuple[str, str] | None:
+def health(provider: Reaches, robot: str, nodes: list[str], seconds: float, interval: float) -> tuple[str, str] | None:
     """(unit, why) of the first of `nodes` that is not active, or restarted by systemd, during
     `seconds`; None when all stayed up."""
     units = [unit_name(n) for n in nodes]
@@ -348,7 +352,7 @@ def health(provider, robot: str, nodes: list[str], seconds: float, interval: flo
     first: dict[str, int] = {}
     end = time.monotonic() + seconds
     while True:
-        _, out = provider.exec(robot, ["systemctl", "show", "--property", "Id,ActiveState,SubState,NRestarts", *units],
+        _, out = provider.transport.exec(robot, ["systemctl", "show", "--property", "Id,ActiveState,SubState,NRestarts", *units],
                                 timeout=20)
         shown = {}
         for block in out.strip().split("\n\n"):
@@ -368,7 +372,7 @@ def health(provider, robot: str, nodes: list[str], seconds: float, interval: flo
         time.sleep(interval)
 
 
-def apply(provider, writer: StateWriter, change: Change, tar_b64: str | None, progress: Progress) -> CloneResult:
+def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str | None, progress: Progress) -> CloneResult:
     """Bring one clone to the inventory's software and nodes; back to what it ran if a restarted
     node fails its health check."""
     t0 = time.monotonic()
@@ -379,8 +383,8 @@ def apply(provider, writer: StateWriter, change: Change, tar_b64: str | None, pr
         return CloneResult(robot, "current", f"software {change.new}", time.monotonic() - t0)
     if change.workspace:
         assert tar_b64 is not None
-        provider.exec(robot, ["mkdir", "-p", "-m", "0700", DEPLOY_DIR], timeout=30)
-        provider.push_files(robot, [BundleFile(f"{change.new}.tar.b64", tar_b64, 0o600,
+        provider.transport.exec(robot, ["mkdir", "-p", "-m", "0700", DEPLOY_DIR], timeout=30)
+        provider.transport.push_files(robot, [BundleFile(f"{change.new}.tar.b64", tar_b64, 0o600,
                                                f"{DEPLOY_DIR}/{change.new}.tar.b64")], restart=[])
     try:
         _script(provider, robot, "stage", change.new if change.workspace else "-")
@@ -418,7 +422,7 @@ def apply(provider, writer: StateWriter, change: Change, tar_b64: str | None, pr
     return CloneResult(robot, "deployed", change.summary(), time.monotonic() - t0)
 
 
-def _rollback(provider, robot: str, swapped: bool, restarted: list[str]) -> str:
+def _rollback(provider: Reaches, robot: str, swapped: bool, restarted: list[str]) -> str:
     try:
         _script(provider, robot, "rollback", "yes" if swapped else "no", *restarted)
         return "rolled back: the previous version runs"
@@ -435,7 +439,7 @@ def _quietly(fn: Callable[[], object]) -> None:
 
 # -- the command --------------------------------------------------------------------------------------
 
-def deploy(fleet: Fleet, provider, progress: Progress, robot: str | None = None, type_: str | None = None,
+def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | None = None, type_: str | None = None,
            dry_run: bool = False) -> list[CloneResult]:
     """`ccrp deploy`: the caller holds the fleet lock unless dry_run."""
     from .reconcile import _fan_out

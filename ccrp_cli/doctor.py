@@ -6,9 +6,13 @@ from __future__ import annotations
 import importlib.util
 import shutil
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 from .errors import CcrpError
 from .fleet import Fleet
+
+if TYPE_CHECKING:
+    from .providers.base import Provider
 
 OK, FAIL, WARN, SKIP = "ok", "fail", "warn", "skip"
 # Not needed by ccrp itself; handy for checking its work by hand.
@@ -105,7 +109,7 @@ def _provider(fleet: Fleet):
     return provider, Check(name, OK, f"region/cloud {getattr(settings, 'region', '') or getattr(settings, 'cloud', '')}".strip())
 
 
-def _credentials(provider) -> list[Check]:
+def _credentials(provider: Provider) -> list[Check]:
     if provider.kind == "docker":
         return []  # the engine answering (checked above) is the credential
     try:
@@ -114,7 +118,7 @@ def _credentials(provider) -> list[Check]:
         return [_failed("credentials", exc)]
 
 
-def _quotas(fleet: Fleet, provider) -> list[Check]:
+def _quotas(fleet: Fleet, provider: Provider) -> list[Check]:
     """Each quota the fleet's clones draw on: its limit and use now, and what the clones not
     created yet take of it (the numbers `fleet up` checks before it creates anything)."""
     from . import quotas
@@ -135,7 +139,7 @@ def _quotas(fleet: Fleet, provider) -> list[Check]:
     ]
 
 
-def _snapshot(fleet: Fleet, provider) -> Check:
+def _snapshot(fleet: Fleet, provider: Provider) -> Check:
     recorded = (fleet.store.load_state().snapshot or {}).get("image")
     if not recorded:
         return Check("snapshot", FAIL, "no snapshot recorded for new clones",
@@ -149,7 +153,7 @@ def _snapshot(fleet: Fleet, provider) -> Check:
     return Check("snapshot", FAIL, f"{recorded} is recorded but gone", f"ccrp {_build_command(provider)} -i INVENTORY")
 
 
-def _snapshot_images(provider) -> Check:
+def _snapshot_images(provider: Provider) -> Check:
     """Docker: the disk ccrp's snapshot images take on this host, this state's and orphans'."""
     from docker.errors import DockerException
 
@@ -179,7 +183,7 @@ def _snapshot_images(provider) -> Check:
     return Check("snapshot images", WARN, detail, hint)
 
 
-def _build_command(provider) -> str:
+def _build_command(provider: Provider) -> str:
     from .providers.base import Ability
 
     return "snapshot build" if Ability.LOCAL_BUILD in provider.abilities else "snapshot bake"

@@ -11,12 +11,15 @@ import statistics
 import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from typing import Callable, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator
 
 from .errors import CcrpError, InputError, shown
 from .fleet import Fleet
 from .layout import CCRP_LIB
 from .simulated import Sims, run_unit
+
+if TYPE_CHECKING:
+    from .providers.base import Lifecycle, Reaches
 
 Progress = Callable[[str], None]
 AGENT = f"{CCRP_LIB}/ccrp-bench"
@@ -102,21 +105,21 @@ class Bench:
         agent = [BundleFile("ccrp-bench", static("bench/ccrp-bench"), 0o755, AGENT)]
         for robot in robots:
             self.sims.push(robot, agent)
-            self.clones.push_files(robot, agent, restart=[])
+            self.clones.transport.push_files(robot, agent, restart=[])
 
     def on_robot(self, robot: str, args: list[str], timeout: float) -> dict:
         return _json(self.sims.exec(robot, [*IN_ROS, *args], timeout=timeout), f"simulated robot {robot!r}")
 
     def on_clone(self, robot: str, args: list[str], timeout: float) -> dict:
-        return _json(self.clones.exec(robot, [*IN_ROS, *args], timeout=timeout), f"the clone of {robot!r}")
+        return _json(self.clones.transport.exec(robot, [*IN_ROS, *args], timeout=timeout), f"the clone of {robot!r}")
 
     def background(self, robot: str, unit: str, args: list[str]) -> None:
         """Run an agent role as a transient unit on the clone (stopped by `stop_units`)."""
-        run_unit(lambda argv: self.clones.exec(robot, argv), unit, [*IN_ROS, *args], f"the clone of {robot!r}",
+        run_unit(lambda argv: self.clones.transport.exec(robot, argv), unit, [*IN_ROS, *args], f"the clone of {robot!r}",
                  bench_unit_options(unit))
 
     def stop_units(self, robots: list[str], unit: str) -> None:
-        _parallel(lambda r: self.clones.exec(r, ["systemctl", "stop", unit]), robots)
+        _parallel(lambda r: self.clones.transport.exec(r, ["systemctl", "stop", unit]), robots)
 
     def shape(self, robots: list[str], link) -> None:
         """Every robot on `link` for this run."""
@@ -297,7 +300,7 @@ def check_command(linear: float, angular: float, topic: str) -> None:
         raise InputError(f"--topic {shown(topic)} is not a ROS topic name", hint="e.g. --topic cmd_vel or /mobile_base/cmd_vel")
 
 
-def send_command(fleet: Fleet, provider, robot: str, linear: float, angular: float, topic: str = "cmd_vel",
+def send_command(fleet: Fleet, provider: Lifecycle, robot: str, linear: float, angular: float, topic: str = "cmd_vel",
                  timeout: float = 5.0, keep: bool = False) -> dict:
     """Publish one geometry_msgs/Twist on the robot's clone and time its way to the robot: the
     round trip to the robot's acknowledgement, and clone publish -> robot receipt.
@@ -319,14 +322,14 @@ def send_command(fleet: Fleet, provider, robot: str, linear: float, angular: flo
     t0 = time.perf_counter()
     for attempt in range(2):
         if key not in _pushed or attempt:
-            provider.push_files(robot, [BundleFile("ccrp-bench", static("bench/ccrp-bench"), 0o755, AGENT)], restart=[])
+            provider.transport.push_files(robot, [BundleFile("ccrp-bench", static("bench/ccrp-bench"), 0o755, AGENT)], restart=[])
             _pushed.add(key)
         if keep and key not in _operators:
-            run_unit(lambda a: provider.exec(robot, a), TELEOP_UNIT,
+            run_unit(lambda a: provider.transport.exec(robot, a), TELEOP_UNIT,
                      [*IN_ROS, "teleop-operator", "--topic", topic, "--idle", f"{TELEOP_IDLE_S:g}"],
                      f"the clone of {robot!r}", TELEOP_UNIT_OPTIONS)
             _operators[key] = time.monotonic()
-        rc, out = provider.exec(robot, argv, timeout=timeout + 30)
+        rc, out = provider.transport.exec(robot, argv, timeout=timeout + 30)
         last = out.strip().splitlines()[-1] if out.strip() else ""
         if last.startswith("{"):
             break
@@ -342,14 +345,14 @@ def send_command(fleet: Fleet, provider, robot: str, linear: float, angular: flo
     return {"robot": robot, **got, "request_ms": round((time.perf_counter() - t0) * 1000, 1)}
 
 
-def stop_operators(fleet: Fleet, provider) -> list[str]:
+def stop_operators(fleet: Fleet, provider: Reaches) -> list[str]:
     """Stop the teleop operators this process started on the fleet's clones (the dashboard ends)."""
     from .simulated import stop_unit
 
     robots = sorted(r for f, r in _operators if f == fleet.name)
     for robot in robots:
         try:
-            stop_unit(lambda a: provider.exec(robot, a), TELEOP_UNIT)  # noqa: B023 - called at once
+            stop_unit(lambda a: provider.transport.exec(robot, a), TELEOP_UNIT)  # noqa: B023 - called at once
         except CcrpError:
             pass  # its clone is gone or stopped: so is the operator
         _operators.pop((fleet.name, robot), None)

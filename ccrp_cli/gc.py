@@ -15,11 +15,14 @@ finds them host-wide by the state labels each snapshot image carries
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from .errors import CcrpError
 from .models.state import FleetState
 from .providers.base import OwnedResource, SnapshotRecord
+
+if TYPE_CHECKING:
+    from .providers.base import Provider
 
 # One per fleet, created or reused by bootstrap.
 BOOTSTRAP_KINDS = {"network", "vpc", "subnet", "router", "route_table", "internet_gateway", "security_group",
@@ -61,7 +64,7 @@ def find_leaks(state: FleetState, owned: list[OwnedResource], snapshots: list[Sn
     return [r for r in owned if not known(r)]
 
 
-def collect(state: FleetState, provider, dry_run: bool, progress: Callable[[str], None] = lambda m: None,
+def collect(state: FleetState, provider: Provider, dry_run: bool, progress: Callable[[str], None] = lambda m: None,
             keep: int = 2) -> list[GcResult]:
     """Find the fleet's leaks; unless dry_run, delete them (instances first: the rest may hang on them)."""
     from .snapshots import surplus
@@ -83,7 +86,7 @@ def collect(state: FleetState, provider, dry_run: bool, progress: Callable[[str]
     return results
 
 
-def collect_images(provider, dry_run: bool, unlabelled: bool = False,
+def collect_images(provider: Provider, dry_run: bool, unlabelled: bool = False,
                    progress: Callable[[str], None] = lambda m: None) -> list[GcResult]:
     """Docker: snapshot images on this host whose state directory is gone or was made again
     (orphans), and those from before the labels (unlabelled), with what became of each. This

@@ -14,6 +14,7 @@ import base64
 import json
 import secrets
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .agent.knowledge import name_problem
 from .errors import CcrpError, InputError, shown
@@ -21,6 +22,9 @@ from .fleet import Fleet
 from .models.state import FleetState
 from .render.files import BundleFile
 from .layout import CCRP_ETC, CCRP_LIB, SECRETS_DIR
+
+if TYPE_CHECKING:
+    from .providers.base import Reaches
 
 UNIT = "ccrp-knowledge.service"
 CONFIG = f"{CCRP_ETC}/knowledge.json"
@@ -88,7 +92,7 @@ def absent_config() -> BundleFile:
 OFF_SH = f'rm -f "{CONFIG}" && systemctl stop {UNIT}'
 
 
-def apply_knowledge(provider, robot: str, files: list[BundleFile], have: dict[str, str], restart: bool) -> None:
+def apply_knowledge(provider: Reaches, robot: str, files: list[BundleFile], have: dict[str, str], restart: bool) -> None:
     """After the config and agent went with the clone's settings: restart the agent where its code
     changed or the relay's TLS files were just pushed (`restart`), start it where only its config
     is new (a running agent re-reads the file), or turn it off where the clone shares no dataset
@@ -99,13 +103,13 @@ def apply_knowledge(provider, robot: str, files: list[BundleFile], have: dict[st
         restart = restart or not same(have, [f for f in files if f.dest == AGENT])
         if not restart and same(have, files):
             return
-        rc, out = provider.exec(robot, ["systemctl", "restart" if restart else "start", UNIT], timeout=30)
+        rc, out = provider.transport.exec(robot, ["systemctl", "restart" if restart else "start", UNIT], timeout=30)
         if rc != 0:
             raise CcrpError(f"cannot start the knowledge agent on robot {robot!r}'s clone: {out.strip()[-200:]}",
                             hint=f"a clone made before knowledge sync existed has no unit for it: ccrp clone delete -i "
                                  f"INVENTORY --robot {robot}, then ccrp fleet up -i INVENTORY")
     elif CONFIG in have:
-        rc, out = provider.exec(robot, ["sh", "-c", OFF_SH], timeout=30)
+        rc, out = provider.transport.exec(robot, ["sh", "-c", OFF_SH], timeout=30)
         if rc != 0:
             raise CcrpError(f"cannot turn knowledge sync off on robot {robot!r}'s clone: {out.strip()[-200:]}")
 
@@ -122,9 +126,9 @@ def _check(fleet: Fleet, robot: str, dataset: str) -> None:
                          hint="services.knowledge.datasets in the inventory names the robots of each dataset")
 
 
-def _ctl(provider, robot: str, request: dict, spool: str | None = None, timeout: float = 120) -> dict:
+def _ctl(provider: Reaches, robot: str, request: dict, spool: str | None = None, timeout: float = 120) -> dict:
     argv = ["python3", AGENT, "ctl", json.dumps(request)] + ([spool] if spool else [])
-    rc, out = provider.exec(robot, argv, timeout=timeout)
+    rc, out = provider.transport.exec(robot, argv, timeout=timeout)
     try:
         reply = json.loads(out.strip().splitlines()[-1])
     except (ValueError, IndexError):
@@ -137,7 +141,7 @@ def _ctl(provider, robot: str, request: dict, spool: str | None = None, timeout:
     return reply
 
 
-def list_items(fleet: Fleet, provider, robot: str, dataset: str) -> dict:
+def list_items(fleet: Fleet, provider: Reaches, robot: str, dataset: str) -> dict:
     _check(fleet, robot, dataset)
     return _ctl(provider, robot, {"op": "list", "dataset": dataset})
 
@@ -188,7 +192,7 @@ def check_quota(fleet: Fleet, dataset: str, robot: str, listed: dict, items: lis
                               f"services.knowledge.datasets.{dataset}.quota in the inventory")
 
 
-def add_items(fleet: Fleet, provider, robot: str, dataset: str, paths: list[Path]) -> list[dict]:
+def add_items(fleet: Fleet, provider: Reaches, robot: str, dataset: str, paths: list[Path]) -> list[dict]:
     """Add files to the dataset on robot's clone; its agent sends them to the partners at once."""
     _check(fleet, robot, dataset)
     items = read_items(paths)
@@ -199,13 +203,13 @@ def add_items(fleet: Fleet, provider, robot: str, dataset: str, paths: list[Path
         # Root-only, beside the datasets (no dataset name starts with a dot); the ctl client reads
         # and removes it. Not in /run: Docker's put_archive does not reach a container's tmpfs.
         spool = f"{ROOT}/.spool-{secrets.token_hex(8)}.b64"
-        provider.push_files(robot, [BundleFile("spool", base64.b64encode(data).decode(), 0o600, spool)], restart=[])
+        provider.transport.push_files(robot, [BundleFile("spool", base64.b64encode(data).decode(), 0o600, spool)], restart=[])
         reply = _ctl(provider, robot, {"op": "add", "dataset": dataset, "name": name}, spool)
         added.append({**reply["item"], "new": reply["new"]})
     return added
 
 
-def remove_items(fleet: Fleet, provider, robot: str, dataset: str, items: list[str]) -> list[dict]:
+def remove_items(fleet: Fleet, provider: Reaches, robot: str, dataset: str, items: list[str]) -> list[dict]:
     """Remove items (by name: every content of that name; or by sha256) everywhere: a tombstone
     goes to the partners."""
     _check(fleet, robot, dataset)
@@ -221,7 +225,7 @@ def remove_items(fleet: Fleet, provider, robot: str, dataset: str, items: list[s
     return out
 
 
-def sync(fleet: Fleet, provider, robot: str, dataset: str) -> dict:
+def sync(fleet: Fleet, provider: Reaches, robot: str, dataset: str) -> dict:
     """Reconcile now: robot's clone pulls its partners' indexes and fetches what it lacks."""
     _check(fleet, robot, dataset)
     return _ctl(provider, robot, {"op": "sync", "dataset": dataset})
@@ -349,7 +353,7 @@ def bag_suffixes(ros2: bool) -> tuple[str, ...]:
     return (".mcap", ".db3") if ros2 else (".bag",)
 
 
-def merge(fleet: Fleet, provider, robot: str, dataset: str, out: Path) -> dict:
+def merge(fleet: Fleet, provider: Reaches, robot: str, dataset: str, out: Path) -> dict:
     """The dataset's bags on robot's clone, fetched and merged into `out`: items named *.bag into a
     ROS 1 bag on a ROS 1 fleet, *.mcap and *.db3 into a rosbag2 directory on a ROS 2 one."""
     import hashlib
@@ -373,7 +377,7 @@ def merge(fleet: Fleet, provider, robot: str, dataset: str, out: Path) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         paths = []
         for k, item in enumerate(bags):
-            rc, text = provider.exec(robot, ["base64", "-w0", f"{ROOT}/{dataset}/objects/{item['sha256']}"], timeout=300)
+            rc, text = provider.transport.exec(robot, ["base64", "-w0", f"{ROOT}/{dataset}/objects/{item['sha256']}"], timeout=300)
             try:
                 data = base64.b64decode(text.strip().splitlines()[-1], validate=True) if rc == 0 else b""
             except (ValueError, IndexError):

@@ -18,10 +18,13 @@ import datetime as dt
 import json
 import time
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from .errors import CcrpError, InputError, cannot_write
 from .fleet import Fleet, clone_view
+
+if TYPE_CHECKING:
+    from .providers.base import Lifecycle, Reaches
 
 Say = Callable[[str], None]
 WANT = "/run/ccrp-power/want"  # on the clone: what ccrp asks (agent/power.py reads it), in memory
@@ -66,10 +69,10 @@ def parse_report(text: str, now: float | None = None) -> dict | None:
             "reported_at": dt.datetime.fromtimestamp(t, dt.timezone.utc).isoformat(timespec="seconds")}
 
 
-def read(provider, robot: str) -> dict | None:
+def read(provider: Reaches, robot: str) -> dict | None:
     """The device's last report on the robot's clone, or None (it never reported since the clone
     booted)."""
-    rc, out = provider.exec(robot, ["cat", REPORT], timeout=15)
+    rc, out = provider.transport.exec(robot, ["cat", REPORT], timeout=15)
     return parse_report(out.strip().splitlines()[-1]) if rc == 0 and out.strip() else None
 
 
@@ -89,7 +92,7 @@ def device_files(fleet: Fleet, robot: str, remote: str | None = None) -> tuple[l
     return bundles.power_bundle(view, fleet.pki.credentials(robot), endpoint), endpoint
 
 
-def push_passwd(fleet: Fleet, provider, robot: str, say: Say) -> None:
+def push_passwd(fleet: Fleet, provider: Lifecycle, robot: str, say: Say) -> None:
     """The running clone gets who may connect now: its passwd file with the power device's name and
     password hash, or without them once the device is revoked. OpenVPN's checks read the file at
     every handshake: nothing restarts, the robot's session stays. A clone not running gets it with
@@ -110,10 +113,10 @@ def push_passwd(fleet: Fleet, provider, robot: str, say: Say) -> None:
     # With the marker of what the clone holds, so that `fleet up` does not push (and restart)
     # again; unless another of its keys is not the current one: then `fleet up` pushes them all.
     others_current = files_current(provider, robot, [f for f in keys if f is not passwd])
-    provider.push_files(robot, [passwd, *([applied_marker(keys)] if others_current else [])], restart=[])
+    provider.transport.push_files(robot, [passwd, *([applied_marker(keys)] if others_current else [])], restart=[])
 
 
-def write_device_bundle(fleet: Fleet, provider, robot: str, out: Path, remote: str | None, say: Say) -> Path:
+def write_device_bundle(fleet: Fleet, provider: Lifecycle, robot: str, out: Path, remote: str | None, say: Say) -> Path:
     """`ccrp robot power bundle`: the device's bundle in `out`, its name admitted by the clone."""
     from .render import bundles
 
@@ -124,7 +127,7 @@ def write_device_bundle(fleet: Fleet, provider, robot: str, out: Path, remote: s
                                                  "remote": endpoint})
 
 
-def ensure_device(fleet: Fleet, provider, robot: str, say: Say) -> tuple[dict, str]:
+def ensure_device(fleet: Fleet, provider: Lifecycle, robot: str, say: Say) -> tuple[dict, str]:
     """The device's last report and what the device is ("device", or "simulated" for the stand-in
     device of a simulated robot, (re)started here with a bundle of its own when it has not
     reported or went silent: it is ccrp's own, unlike a real one, which only `robot power bundle`
@@ -154,7 +157,7 @@ def ensure_device(fleet: Fleet, provider, robot: str, say: Say) -> tuple[dict, s
     return report, "simulated" if simulated else "device"
 
 
-def end_dead_session(provider, robot: str, say: Say) -> None:
+def end_dead_session(provider: Reaches, robot: str, say: Say) -> None:
     """A power cut gives OpenVPN no time to say goodbye: the clone would list the robot's session
     until its keepalive drops it (up to 2 minutes with the server's `keepalive 10 60`), and status
     would show a robot that is off as connected. The device's report says the robot is off: its
@@ -167,7 +170,7 @@ def end_dead_session(provider, robot: str, say: Say) -> None:
         say(f"{robot}: its clone still lists the dead VPN session until its keepalive drops it ({exc.message})")
 
 
-def power(fleet: Fleet, robot: str, action: str, say: Say = lambda m: None, timeout: float = 30, provider=None) -> dict:
+def power(fleet: Fleet, robot: str, action: str, say: Say = lambda m: None, timeout: float = 30, provider: Lifecycle | None = None) -> dict:
     """Switch the robot's power on or off (or read it), and wait until the device reports it."""
     from .providers import get_provider
     from .retry import PollTimeout, poll
@@ -179,7 +182,7 @@ def power(fleet: Fleet, robot: str, action: str, say: Say = lambda m: None, time
     report, device = ensure_device(fleet, provider, robot, say)
     t0 = time.monotonic()
     if action != "status":
-        rc, out = provider.exec(robot, [*SET_STATE, WANT, action])
+        rc, out = provider.transport.exec(robot, [*SET_STATE, WANT, action])
         asked = out.split()[-1] if out.split() else ""
         if rc != 0 or not asked.isdigit():
             raise CcrpError(f"cannot ask the power device of {robot!r} for {action} on its clone: {out.strip()[-200:]}")

@@ -11,7 +11,7 @@ import time
 from urllib.parse import urlparse
 
 from .errors import CcrpError
-from .providers.base import Provider
+from .providers.base import Reaches
 from .resources import agent_source
 from .retry import PollTimeout, poll
 
@@ -21,17 +21,17 @@ def HEALTH_SCRIPT() -> str:  # noqa: N802 - read like the constant it stands for
     return agent_source("health")
 
 
-def health(provider: Provider, robot: str) -> dict:
-    rc, out = provider.exec(robot, ["python3", "-c", HEALTH_SCRIPT()], timeout=20)
+def health(provider: Reaches, robot: str) -> dict:
+    rc, out = provider.transport.exec(robot, ["python3", "-c", HEALTH_SCRIPT()], timeout=20)
     try:
         return json.loads(out.strip().splitlines()[-1])
     except (ValueError, IndexError):
         return {"vpn": {"up": False, "clients": []}, "master": {"reachable": False, "nodes": {}}, "error": out[-200:]}
 
 
-def remote_digests(provider: Provider, robot: str, files: list) -> dict[str, str]:
+def remote_digests(provider: Reaches, robot: str, files: list) -> dict[str, str]:
     """path -> sha256 of those of `files` that the clone holds (a missing one is left out)."""
-    _, out = provider.exec(robot, ["sha256sum", *(f.dest for f in files)], timeout=20)
+    _, out = provider.transport.exec(robot, ["sha256sum", *(f.dest for f in files)], timeout=20)
     return {line.split()[1]: line.split()[0] for line in out.splitlines() if len(line.split()) == 2}
 
 
@@ -39,7 +39,7 @@ def same(have: dict[str, str], files: list) -> bool:
     return all(have.get(f.dest) == hashlib.sha256(f.content.encode()).hexdigest() for f in files)
 
 
-def files_current(provider: Provider, robot: str, files: list) -> bool:
+def files_current(provider: Reaches, robot: str, files: list) -> bool:
     """True when the clone already holds exactly these files: re-running `fleet up` then leaves
     OpenVPN (and the robot's live session) and the relay alone."""
     return same(remote_digests(provider, robot, files), files)
@@ -53,7 +53,7 @@ def robot_link(h: dict, robot: str) -> tuple[dict | None, list[str]]:
     return client, nodes
 
 
-def wait_connected(provider, robot: str, timeout: float) -> dict:
+def wait_connected(provider: Reaches, robot: str, timeout: float) -> dict:
     """Until the robot's VPN session is up and at least one of its nodes is on its clone's master."""
     def linked() -> tuple[bool, tuple]:
         client, nodes = robot_link(health(provider, robot), robot)

@@ -12,9 +12,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from .errors import CcrpError
 from .providers.base import Quota
+
+if TYPE_CHECKING:
+    from .providers.base import Housekeeping, Lifecycle, Provider
 
 # Where each cloud's quotas are raised, when a quota names no place of its own.
 HOW_TO_RAISE = {"aws": "raise it in the Service Quotas console", "gcp": "request more in the console (IAM & Admin > Quotas)",
@@ -46,7 +50,7 @@ class Use:
         return f"{kind} quota {q.name} in {q.scope}: {q.free:g} free, this needs {self.need:g}"
 
 
-def new_clones(fleet, provider, robots: Sequence[str]) -> list[str]:
+def new_clones(fleet, provider: Lifecycle, robots: Sequence[str]) -> list[str]:
     """Those of `robots` whose clone `fleet up` would create: none in the cloud, not revoked (a
     revoked robot gets no clone, reconcile.plan)."""
     if not robots:
@@ -56,7 +60,7 @@ def new_clones(fleet, provider, robots: Sequence[str]) -> list[str]:
     return [r for r in robots if r not in actual and not (index and fleet.pki.revoked_since(r, index))]
 
 
-def uses(provider, creating: Sequence[str]) -> list[Use]:
+def uses(provider: Housekeeping, creating: Sequence[str]) -> list[Use]:
     """Every quota the provider reports, with what creating `creating` takes of it ([] where the
     backend has none: Docker). Raises CcrpError when the cloud does not tell."""
     return [Use(q, q.need(creating)) for q in provider.quotas(list(creating))]
@@ -85,7 +89,7 @@ def refusal(kind: str, found: list[Use], creating: Sequence[str]) -> QuotaError 
                            "Nothing was created")
 
 
-def check(provider, creating: Sequence[str], progress: Callable[[str], None]) -> list[Use]:
+def check(provider: Provider, creating: Sequence[str], progress: Callable[[str], None]) -> list[Use]:
     """Before any create: QuotaError when `creating` needs more of a quota than is free. A cloud
     that does not tell its quotas (no read permission) is said so and not held against."""
     if not creating:
@@ -101,6 +105,6 @@ def check(provider, creating: Sequence[str], progress: Callable[[str], None]) ->
     return found
 
 
-def check_growth(fleet, provider, robots: Sequence[str], progress: Callable[[str], None]) -> list[Use]:
+def check_growth(fleet, provider: Provider, robots: Sequence[str], progress: Callable[[str], None]) -> list[Use]:
     """check() for the clones `fleet up` would create among `robots`."""
     return check(provider, new_clones(fleet, provider, robots), progress)

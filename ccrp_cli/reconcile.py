@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 from .addressing import allocate
 from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
@@ -16,8 +17,11 @@ from .quotas import check_growth
 from .retry import PollTimeout, poll
 from .workloads import NO_SOFTWARE, check_snapshot, snapshot_software, stale_snapshot
 
+if TYPE_CHECKING:
+    from .providers.base import Lifecycle, Provider, Reaches
 
-def plan(fleet: Fleet, provider) -> list[dict]:
+
+def plan(fleet: Fleet, provider: Lifecycle) -> list[dict]:
     """Read-only: what `fleet up` would do for every robot."""
     state = fleet.store.load_state()
     actual = provider.query()
@@ -64,7 +68,7 @@ def _software_note(state, robot: str, stale: str | None, inventory_software: str
     return None
 
 
-def _fan_out(fn, robots: list[str], progress: Progress, provider) -> list[CloneResult]:
+def _fan_out(fn, robots: list[str], progress: Progress, provider: Lifecycle) -> list[CloneResult]:
     """fn(robot) for every robot on a pool bounded by the provider: its max_parallel says how many
     clones it can create at once (CPU-bound local containers vs API-latency-bound clouds)."""
     def run(robot: str) -> CloneResult:
@@ -84,7 +88,7 @@ def _fan_out(fn, robots: list[str], progress: Progress, provider) -> list[CloneR
         return list(pool.map(run, robots))
 
 
-def up(fleet: Fleet, provider, progress: Progress, only: list[str] | None = None,
+def up(fleet: Fleet, provider: Provider, progress: Progress, only: list[str] | None = None,
        quotas_checked: bool = False) -> list[CloneResult]:
     """Create or reuse every member's clone; delete clones of robots no longer in the fleet.
     Refused (QuotaError) before anything is created when the clones it would create need more
@@ -114,7 +118,7 @@ PEER_REPORTS = ("/run/ccrp-relay/status.json", "/run/ccrp-knowledge/status.json"
 DRAIN_TIMEOUT = 10.0
 
 
-def retire(fleet: Fleet, provider, writer: StateWriter, robots: list[str], progress: Progress,
+def retire(fleet: Fleet, provider: Lifecycle, writer: StateWriter, robots: list[str], progress: Progress,
            forget: bool) -> list[CloneResult]:
     """Delete the robots' clones once their partners have let go of them. A partner's relay and
     knowledge agents open a new Zenoh session when their peer list changes; closing the old one
@@ -131,12 +135,12 @@ def retire(fleet: Fleet, provider, writer: StateWriter, robots: list[str], progr
     return _fan_out(lambda r: delete_clone(fleet, provider, writer, r, forget), robots, progress, provider)
 
 
-def drain(provider, partners: list[str], leaving: set[str], progress: Progress) -> None:
+def drain(provider: Reaches, partners: list[str], leaving: set[str], progress: Progress) -> None:
     """Wait until no agent report on `partners` names a `leaving` peer (a report missing, or over
     10 s old, is an agent that is not running: nothing to wait for)."""
     def holding(robot: str) -> bool:
         for path in PEER_REPORTS:
-            rc, out = provider.exec(robot, ["cat", path], timeout=10)
+            rc, out = provider.transport.exec(robot, ["cat", path], timeout=10)
             try:
                 report = json.loads(out) if rc == 0 else {}
             except ValueError:
@@ -153,7 +157,7 @@ def drain(provider, partners: list[str], leaving: set[str], progress: Progress) 
         progress(f"{', '.join(exc.last)} still linked to {', '.join(sorted(leaving))} after {exc.seconds:.0f} s; deleting anyway")
 
 
-def reshare(fleet: Fleet, provider, progress: Progress, known: dict[str, str] | None = None) -> list[str]:
+def reshare(fleet: Fleet, provider: Lifecycle, progress: Progress, known: dict[str, str] | None = None) -> list[str]:
     """Push the current relay config to every clone that is up (the agents apply it without a
     restart). `known`: robot -> the relay.json this run already found on its clone; those that
     still match are not asked again. Returns the robots whose config changed."""
@@ -195,7 +199,7 @@ def check_scale(fleet: Fleet, state, size: int) -> tuple[list[str], int]:
     return template, want
 
 
-def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneResult]:
+def scale(fleet: Fleet, provider: Provider, size: int, progress: Progress) -> list[CloneResult]:
     """Grow or shrink the fleet to `size` clones with template robots; inventory robots stay."""
     inv = fleet.inventory
     state = fleet.store.load_state()
@@ -225,7 +229,7 @@ def scale(fleet: Fleet, provider, size: int, progress: Progress) -> list[CloneRe
     return results + up(fleet, provider, progress, quotas_checked=bool(new))
 
 
-def down(fleet: Fleet, provider, progress: Progress) -> list[str]:
+def down(fleet: Fleet, provider: Provider, progress: Progress) -> list[str]:
     """Remove everything ccrp created for the fleet, then verify nothing carrying its labels is left."""
     removed = provider.teardown()
     left = provider.leftovers()

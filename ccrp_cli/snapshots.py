@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from .errors import CcrpError
 from .fleet import Fleet
 from .providers.base import SnapshotRecord
 from .workloads import NO_SOFTWARE, SnapshotSoftware
+
+if TYPE_CHECKING:
+    from .providers.base import Images, Lifecycle, Provider
 
 Progress = Callable[[str], None]
 
@@ -21,7 +24,7 @@ def image_repo(fleet: Fleet) -> str:
     return f"ccrp/{fleet.name}-clone"
 
 
-def build(fleet: Fleet, provider, progress: Progress, bare: bool = False) -> SnapshotRecord:
+def build(fleet: Fleet, provider: Provider, progress: Progress, bare: bool = False) -> SnapshotRecord:
     """Build the golden clone image on this host (Ability.LOCAL_BUILD: the provider's
     build_snapshot) and record it for new clones. A `bare` snapshot has only systemd and
     cloud-init: its clones install the recipe's packages at boot, as a clone started from a stock
@@ -87,7 +90,7 @@ def _region(inv) -> str:
     return getattr(p, "region", None) or getattr(p, "cloud", "")
 
 
-def bake(fleet: Fleet, provider, progress: Progress, base_image: str | None = None, timeout: float = 1800,
+def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str | None = None, timeout: float = 1800,
          poll: float = 10) -> SnapshotRecord:
     """Boot a builder instance from a stock Debian 12 cloud image with user-data that installs the
     recipe, wait until its console proves the install finished, capture it, and record the snapshot
@@ -184,7 +187,7 @@ def workspace_tar(software: SnapshotSoftware) -> bytes:
     return buf.getvalue()
 
 
-def install_software(provider, builder, software: SnapshotSoftware, progress: Progress, timeout: float) -> None:
+def install_software(provider: Provider, builder, software: SnapshotSoftware, progress: Progress, timeout: float) -> None:
     """The fleet's software on the builder, over SSH after cloud-init installed the recipe (user-data
     has a size limit, and the workspace is the user's whole source): its workspace pushed as a
     root-only file, then templates/image/software-bake.sh installs the packages, builds it into
@@ -200,13 +203,13 @@ def install_software(provider, builder, software: SnapshotSoftware, progress: Pr
     progress(f"building software {software.digest} on the builder")
     provider.connect(BUILDER, builder)
     if software.build_type is not None:
-        provider.exec(BUILDER, ["mkdir", "-p", "-m", "0700", BAKE_DIR], timeout=30)
+        provider.transport.exec(BUILDER, ["mkdir", "-p", "-m", "0700", BAKE_DIR], timeout=30)
         tar = base64.b64encode(workspace_tar(software)).decode()
-        provider.push_files(BUILDER, [BundleFile("workspace.tar.b64", tar, 0o600, f"{BAKE_DIR}/workspace.tar.b64")],
-                            restart=[])
+        provider.transport.push_files(BUILDER, [BundleFile("workspace.tar.b64", tar, 0o600, f"{BAKE_DIR}/workspace.tar.b64")],
+                                      restart=[])
     env = [f"{k}={v}" for k, v in software_env(software).items()]
-    rc, out = provider.exec(BUILDER, ["env", *env, "sh", "-c", static("image/software-bake.sh"), "ccrp-software"],
-                            timeout=timeout)
+    rc, out = provider.transport.exec(BUILDER, ["env", *env, "sh", "-c", static("image/software-bake.sh"), "ccrp-software"],
+                                      timeout=timeout)
     if rc != 0 or "ccrp-software built" not in out:
         lines = [line.strip() for line in out.strip().splitlines() if line.strip()]
         steps = [line[3:] for line in lines if line.startswith("== ")]
@@ -220,7 +223,7 @@ def install_software(provider, builder, software: SnapshotSoftware, progress: Pr
     progress(f"software {software.digest} built on the builder after {time.monotonic() - t0:.0f} s")
 
 
-def _wait_baked(provider, token: str, proofs: list[str], timeout: float, poll: float, progress: Progress) -> None:
+def _wait_baked(provider: Provider, token: str, proofs: list[str], timeout: float, poll: float, progress: Progress) -> None:
     """Until the builder's console shows cloud-init's final message; then every install proof must be there."""
     import re
     import time
@@ -250,7 +253,7 @@ def _wait_baked(provider, token: str, proofs: list[str], timeout: float, poll: f
     progress(f"builder finished installing after {time.monotonic() - t0:.0f} s")
 
 
-def _terminate_builder(provider, progress: Progress, failing: bool) -> None:
+def _terminate_builder(provider: Lifecycle, progress: Progress, failing: bool) -> None:
     try:
         provider.terminate(BUILDER)
         progress("builder terminated")
@@ -296,7 +299,7 @@ def surplus(state, snapshots: list[SnapshotRecord], keep: int) -> list[SnapshotR
     return [s for i, s in enumerate(newest) if i >= keep and not users(s, used)]
 
 
-def retain(fleet: Fleet, provider, progress: Progress) -> list[str]:
+def retain(fleet: Fleet, provider: Images, progress: Progress) -> list[str]:
     """Delete the snapshots retention does not keep (after a new one was recorded)."""
     keep = fleet.inventory.snapshots.keep
     state = fleet.store.load_state()
@@ -312,14 +315,14 @@ def retain(fleet: Fleet, provider, progress: Progress) -> list[str]:
     return removed
 
 
-def create(fleet: Fleet, provider, robot: str, use: bool) -> SnapshotRecord:
+def create(fleet: Fleet, provider: Images, robot: str, use: bool) -> SnapshotRecord:
     record = provider.create_snapshot(robot, f"{image_repo(fleet)}:{robot}-{_stamp()}")
     if use:
         _use(fleet, record)
     return record
 
 
-def delete(fleet: Fleet, provider, snapshot: str, force: bool) -> None:
+def delete(fleet: Fleet, provider: Images, snapshot: str, force: bool) -> None:
     state = fleet.store.load_state()
     current = state.snapshot or {}
     if snapshot in (current.get("image"), current.get("id")) and not force:

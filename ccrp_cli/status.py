@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 from .api_manager import api_manager_row
 from .knowledge import knowledge_row
@@ -13,6 +14,9 @@ from .power import parse_report
 from .models.status import StatusRow
 from .probe import health, robot_link
 from .providers.base import CloneState
+
+if TYPE_CHECKING:
+    from .providers.base import Provider
 
 
 def relay_link(h: dict, expected: list[str]) -> tuple[bool, dict[str, bool]]:
@@ -26,7 +30,7 @@ def relay_link(h: dict, expected: list[str]) -> tuple[bool, dict[str, bool]]:
     return False, dict.fromkeys(sorted(expected), False)
 
 
-def fleet_status(fleet: Fleet, provider) -> list[StatusRow]:
+def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
     state = fleet.store.load_state()
     actual = provider.query()
     plan = fleet.plan(state)

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from .errors import CcrpError
 
 from .fleet import Fleet
 from .pki.store import CRL_WARN_DAYS
+
+if TYPE_CHECKING:
+    from .providers.base import Lifecycle, Provider
 
 
 def init(fleet: Fleet) -> dict[str, Any]:
@@ -19,7 +22,7 @@ def init(fleet: Fleet) -> dict[str, Any]:
     return {"fleet": fleet.name, "created": created, "ca": str(pki.ca_path), "crl": str(pki.crl_path)}
 
 
-def issue(fleet: Fleet, robot: str, renew: bool = False, provider=None,
+def issue(fleet: Fleet, robot: str, renew: bool = False, provider: Provider | None = None,
           progress: Callable[[str], None] = lambda m: None) -> list[dict[str, Any]]:
     """Issue the robot's certificates on purpose: this also lets a revoked robot back in.
 
@@ -42,7 +45,7 @@ CERT_KINDS = {"client": ("client", "power"), "power": ("power",), "server": ("se
               "all": ("client", "power", "server", "relay")}
 
 
-def revoke(fleet: Fleet, robot: str, cert: str = "client", provider=None,
+def revoke(fleet: Fleet, robot: str, cert: str = "client", provider: Provider | None = None,
            progress: Callable[[str], None] = lambda m: None) -> list[dict[str, Any]]:
     """Revoke the robot's certificates (its client certificate by default), then, with a provider,
     at once: end its live session on its clone and give every running clone the new CRL."""
@@ -71,13 +74,13 @@ def revoke(fleet: Fleet, robot: str, cert: str = "client", provider=None,
     return [_record(fleet, rec) for rec in revoked]
 
 
-def _running(provider) -> list[str]:
+def _running(provider: Lifecycle) -> list[str]:
     from .providers.base import CloneState
 
     return sorted(name for name, rec in provider.query().items() if rec.state is CloneState.RUNNING)
 
 
-def _replace_on_clone(fleet: Fleet, provider, robot: str, progress: Callable[[str], None]) -> None:
+def _replace_on_clone(fleet: Fleet, provider: Provider, robot: str, progress: Callable[[str], None]) -> None:
     """A running clone of `robot` gets its new certificates and secrets at once (fleet up for that
     robot: OpenVPN and the relay restart, partners get the new relay CN)."""
     from .reconcile import up
@@ -90,13 +93,13 @@ def _replace_on_clone(fleet: Fleet, provider, robot: str, progress: Callable[[st
                         hint="run `ccrp fleet up -i INVENTORY` to push them again")
 
 
-def _renew_on_clones(fleet: Fleet, provider, robot: str, progress: Callable[[str], None]) -> None:
+def _renew_on_clones(fleet: Fleet, provider: Provider, robot: str, progress: Callable[[str], None]) -> None:
     _replace_on_clone(fleet, provider, robot, progress)
     _push_crl(fleet, provider, robot, kill=[], progress=progress)
     progress(f"install the new robot bundle on {robot}: ccrp robot bundle -i INVENTORY {robot}")
 
 
-def _push_crl(fleet: Fleet, provider, robot: str, kill: list[str], progress: Callable[[str], None]) -> None:
+def _push_crl(fleet: Fleet, provider: Lifecycle, robot: str, kill: list[str], progress: Callable[[str], None]) -> None:
     """The new CRL to every running clone, whatever its phase (a failed `fleet up` leaves clones
     that serve), in parallel. The robot's own clone comes first and ends the sessions of the CNs
     in `kill` (the robot, its power device) right after taking the CRL: a reconnection then meets
@@ -112,7 +115,7 @@ def _push_crl(fleet: Fleet, provider, robot: str, kill: list[str], progress: Cal
 
     def one(name: str) -> str | None:
         try:
-            provider.push_files(name, [crl], restart=[])  # OpenVPN re-reads crl-verify files when they change
+            provider.transport.push_files(name, [crl], restart=[])  # OpenVPN re-reads crl-verify files when they change
             for cn in kill if name == robot else ():
                 kill_session(provider, robot, cn)
                 progress(f"ended the live VPN session of {cn!r}")

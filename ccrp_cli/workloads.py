@@ -14,12 +14,16 @@ import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import CcrpError, InputError, shown
 from .models.inventory import Inventory, Robot
 from .models.software import RunNode, Software
 from .render.files import BundleFile
 from .templates import static
+
+if TYPE_CHECKING:
+    from .providers.base import Reaches
 
 UNIT_DIR = "/etc/systemd/system"
 UNIT_PREFIX = "ccrp-run-"
@@ -292,14 +296,14 @@ def absent_index() -> BundleFile:
     return BundleFile("workloads.json", "", 0o644, INDEX)
 
 
-def apply_nodes(provider, robot: str, files: list[BundleFile], have: dict[str, str]) -> list[str]:
+def apply_nodes(provider: Reaches, robot: str, files: list[BundleFile], have: dict[str, str]) -> list[str]:
     """Push the units that changed and (re)start them; stop and remove the nodes no longer
     named. Returns the nodes restarted or started anew."""
     from .probe import same
 
     if not files:
         if INDEX in have:  # it ran nodes before: none now
-            rc, out = provider.exec(robot, ["sh", "-c", APPLY_SH + f'rm -f "{INDEX}"\n', "ccrp-nodes", ""], timeout=120)
+            rc, out = provider.transport.exec(robot, ["sh", "-c", APPLY_SH + f'rm -f "{INDEX}"\n', "ccrp-nodes", ""], timeout=120)
             if rc != 0:
                 raise CcrpError(f"cannot remove the nodes of robot {robot!r}'s clone: {out.strip()[-300:]}")
         return []
@@ -308,8 +312,8 @@ def apply_nodes(provider, robot: str, files: list[BundleFile], have: dict[str, s
         return []
     index = json.loads(files[-1].content)["nodes"]
     restart = [f.name.removeprefix(UNIT_PREFIX).removesuffix(".service") for f in changed if f.dest != INDEX]
-    provider.push_files(robot, changed, restart=[])
-    rc, out = provider.exec(robot, ["sh", "-c", APPLY_SH, "ccrp-nodes", " ".join(index), *restart], timeout=120)
+    provider.transport.push_files(robot, changed, restart=[])
+    rc, out = provider.transport.exec(robot, ["sh", "-c", APPLY_SH, "ccrp-nodes", " ".join(index), *restart], timeout=120)
     if rc != 0:
         raise CcrpError(f"cannot start the nodes of robot {robot!r}'s clone: {out.strip()[-300:]}")
     return restart
@@ -337,7 +341,7 @@ def log_units(inv: Inventory, robot: Robot, name: str | None) -> list[str]:
                      hint=f"nodes: {', '.join(nodes) or 'none'}; ccrp units: {', '.join(CCRP_UNITS)}")
 
 
-def read_journal(provider, robot: str, units: list[str], lines: int, since_s: int | None = None,
+def read_journal(provider: Reaches, robot: str, units: list[str], lines: int, since_s: int | None = None,
                  cursor: str | None = None) -> tuple[list[dict], str | None]:
     """Journal entries of `units` on robot's clone (the last `lines`, or those after `cursor`),
     each {time, unit, message}, and the cursor to read on from. Through the provider's exec, so
@@ -351,7 +355,7 @@ def read_journal(provider, robot: str, units: list[str], lines: int, since_s: in
         argv += ["--lines", str(lines)]
         if since_s:
             argv += ["--since", f"-{since_s}s"]
-    rc, out = provider.exec(robot, argv, timeout=30)
+    rc, out = provider.transport.exec(robot, argv, timeout=30)
     if rc != 0 and not out.lstrip().startswith("{"):
         raise CcrpError(f"cannot read the journal of robot {robot!r}'s clone: {out.strip()[-200:]}")
     entries = []

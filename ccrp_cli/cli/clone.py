@@ -96,6 +96,6 @@ def exec_(
     fleet.robot(fleet.store.load_state(), robot)  # a robot the fleet does not have is bad input
     from ..providers import get_provider
 
-    rc, out = get_provider(fleet.inventory).exec(robot, command, timeout=timeout)
+    rc, out = get_provider(fleet.inventory).transport.exec(robot, command, timeout=timeout)
     typer.echo(out, nl=False)
     raise typer.Exit(rc)

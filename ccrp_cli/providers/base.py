@@ -212,7 +212,26 @@ class ProviderInfo:
         )
 
 
-class Provider(Protocol):
+class Transport(Protocol):
+    """How the core reaches into a clone: Docker execs in the container, the clouds and libvirt log in
+    over SSH with pinned host keys (cloud.py SshClones). Commands run as root."""
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]: ...
+    # Each file (render/files.py BundleFile) to its `dest` with its mode and group, then the units restarted.
+    def push_files(self, robot: str, files: Sequence, restart: Sequence[str] = ()) -> None: ...
+
+
+class Reaches(Protocol):
+    """What code that only runs commands on clones, or pushes files to them, takes of a provider."""
+
+    @property
+    def transport(self) -> Transport: ...
+
+
+class Lifecycle(Reaches, Protocol):
+    """A clone's life: made (or started, or reused), waited for, listed, stopped, deleted; and the
+    fleet's shared resources made and removed."""
+
     kind: str
     abilities: frozenset[Ability]
     max_parallel: int  # clones `fleet up` creates at once
@@ -226,12 +245,24 @@ class Provider(Protocol):
     # Ask the robot's running clone to stop (its disk stays); False when none was running. The
     # caller waits for query() to say STOPPED.
     def stop_instance(self, robot: str) -> bool: ...
-    def push_files(self, robot: str, files: list, restart: list[str]) -> None: ...
-    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]: ...
+    def teardown(self) -> list[str]: ...
+    def close(self) -> None: ...
+
+
+class Images(Protocol):
+    """Snapshots (golden images and captured clones) and the images clones boot from."""
+
     def create_snapshot(self, robot: str, name: str) -> SnapshotRecord: ...
     def list_snapshots(self) -> list[SnapshotRecord]: ...
     def delete_snapshot(self, snapshot_id: str) -> None: ...
-    def teardown(self) -> list[str]: ...
+    def has_image(self, image: str) -> bool: ...
+    # The image a name stands for where a cloud names images indirectly (AWS: an SSM parameter).
+    def resolve_image(self, image: str) -> str: ...
+
+
+class Housekeeping(Protocol):
+    """What gc, doctor, status and the quota check ask a backend beside the lifecycle."""
+
     # Why a stopped clone stopped, if its autostop agent stopped it: the agent's line, else None.
     def stop_note(self, robot: str) -> str | None: ...
     # Every resource carrying this fleet's labels, and deleting one of them (gc of leaks).
@@ -239,16 +270,16 @@ class Provider(Protocol):
     def delete_owned(self, resource: OwnedResource) -> None: ...
     # What `fleet down` should have removed and did not ("kind name" each).
     def leftovers(self) -> list[str]: ...
-    def has_image(self, image: str) -> bool: ...
-    # The image a name stands for where a cloud names images indirectly (AWS: an SSM parameter).
-    def resolve_image(self, image: str) -> str: ...
     # Public keys for the clone's login user; None where the transport needs no login (Docker API).
     def login_keys(self) -> list[str] | None: ...
     def check_credentials(self) -> str: ...
     # The quotas new clones draw on, with what creating the clones of `robots` takes of each;
     # [] where the backend has no quota to check (Docker). ccrp_cli/quotas.py decides.
     def quotas(self, robots: Sequence[str] = ()) -> list[Quota]: ...
-    def close(self) -> None: ...
+
+
+class Provider(Lifecycle, Images, Housekeeping, Protocol):
+    """Every backend implements all three; a function of the core takes the narrowest it uses."""
 
 
 class LocalBuild(Protocol):
@@ -257,3 +288,13 @@ class LocalBuild(Protocol):
 
     def build_snapshot(self, repo: str, distro: str, plat, software, digest: str, bare: bool,
                        progress) -> SnapshotRecord: ...
+
+
+class Bake(Protocol):
+    """What a provider with Ability.BAKE adds: `snapshot bake` boots a builder instance (run_instance
+    with role "builder", which query() does not list), reads its console and reaches it by name."""
+
+    def console_output(self, robot: str) -> str: ...
+    # Open the transport to the builder from the record run_instance returned (its host keys
+    # pinned from its console, as a clone's); transport.exec and push_files then reach it.
+    def connect(self, robot: str, rec: CloneRecord, timeout: float = 300) -> None: ...

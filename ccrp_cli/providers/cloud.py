@@ -2,7 +2,7 @@
 from the console output, secrets pushed over SSH, and calls wrapped by retry.call.
 
 A cloud provider subclasses CloudProvider and implements the primitives marked `cloud:`;
-push_files / exec / wait_ready then work the same way on every cloud.
+its transport (SshClones: exec, push_files) and wait_ready then work the same way on every cloud.
 """
 
 from __future__ import annotations
@@ -39,9 +39,7 @@ class CloudProvider:
         # workdir = the fleet's store root (.ccrp/<fleet>): operator SSH key, pinned host keys.
         self.inv, self.fleet, self.workdir = inv, inv.fleet, Path(workdir)
         self.trust_on_first_use = os.environ.get(TOFU_ENV, "") == "1"
-        self._ssh: dict[str, object] = {}  # robot -> live SshTransport, reused by exec/push_files
-        self._ssh_lock = threading.Lock()
-        self._robot_locks: dict[str, threading.Lock] = {}
+        self.transport = SshClones(self)
 
     # -- operator SSH key (ed25519, 0600 in the fleet store; only the public half leaves) ----------
     @property
@@ -133,35 +131,13 @@ class CloudProvider:
             hint=f"check the instance's console log; set {TOFU_ENV}=1 to trust its SSH key on first use instead",
         )
 
-    def _session(self, robot: str, rec: CloneRecord | None = None, pins: frozenset[str] | None = None):
-        """The robot's SSH connection, opened on first use and reused while it stays up. Keys not
-        in known_hosts yet are pinned from the console output."""
-        from ..transport.ssh import KnownHosts, SshTransport, fingerprints_from_console
-
-        with self._ssh_lock:
-            lock = self._robot_locks.setdefault(robot, threading.Lock())
-        with lock:
-            ssh = self._ssh.get(robot)
-            if ssh is not None and ssh.active and (rec is None or (ssh.host, ssh.alias) == (rec.public_ip, rec.provider_id)):
-                return ssh
-            if ssh is not None:
-                ssh.close()
-            rec = rec or self._clone(robot)
-            known = KnownHosts(self.known_hosts_path)
-            if pins is None:
-                pins = frozenset() if known.keys(rec.provider_id) else fingerprints_from_console(self.console_output(robot) or "")
-            self.operator_public_key()  # creates the key on first use
-            ssh = SshTransport(rec.public_ip, SSH_USER, self.ssh_key_path, pins, known_hosts=known,
-                               host_alias=rec.provider_id, trust_on_first_use=self.trust_on_first_use).connect()
-            self._ssh[robot] = ssh
-            return ssh
-
     def close(self) -> None:
-        """Close every SSH connection this provider opened."""
-        with self._ssh_lock:
-            sessions, self._ssh = list(self._ssh.values()), {}
-        for ssh in sessions:
-            ssh.close()
+        self.transport.close()
+
+    def timeout_scale(self, robot: str) -> int:
+        """How many times longer than on a cloud a command on this robot's clone may take (libvirt
+        without KVM emulates the CPU)."""
+        return 1
 
     def wait_ready(self, robot: str, timeout: float = 600) -> None:
         """Until cloud-init has finished on the instance: pin its host keys from the console (unless
@@ -171,10 +147,10 @@ class CloudProvider:
         deadline = time.monotonic() + timeout
         rec = self.query().get(robot)
         if rec is not None and rec.public_ip and KnownHosts(self.known_hosts_path).keys(rec.provider_id):
-            ssh = self._session(robot, rec)
+            ssh = self.transport.session(robot, rec)
         else:
             rec, pins = self._wait_for_host_keys(robot, deadline)
-            ssh = self._session(robot, rec, pins)
+            ssh = self.transport.session(robot, rec, pins)
         left = max(1, math.ceil(deadline - time.monotonic()))
         rc, out = ssh.exec([*ssh.sudo, "timeout", str(left), "cloud-init", "status", "--wait", "--long"], timeout=left + 30)
         check_cloud_init(robot, rc, out, timeout)
@@ -182,7 +158,7 @@ class CloudProvider:
     def connect(self, robot: str, rec: CloneRecord, timeout: float = 300) -> None:
         """Open the SSH session to an instance query() does not list as a clone (the builder of
         `snapshot bake`), from the record run_instance returned: its host keys pinned from its
-        console, as a clone's. exec and push_files then reach it by `robot` while it stays up."""
+        console, as a clone's. The transport then reaches it by `robot` while it stays up."""
         from ..retry import PollTimeout, poll
         from ..transport.ssh import fingerprints_from_console
 
@@ -200,19 +176,70 @@ class CloudProvider:
                 raise CcrpError(f"{self.kind} instance {rec.provider_id}: cloud-init printed no SSH host keys on its "
                                 "console in time", hint=f"set {TOFU_ENV}=1 to trust its SSH key on first use") from None
             pins = frozenset()
-        self._session(robot, rec, pins)
+        self.transport.session(robot, rec, pins)
+
+
+class SshClones:
+    """The clouds' transport (base.Transport): one SSH session per robot (transport/ssh.py), opened
+    on first use with the host keys pinned from the instance's console, reused while it stays up."""
+
+    def __init__(self, provider: CloudProvider) -> None:
+        # The provider finds the instance (query), its console (the keys to pin) and the operator key.
+        self.provider = provider
+        self._ssh: dict[str, object] = {}  # robot -> live SshTransport
+        self._lock = threading.Lock()
+        self._robot_locks: dict[str, threading.Lock] = {}
+
+    def session(self, robot: str, rec: CloneRecord | None = None, pins: frozenset[str] | None = None):
+        """The robot's SSH connection, opened on first use and reused while it stays up. Keys not
+        in known_hosts yet are pinned from the console output."""
+        from ..transport.ssh import KnownHosts, SshTransport, fingerprints_from_console
+
+        p = self.provider
+        with self._lock:
+            lock = self._robot_locks.setdefault(robot, threading.Lock())
+        with lock:
+            ssh = self._ssh.get(robot)
+            if ssh is not None and ssh.active and (rec is None or (ssh.host, ssh.alias) == (rec.public_ip, rec.provider_id)):
+                return ssh
+            if ssh is not None:
+                ssh.close()
+            rec = rec or p._clone(robot)
+            known = KnownHosts(p.known_hosts_path)
+            if pins is None:
+                pins = frozenset() if known.keys(rec.provider_id) else fingerprints_from_console(p.console_output(robot) or "")
+            p.operator_public_key()  # creates the key on first use
+            ssh = SshTransport(rec.public_ip, SSH_USER, p.ssh_key_path, pins, known_hosts=known,
+                               host_alias=rec.provider_id, trust_on_first_use=p.trust_on_first_use).connect()
+            self._ssh[robot] = ssh
+            return ssh
+
+    def forget(self, robot: str) -> None:
+        """Close the robot's session (its clone is going down)."""
+        with self._lock:
+            ssh = self._ssh.pop(robot, None)
+        if ssh is not None:
+            ssh.close()
+
+    def close(self) -> None:
+        """Close every SSH connection opened."""
+        with self._lock:
+            sessions, self._ssh = list(self._ssh.values()), {}
+        for ssh in sessions:
+            ssh.close()
 
     def _run(self, robot: str, fn):
         """fn(session); once more on a fresh connection if the cached one broke before starting."""
         from ..transport.ssh import ChannelOpenError
 
         try:
-            return fn(self._session(robot))
+            return fn(self.session(robot))
         except ChannelOpenError:
-            return fn(self._session(robot))
+            return fn(self.session(robot))
 
     def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
         """argv as root on the clone (like a command in the Docker clone), ended by `timeout`."""
+        timeout *= self.provider.timeout_scale(robot)
         limit = str(max(1, math.ceil(timeout)))
         return self._run(robot, lambda ssh: ssh.exec([*ssh.sudo, "timeout", limit, *argv], timeout=timeout + 30))
 

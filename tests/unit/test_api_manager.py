@@ -99,6 +99,7 @@ class Recorder:
     def __init__(self, rc=0):
         self.pushed, self.execs, self.rc = [], [], rc
 
+    transport = property(lambda self: self)  # a fake clone is its own transport
     def push_files(self, robot, files, restart):
         self.pushed.append(([f.dest for f in files], restart))
 

@@ -151,6 +151,7 @@ class Clones:
         return "2026-11-23T05:00:00+00:00 robot nao1 not connected for 31 s (idle 30 s): stopping this clone" \
             if robot == "nao1" else None
 
+    transport = property(lambda self: self)  # a fake clone is its own transport
     def exec(self, robot, argv, timeout=60):
         if robot == "nao2":
             raise CcrpError("SSH to ccrp@192.0.2.5 failed: Unable to connect to port 22")

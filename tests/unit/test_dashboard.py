@@ -416,6 +416,7 @@ class CameraClones:
     def query(self):
         return {"nao1": object(), "nao2": object()}
 
+    transport = property(lambda self: self)  # a fake clone is its own transport
     def push_files(self, robot, files, restart=()):
         self.pushed += [f.dest for f in files]
 

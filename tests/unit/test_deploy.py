@@ -72,6 +72,7 @@ class Clones:
         return {r: CloneRecord(robot=r, provider_id=f"id-{r}", state=CloneState.RUNNING, status="running")
                 for r in self.robots}
 
+    transport = property(lambda self: self)  # a fake clone is its own transport
     def push_files(self, robot: str, files: list, restart=()) -> None:
         for f in files:
             self.pushes.append((robot, f.dest, f.mode))

@@ -830,6 +830,7 @@ def test_merge_on_a_jazzy_fleet_takes_the_rosbag2_items_and_writes_a_rosbag2(tmp
     items = [{"name": p.name, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()} for p in (bag, ros1)]
 
     class Provider:
+        transport = property(lambda self: self)  # a fake clone is its own transport
         def exec(self, robot, argv, timeout=None):
             return 0, base64.b64encode(objects[argv[-1].rsplit("/", 1)[1]]).decode()
 

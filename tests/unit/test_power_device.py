@@ -238,6 +238,7 @@ def test_the_clone_learns_the_device_without_a_restart_and_without_hiding_stale_
         def query(self):
             return {"nao1": SimpleRecord()}
 
+        transport = property(lambda self: self)  # a fake clone is its own transport
         def exec(self, robot, argv, timeout=60):
             assert argv[0] == "sha256sum"
             return 0, "".join(f"{self.held[p]}  {p}\n" for p in argv[1:] if p in self.held)
@@ -271,6 +272,7 @@ def test_a_real_robots_power_goes_through_its_clone_without_docker_here(lab, mon
     class Clone:  # the clone's power agent, and the device answering the wish at its next report
         report = {"relay": "on", "robot": "running"}
 
+        transport = property(lambda self: self)  # a fake clone is its own transport
         def exec(self, robot, argv, timeout=60):
             if argv == ["cat", power.REPORT]:
                 return 0, json.dumps({**self.report, "t": time.time()}) + "\n"

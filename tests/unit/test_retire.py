@@ -19,6 +19,7 @@ class Partners:
     def __init__(self, peers: dict[str, list[str]], letgo: int = 1, stale: bool = False) -> None:
         self.peers, self.letgo, self.stale, self.calls, self.log = peers, letgo, stale, {}, []
 
+    transport = property(lambda self: self)  # a fake clone is its own transport
     def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
         if robot == "gone":
             raise CcrpError("gone: not answering")

@@ -341,6 +341,7 @@ class _Ends:
     def push(self, robot, files):
         self.pushed.append(("robot", [f.dest for f in files]))
 
+    transport = property(lambda self: self)  # a fake clone is its own transport
     def push_files(self, robot, files, restart=()):
         self.pushed.append(("clone", [f.dest for f in files]))
 

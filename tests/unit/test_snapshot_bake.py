@@ -93,6 +93,7 @@ class FakeCloud:
     pushed: dict[str, object]
     build_result = (0, "== apt\n== catkin_make install\n== login removed\nccrp-software built\n")
 
+    transport = property(lambda self: self)  # a fake clone is its own transport
     def push_files(self, robot: str, files: list, restart: list[str] = ()) -> None:
         self._maybe_fail("push_files")
         self.pushed = {f.dest: f for f in files}

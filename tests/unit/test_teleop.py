@@ -20,6 +20,7 @@ class Clone:
     def query(self):
         return {"nao1": object()}
 
+    transport = property(lambda self: self)  # a fake clone is its own transport
     def push_files(self, robot, files, restart=()):
         self.pushed.append((robot, [f.dest for f in files]))
 

@@ -222,6 +222,7 @@ def test_node_files_restart_only_what_changed():
         def __init__(self):
             self.pushed, self.argv = [], None
 
+        transport = property(lambda self: self)  # a fake clone is its own transport
         def push_files(self, robot, files, restart):
             self.pushed += [f.dest for f in files]
 
@@ -311,6 +312,7 @@ def test_logs_reads_the_journal_through_the_provider():
     class Clone:
         argv = None
 
+        transport = property(lambda self: self)  # a fake clone is its own transport
         def exec(self, robot, argv, timeout=60):
             self.argv = argv
             lines = [{"__CURSOR": "c1", "__REALTIME_TIMESTAMP": "1700000000000000", "_SYSTEMD_UNIT": "ccrp-run-mapper.service",

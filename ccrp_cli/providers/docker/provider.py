@@ -55,6 +55,12 @@ class DockerProvider(DockerHost):
         # the snapshot images, so `ccrp gc` can tell whose they are.
         self.state_dir = workdir or FleetStore(inv.fleet).root
 
+    @property
+    def transport(self) -> DockerProvider:
+        # The engine reaches into its containers itself (DockerHost.exec and push_files: exec_run
+        # and archive uploads), with no login or session to keep: the provider is its own transport.
+        return self
+
     # -- networks -----------------------------------------------------------------------------
     def bootstrap(self) -> None:
         """Create (or reuse) the fleet's public and common networks."""

@@ -387,7 +387,7 @@ class LibvirtProvider(CloudProvider):
                             hint="import the fleet's snapshot (docs/libvirt.md)")
         return tuple(v.path() for v in vols)  # type: ignore[return-value]
 
-    def _slowdown(self, robot: str) -> int:
+    def timeout_scale(self, robot: str) -> int:
         """TCG_SLOWDOWN for a clone emulated by TCG (its domain type is qemu), else 1."""
         with self._lock:
             known = self._emulated.get(robot)
@@ -408,7 +408,7 @@ class LibvirtProvider(CloudProvider):
         from ...retry import PollTimeout, poll
         from ...transport.ssh import KnownHosts
 
-        timeout *= self._slowdown(robot)
+        timeout *= self.timeout_scale(robot)
         deadline = time.monotonic() + timeout
         rec = self.query().get(robot)
         if rec is not None and rec.public_ip and KnownHosts(self.known_hosts_path).keys(rec.provider_id):
@@ -418,9 +418,6 @@ class LibvirtProvider(CloudProvider):
                 raise CcrpError(f"clone of {robot}: nothing listens on {rec.public_ip}:22 after {timeout:.0f} s",
                                 hint=f"ccrp clone exec --robot {robot} -- systemctl status ssh, or read its console") from None
         super().wait_ready(robot, max(1.0, deadline - time.monotonic()))
-
-    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
-        return super().exec(robot, argv, timeout * self._slowdown(robot))
 
     def has_image(self, image: str) -> bool:
         try:
@@ -511,24 +508,18 @@ class LibvirtProvider(CloudProvider):
             dom, _info = self._domain(robot)
             if dom is None or dom.state(0)[0] != self.libvirt.VIR_DOMAIN_RUNNING:
                 return False
-            self._forget_session(robot)
+            # paramiko still took the old connection for active after the VM's power-off, and the
+            # first command after a restart was reset: closed now.
+            self.transport.forget(robot)
             self.api("shut down domain", dom.shutdown)
             return True
-
-    def _forget_session(self, robot: str) -> None:
-        """Close the SSH connection to a clone going down: paramiko still took the old one for
-        active after the VM's power-off, and the first command after a restart was reset."""
-        with self._ssh_lock:
-            ssh = self._ssh.pop(robot, None)
-        if ssh is not None:
-            ssh.close()
 
     def terminate(self, robot: str) -> bool:
         """The robot's VM and its volumes (overlay, seed, console)."""
         with self._errors(f"delete clone of {robot}"):
             with self._lock:
                 self._emulated.pop(robot, None)
-            self._forget_session(robot)
+            self.transport.forget(robot)
             existed = self._remove_domain(robot)
             self._unreserve(self.macs(robot)[0])
             pool = self._refreshed(self._pool())
