@@ -226,7 +226,11 @@ class Sharing(Strict):
 
 # Each backend's settings model lives in its own package (providers/<kind>/settings.py); the
 # registry collects them, so a new backend touches its package and one registry line.
-Provider = Annotated[Union[tuple(i.settings for i in REGISTRY.values())], Field(discriminator="kind")]  # type: ignore[valid-type]
+def _provider_union():
+    return Annotated[Union[tuple(i.settings for i in REGISTRY.values())], Field(discriminator="kind")]  # type: ignore[valid-type]
+
+
+Provider = _provider_union()
 
 
 class SnapshotSettings(Strict):
@@ -424,3 +428,12 @@ class Inventory(Strict):
 
     def robot(self, name: str) -> Robot | None:
         return next((r for r in self.robots if r.name == name), None)
+
+
+def provider_union_changed() -> None:
+    """The registry gained or lost a backend (providers.register): the inventory's `provider:` is
+    the union of the settings of those it holds now."""
+    from pydantic.fields import FieldInfo
+
+    Inventory.model_fields["provider"] = FieldInfo.from_annotation(_provider_union())
+    Inventory.model_rebuild(force=True)

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..store import FleetStore
-from .base import Ability, Provider
+from .base import Ability, Provider, ProviderInfo
 from .registry import REGISTRY, info, require
 
 if TYPE_CHECKING:
@@ -18,10 +18,27 @@ if TYPE_CHECKING:
     # __init__ first, while the inventory module is still half-made.
     from ..models.inventory import Inventory
 
-__all__ = ["REGISTRY", "Ability", "get_provider", "info", "require"]
+__all__ = ["REGISTRY", "Ability", "get_provider", "info", "register", "require"]
 
 
 def get_provider(inv: Inventory, workdir: Path | None = None) -> Provider:
     module, cls = REGISTRY[inv.provider.kind].factory.split(":")
-    backend = getattr(importlib.import_module(f"{__name__}.{module}"), cls)
+    backend = getattr(importlib.import_module(module, __name__), cls)
     return backend(inv, workdir or FleetStore(inv.fleet).root)
+
+
+def register(backend: ProviderInfo) -> None:
+    """Add a backend that lives outside ccrp_cli (a test's: tests/memory_backend), as the registry's
+    line adds one of ccrp's own: the inventory takes its `provider:` settings from then on."""
+    from ..models.inventory import provider_union_changed
+
+    REGISTRY[backend.kind] = backend
+    provider_union_changed()
+
+
+def unregister(kind: str) -> None:
+    """Undo register(): the inventory refuses the backend's kind again."""
+    from ..models.inventory import provider_union_changed
+
+    del REGISTRY[kind]
+    provider_union_changed()

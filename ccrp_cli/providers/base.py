@@ -177,7 +177,9 @@ class ProviderInfo:
 
     kind: str
     settings: type[BaseModel]  # the inventory's `provider:` section for this backend
-    factory: str  # "module:Class" under ccrp_cli.providers, imported when the provider is made
+    # "module:Class", imported when the provider is made: ".docker.provider:DockerProvider" is relative
+    # to ccrp_cli.providers; a backend outside ccrp_cli names its module in full.
+    factory: str
     abilities: frozenset[Ability]
     user_data_limit: int  # raw bytes the cloud accepts
     user_data_gzip: bool  # whether cloud-init's gzip payload is accepted

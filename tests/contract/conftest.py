@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-KINDS = ("docker", "aws", "openstack", "gcp")
+KINDS = ("docker", "aws", "openstack", "gcp", "memory")
 AVAILABLE = [k for k in KINDS if (Path(__file__).parent / f"harness_{k}.py").exists()]
 
 

@@ -3,7 +3,8 @@
 One module per provider, `tests/contract/harness_<kind>.py`, defines
 `make_harness(tmp_path) -> contextlib.AbstractContextManager[Harness]`. The context builds a
 provider for fleet "ct" from an inventory on top of the fake (moto, openstacksdk fixtures +
-requests-mock, autospecced GCP clients, real Docker) and, on exit, removes everything it started.
+requests-mock, autospecced GCP clients, real Docker, the memory backend's cloud) and, on exit, removes
+everything it started.
 The suite (test_contract.py) only drives the provider through the Provider protocol
 (providers/base.py) and inspects the fake through this one.
 """

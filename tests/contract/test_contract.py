@@ -13,7 +13,7 @@ from ccrp_cli.errors import CcrpError
 from ccrp_cli.gc import find_leaks
 from ccrp_cli.providers import info
 from ccrp_cli.models.state import FleetState, RobotRecord
-from ccrp_cli.providers.base import Origin
+from ccrp_cli.providers.base import Ability, Origin
 from ccrp_cli.snapshots import BUILDER
 
 from .harness import FLEET
@@ -101,8 +101,8 @@ def test_snapshot_round_trip(harness):
 def test_builder_is_labelled_as_such_and_never_taken_for_a_clone(harness):
     """`snapshot bake`'s builder: role "builder" in the cloud, not in query(); its snapshot is a
     build (no robot); terminating it leaves the clones alone."""
-    if harness.kind == "docker":
-        pytest.skip("Docker builds snapshots with `snapshot build`, without a builder instance")
+    if Ability.BAKE not in harness.provider.abilities:
+        pytest.skip("snapshot build makes this backend's golden image, without a builder instance")
     create(harness, "robot1")
     spec = harness.spec("robot1", 1).model_copy(
         update={"robot": BUILDER, "hostname": "ccrp-builder", "role": "builder", "vpn_subnet": None,
@@ -137,8 +137,8 @@ def test_public_ingress_is_vpn_and_operator_ssh_only(harness):
     create(harness, "robot1")
     vpn = harness.provider.inv.vpn
     expected = {(vpn.proto, vpn.port, "0.0.0.0/0")}
-    if harness.kind != "docker":  # clouds reach clones over SSH from the operator; Docker over its API
-        expected.add(("tcp", 22, OPERATOR_CIDR))
+    if harness.provider.login_keys() is not None:  # a login over SSH, from the operator only (the
+        expected.add(("tcp", 22, OPERATOR_CIDR))  # clouds); Docker and memory reach clones over their API
     assert harness.public_ingress() == expected
 
 
@@ -169,7 +169,7 @@ def test_throttling_storm_creates_every_clone_once(harness):
 
 
 def test_states_are_ccrp_words_and_every_declared_call_answers(harness):
-    from ccrp_cli.providers.base import Ability, CloneState, LocalBuild, Provider, Quota
+    from ccrp_cli.providers.base import Bake, CloneState, LocalBuild, Provider, Quota, Transport
 
     created = create(harness, "robot1")
     rec = harness.provider.query()["robot1"]
@@ -182,6 +182,9 @@ def test_states_are_ccrp_words_and_every_declared_call_answers(harness):
     # An ability is a promise of the calls that go with it.
     local = [n for n in dir(LocalBuild) if not n.startswith("_")]
     assert all(hasattr(harness.provider, n) for n in local) == (Ability.LOCAL_BUILD in harness.provider.abilities)
+    if Ability.BAKE in harness.provider.abilities:
+        assert all(hasattr(harness.provider, n) for n in dir(Bake) if not n.startswith("_"))
+    assert all(hasattr(harness.provider.transport, n) for n in dir(Transport) if not n.startswith("_"))
     assert harness.provider.has_image("no-such-image-of-this-fleet") is False
     assert all(isinstance(q, Quota) and q.limit >= 0 for q in harness.provider.quotas())
     harness.provider.teardown()

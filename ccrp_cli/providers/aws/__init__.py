@@ -6,7 +6,7 @@ from .settings import AwsSettings
 INFO = ProviderInfo(
     kind="aws",
     settings=AwsSettings,
-    factory="aws.provider:AwsProvider",
+    factory=".aws.provider:AwsProvider",
     abilities=frozenset({Ability.BAKE}),
     user_data_limit=16_384,  # EC2: 16 KiB before base64
     user_data_gzip=True,

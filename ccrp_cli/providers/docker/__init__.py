@@ -6,7 +6,7 @@ from .settings import DockerSettings
 INFO = ProviderInfo(
     kind="docker",
     settings=DockerSettings,
-    factory="docker.provider:DockerProvider",
+    factory=".docker.provider:DockerProvider",
     abilities=frozenset({Ability.LOCAL_BUILD, Ability.ROBOT_SIM}),
     user_data_limit=262_144,  # the NoCloud seed: kept at GCE's size
     user_data_gzip=False,

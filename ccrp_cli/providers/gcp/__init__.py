@@ -8,7 +8,7 @@ from .settings import GcpSettings
 INFO = ProviderInfo(
     kind="gcp",
     settings=GcpSettings,
-    factory="gcp.provider:GcpProvider",
+    factory=".gcp.provider:GcpProvider",
     abilities=frozenset({Ability.BAKE}),
     user_data_limit=262_144,  # GCE: 256 KiB per metadata value
     user_data_gzip=False,

@@ -8,7 +8,7 @@ from .settings import LibvirtSettings
 INFO = ProviderInfo(
     kind="libvirt",
     settings=LibvirtSettings,
-    factory="libvirt.provider:LibvirtProvider",
+    factory=".libvirt.provider:LibvirtProvider",
     # `snapshot build` makes the golden volume on this machine (LibvirtProvider.build_snapshot: the
     # recipe's image on the local Docker engine, then a qcow2 of it); there is no builder VM to bake.
     abilities=frozenset({Ability.LOCAL_BUILD}),

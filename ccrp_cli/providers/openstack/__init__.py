@@ -6,7 +6,7 @@ from .settings import OpenStackSettings
 INFO = ProviderInfo(
     kind="openstack",
     settings=OpenStackSettings,
-    factory="openstack.provider:OpenStackProvider",
+    factory=".openstack.provider:OpenStackProvider",
     abilities=frozenset({Ability.BAKE}),
     user_data_limit=49_149,  # Nova: 65,535 bytes once base64-encoded
     user_data_gzip=True,
