@@ -122,6 +122,7 @@ def _quotas(fleet: Fleet, provider: Provider) -> list[Check]:
     """Each quota the fleet's clones draw on: its limit and use now, and what the clones not
     created yet take of it (the numbers `fleet up` checks before it creates anything)."""
     from . import quotas
+    from .providers import info
 
     try:
         state = fleet.store.load_state()
@@ -133,7 +134,7 @@ def _quotas(fleet: Fleet, provider: Provider) -> list[Check]:
         Check(f"quota {u.quota.name} in {u.quota.scope}", FAIL if u.short else OK,
               f"limit {u.quota.limit:g}, used {u.quota.used:g}; the fleet's {len(missing)} clone(s) not created "
               f"yet need {u.need:g}",
-              f"{u.quota.hint or quotas.HOW_TO_RAISE.get(provider.kind, 'raise it')}, or shrink the fleet"
+              f"{u.quota.hint or info(provider.kind).quota_hint}, or shrink the fleet"
               if u.short else "")
         for u in found
     ]

@@ -16,14 +16,10 @@ from typing import TYPE_CHECKING
 
 from .errors import CcrpError
 from .providers.base import Quota
+from .providers.registry import info
 
 if TYPE_CHECKING:
     from .providers.base import Housekeeping, Lifecycle, Provider
-
-# Where each cloud's quotas are raised, when a quota names no place of its own.
-HOW_TO_RAISE = {"aws": "raise it in the Service Quotas console", "gcp": "request more in the console (IAM & Admin > Quotas)",
-                "openstack": "ask the cloud's admin to raise it (`openstack quota show`)"}
-
 
 class QuotaError(CcrpError):
     """A command would take more of a quota than is free: refused before anything was created."""
@@ -83,7 +79,7 @@ def refusal(kind: str, found: list[Use], creating: Sequence[str]) -> QuotaError 
     if not short:
         return None
     fit = fitting(found, creating)
-    where = "; ".join(dict.fromkeys(u.quota.hint for u in short if u.quota.hint)) or HOW_TO_RAISE.get(kind, "raise it")
+    where = "; ".join(dict.fromkeys(u.quota.hint for u in short if u.quota.hint)) or info(kind).quota_hint
     return QuotaError("; ".join(u.line(kind) for u in short),
                       hint=f"{where}; or create at most {fit} of the {len(creating)} new clones for now. "
                            "Nothing was created")

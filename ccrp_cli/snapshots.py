@@ -57,27 +57,6 @@ def _use(fleet: Fleet, record: SnapshotRecord, bare: bool = False, image: str | 
 # -- clouds: bake a snapshot on a builder instance ----------------------------------------------------
 
 BUILDER = "snapshot-builder"  # its robot label: the hyphen keeps it out of robot names' alphabet
-# The stock Debian 12 (bookworm) cloud image each cloud's builder starts from, the recipes'
-# debian-bookworm platform. GCP: Debian's public image family. AWS: the public SSM parameter Debian
-# publishes its current AMI under, resolved by the AWS provider (resolve_image). OpenStack: Debian's
-# generic cloud image, uploaded to Glance under the name of its file. --base-image and the
-# inventory's provider.image (OpenStack) override them.
-DEFAULT_BASE = {
-    "gcp": "projects/debian-cloud/global/images/family/debian-12",
-    "aws": "/aws/service/debian/release/bookworm/latest/amd64",
-    "openstack": "debian-12-genericcloud-amd64",
-}
-BASE_HINT = {
-    "openstack": "upload Debian 12's generic cloud image to Glance under that name: `openstack image create --disk-format "
-                 "qcow2 --file debian-12-genericcloud-amd64.qcow2 debian-12-genericcloud-amd64` (from "
-                 "https://cloud.debian.org/images/cloud/bookworm/latest/), or name another Debian 12 image in "
-                 "provider.image or --base-image",
-    "gcp": "pass --base-image projects/debian-cloud/global/images/family/debian-12 or another Debian 12 image",
-    "aws": "pass --base-image with a Debian 12 AMI id of the region: `aws ssm get-parameter --name "
-           "/aws/service/debian/release/bookworm/latest/amd64`",
-}
-
-
 def _builder_common_ip(inv) -> str:
     """Just below the clones' range; near the top of the subnet when that would hit the addresses
     clouds keep for gateways and DHCP (AWS keeps .1-.3, GCP the second-to-last)."""
@@ -115,11 +94,11 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
         # The stock Debian image has no ROS 2 to use: the platform is the user's own image.
         raise InputError(f"ros.platform {inv.ros.platform} bakes from your image with ROS {inv.ros.distro} installed "
                          f"under /opt/ros/{inv.ros.distro}", hint="pass --base-image, or set provider.image")
-    base = base or DEFAULT_BASE[kind]
+    base = base or info(kind).bake_base  # the stock Debian 12 image of the cloud
     # A cloud may name its images indirectly (AWS: an SSM parameter): the state records what was used.
     base = provider.resolve_image(base)
     if not provider.has_image(base):
-        raise InputError(f"base image {base} not found on {kind}", hint=BASE_HINT[kind])
+        raise InputError(f"base image {base} not found on {kind}", hint=info(kind).bake_base_hint)
     token = secrets.token_hex(8)
     # With software, ccrp logs in to build it after cloud-init: the builder's login gets the key.
     user_data = builder_user_data(inv, token, login_keys=None if software.empty else provider.login_keys())

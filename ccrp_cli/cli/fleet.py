@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from . import options, output
+
+if TYPE_CHECKING:
+    from ..providers.base import Provider
 
 app = typer.Typer(help="Whole-fleet operations.", no_args_is_help=True, rich_markup_mode=None)
 
@@ -106,7 +109,7 @@ def plan(inventory: options.Inventory, as_json: options.Json = False) -> None:
         quota_table(provider, [r["robot"] for r in rows if r["action"] == "create"])
 
 
-def quota_table(provider, creating: list[str]) -> None:
+def quota_table(provider: Provider, creating: list[str]) -> None:
     """The quotas the clones to create draw on (limit, use, what they take), and the refusal
     `fleet up` would answer with when one is short (ccrp_cli/quotas.py)."""
     from .. import quotas

@@ -1,7 +1,7 @@
-"""Backends behind one lifecycle interface (base.Provider). Each package declares a ProviderInfo
-(abilities, user-data limit, SDK modules, platform) that costs no SDK import (registry.py); the
-provider class, and its SDK, are imported only when a provider is made, with an install hint when
-missing."""
+"""Backends behind the protocols of base.py (Lifecycle, Images, Housekeeping: base.Provider). Each
+package declares a ProviderInfo (abilities, user-data limit, SDK modules, platform) that costs no
+SDK import (registry.py; register() adds one from outside ccrp_cli); the provider class, and its
+SDK, are imported only when a provider is made, with an install hint when missing."""
 
 from __future__ import annotations
 

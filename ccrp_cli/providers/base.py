@@ -1,4 +1,4 @@
-"""The lifecycle every backend implements (in the spirit of SkyPilot's sky/provision)."""
+"""The protocols every backend implements (in the spirit of SkyPilot's sky/provision) and what it declares."""
 
 from __future__ import annotations
 
@@ -173,7 +173,7 @@ class Ability(str, Enum):
 @dataclass(frozen=True)
 class ProviderInfo:
     """What a backend declares about itself without importing its SDK; the registry in
-    providers/__init__.py collects one per package."""
+    providers/registry.py collects one per package."""
 
     kind: str
     settings: type[BaseModel]  # the inventory's `provider:` section for this backend
@@ -196,6 +196,13 @@ class ProviderInfo:
     own_kernel: bool = True
     # Host tools `ccrp doctor` looks for: (tool, what it is for), a warning when missing.
     host_tools: tuple[tuple[str, str], ...] = ()
+    # Where the backend's quotas are raised, when a quota names no place of its own.
+    quota_hint: str = "raise it"
+    # Ability.BAKE: the stock Debian 12 cloud image a builder starts from (the recipes'
+    # debian-bookworm platform) when neither --base-image nor provider.image names one, and what to
+    # do when the cloud does not have it.
+    bake_base: str = ""
+    bake_base_hint: str = ""
 
     def fit_user_data(self, text: str) -> tuple[bytes, bool]:
         """The user-data payload to send and whether it is gzipped, checked before any API call; an

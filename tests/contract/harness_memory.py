@@ -15,15 +15,12 @@ from tests.memory_backend import INFO, cloud
 from .harness import FLEET
 from .specs import FAST, clone_spec, inventory
 
-BASE_IMAGE = "debian-12-memory"
-
-
 class MemoryHarness:
     kind = "memory"
 
     def __init__(self, provider, fake: cloud.MemoryCloud) -> None:
         self.provider, self.cloud = provider, fake
-        fake.add("image", BASE_IMAGE, {})  # the cloud's own image: no labels, never the fleet's
+        fake.add("image", INFO.bake_base, {})  # the cloud's own image: no labels, never the fleet's
 
     def _owned(self, kind: str | None = None, robot: str | None = None) -> list[cloud.Resource]:
         labels = {LABEL_MANAGED: "true", LABEL_FLEET: FLEET} | ({LABEL_ROBOT: robot} if robot else {})
@@ -31,7 +28,7 @@ class MemoryHarness:
                 if (kind is None or r.kind == kind) and all(r.labels.get(k) == v for k, v in labels.items())]
 
     def spec(self, robot: str, index: int):
-        return clone_spec(self.provider.inv, robot, index, BASE_IMAGE)
+        return clone_spec(self.provider.inv, robot, index, INFO.bake_base)
 
     def fail_create_after_instance(self, robot: str) -> None:
         self.cloud.refuse_association.add(robot)  # the public address will not attach

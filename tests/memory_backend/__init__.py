@@ -20,4 +20,7 @@ INFO = ProviderInfo(
     user_data_limit=16_384,  # as small as AWS's, so the suite's gzip path runs here too
     user_data_gzip=True,
     sdk_modules=(),  # nothing to install
+    quota_hint="raise provider.max_instances",
+    bake_base="debian-12-memory",  # the one image the memory cloud offers besides the fleet's
+    bake_base_hint="the memory cloud has this image only when a test added it (cloud.CLOUD.add)",
 )

@@ -193,12 +193,12 @@ def _publish(name: str, ami: str) -> None:
 
 
 def test_debians_ssm_parameter_resolves_to_the_ami_it_names(mocked, tmp_path):
-    from ccrp_cli import snapshots
+    from ccrp_cli.providers import info
 
     p = make(tmp_path, bootstrap=False)
     ami = image(p)
     _publish(DEBIAN_12, ami)
-    assert snapshots.DEFAULT_BASE["aws"] == DEBIAN_12
+    assert info("aws").bake_base == DEBIAN_12
     assert p.resolve_image(DEBIAN_12) == ami
     assert p.resolve_image(f"resolve:ssm:{DEBIAN_12}") == ami  # EC2's own spelling of the same
     assert p.resolve_image(ami) == ami and p.has_image(ami)

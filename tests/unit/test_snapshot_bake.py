@@ -14,6 +14,7 @@ import yaml
 from ccrp_cli import snapshots
 from ccrp_cli.errors import CcrpError, InputError
 from ccrp_cli.fleet import Fleet
+from ccrp_cli.providers import info
 from ccrp_cli.providers.base import CloneRecord, CloneState, Origin, SnapshotRecord
 from ccrp_cli.recipes import platform
 from ccrp_cli.layout import LOCALE_SETUP
@@ -30,7 +31,7 @@ class FakeCloud:
     def __init__(self, kind: str, boot: list[str] | None = None) -> None:
         self.kind = kind
         self.boot = boot
-        # The stock Debian 12 images of each cloud (snapshots.DEFAULT_BASE), and AWS's public SSM
+        # The stock Debian 12 images of each cloud (their ProviderInfo.bake_base), and AWS's public SSM
         # parameter naming Debian's current AMI.
         self.images = {"debian-12-genericcloud-amd64", "projects/debian-cloud/global/images/family/debian-12",
                        "ami-0debian12"}
@@ -230,7 +231,7 @@ def test_aws_defaults_to_debians_ssm_parameter_resolved_to_its_ami(ccrp_home):
     aws = Fleet.open(INVENTORIES["aws"])
     cloud = FakeCloud("aws", [DONE])
     _bake(aws, cloud, base_image=None)
-    assert snapshots.DEFAULT_BASE["aws"] == "/aws/service/debian/release/bookworm/latest/amd64"
+    assert info("aws").bake_base == "/aws/service/debian/release/bookworm/latest/amd64"
     assert cloud.specs[0].image == "ami-0debian12"  # booted from the AMI the parameter names today
     assert aws.store.load_state().snapshot["base"] == "ami-0debian12"
 
@@ -238,7 +239,7 @@ def test_aws_defaults_to_debians_ssm_parameter_resolved_to_its_ami(ccrp_home):
 def test_openstack_defaults_to_debians_generic_cloud_image_and_names_it_when_missing(fleet):
     cloud = FakeCloud("openstack", [DONE])
     _bake(fleet, cloud, base_image=None)
-    assert cloud.specs[0].image == snapshots.DEFAULT_BASE["openstack"] == "debian-12-genericcloud-amd64"
+    assert cloud.specs[0].image == info("openstack").bake_base == "debian-12-genericcloud-amd64"
     cloud = FakeCloud("openstack", [DONE])
     cloud.images.clear()  # nobody uploaded it to this cloud's Glance
     with pytest.raises(InputError, match="base image debian-12-genericcloud-amd64 not found on openstack") as err:
@@ -251,7 +252,7 @@ def test_gcp_defaults_to_debians_image_family_and_records_the_image_name(ccrp_ho
     gcp = Fleet.open(INVENTORIES["gcp"])
     cloud = FakeCloud("gcp", [DONE])
     record, _ = _bake(gcp, cloud, base_image=None)
-    assert cloud.specs[0].image == snapshots.DEFAULT_BASE["gcp"] == "projects/debian-cloud/global/images/family/debian-12"
+    assert cloud.specs[0].image == info("gcp").bake_base == "projects/debian-cloud/global/images/family/debian-12"
     snap = gcp.store.load_state().snapshot
     assert snap["image"] == record.name and snap["region"] == "europe-west2"
 

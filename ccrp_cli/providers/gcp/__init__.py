@@ -14,4 +14,7 @@ INFO = ProviderInfo(
     user_data_gzip=False,
     sdk_modules=(("google.cloud.compute_v1", "gcp"), ("paramiko", "gcp")),
     image_ref="name",
+    quota_hint="request more in the console (IAM & Admin > Quotas)",
+    bake_base="projects/debian-cloud/global/images/family/debian-12",  # Debian's public image family
+    bake_base_hint="pass --base-image projects/debian-cloud/global/images/family/debian-12 or another Debian 12 image",
 )

@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 # Earlier operations an insert may meet under its request ids (one per re-creation of the clone
 # within GCE's hour of remembering them) before it sends one GCE has not seen.
 MAX_REPLAYS = 20
-# Where Debian publishes its GCE images (the bake's default base, snapshots.DEFAULT_BASE). They run
+# Where Debian publishes its GCE images (the bake's default base, INFO.bake_base). They run
 # the Google guest agent instead of cloud-init, so an instance booted from one gets a startup-script
 # (templates/gcp/startup-script) that installs cloud-init; a baked snapshot has it already.
 STOCK_IMAGES = "projects/debian-cloud/"

@@ -11,4 +11,11 @@ INFO = ProviderInfo(
     user_data_limit=49_149,  # Nova: 65,535 bytes once base64-encoded
     user_data_gzip=True,
     sdk_modules=(("openstack", "openstack"), ("paramiko", "openstack")),
+    quota_hint="ask the cloud's admin to raise it (`openstack quota show`)",
+    # Debian's generic cloud image, uploaded to Glance under the name of its file.
+    bake_base="debian-12-genericcloud-amd64",
+    bake_base_hint="upload Debian 12's generic cloud image to Glance under that name: `openstack image create "
+                   "--disk-format qcow2 --file debian-12-genericcloud-amd64.qcow2 debian-12-genericcloud-amd64` (from "
+                   "https://cloud.debian.org/images/cloud/bookworm/latest/), or name another Debian 12 image in "
+                   "provider.image or --base-image",
 )

@@ -1,0 +1,111 @@
+"""A new backend is its own package and one registry line (docs/architecture.md, "A new backend"):
+the memory backend (tests/memory_backend, tests only) is registered with its line, and the
+inventory, `fleet validate` and `fleet plan` take it with no other change; and no module of the
+core names a backend's kind but those listed here, each with its reason."""
+
+from __future__ import annotations
+
+import ast
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from ccrp_cli.providers import REGISTRY, register, unregister
+
+ROOT = Path(__file__).resolve().parents[2]
+INVENTORY = """\
+fleet: mem
+provider:
+  kind: memory
+robots:
+  - name: r1
+  - name: r2
+"""
+# Modules of the core (ccrp_cli outside providers/ and agent/) that name a backend's kind, and how
+# many times: each name is a place a new backend would have to be added by hand.
+NAMES_A_KIND = {
+    # `ccrp init` writes a first inventory from its template's section for the kinds it offers,
+    # and picks a free public pool for the Docker network only Docker makes.
+    "ccrp_cli/init.py": 5,
+    "ccrp_cli/cli/init.py": 1,  # the default of `ccrp init --provider`
+    # The Docker engine answering is its credential; its snapshot images outlive state (doctor.py).
+    "ccrp_cli/doctor.py": 3,
+    # `ccrp deploy` builds the workspace on the local Docker engine, whatever the fleet's backend.
+    "ccrp_cli/deploy.py": 2,
+}
+
+
+def ccrp(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
+    """The `ccrp` entry point in this process, where the test registered the backend."""
+    from ccrp_cli.cli.main import run
+
+    monkeypatch.setattr(sys, "argv", ["ccrp", *args])
+    with pytest.raises(SystemExit) as done:
+        run()
+    out = capsys.readouterr()
+    return done.value.code, out.out, out.err
+
+
+@pytest.fixture
+def memory():
+    from tests.memory_backend import INFO, cloud
+
+    register(INFO)  # the backend's one line
+    try:
+        yield cloud.fresh()
+    finally:
+        unregister(INFO.kind)
+
+
+def test_a_backend_in_its_own_package_takes_the_inventory_and_fleet_plan(memory, ccrp_home, tmp_path, monkeypatch,
+                                                                         capsys):
+    from ccrp_cli.fleet import Fleet
+    from ccrp_cli.providers import get_provider
+
+    inv = tmp_path / "ccrp.yaml"
+    inv.write_text(INVENTORY)
+    code, out, err = ccrp(monkeypatch, capsys, "fleet", "validate", "-i", str(inv))
+    assert code == 0, err
+    assert "2 robots" in err and "cri-r2" in out
+    # A clone made by the backend's provider (as `fleet up` would) is in the plan; the other is to create.
+    fleet = Fleet.open(inv)
+    provider = get_provider(fleet.inventory)
+    provider.bootstrap()
+    memory.add("image", "base", {})
+    spec = {"hostname": "cri-r1", "image": "base", "user_data": "#cloud-config\n", "instance_id": "mem-r1-1",
+            "common_ip": "10.90.0.10"}
+    from ccrp_cli.providers.base import CloneSpec
+
+    made = provider.run_instance(CloneSpec(robot="r1", **spec))
+    code, out, err = ccrp(monkeypatch, capsys, "fleet", "plan", "-i", str(inv), "--json")
+    assert code == 0, err
+    rows = {r["robot"]: r for r in json.loads(out)}
+    assert rows["r1"]["action"] == "configure" and rows["r1"]["provider_id"] == made.provider_id
+    assert rows["r2"]["action"] == "create"
+    code, out, err = ccrp(monkeypatch, capsys, "fleet", "plan", "-i", str(inv))
+    assert code == 0, err
+    assert "instances" in out and "memory cloud" in out  # the backend's quota, read through Housekeeping
+
+
+def test_without_its_line_the_backend_is_refused(ccrp_home, tmp_path, monkeypatch, capsys):
+    assert "memory" not in REGISTRY
+    inv = tmp_path / "ccrp.yaml"
+    inv.write_text(INVENTORY)
+    code, _, err = ccrp(monkeypatch, capsys, "fleet", "validate", "-i", str(inv))
+    assert code == 2 and "memory" in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_core_names_no_backend_kind_but_the_listed_ones():
+    kinds = set(REGISTRY)
+    found: dict[str, int] = {}
+    for path in sorted((ROOT / "ccrp_cli").rglob("*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        if rel.startswith(("ccrp_cli/providers/", "ccrp_cli/agent/")):
+            continue
+        n = sum(isinstance(node, ast.Constant) and node.value in kinds for node in ast.walk(ast.parse(path.read_text())))
+        if n:
+            found[rel] = n
+    assert found == NAMES_A_KIND, ("a module of the core names a backend's kind: declare it in ProviderInfo "
+                                   "instead, or list it above with its reason")
