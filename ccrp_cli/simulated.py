@@ -11,10 +11,13 @@ import re
 import socket
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from .errors import CcrpError, InputError, shown
 from .fleet import Fleet
+
+if TYPE_CHECKING:
+    from .providers.base import Provider
 
 Progress = Callable[[str], None]
 LINK_UNIT = "ccrp-link"
@@ -81,7 +84,7 @@ def parse_link(text: str) -> Link | None:
 class Sims:
     """The simulated robots of one fleet and the clones they dial."""
 
-    def __init__(self, fleet: Fleet, provider=None) -> None:
+    def __init__(self, fleet: Fleet, provider: Provider | None = None) -> None:
         from .providers import Ability, get_provider, info
         from .providers.docker.host import DockerHost
 

@@ -12,8 +12,12 @@ from __future__ import annotations
 import datetime as dt
 import logging
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 from .models.status import Power, StatusRow, Watchdog
+
+if TYPE_CHECKING:
+    from .providers.base import Provider
 
 log = logging.getLogger("ccrp.watchdog")
 
@@ -56,7 +60,7 @@ def parse(out: str) -> Watchdog:
                     motors=motors[0] if motors else "enabled")  # the hook has never run: as the robot started
 
 
-def simulated(fleet, provider) -> dict[str, Watchdog]:
+def simulated(fleet, provider: Provider) -> dict[str, Watchdog]:
     """robot -> its watchdog's state, for the fleet's simulated robots running on this host."""
     from .providers.base import LABEL_ROBOT
     from .simulated import Sims

@@ -8,10 +8,14 @@ import logging
 import socket
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import InputError
 from .auth import Auth, allowed_hosts, check_token, new_token
 from .events import Broker, Monitor, pki_alerts
+
+if TYPE_CHECKING:
+    from ..providers.base import Lifecycle
 
 log = logging.getLogger("ccrp.dashboard")
 
@@ -104,7 +108,7 @@ def fleet_actions(inventory: Path) -> dict:
     return {"clone-start": clone_start, "clone-restart": clone_restart, "vpn-revoke": vpn_revoke, "fleet-scale": fleet_scale, "robot-power": robot_power}
 
 
-def teleop_sender(fleet, provider):
+def teleop_sender(fleet, provider: Lifecycle):
     """The drive keys' body: `ccrp robot teleop` (ccrp_cli.actions.robot_teleop) on the fleet the
     dashboard opened: a command changes nothing ccrp records, so it needs no fresh state nor the
     fleet lock."""
@@ -122,7 +126,7 @@ def teleop_sender(fleet, provider):
     return send, close
 
 
-def camera_functions(fleet, provider):
+def camera_functions(fleet, provider: Lifecycle):
     """The camera view's bodies on the fleet the dashboard opened, as the drive keys' are (they
     change nothing ccrp records): (read, start). `read` is `ccrp robot camera`'s
     (ccrp_cli.camera.latest_frame) without its start of the agent: the page's GET starts nothing on
