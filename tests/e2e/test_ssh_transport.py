@@ -337,7 +337,7 @@ def test_put_files_installs_mode_group_and_leaves_no_temp(ssh, vm):
 
 class ContainerCloud(cloud.CloudProvider):
     """A cloud whose instances are these containers: query() gives their address, the console
-    is `docker logs`. Everything SSH (wait_ready, push_files, exec) is CloudProvider's own."""
+    is `docker logs`. Everything SSH (wait_ready, and its transport's exec and push_files) is CloudProvider's own."""
 
     kind = "containers"
 
@@ -377,28 +377,28 @@ def test_cloud_provider_wait_ready_push_exec(lab, fresh_vm, operator_key, monkey
         assert stat.S_IMODE(provider.known_hosts_path.stat().st_mode) == 0o600
 
         # exec runs as root (like a command in a Docker clone); exit codes come back.
-        assert provider.exec("nao1", ["id", "-u"]) == (0, "0\n")
-        assert provider.exec("nao1", ["sh", "-c", "exit 7"])[0] == 7
+        assert provider.transport.exec("nao1", ["id", "-u"]) == (0, "0\n")
+        assert provider.transport.exec("nao1", ["sh", "-c", "exit 7"])[0] == 7
 
         # The real secrets bundle of robot nao1, pushed and then found current by ensure_clone's check.
         view = clone_view(lab, lab.load_allocated(), "nao1")
         files = bundles.clone_secrets(view, lab.pki.credentials("nao1"))
         assert not clones.files_current(provider, "nao1", files)
-        provider.push_files("nao1", files)
+        provider.transport.push_files("nao1", files)
         assert clones.files_current(provider, "nao1", files)
         for f in files:
             assert fresh_vm.sh("stat", "-c", "%a %G", f.dest).split() == [f"{f.mode:o}", f.group]
         assert fresh_vm.sh("sh", "-c", "ls -A /tmp /dev/shm | grep ccrp-push || true") == ""
         # A unit that cannot restart (no systemd in this container) is an error, not a shrug.
         with pytest.raises(CcrpError, match="systemctl restart ccrp-openvpn.service"):
-            provider.push_files("nao1", files[:1], restart=["ccrp-openvpn.service"])
+            provider.transport.push_files("nao1", files[:1], restart=["ccrp-openvpn.service"])
 
         # Another run (a new provider, nothing in memory) connects from known_hosts alone, even
         # once the console has scrolled the keys away.
         blank = type("Blank", (), {"console": lambda self: ""})()
         later = ContainerCloud(inv, workdir, {"nao1": fresh_vm}, console_of={"nao1": blank})
         try:
-            assert later.exec("nao1", ["hostname"])[0] == 0
+            assert later.transport.exec("nao1", ["hostname"])[0] == 0
             later.wait_ready("nao1", timeout=30)
         finally:
             later.close()
@@ -417,14 +417,14 @@ def test_secrets_are_in_memory_never_on_the_disk_and_come_back_after_a_reboot(la
 
     def push(provider) -> None:
         clones.prepare_secrets_dir(provider, "nao1")
-        provider.push_files("nao1", files)
+        provider.transport.push_files("nao1", files)
         assert clones.files_current(provider, "nao1", files)
 
     provider = ContainerCloud(inv, workdir, {"nao1": fresh_vm})
     try:
         provider.wait_ready("nao1", timeout=BOOT_TIMEOUT)
         # Beside the keys, as a clone's user-data writes it: the server config, on the disk.
-        provider.push_files("nao1", [BundleFile("server.conf", openvpn.server_conf(view), 0o644, f"{VPN_DIR}/server.conf")])
+        provider.transport.push_files("nao1", [BundleFile("server.conf", openvpn.server_conf(view), 0o644, f"{VPN_DIR}/server.conf")])
         push(provider)
         assert fresh_vm.sh("stat", "-f", "-c", "%T", SECRETS_DIR).strip() == "tmpfs"
         assert fresh_vm.sh("stat", "-c", "%a %U %G", SECRETS_DIR).split() == ["751", "root", "openvpn"]

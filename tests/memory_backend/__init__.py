@@ -2,8 +2,8 @@
 registry line. Its "cloud" (cloud.py) holds instances, addresses, a firewall, a network and images
 in dicts; a clone boots nothing and runs no user-data, and its transport answers a few commands
 from the instance's filesystem dict (provider.py). It implements the whole provider protocol, so
-the contract suite (tests/contract/harness_memory.py) runs on it; `fleet up` would not get past
-waiting for a clone's services, which nothing here runs.
+the contract suite (tests/contract/harness_memory.py) runs on it. `fleet up` stops at its first
+shell command on a clone ("sh: command not found"): nothing here runs a program.
 
 Registered by `ccrp_cli.providers.register(INFO)` (docs/architecture.md, "A new backend")."""
 
