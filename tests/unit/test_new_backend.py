@@ -109,3 +109,17 @@ def test_the_core_names_no_backend_kind_but_the_listed_ones():
             found[rel] = n
     assert found == NAMES_A_KIND, ("a module of the core names a backend's kind: declare it in ProviderInfo "
                                    "instead, or list it above with its reason")
+
+
+def test_every_backend_is_protected_and_in_the_contract_suite():
+    """The other places docs/architecture.md says a new backend touches."""
+    import tomllib
+
+    from tests.contract.conftest import KINDS
+
+    contracts = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    backends = next(c for c in contracts if c["id"] == "backends")
+    assert set(backends["protected_modules"]) == {f"ccrp_cli.providers.{kind}" for kind in REGISTRY}
+    # libvirt is a preview with no fake of its own (docs/libvirt.md); memory registers itself.
+    assert set(KINDS) == set(REGISTRY) - {"libvirt"} | {"memory"}
+    assert all((ROOT / "tests" / "contract" / f"harness_{kind}.py").exists() for kind in KINDS)
