@@ -65,7 +65,7 @@ class MemoryHarness:
         return [r.labels.get(LABEL_ROLE, "") for r in self._owned("instance", robot)]
 
     def instances_for(self, robot: str) -> int:
-        return len([r for r in self._owned("instance", robot) if r.labels.get(LABEL_ROLE) == "clone"])
+        return len(self._owned("instance", robot))
 
     def api_calls(self) -> Counter:
         return Counter(self.cloud.calls)
