@@ -171,7 +171,7 @@ def probe(provider: Reaches, robot: str, master_port: int | str, files: list) ->
     run (the caller then asks the long way)."""
     try:
         rc, out = provider.transport.exec(robot, ["bash", "-c", PROBE_SH, MGMT_SOCKET, str(master_port),
-                                        *(f.dest for f in files)], timeout=20)
+                                          *(f.dest for f in files)], timeout=20)
     except CcrpError:
         return None
     head, sep, rest = out.partition("== result\n")

@@ -353,7 +353,7 @@ def health(provider: Reaches, robot: str, nodes: list[str], seconds: float, inte
     end = time.monotonic() + seconds
     while True:
         _, out = provider.transport.exec(robot, ["systemctl", "show", "--property", "Id,ActiveState,SubState,NRestarts", *units],
-                                timeout=20)
+                                         timeout=20)
         shown = {}
         for block in out.strip().split("\n\n"):
             props = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
@@ -385,7 +385,7 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
         assert tar_b64 is not None
         provider.transport.exec(robot, ["mkdir", "-p", "-m", "0700", DEPLOY_DIR], timeout=30)
         provider.transport.push_files(robot, [BundleFile(f"{change.new}.tar.b64", tar_b64, 0o600,
-                                               f"{DEPLOY_DIR}/{change.new}.tar.b64")], restart=[])
+                                                         f"{DEPLOY_DIR}/{change.new}.tar.b64")], restart=[])
     try:
         _script(provider, robot, "stage", change.new if change.workspace else "-")
     except CcrpError:
