@@ -1,0 +1,139 @@
+"""ensure_clone's pushes, restarts and commands on a fake clone, in order: what a new clone gets, and
+what a reused one gets when one service file changed (issue 26 keeps them as they are)."""
+
+from __future__ import annotations
+
+import hashlib
+
+import yaml
+
+from ccrp_cli import clones
+from ccrp_cli.fleet import Fleet
+from ccrp_cli.providers.base import CloneRecord, CloneState, Origin
+from tests.conftest import LAB
+
+RESULT = '{"v1": {"datasource": "DataSourceNoCloud", "errors": []}}'
+
+
+class Clone:
+    """A provider with one clone that keeps what is pushed to it and answers ensure_clone's
+    commands as a serving clone does; `log` is every push and command, in order."""
+
+    kind = "docker"
+    max_parallel = 4
+
+    def __init__(self) -> None:
+        self.held: dict[str, str] = {}
+        self.log: list[tuple] = []
+        self.origin = Origin.CREATED
+
+    transport = property(lambda self: self)  # a fake clone is its own transport
+
+    def login_keys(self) -> list[str]:
+        return []
+
+    def run_instance(self, spec) -> CloneRecord:
+        self.log.append(("run_instance", self.origin.value))
+        return CloneRecord(robot=spec.robot, provider_id="c1", state=CloneState.RUNNING, status="running",
+                           public_ip="198.51.100.7", origin=self.origin)
+
+    def wait_ready(self, robot, timeout=300) -> None:
+        self.log.append(("wait_ready",))
+
+    def terminate(self, robot) -> None:
+        self.log.append(("terminate",))
+
+    def push_files(self, robot, files, restart=()) -> None:
+        self.log.append(("push", [f.name for f in files], list(restart)))
+        self.held.update({f.dest: f.content for f in files})
+
+    def exec(self, robot, argv, timeout=60) -> tuple[int, str]:
+        from ccrp_cli import api_manager, workloads
+
+        script = argv[2] if argv[:2] in (["bash", "-c"], ["sh", "-c"]) else None
+        if script == clones.PROBE_SH:
+            self.log.append(("probe",))
+            lines = "".join(f"{hashlib.sha256(self.held[p].encode()).hexdigest()}  {p}\n" for p in argv[5:] if p in self.held)
+            return 0, f"== result\n{RESULT}\n== digests\n{lines}== serving vpn=yes master=yes\n"
+        if script == clones.WAIT_SERVING_SH:
+            self.log.append(("wait_serving",))
+            return 0, "vpn=yes master=yes\n"
+        if script == clones.SECRETS_DIR_SH:
+            self.log.append(("prepare_secrets_dir",))
+            return 0, "1\n2\n"
+        names = {api_manager.HAS_UNIT_SH: "has_api_unit", workloads.APPLY_SH: "apply_nodes"}
+        self.log.append(("exec", names[script] if script in names else " ".join(argv)))
+        return 0, ""
+
+
+def fleet_with_every_service(tmp_path, ccrp_home, rate: float = 1.0) -> Fleet:
+    """The lab (knowledge sync on every robot) with an API manager and a node of its own on each robot."""
+    data = yaml.safe_load(LAB.read_text())
+    data["services"]["api_manager"] = {"rate": rate}
+    data["software"] = {"run": [{"name": "mapper", "command": ["mapper", "--fast"]}]}
+    path = tmp_path / "fleet.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return Fleet.open(path)
+
+
+def up_nao1(fleet: Fleet, clone: Clone) -> list[str]:
+    from ccrp_cli import vpn
+
+    state = fleet.load_allocated()
+    if not fleet.pki.exists():  # as `fleet up` does before ensure_clone
+        vpn.init(fleet)
+        fleet.pki.issue_fleet({name: str(a.common_ip) for name, a in fleet.plan(state).items()}, 30)
+    state.snapshot = {"image": "ccrp/lab-clone:1", "id": "sha256:1"}
+    for rec in state.robots.values():
+        rec.phase = "ready"
+    said: list[str] = []
+    writer = clones.StateWriter(fleet, state)
+    result = clones.ensure_clone(fleet, clone, writer, "nao1", said.append)
+    assert result.action == ("created" if clone.origin is Origin.CREATED else "reused")
+    return [line for line in said if "started" in line]
+
+
+# The secrets of a clone, in the order bundles.clone_secrets gives them, as pushed.
+SECRETS = ["ca.crt", "server.crt", "server.key", "tls-crypt.key", "passwd", "relay-ca.crt", "relay.crt", "relay.key",
+           "crl.pem"]
+
+
+def test_a_new_clone_gets_every_service_in_the_order_it_always_had(tmp_path, ccrp_home):
+    fleet = fleet_with_every_service(tmp_path, ccrp_home)
+    clone = Clone()
+    started = up_nao1(fleet, clone)
+    pushes = [e for e in clone.log if e[0] == "push"]
+    secrets = pushes[1][1]
+    assert clone.log == [
+        ("run_instance", "created"), ("wait_ready",), ("probe",),
+        ("push", ["relay.json", "autostop.json", "knowledge.json", "knowledge.py"], []),
+        ("prepare_secrets_dir",),
+        ("push", secrets, ["ccrp-openvpn.service", "ccrp-relay.service"]),
+        ("push", [".applied"], []),
+        ("wait_serving",),
+        ("exec", "has_api_unit"),
+        ("push", ["api_manager.json", "api_manager.py"], ["ccrp-api-manager.service"]),
+        ("exec", "systemctl restart ccrp-knowledge.service"),
+        ("push", ["ccrp-run-mapper.service", "workloads.json"], []),
+        ("exec", "apply_nodes"),
+    ]
+    assert "crl.pem" in secrets and "relay.key" in secrets
+    assert started == ["[nao1] nodes started: mapper"]
+
+
+def test_a_reused_clone_gets_only_the_service_file_that_changed(tmp_path, ccrp_home):
+    fleet = fleet_with_every_service(tmp_path, ccrp_home)
+    clone = Clone()
+    up_nao1(fleet, clone)
+    clone.log.clear()
+    clone.origin = Origin.REUSED
+    assert up_nao1(fleet, clone) == [] and clone.log == [("run_instance", "reused"), ("probe",)]  # all current
+
+    changed = fleet_with_every_service(tmp_path, ccrp_home, rate=2.0)  # the API manager's config only
+    clone.log.clear()
+    assert up_nao1(changed, clone) == []
+    assert clone.log == [
+        ("run_instance", "reused"), ("probe",),
+        ("exec", "has_api_unit"),
+        ("push", ["api_manager.json", "api_manager.py"], ["ccrp-api-manager.service"]),
+    ]
