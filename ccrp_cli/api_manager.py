@@ -13,8 +13,11 @@ from .errors import CcrpError, shown
 from .models.inventory import Inventory, Robot
 from .render.files import BundleFile
 from .layout import API_USER, CCRP_ETC, SECRETS_DIR
+from .service import Boot, CloneService, ServiceContext
 
 if TYPE_CHECKING:
+    from .fleet import Fleet
+    from .models.state import FleetState
     from .providers.base import Reaches
 
 API_UNIT = "ccrp-api-manager.service"
@@ -119,3 +122,28 @@ def api_manager_row(inv: Inventory, robot: Robot, health: dict | None) -> dict |
     return {"running": bool(h.get("running")), "backend": s.backend, "calls": h.get("calls", 0),
             "errors": h.get("errors", 0), "published": h.get("published", 0),
             "last_latency_ms": h.get("last_latency_ms"), "last_error": h.get("last_error")}
+
+
+class ApiManager(CloneService):
+    """Its unit is in every clone's user-data and starts only with its config; `fleet up` pushes the
+    config, the agent and the backend's key once the clone serves, and restarts it."""
+
+    name = "api_manager"
+    boot = Boot(units=(API_UNIT,))
+
+    def check(self, fleet: Fleet, robot: Robot) -> None:
+        api_manager_files(fleet.inventory, robot)  # a key file that is not one is refused before the clone is made
+
+    def files(self, ctx: ServiceContext) -> list[BundleFile]:
+        return api_manager_files(ctx.fleet.inventory, ctx.robot)
+
+    def absent(self) -> list[BundleFile]:
+        return [absent_config()]
+
+    def apply(self, clone: Reaches, robot: str, files: list[BundleFile], have: dict[str, str],
+              pushed_keys: bool) -> list[str]:
+        apply_api_manager(clone, robot, files, have)
+        return []
+
+    def status(self, fleet: Fleet, state: FleetState, robot: Robot, health: dict | None) -> dict:
+        return {"api_manager": api_manager_row(fleet.inventory, robot, health)}

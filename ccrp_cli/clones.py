@@ -15,7 +15,7 @@ from typing import Callable
 
 from .errors import CcrpError
 from .fleet import Fleet, clone_view
-from .layout import CCRP_ETC, MGMT_SOCKET, SECRETS_DIR
+from .layout import MGMT_SOCKET, SECRETS_DIR
 from .models.names import clone_host
 from .models.state import FleetState
 from .probe import HEALTH_SCRIPT, files_current, health, remote_digests, same
@@ -201,12 +201,13 @@ def clone_user_data(view, provider: Housekeeping, bare: bool) -> str:
 
 
 def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress) -> CloneResult:
-    """Create or reuse the clone of `robot`, push its secrets, wait until it serves."""
-    from .api_manager import absent_config, api_manager_files, apply_api_manager
-    from .knowledge import absent_config as no_knowledge, apply_knowledge, knowledge_files
+    """Create or reuse the clone of `robot`, push its secrets, wait until it serves, then bring each
+    clone service (clone_services.py) in line, in the registry's order."""
+    from .clone_services import SERVICES
     from .providers import info
     from .render import bundles
-    from .workloads import NO_SOFTWARE, absent_index, apply_nodes, node_files
+    from .service import ServiceContext
+    from .workloads import NO_SOFTWARE
 
     t0 = time.monotonic()
     state = writer.state
@@ -221,8 +222,8 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
     bare = bool(state.snapshot and state.snapshot.get("bare"))
     user_data = clone_user_data(view, provider, bare)
     info(provider.kind).fit_user_data(user_data)
-    # The API manager's config and key ([] when the robot has none: then its absence is checked).
-    api = api_manager_files(fleet.inventory, view.robot)
+    for service in SERVICES:  # what the operator's inputs make impossible is refused before a clone exists
+        service.check(fleet, view.robot)
     image = snapshot_image(state)
     rec = state.robots[robot]
     writer.update(robot, phase="creating")
@@ -239,17 +240,15 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         keys = [f for f in secrets if f.name != "crl.pem"]
         crl = [f for f in secrets if f.name == "crl.pem"]
         applied = applied_marker(keys)
-        relay = relay_config_file(fleet, state, robot, writer.live())
-        know = knowledge_files(fleet, state, robot, writer.live())  # [] when it shares no dataset
-        settings = [relay, autostop_file(fleet, view.robot), *know]
-        # The robot's own nodes (docs/workloads.md): their units and the index of them. A clone
-        # kept runs the software it has (`ccrp deploy` may have changed it since its snapshot).
+        # A clone kept runs the software it has (`ccrp deploy` may have changed it since its snapshot).
         software = (state.snapshot or {}).get("software", NO_SOFTWARE)
         if not record.created and rec.software:
             software = rec.software
-        nodes = node_files(fleet.inventory, view.robot, software)
-        probed = [*secrets, applied, *settings, *(api or [absent_config()]), *(() if know else [no_knowledge()]),
-                  *(nodes or [absent_index()])]
+        ctx = ServiceContext(fleet, state, view.robot, writer.live(), software)
+        wanted = {s.name: s.files(ctx) for s in SERVICES}
+        settings = [f for s in SERVICES if s.settings for f in wanted[s.name]]
+        # A service without files has its "absent" marker probed: the clone may still run it.
+        probed = [*secrets, applied, *(f for s in SERVICES for f in wanted[s.name] or s.absent())]
         # A clone that was running already: cloud-init's result, the digests of what ccrp put there
         # and whether it serves, in one round trip. Anything not as it should be is then done the
         # long way below, as for a new clone. A clone just created or started boots first.
@@ -263,7 +262,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         # off while ccrp was still waiting for its master).
         changed = [f for f in settings if not same(have, [f])]
         if changed:
-            provider.transport.push_files(robot, changed, restart=[])  # both agents re-read their file
+            provider.transport.push_files(robot, changed, restart=[])  # their agents re-read their files
         pushed = False
         if not same(have, [*keys, applied]):
             prepare_secrets_dir(provider, robot)
@@ -276,12 +275,11 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
             provider.transport.push_files(robot, crl, restart=[])
         if pushed or seen is None or not seen.serving:
             wait_serving(provider, robot, port)
-        apply_api_manager(provider, robot, api, have)
-        apply_knowledge(provider, robot, know, have, restart=pushed)
-        started = apply_nodes(provider, robot, nodes, have)
-        if started:
-            progress(f"[{robot}] nodes started: {', '.join(started)}")
-        writer.relay_current[robot] = relay.content + "".join(f.content for f in know)
+        for service in SERVICES:
+            started = service.apply(provider, robot, wanted[service.name], have, pushed)
+            if started:
+                progress(f"[{robot}] {service.name} started: {', '.join(started)}")
+        writer.relay_current[robot] = "".join(f.content for s in SERVICES if s.reshared for f in wanted[s.name])
     except BaseException:
         writer.update(robot, phase="failed", provider_id=record.provider_id)
         if record.created:
@@ -319,29 +317,16 @@ def _left_revoked(fleet: Fleet, provider: Lifecycle, writer: StateWriter, robot:
     return CloneResult(robot, "revoked", revoked.message + f" ({revoked.hint})")
 
 
-def relay_config_file(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None):
-    from .render.files import BundleFile
-    from .sharing import relay_config_text
-
-    return BundleFile("relay.json", relay_config_text(fleet, state, robot, live), 0o644, f"{CCRP_ETC}/relay.json")
-
-
-def autostop_file(fleet: Fleet, robot):
-    """The clone's autostop setting (agent/autostop.py reads it at every check)."""
-    from .render.files import BundleFile
-
-    text = json.dumps({"robot": robot.name, "idle": fleet.inventory.idle_of(robot)}) + "\n"
-    return BundleFile("autostop.json", text, 0o644, f"{CCRP_ETC}/autostop.json")
-
-
 def push_relay_config(fleet: Fleet, provider: Reaches, state: FleetState, robot: str, known: str | None = None) -> bool:
-    """Give robot's clone its current relay.json (and knowledge.json where it shares a dataset);
-    the agents pick them up without a restart. `known` is what this run already found on (or
-    pushed to) the clone: when it is the same, the clone is not asked again. Returns True when a
-    file changed."""
-    from .knowledge import knowledge_files
+    """Give robot's clone the current files of the services that name its partners (relay.json, and
+    knowledge.json where it shares a dataset); the agents pick them up without a restart. `known` is
+    what this run already found on (or pushed to) the clone: when it is the same, the clone is not
+    asked again. Returns True when a file changed."""
+    from .clone_services import SERVICES
+    from .service import ServiceContext
 
-    files = [relay_config_file(fleet, state, robot), *knowledge_files(fleet, state, robot)]
+    ctx = ServiceContext(fleet, state, fleet.robot(state, robot))
+    files = [f for s in SERVICES if s.reshared for f in s.files(ctx)]
     if "".join(f.content for f in files) == known or files_current(provider, robot, files):
         return False
     provider.transport.push_files(robot, files, restart=[])

@@ -22,8 +22,10 @@ from .fleet import Fleet
 from .models.state import FleetState
 from .render.files import BundleFile
 from .layout import CCRP_ETC, CCRP_LIB, SECRETS_DIR
+from .service import Boot, CloneService, ServiceContext
 
 if TYPE_CHECKING:
+    from .models.inventory import Robot
     from .providers.base import Reaches
 
 UNIT = "ccrp-knowledge.service"
@@ -112,6 +114,31 @@ def apply_knowledge(provider: Reaches, robot: str, files: list[BundleFile], have
         rc, out = provider.transport.exec(robot, ["sh", "-c", OFF_SH], timeout=30)
         if rc != 0:
             raise CcrpError(f"cannot turn knowledge sync off on robot {robot!r}'s clone: {out.strip()[-200:]}")
+
+
+class Knowledge(CloneService):
+    """Its unit is in every clone's user-data; its config and agent go with the clone's settings
+    (its partners are the relay's kind: reshared when the fleet changes), and the agent is
+    (re)started once the clone serves."""
+
+    name = "knowledge"
+    settings = True
+    reshared = True
+    boot = Boot(units=(UNIT,))
+
+    def files(self, ctx: ServiceContext) -> list[BundleFile]:
+        return knowledge_files(ctx.fleet, ctx.state, ctx.robot.name, ctx.live)
+
+    def absent(self) -> list[BundleFile]:
+        return [absent_config()]
+
+    def apply(self, clone: Reaches, robot: str, files: list[BundleFile], have: dict[str, str],
+              pushed_keys: bool) -> list[str]:
+        apply_knowledge(clone, robot, files, have, restart=pushed_keys)  # the agent uses the relay's TLS files
+        return []
+
+    def status(self, fleet: Fleet, state: FleetState, robot: Robot, health: dict | None) -> dict:
+        return {"knowledge": knowledge_row(fleet, state, robot.name, health)}
 
 
 # -- the commands --------------------------------------------------------------------------------

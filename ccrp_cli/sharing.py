@@ -12,8 +12,11 @@ import json
 from dataclasses import asdict, dataclass
 
 from .fleet import Fleet
+from .layout import CCRP_ETC
 from .models.inventory import Robot
 from .models.state import FleetState
+from .render.files import BundleFile
+from .service import Boot, CloneService, ServiceContext
 
 
 @dataclass(frozen=True, order=True)
@@ -58,7 +61,7 @@ def zenoh_id(fleet: str, robot: str) -> str:
 def relay_config(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> dict:
     """/etc/ccrp/relay.json of robot's clone. Not secret: the TLS files it names come as secrets.
     `live`: the clones taken as up (by default those state calls ready)."""
-    from .layout import CCRP_ETC, SECRETS_DIR
+    from .layout import SECRETS_DIR
 
     inv = fleet.inventory
     plan = fleet.plan(state)
@@ -93,6 +96,41 @@ def relay_config(fleet: Fleet, state: FleetState, robot: str, live: set[str] | N
 
 def relay_config_text(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> str:
     return json.dumps(relay_config(fleet, state, robot, live), indent=1, sort_keys=True) + "\n"
+
+
+def relay_config_file(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> BundleFile:
+    return BundleFile("relay.json", relay_config_text(fleet, state, robot, live), 0o644, f"{CCRP_ETC}/relay.json")
+
+
+def relay_link(h: dict, expected: list[str]) -> tuple[bool, dict[str, bool]]:
+    """From a clone's health: whether its relay agent runs, and its peers (name -> connected). The
+    agent's own report counts only while it runs (health.py: a status file under 10 s old); the
+    last report of a stopped agent would show sharing that no longer happens, so then every peer
+    ccrp configured (`expected`) is down."""
+    relay = h.get("relay") or {}
+    if relay.get("running"):
+        return True, dict(relay.get("peers") or {})
+    return False, dict.fromkeys(sorted(expected), False)
+
+
+class Relay(CloneService):
+    """The topic relay (agent/relay.py): its unit comes with the user-data, its agent with the
+    snapshot (or the user-data: ROS 2, a bare image); `fleet up` pushes relay.json, which the agent
+    re-reads within a second, and its TLS files with the keys (which restart it)."""
+
+    name = "relay"
+    settings = True
+    reshared = True
+    boot = Boot(units=("ccrp-relay.service",))
+
+    def files(self, ctx: ServiceContext) -> list[BundleFile]:
+        return [relay_config_file(ctx.fleet, ctx.state, ctx.robot.name, ctx.live)]
+
+    def status(self, fleet: Fleet, state: FleetState, robot: Robot, health: dict | None) -> dict:
+        if health is None:
+            return {}
+        running, peers = relay_link(health, list(relay_config(fleet, state, robot.name)["peers"]))
+        return {"relay_running": running, "relay_peers": peers}
 
 
 def matrix(fleet: Fleet, state: FleetState) -> list[dict]:

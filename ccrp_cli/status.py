@@ -5,29 +5,24 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
-from .api_manager import api_manager_row
-from .knowledge import knowledge_row
+from .clone_services import SERVICES
 from .errors import CcrpError
 from .fleet import Fleet
-from .sharing import relay_config
 from .power import parse_report
 from .models.status import StatusRow
 from .probe import health, robot_link
 from .providers.base import CloneState
 
 if TYPE_CHECKING:
+    from .models.inventory import Robot
+    from .models.state import FleetState
     from .providers.base import Provider
 
 
-def relay_link(h: dict, expected: list[str]) -> tuple[bool, dict[str, bool]]:
-    """From a clone's health: whether its relay agent runs, and its peers (name -> connected). The
-    agent's own report counts only while it runs (health.py: a status file under 10 s old); the
-    last report of a stopped agent would show sharing that no longer happens, so then every peer
-    ccrp configured (`expected`) is down."""
-    relay = h.get("relay") or {}
-    if relay.get("running"):
-        return True, dict(relay.get("peers") or {})
-    return False, dict.fromkeys(sorted(expected), False)
+def service_fields(fleet: Fleet, state: FleetState, robot: Robot, h: dict | None) -> dict:
+    """The fields of robot's row that its clone services give (clone_services.py), from the clone's
+    health report (None: the clone was not asked)."""
+    return {k: v for service in SERVICES for k, v in service.status(fleet, state, robot, h).items()}
 
 
 def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
@@ -41,6 +36,7 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
     def one(robot: str) -> StatusRow:
         rec = actual.get(robot)
         a = plan[robot]
+        member = fleet.robot(state, robot)
         row = StatusRow(
             robot=robot,
             clone=a.clone_host,
@@ -52,9 +48,7 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
             vpn_subnet=str(a.vpn_subnet),
             ros_distro=fleet.inventory.ros.distro,
             revoked_at=revoked[robot].isoformat() if revoked.get(robot) else None,
-            autostop_idle_s=fleet.inventory.idle_of(fleet.robot(state, robot)) or None,
-            api_manager=api_manager_row(fleet.inventory, fleet.robot(state, robot), None),
-            knowledge=knowledge_row(fleet, state, robot, None),
+            **service_fields(fleet, state, member, None),
         )
         if rec and rec.state is CloneState.STOPPED:
             note = provider.stop_note(robot)
@@ -73,12 +67,9 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
                     "robot_address": client["real_address"] if client else None,
                     "robot_rtt_ms": client.get("rtt_ms") if client else None,
                     "master_reachable": h["master"]["reachable"],
-                    "api_manager": api_manager_row(fleet.inventory, fleet.robot(state, robot), h),
-                    "knowledge": knowledge_row(fleet, state, robot, h),
                     "power": parse_report(h.get("power") or ""),  # None: no device reported since the clone booted
-                    "nodes": h.get("nodes") or None,
+                    **service_fields(fleet, state, member, h),
                 }
-                update["relay_running"], update["relay_peers"] = relay_link(h, list(relay_config(fleet, state, robot)["peers"]))
                 row = StatusRow.model_validate(row.model_dump() | update)
             except (CcrpError, KeyError, TypeError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
                 # Running to the cloud but not answering (booting, or shutting down: autostop, a

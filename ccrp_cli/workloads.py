@@ -11,7 +11,6 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -20,9 +19,11 @@ from .errors import CcrpError, InputError, shown
 from .models.inventory import Inventory, Robot
 from .models.software import RunNode, Software
 from .render.files import BundleFile
-from .templates import static
+from .service import CloneService, ServiceContext
 
 if TYPE_CHECKING:
+    from .fleet import Fleet
+    from .models.state import FleetState
     from .providers.base import Reaches
 
 UNIT_DIR = "/etc/systemd/system"
@@ -87,6 +88,8 @@ def workspace_files(root: Path) -> list[tuple[str, bytes]]:
 
 
 def scan_packages(root: Path, files: list[tuple[str, bytes]]) -> list[Package]:
+    import xml.etree.ElementTree as ET  # here: `ccrp status` imports this module and parses no package
+
     # A directory holding CATKIN_IGNORE or COLCON_IGNORE is left out with everything under it.
     ignored = [rel.rsplit("/", 1)[0] + "/" if "/" in rel else "" for rel, _ in files
                if rel.rsplit("/", 1)[-1] in ("CATKIN_IGNORE", "COLCON_IGNORE")]
@@ -247,6 +250,8 @@ def systemd_word(word: str) -> str:
 
 
 def node_unit(node: RunNode, digest: str) -> str:
+    from .templates import static  # here: `ccrp status` reads the nodes' service and renders no unit
+
     limits = []
     if node.cpu is not None:
         limits.append(f"CPUQuota={round(node.cpu * 100)}%")
@@ -317,6 +322,26 @@ def apply_nodes(provider: Reaches, robot: str, files: list[BundleFile], have: di
     if rc != 0:
         raise CcrpError(f"cannot start the nodes of robot {robot!r}'s clone: {out.strip()[-300:]}")
     return restart
+
+
+class Nodes(CloneService):
+    """The robot's `run` nodes: their units and index pushed, changed ones restarted, once the clone
+    serves; their code is the snapshot's (or what `ccrp deploy` left on a kept clone)."""
+
+    name = "nodes"
+
+    def files(self, ctx: ServiceContext) -> list[BundleFile]:
+        return node_files(ctx.fleet.inventory, ctx.robot, ctx.software or NO_SOFTWARE)
+
+    def absent(self) -> list[BundleFile]:
+        return [absent_index()]
+
+    def apply(self, clone: Reaches, robot: str, files: list[BundleFile], have: dict[str, str],
+              pushed_keys: bool) -> list[str]:
+        return apply_nodes(clone, robot, files, have)
+
+    def status(self, fleet: Fleet, state: FleetState, robot: Robot, health: dict | None) -> dict:
+        return {} if health is None else {"nodes": health.get("nodes") or None}
 
 
 # -- logs ------------------------------------------------------------------------------------------

@@ -6,7 +6,8 @@ from __future__ import annotations
 import hashlib
 
 from ccrp_cli import clones, reconcile
-from ccrp_cli.clones import StateWriter, probe, relay_config_file
+from ccrp_cli.clones import StateWriter, probe
+from ccrp_cli.sharing import relay_config_file
 from ccrp_cli.providers.base import CloneRecord, CloneState
 from ccrp_cli.render.files import BundleFile
 from ccrp_cli.sharing import relay_config

@@ -1,5 +1,5 @@
-"""ensure_clone's pushes, restarts and commands on a fake clone, in order: what a new clone gets, and
-what a reused one gets when one service file changed (issue 26 keeps them as they are)."""
+"""Clone services as plug-ins (issue 26): the registry's order, and ensure_clone running them on a
+fake clone with the same pushes, restarts and commands, in the same order, as before the registry."""
 
 from __future__ import annotations
 
@@ -8,11 +8,31 @@ import hashlib
 import yaml
 
 from ccrp_cli import clones
-from ccrp_cli.fleet import Fleet
+from ccrp_cli.clone_services import SERVICES
+from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.providers.base import CloneRecord, CloneState, Origin
 from tests.conftest import LAB
 
 RESULT = '{"v1": {"datasource": "DataSourceNoCloud", "errors": []}}'
+
+
+def test_the_registry_runs_the_services_in_fleet_ups_order():
+    assert [s.name for s in SERVICES] == ["relay", "autostop", "api_manager", "knowledge", "nodes"]
+    # Settings go before the keys in this order; the others are applied after the clone serves.
+    assert [s.name for s in SERVICES if s.settings] == ["relay", "autostop", "knowledge"]
+    assert [s.name for s in SERVICES if s.reshared] == ["relay", "knowledge"]
+
+
+def test_each_services_boot_declaration_is_in_the_user_data(lab):
+    """What a service says its clone gets from the user-data is what render/cloudinit.py writes."""
+    from ccrp_cli.layout import CCRP_LIB
+    from ccrp_cli.render import cloudinit
+
+    state = lab.load_allocated()
+    written = {f["path"] for f in cloudinit.user_data_dict(clone_view(lab, state, "nao1"))["write_files"]}
+    for service in SERVICES:
+        assert {f"/etc/systemd/system/{u}" for u in service.boot.units} <= written, service.name
+        assert {f"{CCRP_LIB}/{a}.py" for a in service.boot.agents} <= written, service.name
 
 
 class Clone:
@@ -66,10 +86,12 @@ class Clone:
         return 0, ""
 
 
-def fleet_with_every_service(tmp_path, ccrp_home, rate: float = 1.0) -> Fleet:
+def fleet_with_every_service(tmp_path, ccrp_home, rate: float = 1.0, idle: str | None = None) -> Fleet:
     """The lab (knowledge sync on every robot) with an API manager and a node of its own on each robot."""
     data = yaml.safe_load(LAB.read_text())
     data["services"]["api_manager"] = {"rate": rate}
+    if idle:
+        data["autostop"] = {"idle": idle}
     data["software"] = {"run": [{"name": "mapper", "command": ["mapper", "--fast"]}]}
     path = tmp_path / "fleet.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -137,3 +159,24 @@ def test_a_reused_clone_gets_only_the_service_file_that_changed(tmp_path, ccrp_h
         ("exec", "has_api_unit"),
         ("push", ["api_manager.json", "api_manager.py"], ["ccrp-api-manager.service"]),
     ]
+
+
+def test_a_reused_clone_gets_a_changed_setting_before_anything_else(tmp_path, ccrp_home):
+    clone = Clone()
+    up_nao1(fleet_with_every_service(tmp_path, ccrp_home), clone)
+    clone.log.clear()
+    clone.origin = Origin.REUSED
+    assert up_nao1(fleet_with_every_service(tmp_path, ccrp_home, idle="30m"), clone) == []
+    assert clone.log == [("run_instance", "reused"), ("probe",), ("push", ["autostop.json"], [])]
+
+
+def test_status_takes_each_services_fields(lab_up):
+    from ccrp_cli.status import service_fields
+
+    fleet, state = lab_up
+    nao1 = fleet.robot(state, "nao1")
+    assert set(service_fields(fleet, state, nao1, None)) == {"autostop_idle_s", "api_manager", "knowledge"}
+    health = {"relay": {"running": True, "peers": {"nao2": True}}, "nodes": [], "knowledge": {"running": True}}
+    fields = service_fields(fleet, state, nao1, health)
+    assert fields["relay_running"] and fields["relay_peers"] == {"nao2": True} and fields["nodes"] is None
+    assert fields["knowledge"]["running"] and fields["api_manager"] is None and fields["autostop_idle_s"] is None

@@ -1,0 +1,78 @@
+"""What a clone service is (docs/architecture.md, "Clone services"): the relay, autostop, the API
+manager, knowledge sync, the robot's nodes. Each says what `fleet up` pushes to a clone for it after
+boot and how it applies it; the clone pipeline (clones.py ensure_clone) runs them in the registry's
+order (clone_services.py). A service imports neither the pipeline nor the registry (the `services`
+import contract), so adding one touches its own module and one registry line."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar, Protocol
+
+if TYPE_CHECKING:
+    from .fleet import Fleet
+    from .models.inventory import Robot
+    from .models.state import FleetState
+    from .providers.base import Reaches
+    from .render.files import BundleFile
+
+
+@dataclass(frozen=True)
+class ServiceContext:
+    """What a service's files are made from, for one clone."""
+
+    fleet: Fleet
+    state: FleetState
+    robot: Robot
+    # The clones taken as up (StateWriter.live()); None: those the state calls ready.
+    live: set[str] | None = None
+    # The software digest the clone runs (its snapshot's, or what `ccrp deploy` left on a kept clone).
+    software: str | None = None
+
+
+@dataclass(frozen=True)
+class Boot:
+    """What a service's clone gets from its user-data (render/cloudinit.py writes it, not the
+    pipeline): its systemd units and the agents (agent/<name>.py) in every clone's user-data.
+    A declaration: tests/unit/test_clone_services.py checks it against the rendered user-data."""
+
+    units: tuple[str, ...] = ()
+    agents: tuple[str, ...] = ()
+
+
+class CloneService(Protocol):
+    """One clone service. A service subclasses this and keeps the defaults of what it lacks."""
+
+    name: ClassVar[str]
+    # Its files are settings its agent re-reads, pushed before the keys (see ensure_clone); the
+    # others are applied once the clone serves.
+    settings: ClassVar[bool] = False
+    # Its files name the clone's partners: reshare (reconcile.py) pushes them again when the
+    # fleet's membership changes, and ensure_clone tells it what this run left on the clone.
+    reshared: ClassVar[bool] = False
+    boot: ClassVar[Boot] = Boot()
+
+    def check(self, fleet: Fleet, robot: Robot) -> None:
+        """Refuse, before the clone is made, what the operator's inputs make impossible."""
+
+    def files(self, ctx: ServiceContext) -> list[BundleFile]:
+        """What `fleet up` pushes for it to ctx.robot's clone; [] when that clone runs none."""
+        return []
+
+    def absent(self) -> list[BundleFile]:
+        """Probed when files() is []: the file (content unused) whose presence says the clone ran
+        the service before and apply() must turn it off."""
+        return []
+
+    def apply(self, clone: Reaches, robot: str, files: list[BundleFile], have: dict[str, str],
+              pushed_keys: bool) -> list[str]:
+        """Bring the clone in line with `files`, given the digests it holds (`have`, probed before
+        anything was pushed) and whether its keys were just pushed (OpenVPN and the relay
+        restarted). Runs once the clone serves. Returns what it started or restarted, for the
+        progress line."""
+        return []
+
+    def status(self, fleet: Fleet, state: FleetState, robot: Robot, health: dict | None) -> dict:
+        """Its fields of robot's `ccrp status` row (models/status.py StatusRow), from the clone's
+        health report (None: the clone was not asked)."""
+        return {}
