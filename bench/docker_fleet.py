@@ -43,7 +43,7 @@ FLEET = "bench" + "".join(secrets.choice(string.ascii_lowercase + string.digits)
 
 def inventory() -> dict:
     # Pools no Docker network, route or fleet of this host overlaps: as `ccrp init` picks them.
-    from ccrp_cli.init import free, used_networks
+    from ccrp_cli.ops.init import free, used_networks
 
     used = used_networks()
     public, common, pool = free("public", used), free("common", used), free("vpn", used)

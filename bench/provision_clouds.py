@@ -13,7 +13,7 @@ the contract harnesses (tests/contract/harness_<kind>.py):
   bootstrap  from an empty fleet (network, security group / firewall, key pair, routes), then
              again as every later `fleet up` runs it (reuse: reads only);
   quotas     the fakes' quotas raised to N clones' worth (make_room); on openstack and gcp the
-             check `fleet up` makes before creating (ccrp_cli/quotas.py) is timed too, apart;
+             check `fleet up` makes before creating (ccrp_cli/ops/quotas.py) is timed too, apart;
   fan-out    run_instance for every robot on the bounded pool of `fleet up` (reconcile._fan_out,
              provider.max_parallel workers), for 1, N/4, N/2 and N clones, each on a fresh fake:
              wall time, API calls (total and per clone), ratio to one clone, and that every robot
@@ -50,10 +50,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # the harnesses live in tests/contract
 
-from ccrp_cli import quotas  # noqa: E402
-from ccrp_cli.clones import CloneResult  # noqa: E402
+from ccrp_cli.ops import quotas  # noqa: E402
+from ccrp_cli.ops.clones import CloneResult  # noqa: E402
 from ccrp_cli.models.inventory import Inventory  # noqa: E402
-from ccrp_cli.reconcile import _fan_out  # noqa: E402
+from ccrp_cli.ops.reconcile import _fan_out  # noqa: E402
 from tests.contract.specs import clone_spec  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
@@ -91,7 +91,7 @@ def make_room(harness, n: int) -> None:
 
 
 # Fakes whose quotas make_room raises: there the benchmark also times the check `fleet up` makes
-# before creating (ccrp_cli/quotas.py). moto's limits are fixed (5 Elastic IPs), so not on aws.
+# before creating (ccrp_cli/ops/quotas.py). moto's limits are fixed (5 Elastic IPs), so not on aws.
 QUOTA_CHECKED = ("openstack", "gcp")
 
 

@@ -65,7 +65,7 @@ def cold_build(inventory: Path) -> float:
     from ccrp_cli.providers.docker import images
     from ccrp_cli.providers.docker.archive import tar_files
     from ccrp_cli.recipes import platform as recipe_platform
-    from ccrp_cli.workloads import snapshot_software
+    from ccrp_cli.services.workloads import snapshot_software
 
     fleet = Fleet.open(inventory)
     inv = fleet.inventory

@@ -18,7 +18,7 @@ Say = Callable[[str], None]
 
 def clone_start(fleet, provider: Provider, robot: str, say: Say) -> list:
     """`ccrp clone start`: start the robot's stopped clone, push its keys again, wait until it serves."""
-    from . import reconcile
+    from .ops import reconcile
     from .errors import InputError
     from .providers.base import Origin
 
@@ -39,7 +39,7 @@ def clone_stop(fleet, provider: Lifecycle, robot: str, say: Say, timeout: float 
     import time
 
     from . import retry
-    from .clones import CloneResult
+    from .ops.clones import CloneResult
     from .errors import CcrpError, InputError
     from .providers.base import CloneState
 
@@ -79,7 +79,7 @@ def clone_restart(fleet, provider: Provider, robot: str, say: Say) -> list:
 
 def fleet_scale(fleet, provider: Provider, size: int, say: Say) -> list:
     """`ccrp fleet scale SIZE`: grow or shrink the fleet with template robots."""
-    from . import reconcile
+    from .ops import reconcile
 
     reconcile.check_scale(fleet, fleet.store.load_state(), size)  # bad input makes no PKI, no snapshot
     ensure_pki(fleet, say)
@@ -110,7 +110,7 @@ def ensure_snapshot(fleet, provider: Provider, say: Say) -> None:
     """A new Docker fleet's golden image is built by the first command that creates a clone, as
     `ccrp snapshot build` would (the caller holds the fleet lock). A cloud's is baked on purpose
     (`ccrp snapshot bake`: a builder instance, minutes, billed), so there the clone says so."""
-    from . import snapshots
+    from .ops import snapshots
     from .providers import Ability
 
     recorded = fleet.store.load_state().snapshot or {}
@@ -126,7 +126,7 @@ def robot_teleop(fleet, provider: Lifecycle, robot: str, linear: float, angular:
                  timeout: float = 5.0, keep: bool = False) -> dict:
     """`ccrp robot teleop` and the dashboard's drive keys: one velocity command through the clone.
     No fleet lock: it changes nothing ccrp records, and an operator must not wait behind a scale."""
-    from .evaluation import send_command
+    from .robot.evaluation import send_command
 
     return send_command(fleet, provider, robot, linear, angular, topic, timeout, keep)
 
@@ -135,6 +135,6 @@ def robot_power(fleet, robot: str, action: str, say: Say, timeout: float = 30) -
     """`ccrp robot power on|off|status` and the dashboard's Power buttons: through the robot's clone
     to its power device, waiting for its report. No fleet lock: ccrp records nothing (a first use
     on a simulated robot issues its device's certificate under the lock)."""
-    from .power import power
+    from .robot.power import power
 
     return power(fleet, robot, action, say, timeout)

@@ -5,10 +5,10 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
-from .clone_services import SERVICES
+from .services.registry import SERVICES
 from .errors import CcrpError
 from .fleet import Fleet
-from .power import parse_report
+from .robot.power import parse_report
 from .models.status import StatusRow
 from .probe import health, robot_link
 from .providers.base import CloneState
@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
 
 def service_fields(fleet: Fleet, state: FleetState, robot: Robot, h: dict | None) -> dict:
-    """The fields of robot's row that its clone services give (clone_services.py), from the clone's
+    """The fields of robot's row that its clone services give (services/registry.py), from the clone's
     health report (None: the clone was not asked)."""
     return {k: v for service in SERVICES for k, v in service.status(fleet, state, robot, h).items()}
 
@@ -82,7 +82,7 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
     robots = list(plan)
     if not robots:
         return []
-    from . import watchdog
+    from .robot import watchdog
 
     with ThreadPoolExecutor(max_workers=min(provider.max_parallel, len(robots)) + 1) as pool:
         sims = pool.submit(watchdog.simulated, fleet, provider)

@@ -62,11 +62,11 @@ def revoke(fleet: Fleet, robot: str, cert: str = "client", provider: Provider | 
         _push_crl(fleet, provider, robot, kill=sorted({rec.cn for rec in revoked if rec.profile in ("client", "power")}),
                   progress=progress)
         if "client" in kinds:
-            from .reconcile import reshare
+            from .ops.reconcile import reshare
 
             reshare(fleet, provider, progress)  # its partners drop the revoked robot's clone
         elif kinds == ("power",):
-            from .power import push_passwd
+            from .robot.power import push_passwd
 
             push_passwd(fleet, provider, robot, progress)  # the clone forgets the device's name
         else:
@@ -83,7 +83,7 @@ def _running(provider: Lifecycle) -> list[str]:
 def _replace_on_clone(fleet: Fleet, provider: Provider, robot: str, progress: Callable[[str], None]) -> None:
     """A running clone of `robot` gets its new certificates and secrets at once (fleet up for that
     robot: OpenVPN and the relay restart, partners get the new relay CN)."""
-    from .reconcile import up
+    from .ops.reconcile import up
 
     if robot not in _running(provider):
         return
@@ -106,7 +106,7 @@ def _push_crl(fleet: Fleet, provider: Lifecycle, robot: str, kill: list[str], pr
     the new CRL."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from .clones import kill_session
+    from .ops.clones import kill_session
     from .render.bundles import crl_file
 
     crl = crl_file(fleet.pki.crl_path.read_text())

@@ -27,7 +27,7 @@ def rtt(
 ) -> None:
     """Round trips robot -> clone: ICMP without the VPN (public address), ICMP through the VPN, and
     a ROS topic request/reply through the VPN (ms)."""
-    from ..evaluation import rtt as run
+    from ..robot.evaluation import rtt as run
 
     rows = run(options.open_fleet(inventory), robot, samples, output.info)
     output.emit(rows, as_json, ["PATH", "PROBE", "TARGET", *STATS, "LOST"],
@@ -47,8 +47,8 @@ def qos(
 ) -> None:
     """Response time of a task as robots are added, clone-based vs proxy-based: every robot sends a
     request each task period (or at once when its last reply came late), all at the same time."""
-    from ..evaluation import parse_counts, parse_list, qos as run
-    from ..simulated import parse_link
+    from ..robot.evaluation import parse_counts, parse_list, qos as run
+    from ..robot.simulated import parse_link
 
     counts = parse_counts(robots)
     tasks = parse_list(task_ms, None, "--task-ms")
@@ -69,7 +69,7 @@ def teleop(
 ) -> None:
     """Teleoperation latency under the robot's current link (`robot sim --link`): velocity commands
     from the clone to the robot, and camera frames (320x240, 5 fps) from the robot to the clone."""
-    from ..evaluation import teleop as run
+    from ..robot.evaluation import teleop as run
 
     rows = run(options.open_fleet(inventory), robot, duration, output.info)
     output.emit(rows, as_json, ["STREAM", *STATS, "SENT"],

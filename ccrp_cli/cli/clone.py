@@ -15,7 +15,7 @@ app = typer.Typer(help="One robot's clone: create, start, stop, restart, delete,
 @app.command()
 def create(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Create the robot's clone from the fleet's snapshot (idempotent: reuses an existing one)."""
-    from .. import reconcile
+    from ..ops import reconcile
 
     fleet, provider = options.open_provider(inventory)
     fleet.robot(fleet.store.load_state(), robot)  # an unknown robot is bad input, before any PKI is made
@@ -66,8 +66,8 @@ def delete(inventory: options.Inventory, robot: options.Robot, as_json: options.
     with fleet.store.lock():
         state = fleet.store.load_state()
         existed = robot in provider.query()
-        from ..clones import StateWriter
-        from ..reconcile import retire
+        from ..ops.clones import StateWriter
+        from ..ops.reconcile import retire
 
         [item] = retire(fleet, provider, StateWriter(fleet, state), [robot], output.info, forget=False)
         if not existed:

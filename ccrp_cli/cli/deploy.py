@@ -21,7 +21,7 @@ def deploy(
     built once here in the clone image, pushed to each clone, the changed nodes restarted; a node
     that does not stay up puts its clone back on the previous version. apt/pip changes need a new
     snapshot and new clones."""
-    from .. import deploy as core
+    from ..ops import deploy as core
     from ..providers import get_provider
 
     fleet = options.open_fleet(inventory)

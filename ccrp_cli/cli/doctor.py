@@ -9,7 +9,7 @@ from . import options, output
 
 def doctor(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Check SDKs, credentials, quotas, the snapshot and local tools for the fleet. Changes nothing."""
-    from .. import doctor as core
+    from ..ops import doctor as core
 
     checks = core.run(options.open_fleet(inventory))
     output.emit(core.as_dicts(checks), as_json, ["CHECK", "STATUS", "DETAIL", "FIX"],

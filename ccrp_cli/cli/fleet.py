@@ -58,7 +58,7 @@ def validate(inventory: options.Inventory, as_json: options.Json = False) -> Non
 @app.command()
 def up(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Create or reuse every robot's clone, in parallel (idempotent; safe to re-run after a crash)."""
-    from .. import reconcile
+    from ..ops import reconcile
 
     fleet, provider = options.open_provider(inventory)
     from ..actions import ensure_pki, ensure_snapshot
@@ -87,7 +87,7 @@ def scale(
 @app.command()
 def down(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Remove every container, network and volume ccrp created for the fleet (PKI and state stay)."""
-    from .. import reconcile
+    from ..ops import reconcile
 
     fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
@@ -99,7 +99,7 @@ def down(inventory: options.Inventory, as_json: options.Json = False) -> None:
 @app.command()
 def plan(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Show what `fleet up` would change, and the cloud quotas the clones it creates draw on. Read-only."""
-    from .. import reconcile
+    from ..ops import reconcile
 
     fleet, provider = options.open_provider(inventory)
     rows = reconcile.plan(fleet, provider)
@@ -111,8 +111,8 @@ def plan(inventory: options.Inventory, as_json: options.Json = False) -> None:
 
 def quota_table(provider: Provider, creating: list[str]) -> None:
     """The quotas the clones to create draw on (limit, use, what they take), and the refusal
-    `fleet up` would answer with when one is short (ccrp_cli/quotas.py)."""
-    from .. import quotas
+    `fleet up` would answer with when one is short (ccrp_cli/ops/quotas.py)."""
+    from ..ops import quotas
     from ..errors import CcrpError
 
     try:

@@ -22,7 +22,7 @@ def gc(
     pair, and its snapshots. On Docker, also snapshot images of any fleet whose state directory
     is gone (orphans). Run with --dry-run first to see what would go."""
     from ..errors import CcrpError
-    from ..gc import collect, collect_images
+    from ..ops.gc import collect, collect_images
     from ..providers import Ability
 
     fleet, provider = options.open_provider(inventory)

@@ -20,7 +20,7 @@ def init(
 ) -> None:
     """Write a commented ccrp.yaml that validates, with address pools free on this host (Docker
     networks, routes, and the other fleets in $CCRP_HOME); then `ccrp fleet up` needs no -i."""
-    from ..init import default_fleet, write
+    from ..ops.init import default_fleet, write
     from ..recipes import is_ros2
 
     result = write(out, provider, [r.strip() for r in robots.split(",") if r.strip()], fleet or default_fleet(), distro)

@@ -33,7 +33,7 @@ def _size(n: int) -> str:
 @app.command("list")
 def list_(inventory: options.Inventory, robot: options.Robot, dataset: Dataset, as_json: options.Json = False) -> None:
     """The dataset's items on the robot's clone: name, sha256, size, origin (the clone that added it)."""
-    from .. import knowledge
+    from ..services import knowledge
 
     fleet, provider = _open(inventory)
     reply = knowledge.list_items(fleet, provider, robot, dataset)
@@ -50,7 +50,7 @@ def add(inventory: options.Inventory, robot: options.Robot, dataset: Dataset,
         files: Annotated[list[Path], typer.Argument(help="Files to add (each named by its file name).")],
         as_json: options.Json = False) -> None:
     """Add files to the dataset on the robot's clone; its partners get them within seconds."""
-    from .. import knowledge
+    from ..services import knowledge
 
     fleet, provider = _open(inventory)
     added = knowledge.add_items(fleet, provider, robot, dataset, files)
@@ -64,7 +64,7 @@ def remove(inventory: options.Inventory, robot: options.Robot, dataset: Dataset,
            items: Annotated[list[str], typer.Argument(help="Item names (every content of that name) or sha256s.")],
            as_json: options.Json = False) -> None:
     """Remove items from the dataset everywhere it is shared (a tombstone reaches the partners)."""
-    from .. import knowledge
+    from ..services import knowledge
 
     fleet, provider = _open(inventory)
     gone = knowledge.remove_items(fleet, provider, robot, dataset, items)
@@ -74,7 +74,7 @@ def remove(inventory: options.Inventory, robot: options.Robot, dataset: Dataset,
 @app.command("sync")
 def sync(inventory: options.Inventory, robot: options.Robot, dataset: Dataset, as_json: options.Json = False) -> None:
     """Reconcile now: the robot's clone pulls its partners' indexes and fetches what it lacks."""
-    from .. import knowledge
+    from ..services import knowledge
 
     fleet, provider = _open(inventory)
     reply = knowledge.sync(fleet, provider, robot, dataset)
@@ -90,7 +90,7 @@ def merge(inventory: options.Inventory, robot: options.Robot, dataset: Dataset,
           as_json: options.Json = False) -> None:
     """Merge the dataset's bags into one bag of the fleet's ROS, in time order, each message once: items named
     *.bag into a ROS 1 bag, or on a ROS 2 fleet *.mcap and *.db3 (rosbag2 storage files) into a rosbag2 directory."""
-    from .. import knowledge
+    from ..services import knowledge
 
     fleet, provider = _open(inventory)
     result = knowledge.merge(fleet, provider, robot, dataset, out)

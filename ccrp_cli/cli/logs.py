@@ -24,7 +24,7 @@ def logs(
     `ccrp logs --robot nao1 mapper -f`."""
     from ..models.values import parse_duration
     from ..providers import get_provider
-    from ..workloads import log_units, read_journal
+    from ..services.workloads import log_units, read_journal
 
     since_s = parse_duration(since, "--since") if since else None
     fleet = options.open_fleet(inventory)

@@ -55,7 +55,7 @@ def edge(
     ] = None,
 ) -> None:
     """Write the robot's edge bundle: .ovpn profile, credentials, ROS env, hosts, chrony, units, install.sh."""
-    from ..robots import write_edge
+    from ..robot.robots import write_edge
 
     write_edge(options.open_fleet(inventory), robot, out, remote)
     output.info(f"wrote the edge bundle of robot {robot!r} to {out}; install it with `sudo {out}/install.sh`")

@@ -20,7 +20,7 @@ def bundle(
     remote: Annotated[str | None, typer.Option(help="HOST[:PORT] the robot dials (default: its clone's endpoint).")] = None,
 ) -> None:
     """Write the robot's ready-to-install bundle (same content as `ccrp render edge`)."""
-    from ..robots import write_edge
+    from ..robot.robots import write_edge
 
     fleet = options.open_fleet(inventory)
     path = write_edge(fleet, name, out or fleet.store.root / "edge" / name, remote)
@@ -40,7 +40,7 @@ def sim(
 ) -> None:
     """Run a simulated robot (a container on this host) with exactly its edge bundle; it dials its
     clone over the public network as a real robot would."""
-    from ..simulated import Sims, parse_link
+    from ..robot.simulated import Sims, parse_link
 
     if robot is None and not stop:
         raise typer.BadParameter("--robot is required (only --stop works on every simulated robot at once)", param_hint="'--robot'")
@@ -88,7 +88,7 @@ def teleop(
     as an operator's node there would) and report its latency: clone publish -> robot receipt,
     and the round trip to the robot's acknowledgement on <topic>/ack (docs/dashboard.md)."""
     from ..actions import robot_teleop
-    from ..evaluation import check_command
+    from ..robot.evaluation import check_command
     from ..providers import get_provider
 
     check_command(linear, angular, topic)  # bad input: exit 2 before the fleet is opened
@@ -116,7 +116,7 @@ def power(
     `bundle` writes what it installs (its certificate and password are issued then). A simulated
     robot gets a simulated device at its first `robot power` (docs/dashboard.md, Robot power)."""
     from ..errors import InputError
-    from ..power import ACTIONS
+    from ..robot.power import ACTIONS
 
     if action not in ACTIONS:
         raise InputError(f"robot power {action[:20]!r}: choose on, off, status or bundle", hint="ccrp robot power on --robot R")
@@ -124,7 +124,7 @@ def power(
         raise InputError("--out and --remote go with `robot power bundle`", hint=f"ccrp robot power bundle --robot {robot}")
     fleet = options.open_fleet(inventory)
     if action == "bundle":
-        from ..power import write_device_bundle
+        from ..robot.power import write_device_bundle
         from ..providers import get_provider
 
         path = write_device_bundle(fleet, get_provider(fleet.inventory), robot, out or fleet.store.root / "power" / robot,
@@ -153,7 +153,7 @@ def camera(
     """Write the latest frame of the robot's camera, as its clone sees it, to a JPEG file (asked of a
     camera agent on the clone, which this command starts when none runs; the dashboard's camera view;
     docs/dashboard.md)."""
-    from ..camera import check_topic, latest_frame
+    from ..robot.camera import check_topic, latest_frame
     from ..errors import cannot_write
     from ..providers import get_provider
 

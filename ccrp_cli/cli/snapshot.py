@@ -33,14 +33,14 @@ def build(
         recorded = fleet.store.load_state().snapshot or {}
         current = recorded.get("image")
         # Kept only while it holds the inventory's software (a changed workspace needs a new one).
-        from ..workloads import stale_snapshot
+        from ..services.workloads import stale_snapshot
 
         if if_missing and current and provider.has_image(current) and bool(recorded.get("bare")) == bare \
                 and stale_snapshot(fleet, fleet.store.load_state()) is None:
             output.info(f"snapshot {current} exists; new clones start from it")
             _show([provider.snapshot_record(provider.client.images.get(current))], as_json)
             return
-        from .. import snapshots
+        from ..ops import snapshots
 
         record = snapshots.build(fleet, provider, output.info, bare=bare)
         snapshots.retain(fleet, provider, output.info)
@@ -60,7 +60,7 @@ def bake(
 
     fleet, provider = options.open_provider(inventory, Ability.BAKE, "the golden image is built on this host: `ccrp snapshot build`")
     with fleet.store.lock():
-        from .. import snapshots
+        from ..ops import snapshots
 
         record = snapshots.bake(fleet, provider, output.info, base_image=base_image, timeout=timeout)
         snapshots.retain(fleet, provider, output.info)
@@ -78,7 +78,7 @@ def create(
     """Capture a configured clone as a snapshot (its secrets volume is not included)."""
     fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
-        from .. import snapshots
+        from ..ops import snapshots
 
         record = snapshots.create(fleet, provider, robot, use)
     _show([record], as_json)
@@ -87,7 +87,7 @@ def create(
 @app.command("list")
 def list_(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """List the fleet's snapshots, and who uses each (new clones, clones created from it)."""
-    from ..snapshots import in_use, users
+    from ..ops.snapshots import in_use, users
 
     fleet, provider = options.open_provider(inventory)
     used = in_use(fleet.store.load_state())
@@ -106,7 +106,7 @@ def delete(
     """Delete a snapshot."""
     fleet, provider = options.open_provider(inventory)
     with fleet.store.lock():
-        from .. import snapshots
+        from ..ops import snapshots
 
         snapshots.delete(fleet, provider, snapshot, force)
     output.info(f"deleted snapshot {snapshot}")

@@ -17,8 +17,8 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
     from ..alerts import fleet_alerts
     from ..providers import get_provider
     from ..status import fleet_status
-    from ..watchdog import cell as watchdog_cell
-    from ..watchdog import power_cell
+    from ..robot.watchdog import cell as watchdog_cell
+    from ..robot.watchdog import power_cell
 
     fleet = options.open_fleet(inventory)
     rows = fleet_status(fleet, get_provider(fleet.inventory))

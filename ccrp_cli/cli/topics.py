@@ -7,7 +7,7 @@ from . import options, output
 
 def topics(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Who exports which topic to whom, and the name it has on the importing clone."""
-    from ..sharing import matrix
+    from ..services.sharing import matrix
 
     fleet = options.open_fleet(inventory)
     rows = matrix(fleet, fleet.store.load_state())

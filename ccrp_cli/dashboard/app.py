@@ -116,7 +116,7 @@ class Teleop:
                 log.warning("teleop operators not stopped: %s", one_line(exc, SHOWN))
 
 
-# Reads one camera frame, starting nothing: robot -> ccrp_cli.camera.Frame (raises camera.NoFrame,
+# Reads one camera frame, starting nothing: robot -> ccrp_cli.robot.camera.Frame (raises camera.NoFrame,
 # "no-agent" when no camera agent runs on the clone; InputError).
 CameraFn = Callable[[str], Any]
 # Starts the camera agent on the robot's clone unless it runs: robot -> {"robot", "agent"}.
@@ -346,7 +346,7 @@ def create_app(auth: Auth, broker: Broker, monitor: Monitor, actions: Actions, f
     async def camera_call(robot: str, call) -> tuple[Any, JSONResponse | None]:
         """(what `call(robot)` gave, None), or (None, the refusal): a bad name, a robot not in the
         fleet, no frame or no clone (with its `why`), a failed provider."""
-        from ..camera import NoFrame
+        from ..robot.camera import NoFrame
         from ..errors import InputError
 
         if camera is None:

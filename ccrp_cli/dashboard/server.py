@@ -119,7 +119,7 @@ def teleop_sender(fleet, provider: Lifecycle):
         return actions.robot_teleop(fleet, provider, robot, linear, angular, keep=True)
 
     def close() -> None:
-        from ..evaluation import stop_operators
+        from ..robot.evaluation import stop_operators
 
         stop_operators(fleet, provider)
 
@@ -129,9 +129,9 @@ def teleop_sender(fleet, provider: Lifecycle):
 def camera_functions(fleet, provider: Lifecycle):
     """The camera view's bodies on the fleet the dashboard opened, as the drive keys' are (they
     change nothing ccrp records): (read, start). `read` is `ccrp robot camera`'s
-    (ccrp_cli.camera.latest_frame) without its start of the agent: the page's GET starts nothing on
-    a clone. `start` is the Camera button's POST (ccrp_cli.camera.start_camera)."""
-    from ..camera import latest_frame, start_camera
+    (ccrp_cli.robot.camera.latest_frame) without its start of the agent: the page's GET starts nothing on
+    a clone. `start` is the Camera button's POST (ccrp_cli.robot.camera.start_camera)."""
+    from ..robot.camera import latest_frame, start_camera
 
     return (lambda robot: latest_frame(fleet, provider, robot, start=False)), (lambda robot: start_camera(fleet, provider, robot))
 

@@ -140,7 +140,7 @@ class OwnedResource(BaseModel):
 
 class Quota(BaseModel):
     """One quota that new clones draw on, in the cloud's own numbers (Provider.quotas). The core
-    (ccrp_cli/quotas.py) holds what a command will create against it before it creates anything;
+    (ccrp_cli/ops/quotas.py) holds what a command will create against it before it creates anything;
     `fleet plan` and `ccrp doctor` show it."""
 
     name: str  # the cloud's own name for it: STATIC_ADDRESSES, cores, EC2-VPC Elastic IPs...
@@ -283,7 +283,7 @@ class Housekeeping(Protocol):
     def login_keys(self) -> list[str] | None: ...
     def check_credentials(self) -> str: ...
     # The quotas new clones draw on, with what creating the clones of `robots` takes of each;
-    # [] where the backend has no quota to check (Docker). ccrp_cli/quotas.py decides.
+    # [] where the backend has no quota to check (Docker). ccrp_cli/ops/quotas.py decides.
     def quotas(self, robots: Sequence[str] = ()) -> list[Quota]: ...
 
 

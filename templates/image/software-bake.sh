@@ -1,6 +1,6 @@
 # `ccrp snapshot bake` with software: (docs/workloads.md): the fleet's own packages and workspace
 # on the builder instance, after cloud-init installed the recipe, as templates/docker/software.j2
-# builds them into a Docker snapshot. Run as root over SSH (ccrp_cli/snapshots.py); what it is
+# builds them into a Docker snapshot. Run as root over SSH (ccrp_cli/ops/snapshots.py); what it is
 # given comes in the environment, each list as words the inventory's models typed (Debian package
 # names, pip requirements, package directories: no space, no quote), split here with globbing off:
 #   CCRP_BUILD      catkin | ament_python | none

@@ -10,11 +10,11 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from ccrp_cli.errors import CcrpError
-from ccrp_cli.gc import find_leaks
+from ccrp_cli.ops.gc import find_leaks
 from ccrp_cli.providers import info
 from ccrp_cli.models.state import FleetState, RobotRecord
 from ccrp_cli.providers.base import Ability, Origin
-from ccrp_cli.snapshots import BUILDER
+from ccrp_cli.ops.snapshots import BUILDER
 
 from .harness import FLEET
 from .specs import OPERATOR_CIDR, ROBOTS

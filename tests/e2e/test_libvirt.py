@@ -63,7 +63,7 @@ def vm_fleet(tmp_path_factory):
     """A one-robot libvirt fleet whose snapshot is a golden volume `ccrp snapshot build` made;
     everything of it, golden volumes included, is removed at the end whatever happened."""
     from ccrp_cli.fleet import Fleet
-    from ccrp_cli.init import free, used_networks
+    from ccrp_cli.ops.init import free, used_networks
     from ccrp_cli.providers import get_provider
 
     tmp = tmp_path_factory.mktemp("libvirt")

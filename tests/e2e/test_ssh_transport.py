@@ -34,7 +34,7 @@ pytestmark = [
 docker = pytest.importorskip("docker")
 paramiko = pytest.importorskip("paramiko")
 
-from ccrp_cli import clones  # noqa: E402
+from ccrp_cli.ops import clones  # noqa: E402
 from ccrp_cli.errors import CcrpError  # noqa: E402
 from ccrp_cli.fleet import clone_view  # noqa: E402
 from ccrp_cli.loader import load_inventory  # noqa: E402

@@ -221,7 +221,7 @@ def docker_available() -> str | None:
 # What a fake network must not shadow on this machine (Docker refuses overlaps with its own
 # networks by itself, but not with the host's routes and DNS servers): the same rule `ccrp init`
 # follows for a new fleet's pools.
-from ccrp_cli.init import host_ranges  # noqa: E402
+from ccrp_cli.ops.init import host_ranges  # noqa: E402
 
 
 def _tar(files: list[tuple[str, bytes, int]]) -> bytes:

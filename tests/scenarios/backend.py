@@ -159,7 +159,7 @@ def free_cidr(within: str, prefix: int = 24, skip: int = 0) -> str:
     import ipaddress
     import random
 
-    from ccrp_cli.init import docker_subnets, host_ranges
+    from ccrp_cli.ops.init import docker_subnets, host_ranges
 
     used = docker_subnets() + [ipaddress.IPv4Network(r) for r in host_ranges()]
     candidates = list(ipaddress.IPv4Network(within).subnets(new_prefix=prefix))

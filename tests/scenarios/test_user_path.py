@@ -272,7 +272,7 @@ def test_cloud_faults_give_per_robot_results_and_a_rerun_converges(run, fault):
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     if fault == "quota" and run.b.kind == "openstack":
         # This fault lowers the project's instance quota, which Nova's limits report: `fleet scale`
-        # refuses before creating anything, in one line naming the quota (ccrp_cli/quotas.py). The
+        # refuses before creating anything, in one line naming the quota (ccrp_cli/ops/quotas.py). The
         # other clouds' quota faults refuse the create itself without a lower reported quota.
         assert proc.returncode == 1, proc.stderr[-2000:]
         envelope = json.loads(proc.stdout)["error"]  # --json: the failure on stdout too

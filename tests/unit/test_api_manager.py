@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from ccrp_cli import api_manager as service
+from ccrp_cli.services import api_manager as service
 from ccrp_cli.agent import api_manager as agent
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.loader import parse_inventory
@@ -109,7 +109,7 @@ class Recorder:
 
 
 def test_fleet_up_pushes_a_changed_config_restarting_the_agent_and_turns_it_off():
-    from ccrp_cli.clones import same  # noqa: F401 - apply_api_manager compares digests with it
+    from ccrp_cli.ops.clones import same  # noqa: F401 - apply_api_manager compares digests with it
     import hashlib
 
     fleet = inv(services={"api_manager": {}})

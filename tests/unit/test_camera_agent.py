@@ -18,7 +18,7 @@ import pytest
 cv2 = pytest.importorskip("cv2", reason="needs OpenCV (the clone's; opencv-contrib-python-headless here)")
 np = pytest.importorskip("numpy")
 
-from ccrp_cli import camera  # noqa: E402
+from ccrp_cli.robot import camera  # noqa: E402
 from ccrp_cli.agent import camera as agent  # noqa: E402
 
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import hashlib
 
-from ccrp_cli import clones, reconcile
-from ccrp_cli.clones import StateWriter, probe
-from ccrp_cli.sharing import relay_config_file
+from ccrp_cli.ops import clones, reconcile
+from ccrp_cli.ops.clones import StateWriter, probe
+from ccrp_cli.services.sharing import relay_config_file
 from ccrp_cli.providers.base import CloneRecord, CloneState
 from ccrp_cli.render.files import BundleFile
-from ccrp_cli.sharing import relay_config
+from ccrp_cli.services.sharing import relay_config
 
 RESULT = '{\n "v1": {\n  "datasource": "DataSourceNoCloud",\n  "errors": []\n }\n}\n'
 
@@ -76,7 +76,7 @@ def test_a_reused_clone_stays_in_its_partners_relay_config_while_it_is_creating(
 
 def test_reshare_asks_only_clones_whose_config_this_run_does_not_know(lab_up):
     fleet, state = lab_up
-    from ccrp_cli.knowledge import knowledge_files
+    from ccrp_cli.services.knowledge import knowledge_files
 
     # What ensure_clone leaves for reshare: the relay's config, and the knowledge agent's where it runs.
     known = {r: relay_config_file(fleet, state, r).content + "".join(f.content for f in knowledge_files(fleet, state, r))

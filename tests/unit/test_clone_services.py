@@ -7,8 +7,8 @@ import hashlib
 
 import yaml
 
-from ccrp_cli import clones
-from ccrp_cli.clone_services import SERVICES
+from ccrp_cli.ops import clones
+from ccrp_cli.services.registry import SERVICES
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.providers.base import CloneRecord, CloneState, Origin
 from tests.conftest import LAB
@@ -68,7 +68,7 @@ class Clone:
         self.held.update({f.dest: f.content for f in files})
 
     def exec(self, robot, argv, timeout=60) -> tuple[int, str]:
-        from ccrp_cli import api_manager, workloads
+        from ccrp_cli.services import api_manager, workloads
 
         script = argv[2] if argv[:2] in (["bash", "-c"], ["sh", "-c"]) else None
         if script == clones.PROBE_SH:

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from ccrp_cli import actions, reconcile
-from ccrp_cli.clones import CloneResult
+from ccrp_cli import actions
+from ccrp_cli.ops import reconcile
+from ccrp_cli.ops.clones import CloneResult
 from ccrp_cli.errors import InputError
 from ccrp_cli.providers.base import CloneRecord, CloneState, Origin
 

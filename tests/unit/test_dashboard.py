@@ -455,7 +455,7 @@ def cam(lab_up, monkeypatch):
 
 
 def test_camera_frame_is_the_clones_jpeg_read_through_exec(cam):
-    from ccrp_cli import camera
+    from ccrp_cli.robot import camera
 
     assert cam.client.get("/api/camera/nao1").status_code == 401 and cam.clones.ran == []  # no session
     login(cam.client)
@@ -514,7 +514,7 @@ def test_a_camera_get_starts_nothing_on_the_clone(cam):
 def test_the_camera_agent_starts_with_a_guarded_post(cam):
     """The Camera button's POST: under the Origin and CSRF checks of every POST; it starts the agent
     (as the `ros` user) once, then finds it running; the page's GETs then read frames."""
-    from ccrp_cli import camera
+    from ccrp_cli.robot import camera
 
     csrf = login(cam.client)
     cam.clones.serving = False

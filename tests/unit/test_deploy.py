@@ -14,11 +14,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from ccrp_cli import deploy
+from ccrp_cli.ops import deploy
 from ccrp_cli.errors import InputError
 from ccrp_cli.fleet import Fleet
 from ccrp_cli.providers.base import CloneRecord, CloneState
-from ccrp_cli.workloads import INDEX, node_files, packages_record, snapshot_software
+from ccrp_cli.services.workloads import INDEX, node_files, packages_record, snapshot_software
 from tests.conftest import LAB
 from tests.inprocess_cli import run_ccrp_inprocess
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from ccrp_cli.errors import InputError
-from ccrp_cli.evaluation import parse_counts, parse_list, summary
-from ccrp_cli.simulated import PRESETS, Link, parse_link
+from ccrp_cli.robot.evaluation import parse_counts, parse_list, summary
+from ccrp_cli.robot.simulated import PRESETS, Link, parse_link
 from tests.conftest import LAB
 from tests.inprocess_cli import run_ccrp_inprocess
 

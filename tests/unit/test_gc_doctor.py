@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from ccrp_cli.gc import find_leaks
+from ccrp_cli.ops.gc import find_leaks
 from ccrp_cli.models.state import FleetState, RobotRecord
 from ccrp_cli.providers.base import CloneSpec, OwnedResource, SnapshotRecord
 

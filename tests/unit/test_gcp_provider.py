@@ -460,7 +460,7 @@ def test_foreign_address_with_the_clone_name_is_refused_and_kept(h):
 
 
 def test_gc_finds_an_address_left_by_a_crash_and_releases_it(h):
-    from ccrp_cli.gc import find_leaks
+    from ccrp_cli.ops.gc import find_leaks
     from ccrp_cli.models.state import FleetState, RobotRecord
 
     clone = h.provider.run_instance(spec("robot1", 1))

@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import pytest
 
 from ccrp_cli.errors import CcrpError
-from ccrp_cli.gc import collect_images
+from ccrp_cli.ops.gc import collect_images
 from ccrp_cli.models.state import FleetState
 from ccrp_cli.providers.docker import snapshot_images as si
 from ccrp_cli.store import STATE_ID_FILE, FleetStore, ensure_state_id, read_state_id
@@ -183,7 +183,7 @@ def test_a_state_directory_that_cannot_be_looked_at_is_not_gone(tmp_path, why):
 
 
 def test_doctor_reports_the_disk_of_this_states_images_and_the_orphans(host):
-    from ccrp_cli import doctor
+    from ccrp_cli.ops import doctor
 
     engine, provider, ids = host
     check = doctor._snapshot_images(provider)
@@ -209,7 +209,7 @@ def _provider(inv, engine):
 
 
 def test_build_and_create_label_the_image_with_this_state(ccrp_home, monkeypatch):
-    from ccrp_cli import snapshots
+    from ccrp_cli.ops import snapshots
     from ccrp_cli.fleet import Fleet
     from ccrp_cli.providers.docker import images
     from tests.conftest import LAB

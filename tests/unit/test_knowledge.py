@@ -217,7 +217,7 @@ def test_item_names_are_limited_in_bytes_with_room_for_the_conflict_suffix(tmp_p
 
 
 def test_the_cli_refuses_a_name_no_clone_could_store(tmp_path):
-    from ccrp_cli import knowledge
+    from ccrp_cli.services import knowledge
     from ccrp_cli.errors import InputError
 
     long_name = tmp_path / ("é" * 100)  # 200 bytes: fits this disk, not an item with its suffix
@@ -265,7 +265,7 @@ def test_a_record_the_disk_refuses_is_skipped_and_reported_never_fatal(tmp_path)
 # -- each clone's config -------------------------------------------------------------------------
 
 def test_config_names_partners_that_share_a_dataset_and_acl_admits_only_them(lab):
-    from ccrp_cli.knowledge import knowledge_config
+    from ccrp_cli.services.knowledge import knowledge_config
 
     state = lab.store.load_state()
     for robot in ("nao1", "nao2", "turtlebot1"):
@@ -302,7 +302,7 @@ def test_the_acl_lets_each_clone_write_only_under_its_own_key(lab):
     The zenoh config each clone loads now lets a partner, known by the CN of its relay
     certificate, read all of a dataset but write (put, reply, declare a queryable) only under its
     own `<dataset>/<robot>/`; and this clone sends under its own only."""
-    from ccrp_cli.knowledge import knowledge_config
+    from ccrp_cli.services.knowledge import knowledge_config
 
     state = lab.store.load_state()
     for robot in ("nao1", "nao2", "turtlebot1"):
@@ -727,7 +727,7 @@ def test_knowledge_add_refuses_past_the_quota_in_one_line():
     from types import SimpleNamespace
 
     from ccrp_cli.errors import InputError
-    from ccrp_cli.knowledge import check_quota
+    from ccrp_cli.services.knowledge import check_quota
 
     fleet = SimpleNamespace(inventory=inv(services={"knowledge": {"datasets": {
         "faces": {"robots": "all", "quota": {"items": 2, "bytes": "1KiB"}}}}}))
@@ -761,7 +761,7 @@ def test_bad_input_is_one_line_and_exit_2(ccrp, args, why):
 
 def test_merge_bags_in_time_order_each_message_once(tmp_path):
     pytest.importorskip("rosbags")
-    from ccrp_cli.knowledge import merge_bag_files
+    from ccrp_cli.services.knowledge import merge_bag_files
 
     write_bag(tmp_path / "nao1.bag", [("/faces", 1, "alice"), ("/faces", 5, "bob"), ("/map", 7, "m1")])
     write_bag(tmp_path / "nao2.bag", [("/faces", 3, "carol"), ("/faces", 5, "bob"), ("/faces", 9, "dave")])
@@ -777,7 +777,7 @@ def test_merge_bags_in_time_order_each_message_once(tmp_path):
 
 def test_merge_refuses_what_is_not_a_bag(tmp_path):
     pytest.importorskip("rosbags")
-    from ccrp_cli.knowledge import merge_bag_files
+    from ccrp_cli.services.knowledge import merge_bag_files
 
     (tmp_path / "x.bag").write_bytes(b"#ROSBAG V2.0\n\xd5 not a bag")
     with pytest.raises(CcrpError, match="'x.bag' is not a ROS 1 bag"):
@@ -789,7 +789,7 @@ def test_merge_ros2_storage_files_into_one_rosbag2_in_time_order_each_message_on
     """A Jazzy fleet's merge: rosbag2 storage files (MCAP, Jazzy's default, and SQLite) read alone,
     written as one rosbag2 directory (metadata.yaml and MCAP) that rosbags reads back."""
     pytest.importorskip("rosbags")
-    from ccrp_cli.knowledge import merge_bag2_files
+    from ccrp_cli.services.knowledge import merge_bag2_files
 
     write_bag2(tmp_path / "nao1.mcap", [("/faces", 1, "alice"), ("/faces", 5, "bob"), ("/map", 7, "m1")])
     write_bag2(tmp_path / "nao2.db3", [("/faces", 3, "carol"), ("/faces", 5, "bob"), ("/faces", 9, "dave")], "db3")
@@ -807,7 +807,7 @@ def test_merge_ros2_storage_files_into_one_rosbag2_in_time_order_each_message_on
 
 def test_merge_refuses_what_is_not_a_ros2_bag(tmp_path):
     pytest.importorskip("rosbags")
-    from ccrp_cli.knowledge import merge_bag2_files
+    from ccrp_cli.services.knowledge import merge_bag2_files
 
     (tmp_path / "x.mcap").write_bytes(b"\x89MCAP0\r\n not an mcap")
     with pytest.raises(CcrpError, match="'x.mcap' is not a ROS 2 bag"):
@@ -821,7 +821,7 @@ def test_merge_on_a_jazzy_fleet_takes_the_rosbag2_items_and_writes_a_rosbag2(tmp
     pytest.importorskip("rosbags")
     from types import SimpleNamespace
 
-    from ccrp_cli import knowledge
+    from ccrp_cli.services import knowledge
 
     bag, ros1 = tmp_path / "a.mcap", tmp_path / "b.bag"
     write_bag2(bag, [("/faces", 2, "erin")])
@@ -849,7 +849,7 @@ def test_merge_on_a_jazzy_fleet_takes_the_rosbag2_items_and_writes_a_rosbag2(tmp
 
 def test_status_row_and_cell(lab):
     from ccrp_cli.cli.status import knowledge_cell
-    from ccrp_cli.knowledge import knowledge_row
+    from ccrp_cli.services.knowledge import knowledge_row
     from ccrp_cli.models.status import Knowledge
 
     state = lab.store.load_state()

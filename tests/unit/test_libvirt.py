@@ -300,7 +300,7 @@ def stand_in(tmp_path, volumes, domains, networks):
 
 
 def test_list_owned_and_the_leak_rule(tmp_path):
-    from ccrp_cli.gc import find_leaks
+    from ccrp_cli.ops.gc import find_leaks
     from ccrp_cli.models.state import FleetState
 
     golden = "ccrp-vmlab-golden-20261126040000"

@@ -28,12 +28,12 @@ robots:
 NAMES_A_KIND = {
     # `ccrp init` writes a first inventory from its template's section for the kinds it offers,
     # and picks a free public pool for the Docker network only Docker makes.
-    "ccrp_cli/init.py": 5,
+    "ccrp_cli/ops/init.py": 5,
     "ccrp_cli/cli/init.py": 1,  # the default of `ccrp init --provider`
     # The Docker engine answering is its credential; its snapshot images outlive state (doctor.py).
-    "ccrp_cli/doctor.py": 3,
+    "ccrp_cli/ops/doctor.py": 3,
     # `ccrp deploy` builds the workspace on the local Docker engine, whatever the fleet's backend.
-    "ccrp_cli/deploy.py": 2,
+    "ccrp_cli/ops/deploy.py": 2,
 }
 
 

@@ -266,7 +266,7 @@ def test_the_inventories_run_the_workspace_on_two_nao_clones(ros, fleet, distro,
     inv = Inventory.model_validate(data)
     assert inv.ros.distro == distro
     # Its workspace resolves (every package.xml key has an entry in the recipe's rosdep table).
-    from ccrp_cli.workloads import snapshot_software
+    from ccrp_cli.services.workloads import snapshot_software
 
     snap = snapshot_software(inv, path)
     assert snap.build_type == ("catkin" if ros == "ros1" else "ament_python") and snap.digest != "none"

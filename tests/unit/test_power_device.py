@@ -62,7 +62,7 @@ def test_the_device_has_a_certificate_and_password_of_its_own(lab):
 
 
 def test_the_device_bundle_dials_the_clone_as_the_device(lab, tmp_path):
-    from ccrp_cli import power
+    from ccrp_cli.robot import power
 
     files, endpoint = power.device_files(lab, "nao1", remote="203.0.113.10")
     by = {f.name: f for f in files}
@@ -193,7 +193,7 @@ def test_roots_wish_goes_through_no_link_the_agents_user_planted(tmp_path, monke
     """`ccrp robot power` writes the wish as root in /run/ccrp-power, which the power agent's user
     owns: a link that user put where root writes (the temporary file's old name, or the wish
     itself) must not carry root's write to another file. The agent still reads the wish."""
-    from ccrp_cli import power
+    from ccrp_cli.robot import power
     from ccrp_cli.agent import power as clone_agent
 
     run = tmp_path / "ccrp-power"
@@ -220,7 +220,7 @@ def test_the_clone_learns_the_device_without_a_restart_and_without_hiding_stale_
     `fleet up` must still push them all."""
     import hashlib
 
-    from ccrp_cli import power
+    from ccrp_cli.robot import power
     from ccrp_cli.fleet import clone_view
     from ccrp_cli.providers.base import CloneState
     from ccrp_cli.render.bundles import clone_secrets
@@ -261,7 +261,7 @@ def test_the_clone_learns_the_device_without_a_restart_and_without_hiding_stale_
 def test_a_real_robots_power_goes_through_its_clone_without_docker_here(lab, monkeypatch):
     """A cloud fleet's operator machine may have no Docker engine: a real robot's power command
     needs only its clone (the wish written there, the device's next report read there)."""
-    from ccrp_cli import power, simulated
+    from ccrp_cli.robot import power, simulated
     from ccrp_cli.errors import CcrpError
 
     def no_docker(*a, **k):

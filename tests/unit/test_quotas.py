@@ -1,4 +1,4 @@
-"""Quotas before growth (ccrp_cli/quotas.py): `fleet up`, `clone create` and `fleet scale` hold the
+"""Quotas before growth (ccrp_cli/ops/quotas.py): `fleet up`, `clone create` and `fleet scale` hold the
 clones they would create against the cloud's quotas and refuse in one line, creating nothing, when
 one is short. Each cloud's quotas come from its fake: the GCE fake's regions.get, the OpenStack
 fake's Nova limits and Neutron quota details, moto's account attributes (and a Service Quotas
@@ -10,8 +10,8 @@ import json
 
 import pytest
 
-from ccrp_cli import quotas, reconcile
-from ccrp_cli.clones import CloneResult
+from ccrp_cli.ops import quotas, reconcile
+from ccrp_cli.ops.clones import CloneResult
 from ccrp_cli.fleet import Fleet
 from ccrp_cli.providers.base import Quota
 from ccrp_cli.store import FleetStore

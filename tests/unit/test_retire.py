@@ -6,8 +6,8 @@ import json
 import time
 from types import SimpleNamespace
 
-from ccrp_cli import reconcile
-from ccrp_cli.clones import CloneResult
+from ccrp_cli.ops import reconcile
+from ccrp_cli.ops.clones import CloneResult
 from ccrp_cli.errors import CcrpError
 
 

@@ -11,7 +11,7 @@ import subprocess
 import pytest
 import yaml
 
-from ccrp_cli import clones
+from ccrp_cli.ops import clones
 from ccrp_cli.errors import InputError
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.loader import parse_inventory
@@ -199,7 +199,7 @@ def test_the_launcher_runs_the_system_python_in_the_distros_own_setup(tmp_path):
 
 
 def test_the_own_ros2_platform_is_refused_on_docker_and_without_a_base_image(ccrp_home, tmp_path):
-    from ccrp_cli import snapshots
+    from ccrp_cli.ops import snapshots
 
     data = yaml.safe_load(JAZZY.read_text())
     data["ros"]["platform"] = "ubuntu-noble-ros"
@@ -364,7 +364,7 @@ def test_bench_runs_on_a_ros2_fleet_with_the_same_agent(jazzy, monkeypatch):
     """`ccrp bench` refused a ROS 2 fleet (its agent was rospy only). Now the same agent runs on
     both ends in the machine's ROS environment (it takes rclpy where ros.env names no master), its
     clone units with a runtime directory for ROS logs: rclpy cannot start without one."""
-    from ccrp_cli import evaluation
+    from ccrp_cli.robot import evaluation
 
     ends = _Ends(jazzy)
     monkeypatch.setattr(evaluation, "Sims", lambda fleet: ends)
@@ -446,7 +446,7 @@ def test_a_robot_with_its_own_ros2_at_another_prefix_needs_only_the_bundles_env_
 
 
 def test_doctor_names_the_hosts_receive_buffer_for_ros2_clones_on_docker(tmp_path):
-    from ccrp_cli import doctor
+    from ccrp_cli.ops import doctor
 
     f = tmp_path / "rmem_default"
     f.write_text("212992\n")

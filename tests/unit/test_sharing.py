@@ -6,7 +6,7 @@ import json
 
 import yaml
 
-from ccrp_cli.sharing import relay_config, routes
+from ccrp_cli.services.sharing import relay_config, routes
 from tests.conftest import LAB
 
 
@@ -76,7 +76,7 @@ def test_status_shows_no_sharing_that_is_not_running(lab_up):
     """The relay agent's last report counts only while the agent runs: a stopped agent's stale
     "connected" peers are shown as down, and an agent that never reported still has its peers down."""
     from ccrp_cli.cli.status import relay_peers
-    from ccrp_cli.sharing import relay_link
+    from ccrp_cli.services.sharing import relay_link
 
     fleet, state = lab_up
     expected = list(relay_config(fleet, state, "nao1")["peers"])

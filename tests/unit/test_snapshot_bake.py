@@ -11,7 +11,7 @@ import subprocess
 import pytest
 import yaml
 
-from ccrp_cli import snapshots
+from ccrp_cli.ops import snapshots
 from ccrp_cli.errors import CcrpError, InputError
 from ccrp_cli.fleet import Fleet
 from ccrp_cli.providers import info
@@ -308,7 +308,7 @@ def test_bake_builds_the_software_on_the_builder_and_records_its_digest(ccrp_hom
     import io
     import tarfile
 
-    from ccrp_cli.workloads import packages_record, snapshot_software
+    from ccrp_cli.services.workloads import packages_record, snapshot_software
 
     fleet = _software_fleet(tmp_path)
     cloud = FakeCloud("openstack", [DONE])
@@ -355,7 +355,7 @@ def test_bake_without_software_never_logs_in(fleet):
 def test_a_baked_snapshot_goes_stale_when_the_workspace_changes(ccrp_home, tmp_path):
     """fleet up refuses (check_snapshot), and fleet plan names the clones (stale_snapshot), once the
     inventory's workspace is not the one the cloud snapshot was baked with; the hint is the cloud's."""
-    from ccrp_cli.workloads import check_snapshot, stale_snapshot
+    from ccrp_cli.services.workloads import check_snapshot, stale_snapshot
 
     fleet = _software_fleet(tmp_path)
     _bake(fleet, FakeCloud("openstack", [DONE]))

@@ -3,10 +3,10 @@ clones get, stay; `gc` removes the rest too."""
 
 from __future__ import annotations
 
-from ccrp_cli.gc import collect
+from ccrp_cli.ops.gc import collect
 from ccrp_cli.models.state import FleetState, RobotRecord
 from ccrp_cli.providers.base import OwnedResource, SnapshotRecord
-from ccrp_cli.snapshots import in_use, surplus, users
+from ccrp_cli.ops.snapshots import in_use, surplus, users
 
 
 def snap(n: int) -> SnapshotRecord:

@@ -205,7 +205,7 @@ def test_cloud_clone_user_data_creates_ccrps_login_user_with_the_operator_key(cc
     import yaml
 
     from ccrp_cli import vpn
-    from ccrp_cli.clones import clone_user_data
+    from ccrp_cli.ops.clones import clone_user_data
     from ccrp_cli.fleet import Fleet, clone_view
     from ccrp_cli.providers.cloud import SSH_USER, CloudProvider
     from tests.conftest import ROOT

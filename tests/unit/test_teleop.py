@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from ccrp_cli import evaluation
+from ccrp_cli.robot import evaluation
 from ccrp_cli.errors import CcrpError, InputError
 
 
@@ -110,7 +110,7 @@ def test_the_operator_node_and_each_command_run_as_the_ros_user_not_root(lab_up)
     built from them."""
     import runpy
 
-    from ccrp_cli import camera
+    from ccrp_cli.robot import camera
     from tests.conftest import ROOT
 
     fleet, _ = lab_up

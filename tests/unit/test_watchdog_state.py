@@ -7,7 +7,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 
-from ccrp_cli import watchdog
+from ccrp_cli.robot import watchdog
 from ccrp_cli.alerts import fleet_alerts, row_alerts
 from ccrp_cli.models.status import Power, StatusRow
 from ccrp_cli.providers.base import LABEL_ROBOT
@@ -121,7 +121,7 @@ def test_fleet_alerts_join_rows_and_pki_most_serious_first(lab_up):
 def test_the_power_device_report_and_what_it_changes(lab_up):
     import time
 
-    from ccrp_cli import power
+    from ccrp_cli.robot import power
 
     now = time.time()
     report = lambda relay, robot, t: json.dumps({"relay": relay, "robot": robot, "t": t, "device_t": t})  # noqa: E731
@@ -161,7 +161,7 @@ def test_robot_power_refuses_bad_input(ccrp, tmp_path, lab_up):
     assert r.returncode == 2 and r.stderr.startswith("ccrp: error: robot power 'reboot'") and "Traceback" not in r.stderr
     r = ccrp("robot", "power", "off", "-i", str(tmp_path / "none.yaml"), "--robot", "nao1", "--out", str(tmp_path / "x"))
     assert r.returncode == 2 and "--out and --remote go with `robot power bundle`" in r.stderr and not (tmp_path / "x").exists()
-    from ccrp_cli import power
+    from ccrp_cli.robot import power
     from ccrp_cli.errors import InputError
 
     fleet, _ = lab_up

@@ -15,7 +15,7 @@ from ccrp_cli.loader import parse_inventory
 from ccrp_cli.models.software import Software, merge
 from ccrp_cli.providers.docker import images
 from ccrp_cli.recipes import platform
-from ccrp_cli.workloads import (
+from ccrp_cli.services.workloads import (
     INDEX,
     NO_SOFTWARE,
     absent_index,
@@ -248,7 +248,7 @@ def test_node_files_restart_only_what_changed():
 
 def test_nodes_leave_the_clone_when_the_inventory_drops_them(tmp_path):
     """APPLY_SH for real, against a stand-in systemctl: stale units disabled and removed."""
-    from ccrp_cli.workloads import APPLY_SH
+    from ccrp_cli.services.workloads import APPLY_SH
 
     units, log = tmp_path / "units", tmp_path / "calls"
     units.mkdir()

@@ -11,12 +11,12 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass
 
-from .fleet import Fleet
-from .layout import CCRP_ETC
-from .models.inventory import Robot
-from .models.state import FleetState
-from .render.files import BundleFile
-from .service import Boot, CloneService, ServiceContext
+from ..fleet import Fleet
+from ..layout import CCRP_ETC
+from ..models.inventory import Robot
+from ..models.state import FleetState
+from ..render.files import BundleFile
+from .base import Boot, CloneService, ServiceContext
 
 
 @dataclass(frozen=True, order=True)
@@ -61,7 +61,7 @@ def zenoh_id(fleet: str, robot: str) -> str:
 def relay_config(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> dict:
     """/etc/ccrp/relay.json of robot's clone. Not secret: the TLS files it names come as secrets.
     `live`: the clones taken as up (by default those state calls ready)."""
-    from .layout import SECRETS_DIR
+    from ..layout import SECRETS_DIR
 
     inv = fleet.inventory
     plan = fleet.plan(state)

@@ -7,18 +7,18 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
-from .addressing import allocate
+from ..addressing import allocate
 from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
-from .errors import CcrpError, InputError
-from .fleet import Fleet
-from .models.state import RobotRecord
-from .providers.base import CloneState
+from ..errors import CcrpError, InputError
+from ..fleet import Fleet
+from ..models.state import RobotRecord
+from ..providers.base import CloneState
 from .quotas import check_growth
-from .retry import PollTimeout, poll
-from .workloads import NO_SOFTWARE, check_snapshot, snapshot_software, stale_snapshot
+from ..retry import PollTimeout, poll
+from ..services.workloads import NO_SOFTWARE, check_snapshot, snapshot_software, stale_snapshot
 
 if TYPE_CHECKING:
-    from .providers.base import Lifecycle, Provider, Reaches
+    from ..providers.base import Lifecycle, Provider, Reaches
 
 
 def plan(fleet: Fleet, provider: Lifecycle) -> list[dict]:

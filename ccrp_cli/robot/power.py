@@ -20,11 +20,11 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
-from .errors import CcrpError, InputError, cannot_write
-from .fleet import Fleet, clone_view
+from ..errors import CcrpError, InputError, cannot_write
+from ..fleet import Fleet, clone_view
 
 if TYPE_CHECKING:
-    from .providers.base import Lifecycle, Reaches
+    from ..providers.base import Lifecycle, Reaches
 
 Say = Callable[[str], None]
 WANT = "/run/ccrp-power/want"  # on the clone: what ccrp asks (agent/power.py reads it), in memory
@@ -79,7 +79,7 @@ def read(provider: Reaches, robot: str) -> dict | None:
 def device_files(fleet: Fleet, robot: str, remote: str | None = None) -> tuple[list, str]:
     """The power device's bundle (its certificate and password issued on first use) and the
     endpoint it dials: its robot's clone."""
-    from .render import bundles
+    from ..render import bundles
     from .robots import endpoint_of
 
     with fleet.store.lock():
@@ -97,10 +97,10 @@ def push_passwd(fleet: Fleet, provider: Lifecycle, robot: str, say: Say) -> None
     password hash, or without them once the device is revoked. OpenVPN's checks read the file at
     every handshake: nothing restarts, the robot's session stays. A clone not running gets it with
     its other secrets when it is next brought up."""
-    from .clones import applied_marker
-    from .probe import files_current
-    from .providers.base import CloneState
-    from .render import bundles
+    from ..ops.clones import applied_marker
+    from ..probe import files_current
+    from ..providers.base import CloneState
+    from ..render import bundles
 
     rec = provider.query().get(robot)
     if rec is None or rec.state is not CloneState.RUNNING:
@@ -118,7 +118,7 @@ def push_passwd(fleet: Fleet, provider: Lifecycle, robot: str, say: Say) -> None
 
 def write_device_bundle(fleet: Fleet, provider: Lifecycle, robot: str, out: Path, remote: str | None, say: Say) -> Path:
     """`ccrp robot power bundle`: the device's bundle in `out`, its name admitted by the clone."""
-    from .render import bundles
+    from ..render import bundles
 
     files, endpoint = device_files(fleet, robot, remote)
     push_passwd(fleet, provider, robot, say)
@@ -132,7 +132,7 @@ def ensure_device(fleet: Fleet, provider: Lifecycle, robot: str, say: Say) -> tu
     device of a simulated robot, (re)started here with a bundle of its own when it has not
     reported or went silent: it is ccrp's own, unlike a real one, which only `robot power bundle`
     issues credentials for)."""
-    from .retry import PollTimeout, poll
+    from ..retry import PollTimeout, poll
     from .simulated import Sims
 
     report = read(provider, robot)
@@ -162,7 +162,7 @@ def end_dead_session(provider: Reaches, robot: str, say: Say) -> None:
     until its keepalive drops it (up to 2 minutes with the server's `keepalive 10 60`), and status
     would show a robot that is off as connected. The device's report says the robot is off: its
     session is dead, so it is ended on the clone now (as `vpn revoke` ends one)."""
-    from .clones import kill_session
+    from ..ops.clones import kill_session
 
     try:
         kill_session(provider, robot)
@@ -172,8 +172,8 @@ def end_dead_session(provider: Reaches, robot: str, say: Say) -> None:
 
 def power(fleet: Fleet, robot: str, action: str, say: Say = lambda m: None, timeout: float = 30, provider: Lifecycle | None = None) -> dict:
     """Switch the robot's power on or off (or read it), and wait until the device reports it."""
-    from .providers import get_provider
-    from .retry import PollTimeout, poll
+    from ..providers import get_provider
+    from ..retry import PollTimeout, poll
 
     if action not in ("on", "off", "status"):
         raise InputError(f"robot power {action[:20]!r}: choose on, off or status")

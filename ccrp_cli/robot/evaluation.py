@@ -13,13 +13,13 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Callable, Iterator
 
-from .errors import CcrpError, InputError, shown
-from .fleet import Fleet
-from .layout import CCRP_LIB
+from ..errors import CcrpError, InputError, shown
+from ..fleet import Fleet
+from ..layout import CCRP_LIB
 from .simulated import Sims, run_unit
 
 if TYPE_CHECKING:
-    from .providers.base import Lifecycle, Reaches
+    from ..providers.base import Lifecycle, Reaches
 
 Progress = Callable[[str], None]
 AGENT = f"{CCRP_LIB}/ccrp-bench"
@@ -89,8 +89,8 @@ class Bench:
     def prepare(self, robots: list[str]) -> None:
         """Each robot has a clone, a running simulated robot (started here if needed) and the
         agent on both ends."""
-        from .render.files import BundleFile
-        from .templates import static
+        from ..render.files import BundleFile
+        from ..templates import static
 
         clones = self.clones.query()
         for robot in robots:
@@ -309,8 +309,8 @@ def send_command(fleet: Fleet, provider: Lifecycle, robot: str, linear: float, a
     itself after TELEOP_IDLE_S without a command), so the next commands skip starting a ROS node."""
     import json
 
-    from .render.files import BundleFile
-    from .templates import static
+    from ..render.files import BundleFile
+    from ..templates import static
 
     check_command(linear, angular, topic)
     fleet.robot(fleet.store.load_state(), robot)

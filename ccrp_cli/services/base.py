@@ -1,7 +1,7 @@
 """What a clone service is (docs/architecture.md, "Clone services"): the relay, autostop, the API
 manager, knowledge sync, the robot's nodes. Each says what `fleet up` pushes to a clone for it after
 boot and how it applies it; the clone pipeline (clones.py ensure_clone) runs them in the registry's
-order (clone_services.py). A service imports neither the pipeline nor the registry (the `services`
+order (registry.py). A service imports neither the pipeline nor the registry (the `services`
 import contract), so adding one touches its own module and one registry line."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
 if TYPE_CHECKING:
-    from .fleet import Fleet
-    from .models.inventory import Robot
-    from .models.state import FleetState
-    from .providers.base import Reaches
-    from .render.files import BundleFile
+    from ..fleet import Fleet
+    from ..models.inventory import Robot
+    from ..models.state import FleetState
+    from ..providers.base import Reaches
+    from ..render.files import BundleFile
 
 
 @dataclass(frozen=True)

@@ -5,13 +5,13 @@ from __future__ import annotations
 import datetime as dt
 from typing import TYPE_CHECKING, Callable
 
-from .errors import CcrpError
-from .fleet import Fleet
-from .providers.base import SnapshotRecord
-from .workloads import NO_SOFTWARE, SnapshotSoftware
+from ..errors import CcrpError
+from ..fleet import Fleet
+from ..providers.base import SnapshotRecord
+from ..services.workloads import NO_SOFTWARE, SnapshotSoftware
 
 if TYPE_CHECKING:
-    from .providers.base import Images, Lifecycle, Provider
+    from ..providers.base import Images, Lifecycle, Provider
 
 Progress = Callable[[str], None]
 
@@ -29,9 +29,9 @@ def build(fleet: Fleet, provider: Provider, progress: Progress, bare: bool = Fal
     build_snapshot) and record it for new clones. A `bare` snapshot has only systemd and
     cloud-init: its clones install the recipe's packages at boot, as a clone started from a stock
     cloud image would (slower: the reason for snapshots, see bench/)."""
-    from .providers import info
-    from .recipes import platform
-    from .workloads import packages_record, snapshot_software
+    from ..providers import info
+    from ..recipes import platform
+    from ..services.workloads import packages_record, snapshot_software
 
     inv = fleet.inventory
     plat = platform(inv.ros.distro, info(provider.kind).platform)
@@ -76,16 +76,16 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
     for new clones. The builder is terminated in every case (failure, timeout, Ctrl-C)."""
     import secrets
 
-    from .errors import InputError
-    from .providers import Ability, info, require
-    from .providers.base import CloneSpec
-    from .recipes import platform
-    from .render.cloudinit import bake_proofs, builder_user_data
+    from ..errors import InputError
+    from ..providers import Ability, info, require
+    from ..providers.base import CloneSpec
+    from ..recipes import platform
+    from ..render.cloudinit import bake_proofs, builder_user_data
 
     inv = fleet.inventory
     kind = inv.provider.kind
     require(kind, Ability.BAKE, hint=f"on {kind} the golden image is built locally: `ccrp snapshot build`")
-    from .workloads import packages_record, snapshot_software
+    from ..services.workloads import packages_record, snapshot_software
 
     # The fleet's own software, read and checked before any builder starts.
     software = snapshot_software(inv, fleet.path)
@@ -134,9 +134,9 @@ BAKE_DIR = "/var/lib/ccrp/bake"  # on the builder: the workspace's tar; removed 
 def software_env(software: SnapshotSoftware) -> dict[str, str]:
     """What templates/image/software-bake.sh is given: the same lists the Docker snapshot's
     software layers take (providers/docker/images.py dockerfile)."""
-    from .recipes import is_ros2, recipe
-    from .render.cloudinit import ros2_prefix
-    from .layout import LOGIN_USER
+    from ..recipes import is_ros2, recipe
+    from ..render.cloudinit import ros2_prefix
+    from ..layout import LOGIN_USER
 
     ros2 = is_ros2(software.distro)
     prefix = ros2_prefix(software.distro)
@@ -175,8 +175,8 @@ def install_software(provider: Provider, builder, software: SnapshotSoftware, pr
     import re
     import time
 
-    from .render.files import BundleFile
-    from .templates import static
+    from ..render.files import BundleFile
+    from ..templates import static
 
     t0 = time.monotonic()
     progress(f"building software {software.digest} on the builder")
@@ -207,8 +207,8 @@ def _wait_baked(provider: Provider, token: str, proofs: list[str], timeout: floa
     import re
     import time
 
-    from .retry import PollTimeout
-    from .retry import poll as poll_until
+    from ..retry import PollTimeout
+    from ..retry import poll as poll_until
 
     # "$UPTIME" stays literal in the user-data: only cloud-init's own line has a number there.
     final = re.compile(rf"ccrp-bake {token} finished after [0-9.]+ s")

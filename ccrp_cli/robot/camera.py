@@ -17,10 +17,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .errors import CcrpError, InputError, shown
+from ..errors import CcrpError, InputError, shown
 
 if TYPE_CHECKING:
-    from .providers.base import Lifecycle, Reaches
+    from ..providers.base import Lifecycle, Reaches
 
 DEFAULT_TOPIC = "/camera/image_raw"
 TOPIC_RE = r"/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*"
@@ -169,11 +169,11 @@ def _ask(provider: Reaches, robot: str, topic: str, timeout: float) -> dict:
 def start_agent(provider: Reaches, robot: str) -> None:
     """The camera agent on the clone, (re)started from this ccrp's copy of it."""
     from .evaluation import ROS_PRELUDE
-    from .render.files import BundleFile
-    from .layout import CCRP_LIB
+    from ..render.files import BundleFile
+    from ..layout import CCRP_LIB
     from .simulated import run_unit
 
-    source = (Path(__file__).parent / "agent" / "camera.py").read_text()
+    source = (Path(__file__).parents[1] / "agent" / "camera.py").read_text()
     provider.transport.push_files(robot, [BundleFile("camera.py", source, 0o644, f"{CCRP_LIB}/camera.py")], restart=[])
     argv = [*ROS_PRELUDE, "ccrp-camera", "/usr/bin/python3", AGENT, SOCKET, str(CAMERA_IDLE_S)]
     run_unit(lambda cmd: provider.transport.exec(robot, cmd, timeout=30), UNIT, argv, f"the clone of {robot!r}", UNIT_OPTIONS)
@@ -181,7 +181,7 @@ def start_agent(provider: Reaches, robot: str) -> None:
 
 def _ask_until_served(provider: Reaches, robot: str, topic: str, timeout: float) -> dict:
     """Asks until the agent just started serves (its node and OpenCV load in a second or two)."""
-    from .retry import PollTimeout, poll
+    from ..retry import PollTimeout, poll
 
     try:
         return poll(lambda: ((got := _ask(provider, robot, topic, timeout)).get("why") != "no-agent", got),

@@ -26,13 +26,13 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from .clones import CloneResult, StateWriter
-from .errors import CcrpError, InputError
-from .fleet import Fleet
-from .layout import WORKSPACE
-from .probe import same
-from .providers.base import CloneState, owner_labels
-from .render.files import BundleFile
-from .workloads import (
+from ..errors import CcrpError, InputError
+from ..fleet import Fleet
+from ..layout import WORKSPACE
+from ..probe import same
+from ..providers.base import CloneState, owner_labels
+from ..render.files import BundleFile
+from ..services.workloads import (
     INDEX,
     NO_SOFTWARE,
     SnapshotSoftware,
@@ -46,7 +46,7 @@ from .workloads import (
 )
 
 if TYPE_CHECKING:
-    from .providers.base import Provider, Reaches
+    from ..providers.base import Provider, Reaches
 
 Progress = Callable[[str], None]
 
@@ -275,7 +275,7 @@ def local_docker(provider: Provider):
     """The Docker engine that builds the workspace: the provider's on Docker, this machine's else."""
     if provider.kind == "docker":
         return provider.client
-    from .providers.sdk import docker_module
+    from ..providers.sdk import docker_module
 
     try:
         client = docker_module().from_env(timeout=600)
@@ -301,9 +301,9 @@ def build_install_space(fleet: Fleet, provider: Provider, software: SnapshotSoft
             info.type, info.mode = tarfile.DIRTYPE, 0o755
             tar.addfile(info)
         return buf.getvalue()
-    from .providers import REGISTRY
-    from .providers.docker import images
-    from .recipes import platform
+    from ..providers import REGISTRY
+    from ..providers.docker import images
+    from ..recipes import platform
 
     client = local_docker(provider)
     inv = fleet.inventory

@@ -8,11 +8,11 @@ import shutil
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING
 
-from .errors import CcrpError
-from .fleet import Fleet
+from ..errors import CcrpError
+from ..fleet import Fleet
 
 if TYPE_CHECKING:
-    from .providers.base import Provider
+    from ..providers.base import Provider
 
 OK, FAIL, WARN, SKIP = "ok", "fail", "warn", "skip"
 # Not needed by ccrp itself; handy for checking its work by hand.
@@ -45,7 +45,7 @@ def run(fleet: Fleet) -> list[Check]:
     inv = fleet.inventory
     kind = inv.provider.kind
     checks = []
-    from .providers import Ability, info
+    from ..providers import Ability, info
 
     sdks = info(kind).sdk_modules  # paramiko: the SSH transport of every cloud
     missing = [(m, extra) for m, extra in sdks if not _installed(m)]
@@ -81,7 +81,7 @@ def host_receive_buffer(path: str = RMEM_DEFAULT) -> Check:
     """ROS 2 clones sharing this host's kernel (containers) get its default UDP receive buffer, which
     no clone can raise for itself (not per network namespace): VM clones get ccrp's from their
     user-data (layout.ROS2_RMEM)."""
-    from .layout import ROS2_RMEM
+    from ..layout import ROS2_RMEM
 
     try:
         have = int(open(path).read())
@@ -95,7 +95,7 @@ def host_receive_buffer(path: str = RMEM_DEFAULT) -> Check:
 
 
 def _provider(fleet: Fleet):
-    from .providers import get_provider
+    from ..providers import get_provider
 
     kind = fleet.inventory.provider.kind
     name = "docker engine" if kind == "docker" else f"{kind} client"
@@ -122,7 +122,7 @@ def _quotas(fleet: Fleet, provider: Provider) -> list[Check]:
     """Each quota the fleet's clones draw on: its limit and use now, and what the clones not
     created yet take of it (the numbers `fleet up` checks before it creates anything)."""
     from . import quotas
-    from .providers import info
+    from ..providers import info
 
     try:
         state = fleet.store.load_state()
@@ -158,8 +158,8 @@ def _snapshot_images(provider: Provider) -> Check:
     """Docker: the disk ccrp's snapshot images take on this host, this state's and orphans'."""
     from docker.errors import DockerException
 
-    from .providers.docker import snapshot_images as si
-    from .store import read_state_id
+    from ..providers.docker import snapshot_images as si
+    from ..store import read_state_id
 
     try:
         census = si.census(provider.client, provider.fleet, read_state_id(provider.state_dir), provider.state_dir.parent)
@@ -185,7 +185,7 @@ def _snapshot_images(provider: Provider) -> Check:
 
 
 def _build_command(provider: Provider) -> str:
-    from .providers.base import Ability
+    from ..providers.base import Ability
 
     return "snapshot build" if Ability.LOCAL_BUILD in provider.abilities else "snapshot bake"
 

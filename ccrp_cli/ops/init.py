@@ -6,8 +6,8 @@ import ipaddress
 import json
 from pathlib import Path
 
-from .errors import InputError, cannot_write, shown
-from .store import ccrp_home
+from ..errors import InputError, cannot_write, shown
+from ..store import ccrp_home
 
 # Where each pool is looked for, and the size of one: the lab's choices first.
 SEARCH = {"public": ("172.30.0.0/15", 24), "common": ("10.90.0.0/16", 24), "vpn": ("10.80.0.0/12", 16)}
@@ -18,7 +18,7 @@ DEFAULT_DISTRO = "jazzy"
 
 def docker_subnets() -> list[ipaddress.IPv4Network]:
     """The IPv4 subnets of this host's Docker networks (none when no engine answers)."""
-    from .providers.sdk import docker_module
+    from ..providers.sdk import docker_module
 
     try:
         client = docker_module().from_env(timeout=5)
@@ -82,16 +82,16 @@ def free(kind: str, used: list[ipaddress.IPv4Network]) -> str:
 
 
 def default_fleet() -> str:
-    from .models.names import NAME_RE
+    from ..models.names import NAME_RE
 
     name = Path.cwd().name.lower()
     return name if NAME_RE.fullmatch(name) else "lab"
 
 
 def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str = DEFAULT_DISTRO) -> dict:
-    from .models.names import check_name
-    from .recipes import distros
-    from .templates import render
+    from ..models.names import check_name
+    from ..recipes import distros
+    from ..templates import render
 
     if provider not in PROVIDERS:
         raise InputError(f"--provider {shown(provider)}: choose from {', '.join(PROVIDERS)}")

@@ -13,11 +13,11 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
-from .errors import CcrpError, InputError, shown
-from .fleet import Fleet
+from ..errors import CcrpError, InputError, shown
+from ..fleet import Fleet
 
 if TYPE_CHECKING:
-    from .providers.base import Provider
+    from ..providers.base import Provider
 
 Progress = Callable[[str], None]
 LINK_UNIT = "ccrp-link"
@@ -85,8 +85,8 @@ class Sims:
     """The simulated robots of one fleet and the clones they dial."""
 
     def __init__(self, fleet: Fleet, provider: Provider | None = None) -> None:
-        from .providers import Ability, get_provider, info
-        from .providers.docker.host import DockerHost
+        from ..providers import Ability, get_provider, info
+        from ..providers.docker.host import DockerHost
 
         self.fleet = fleet
         self.own_network = Ability.ROBOT_SIM in info(fleet.inventory.provider.kind).abilities
@@ -106,9 +106,9 @@ class Sims:
 
     def start(self, robot: str, network: str | None = None, wait: float = 0, progress: Progress = lambda m: None) -> dict:
         """(Re)create the robot's simulated robot; with `wait`, until its node is on its clone."""
-        from .clones import snapshot_image
-        from .providers.docker import robots as containers
-        from .templates import static
+        from ..ops.clones import snapshot_image
+        from ..providers.docker import robots as containers
+        from ..templates import static
         from .robots import edge_files
 
         if self.own_network and network:
@@ -130,7 +130,7 @@ class Sims:
         progress(f"simulated robot {robot!r} ({cid}) installed its bundle and dials {endpoint}")
         result = {"robot": robot, "container": cid, "endpoint": endpoint, "network": net}
         if wait > 0:
-            from .probe import wait_connected
+            from ..probe import wait_connected
 
             result |= wait_connected(self.clones, robot, wait)
             result["seconds"] = round(time.monotonic() - t0, 2)  # from container start to node registered
@@ -139,14 +139,14 @@ class Sims:
 
     def stop(self, robot: str) -> bool:
         """Remove the simulated robot (and its power device, if it has one)."""
-        from .providers.docker import robots as containers
+        from ..providers.docker import robots as containers
 
         return containers.stop(self.host, robot)
 
     # -- its simulated power device (power.py) ---------------------------------------------------
     def start_device(self, robot: str, files: list) -> str:
         """(Re)create the robot's power device beside it, with the device bundle `files`."""
-        from .providers.docker import robots as containers
+        from ..providers.docker import robots as containers
 
         return containers.start_device(self.host, robot, files)
 
@@ -160,14 +160,14 @@ class Sims:
 
     def names(self) -> list[str]:
         """The fleet's simulated robots on this host, running or not."""
-        from .providers.base import LABEL_ROBOT
+        from ..providers.base import LABEL_ROBOT
 
         found = self.host.client.containers.list(all=True, ignore_removed=True, filters=self.host._filters("robot-sim"))
         return sorted(c.labels.get(LABEL_ROBOT, "") for c in found)
 
     def clone_address(self, robot: str) -> str:
         """The IPv4 address the robot dials (its clone's public endpoint, resolved here)."""
-        from .models.values import parse_endpoint
+        from ..models.values import parse_endpoint
 
         rec = self.fleet.store.load_state().robots.get(robot)
         if rec is None or not rec.public_endpoint:
@@ -180,8 +180,8 @@ class Sims:
 
     def set_link(self, robot: str, link: Link | None) -> None:
         """Shape (or, with None, stop shaping) the running robot's path to its clone, in place."""
-        from .render.files import BundleFile
-        from .templates import static
+        from ..render.files import BundleFile
+        from ..templates import static
 
         execute = lambda argv: self.exec(robot, argv)  # noqa: E731
         if link is None:
@@ -195,7 +195,7 @@ class Sims:
         self._wait_link(robot)
 
     def _wait_link(self, robot: str) -> None:
-        from .retry import PollTimeout, poll
+        from ..retry import PollTimeout, poll
 
         def shaping() -> tuple[bool, str]:
             _, rules = self.exec(robot, ["iptables", "-w", "-t", "mangle", "-S", "OUTPUT"])

@@ -14,12 +14,12 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from .errors import CcrpError
-from .providers.base import Quota
-from .providers.registry import info
+from ..errors import CcrpError
+from ..providers.base import Quota
+from ..providers.registry import info
 
 if TYPE_CHECKING:
-    from .providers.base import Housekeeping, Lifecycle, Provider
+    from ..providers.base import Housekeeping, Lifecycle, Provider
 
 class QuotaError(CcrpError):
     """A command would take more of a quota than is free: refused before anything was created."""

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .errors import InputError, cannot_write
-from .fleet import Fleet, clone_view
-from .models.values import parse_endpoint
+from ..errors import InputError, cannot_write
+from ..fleet import Fleet, clone_view
+from ..models.values import parse_endpoint
 
 
 def edge_files(fleet: Fleet, robot: str, remote: str | None = None) -> tuple[list, str]:
     """The robot's bundle files and the endpoint its profile dials."""
-    from .render import bundles
+    from ..render import bundles
 
     state = fleet.store.load_state()
     view = clone_view(fleet, state, robot)
@@ -37,7 +37,7 @@ def endpoint_of(fleet: Fleet, state, robot: str, remote: str | None = None) -> s
 
 
 def write_edge(fleet: Fleet, robot: str, out: Path, remote: str | None = None) -> Path:
-    from .render import bundles
+    from ..render import bundles
 
     files, endpoint = edge_files(fleet, robot, remote)
     with cannot_write(out):

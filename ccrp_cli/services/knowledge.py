@@ -16,17 +16,17 @@ import secrets
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .agent.knowledge import name_problem
-from .errors import CcrpError, InputError, shown
-from .fleet import Fleet
-from .models.state import FleetState
-from .render.files import BundleFile
-from .layout import CCRP_ETC, CCRP_LIB, SECRETS_DIR
-from .service import Boot, CloneService, ServiceContext
+from ..agent.knowledge import name_problem
+from ..errors import CcrpError, InputError, shown
+from ..fleet import Fleet
+from ..models.state import FleetState
+from ..render.files import BundleFile
+from ..layout import CCRP_ETC, CCRP_LIB, SECRETS_DIR
+from .base import Boot, CloneService, ServiceContext
 
 if TYPE_CHECKING:
-    from .models.inventory import Robot
-    from .providers.base import Reaches
+    from ..models.inventory import Robot
+    from ..providers.base import Reaches
 
 UNIT = "ccrp-knowledge.service"
 CONFIG = f"{CCRP_ETC}/knowledge.json"
@@ -77,7 +77,7 @@ def knowledge_files(fleet: Fleet, state: FleetState, robot: str, live: set[str] 
     no dataset. The agent (stdlib + the Zenoh the relay's snapshot has) comes with its config, not
     in user-data: a bare cloud image's user-data, which carries the image's agents, would not fit
     AWS's 16 KiB with it (measured: 22.9 KiB gzipped, 15.8 KiB without)."""
-    from .resources import agent_source
+    from ..resources import agent_source
 
     cfg = knowledge_config(fleet, state, robot, live)
     if cfg is None:
@@ -99,7 +99,7 @@ def apply_knowledge(provider: Reaches, robot: str, files: list[BundleFile], have
     changed or the relay's TLS files were just pushed (`restart`), start it where only its config
     is new (a running agent re-reads the file), or turn it off where the clone shares no dataset
     any more."""
-    from .probe import same
+    from ..probe import same
 
     if files:
         restart = restart or not same(have, [f for f in files if f.dest == AGENT])

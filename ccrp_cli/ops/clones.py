@@ -13,13 +13,22 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from .errors import CcrpError
-from .fleet import Fleet, clone_view
-from .layout import MGMT_SOCKET, SECRETS_DIR
-from .models.names import clone_host
-from .models.state import FleetState
-from .probe import HEALTH_SCRIPT, files_current, health, remote_digests, same
-from .providers.base import CloneSpec, CloneState, Housekeeping, Lifecycle, Origin, Provider, Reaches, cloud_init_clean
+from ..errors import CcrpError
+from ..fleet import Fleet, clone_view
+from ..layout import MGMT_SOCKET, SECRETS_DIR
+from ..models.names import clone_host
+from ..models.state import FleetState
+from ..probe import HEALTH_SCRIPT, files_current, health, remote_digests, same
+from ..providers.base import (
+    CloneSpec,
+    CloneState,
+    Housekeeping,
+    Lifecycle,
+    Origin,
+    Provider,
+    Reaches,
+    cloud_init_clean,
+)
 
 Progress = Callable[[str], None]
 
@@ -73,7 +82,7 @@ def applied_marker(files: list):
     killed between copying the files and restarting OpenVPN (which starts only when its key is
     there) leaves files that match and a server that never started: without the marker the next
     run took them for done, and the clone failed `not serving` on every run after."""
-    from .render.files import BundleFile
+    from ..render.files import BundleFile
 
     listing = "".join(f"{f.dest} {f.group} {f.mode:o} {hashlib.sha256(f.content.encode()).hexdigest()}\n" for f in files)
     return BundleFile(".applied", hashlib.sha256(listing.encode()).hexdigest() + "\n", 0o600, f"{SECRETS_DIR}/.applied")
@@ -195,19 +204,19 @@ def wait_serving(provider: Reaches, robot: str, master_port: int | str, timeout:
 def clone_user_data(view, provider: Housekeeping, bare: bool) -> str:
     """A cloud clone gets ccrp's login user (render/view.py LOGIN_USER) with the fleet's operator key:
     the SSH transport logs in as it. A Docker clone has no login user; its transport is the Docker API."""
-    from .render import cloudinit
+    from ..render import cloudinit
 
     return cloudinit.user_data(view, login_keys=provider.login_keys(), install_packages=bare)
 
 
 def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress) -> CloneResult:
     """Create or reuse the clone of `robot`, push its secrets, wait until it serves, then bring each
-    clone service (clone_services.py) in line, in the registry's order."""
-    from .clone_services import SERVICES
-    from .providers import info
-    from .render import bundles
-    from .service import ServiceContext
-    from .workloads import NO_SOFTWARE
+    clone service (services/registry.py) in line, in the registry's order."""
+    from ..services.registry import SERVICES
+    from ..providers import info
+    from ..render import bundles
+    from ..services.base import ServiceContext
+    from ..services.workloads import NO_SOFTWARE
 
     t0 = time.monotonic()
     state = writer.state
@@ -305,7 +314,7 @@ def _left_revoked(fleet: Fleet, provider: Lifecycle, writer: StateWriter, robot:
     """A revoked robot stays unenrolled: no certificate, no clone created or configured. A clone
     of it that runs gets the current CRL and the kill again, in case `vpn revoke` could not reach
     it: a failed TLS renegotiation alone does not end a session (docs/security.md)."""
-    from .render.bundles import crl_file
+    from ..render.bundles import crl_file
 
     writer.state.robots[robot].phase = "revoked"
     writer.fleet.store.save_state(writer.state)  # the caller holds writer.lock
@@ -322,8 +331,8 @@ def push_relay_config(fleet: Fleet, provider: Reaches, state: FleetState, robot:
     knowledge.json where it shares a dataset); the agents pick them up without a restart. `known` is
     what this run already found on (or pushed to) the clone: when it is the same, the clone is not
     asked again. Returns True when a file changed."""
-    from .clone_services import SERVICES
-    from .service import ServiceContext
+    from ..services.registry import SERVICES
+    from ..services.base import ServiceContext
 
     ctx = ServiceContext(fleet, state, fleet.robot(state, robot))
     files = [f for s in SERVICES if s.reshared for f in s.files(ctx)]

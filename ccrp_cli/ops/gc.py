@@ -17,12 +17,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
-from .errors import CcrpError
-from .models.state import FleetState
-from .providers.base import OwnedResource, SnapshotRecord
+from ..errors import CcrpError
+from ..models.state import FleetState
+from ..providers.base import OwnedResource, SnapshotRecord
 
 if TYPE_CHECKING:
-    from .providers.base import Provider
+    from ..providers.base import Provider
 
 # One per fleet, created or reused by bootstrap.
 BOOTSTRAP_KINDS = {"network", "vpc", "subnet", "router", "route_table", "internet_gateway", "security_group",
@@ -93,8 +93,8 @@ def collect_images(provider: Provider, dry_run: bool, unlabelled: bool = False,
     state's images are the fleet's leak rule's, a live state's are left alone; an image a
     container uses or a state of this CCRP_HOME records is kept. Unlabelled images are removed
     only when asked (`unlabelled`): nothing says they are not another CCRP_HOME's."""
-    from .providers.docker import snapshot_images as si
-    from .store import read_state_id
+    from ..providers.docker import snapshot_images as si
+    from ..store import read_state_id
 
     census = si.census(provider.client, provider.fleet, read_state_id(provider.state_dir), provider.state_dir.parent)
     results = []

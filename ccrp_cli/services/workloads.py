@@ -15,16 +15,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .errors import CcrpError, InputError, shown
-from .models.inventory import Inventory, Robot
-from .models.software import RunNode, Software
-from .render.files import BundleFile
-from .service import CloneService, ServiceContext
+from ..errors import CcrpError, InputError, shown
+from ..models.inventory import Inventory, Robot
+from ..models.software import RunNode, Software
+from ..render.files import BundleFile
+from .base import CloneService, ServiceContext
 
 if TYPE_CHECKING:
-    from .fleet import Fleet
-    from .models.state import FleetState
-    from .providers.base import Reaches
+    from ..fleet import Fleet
+    from ..models.state import FleetState
+    from ..providers.base import Reaches
 
 UNIT_DIR = "/etc/systemd/system"
 UNIT_PREFIX = "ccrp-run-"
@@ -130,7 +130,7 @@ class Resolved:
 def resolve(distro: str, packages: list[Package]) -> Resolved:
     """Each package.xml key to the Debian packages (ROS 1: Debian's ROS) or wheels (ROS 2) the
     recipe's `rosdep:` table names; a key with no entry is an error naming it and its package."""
-    from .recipes import is_ros2, recipe
+    from ..recipes import is_ros2, recipe
 
     table = recipe(distro).rosdep
     out = Resolved()
@@ -234,7 +234,7 @@ def check_snapshot(fleet, state, provider_kind: str) -> None:
     """Refuse to create or update clones whose snapshot lacks the inventory's software."""
     why = stale_snapshot(fleet, state)
     if why is not None and state.snapshot:
-        from .providers import Ability, info
+        from ..providers import Ability, info
 
         hint = f"ccrp snapshot {'bake' if Ability.BAKE in info(provider_kind).abilities else 'build'} -i INVENTORY first"
         raise InputError(f"{why}: clones made from it would not have it", hint=hint)
@@ -250,7 +250,7 @@ def systemd_word(word: str) -> str:
 
 
 def node_unit(node: RunNode, digest: str) -> str:
-    from .templates import static  # here: `ccrp status` reads the nodes' service and renders no unit
+    from ..templates import static  # here: `ccrp status` reads the nodes' service and renders no unit
 
     limits = []
     if node.cpu is not None:
@@ -304,7 +304,7 @@ def absent_index() -> BundleFile:
 def apply_nodes(provider: Reaches, robot: str, files: list[BundleFile], have: dict[str, str]) -> list[str]:
     """Push the units that changed and (re)start them; stop and remove the nodes no longer
     named. Returns the nodes restarted or started anew."""
-    from .probe import same
+    from ..probe import same
 
     if not files:
         if INDEX in have:  # it ran nodes before: none now

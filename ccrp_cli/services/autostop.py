@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import json
 
-from .fleet import Fleet
-from .layout import CCRP_ETC
-from .models.inventory import Robot
-from .models.state import FleetState
-from .render.files import BundleFile
-from .service import Boot, CloneService, ServiceContext
+from ..fleet import Fleet
+from ..layout import CCRP_ETC
+from ..models.inventory import Robot
+from ..models.state import FleetState
+from ..render.files import BundleFile
+from .base import Boot, CloneService, ServiceContext
 
 
 def autostop_file(fleet: Fleet, robot: Robot) -> BundleFile:

@@ -9,16 +9,16 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .errors import CcrpError, shown
-from .models.inventory import Inventory, Robot
-from .render.files import BundleFile
-from .layout import API_USER, CCRP_ETC, SECRETS_DIR
-from .service import Boot, CloneService, ServiceContext
+from ..errors import CcrpError, shown
+from ..models.inventory import Inventory, Robot
+from ..render.files import BundleFile
+from ..layout import API_USER, CCRP_ETC, SECRETS_DIR
+from .base import Boot, CloneService, ServiceContext
 
 if TYPE_CHECKING:
-    from .fleet import Fleet
-    from .models.state import FleetState
-    from .providers.base import Reaches
+    from ..fleet import Fleet
+    from ..models.state import FleetState
+    from ..providers.base import Reaches
 
 API_UNIT = "ccrp-api-manager.service"
 API_CONFIG = f"{CCRP_ETC}/api_manager.json"
@@ -65,7 +65,7 @@ def api_manager_files(inv: Inventory, robot: Robot) -> list[BundleFile]:
     a bare cloud clone's user-data carries only the relay (layout.BOOT_AGENTS), since with the API
     manager too a Noetic one went over AWS's 16 KiB gzipped. A snapshot's copy is the same file,
     so it is not sent again. [] when the clone runs none."""
-    from .resources import agent_source
+    from ..resources import agent_source
 
     cfg = api_manager_config(inv, robot)
     if cfg is None:
@@ -95,7 +95,7 @@ OFF_SH = f'rm -f "{API_CONFIG}" "{GOOGLE_KEY}" && systemctl stop {API_UNIT}'
 def apply_api_manager(provider: Reaches, robot: str, files: list[BundleFile], have: dict[str, str]) -> None:
     """Bring robot's clone in line with `files` (api_manager_files), given the digests of what it
     holds: push and restart the agent when they differ, or turn the service off."""
-    from .probe import same
+    from ..probe import same
 
     if files:
         if not same(have, files):

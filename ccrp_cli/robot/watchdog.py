@@ -14,10 +14,10 @@ import logging
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
-from .models.status import Power, StatusRow, Watchdog
+from ..models.status import Power, StatusRow, Watchdog
 
 if TYPE_CHECKING:
-    from .providers.base import Provider
+    from ..providers.base import Provider
 
 log = logging.getLogger("ccrp.watchdog")
 
@@ -62,7 +62,7 @@ def parse(out: str) -> Watchdog:
 
 def simulated(fleet, provider: Provider) -> dict[str, Watchdog]:
     """robot -> its watchdog's state, for the fleet's simulated robots running on this host."""
-    from .providers.base import LABEL_ROBOT
+    from ..providers.base import LABEL_ROBOT
     from .simulated import Sims
 
     try:
