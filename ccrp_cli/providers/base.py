@@ -168,6 +168,8 @@ class Ability(str, Enum):
     LOCAL_BUILD = "snapshot build"  # build the golden image on this host (Docker)
     BAKE = "snapshot bake"  # a builder instance in the cloud installs the recipe and is captured
     ROBOT_SIM = "robot sim on its public network"  # simulated robots attach to the fleet's own public network
+    # simulated robots (local containers) get a port on the fleet's public network, a bridge of this host
+    ROBOT_BRIDGE = "robot sim on its bridge"
 
 
 @dataclass(frozen=True)
@@ -289,6 +291,14 @@ class Housekeeping(Protocol):
 
 class Provider(Lifecycle, Images, Housekeeping, Protocol):
     """Every backend implements all three; a function of the core takes the narrowest it uses."""
+
+
+class RobotBridge(Protocol):
+    """What a provider with Ability.ROBOT_BRIDGE adds: the port a simulated robot of slot `index`
+    gets on the fleet's public network (libvirt: a veth on its NAT bridge, robots.RobotPort), with
+    `attach(pid)` giving it to the container's network namespace."""
+
+    def robot_port(self, robot: str, index: int): ...
 
 
 class LocalBuild(Protocol):

@@ -1,8 +1,9 @@
 """Simulated robots of a fleet (`ccrp robot sim`): start, stop, and the emulated link to the clone.
 
 A simulated robot is a container on this host that installed exactly its edge bundle. On a Docker
-fleet it sits on the fleet's own public network; for a cloud fleet it dials its clone's public IP
-from a Docker network of this host.
+fleet it sits on the fleet's own public network; on a libvirt fleet it gets a port on the fleet's
+NAT bridge (Ability.ROBOT_BRIDGE); for a cloud fleet it dials its clone's public IP from a Docker
+network of this host.
 """
 
 from __future__ import annotations
@@ -89,7 +90,9 @@ class Sims:
         from ..providers.docker.host import DockerHost
 
         self.fleet = fleet
-        self.own_network = Ability.ROBOT_SIM in info(fleet.inventory.provider.kind).abilities
+        abilities = info(fleet.inventory.provider.kind).abilities
+        self.own_network = Ability.ROBOT_SIM in abilities
+        self.bridged = Ability.ROBOT_BRIDGE in abilities
         self.clones = provider or get_provider(fleet.inventory)
         # A Docker fleet's robots are containers of its own provider; a cloud fleet's are local.
         self.host = self.clones if self.own_network else DockerHost(fleet.name)
@@ -111,24 +114,28 @@ class Sims:
         from ..templates import static
         from .robots import edge_files
 
-        if self.own_network and network:
-            raise InputError("--network is for cloud fleets", hint="simulated robots of a Docker fleet sit on <fleet>-public")
+        if (self.own_network or self.bridged) and network:
+            raise InputError("--network is for cloud fleets", hint="simulated robots of a Docker or libvirt fleet sit on "
+                             "the fleet's own public network")
         state = self.fleet.store.load_state()
         self.fleet.robot(state, robot)
-        files, endpoint = edge_files(self.fleet, robot)
+        files, endpoint = edge_files(self.fleet, robot)  # refuses a robot with no clone yet
+        port = self.clones.robot_port(robot, state.robots[robot].index) if self.bridged else None
         if self.own_network:
             image, net = snapshot_image(state), self.host.public_net
-        else:
-            image, net = containers.sim_image(self.host, self.fleet.inventory.ros.distro, progress), network or "bridge"
+        else:  # a robot port: no Docker network at all, the port is its only interface
+            image, net = containers.sim_image(self.host, self.fleet.inventory.ros.distro, progress), \
+                "none" if port else network or "bridge"
         t0 = time.monotonic()
         ros = self.fleet.inventory.ros
         if ros.ros2:  # the rclpy demo node, with the distro's python (docs/ros2.md)
             demo, python = static("edge/ccrp-demo-node2"), f"/opt/ros/{ros.distro}/bin/python"
         else:
             demo, python = static("edge/ccrp-demo-node"), "/usr/bin/python3"
-        cid = containers.start(self.host, robot, image, files, demo, net, python)
-        progress(f"simulated robot {robot!r} ({cid}) installed its bundle and dials {endpoint}")
-        result = {"robot": robot, "container": cid, "endpoint": endpoint, "network": net}
+        cid = containers.start(self.host, robot, image, files, demo, net, python, port.attach if port else None)
+        progress(f"simulated robot {robot!r} ({cid}) installed its bundle and dials {endpoint}"
+                 + (f" from {port.address.ip} on {port.network}" if port else ""))
+        result = {"robot": robot, "container": cid, "endpoint": endpoint, "network": str(port) if port else net}
         if wait > 0:
             from ..probe import wait_connected
 

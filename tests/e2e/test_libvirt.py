@@ -1,7 +1,11 @@
-"""One VM clone on libvirt, end to end: `ccrp snapshot build` making the golden volume from the
-recipe (its Docker image, then providers/libvirt/goldens.py), `ccrp fleet up` creating the clone as a qcow2 overlay booted with a
-NoCloud seed of the user-data ccrp renders, `ccrp status` saying it serves, and `ccrp fleet down`
-leaving no domain, volume or network of the fleet.
+"""Two VM clones on libvirt, end to end, on ROS 1 Noetic: `ccrp snapshot build` making the golden
+volume from the recipe (its Docker image, then providers/libvirt/goldens.py), `ccrp fleet up`
+creating nao1's and nao2's clones as qcow2 overlays booted with a NoCloud seed of the user-data ccrp
+renders, `ccrp status` saying they serve, `ccrp robot sim` putting nao1's simulated robot on the
+fleet's NAT bridge (providers/libvirt/robots.py) where it connects through the VPN to its clone and
+nothing else of it, nao1's /chatter (the robot's demo node) reaching nao2's clone through the relay
+over the isolated common network, and `ccrp fleet down` leaving no domain, volume, network,
+container or veth of the fleet. The VMs are shared by the module's tests, in order.
 
 Gated: CCRP_E2E_LIBVIRT=1, a libvirtd answering on qemu:///system (scripts/libvirt.sh) and the
 binding installed. CCRP_LIBVIRT_ACCEL (auto, kvm, tcg; default auto) is the inventory's accel."""
@@ -9,6 +13,7 @@ binding installed. CCRP_LIBVIRT_ACCEL (auto, kvm, tcg; default auto) is the inve
 from __future__ import annotations
 
 import ipaddress
+import re
 import json
 import os
 import secrets
@@ -60,8 +65,9 @@ def free_public(used: list[ipaddress.IPv4Network]) -> str:
 
 @pytest.fixture(scope="module")
 def vm_fleet(tmp_path_factory):
-    """A one-robot libvirt fleet whose snapshot is a golden volume `ccrp snapshot build` made;
-    everything of it, golden volumes included, is removed at the end whatever happened."""
+    """A two-robot libvirt fleet (nao1 exports /chatter, nao2 imports it) whose snapshot is a golden
+    volume `ccrp snapshot build` made; everything of it, golden volumes and simulated robots
+    included, is removed at the end whatever happened."""
     from ccrp_cli.fleet import Fleet
     from ccrp_cli.ops.init import free, used_networks
     from ccrp_cli.providers import get_provider
@@ -70,11 +76,13 @@ def vm_fleet(tmp_path_factory):
     home = tmp / "home"
     os.environ["CCRP_HOME"] = str(home)  # Fleet.open below and the CLI share the state
     used = used_networks()
+    # 1 vCPU each: two TCG guests on this 2-core machine (with other work beside them).
     inv = {"fleet": f"lv{secrets.token_hex(3)}",
            "provider": {"kind": "libvirt", "accel": os.environ.get("CCRP_LIBVIRT_ACCEL", "auto"), "memory_mb": 1536,
-                        "vcpus": 2, "public_cidr": free_public(used)},
+                        "vcpus": 1, "public_cidr": free_public(used)},
            "ros": {"distro": "noetic"}, "vpn": {"pool": free("vpn", used)}, "common": {"cidr": free("common", used)},
-           "robots": [{"name": "nao1"}]}
+           "sharing": {"engine": "relay"},
+           "robots": [{"name": "nao1", "exports": ["/chatter"]}, {"name": "nao2", "imports": {"nao1": ["/chatter"]}}]}
     path = tmp / "ccrp.yaml"
     path.write_text(yaml.safe_dump(inv, sort_keys=False))
     fleet = Fleet.open(path)
@@ -90,7 +98,7 @@ def vm_fleet(tmp_path_factory):
         yield {"home": home, "path": path, "fleet": fleet, "provider": provider, "timings": timings, "golden": record}
     finally:
         try:
-            provider.teardown()
+            provider.teardown()  # domains, the robots' containers (their veths with them), volumes, networks
             for snap in provider.list_snapshots():
                 provider.delete_snapshot(snap.id)
         finally:
@@ -98,17 +106,34 @@ def vm_fleet(tmp_path_factory):
             print(f"\nlibvirt e2e timings (s): {json.dumps({k: round(v, 1) for k, v in timings.items()})}")
 
 
-def test_vm_clone_serves_and_fleet_down_leaves_nothing(vm_fleet):
+def container(vm_fleet, robot: str):
+    import docker
+
+    client = docker.from_env()
+    return client.containers.get(f"ccrp-{vm_fleet['fleet'].name}-{robot}")
+
+
+def veths(vm_fleet) -> list[str]:
+    """The host ends of the fleet's robot ports still on this host."""
+    from ccrp_cli.providers.libvirt.robots import veth_name
+
+    mine = {veth_name(vm_fleet["fleet"].name, r) for r in ("nao1", "nao2")}
+    out = subprocess.run(["ip", "-o", "link", "show"], capture_output=True, text=True, check=True).stdout
+    return sorted(name for name in re.findall(r"^\d+: ([^:@]+)", out, re.M) if name in mine)
+
+
+def test_two_vm_clones_serve(vm_fleet):
     home, path, provider = vm_fleet["home"], str(vm_fleet["path"]), vm_fleet["provider"]
     t0 = time.monotonic()
     up = ccrp(home, "fleet", "up", "-i", path)
-    vm_fleet["timings"]["fleet up (1 VM clone)"] = time.monotonic() - t0
+    vm_fleet["timings"]["fleet up (2 VM clones)"] = time.monotonic() - t0
     assert up.returncode == 0, up.stderr[-3000:] + "\n--- console ---\n" + provider.console_output("nao1")[-3000:]
 
-    [rec] = provider.query().values()
-    assert rec.robot == "nao1" and rec.state.value == "running" and rec.public_ip
-    assert ipaddress.IPv4Address(rec.public_ip) in provider.settings.public_cidr
-    # The clone's disk is an overlay of the golden volume: only its writes are its own.
+    recs = provider.query()
+    assert sorted(recs) == ["nao1", "nao2"]
+    for rec in recs.values():
+        assert rec.state.value == "running" and ipaddress.IPv4Address(rec.public_ip) in provider.settings.public_cidr
+    # A clone's disk is an overlay of the golden volume: only its writes are its own.
     pool = provider._pool()
     disk = pool.storageVolLookupByName(provider.clone_volumes("nao1")["disk"])
     golden = pool.storageVolLookupByName(vm_fleet["golden"].id)
@@ -118,17 +143,84 @@ def test_vm_clone_serves_and_fleet_down_leaves_nothing(vm_fleet):
     status = ccrp(home, "status", "-i", path, "--json", timeout=300)
     assert status.returncode == 0, status.stderr[-2000:]
     rows = {r["robot"]: r for r in json.loads(status.stdout)}
-    row = rows["nao1"]
-    assert row["phase"] == "ready" and row["state"] == "running" and row["master_reachable"] is True, row
-    assert row["public_ip"] == rec.public_ip and row["secrets"] is True, row
+    for robot, row in rows.items():
+        assert row["phase"] == "ready" and row["state"] == "running" and row["master_reachable"] is True, row
+        assert row["public_ip"] == recs[robot].public_ip and row["secrets"] is True, row
 
+
+def test_simulated_robot_connects_through_the_vpn_to_its_vm_clone(vm_fleet):
+    from ccrp_cli.providers.libvirt.robots import veth_name
+
+    home, path, provider = vm_fleet["home"], str(vm_fleet["path"]), vm_fleet["provider"]
+    t0 = time.monotonic()
+    sim = ccrp(home, "robot", "sim", "-i", path, "--robot", "nao1", "--wait", "600", "--json", timeout=900)
+    vm_fleet["timings"]["robot sim --wait (nao1)"] = time.monotonic() - t0
+    assert sim.returncode == 0, sim.stderr[-3000:]
+    result = json.loads(sim.stdout)
+    assert result["nodes"] == ["/nao1_demo"], result
+    vm_fleet["timings"]["robot sim: container start to node on the clone"] = result["seconds"]
+    # It dials from its port on the NAT network: the top address, outside the DHCP range.
+    nat = provider.settings.public_cidr
+    assert result["network"] == f"{provider.public_net} ({nat.broadcast_address - 1})", result
+    assert result["address"].split(":")[0] == str(nat.broadcast_address - 1), result
+    assert veths(vm_fleet) == [veth_name(vm_fleet["fleet"].name, "nao1")]
+    rows = {r["robot"]: r for r in json.loads(ccrp(home, "status", "-i", path, "--json", timeout=300).stdout)}
+    assert rows["nao1"]["vpn_connected"] and "/nao1_demo" in rows["nao1"]["robot_nodes"], rows["nao1"]
+
+
+def test_robot_reaches_only_the_vpn_port_of_its_clone(vm_fleet):
+    from tests.e2e.fleet import master_probe, tcp_probe
+
+    provider = vm_fleet["provider"]
+    robot = container(vm_fleet, "nao1")
+    public = provider.query()["nao1"].public_ip
+    # Through the tunnel the clone's master answers (the clone is .1 of the robot's VPN subnet)...
+    rc, env = robot.exec_run(["cat", "/etc/ccrp/ros.env"])
+    master = re.search(r"ROS_MASTER_URI=(\S+)", env.decode()).group(1)
+    assert master_probe(robot, [master])[master].startswith("master "), master
+    # ... on the clone's public address nothing else does: SSH (the host's only), the master, the relay.
+    seen = tcp_probe(robot, [(public, 22), (public, 11311), (public, 7447)])
+    assert not [t for t, r in seen.items() if r == "open"], f"the robot reaches more than the VPN port: {seen}"
+    seen = master_probe(robot, [f"http://{public}:11311"])
+    assert not [r for r in seen.values() if r.startswith("master ")], seen
+
+
+def test_robot_topic_reaches_the_other_vm_clone_through_the_relay(vm_fleet):
+    home, path = vm_fleet["home"], str(vm_fleet["path"])
+    t0 = time.monotonic()
+    # nao1's robot publishes /chatter ("hello from nao1 #N", 2 Hz); nao2's clone imports it as /nao1/chatter.
+    out = ccrp(home, "clone", "exec", "-i", path, "--robot", "nao2", "--", "ccrp-topic", "echo", "/nao1/chatter",
+               "-n", "2", "-t", "240", timeout=900)
+    vm_fleet["timings"]["relay: first 2 messages on nao2's clone"] = time.monotonic() - t0
+    assert out.returncode == 0 and out.stdout.count('{"data": "hello from nao1 #') == 2, out.stdout[-2000:] + out.stderr[-2000:]
+    rows = {r["robot"]: r for r in json.loads(ccrp(home, "status", "-i", path, "--json", timeout=300).stdout)}
+    assert rows["nao2"]["relay_peers"] == {"nao1": True}, rows["nao2"]
+
+
+def test_robot_sim_stop_and_fleet_down_leave_nothing(vm_fleet):
+    home, path, provider = vm_fleet["home"], str(vm_fleet["path"]), vm_fleet["provider"]
+    # A second robot (no wait): `fleet down` must remove it, its port with it.
+    sim = ccrp(home, "robot", "sim", "-i", path, "--robot", "nao2", "--json", timeout=600)
+    assert sim.returncode == 0, sim.stderr[-2000:]
+    assert json.loads(sim.stdout)["network"].endswith(f"({provider.settings.public_cidr.broadcast_address - 2})")
+    stop = ccrp(home, "robot", "sim", "-i", path, "--robot", "nao1", "--stop", timeout=300)
+    assert stop.returncode == 0, stop.stderr[-2000:]
+    assert len(veths(vm_fleet)) == 1  # nao1's went with its container
+
+    t0 = time.monotonic()
     down = ccrp(home, "fleet", "down", "-i", path, timeout=600)
+    vm_fleet["timings"]["fleet down"] = time.monotonic() - t0
     assert down.returncode == 0, down.stderr[-2000:]
     assert provider.leftovers() == []
     fleet = vm_fleet["fleet"].name
     conn = provider.conn
     assert not [d.name() for d in conn.listAllDomains(0) if d.name().startswith(f"ccrp-{fleet}-")]
     assert not [n.name() for n in conn.listAllNetworks(0) if n.name().startswith(f"ccrp-{fleet}-")]
+    pool = provider._pool()
     pool.refresh(0)
     assert [v.name() for v in pool.listAllVolumes(0) if v.name().startswith(f"ccrp-{fleet}-")
             and not v.name().startswith(f"ccrp-{fleet}-golden-")] == []
+    import docker
+
+    assert docker.from_env().containers.list(all=True, filters={"label": f"ccrp-fleet={fleet}"}) == []
+    assert veths(vm_fleet) == []

@@ -47,7 +47,7 @@ def test_settings_defaults_and_registry(tmp_path):
     assert p.public_cidr == ipaddress.IPv4Network("192.168.150.0/24")
     info = REGISTRY["libvirt"]
     assert info.factory == ".libvirt.provider:LibvirtProvider" and ("libvirt", "libvirt") in info.sdk_modules
-    assert info.platform == "debian-bookworm" and info.abilities == {Ability.LOCAL_BUILD}
+    assert info.platform == "debian-bookworm" and info.abilities == {Ability.LOCAL_BUILD, Ability.ROBOT_BRIDGE}
 
 
 @pytest.mark.parametrize("field,value", [
@@ -134,7 +134,7 @@ def test_networks():
     nat = ET.fromstring(xmldefs.nat_network("ccrp-vmlab-public", xmldefs.bridge_name("vmlab", "public"), cidr))
     assert nat.findtext("name") == "ccrp-vmlab-public" and nat.find("forward").get("mode") == "nat"
     assert nat.find("ip").get("address") == "192.168.150.1" and nat.find("ip").get("netmask") == "255.255.255.0"
-    assert (nat.find("ip/dhcp/range").get("start"), nat.find("ip/dhcp/range").get("end")) == ("192.168.150.2", "192.168.150.254")
+    assert (nat.find("ip/dhcp/range").get("start"), nat.find("ip/dhcp/range").get("end")) == ("192.168.150.2", "192.168.150.238")
     iso = ET.fromstring(xmldefs.isolated_network("ccrp-vmlab-common", xmldefs.bridge_name("vmlab", "common")))
     assert iso.find("forward") is None and iso.find("ip") is None  # no route out, no host address
     names = {xmldefs.bridge_name(f, r) for f in ("vmlab", "a" * 31, "vmlab2") for r in ("public", "common")}
@@ -296,6 +296,7 @@ def stand_in(tmp_path, volumes, domains, networks):
     p.inv, p.fleet, p.workdir, p.settings = inv, inv.fleet, tmp_path, inv.provider
     p.libvirt = type("sdk", (), {"libvirtError": type("libvirtError", (Exception,), {})})
     p.conn = _Conn(domains, _Pool(volumes), [_Net(n) for n in networks])
+    p._docker = False  # no simulated robots: this host's Docker engine is not asked
     return p
 
 

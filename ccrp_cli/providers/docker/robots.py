@@ -47,9 +47,11 @@ SUPPLY_PATH = "/usr/local/lib/ccrp/ccrp-power-supply"
 
 
 def _create(provider: DockerHost, robot: str, role: str, image: str, network: str, bundle: list, extra: list,
-            **options):
+            attach=None, **options):
     """A systemd container of the robot's (a simulated robot or its power device) on `network`,
-    with `bundle` in BUNDLE_DIR and `extra` files, booted and its bundle's install.sh run."""
+    with `bundle` in BUNDLE_DIR and `extra` files, booted and its bundle's install.sh run.
+    `attach(pid)`, if given, wires the network of a container on network `none` as soon as it
+    runs (a libvirt fleet's robot port), before its VPN first dials."""
     c = provider.client.containers.create(
         image,
         name=provider.container_name(robot, role=role),
@@ -68,6 +70,13 @@ def _create(provider: DockerHost, robot: str, role: str, image: str, network: st
     files += [("etc/cloud/cloud-init.disabled", b"a robot, not a clone\n", 0o644), *extra]
     c.put_archive("/", tar_files(files, make_dirs=True))
     c.start()
+    if attach is not None:
+        c.reload()
+        try:
+            attach(c.attrs["State"]["Pid"])
+        except BaseException:
+            c.remove(force=True, v=True)
+            raise
     provider.wait_systemd(robot, role=role)  # install.sh enables units
     rc, out = provider.exec(robot, [f"/{BUNDLE_DIR}/install.sh"], timeout=60, role=role)
     if rc != 0:
@@ -76,7 +85,7 @@ def _create(provider: DockerHost, robot: str, role: str, image: str, network: st
 
 
 def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node: str, network: str,
-          python: str = "/usr/bin/python3") -> str:
+          python: str = "/usr/bin/python3", attach=None) -> str:
     """(Re)create the simulated robot on `network` and install `bundle` in it, then run `demo_node`
     with `python` (a ROS 2 distro's own, /opt/ros/<distro>/bin/python) and its stand-in power
     supply. Returns the container id."""
@@ -86,7 +95,7 @@ def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node:
         # What the robot does without its clone: stop its (stand-in) motors and note the time.
         ("etc/ccrp/fallback.d/50-sim-motors", static("sim/ccrp-sim-fallback").encode(), 0o755),
         (SUPPLY_PATH.lstrip("/"), static("sim/ccrp-power-supply").encode(), 0o755),
-    ], hostname=robot, volumes=["/sys/fs/cgroup:/sys/fs/cgroup:ro", POWER_DIR])  # POWER_DIR: an anonymous volume
+    ], attach=attach, hostname=robot, volumes=["/sys/fs/cgroup:/sys/fs/cgroup:ro", POWER_DIR])  # POWER_DIR: an anonymous volume
     # The power line: not one of the robot's units, so it keeps running while the robot is off.
     rc, out = provider.exec(robot, ["systemd-run", "--unit", "ccrp-power-supply", "--property", "Restart=always",
                                     "--property", "RestartSec=1", "/usr/bin/python3", SUPPLY_PATH], role="robot-sim")

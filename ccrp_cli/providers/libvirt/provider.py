@@ -39,7 +39,7 @@ from ..base import (
     owner_labels,
 )
 from ..cloud import CloudProvider
-from . import INFO, seed, xmldefs
+from . import INFO, robots, seed, xmldefs
 from .settings import LibvirtSettings
 
 # virDomainState (dom.state()[0]) -> libvirt's word, then ccrp's.
@@ -78,6 +78,13 @@ def _listening(host: str, port: int = 22) -> bool:
         return True
     except OSError:
         return False
+
+
+SHOWN_KINDS = {"instance": "domain", "robot_sim": "container"}  # as `fleet down` reports them
+
+
+def _shown(r: OwnedResource) -> str:
+    return f"{SHOWN_KINDS.get(r.kind, r.kind)} {r.name or r.id}"
 
 
 def stamp() -> str:
@@ -345,8 +352,8 @@ class LibvirtProvider(CloudProvider):
 
         pub = self.settings.public_cidr
         offset = int(ipaddress.IPv4Address(common_ip)) - int(self.inv.common.cidr.network_address)
-        hosts = pub.num_addresses - 2
-        if not 2 <= offset <= hosts:  # .1 is the host's
+        hosts = pub.num_addresses - 2 - len(xmldefs.robot_block(pub))
+        if not 2 <= offset <= hosts:  # .1 is the host's, the top the simulated robots'
             raise CcrpError(f"clone address {common_ip} has no counterpart in provider.public_cidr {pub}",
                             hint="give provider.public_cidr at least as many addresses as common.cidr")
         return str(pub.network_address + offset)
@@ -377,6 +384,51 @@ class LibvirtProvider(CloudProvider):
     def _reserved(self, mac: str) -> str | None:
         net = self._network(self.public_net)
         return xmldefs.dhcp_hosts(net.XMLDesc(0)).get(mac) if net is not None else None
+
+    # -- simulated robots (Ability.ROBOT_BRIDGE, robots.py) ----------------------------------------
+    def robot_port(self, robot: str, index: int) -> robots.RobotPort:
+        """The port of robot `robot` (addressing slot `index`) on the fleet's NAT network: refused
+        in one line unless the libvirt host is this machine or the network is missing."""
+        import ipaddress
+
+        robots.require_local(self.settings.uri)
+        with self._errors(f"network {self.public_net}"):
+            net = self._network(self.public_net)
+            if net is None or not net.isActive():
+                raise CcrpError(f"fleet {self.fleet!r} has no running network {self.public_net}", hint="run `ccrp fleet up`")
+            taken = set(xmldefs.dhcp_hosts(net.XMLDesc(0)).values())
+            taken |= {lease.get("ipaddr", "") for lease in net.DHCPLeases()}
+            bridge = net.bridgeName()
+        cidr = self.settings.public_cidr
+        address = robots.robot_address(cidr, index, taken, robot)
+        return robots.RobotPort(network=self.public_net, bridge=bridge, veth=robots.veth_name(self.fleet, robot),
+                                address=ipaddress.IPv4Interface(f"{address}/{cidr.prefixlen}"),
+                                gateway=str(next(cidr.hosts())))
+
+    _docker = None  # this host's Docker engine, once asked (False: none, or the libvirt host is elsewhere)
+
+    def _sim_host(self):
+        """This host's Docker engine when simulated robots of the fleet can be on it (a local URI):
+        `fleet down` and `gc` remove them with the network they sit on."""
+        if self._docker is None:
+            self._docker = False
+            if self.settings.uri in robots.LOCAL_URIS:
+                from ..docker.host import DockerHost
+
+                try:
+                    self._docker = DockerHost(self.fleet)
+                except CcrpError:  # no engine, so no simulated robot either
+                    pass
+        return self._docker or None
+
+    def _sims(self) -> list:
+        """The fleet's simulated robots and power devices (containers labelled with its name)."""
+        host = self._sim_host()
+        if host is None:
+            return []
+        return [c for c in host.client.containers.list(all=True, ignore_removed=True,
+                                                       filters={"label": [f"{LABEL_FLEET}={self.fleet}"]})
+                if c.labels.get(LABEL_ROLE) in ("robot-sim", "power-sim")]
 
     def _record(self, dom, info: xmldefs.DomainInfo, origin: Origin | None = None) -> CloneRecord:
         word = WORDS[dom.state(0)[0]] if dom.state(0)[0] < len(WORDS) else "unknown"
@@ -666,6 +718,9 @@ class LibvirtProvider(CloudProvider):
         with self._errors("list owned resources"):
             found = [OwnedResource(kind="instance", id=d.UUIDString(), name=d.name(), robot=i.labels.get(LABEL_ROBOT))
                      for d, i in self._domains()]
+            # Power devices first: they hold their robot's power line volume (docker/robots.py).
+            found += [OwnedResource(kind="robot_sim", id=c.id[:12], name=c.name, robot=c.labels.get(LABEL_ROBOT))
+                      for c in sorted(self._sims(), key=lambda c: c.labels.get(LABEL_ROLE) != "power-sim")]
             pool = self._refreshed(self._pool())
             names = [v.name() for v in pool.listAllVolumes(0) if self._owns_name(v.name())]
             goldens = {n.removesuffix(".qcow2") for n in names if GOLDEN.match(n)}
@@ -678,7 +733,7 @@ class LibvirtProvider(CloudProvider):
                     found.append(OwnedResource(kind="volume", id=name, name=name, robot=m["robot"] if m else None))
             found += [OwnedResource(kind="network", id=n.name(), name=n.name())
                       for n in self.conn.listAllNetworks(0) if n.name() in (self.public_net, self.common_net)]
-            order = ("instance", "volume", "network", "image")
+            order = ("instance", "robot_sim", "volume", "network", "image")
             return sorted(found, key=lambda r: order.index(r.kind))
 
     def delete_owned(self, resource: OwnedResource) -> None:
@@ -695,6 +750,8 @@ class LibvirtProvider(CloudProvider):
                 if dom.isActive():
                     dom.destroy()
                 dom.undefine()
+            elif resource.kind == "robot_sim":
+                self._delete_sim(resource.id)
             elif not self._owns_name(resource.id):
                 raise CcrpError(f"{resource.kind} {resource.id} is not fleet {self.fleet!r}'s; not deleting it")
             elif resource.kind == "image":
@@ -709,6 +766,13 @@ class LibvirtProvider(CloudProvider):
                 self._remove_network(resource.id)
             else:
                 raise CcrpError(f"unknown resource kind {resource.kind!r}")
+
+    def _delete_sim(self, container_id: str) -> None:
+        """A simulated robot or power device of the fleet; its veth goes with its network namespace."""
+        found = [c for c in self._sims() if c.id.startswith(container_id)]
+        if not found:
+            raise CcrpError(f"simulated robot {container_id} is gone or not fleet {self.fleet!r}'s")
+        found[0].remove(force=True, v=True)
 
     def _remove_network(self, name: str) -> bool:
         net = self._network(name)
@@ -725,7 +789,7 @@ class LibvirtProvider(CloudProvider):
         with self._errors(f"teardown of fleet {self.fleet}"):
             doomed = [r for r in self.list_owned() if r.kind != "image"]
             for r in doomed:
-                if r.kind == "instance":
+                if r.kind in ("instance", "robot_sim"):
                     self.delete_owned(r)
             pool = self._refreshed(self._pool())
             for r in doomed:
@@ -733,11 +797,10 @@ class LibvirtProvider(CloudProvider):
                     self._delete_vol(pool, r.id)
                 elif r.kind == "network":
                     self._remove_network(r.id)
-            return [f"{'domain' if r.kind == 'instance' else r.kind} {r.name or r.id}" for r in doomed]
+            return [_shown(r) for r in doomed]
 
     def leftovers(self) -> list[str]:
-        return [f"{'domain' if r.kind == 'instance' else r.kind} {r.name or r.id}"
-                for r in self.list_owned() if r.kind != "image"]
+        return [_shown(r) for r in self.list_owned() if r.kind != "image"]
 
     # -- doctor, quotas ---------------------------------------------------------------------------
     def check_credentials(self) -> str:

@@ -47,9 +47,20 @@ def bridge_name(fleet: str, role: str) -> str:
 
 # -- networks -------------------------------------------------------------------------------------------
 
+# The top of the NAT network is kept out of its DHCP range for simulated robots, which take static
+# addresses there (robots.py): this many, or a quarter of a small network.
+ROBOT_BLOCK = 16
+
+
+def robot_block(cidr: ipaddress.IPv4Network) -> list[ipaddress.IPv4Address]:
+    """The addresses of the NAT network kept for simulated robots, lowest first."""
+    hosts = list(cidr.hosts())
+    return hosts[len(hosts) - min(ROBOT_BLOCK, (len(hosts) - 1) // 4):]
+
+
 def nat_network(name: str, bridge: str, cidr: ipaddress.IPv4Network) -> str:
     """The fleet's public side: NAT to the host's uplink, the host on the first address, DHCP for
-    the clones on the rest (their addresses are leases, as a cloud's DHCP hands them out)."""
+    the clones on the rest but the robots' block at the top (robot_block)."""
     net = ET.Element("network")
     _text(net, "name", name)
     ET.SubElement(net, "forward", mode="nat")
@@ -57,7 +68,7 @@ def nat_network(name: str, bridge: str, cidr: ipaddress.IPv4Network) -> str:
     hosts = list(cidr.hosts())
     ip = ET.SubElement(net, "ip", address=str(hosts[0]), netmask=str(cidr.netmask))
     dhcp = ET.SubElement(ip, "dhcp")
-    ET.SubElement(dhcp, "range", start=str(hosts[1]), end=str(hosts[-1]))
+    ET.SubElement(dhcp, "range", start=str(hosts[1]), end=str(hosts[-len(robot_block(cidr)) - 1]))
     return dump(net)
 
 
