@@ -199,3 +199,10 @@ def test_fleet_down_and_gc_find_the_robots_containers(tmp_path):
     assert sims[2].removed and not sims[0].removed
     with pytest.raises(CcrpError, match="gone or not fleet"):
         p.delete_owned(owned[2].model_copy(update={"id": "d" * 12}))  # the clone container is never a sim
+
+
+def test_a_reservation_is_deleted_without_a_name():
+    """libvirt refuses `name=''` ("Cannot use host name ''"), which made every rollback of a clone
+    fail and hid why its `fleet up` had failed."""
+    assert ET.fromstring(xmldefs.dhcp_host("52:54:00:00:00:01", "192.168.150.10")).attrib == {
+        "mac": "52:54:00:00:00:01", "ip": "192.168.150.10"}

@@ -379,7 +379,7 @@ class LibvirtProvider(CloudProvider):
         lv, flags = self.libvirt, self.libvirt.VIR_NETWORK_UPDATE_AFFECT_CONFIG
         flags |= lv.VIR_NETWORK_UPDATE_AFFECT_LIVE if net.isActive() else 0
         self.api("release the public address", net.update, lv.VIR_NETWORK_UPDATE_COMMAND_DELETE,
-                 lv.VIR_NETWORK_SECTION_IP_DHCP_HOST, -1, xmldefs.dhcp_host(mac, have[mac], ""), flags)
+                 lv.VIR_NETWORK_SECTION_IP_DHCP_HOST, -1, xmldefs.dhcp_host(mac, have[mac]), flags)
 
     def _reserved(self, mac: str) -> str | None:
         net = self._network(self.public_net)

@@ -81,10 +81,11 @@ def isolated_network(name: str, bridge: str) -> str:
     return dump(net)
 
 
-def dhcp_host(mac: str, ip: str, name: str) -> str:
+def dhcp_host(mac: str, ip: str, name: str | None = None) -> str:
     """A reservation on the NAT network: the clone's public address is fixed, as a floating IP is,
-    across reboots and re-creations (a new machine-id would otherwise get a new lease)."""
-    return dump(ET.Element("host", mac=mac, name=name, ip=ip))
+    across reboots and re-creations (a new machine-id would otherwise get a new lease). No name to
+    delete one: libvirt refuses an empty name."""
+    return dump(ET.Element("host", mac=mac, ip=ip, **({"name": name} if name else {})))
 
 
 def dhcp_hosts(xml: str) -> dict[str, str]:
