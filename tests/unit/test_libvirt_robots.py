@@ -206,3 +206,20 @@ def test_a_reservation_is_deleted_without_a_name():
     fail and hid why its `fleet up` had failed."""
     assert ET.fromstring(xmldefs.dhcp_host("52:54:00:00:00:01", "192.168.150.10")).attrib == {
         "mac": "52:54:00:00:00:01", "ip": "192.168.150.10"}
+
+
+def test_bootstrap_makes_the_operator_key_before_any_clone(tmp_path):
+    """Clones are made in parallel: without a key made first, each made its own and all but the last
+    written refused ccrp's SSH (seen in the two-clone e2e run)."""
+    p = stand_in(tmp_path, [], [], [])
+    done = []
+    p.operator_public_key = lambda: done.append("key")
+
+    def pool(create=False):
+        done.append("pool")
+        raise CcrpError("stop here")
+
+    p._pool = pool
+    with pytest.raises(CcrpError, match="stop here"):
+        p.bootstrap()
+    assert done == ["key", "pool"]

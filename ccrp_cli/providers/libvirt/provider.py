@@ -247,6 +247,9 @@ class LibvirtProvider(CloudProvider):
         for what, cidr in (("common.cidr", self.inv.common.cidr), ("vpn.pool", self.inv.vpn.pool)):
             if public.overlaps(cidr):
                 raise CcrpError(f"provider.public_cidr {public} overlaps {what} {cidr}", hint="change one of them")
+        # The operator key before clones are made in parallel: each would otherwise make its own when
+        # there is none, the last one written wins, and the others' clones refuse it (measured).
+        self.operator_public_key()
         with self._errors(f"bootstrap of fleet {self.fleet}"):
             self._pool(create=True)
             for name, xml in ((self.public_net, xmldefs.nat_network(self.public_net, xmldefs.bridge_name(self.fleet, "public"), public)),
