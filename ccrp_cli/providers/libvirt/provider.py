@@ -405,8 +405,7 @@ class LibvirtProvider(CloudProvider):
         cidr = self.settings.public_cidr
         address = robots.robot_address(cidr, index, taken, robot)
         return robots.RobotPort(network=self.public_net, bridge=bridge, veth=robots.veth_name(self.fleet, robot),
-                                address=ipaddress.IPv4Interface(f"{address}/{cidr.prefixlen}"),
-                                gateway=str(next(cidr.hosts())))
+                                address=ipaddress.IPv4Interface(f"{address}/{cidr.prefixlen}"))
 
     _docker = None  # this host's Docker engine, once asked (False: none, or the libvirt host is elsewhere)
 

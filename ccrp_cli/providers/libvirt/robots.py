@@ -1,9 +1,14 @@
 """Simulated robots of a libvirt fleet (Ability.ROBOT_BRIDGE): a robot is a container of this
 host's Docker engine, as for a cloud fleet, but with no Docker network. It gets one veth pair
 instead: the host end a port of the fleet's NAT network's bridge, the other its eth0, with a static
-address from the top of the NAT subnet (xmldefs.robot_block, outside the DHCP range) and its
-default route via the host. So it reaches its clone's public address as a robot on the clone's LAN
-would, and the clone's firewall sees it as any robot: only the VPN port is open to it.
+address from the top of the NAT subnet (xmldefs.robot_block, outside the DHCP range). So it reaches
+its clone's public address as a robot on the clone's LAN would, and the clone's firewall sees it as
+any robot: only the VPN port is open to it.
+
+No default route: the robot needs nothing beyond the NAT subnet, and with one via the host (tried
+first) its demo node's first call to the master, made before the tunnel was up, went to the host's
+egress, where this machine's transparent proxy accepted the connection and held it: the node never
+registered (measured: 10 minutes). Without one, that call fails at once and rospy tries again.
 
 Why not the NAT network's DHCP or a Docker network: libvirt's firewall rejects new connections
 from outside into a NAT network (only the host may open them), and a Docker bridge network is
@@ -64,7 +69,6 @@ class RobotPort:
     bridge: str
     veth: str  # the host end
     address: ipaddress.IPv4Interface
-    gateway: str  # the host's address on the network
 
     def __str__(self) -> str:
         return f"{self.network} ({self.address.ip})"
@@ -77,8 +81,7 @@ class RobotPort:
             _run(["ip", "link", "add", self.veth, "type", "veth", "peer", "name", GUEST_IF, "netns", str(pid)])
             _run(["ip", "link", "set", self.veth, "master", self.bridge, "up"])
             _run([*ns, "ip", "address", "add", str(self.address), "dev", GUEST_IF])
-            _run([*ns, "ip", "link", "set", GUEST_IF, "up"])
-            _run([*ns, "ip", "route", "add", "default", "via", self.gateway])
+            _run([*ns, "ip", "link", "set", GUEST_IF, "up"])  # its only route: the NAT subnet, on link
         except CcrpError:
             _run(["ip", "link", "del", self.veth], ok_missing=True)
             raise
