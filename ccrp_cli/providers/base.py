@@ -296,9 +296,12 @@ class Provider(Lifecycle, Images, Housekeeping, Protocol):
 class RobotBridge(Protocol):
     """What a provider with Ability.ROBOT_BRIDGE adds: the port a simulated robot of slot `index`
     gets on the fleet's public network (libvirt: a veth on its NAT bridge, robots.RobotPort), with
-    `attach(pid)` giving it to the container's network namespace."""
+    `attach(pid)` giving it to the container's network namespace; release_robot_port removes what
+    is left of it once the container is gone."""
 
     def robot_port(self, robot: str, index: int): ...
+
+    def release_robot_port(self, robot: str) -> None: ...
 
 
 class LocalBuild(Protocol):

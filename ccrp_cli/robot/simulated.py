@@ -148,7 +148,10 @@ class Sims:
         """Remove the simulated robot (and its power device, if it has one)."""
         from ..providers.docker import robots as containers
 
-        return containers.stop(self.host, robot)
+        stopped = containers.stop(self.host, robot)
+        if self.bridged:
+            self.clones.release_robot_port(robot)
+        return stopped
 
     # -- its simulated power device (power.py) ---------------------------------------------------
     def start_device(self, robot: str, files: list) -> str:

@@ -76,10 +76,9 @@ def vm_fleet(tmp_path_factory):
     home = tmp / "home"
     os.environ["CCRP_HOME"] = str(home)  # Fleet.open below and the CLI share the state
     used = used_networks()
-    # 1 vCPU each: two TCG guests on this 2-core machine (with other work beside them).
     inv = {"fleet": f"lv{secrets.token_hex(3)}",
            "provider": {"kind": "libvirt", "accel": os.environ.get("CCRP_LIBVIRT_ACCEL", "auto"), "memory_mb": 1536,
-                        "vcpus": 1, "public_cidr": free_public(used)},
+                        "vcpus": 2, "public_cidr": free_public(used)},
            "ros": {"distro": "noetic"}, "vpn": {"pool": free("vpn", used)}, "common": {"cidr": free("common", used)},
            "sharing": {"engine": "relay"},
            "robots": [{"name": "nao1", "exports": ["/chatter"]}, {"name": "nao2", "imports": {"nao1": ["/chatter"]}}]}

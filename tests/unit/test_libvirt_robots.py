@@ -194,8 +194,10 @@ def test_fleet_down_and_gc_find_the_robots_containers(tmp_path):
     assert "container ccrp-vmlab-nao1" in p.leftovers()
     state = FleetState.model_validate({"fleet": "vmlab", "robots": {"nao1": {"index": 1}}})
     assert [r.name for r in find_leaks(state, owned, [])] == ["ccrp-vmlab-nao9"]  # gc: a robot the fleet lost
+    released = []
+    p.release_robot_port = released.append
     p.delete_owned(owned[2])
-    assert sims[2].removed and not sims[0].removed
+    assert sims[2].removed and not sims[0].removed and released == ["nao9"]  # its veth, if the kernel kept it
     with pytest.raises(CcrpError, match="gone or not fleet"):
         p.delete_owned(owned[2].model_copy(update={"id": "d" * 12}))  # the clone container is never a sim
 
@@ -222,3 +224,11 @@ def test_bootstrap_makes_the_operator_key_before_any_clone(tmp_path):
     with pytest.raises(CcrpError, match="stop here"):
         p.bootstrap()
     assert done == ["key", "pool"]
+
+
+def test_release_deletes_the_host_end_if_there(monkeypatch):
+    ran = []
+    monkeypatch.setattr(robots.subprocess, "run", lambda argv, **kw: ran.append(argv) or subprocess.CompletedProcess(
+        argv, 1, "", "Cannot find device"))
+    robots.release("vmlab", "nao1")
+    assert ran == [["ip", "link", "del", robots.veth_name("vmlab", "nao1")]]

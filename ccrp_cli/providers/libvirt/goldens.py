@@ -46,6 +46,10 @@ cloud_config_modules: [ locale, apt-configure, runcmd ]
 cloud_final_modules: [ package-update-upgrade-install, write-files-deferred, scripts-per-once, scripts-per-boot, scripts-per-instance, scripts-user, ssh-authkey-fingerprints, keys-to-console, final-message ]
 """
 
+# ROS 1's roscore gives the master it starts 10 s to answer (roslaunch's _TIMEOUT_MASTER_START), then
+# gives up; systemd starts it again. Under TCG on a busy host rosmaster's Python imports alone took
+# longer: one clone's master came up at its third try, another's not within 9 minutes (measured), so
+# a VM's roscore waits up to 180 s.
 DOCKERFILE = """\
 # A ccrp snapshot made a VM's root file system (ccrp_cli/providers/libvirt/goldens.py).
 FROM {base}
@@ -54,6 +58,8 @@ RUN apt-get update \\
  && rm -rf /var/lib/apt/lists/*
 COPY 90-ccrp.cfg /etc/cloud/cloud.cfg.d/90-ccrp.cfg
 COPY fstab /etc/fstab
+RUN f=/usr/lib/python3/dist-packages/roslaunch/launch.py; [ ! -f "$f" ] \\
+ || sed -i 's/^_TIMEOUT_MASTER_START = 10.0 /_TIMEOUT_MASTER_START = 180.0 /' "$f" && ! grep -q '^_TIMEOUT_MASTER_START = 10.0 ' "$f"
 RUN rm -f /etc/ssh/ssh_host_* \\
  && systemctl unmask cloud-init-local.service systemd-logind.service \\
  && systemctl enable systemd-networkd.service ssh.service cloud-init-local.service cloud-init.service \\

@@ -407,6 +407,10 @@ class LibvirtProvider(CloudProvider):
         return robots.RobotPort(network=self.public_net, bridge=bridge, veth=robots.veth_name(self.fleet, robot),
                                 address=ipaddress.IPv4Interface(f"{address}/{cidr.prefixlen}"))
 
+    def release_robot_port(self, robot: str) -> None:
+        if self.settings.uri in robots.LOCAL_URIS:
+            robots.release(self.fleet, robot)
+
     _docker = None  # this host's Docker engine, once asked (False: none, or the libvirt host is elsewhere)
 
     def _sim_host(self):
@@ -775,6 +779,8 @@ class LibvirtProvider(CloudProvider):
         if not found:
             raise CcrpError(f"simulated robot {container_id} is gone or not fleet {self.fleet!r}'s")
         found[0].remove(force=True, v=True)
+        if found[0].labels.get(LABEL_ROLE) == "robot-sim":
+            self.release_robot_port(found[0].labels.get(LABEL_ROBOT, ""))
 
     def _remove_network(self, name: str) -> bool:
         net = self._network(name)

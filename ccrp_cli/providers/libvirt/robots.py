@@ -14,8 +14,9 @@ Why not the NAT network's DHCP or a Docker network: libvirt's firewall rejects n
 from outside into a NAT network (only the host may open them), and a Docker bridge network is
 another subnet behind that rule. A port on the bridge itself is inside.
 
-The veth's other end lives in the container's network namespace: removing the container (`robot
-sim --stop`, `fleet down`, `gc`) removes the pair. Only on the libvirt host itself (a local URI):
+The veth's other end lives in the container's network namespace, so removing the container should
+remove the pair; `robot sim --stop`, `fleet down` and `gc` still delete the host end (release): one
+outlived its container by minutes here, its namespace not yet freed. Only on the libvirt host itself (a local URI):
 the bridge must be on this machine. Commands are argument lists (`ip`, `nsenter`), never a shell."""
 
 from __future__ import annotations
@@ -85,6 +86,11 @@ class RobotPort:
         except CcrpError:
             _run(["ip", "link", "del", self.veth], ok_missing=True)
             raise
+
+
+def release(fleet: str, robot: str) -> None:
+    """Delete the host end of the robot's port if it is still there (its peer goes with it)."""
+    _run(["ip", "link", "del", veth_name(fleet, robot)], ok_missing=True)
 
 
 def _run(argv: list[str], ok_missing: bool = False) -> None:
