@@ -12,24 +12,8 @@ from typing import Any
 import yaml
 
 from ..errors import CcrpError
-from ..layout import (
-    API_USER,
-    BOOT_AGENTS,
-    CCRP_ETC,
-    ROS2_RMEM,
-    ROS2_SYSCTL,
-    CCRP_LIB,
-    IMAGE_AGENTS,
-    KNOWLEDGE_USER,
-    LOCALE,
-    LOCALE_SETUP,
-    LOGIN_USER,
-    POWER_PORT,
-    POWER_USER,
-    RELAY_USER,
-    SECRETS_DIR,
-    VPN_DIR,
-)
+from ..layout import (API_USER, BOOT_AGENTS, CCRP_ETC, ROS2_RMEM, ROS2_SYSCTL, CCRP_LIB, IMAGE_AGENTS, KNOWLEDGE_USER, LOCALE, LOCALE_SETUP, LOGIN_USER,
+                      POWER_PORT, POWER_USER, RELAY_USER, SECRETS_DIR, VPN_DIR)
 from ..models.inventory import Inventory
 from ..models.names import power_name
 from ..providers.registry import info

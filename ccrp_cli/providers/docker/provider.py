@@ -12,20 +12,9 @@ from ...models.inventory import Inventory
 from ...layout import AUTOSTOP_NOTE, VPN_DIR
 from ...store import FleetStore, ensure_state_id, read_state_id
 from ..base import (
-    LABEL_FLEET,
-    LABEL_ROBOT,
-    LABEL_ROLE,
-    CloneRecord,
-    CloneSpec,
-    CloneState,
-    Origin,
-    OwnedResource,
-    Quota,
+    LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota,
     SnapshotRecord,
-    autostop_note,
-    check_cloud_init,
-    cloud_init_clean,
-    owner_labels,
+    autostop_note, check_cloud_init, cloud_init_clean, owner_labels,
 )
 from . import INFO
 from .archive import tar_files

@@ -19,7 +19,8 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...templates import static
 from ...retry import ErrorClass, across_zones
-from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Origin, Quota, owner_labels
+from ..base import (LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Origin, Quota,
+                    owner_labels)
 from ..cloud import SSH_USER, CloudProvider
 from . import INFO
 from .clients import Clients, sdk

@@ -24,20 +24,8 @@ from pathlib import Path
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import ErrorClass
-from ..base import (
-    LABEL_FLEET,
-    LABEL_MANAGED,
-    LABEL_ROBOT,
-    LABEL_ROLE,
-    CloneRecord,
-    CloneSpec,
-    CloneState,
-    Origin,
-    OwnedResource,
-    Quota,
-    SnapshotRecord,
-    owner_labels,
-)
+from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin,
+                    OwnedResource, Quota, SnapshotRecord, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, robots, seed, xmldefs
 from .settings import LibvirtSettings

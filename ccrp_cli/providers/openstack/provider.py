@@ -14,19 +14,8 @@ from pathlib import Path
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import across_zones
-from ..base import (
-    LABEL_FLEET,
-    LABEL_MANAGED,
-    LABEL_ROBOT,
-    LABEL_ROLE,
-    CloneRecord,
-    CloneSpec,
-    CloneState,
-    Origin,
-    OwnedResource,
-    Quota,
-    owner_labels,
-)
+from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState,
+                    Origin, OwnedResource, Quota, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, errors, shared
 from .images import Images
