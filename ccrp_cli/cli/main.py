@@ -69,21 +69,32 @@ def run() -> None:
     """Console entry point: every failure a user can cause ends in one line on stderr (and, with
     --json, in the error envelope on stdout: output.failed)."""
     try:
-        # Without standalone mode, `raise typer.Exit(n)` in a command comes back as a return value.
-        code = command()(standalone_mode=False)
-        sys.exit(code if isinstance(code, int) else 0)
-    except typer.Exit as exc:
-        sys.exit(exc.exit_code)
-    except CcrpError as exc:
-        error = exc
-    except (typer.Abort, KeyboardInterrupt):
-        error = Interrupted()
-    except typer.TyperException as exc:  # usage errors from the parser
-        error = _usage_error(exc)
-        if error is None:  # a command group without its command: its help
-            sys.exit(BAD_INPUT)
-    failed(error, wants_json(sys.argv[1:]))
-    sys.exit(error.code)
+        try:
+            # Without standalone mode, `raise typer.Exit(n)` in a command comes back as a return value.
+            code = command()(standalone_mode=False)
+            sys.exit(code if isinstance(code, int) else 0)
+        except typer.Exit as exc:
+            sys.exit(exc.exit_code)
+        except CcrpError as exc:
+            error = exc
+        except (typer.Abort, KeyboardInterrupt):
+            error = Interrupted()
+        except typer.TyperException as exc:  # usage errors from the parser
+            error = _usage_error(exc)
+            if error is None:  # a command group without its command: its help
+                sys.exit(BAD_INPUT)
+        failed(error, wants_json(sys.argv[1:]))
+        sys.exit(error.code)
+    finally:
+        _close_providers()
+
+
+def _close_providers() -> None:
+    """The providers the command opened (their SSH sessions, API clients), closed as it ends,
+    whichever way; only if the command made one (a parse error loads no provider package)."""
+    providers = sys.modules.get("ccrp_cli.providers")
+    if providers is not None:
+        providers.close_opened()
 
 
 def _usage_error(exc: typer.TyperException) -> CcrpError | None:

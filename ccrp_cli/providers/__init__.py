@@ -6,6 +6,7 @@ SDK, are imported only when a provider is made, with an install hint when missin
 from __future__ import annotations
 
 import importlib
+import weakref
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -18,13 +19,31 @@ if TYPE_CHECKING:
     # __init__ first, while the inventory module is still half-made.
     from ..models.inventory import Inventory
 
-__all__ = ["REGISTRY", "Ability", "get_provider", "info", "register", "require"]
+__all__ = ["REGISTRY", "Ability", "close_opened", "get_provider", "info", "register", "require"]
+
+# Every provider this process made and still holds: the CLI closes them when its command ends
+# (cli/main.py run), so no command leaves an SSH session or API connection to the interpreter's
+# exit. Weak: a provider a long-running process (the dashboard) dropped is not kept alive here.
+_OPENED: weakref.WeakSet = weakref.WeakSet()
 
 
 def get_provider(inv: Inventory, workdir: Path | None = None) -> Provider:
     module, cls = REGISTRY[inv.provider.kind].factory.split(":")
     backend = getattr(importlib.import_module(module, __name__), cls)
-    return backend(inv, workdir or FleetStore(inv.fleet).root)
+    provider = backend(inv, workdir or FleetStore(inv.fleet).root)
+    _OPENED.add(provider)
+    return provider
+
+
+def close_opened() -> None:
+    """Close the providers get_provider made that are still held (closing twice is harmless: the
+    dashboard closes its own as it goes)."""
+    for provider in list(_OPENED):
+        _OPENED.discard(provider)
+        try:
+            provider.close()
+        except Exception:  # noqa: BLE001 - the command's outcome is decided; a failed close changes nothing
+            pass
 
 
 def register(backend: ProviderInfo) -> None:

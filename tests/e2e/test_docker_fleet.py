@@ -212,6 +212,9 @@ class ProbeResult:
     exited: bool
 
 
+FINAL = re.compile(r"Exiting due to fatal error|process exiting")
+
+
 def openvpn_probe(fleet: E2EFleet, ovpn: str, creds: str, until: re.Pattern, timeout: float,
                   extra: tuple[str, ...] = ()) -> ProbeResult:
     """A throwaway OpenVPN client on the fleet's public network, from the snapshot image."""
@@ -236,6 +239,13 @@ def openvpn_probe(fleet: E2EFleet, ovpn: str, creds: str, until: re.Pattern, tim
             if until.search(logs) or c.status != "running" or time.monotonic() > deadline:
                 break
             time.sleep(0.3)
+        # OpenVPN prints its last line just before it exits: a client that said it is exiting is
+        # given a moment to do so (under load, the line came 0.3 s before the process ended).
+        for _ in range(25):
+            if c.status != "running" or not FINAL.search(logs):
+                break
+            time.sleep(0.2)
+            c.reload()
         return ProbeResult(logs, ip, c.status != "running")
     finally:
         try:

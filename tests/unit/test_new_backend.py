@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from ccrp_cli.errors import CcrpError
+
 from ccrp_cli.providers import REGISTRY, register, unregister
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -87,6 +89,24 @@ def test_a_backend_in_its_own_package_takes_the_inventory_and_fleet_plan(memory,
     code, out, err = ccrp(monkeypatch, capsys, "fleet", "plan", "-i", str(inv))
     assert code == 0, err
     assert "instances" in out and "memory cloud" in out  # the backend's quota, read through Housekeeping
+
+
+def test_a_command_closes_the_providers_it_opened_whichever_way_it_ends(memory, ccrp_home, tmp_path, monkeypatch,
+                                                                       capsys):
+    from tests.memory_backend.provider import MemoryProvider
+
+    closed: list[MemoryProvider] = []
+    monkeypatch.setattr(MemoryProvider, "close", lambda self: closed.append(self))
+    inv = tmp_path / "ccrp.yaml"
+    inv.write_text(INVENTORY)
+    code, _, err = ccrp(monkeypatch, capsys, "fleet", "plan", "-i", str(inv))
+    assert code == 0, err
+    assert len(closed) == 1
+    # A command that fails after it opened its provider closes it too.
+    monkeypatch.setattr(MemoryProvider, "query", lambda self: (_ for _ in ()).throw(CcrpError("the cloud is down")))
+    code, _, err = ccrp(monkeypatch, capsys, "fleet", "plan", "-i", str(inv))
+    assert code == 1 and "the cloud is down" in err
+    assert len(closed) == 2
 
 
 def test_without_its_line_the_backend_is_refused(ccrp_home, tmp_path, monkeypatch, capsys):
