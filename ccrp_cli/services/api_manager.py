@@ -73,11 +73,18 @@ def api_manager_files(inv: Inventory, robot: Robot) -> list[BundleFile]:
     files = [BundleFile("api_manager.json", json.dumps(cfg, indent=1, sort_keys=True) + "\n", 0o644, API_CONFIG)]
     names = ("api_manager", "api_manager_ros2") if inv.ros.ros2 else ("api_manager",)
     files += [BundleFile(f"{name}.py", agent_source(name), 0o644, f"{AGENT_DIR}/{name}.py") for name in names]
-    setting = inv.api_manager_of(robot)
-    if setting is not None and setting.backend == "google-vision" and setting.google_vision.credentials:
-        files.append(BundleFile("google-vision.json", google_key(setting.google_vision.credentials), 0o640, GOOGLE_KEY,
-                                API_USER))
+    key = key_path(inv, robot)
+    if key:
+        files.append(BundleFile("google-vision.json", google_key(key), 0o640, GOOGLE_KEY, API_USER))
     return files
+
+
+def key_path(inv: Inventory, robot: Robot) -> str | None:
+    """The Vision key file the robot's API manager is given, if any."""
+    setting = inv.api_manager_of(robot)
+    if setting is not None and setting.backend == "google-vision":
+        return setting.google_vision.credentials or None
+    return None
 
 
 def absent_config() -> BundleFile:
@@ -132,7 +139,9 @@ class ApiManager(CloneService):
     boot = Boot(units=(API_UNIT,))
 
     def check(self, fleet: Fleet, robot: Robot) -> None:
-        api_manager_files(fleet.inventory, robot)  # a key file that is not one is refused before the clone is made
+        key = key_path(fleet.inventory, robot)
+        if key:
+            google_key(key)  # a key file that is not one is refused before the clone is made
 
     def files(self, ctx: ServiceContext) -> list[BundleFile]:
         return api_manager_files(ctx.fleet.inventory, ctx.robot)

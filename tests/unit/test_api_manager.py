@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -93,6 +94,12 @@ def test_a_key_that_is_not_a_service_account_key_is_one_line(tmp_path):
         with pytest.raises(CcrpError) as err:
             service.api_manager_files(fleet, fleet.robots[0])
         assert why in err.value.one_line()
+        # The same refusal comes from the service's check, which ensure_clone runs before a clone exists.
+        with pytest.raises(CcrpError) as err:
+            service.ApiManager().check(SimpleNamespace(inventory=fleet), fleet.robots[0])
+        assert why in err.value.one_line()
+    good = {"api_manager": {"backend": "opencv"}}
+    service.ApiManager().check(SimpleNamespace(inventory=inv(services=good)), inv(services=good).robots[0])
 
 
 class Recorder:
