@@ -84,9 +84,16 @@ stamp = lambda now: Time(sec=int(now), nanosec=int((now % 1) * 1e9))
 subs = [node.create_subscription(cls[k], t, on(t), QoSProfile(depth=100)) for t, k in spec["subscribe"].items()]
 pub = node.create_publisher(cls[spec["publish"]["kind"]], spec["publish"]["topic"], QoSProfile(depth=100)) if spec.get("publish") else None
 stop = threading.Event()
-def spin():
-    while not stop.is_set():
-        rclpy.spin_once(node, timeout_sec=0.1)
+if spec.get("spin") == "spin_once":  # the probe before: the global executor, one call per sample
+    def spin():
+        while not stop.is_set():
+            rclpy.spin_once(node, timeout_sec=0.1)
+    executor = None
+else:  # an executor of its own spinning, as rclpy.spin(node) does
+    from rclpy.executors import SingleThreadedExecutor
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spin = executor.spin
 spinner = threading.Thread(target=spin)
 spinner.start()
 """
@@ -109,6 +116,8 @@ print(json.dumps({"sent": n, "seen": {t: {str(k): v for k, v in s.items()} for t
 # rclpy aborts the process (exit 134) if the interpreter exits while a thread still spins.
 _ROS2_END = r"""
 stop.set()
+if executor:
+    executor.shutdown()
 spinner.join()
 rclpy.shutdown()
 """
@@ -244,6 +253,10 @@ rclpy.shutdown()
 LAST_HOP = r"""
 import json, os, subprocess, sys, time
 d, variant, distro = sys.argv[1], sys.argv[2], sys.argv[3]
+# agent_reader_spin_once: the agent's writer, the subscriber spinning as the probe did before
+spin = "spin_once" if variant == "agent_reader_spin_once" else "executor"
+if variant == "agent_reader_spin_once":
+    variant = "agent"
 hz, count = 10.0, int(sys.argv[4])
 python = f"/opt/ros/{distro}/bin/python"
 def udp():
@@ -267,7 +280,7 @@ def nobody():
     os.setgid(65534)
     os.setuid(65534)
 before = udp()
-reader = subprocess.Popen([python, "-c", PROBE, json.dumps({"subscribe": {"/image": "image"}, "seconds": count / hz + 8, "settle": 0})],
+reader = subprocess.Popen([python, "-c", PROBE, json.dumps({"subscribe": {"/image": "image"}, "seconds": count / hz + 8, "settle": 0, "spin": spin})],
                           env=reader_env, stdout=subprocess.PIPE, text=True)
 time.sleep(1.5)
 writer = subprocess.Popen([python, "-c", WRITER, str(hz), str(count)], env=writer_env, preexec_fn=nobody if demote else None)
@@ -280,7 +293,8 @@ print(json.dumps({"seen": seen, "rcvbuf_errors": after["RcvbufErrors"] - before[
                   "udp_in": after["InDatagrams"] - before["InDatagrams"],
                   "socket_rb": sorted({int(x.split("rb")[1].split(",")[0]) for x in ss.split() if x.startswith("skmem:")})}))
 """
-LAST_HOP_VARIANTS = ("agent", "agent_writer_defaults", "agent_paced", "shared_memory", "subscriber_2mb")
+LAST_HOP_VARIANTS = ("agent", "agent_reader_spin_once", "agent_writer_defaults", "agent_paced",
+                     "shared_memory", "subscriber_2mb")
 # Tried, not taken: the agent's writers paced to one 64 KB datagram per millisecond.
 _PACED = """      <flow_controller_descriptor_list><flow_controller_descriptor><name>ccrp_paced</name>
         <max_bytes_per_period>65536</max_bytes_per_period><period_ms>1</period_ms>
@@ -297,21 +311,21 @@ def last_hop_profiles(profile: str) -> dict[str, str]:
             "agent_paced": profile.replace("    </rtps>", _PACED, 1).replace("<times>", f"<qos>{_PACED_WRITER}</qos><times>")}
 
 
-def last_hop(image: str, distro: str, count: int, rounds: int) -> None:
+def last_hop(image: str, distro: str, count: int, rounds: int, variants=LAST_HOP_VARIANTS) -> None:
     """The last hop alone (module docstring), each variant `rounds` times, interleaved."""
     import subprocess
 
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "ccrp_cli" / "agent"))
     import relay_ros2
 
-    runs = {v: [] for v in LAST_HOP_VARIANTS}
+    runs = {v: [] for v in variants}
     with tempfile.TemporaryDirectory() as tmp:
         os.chmod(tmp, 0o755)
         for name, text in last_hop_profiles(relay_ros2.fastdds_profile("")).items():
             (Path(tmp) / f"{name}.xml").write_text(text)
         script = LAST_HOP.replace("PROBE, json", f"{PROBE2!r}, json").replace("WRITER, str", f"{_LAST_HOP_WRITER!r}, str")
         for _ in range(rounds):
-            for variant in LAST_HOP_VARIANTS:
+            for variant in variants:
                 out = subprocess.run(["docker", "run", "--rm", "--name", f"relaybench-last-hop-{os.getpid()}",
                                       "-v", f"{tmp}:/bench:ro", "--entrypoint", "python3", image, "-c", script,
                                       "/bench", variant, distro, str(count)],
@@ -324,7 +338,8 @@ def last_hop(image: str, distro: str, count: int, rounds: int) -> None:
                 print(f"last hop {variant}: {runs[variant][-1]}", file=sys.stderr)
     result = {"benchmark": "relay last hop", "image": image,
               "when": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-              "machine": {"cpus": os.cpu_count(), "kernel": platform.release(), "load": os.getloadavg()},
+              "machine": {"cpus": os.cpu_count(), "kernel": platform.release(), "load": os.getloadavg(),
+                          "rmem_default": int(Path(RMEM["default"]).read_text())},
               "images": count, "hz": 10, "runs": runs}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "relay-last-hop.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -337,16 +352,20 @@ def main() -> None:
     ap.add_argument("--distros", default="noetic,jazzy", help="run the benchmark for each, one after the other")
     ap.add_argument("--last-hop", metavar="IMAGE", help="only the importing agent's last hop, in a ROS 2 clone image")
     ap.add_argument("--rounds", type=int, default=2, help="--last-hop: runs of each variant")
+    ap.add_argument("--variants", default=",".join(LAST_HOP_VARIANTS), help="--last-hop: which, in this order")
+    ap.add_argument("--ros2-spin", choices=("executor", "spin_once"), default="executor",
+                    help="how the ROS 2 probes take their samples: an executor spinning (as rclpy.spin does), or "
+                         "rclpy.spin_once called in a loop (the probe before issue 28's last session)")
     ap.add_argument("--host-rmem", type=int, metavar="BYTES",
                     help="the host's net.core.rmem_default and rmem_max during the run (put back after): what a "
                          "VM clone's user-data sets for ROS 2 (render/cloudinit.py ROS2_RMEM), which a container "
                          "cannot set for itself")
     args = ap.parse_args()
-    if args.last_hop:
-        distro = next(d for d in args.distros.split(",") if d != "noetic")  # the image's
-        return last_hop(args.last_hop, distro, 105, args.rounds)
     summary = {}
     with host_rmem(args.host_rmem):
+        if args.last_hop:
+            distro = next(d for d in args.distros.split(",") if d != "noetic")  # the image's
+            return last_hop(args.last_hop, distro, 105, args.rounds, args.variants.split(","))
         for distro in args.distros.split(","):
             summary[distro] = run(args, distro)
     if "noetic" in summary and len(summary) > 1:
@@ -385,6 +404,7 @@ def ratios(figures: dict, noetic: dict) -> dict:
     relay, relay1 = figures["latency"]["relay"], noetic["latency"]["relay"]
     return {"images_p95_median": r(figures["p95_ms_median"], noetic["p95_ms_median"]),
             "images_p95_worst": r(figures["p95_ms_worst"], noetic["p95_ms_worst"]),
+            "images_p50_median": r(figures["p50_ms_median"], noetic["p50_ms_median"]),
             "small_relay_p50": r(relay["p50_ms"], relay1["p50_ms"]),
             "small_relay_p95": r(relay["p95_ms"], relay1["p95_ms"])}
 
@@ -394,6 +414,7 @@ def run(args, distro: str) -> dict:
 
     client = docker.from_env(timeout=600)
     warmup_s = 3
+    load_before = os.getloadavg()  # the host is shared: its load says how much the figures carry
     with tempfile.TemporaryDirectory() as tmp:
         home, inv = Path(tmp) / "home", Path(tmp) / "relay.yaml"
         inv.write_text(yaml.safe_dump(inventory(args.clones, distro), sort_keys=False))
@@ -413,10 +434,11 @@ def run(args, distro: str) -> dict:
                 if robot == "bot2":
                     subs["/bot1/probe"] = "probe"  # through the relay
                 specs[robot] = {"publish": {"topic": "/camera/image_raw", "kind": "image", "hz": 5},
-                                "subscribe": subs, "seconds": args.seconds, "settle": 6, "next": nxt}
+                                "subscribe": subs, "seconds": args.seconds, "settle": 6, "next": nxt,
+                                "spin": args.ros2_spin}
             # bot1 publishes the probe as well, from a second process so the image loop stays at 5 Hz.
             probe_spec = {"publish": {"topic": "/probe", "kind": "probe", "hz": 20}, "subscribe": {},
-                          "seconds": args.seconds, "settle": 6}
+                          "seconds": args.seconds, "settle": 6, "spin": args.ros2_spin}
             with ThreadPoolExecutor(len(robots) + 1) as pool:
                 before = dict(zip(robots, pool.map(lambda r: counters(client, r), robots)))
                 futures = {r: pool.submit(probe, client, r, specs[r], distro) for r in robots}
@@ -440,8 +462,11 @@ def run(args, distro: str) -> dict:
         "distro": distro,
         "when": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "kernel": platform.release(),
-                    "rmem_default": int(Path(RMEM["default"]).read_text())},
+                    "rmem_default": int(Path(RMEM["default"]).read_text()),
+                    "load_before": [round(x, 2) for x in load_before],
+                    "load_after": [round(x, 2) for x in os.getloadavg()]},
         "seconds": args.seconds,
+        "ros2_spin": args.ros2_spin if distro != "noetic" else None,
         "clones_up_s": round(wall, 1),
         "latency": {
             "direct": stream_stats(sent_probe, out["bot1"]["seen"]["/probe"], warmup_s * 20, 20),
@@ -466,6 +491,8 @@ def run(args, distro: str) -> dict:
     plot(result, RESULTS / f"{stem}.png")
     return {"latency": result["latency"], "lost_total": t["lost_total"], "p95_ms_worst": t["p95_ms_worst"],
             "p95_ms_median": t["p95_ms_median"], "rmem_default": result["machine"]["rmem_default"],
+            "p50_ms_median": statistics.median(s["p50_ms"] or 0 for s in streams.values()),
+            "load": [result["machine"]["load_before"][0], result["machine"]["load_after"][0]],
             "clones": {k: v for k, v in result["clones"].items() if k != "per_clone"}}
 
 
