@@ -14,6 +14,7 @@ The same for a ROS 2 Jazzy fleet (rclpy probes in the robots' domains, the relay
 one distro after the other in the same run.
 
 Run: .venv/bin/python bench/relay.py [--clones 10] [--seconds 30] [--distros noetic,jazzy] [--host-rmem 4194304]
+     [--ros2-spin spin_once|executor]
 (--host-rmem: the host's receive-buffer sysctls during the run, as a VM clone's user-data sets them for
 ROS 2; a container shares the host's kernel and cannot set its own)
 Writes bench/results/relay.{json,png} (Noetic) and bench/results/relay-jazzy.{json,png}; with both
@@ -24,6 +25,8 @@ distros, relay-jazzy.json's `ratio_to_noetic` is Jazzy's figures over Noetic's o
               as the agent publishes them (another user, the agent's Fast DDS profile from
               ccrp_cli/agent/relay_ros2.py) to the probe's rclpy subscriber as root; per variant,
               p50/p95 from the stamp and the datagrams the kernel dropped in full receive buffers.
+              The subscriber spins an executor of its own (agent_reader_spin_once: the spin_once loop);
+              --variants picks some, --host-rmem applies here too.
               Writes bench/results/relay-last-hop.json.
 """
 
@@ -84,7 +87,7 @@ stamp = lambda now: Time(sec=int(now), nanosec=int((now % 1) * 1e9))
 subs = [node.create_subscription(cls[k], t, on(t), QoSProfile(depth=100)) for t, k in spec["subscribe"].items()]
 pub = node.create_publisher(cls[spec["publish"]["kind"]], spec["publish"]["topic"], QoSProfile(depth=100)) if spec.get("publish") else None
 stop = threading.Event()
-if spec.get("spin") == "spin_once":  # the probe before: the global executor, one call per sample
+if spec.get("spin", "spin_once") == "spin_once":  # the global executor, one call per sample
     def spin():
         while not stop.is_set():
             rclpy.spin_once(node, timeout_sec=0.1)
@@ -353,9 +356,11 @@ def main() -> None:
     ap.add_argument("--last-hop", metavar="IMAGE", help="only the importing agent's last hop, in a ROS 2 clone image")
     ap.add_argument("--rounds", type=int, default=2, help="--last-hop: runs of each variant")
     ap.add_argument("--variants", default=",".join(LAST_HOP_VARIANTS), help="--last-hop: which, in this order")
-    ap.add_argument("--ros2-spin", choices=("executor", "spin_once"), default="executor",
-                    help="how the ROS 2 probes take their samples: an executor spinning (as rclpy.spin does), or "
-                         "rclpy.spin_once called in a loop (the probe before issue 28's last session)")
+    # Ten runs alternating the two (docs/ros2.md, Shared memory between the agent and your nodes) showed no
+    # difference beyond the host's noise, so the probe stays as the earlier runs had it.
+    ap.add_argument("--ros2-spin", choices=("spin_once", "executor"), default="spin_once",
+                    help="how the ROS 2 probes take their samples: rclpy.spin_once called in a loop, or an "
+                         "executor of their own spinning (as rclpy.spin does)")
     ap.add_argument("--host-rmem", type=int, metavar="BYTES",
                     help="the host's net.core.rmem_default and rmem_max during the run (put back after): what a "
                          "VM clone's user-data sets for ROS 2 (render/cloudinit.py ROS2_RMEM), which a container "

@@ -80,7 +80,7 @@ def test_the_ros2_probe_spins_an_executor_or_spin_once_and_both_are_python():
     bench = load()
     # Both ways of taking samples are in the script run in the clones (its spec's "spin" picks one).
     compile(bench.PROBE2, "probe2", "exec")
-    assert 'spec.get("spin") == "spin_once"' in bench.PROBE2 and "SingleThreadedExecutor()" in bench.PROBE2
+    assert 'spec.get("spin", "spin_once") == "spin_once"' in bench.PROBE2 and "SingleThreadedExecutor()" in bench.PROBE2
     # The executor is shut down before rclpy, or the spinning thread never ends.
     end = bench.PROBE2[bench.PROBE2.index("stop.set()"):]
     assert end.index("executor.shutdown()") < end.index("rclpy.shutdown()")
