@@ -6,6 +6,8 @@
   throughput  10 clones, each publishing a 320x240 rgb8 sensor_msgs/Image at 5 Hz and importing
               the next clone's (a ring: bot(k+1) sees /bot(k)/camera/image_raw): per stream,
               messages lost (sequence gaps) and p50/p95 latency (target: 0 loss, p95 < 50 ms).
+              Where a loss happened: the importing agents' own gap counts (relay_gaps: between
+              the agents, Zenoh) against the probes' (the rest: a DDS or ROS 1 hop in a clone).
 
 All clones run on this host, so the senders' and receivers' clocks are the same clock. The
 benchmark brings up its own fleet (own subnets and CCRP_HOME) and removes everything at the end.
@@ -41,6 +43,7 @@ import re
 import statistics
 import sys
 import tempfile
+import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
@@ -174,6 +177,19 @@ def counters(client, robot: str) -> dict:
     # The container's CPU time (every process in it, the probes included), from the engine.
     figures["clone_cpu_s"] = c.stats(stream=False)["cpu_stats"]["cpu_usage"]["total_usage"] / 1e9
     return figures
+
+
+def relay_gaps(client, robot: str) -> dict[str, int]:
+    """Sequence numbers the importing agent of `robot`'s clone never got, per imported topic (its
+    status file, written each second). A message a probe lost with no gap here was lost in a DDS
+    (or ROS 1) hop inside a clone; one counted here, between the two agents (Zenoh)."""
+    c = client.containers.get(f"ccrp-{FLEET}-cri-{robot}")
+    res = c.exec_run(["cat", "/run/ccrp-relay/status.json"])
+    try:
+        imports = json.loads(res.output)["imports"] if res.exit_code == 0 else {}
+    except (ValueError, KeyError):
+        return {}
+    return {topic: i.get("gaps", 0) for topic, i in imports.items()}
 
 
 def counters_delta(before: dict, after: dict) -> dict:
@@ -451,6 +467,8 @@ def run(args, distro: str) -> dict:
                 out = {r: f.result() for r, f in futures.items()}
                 sent_probe = probe_sender.result()["sent"]
                 after = dict(zip(robots, pool.map(lambda r: counters(client, r), robots)))
+                time.sleep(1.5)  # the agents write their status each second
+                gaps = dict(zip(robots, pool.map(lambda r: relay_gaps(client, r), robots)))
         finally:
             try:
                 cli("fleet", "down")
@@ -489,7 +507,8 @@ def run(args, distro: str) -> dict:
     total = lambda k: round(sum(c[k] for c in clones.values() if c[k] is not None), 2)  # noqa: E731
     result["clones"] = {"udp_rcvbuf_errors": total("udp_rcvbuf_errors"), "udp_in": total("udp_in"),
                         "relay_cpu_s": total("relay_cpu_s"), "clone_cpu_s": total("clone_cpu_s"),
-                        "per_clone": clones}
+                        "relay_gaps": sum(sum(g.values()) for g in gaps.values()),
+                        "per_clone": clones, "relay_gaps_per_clone": gaps}
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = "relay" if distro == "noetic" else f"relay-{distro}"
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -498,7 +517,7 @@ def run(args, distro: str) -> dict:
             "p95_ms_median": t["p95_ms_median"], "rmem_default": result["machine"]["rmem_default"],
             "p50_ms_median": statistics.median(s["p50_ms"] or 0 for s in streams.values()),
             "load": [result["machine"]["load_before"][0], result["machine"]["load_after"][0]],
-            "clones": {k: v for k, v in result["clones"].items() if k != "per_clone"}}
+            "clones": {k: v for k, v in result["clones"].items() if not k.endswith("per_clone")}}
 
 
 if __name__ == "__main__":
