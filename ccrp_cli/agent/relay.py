@@ -94,6 +94,17 @@ def zenoh_config(cfg: dict) -> "zenoh.Config":
     return c
 
 
+def congestion(reliable: bool) -> "zenoh.CongestionControl":
+    """How an export's Zenoh publisher meets a full queue towards a peer. Zenoh's default (DROP)
+    drops a sample that waits there over 1 ms, which a loaded host reaches: measured here, the
+    importing agents counted 12 (Noetic) and 68 (Jazzy) missing sequence numbers in one
+    `bench/relay.py` run beside other work. A reliable topic (every ROS 1 topic, TCP; a ROS 2 one
+    offered RELIABLE) is then relayed as it is delivered at home: the put waits for room (BLOCK),
+    and the backlog stays in the topic's own queue (rospy's queue_size, the DDS history), which
+    drops its oldest when full as it would for a slow subscriber. A best-effort one keeps DROP."""
+    return zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+
+
 def links(cfg: dict) -> list[tuple[str, str]]:
     """What a session is opened for: the peers' endpoints and the CNs admitted."""
     return sorted((p["endpoint"], p["cn"]) for p in cfg["peers"].values())
@@ -110,7 +121,8 @@ def raw_class(msg_type: str, md5: str, definition: str):
 class Export:
     def __init__(self, relay: "Relay", topic: str) -> None:
         self.topic, self.count = topic, 0
-        self.publisher = relay.session.declare_publisher(relay.key(relay.cfg["robot"], topic))
+        self.publisher = relay.session.declare_publisher(relay.key(relay.cfg["robot"], topic),
+                                                         congestion_control=congestion(reliable=True))
         self.sub = rospy.Subscriber(topic, rospy.AnyMsg, self.forward, queue_size=100, tcp_nodelay=True)
 
     def forward(self, msg) -> None:

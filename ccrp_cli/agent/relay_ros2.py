@@ -20,7 +20,7 @@ import tempfile
 import threading
 import time
 
-from relay import CONNECT_GRACE, Import, log, write_atomic
+from relay import CONNECT_GRACE, Import, congestion, log, write_atomic
 
 RELIABILITY = ("reliable", "best_effort")
 DURABILITY = ("transient_local", "volatile")
@@ -80,8 +80,7 @@ class Export2:
 
     def __init__(self, relay, topic: str) -> None:  # relay: relay.Relay
         self.relay, self.topic, self.count = relay, topic, 0
-        self.sub, self.meta, self.refused = None, None, None
-        self.publisher = relay.session.declare_publisher(relay.key(relay.cfg["robot"], topic))
+        self.sub, self.meta, self.refused, self.publisher = None, None, None, None
         self.poll()
 
     def poll(self) -> None:
@@ -106,6 +105,13 @@ class Export2:
             self.relay.ros.unwatch(self.sub)
             node.destroy_subscription(self.sub)
             self.sub = None
+        reliable = meta["q"]["reliability"] == "reliable"
+        if self.meta is None or reliable != (self.meta["q"]["reliability"] == "reliable"):
+            # The Zenoh publisher follows the topic's reliability (relay.congestion).
+            if self.publisher is not None:
+                self.publisher.undeclare()
+            self.publisher = self.relay.session.declare_publisher(
+                self.relay.key(self.relay.cfg["robot"], self.topic), congestion_control=congestion(reliable))
         self.sub = node.create_subscription(cls, self.topic, self.forward, qos, raw=True)
         self.relay.ros.watch(self.sub)
         self.meta = meta
@@ -119,7 +125,8 @@ class Export2:
         if self.sub is not None:
             self.relay.ros.unwatch(self.sub)
             self.relay.ros.node.destroy_subscription(self.sub)
-        self.publisher.undeclare()
+        if self.publisher is not None:
+            self.publisher.undeclare()
 
 
 class Import2(Import):

@@ -100,10 +100,11 @@ class Pub:
 
 class Session:
     def __init__(self):
-        self.puts = []
+        self.puts, self.declared = [], []
 
-    def declare_publisher(self, key):
+    def declare_publisher(self, key, congestion_control):
         session = self
+        self.declared.append((key, congestion_control))
 
         class P:
             def put(self, payload, attachment):
@@ -207,6 +208,23 @@ def test_an_export_subscribes_raw_once_published_with_the_publishers_type_and_qo
     export.poll()
     assert node.destroyed == [("sub", 1)] and r.ros.watched == [("sub", 2)]
     assert node.subs[-1][2] == QoSProfile(100, ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def test_a_reliable_topic_waits_for_room_towards_its_peers_and_a_best_effort_one_drops(agent):
+    import zenoh
+
+    node = Node(publishers={"/chatter": [Info("std_msgs/msg/String", "RELIABLE", "VOLATILE")]})
+    r = relay(agent, node)
+    export = agent.Export2(r, "/chatter")
+    assert r.session.declared == [("ccrp/lab/nao1/chatter", zenoh.CongestionControl.BLOCK)]
+    node.publishers["/chatter"] = [Info("std_msgs/msg/String", "RELIABLE", "TRANSIENT_LOCAL")]
+    export.poll()  # the same reliability: the same Zenoh publisher
+    assert len(r.session.declared) == 1
+    node.publishers["/chatter"].append(Info("std_msgs/msg/String", "BEST_EFFORT", "VOLATILE"))
+    export.poll()
+    assert r.session.declared[-1] == ("ccrp/lab/nao1/chatter", zenoh.CongestionControl.DROP)
+    # ROS 1 topics are TCP, reliable: the ROS 1 side always waits.
+    assert agent.congestion(True) == zenoh.CongestionControl.BLOCK
 
 
 def test_an_import_publishes_the_bytes_with_the_type_and_qos_that_came(agent):
