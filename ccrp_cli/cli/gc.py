@@ -33,7 +33,7 @@ def gc(
     with fleet.store.lock():  # no `fleet up` may create clones while we decide what is a leak
         leaks = collect(fleet.store.load_state(), provider, dry_run, output.info, fleet.inventory.snapshots.keep)
         images = []
-        if Ability.LOCAL_BUILD in provider.abilities:  # snapshot images live on this host, whatever their state
+        if Ability.HOST_IMAGES in provider.abilities:  # snapshot images live on this host, whatever their state
             images = collect_images(provider, dry_run, unlabelled, output.info)
     results = leaks + images
     output.emit([r.as_dict() for r in results], as_json, ["KIND", "ID", "NAME", "ROBOT", "RESULT", "DETAIL"],

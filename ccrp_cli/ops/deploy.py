@@ -3,8 +3,9 @@ without re-creating them.
 
 The workspace is built once, on this machine, in the clone image (the snapshot's Dockerfile with
 the current software: Docker's layer cache runs only the software's layers), and its install
-space (/opt/ccrp/workspace) read out of the image as a tar. Every clone runs the same Debian 12
-platform, so the same tar serves every backend. Each clone gets it base64-encoded as a root-only
+space (/opt/ccrp/workspace) read out of the image as a tar (providers.build_workspace, this host's
+Docker engine whatever the fleet's backend). Every clone runs the same Debian 12 platform, so the
+same tar serves every backend. Each clone gets it base64-encoded as a root-only
 file, and one fixed script (DEPLOY_SH, names and digests as argv words) unpacks it beside the
 current one and swaps them; then the node units are brought in line (workloads.apply_nodes: only
 those whose inputs changed restart) and each restarted unit must stay up for HEALTH_SECONDS. A
@@ -28,9 +29,8 @@ from typing import TYPE_CHECKING
 from .clones import CloneResult, StateWriter
 from ..errors import CcrpError, InputError
 from ..fleet import Fleet
-from ..layout import WORKSPACE
 from ..probe import same
-from ..providers.base import CloneState, owner_labels
+from ..providers.base import CloneState
 from ..render.files import BundleFile
 from ..services.workloads import (
     INDEX,
@@ -271,29 +271,11 @@ def _package_diff(have: str, want: str) -> str:
 
 # -- the build --------------------------------------------------------------------------------------
 
-def local_docker(provider: Provider):
-    """The Docker engine that builds the workspace: the provider's on Docker, this machine's else."""
-    if provider.kind == "docker":
-        return provider.client
-    from ..providers.sdk import docker_module
-
-    try:
-        client = docker_module().from_env(timeout=600)
-        client.ping()
-        return client
-    except Exception as exc:  # noqa: BLE001 - no engine, no socket, no permission: all the same to the user
-        raise CcrpError(f"ccrp deploy builds the workspace in the clone image with a local Docker engine, and none "
-                        f"answers ({type(exc).__name__})",
-                        hint="start Docker on this machine (or set DOCKER_HOST), then run ccrp deploy again") from None
-
-
-def deploy_repo(fleet: Fleet) -> str:
-    return f"ccrp/{fleet.name}-deploy"
-
-
-def build_install_space(fleet: Fleet, provider: Provider, software: SnapshotSoftware, progress: Progress) -> bytes:
+def build_install_space(fleet: Fleet, software: SnapshotSoftware, progress: Progress) -> bytes:
     """The tar of the install space (top directory `workspace/`) built from `software` in the
-    fleet's clone image."""
+    fleet's clone image, on this host's Docker engine whatever the fleet's backend."""
+    from ..providers import build_workspace
+
     if software.build_type is None:  # no workspace (any more): an empty install space
         buf = io.BytesIO()
         with tarfile.open(fileobj=buf, mode="w") as tar:
@@ -301,44 +283,11 @@ def build_install_space(fleet: Fleet, provider: Provider, software: SnapshotSoft
             info.type, info.mode = tarfile.DIRTYPE, 0o755
             tar.addfile(info)
         return buf.getvalue()
-    from ..providers import REGISTRY
-    from ..providers.docker import images
-    from ..recipes import platform
-
-    client = local_docker(provider)
-    inv = fleet.inventory
-    # The Docker backend's platform and base on every backend: the same Debian 12 and ROS as the
-    # cloud recipes install (docs/clouds.md).
-    plat = platform(inv.ros.distro, REGISTRY["docker"].platform)
-    base = getattr(inv.provider, "base_image", None) or images.DEFAULT_BASE
-    images.ensure_base(client, base, plat, progress)
-    tag = f"{deploy_repo(fleet)}:{software.digest}"
-    progress(f"building workspace {software.digest} in the clone image ({tag}); only the software's layers run")
-    labels = owner_labels(fleet.name, "deploy") | {"ccrp-software": software.digest}
-    images.build_clone_image(client, tag, images.dockerfile(fleet.name, inv.ros.distro, base, plat, software), labels,
-                             progress, images.build_context(plat, progress, inv.ros.distro, software), what="deploy build")
-    # Read out of a container made from the image and never started.
-    container = client.containers.create(tag, labels=owner_labels(fleet.name, "deploy"))
-    try:
-        stream, _ = container.get_archive(WORKSPACE)
-        data = b"".join(stream)
-    finally:
-        container.remove(force=True)
-    _drop_older_builds(client, fleet, tag)
+    data = build_workspace(fleet.inventory, software, progress)
     if len(data) > MAX_INSTALL_BYTES:
         raise CcrpError(f"the workspace's install space is {len(data) >> 20} MB, more than deploy pushes "
                         f"({MAX_INSTALL_BYTES >> 20} MB)", hint="build a new snapshot and re-create the clones")
     return data
-
-
-def _drop_older_builds(client, fleet: Fleet, keep: str) -> None:
-    """One deploy image per fleet: the last (its layers are the next build's cache)."""
-    for image in client.images.list(filters={"label": [f"ccrp-fleet={fleet.name}", "ccrp-role=deploy"]}):
-        if keep not in image.tags:
-            try:
-                client.images.remove(image.id, force=False)
-            except Exception:  # noqa: BLE001, S110 - in use or gone: gc finds it later
-                pass
 
 
 # -- on each clone ----------------------------------------------------------------------------------
@@ -473,7 +422,7 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     tar_b64 = None
     if any(ch.workspace for ch in changes.values()):
         # One build for every clone; a failure leaves every clone as it was.
-        tar_b64 = base64.b64encode(build_install_space(fleet, provider, software, progress)).decode()
+        tar_b64 = base64.b64encode(build_install_space(fleet, software, progress)).decode()
     writer = StateWriter(fleet, state)
     todo = [n for n in live if n in changes]
     for r in _fan_out(lambda n: apply(provider, writer, changes[n], tar_b64, progress), todo, progress, provider):

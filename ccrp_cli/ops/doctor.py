@@ -12,7 +12,7 @@ from ..errors import CcrpError
 from ..fleet import Fleet
 
 if TYPE_CHECKING:
-    from ..providers.base import Provider
+    from ..providers.base import HostImages, Provider
 
 OK, FAIL, WARN, SKIP = "ok", "fail", "warn", "skip"
 # Not needed by ccrp itself; handy for checking its work by hand.
@@ -60,7 +60,7 @@ def run(fleet: Fleet) -> list[Check]:
         checks.append(check)
     if provider is not None:
         checks += _credentials(provider) + _quotas(fleet, provider) + [_snapshot(fleet, provider)]
-        if Ability.LOCAL_BUILD in provider.abilities:
+        if Ability.HOST_IMAGES in provider.abilities:
             checks.append(_snapshot_images(provider))
     if inv.ros.ros2 and not info(kind).own_kernel:
         checks.append(host_receive_buffer())
@@ -154,34 +154,11 @@ def _snapshot(fleet: Fleet, provider: Provider) -> Check:
     return Check("snapshot", FAIL, f"{recorded} is recorded but gone", f"ccrp {_build_command(provider)} -i INVENTORY")
 
 
-def _snapshot_images(provider: Provider) -> Check:
-    """Docker: the disk ccrp's snapshot images take on this host, this state's and orphans'."""
-    from docker.errors import DockerException
-
-    from ..providers.docker import snapshot_images as si
-    from ..store import read_state_id
-
-    try:
-        census = si.census(provider.client, provider.fleet, read_state_id(provider.state_dir), provider.state_dir.parent)
-    except (DockerException, OSError) as exc:  # a report only: the engine answered the checks above
-        return Check("snapshot images", WARN, f"cannot list them ({type(exc).__name__})")
-    parts = []
-    for state, what in ((si.THIS, "this fleet"), (si.ORPHAN, "orphans"), (si.UNLABELLED, "unlabelled"),
-                        (si.OTHER, "other states")):
-        verdicts = census.of(state)
-        if verdicts or state in (si.THIS, si.ORPHAN):
-            own = sum(v.image.own for v in verdicts)
-            parts.append(f"{what} {len(verdicts)} ({si.megabytes(own)})")
-    # Layers shared with other images (the base, each other) are not counted: removing the
-    # images frees at least what is shown.
-    detail = "; ".join(parts) + " of their own layers"
-    waste = [v for v in census.of(si.ORPHAN) + census.of(si.UNLABELLED) if v.removable]
-    if not waste:
-        return Check("snapshot images", OK, detail)
-    hint = "`ccrp gc --dry-run` lists them, `ccrp gc` removes the orphans"
-    if any(v.state == si.UNLABELLED for v in waste):
-        hint += ", `ccrp gc --unlabelled` the unlabelled too"
-    return Check("snapshot images", WARN, detail, hint)
+def _snapshot_images(provider: HostImages) -> Check:
+    """Ability.HOST_IMAGES: the disk the backend's snapshot images take on this host, this state's
+    and orphans' (Docker's, found by their state labels)."""
+    found = provider.images_finding()
+    return Check(found.check, found.status, found.detail, found.hint)
 
 
 def _build_command(provider: Provider) -> str:

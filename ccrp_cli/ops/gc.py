@@ -6,10 +6,10 @@ IP, volumes, routes), the bootstrap resources (network, firewall, key pair), and
 snapshots (`ccrp snapshot delete` manages those). Everything else owned is a leak: left by a crash,
 an interrupted rollback or a hand-made copy.
 
-On Docker, snapshot images also outlive the state directory that recorded them (a quick start in
-a temporary CCRP_HOME, a test run): no fleet's gc would ever see them again. `collect_images`
-finds them host-wide by the state labels each snapshot image carries
-(providers/docker/snapshot_images.py).
+A backend whose snapshot images live on this host (Ability.HOST_IMAGES: Docker) has them outlive
+the state directory that recorded them (a quick start in a temporary CCRP_HOME, a test run): no
+fleet's gc would ever see them again. `collect_images` has the backend sweep them host-wide
+(HostImages.sweep_images: Docker's by the state labels each snapshot image carries).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from ..models.state import FleetState
 from ..providers.base import OwnedResource, SnapshotRecord
 
 if TYPE_CHECKING:
-    from ..providers.base import Provider
+    from ..providers.base import HostImages, Provider
 
 # One per fleet, created or reused by bootstrap.
 BOOTSTRAP_KINDS = {"network", "vpc", "subnet", "router", "route_table", "internet_gateway", "security_group",
@@ -86,30 +86,9 @@ def collect(state: FleetState, provider: Provider, dry_run: bool, progress: Call
     return results
 
 
-def collect_images(provider: Provider, dry_run: bool, unlabelled: bool = False,
+def collect_images(provider: HostImages, dry_run: bool, unlabelled: bool = False,
                    progress: Callable[[str], None] = lambda m: None) -> list[GcResult]:
-    """Docker: snapshot images on this host whose state directory is gone or was made again
-    (orphans), and those from before the labels (unlabelled), with what became of each. This
-    state's images are the fleet's leak rule's, a live state's are left alone; an image a
-    container uses or a state of this CCRP_HOME records is kept. Unlabelled images are removed
-    only when asked (`unlabelled`): nothing says they are not another CCRP_HOME's."""
-    from ..providers.docker import snapshot_images as si
-    from ..store import read_state_id
-
-    census = si.census(provider.client, provider.fleet, read_state_id(provider.state_dir), provider.state_dir.parent)
-    results = []
-    for v in census.of(si.ORPHAN) + census.of(si.UNLABELLED):
-        resource = OwnedResource(kind="image", id=v.image.id, name=", ".join(v.image.snapshot_tags))
-        detail = f"{v.detail}; {si.megabytes(v.image.own)} of its own"
-        if not v.removable:
-            results.append(GcResult(resource, "kept", detail))
-        elif dry_run or (v.state == si.UNLABELLED and not unlabelled):
-            results.append(GcResult(resource, v.state, detail if dry_run else f"{detail}; --unlabelled removes it"))
-        else:
-            try:
-                done = si.remove(provider.client, v.image)
-                progress(f"deleted image {resource.name}")
-                results.append(GcResult(resource, "deleted", done or detail))
-            except CcrpError as exc:
-                results.append(GcResult(resource, "failed", exc.one_line()))
-    return results
+    """Ability.HOST_IMAGES: the snapshot images on this host whose state directory is gone or was
+    made again (orphans), and those from before the labels (unlabelled), with what became of
+    each (the backend's sweep_images says which it may remove)."""
+    return [GcResult(o.resource, o.action, o.detail) for o in provider.sweep_images(dry_run, unlabelled, progress)]

@@ -1,17 +1,19 @@
 """Backends behind the protocols of base.py (Lifecycle, Images, Housekeeping: base.Provider). Each
 package declares a ProviderInfo (abilities, user-data limit, SDK modules, platform) that costs no
 SDK import (registry.py; register() adds one from outside ccrp_cli); the provider class, and its
-SDK, are imported only when a provider is made, with an install hint when missing."""
+SDK, are imported only when a provider is made, with an install hint when missing. What runs on
+this host's Docker engine whatever the fleet's backend (robot_host, build_workspace) is loaded the
+same way, when a command uses it."""
 
 from __future__ import annotations
 
 import importlib
 import weakref
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Callable
 
 from ..store import FleetStore
-from .base import Ability, Provider, ProviderInfo
+from .base import Ability, Provider, ProviderInfo, RobotHost
 from .registry import REGISTRY, info, require
 
 if TYPE_CHECKING:
@@ -19,7 +21,8 @@ if TYPE_CHECKING:
     # __init__ first, while the inventory module is still half-made.
     from ..models.inventory import Inventory
 
-__all__ = ["REGISTRY", "Ability", "close_opened", "get_provider", "info", "register", "require"]
+__all__ = ["REGISTRY", "Ability", "build_workspace", "close_opened", "get_provider", "info", "register", "require",
+           "robot_host"]
 
 # Every provider this process made and still holds: the CLI closes them when its command ends
 # (cli/main.py run), so no command leaves an SSH session or API connection to the interpreter's
@@ -27,17 +30,43 @@ __all__ = ["REGISTRY", "Ability", "close_opened", "get_provider", "info", "regis
 _OPENED: weakref.WeakSet = weakref.WeakSet()
 
 
+# What runs on this host's Docker engine whatever the fleet's backend: every fleet's simulated
+# robots (where each sits on its fleet's network is the backend's: Ability.ROBOT_ATTACH) and `ccrp
+# deploy`'s workspace build. Factories as a ProviderInfo's: loaded by the commands that use them.
+ROBOT_HOST = ".docker.robots:RobotContainers"
+WORKSPACE_BUILD = ".docker.workspace:build_workspace"
+
+
+def _load(factory: str) -> Any:
+    """What a "module:name" factory names, a class or a function (a module relative to this
+    package, or in full)."""
+    module, cls = factory.split(":")
+    return getattr(importlib.import_module(module, __name__), cls)
+
+
 def get_provider(inv: Inventory, workdir: Path | None = None) -> Provider:
-    module, cls = REGISTRY[inv.provider.kind].factory.split(":")
-    backend = getattr(importlib.import_module(module, __name__), cls)
-    provider = backend(inv, workdir or FleetStore(inv.fleet).root)
+    provider = _load(REGISTRY[inv.provider.kind].factory)(inv, workdir or FleetStore(inv.fleet).root)
     _OPENED.add(provider)
     return provider
 
 
+def robot_host(fleet: str) -> RobotHost:
+    """The simulated robots of `fleet` on this host (CcrpError when no Docker engine answers),
+    closed with the command's providers (close_opened)."""
+    host = _load(ROBOT_HOST)(fleet)
+    _OPENED.add(host)
+    return host
+
+
+def build_workspace(inv: Inventory, software, progress: Callable[[str], None]) -> bytes:
+    """The tar of the install space (`workspace/`) of `software` (workloads.SnapshotSoftware, with a
+    workspace) built in the fleet's clone image on this host (CcrpError when no engine answers)."""
+    return _load(WORKSPACE_BUILD)(inv, software, progress)
+
+
 def close_opened() -> None:
-    """Close the providers get_provider made that are still held (closing twice is harmless: the
-    dashboard closes its own as it goes)."""
+    """Close the providers get_provider made, and the robot hosts robot_host made, that are still
+    held (closing twice is harmless: the dashboard closes its own as it goes)."""
     for provider in list(_OPENED):
         _OPENED.discard(provider)
         try:

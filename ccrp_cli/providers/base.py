@@ -6,7 +6,7 @@ import gzip
 import json
 from dataclasses import dataclass
 from enum import Enum
-from typing import Iterable, Literal, Protocol, Sequence
+from typing import Callable, Iterable, Literal, Protocol, Sequence
 
 from pydantic import BaseModel
 
@@ -167,9 +167,11 @@ class Ability(str, Enum):
 
     LOCAL_BUILD = "snapshot build"  # build the golden image on this host (Docker)
     BAKE = "snapshot bake"  # a builder instance in the cloud installs the recipe and is captured
-    ROBOT_SIM = "robot sim on its public network"  # simulated robots attach to the fleet's own public network
-    # simulated robots (local containers) get a port on the fleet's public network, a bridge of this host
-    ROBOT_BRIDGE = "robot sim on its bridge"
+    # Simulated robots (containers of this host) sit on the fleet's own public network, a network
+    # or bridge of this host (Docker, libvirt); a cloud fleet's dial their clone from anywhere.
+    ROBOT_ATTACH = "robot sim on the fleet's own network"
+    # Its snapshot images live on this host, where they outlive the state that recorded them (Docker).
+    HOST_IMAGES = "snapshot images on this host"
 
 
 @dataclass(frozen=True)
@@ -293,15 +295,85 @@ class Provider(Lifecycle, Images, Housekeeping, Protocol):
     """Every backend implements all three; a function of the core takes the narrowest it uses."""
 
 
-class RobotBridge(Protocol):
-    """What a provider with Ability.ROBOT_BRIDGE adds: the port a simulated robot of slot `index`
-    gets on the fleet's public network (libvirt: a veth on its NAT bridge, robots.RobotPort), with
-    `attach(pid)` giving it to the container's network namespace; release_robot_port removes what
-    is left of it once the container is gone."""
+@dataclass(frozen=True)
+class RobotAttachment:
+    """Where a simulated robot of the fleet sits (RobotAttach.attach_robot). Its container, on this
+    host's Docker engine (RobotHost), joins `network`; `attach(pid)`, if given, wires the
+    container's network namespace as soon as it runs, before its VPN first dials."""
 
-    def robot_port(self, robot: str, index: int): ...
+    network: str  # a Docker network of this host; "none" when `attach` gives the robot its only interface
+    name: str = ""  # the network as `robot sim` reports it, when not `network` (libvirt's NAT network)
+    address: str | None = None  # the robot's own address there, when the backend picks it
+    attach: Callable[[int], None] | None = None
+    # The robot runs the fleet's snapshot (a Docker image of this host, as the clones do) rather
+    # than the simulated robots' own image (RobotHost.robot_image).
+    clone_image: bool = False
 
-    def release_robot_port(self, robot: str) -> None: ...
+    def __str__(self) -> str:
+        return (self.name or self.network) + (f" ({self.address})" if self.address else "")
+
+
+class RobotAttach(Protocol):
+    """What a provider with Ability.ROBOT_ATTACH adds: where the simulated robot of slot `index` sits
+    on the fleet's own public network (Docker: the fleet's <fleet>-public network; libvirt: a veth on
+    its NAT bridge, libvirt/robots.py), and detach_robot, which removes what is left of that once
+    the robot's container is gone."""
+
+    def attach_robot(self, robot: str, index: int) -> RobotAttachment: ...
+
+    def detach_robot(self, robot: str) -> None: ...
+
+
+class RobotHost(Protocol):
+    """Where a fleet's simulated robots and their power devices run, whatever its backend: systemd
+    containers of this host's Docker engine (providers.robot_host). `role` is "robot-sim" or
+    "power-sim" (the robot's power device)."""
+
+    def running(self, robot: str) -> bool: ...
+    # The fleet's simulated robots here (any state; with `running`, those that run), sorted.
+    def names(self, running: bool = False) -> list[str]: ...
+    def exec(self, robot: str, argv: list[str], timeout: float = 60, role: str = "robot-sim") -> tuple[int, str]: ...
+    def push_files(self, robot: str, files: Sequence, restart: Sequence[str] = (), role: str = "robot-sim") -> None: ...
+    # The simulated robots' own image for `distro`, built here once.
+    def robot_image(self, distro: str, progress: Callable[[str], None]) -> str: ...
+    # (Re)create the robot from `image` where `attachment` says, install `bundle`, run `demo_node`
+    # with `python`; its container id.
+    def start(self, robot: str, image: str, bundle: Sequence, demo_node: str, attachment: RobotAttachment,
+              python: str) -> str: ...
+    def stop(self, robot: str) -> bool: ...
+    def start_device(self, robot: str, bundle: Sequence) -> str: ...
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class ImageOutcome:
+    """One snapshot image of this host as `ccrp gc` judged it (HostImages.sweep_images)."""
+
+    resource: OwnedResource
+    action: str  # orphan | unlabelled (listed, not removed) | kept | deleted | failed
+    detail: str
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One row of `ccrp doctor` a backend reports about itself."""
+
+    check: str
+    status: Literal["ok", "warn", "fail", "skip"]
+    detail: str
+    hint: str = ""
+
+
+class HostImages(Protocol):
+    """What a provider with Ability.HOST_IMAGES adds: its snapshot images live on this host, where
+    they outlive the state directory that recorded them (a temporary CCRP_HOME, a test run), which
+    no fleet's gc would see again. `ccrp gc` sweeps the host's orphans (and, when asked, the
+    images from before ccrp labelled them: `unlabelled`); `ccrp doctor` reports their disk."""
+
+    def sweep_images(self, dry_run: bool, unlabelled: bool,
+                     progress: Callable[[str], None]) -> list[ImageOutcome]: ...
+
+    def images_finding(self) -> Finding: ...
 
 
 class LocalBuild(Protocol):

@@ -1,9 +1,9 @@
 """Simulated robots of a fleet (`ccrp robot sim`): start, stop, and the emulated link to the clone.
 
-A simulated robot is a container on this host that installed exactly its edge bundle. On a Docker
-fleet it sits on the fleet's own public network; on a libvirt fleet it gets a port on the fleet's
-NAT bridge (Ability.ROBOT_BRIDGE); for a cloud fleet it dials its clone's public IP from a Docker
-network of this host.
+A simulated robot is a container on this host (providers.robot_host) that installed exactly its
+edge bundle. A backend whose fleet has a network of this host says where its robots sit on it
+(Ability.ROBOT_ATTACH: Docker's public network, a port of libvirt's NAT bridge); for a cloud fleet
+it dials its clone's public IP from a Docker network of this host.
 """
 
 from __future__ import annotations
@@ -86,56 +86,54 @@ class Sims:
     """The simulated robots of one fleet and the clones they dial."""
 
     def __init__(self, fleet: Fleet, provider: Provider | None = None) -> None:
-        from ..providers import Ability, get_provider, info
-        from ..providers.docker.host import DockerHost
+        from ..providers import Ability, get_provider, info, robot_host
 
         self.fleet = fleet
-        abilities = info(fleet.inventory.provider.kind).abilities
-        self.own_network = Ability.ROBOT_SIM in abilities
-        self.bridged = Ability.ROBOT_BRIDGE in abilities
+        self.kind = fleet.inventory.provider.kind
+        self.attaches = Ability.ROBOT_ATTACH in info(self.kind).abilities
         self.clones = provider or get_provider(fleet.inventory)
-        # A Docker fleet's robots are containers of its own provider; a cloud fleet's are local.
-        self.host = self.clones if self.own_network else DockerHost(fleet.name)
+        self.host = robot_host(fleet.name)
 
     def running(self, robot: str) -> bool:
-        c = self.host._container(robot, role="robot-sim")
-        return c is not None and c.status == "running"
+        return self.host.running(robot)
 
     def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
-        return self.host.exec(robot, argv, timeout=timeout, role="robot-sim")
+        return self.host.exec(robot, argv, timeout=timeout)
 
     def push(self, robot: str, files: list) -> None:
-        self.host.push_files(robot, files, role="robot-sim")
+        self.host.push_files(robot, files)
 
     def start(self, robot: str, network: str | None = None, wait: float = 0, progress: Progress = lambda m: None) -> dict:
         """(Re)create the robot's simulated robot; with `wait`, until its node is on its clone."""
         from ..ops.clones import snapshot_image
-        from ..providers.docker import robots as containers
+        from ..providers.base import RobotAttachment
         from ..templates import static
         from .robots import edge_files
 
-        if (self.own_network or self.bridged) and network:
-            raise InputError("--network is for cloud fleets", hint="simulated robots of a Docker or libvirt fleet sit on "
+        if self.attaches and network:
+            raise InputError("--network is for cloud fleets", hint=f"simulated robots of a {self.kind} fleet sit on "
                              "the fleet's own public network")
         state = self.fleet.store.load_state()
         self.fleet.robot(state, robot)
         files, endpoint = edge_files(self.fleet, robot)  # refuses a robot with no clone yet
-        port = self.clones.robot_port(robot, state.robots[robot].index) if self.bridged else None
-        if self.own_network:
-            image, net = snapshot_image(state), self.host.public_net
-        else:  # a robot port: no Docker network at all, the port is its only interface
-            image, net = containers.sim_image(self.host, self.fleet.inventory.ros.distro, progress), \
-                "none" if port else network or "bridge"
+        if self.attaches:
+            seat = self.clones.attach_robot(robot, state.robots[robot].index)
+        else:  # a cloud fleet's: NATed by this host, as a robot on the internet
+            seat = RobotAttachment(network=network or "bridge")
+        if seat.clone_image:
+            image = snapshot_image(state)
+        else:
+            image = self.host.robot_image(self.fleet.inventory.ros.distro, progress)
         t0 = time.monotonic()
         ros = self.fleet.inventory.ros
         if ros.ros2:  # the rclpy demo node, with the distro's python (docs/ros2.md)
             demo, python = static("edge/ccrp-demo-node2"), f"/opt/ros/{ros.distro}/bin/python"
         else:
             demo, python = static("edge/ccrp-demo-node"), "/usr/bin/python3"
-        cid = containers.start(self.host, robot, image, files, demo, net, python, port.attach if port else None)
+        cid = self.host.start(robot, image, files, demo, seat, python)
         progress(f"simulated robot {robot!r} ({cid}) installed its bundle and dials {endpoint}"
-                 + (f" from {port.address.ip} on {port.network}" if port else ""))
-        result = {"robot": robot, "container": cid, "endpoint": endpoint, "network": str(port) if port else net}
+                 + (f" from {seat.address} on {seat.name or seat.network}" if seat.address else ""))
+        result = {"robot": robot, "container": cid, "endpoint": endpoint, "network": str(seat)}
         if wait > 0:
             from ..probe import wait_connected
 
@@ -146,19 +144,15 @@ class Sims:
 
     def stop(self, robot: str) -> bool:
         """Remove the simulated robot (and its power device, if it has one)."""
-        from ..providers.docker import robots as containers
-
-        stopped = containers.stop(self.host, robot)
-        if self.bridged:
-            self.clones.release_robot_port(robot)
+        stopped = self.host.stop(robot)
+        if self.attaches:
+            self.clones.detach_robot(robot)
         return stopped
 
     # -- its simulated power device (power.py) ---------------------------------------------------
     def start_device(self, robot: str, files: list) -> str:
         """(Re)create the robot's power device beside it, with the device bundle `files`."""
-        from ..providers.docker import robots as containers
-
-        return containers.start_device(self.host, robot, files)
+        return self.host.start_device(robot, files)
 
     def device_log(self, robot: str) -> str:
         try:
@@ -168,12 +162,9 @@ class Sims:
             return exc.message
         return out.strip()
 
-    def names(self) -> list[str]:
-        """The fleet's simulated robots on this host, running or not."""
-        from ..providers.base import LABEL_ROBOT
-
-        found = self.host.client.containers.list(all=True, ignore_removed=True, filters=self.host._filters("robot-sim"))
-        return sorted(c.labels.get(LABEL_ROBOT, "") for c in found)
+    def names(self, running: bool = False) -> list[str]:
+        """The fleet's simulated robots on this host, running or not (with `running`: those that run)."""
+        return self.host.names(running)
 
     def clone_address(self, robot: str) -> str:
         """The IPv4 address the robot dials (its clone's public endpoint, resolved here)."""

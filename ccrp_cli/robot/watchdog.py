@@ -62,13 +62,11 @@ def parse(out: str) -> Watchdog:
 
 def simulated(fleet, provider: Provider) -> dict[str, Watchdog]:
     """robot -> its watchdog's state, for the fleet's simulated robots running on this host."""
-    from ..providers.base import LABEL_ROBOT
     from .simulated import Sims
 
     try:
         sims = Sims(fleet, provider)
-        running = sims.host.client.containers.list(ignore_removed=True, filters=sims.host._filters("robot-sim"))
-        robots = sorted(c.labels.get(LABEL_ROBOT, "") for c in running)
+        robots = sims.names(running=True)
     except Exception as exc:  # noqa: BLE001 - no Docker here (a cloud fleet's host): no simulated robots
         log.debug("no simulated robots read: %s", exc)
         return {}

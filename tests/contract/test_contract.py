@@ -169,7 +169,8 @@ def test_throttling_storm_creates_every_clone_once(harness):
 
 
 def test_states_are_ccrp_words_and_every_declared_call_answers(harness):
-    from ccrp_cli.providers.base import Bake, CloneState, LocalBuild, Provider, Quota, RobotBridge, Transport
+    from ccrp_cli.providers.base import (Bake, CloneState, HostImages, LocalBuild, Provider, Quota, RobotAttach,
+                                        Transport)
 
     created = create(harness, "robot1")
     rec = harness.provider.query()["robot1"]
@@ -184,8 +185,9 @@ def test_states_are_ccrp_words_and_every_declared_call_answers(harness):
     assert all(hasattr(harness.provider, n) for n in local) == (Ability.LOCAL_BUILD in harness.provider.abilities)
     if Ability.BAKE in harness.provider.abilities:
         assert all(hasattr(harness.provider, n) for n in dir(Bake) if not n.startswith("_"))
-    bridge = [n for n in dir(RobotBridge) if not n.startswith("_")]
-    assert all(hasattr(harness.provider, n) for n in bridge) == (Ability.ROBOT_BRIDGE in harness.provider.abilities)
+    for calls, ability in ((RobotAttach, Ability.ROBOT_ATTACH), (HostImages, Ability.HOST_IMAGES)):
+        names = [n for n in dir(calls) if not n.startswith("_")]
+        assert all(hasattr(harness.provider, n) for n in names) == (ability in harness.provider.abilities), ability
     assert all(hasattr(harness.provider.transport, n) for n in dir(Transport) if not n.startswith("_"))
     assert harness.provider.has_image("no-such-image-of-this-fleet") is False
     assert all(isinstance(q, Quota) and q.limit >= 0 for q in harness.provider.quotas())

@@ -153,7 +153,7 @@ def built(monkeypatch):
     """deploy's build, replaced by an install space whose setup.sh says v2; records its calls."""
     calls = []
 
-    def build(fleet, provider, software, progress):
+    def build(fleet, software, progress):
         calls.append(software.digest)
         return install_tar("v2")
 
@@ -321,3 +321,51 @@ def test_snapshot_packages_digest_is_what_deploy_compares(fleet):
     record = json.loads(packages_record(sw))
     assert record == {"distro": "noetic", "apt": sw.apt, "pip": sw.pip} and sw.digest == digest
     assert fleet.store.load_state().snapshot["packages"] == packages_record(sw)
+
+
+@pytest.mark.parametrize("inventory", ["lab.yaml", "aws.yaml"])
+def test_the_workspace_is_built_on_this_hosts_engine_whatever_the_backend(inventory, monkeypatch):
+    """providers.build_workspace (docker/workspace.py), the engine faked: a Docker fleet's own base
+    image, Docker's default else; the install space read out of a container never started; the
+    older deploy images of the fleet dropped; the client closed."""
+    from types import SimpleNamespace
+
+    from ccrp_cli.loader import load_inventory
+    from ccrp_cli.providers import build_workspace
+    from ccrp_cli.providers.docker import images, workspace
+
+    inv = load_inventory(LAB.parent / inventory)
+    done: list = []
+
+    class Container:
+        def get_archive(self, path):
+            done.append(("read", path))
+            return iter([b"tar", b"!"]), {}
+
+        def remove(self, force):
+            done.append(("removed", force))
+
+    class Images:
+        def list(self, filters):
+            done.append(("list", tuple(filters["label"])))
+            return [SimpleNamespace(id="old", tags=[f"ccrp/{inv.fleet}-deploy:0ld"]),
+                    SimpleNamespace(id="new", tags=[f"ccrp/{inv.fleet}-deploy:d1g"])]
+
+        def remove(self, image_id, force):
+            done.append(("drop", image_id, force))
+
+    client = SimpleNamespace(containers=SimpleNamespace(create=lambda tag, labels: done.append(("create", tag)) or Container()),
+                             images=Images(), close=lambda: done.append(("closed",)))
+    monkeypatch.setattr(workspace, "local_engine", lambda: client)
+    monkeypatch.setattr(images, "ensure_base", lambda c, base, plat, progress: done.append(("base", base)))
+    monkeypatch.setattr(images, "dockerfile", lambda fleet, distro, base, plat, software: f"FROM {base}")
+    monkeypatch.setattr(images, "build_context", lambda plat, progress, distro, software: {})
+    monkeypatch.setattr(images, "build_clone_image", lambda c, tag, text, labels, progress, files, what:
+                        done.append(("build", tag, text, labels["ccrp-role"], what)))
+    data = build_workspace(inv, SimpleNamespace(digest="d1g"), lambda m: None)
+    tag = f"ccrp/{inv.fleet}-deploy:d1g"
+    base = inv.provider.base_image if inventory == "lab.yaml" else images.DEFAULT_BASE
+    assert data == b"tar!"
+    assert done == [("base", base), ("build", tag, f"FROM {base}", "deploy", "deploy build"), ("create", tag),
+                    ("read", "/opt/ccrp/workspace"), ("removed", True),
+                    ("list", (f"ccrp-fleet={inv.fleet}", "ccrp-role=deploy")), ("drop", "old", False), ("closed",)]

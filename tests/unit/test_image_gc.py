@@ -128,8 +128,17 @@ def host(tmp_path, monkeypatch):
     for tag in ("ccrp/base:bookworm", "ccrp/base-bare:noetic", "ccrp/robot-sim:noetic", "ccrp-test/snapshot-cache:noetic",
                 "ccrp-fake/debian-12-rootfs:latest", "ccrp/lab:1", "ccrp/lab-clone-x:1", "ccrp/Lab-clone:1"):
         engine.add([tag], SNAPSHOT | {"ccrp-fleet": "lab"})
-    provider = SimpleNamespace(client=client(engine), fleet="lab", state_dir=mine)
+    provider = HostImagesOnly(client=client(engine), fleet="lab", state_dir=mine)
     return engine, provider, ids
+
+
+class HostImagesOnly(SimpleNamespace):
+    """DockerProvider's Ability.HOST_IMAGES calls, on the fake engine (gc and doctor reach them alone)."""
+
+    from ccrp_cli.providers.docker.provider import DockerProvider
+
+    sweep_images = DockerProvider.sweep_images
+    images_finding = DockerProvider.images_finding
 
 
 def test_gc_lists_orphan_snapshot_images_then_removes_only_those(host):

@@ -47,7 +47,7 @@ def test_settings_defaults_and_registry(tmp_path):
     assert p.public_cidr == ipaddress.IPv4Network("192.168.150.0/24")
     info = REGISTRY["libvirt"]
     assert info.factory == ".libvirt.provider:LibvirtProvider" and ("libvirt", "libvirt") in info.sdk_modules
-    assert info.platform == "debian-bookworm" and info.abilities == {Ability.LOCAL_BUILD, Ability.ROBOT_BRIDGE}
+    assert info.platform == "debian-bookworm" and info.abilities == {Ability.LOCAL_BUILD, Ability.ROBOT_ATTACH}
 
 
 @pytest.mark.parametrize("field,value", [

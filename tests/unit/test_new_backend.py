@@ -34,8 +34,6 @@ NAMES_A_KIND = {
     "ccrp_cli/cli/init.py": 1,  # the default of `ccrp init --provider`
     # The Docker engine answering is its credential; its snapshot images outlive state (doctor.py).
     "ccrp_cli/ops/doctor.py": 3,
-    # `ccrp deploy` builds the workspace on the local Docker engine, whatever the fleet's backend.
-    "ccrp_cli/ops/deploy.py": 2,
 }
 
 

@@ -10,7 +10,6 @@ import json
 from ccrp_cli.robot import watchdog
 from ccrp_cli.alerts import fleet_alerts, row_alerts
 from ccrp_cli.models.status import Power, StatusRow
-from ccrp_cli.providers.base import LABEL_ROBOT
 
 T = 1795000000.25
 SINCE = dt.datetime.fromtimestamp(T, dt.timezone.utc).isoformat(timespec="seconds")
@@ -61,30 +60,18 @@ def test_a_brainless_robot_is_an_alert_also_when_its_clone_is_down():
 
 
 class Host:
-    """A Docker fleet's provider as Sims sees it: nao1's simulated robot brainless, turtlebot1's
-    removed between the listing and the read."""
-
-    max_parallel = 3
+    """This host's simulated robots as Sims sees them (providers.robot_host): nao1's brainless,
+    turtlebot1's removed between the listing and the read."""
 
     def __init__(self):
-        outer = self
-
-        class Container:
-            def __init__(self, robot):
-                self.labels = {LABEL_ROBOT: robot}
-
-        class Containers:
-            def list(self, **kw):
-                outer.listed = kw
-                return [Container("nao1"), Container("turtlebot1")]
-
-        self.client = type("Client", (), {"containers": Containers()})()
+        self.listed: list[bool] = []
         self.ran: list = []
 
-    def _filters(self, role, robot=None):
-        return {"label": [f"role={role}"]}
+    def names(self, running=False):
+        self.listed.append(running)
+        return ["nao1", "turtlebot1"]
 
-    def exec(self, robot, argv, timeout=60, role="clone"):
+    def exec(self, robot, argv, timeout=60, role="robot-sim"):
         self.ran.append((robot, argv, role))
         if robot == "turtlebot1":
             from ccrp_cli.errors import CcrpError
@@ -93,14 +80,23 @@ class Host:
         return 0, out(f"lost {T}", f"stopped {T}")
 
 
-def test_simulated_robots_are_read_in_their_containers(lab_up):
+def test_simulated_robots_are_read_in_their_containers(lab_up, monkeypatch):
+    from ccrp_cli import providers
+    from ccrp_cli.errors import CcrpError
+
     fleet, _ = lab_up
     host = Host()
-    got = watchdog.simulated(fleet, host)
+    monkeypatch.setattr(providers, "robot_host", lambda name: host if name == fleet.name else None)
+    got = watchdog.simulated(fleet, object())
     assert {r: w.model_dump() for r, w in got.items()} == {
         "nao1": {"state": "brainless", "since": SINCE, "source": "simulated robot", "motors": "stopped"}}
-    assert host.listed["filters"] == {"label": ["role=robot-sim"]} and "all" not in host.listed  # running ones
+    assert host.listed == [True]  # the running ones
     assert all(role == "robot-sim" and argv == watchdog.READ for _, argv, role in host.ran)
+
+    def no_engine(name):
+        raise CcrpError("cannot reach the Docker engine")
+
+    monkeypatch.setattr(providers, "robot_host", no_engine)
     assert watchdog.simulated(fleet, object()) == {}  # no Docker to ask: no simulated robots
 
 

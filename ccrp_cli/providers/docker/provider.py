@@ -12,11 +12,11 @@ from ...models.inventory import Inventory
 from ...layout import AUTOSTOP_NOTE, VPN_DIR
 from ...store import FleetStore, ensure_state_id, read_state_id
 from ..base import (
-    LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota,
-    SnapshotRecord,
+    LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Finding, ImageOutcome, Origin,
+    OwnedResource, Quota, RobotAttachment, SnapshotRecord,
     autostop_note, check_cloud_init, cloud_init_clean, owner_labels,
 )
-from . import INFO
+from . import INFO, snapshot_images
 from .archive import tar_files
 from .host import DockerHost
 
@@ -282,6 +282,13 @@ class DockerProvider(DockerHost):
                   if i.labels.get(LABEL_STATE_ID) in (None, mine)]
         return sorted((self.snapshot_record(i) for i in images), key=lambda s: s.created)
 
+    # -- snapshot images of other states (Ability.HOST_IMAGES, snapshot_images.py) ----------------
+    def sweep_images(self, dry_run: bool, unlabelled: bool, progress=lambda msg: None) -> list[ImageOutcome]:
+        return snapshot_images.sweep(self.client, self.fleet, self.state_dir, dry_run, unlabelled, progress)
+
+    def images_finding(self) -> Finding:
+        return snapshot_images.finding(self.client, self.fleet, self.state_dir)
+
     def delete_snapshot(self, snapshot_id: str) -> None:
         try:
             image = self.client.images.get(snapshot_id)
@@ -306,6 +313,15 @@ class DockerProvider(DockerHost):
                 return autostop_note(member.read().decode(errors="replace")) if member else None
         except (self._NotFound, tarfile.TarError, IndexError):
             return None
+
+    # -- simulated robots (Ability.ROBOT_ATTACH: their containers are robots.RobotContainers) -------
+    def attach_robot(self, robot: str, index: int) -> RobotAttachment:
+        # On <fleet>-public only, as a robot on the clones' LAN; it runs the fleet's snapshot, a
+        # Docker image of this engine already (the simulated robots' own image is not built).
+        return RobotAttachment(network=self.public_net, clone_image=True)
+
+    def detach_robot(self, robot: str) -> None:
+        pass  # nothing outlives the robot's container: its network is the fleet's
 
     # -- whole fleet ----------------------------------------------------------------------------
     def teardown(self) -> list[str]:

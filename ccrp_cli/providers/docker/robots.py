@@ -1,13 +1,15 @@
 """Simulated robots: a container on this host that installs the robot's edge bundle exactly as a
-real robot would, then runs a demo ROS node. On a Docker fleet it sits on <fleet>-public only; on
-a cloud fleet it dials its clone's public IP from a Docker network of this host (default: the
-engine's `bridge`, NATed like a robot on the internet)."""
+real robot would, then runs a demo ROS node. Where it sits is its fleet's backend's word
+(base.RobotAttachment): on a Docker fleet <fleet>-public only; on a libvirt fleet a port of the
+NAT bridge; on a cloud fleet it dials its clone's public IP from a Docker network of this host
+(default: the engine's `bridge`, NATed like a robot on the internet). RobotContainers is the
+base.RobotHost the core reaches them through (providers.robot_host), whatever the fleet's backend."""
 
 from __future__ import annotations
 
 from ...errors import CcrpError
 from ...templates import static
-from ..base import owner_labels
+from ..base import LABEL_ROBOT, RobotAttachment, owner_labels
 from .archive import tar_files
 from .host import DockerHost
 from .provider import CLONE_CAPS, CLONE_SECURITY_OPT
@@ -147,3 +149,37 @@ def stop(provider: DockerHost, robot: str) -> bool:
     c.stop(timeout=10)
     c.remove(force=True, v=True)
     return True
+
+
+class RobotContainers(DockerHost):
+    """A fleet's simulated robots and power devices on this host's engine (base.RobotHost)."""
+
+    def running(self, robot: str) -> bool:
+        c = self._container(robot, role="robot-sim")
+        return c is not None and c.status == "running"
+
+    def names(self, running: bool = False) -> list[str]:
+        found = self.client.containers.list(all=not running, ignore_removed=True, filters=self._filters("robot-sim"))
+        return sorted(c.labels.get(LABEL_ROBOT, "") for c in found)
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60, role: str = "robot-sim") -> tuple[int, str]:
+        return super().exec(robot, argv, timeout=timeout, role=role)
+
+    def push_files(self, robot: str, files: list, restart: list[str] = (), role: str = "robot-sim") -> None:
+        super().push_files(robot, files, restart, role=role)
+
+    def robot_image(self, distro: str, progress=lambda msg: None) -> str:
+        return sim_image(self, distro, progress)
+
+    def start(self, robot: str, image: str, bundle: list, demo_node: str, attachment: RobotAttachment,
+              python: str = "/usr/bin/python3") -> str:
+        return start(self, robot, image, bundle, demo_node, attachment.network, python, attachment.attach)
+
+    def stop(self, robot: str) -> bool:
+        return stop(self, robot)
+
+    def start_device(self, robot: str, bundle: list) -> str:
+        return start_device(self, robot, bundle)
+
+    def close(self) -> None:
+        self.client.close()

@@ -23,8 +23,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ...errors import CcrpError
 from ...store import read_state_id
-from ..base import LABEL_FLEET, LABEL_MANAGED
+from ..base import LABEL_FLEET, LABEL_MANAGED, Finding, ImageOutcome, OwnedResource
 
 LABEL_STATE_DIR = "ccrp-state-dir"
 LABEL_STATE_ID = "ccrp-state-id"
@@ -167,8 +168,6 @@ def remove(client, image: SnapshotImage) -> str:
     happened, in a few words; docker's refusal (a container took it meanwhile) raises CcrpError."""
     from docker.errors import APIError
 
-    from ...errors import CcrpError
-
     for tag in image.snapshot_tags:
         try:
             client.images.remove(tag)
@@ -180,3 +179,56 @@ def remove(client, image: SnapshotImage) -> str:
 
 def megabytes(n: int) -> str:
     return f"{n / 1e6:,.0f} MB"
+
+
+def sweep(client, fleet: str, state_dir: Path, dry_run: bool, unlabelled: bool = False,
+          progress=lambda msg: None) -> list[ImageOutcome]:
+    """`ccrp gc` (DockerProvider.sweep_images): the snapshot images on this host whose state
+    directory is gone or was made again (orphans), and those from before the labels (unlabelled),
+    with what became of each. This state's images are the fleet's leak rule's, a live state's are
+    left alone; an image a container uses or a state of this CCRP_HOME records is kept. Unlabelled
+    images are removed only when asked (`unlabelled`): nothing says they are not another CCRP_HOME's."""
+    found = census(client, fleet, read_state_id(state_dir), state_dir.parent)
+    results = []
+    for v in found.of(ORPHAN) + found.of(UNLABELLED):
+        resource = OwnedResource(kind="image", id=v.image.id, name=", ".join(v.image.snapshot_tags))
+        detail = f"{v.detail}; {megabytes(v.image.own)} of its own"
+        if not v.removable:
+            results.append(ImageOutcome(resource, "kept", detail))
+        elif dry_run or (v.state == UNLABELLED and not unlabelled):
+            results.append(ImageOutcome(resource, v.state, detail if dry_run else f"{detail}; --unlabelled removes it"))
+        else:
+            try:
+                done = remove(client, v.image)
+                progress(f"deleted image {resource.name}")
+                results.append(ImageOutcome(resource, "deleted", done or detail))
+            except CcrpError as exc:
+                results.append(ImageOutcome(resource, "failed", exc.one_line()))
+    return results
+
+
+def finding(client, fleet: str, state_dir: Path) -> Finding:
+    """`ccrp doctor` (DockerProvider.images_finding): the disk ccrp's snapshot images take on this
+    host, this state's and orphans'."""
+    from docker.errors import DockerException
+
+    try:
+        found = census(client, fleet, read_state_id(state_dir), state_dir.parent)
+    except (DockerException, OSError) as exc:  # a report only: the engine answered doctor's checks before
+        return Finding("snapshot images", "warn", f"cannot list them ({type(exc).__name__})")
+    parts = []
+    for state, what in ((THIS, "this fleet"), (ORPHAN, "orphans"), (UNLABELLED, "unlabelled"), (OTHER, "other states")):
+        verdicts = found.of(state)
+        if verdicts or state in (THIS, ORPHAN):
+            own = sum(v.image.own for v in verdicts)
+            parts.append(f"{what} {len(verdicts)} ({megabytes(own)})")
+    # Layers shared with other images (the base, each other) are not counted: removing the
+    # images frees at least what is shown.
+    detail = "; ".join(parts) + " of their own layers"
+    waste = [v for v in found.of(ORPHAN) + found.of(UNLABELLED) if v.removable]
+    if not waste:
+        return Finding("snapshot images", "ok", detail)
+    hint = "`ccrp gc --dry-run` lists them, `ccrp gc` removes the orphans"
+    if any(v.state == UNLABELLED for v in waste):
+        hint += ", `ccrp gc --unlabelled` the unlabelled too"
+    return Finding("snapshot images", "warn", detail, hint)

@@ -11,8 +11,8 @@ INFO = ProviderInfo(
     factory=".libvirt.provider:LibvirtProvider",
     # `snapshot build` makes the golden volume on this machine (LibvirtProvider.build_snapshot: the
     # recipe's image on the local Docker engine, then a qcow2 of it); there is no builder VM to bake.
-    # `robot sim` puts its containers on the fleet's NAT bridge (LibvirtProvider.robot_port).
-    abilities=frozenset({Ability.LOCAL_BUILD, Ability.ROBOT_BRIDGE}),
+    # `robot sim` puts its containers on the fleet's NAT bridge (LibvirtProvider.attach_robot).
+    abilities=frozenset({Ability.LOCAL_BUILD, Ability.ROBOT_ATTACH}),
     user_data_limit=262_144,  # the NoCloud seed is ours: kept at GCE's size, as Docker's
     user_data_gzip=False,
     sdk_modules=(("libvirt", "libvirt"), ("paramiko", "libvirt")),

@@ -25,7 +25,7 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import ErrorClass
 from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin,
-                    OwnedResource, Quota, SnapshotRecord, owner_labels)
+                    OwnedResource, Quota, RobotAttachment, SnapshotRecord, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, robots, seed, xmldefs
 from .settings import LibvirtSettings
@@ -376,7 +376,15 @@ class LibvirtProvider(CloudProvider):
         net = self._network(self.public_net)
         return xmldefs.dhcp_hosts(net.XMLDesc(0)).get(mac) if net is not None else None
 
-    # -- simulated robots (Ability.ROBOT_BRIDGE, robots.py) ----------------------------------------
+    # -- simulated robots (Ability.ROBOT_ATTACH, robots.py) ----------------------------------------
+    def attach_robot(self, robot: str, index: int) -> RobotAttachment:
+        """On no Docker network: its port on the fleet's NAT network is its only interface."""
+        port = self.robot_port(robot, index)
+        return RobotAttachment(network="none", name=port.network, address=str(port.address.ip), attach=port.attach)
+
+    def detach_robot(self, robot: str) -> None:
+        self.release_robot_port(robot)
+
     def robot_port(self, robot: str, index: int) -> robots.RobotPort:
         """The port of robot `robot` (addressing slot `index`) on the fleet's NAT network: refused
         in one line unless the libvirt host is this machine or the network is missing."""

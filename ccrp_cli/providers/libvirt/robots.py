@@ -1,4 +1,4 @@
-"""Simulated robots of a libvirt fleet (Ability.ROBOT_BRIDGE): a robot is a container of this
+"""Simulated robots of a libvirt fleet (Ability.ROBOT_ATTACH): a robot is a container of this
 host's Docker engine, as for a cloud fleet, but with no Docker network. It gets one veth pair
 instead: the host end a port of the fleet's NAT network's bridge, the other its eth0, with a static
 address from the top of the NAT subnet (xmldefs.robot_block, outside the DHCP range). So it reaches
