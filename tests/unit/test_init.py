@@ -31,6 +31,24 @@ def test_init_writes_an_inventory_that_validates(here, provider):
     assert (here / "ccrp.yaml").read_text().startswith("# ccrp fleet lab2")
 
 
+GOLDEN = Path(__file__).resolve().parents[1] / "golden" / "init"
+
+
+@pytest.mark.parametrize("distro", ["jazzy", "noetic"])
+@pytest.mark.parametrize("provider", ["docker", "openstack", "gcp", "aws"])
+def test_init_writes_each_backends_inventory_as_before(tmp_path, monkeypatch, provider, distro):
+    """Byte for byte what `ccrp init` wrote before each backend's section moved into its own package
+    (tests/golden/init, pools from a host with nothing on it)."""
+    from ccrp_cli.ops import init
+
+    monkeypatch.setattr(init, "used_networks", lambda: [])
+    got = init.write(tmp_path / "ccrp.yaml", provider, ["nao1", "tb1"], "lab", distro)
+    assert (tmp_path / "ccrp.yaml").read_text() == (GOLDEN / f"{provider}-{distro}.yaml").read_text()
+    assert got == {"path": str(tmp_path / "ccrp.yaml"), "fleet": "lab", "provider": provider, "distro": distro,
+                   "robots": ["nao1", "tb1"], "public": "172.30.0.0/24" if provider == "docker" else None,
+                   "common": "10.90.0.0/24", "vpn_pool": "10.80.0.0/16"}
+
+
 def test_init_never_overwrites_and_refuses_bad_input(here):
     (here / "ccrp.yaml").write_text("mine\n")
     for argv in (("init",), ("init", "-o", "a.yaml", "--provider", "azure"), ("init", "-o", "b.yaml", "--robots", "nao1,NAO2"),
@@ -49,6 +67,7 @@ def test_init_makes_a_ros2_fleet_and_says_how_to_pick_noetic(here):
     assert code == 0, err
     inv = load_inventory(here / "ccrp.yaml")
     assert (inv.ros.distro, inv.ros.ros2, json.loads(out)["distro"]) == ("jazzy", True, "jazzy")
+    assert inv.provider.kind == json.loads(out)["provider"] == "docker"  # no --provider: clones on this host
     assert "ccrp init --distro noetic" in err, err
     code, _, err = run_ccrp_inprocess("init", "-o", "ros1.yaml", "--distro", "noetic", home=here / "home")
     assert code == 0, err
