@@ -11,7 +11,10 @@ from . import options, output
 
 
 def init(
-    provider: Annotated[str, typer.Option("--provider", help="docker (clones on this host), openstack, gcp or aws.")] = "docker",
+    # No default written here: the backend says it is init's (its InitSection), and the registry
+    # is read only when init runs, not by every `ccrp` start.
+    provider: Annotated[str, typer.Option("--provider", show_default=False,
+                                          help="docker (clones on this host, the default), openstack, gcp or aws.")] = "",
     robots: Annotated[str, typer.Option("--robots", help="Robot names, comma-separated.")] = "nao1,nao2",
     fleet: Annotated[str, typer.Option("--fleet", help="Fleet name (default: this directory's name, if it is a valid one, else 'lab').")] = "",
     distro: Annotated[str, typer.Option("--distro", help="ROS distro of the fleet: jazzy (ROS 2, the default), kilted (ROS 2) or noetic (ROS 1): one recipe each in snapshots/.")] = "jazzy",
@@ -24,7 +27,7 @@ def init(
     from ..recipes import is_ros2
 
     result = write(out, provider, [r.strip() for r in robots.split(",") if r.strip()], fleet or default_fleet(), distro)
-    output.info(f"wrote {out} (fleet {result['fleet']!r} on {provider}, ROS {distro}, robots {', '.join(result['robots'])}); "
+    output.info(f"wrote {out} (fleet {result['fleet']!r} on {result['provider']}, ROS {distro}, robots {', '.join(result['robots'])}); "
                 f"next: ccrp fleet validate, then ccrp fleet up")
     if is_ros2(distro):
         # A new fleet is ROS 2; the thesis lab and ROS 1 robots are one flag away.

@@ -19,3 +19,8 @@ class ProviderSettings(Strict):
         refuses one that overlaps the VPN pool or the common network (clouds make theirs from
         `common.cidr`: none of their own)."""
         return {}
+
+    def place(self) -> str:
+        """Where the fleet's clones are, in the backend's words (a region, a cloud), for `ccrp
+        doctor`; "" where the settings name none."""
+        return ""

@@ -95,23 +95,24 @@ def host_receive_buffer(path: str = RMEM_DEFAULT) -> Check:
 
 
 def _provider(fleet: Fleet):
-    from ..providers import get_provider
+    from ..providers import get_provider, info
 
     kind = fleet.inventory.provider.kind
-    name = "docker engine" if kind == "docker" else f"{kind} client"
+    name = f"{kind} {info(kind).reach}"
     try:
         provider = get_provider(fleet.inventory)
     except CcrpError as exc:
         return None, _failed(name, exc)
-    if kind == "docker":
+    if info(kind).reach_is_credential:
         return provider, Check(name, OK, provider.check_credentials())
-    settings = fleet.inventory.provider
-    return provider, Check(name, OK, f"region/cloud {getattr(settings, 'region', '') or getattr(settings, 'cloud', '')}".strip())
+    return provider, Check(name, OK, f"region/cloud {fleet.inventory.provider.place()}".strip())
 
 
 def _credentials(provider: Provider) -> list[Check]:
-    if provider.kind == "docker":
-        return []  # the engine answering (checked above) is the credential
+    from ..providers import info
+
+    if info(provider.kind).reach_is_credential:
+        return []  # reaching the backend (checked above) was the credential
     try:
         return [Check("credentials", OK, provider.check_credentials())]
     except CcrpError as exc:

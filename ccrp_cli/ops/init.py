@@ -5,13 +5,16 @@ from __future__ import annotations
 import ipaddress
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import InputError, cannot_write, shown
 from ..store import ccrp_home
 
+if TYPE_CHECKING:
+    from ..providers.base import InitSection
+
 # Where each pool is looked for, and the size of one: the lab's choices first.
 SEARCH = {"public": ("172.30.0.0/15", 24), "common": ("10.90.0.0/16", 24), "vpn": ("10.80.0.0/12", 16)}
-PROVIDERS = ("docker", "openstack", "gcp", "aws")
 # A new fleet is ROS 2, on the current LTS (docs/ros2.md); `--distro noetic` for a ROS 1 fleet.
 DEFAULT_DISTRO = "jazzy"
 
@@ -81,6 +84,18 @@ def free(kind: str, used: list[ipaddress.IPv4Network]) -> str:
     raise InputError(f"no free /{prefix} for the {kind} pool in {within} on this host", hint="write the pools by hand")
 
 
+def offered() -> dict[str, InitSection]:
+    """The backends `ccrp init` writes a first inventory for (ProviderInfo.init), in the registry's order."""
+    from ..providers import REGISTRY
+
+    return {kind: i.init for kind, i in REGISTRY.items() if i.init is not None}
+
+
+def default_provider() -> str:
+    """The backend `ccrp init` writes with no --provider (the one whose InitSection says so)."""
+    return next(kind for kind, section in offered().items() if section.default)
+
+
 def default_fleet() -> str:
     from ..models.names import NAME_RE
 
@@ -89,12 +104,16 @@ def default_fleet() -> str:
 
 
 def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str = DEFAULT_DISTRO) -> dict:
+    """Write the first inventory of `provider` (empty: init's default backend) to `path`."""
     from ..models.names import check_name
     from ..recipes import distros
     from ..templates import render
 
-    if provider not in PROVIDERS:
-        raise InputError(f"--provider {shown(provider)}: choose from {', '.join(PROVIDERS)}")
+    sections = offered()
+    provider = provider or default_provider()
+    if provider not in sections:
+        raise InputError(f"--provider {shown(provider)}: choose from {', '.join(sections)}")
+    section = sections[provider]
     if distro not in distros():
         raise InputError(f"--distro {shown(distro)}: choose from {', '.join(distros())}")
     check_name(fleet, "fleet name")
@@ -105,11 +124,12 @@ def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str 
     if path.exists():
         raise InputError(f"{path} exists: ccrp init never overwrites an inventory", hint="edit it, or remove it first")
     used = used_networks()
-    pools = {"public": free("public", used) if provider == "docker" else None,
+    pools = {"public": free("public", used) if section.public_pool else None,
              "common": free("common", used), "vpn_pool": free("vpn", used)}
     others = [d for d in distros() if d != distro]
-    text = render("init/ccrp.yaml.j2", fleet=fleet, provider=provider, robots=robots, distro=distro,
-                  ros2=distros()[distro] == 2, others=others, **pools)
+    text = render("init/ccrp.yaml.j2", fleet=fleet, provider_lines=section.lines.format(public=pools["public"]),
+                  autostop=section.autostop, robots=robots, distro=distro, ros2=distros()[distro] == 2, others=others,
+                  **pools)
     with cannot_write(path):
         with open(path, "x") as fh:  # exclusive: a file made meanwhile is not overwritten either
             fh.write(text)

@@ -64,11 +64,6 @@ def _builder_common_ip(inv) -> str:
     return str(net.network_address + first - 1 if first - 1 >= 4 else net.broadcast_address - 2)
 
 
-def _region(inv) -> str:
-    p = inv.provider
-    return getattr(p, "region", None) or getattr(p, "cloud", "")
-
-
 def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str | None = None, timeout: float = 1800,
          poll: float = 10) -> SnapshotRecord:
     """Boot a builder instance from a stock Debian 12 cloud image with user-data that installs the
@@ -123,7 +118,7 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
     # As `snapshot build` records it: fleet up refuses a snapshot whose software is not the
     # inventory's, fleet plan names clones made with another, deploy compares the packages.
     held = {} if software.empty else {"packages": packages_record(software)}
-    _use(fleet, record, image=image, region=_region(inv), base=base, name=record.name, software=software.digest,
+    _use(fleet, record, image=image, region=inv.provider.place(), base=base, name=record.name, software=software.digest,
          **held)
     return record
 

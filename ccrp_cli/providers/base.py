@@ -175,6 +175,22 @@ class Ability(str, Enum):
 
 
 @dataclass(frozen=True)
+class InitSection:
+    """What `ccrp init --provider <kind>` writes for a backend (ProviderInfo.init): its `provider:`
+    section, and what the rest of the first inventory needs to know of it."""
+
+    # The section's lines under `provider:`, a str.format template: {public} is a free pool of this
+    # host when public_pool asks for one (a literal brace is doubled).
+    lines: str
+    # The backend makes a network of this host (provider.public_cidr): init picks a pool free here.
+    public_pool: bool = False
+    # Autostop on in the first inventory: an idle clone costs money (not a container of this host).
+    autostop: bool = True
+    # What `ccrp init` writes with no --provider (one backend says so).
+    default: bool = False
+
+
+@dataclass(frozen=True)
 class ProviderInfo:
     """What a backend declares about itself without importing its SDK; the registry in
     providers/registry.py collects one per package."""
@@ -207,6 +223,13 @@ class ProviderInfo:
     # do when the cloud does not have it.
     bake_base: str = ""
     bake_base_hint: str = ""
+    # `ccrp init --provider <kind>`: None for a backend init does not offer.
+    init: InitSection | None = None
+    # `ccrp doctor`'s row for reaching the backend ("<kind> client" unless it names its own), and
+    # whether that answer is the credential (Docker: the engine answering), or the account is
+    # checked apart (check_credentials: the clouds').
+    reach: str = "client"
+    reach_is_credential: bool = False
 
     def fit_user_data(self, text: str) -> tuple[bytes, bool]:
         """The user-data payload to send and whether it is gzipped, checked before any API call; an

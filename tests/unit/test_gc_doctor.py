@@ -110,6 +110,7 @@ def test_doctor_cli_on_moto(fleet_on_moto, ccrp, ccrp_home):
     rows = {r["check"]: r for r in json.loads(proc.stdout)}
     assert proc.returncode == 1  # no snapshot recorded yet
     assert rows["sdk boto3"]["status"] == "ok" and rows["credentials"]["status"] == "ok"
+    assert rows["aws client"] == {"check": "aws client", "status": "ok", "detail": "region/cloud us-east-1", "hint": ""}
     assert "123456789012" in rows["credentials"]["detail"]  # moto's account
     eips = "quota EC2-VPC Elastic IPs in region us-east-1"
     assert rows[eips]["status"] == "ok"
@@ -156,3 +157,20 @@ def test_gc_without_state_refuses_to_delete(moto_url, ccrp, tmp_path):
     assert proc.returncode == 1 and "no state for fleet 'gcaws'" in proc.stderr
     assert ec2.describe_addresses(AllocationIds=[owned["AllocationId"]])["Addresses"]
     assert len(json.loads(ccrp("gc", "-i", str(path), "--dry-run", "--json", check=True).stdout)) == 1
+
+
+def test_doctor_reaching_the_docker_engine_is_its_credential(ccrp_home, monkeypatch):
+    """Docker declares it (ProviderInfo.reach, reach_is_credential): doctor's row names the engine
+    and says its version, and no credentials row follows."""
+    from types import SimpleNamespace
+
+    from ccrp_cli import providers
+    from ccrp_cli.fleet import Fleet
+    from ccrp_cli.ops import doctor
+    from tests.conftest import LAB
+
+    engine = SimpleNamespace(kind="docker", check_credentials=lambda: "Docker 27.0 (API 1.47)")
+    monkeypatch.setattr(providers, "get_provider", lambda inv: engine)
+    provider, row = doctor._provider(Fleet.open(LAB))
+    assert provider is engine and row == doctor.Check("docker engine", doctor.OK, "Docker 27.0 (API 1.47)")
+    assert doctor._credentials(engine) == []

@@ -1,7 +1,8 @@
 """A new backend is its own package and one registry line (docs/architecture.md, "A new backend"):
 the memory backend (tests/memory_backend, tests only) is registered with its line, and the
 inventory, `fleet validate` and `fleet plan` take it with no other change; and no module of the
-core names a backend's kind but those listed here, each with its reason."""
+core names a backend's kind (what differs by backend is declared in its package: ProviderInfo,
+abilities)."""
 
 from __future__ import annotations
 
@@ -26,15 +27,9 @@ robots:
   - name: r2
 """
 # Modules of the core (ccrp_cli outside providers/ and agent/) that name a backend's kind, and how
-# many times: each name is a place a new backend would have to be added by hand.
-NAMES_A_KIND = {
-    # `ccrp init` writes a first inventory from its template's section for the kinds it offers,
-    # and picks a free public pool for the Docker network only Docker makes.
-    "ccrp_cli/ops/init.py": 5,
-    "ccrp_cli/cli/init.py": 1,  # the default of `ccrp init --provider`
-    # The Docker engine answering is its credential; its snapshot images outlive state (doctor.py).
-    "ccrp_cli/ops/doctor.py": 3,
-}
+# many times, each with its reason: each name is a place a new backend would have to be added by
+# hand. None since issue 26 (`ccrp init`'s sections and doctor's engine row are ProviderInfo's).
+NAMES_A_KIND: dict[str, int] = {}
 
 
 def ccrp(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:

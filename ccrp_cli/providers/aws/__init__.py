@@ -1,6 +1,6 @@
 """AWS backend (boto3): clones are EC2 instances in the fleet's VPC; see provider.py."""
 
-from ..base import Ability, ProviderInfo
+from ..base import Ability, InitSection, ProviderInfo
 from .settings import AwsSettings
 
 INFO = ProviderInfo(
@@ -16,4 +16,10 @@ INFO = ProviderInfo(
     bake_base="/aws/service/debian/release/bookworm/latest/amd64",
     bake_base_hint="pass --base-image with a Debian 12 AMI id of the region: `aws ssm get-parameter --name "
                    "/aws/service/debian/release/bookworm/latest/amd64`",
+    init=InitSection(
+        "  kind: aws\n"
+        "  region: eu-west-2\n"
+        "  instance_type: t3.medium\n"
+        "  zones: [eu-west-2a, eu-west-2b]\n"
+        "  operator_cidr: 203.0.113.0/24 # SSH to clones only from here: put your own address range"),
 )

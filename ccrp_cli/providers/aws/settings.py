@@ -17,3 +17,6 @@ class AwsSettings(ProviderSettings):
     vpc_id: CloudName | None = None
     zones: list[CloudName] = []
     operator_cidr: ipaddress.IPv4Network
+
+    def place(self) -> str:
+        return self.region

@@ -1,6 +1,6 @@
 """The local Docker backend: a clone is a systemd container booted by cloud-init (NoCloud)."""
 
-from ..base import Ability, ProviderInfo
+from ..base import Ability, InitSection, ProviderInfo
 from .settings import DockerSettings
 
 INFO = ProviderInfo(
@@ -14,4 +14,11 @@ INFO = ProviderInfo(
     secrets="volume",
     own_kernel=False,
     host_tools=(("mmdebstrap", "builds the base image when it is missing"),),
+    # `ccrp init`: no account to name; simulated robots dial the fleet's network of this host.
+    init=InitSection(
+        lines="  kind: docker                  # clones are containers on this host\n"
+              "  public_cidr: {public}     # <fleet>-public: what simulated robots dial",
+        public_pool=True, autostop=False, default=True),
+    reach="engine",
+    reach_is_credential=True,  # the engine answering is all there is
 )

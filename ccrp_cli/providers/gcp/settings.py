@@ -17,3 +17,6 @@ class GcpSettings(ProviderSettings):
     machine_type: CloudName = "e2-medium"
     network: CloudName | None = None
     operator_cidr: ipaddress.IPv4Network
+
+    def place(self) -> str:
+        return self.region

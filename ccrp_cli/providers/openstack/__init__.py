@@ -1,6 +1,6 @@
 """OpenStack backend (openstacksdk, clouds.yaml / OS_CLOUD); the SDK is imported on construction."""
 
-from ..base import Ability, ProviderInfo
+from ..base import Ability, InitSection, ProviderInfo
 from .settings import OpenStackSettings
 
 INFO = ProviderInfo(
@@ -18,4 +18,10 @@ INFO = ProviderInfo(
                    "--disk-format qcow2 --file debian-12-genericcloud-amd64.qcow2 debian-12-genericcloud-amd64` (from "
                    "https://cloud.debian.org/images/cloud/bookworm/latest/), or name another Debian 12 image in "
                    "provider.image or --base-image",
+    init=InitSection(
+        "  kind: openstack\n"
+        "  cloud: mycloud                # your entry in clouds.yaml (or set OS_CLOUD)\n"
+        "  flavor: m1.medium\n"
+        "  external_network: public      # floating IPs come from here\n"
+        "  operator_cidr: 203.0.113.0/24 # SSH to clones only from here: put your own address range"),
 )

@@ -18,3 +18,6 @@ class OpenStackSettings(ProviderSettings):
     external_network: CloudName = "public"
     operator_cidr: ipaddress.IPv4Network
     zones: list[CloudName] = []
+
+    def place(self) -> str:
+        return self.cloud
