@@ -147,3 +147,18 @@ class DockerHost:
         if result.exit_code != 0:
             raise CcrpError(f"{' '.join(argv)} failed in {c.name}: {result.output.decode(errors='replace').strip()[:200]}")
         return result.output.decode(errors="replace")
+
+
+class EngineTransport:
+    """base.Transport through the engine: commands run with exec_run and files go in as archive
+    uploads, into the fleet's containers of one role (DockerProvider's: its clones), with no login
+    or session to keep."""
+
+    def __init__(self, host: DockerHost, role: str = "clone") -> None:
+        self.host, self.role = host, role
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
+        return self.host.exec(robot, argv, timeout=timeout, role=self.role)
+
+    def push_files(self, robot: str, files, restart=()) -> None:
+        self.host.push_files(robot, files, restart, role=self.role)

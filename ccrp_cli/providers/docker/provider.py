@@ -18,7 +18,7 @@ from ..base import (
 )
 from . import INFO, snapshot_images
 from .archive import tar_files
-from .host import DockerHost
+from .host import DockerHost, EngineTransport
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
 RESULT_JSON = "/run/cloud-init/result.json"
@@ -54,12 +54,13 @@ class DockerProvider(DockerHost):
         # The fleet's state directory (providers.get_provider: the store's root): its id labels
         # the snapshot images, so `ccrp gc` can tell whose they are.
         self.state_dir = workdir or FleetStore(inv.fleet).root
+        # The engine reaches into its containers itself (exec_run, archive uploads): no login or
+        # session to keep, so one transport for the provider's life.
+        self._transport = EngineTransport(self)
 
     @property
-    def transport(self) -> DockerProvider:
-        # The engine reaches into its containers itself (DockerHost.exec and push_files: exec_run
-        # and archive uploads), with no login or session to keep: the provider is its own transport.
-        return self
+    def transport(self) -> EngineTransport:
+        return self._transport
 
     # -- networks -----------------------------------------------------------------------------
     def bootstrap(self) -> None:
