@@ -81,10 +81,10 @@ def fleet_scale(fleet, provider: Provider, size: int, say: Say) -> list:
     """`ccrp fleet scale SIZE`: grow or shrink the fleet with template robots."""
     from .ops import reconcile
 
-    reconcile.check_scale(fleet, fleet.store.load_state(), size)  # bad input makes no PKI, no snapshot
+    kept, new, _removed = reconcile.scaled(fleet, fleet.store.load_state(), size)  # bad input makes no PKI, no snapshot
     ensure_pki(fleet, say)
     with fleet.store.lock():
-        ensure_snapshot(fleet, provider, say)
+        ensure_snapshot(fleet, provider, say, robots=kept + new)
         return reconcile.scale(fleet, provider, size, say)
 
 
@@ -106,16 +106,20 @@ def ensure_pki(fleet, say: Say) -> None:
     say(f"fleet {fleet.name!r} had no PKI yet: created its CA {made['ca']} (as `ccrp vpn init`)")
 
 
-def ensure_snapshot(fleet, provider: Provider, say: Say) -> None:
+def ensure_snapshot(fleet, provider: Provider, say: Say, robots: list[str] | None = None) -> None:
     """A new Docker fleet's golden image is built by the first command that creates a clone, as
     `ccrp snapshot build` would (the caller holds the fleet lock). A cloud's is baked on purpose
-    (`ccrp snapshot bake`: a builder instance, minutes, billed), so there the clone says so."""
+    (`ccrp snapshot bake`: a builder instance, minutes, billed), so there the clone says so.
+    The clones of `robots` (default: every member) are held against the quotas first: a host
+    without room for them refuses before minutes of building (and a GB of libvirt pool)."""
     from .ops import snapshots
+    from .ops.quotas import check_growth
     from .providers import Ability
 
     recorded = fleet.store.load_state().snapshot or {}
     if Ability.LOCAL_BUILD not in provider.abilities or (recorded.get("image") and provider.has_image(recorded["image"])):
         return
+    check_growth(fleet, provider, [r.name for r in fleet.members(fleet.load_allocated())] if robots is None else robots, say)
     say(f"fleet {fleet.name!r} has no snapshot yet: building it (as `ccrp snapshot build`)")
     record = snapshots.build(fleet, provider, say)
     snapshots.retain(fleet, provider, say)

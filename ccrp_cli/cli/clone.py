@@ -23,7 +23,7 @@ def create(inventory: options.Inventory, robot: options.Robot, as_json: options.
 
     ensure_pki(fleet, output.info)
     with fleet.store.lock():
-        ensure_snapshot(fleet, provider, output.info)
+        ensure_snapshot(fleet, provider, output.info, robots=[robot])
         items = reconcile.up(fleet, provider, output.info, only=[robot])
     raise typer.Exit(output.results(items, as_json))
 

@@ -199,13 +199,12 @@ def check_scale(fleet: Fleet, state, size: int) -> tuple[list[str], int]:
     return template, want
 
 
-def scale(fleet: Fleet, provider: Provider, size: int, progress: Progress) -> list[CloneResult]:
-    """Grow or shrink the fleet to `size` clones with template robots; inventory robots stay."""
+def scaled(fleet: Fleet, state, size: int) -> tuple[list[str], list[str], list[str]]:
+    """What scaling to `size` does: the members kept, the new template robots (named with the
+    first free numbers), the template robots removed (the newest first)."""
     inv = fleet.inventory
-    state = fleet.store.load_state()
     template, want = check_scale(fleet, state, size)
-    check_snapshot(fleet, state, provider.kind)
-    removed = template[want:]  # the newest template robots go first
+    removed = template[want:]
     new: list[str] = []
     k = 1
     taken = set(state.robots) | {r.name for r in inv.robots}
@@ -214,13 +213,20 @@ def scale(fleet: Fleet, provider: Provider, size: int, progress: Progress) -> li
         if name not in taken:
             new.append(name)
         k += 1
+    return [r.name for r in fleet.members(state) if r.name not in removed], new, removed
+
+
+def scale(fleet: Fleet, provider: Provider, size: int, progress: Progress) -> list[CloneResult]:
+    """Grow or shrink the fleet to `size` clones with template robots; inventory robots stay."""
+    state = fleet.store.load_state()
+    kept, new, removed = scaled(fleet, state, size)
+    check_snapshot(fleet, state, provider.kind)
     if new:
         # Quotas before growth: the new robots (and any member whose clone is missing) are held
         # against the cloud's quotas before they are recorded or anything is created.
-        kept = [r.name for r in fleet.members(state) if r.name not in removed]
         check_growth(fleet, provider, kept + new, progress)
         existing = {n: r.index for n, r in state.robots.items()}
-        slots = allocate(inv, [*existing, *new], existing)
+        slots = allocate(fleet.inventory, [*existing, *new], existing)
         for name in new:
             state.robots[name] = RobotRecord(index=slots[name], origin="template")
         fleet.store.save_state(state)

@@ -236,34 +236,50 @@ def test_golden_needs_its_tools(monkeypatch, tmp_path):
 # -- what the fleet owns, against a stand-in connection (names and metadata as libvirt returns them) -----
 
 class _Vol:
-    def __init__(self, name):
-        self._name = name
+    def __init__(self, name, allocation=0):
+        self._name, self.allocation = name, allocation
 
     def name(self):
         return self._name
 
+    def info(self):  # virStorageVolInfo: type, capacity, allocation (bytes)
+        return [0, 8 << 30, self.allocation]
+
 
 class _Pool:
-    def __init__(self, names):
-        self.vols = [_Vol(n) for n in names]
+    def __init__(self, names, capacity=100 << 30, available=50 << 30):
+        # a name, or (name, allocation in bytes) for an overlay whose writes count
+        self.vols = [_Vol(*((n,) if isinstance(n, str) else n)) for n in names]
+        self.capacity, self.available, self.refreshed = capacity, available, 0
 
     def refresh(self, flags):
+        self.refreshed += 1
         return 0
 
     def isActive(self):
         return True
+
+    def info(self):  # virStoragePoolInfo: state, capacity, allocation, available (bytes)
+        return [2, self.capacity, self.capacity - self.available, self.available]
 
     def listAllVolumes(self, flags):
         return self.vols
 
 
 class _Dom:
-    def __init__(self, name, labels, uuid):
-        self._xml = xmldefs.domain(domain_spec(name=name, labels=labels))
+    def __init__(self, name, labels, uuid, memory_mb=2048, vcpus=2, active=True):
+        self._xml = xmldefs.domain(domain_spec(name=name, labels=labels, memory_mb=memory_mb, vcpus=vcpus))
         self._name, self._uuid = name, uuid
+        self.memory_kib, self.vcpus, self.active = memory_mb * 1024, vcpus, active
 
     def name(self):
         return self._name
+
+    def info(self):  # virDomainInfo: state, max memory (KiB), memory (KiB), vCPUs, CPU time
+        return [self.state(0)[0], self.memory_kib, self.memory_kib if self.active else 0, self.vcpus, 0]
+
+    def state(self, flags):  # running or shut off, and a reason
+        return [1 if self.active else 5, 1]
 
     def UUIDString(self):
         return self._uuid
@@ -273,29 +289,60 @@ class _Dom:
 
 
 class _Net(_Vol):
-    pass
+    def XMLDesc(self, flags):
+        return xmldefs.nat_network(self._name, "virbr9", ipaddress.IPv4Network("192.168.150.0/24"))
+
+
+class _LibvirtError(Exception):
+    def __init__(self, code):
+        super().__init__(f"error {code}")
+        self.code = code
+
+    def get_error_code(self):
+        return self.code
+
+    def get_error_message(self):
+        return str(self)
+
+
+# The constants of the binding the provider reads (their values are libvirt's).
+_SDK = type("sdk", (), {"libvirtError": _LibvirtError, "VIR_CONNECT_LIST_DOMAINS_ACTIVE": 1,
+                        "VIR_ERR_NO_STORAGE_POOL": 49, "VIR_ERR_NO_NETWORK": 43, "VIR_ERR_RPC": 7})
 
 
 class _Conn:
-    def __init__(self, doms, pool, nets):
+    def __init__(self, doms, pool, nets, memory_mb=16384, cpus=2):
         self.doms, self.pool, self.nets = doms, pool, nets
+        self.memory_mb, self.cpus = memory_mb, cpus
+
+    def getInfo(self):  # virNodeInfo: model, memory (MiB), CPUs, MHz, NUMA nodes, sockets, cores, threads
+        return ["x86_64", self.memory_mb, self.cpus, 2445, 1, 1, self.cpus, 1]
 
     def listAllDomains(self, flags):
-        return self.doms
+        return [d for d in self.doms if d.active] if flags & _SDK.VIR_CONNECT_LIST_DOMAINS_ACTIVE else self.doms
 
     def listAllNetworks(self, flags):
         return self.nets
 
+    def networkLookupByName(self, name):
+        found = [n for n in self.nets if n.name() == name]
+        if not found:
+            raise _LibvirtError(_SDK.VIR_ERR_NO_NETWORK)
+        return found[0]
+
     def storagePoolLookupByName(self, name):
+        if self.pool is None:
+            raise _LibvirtError(_SDK.VIR_ERR_NO_STORAGE_POOL)
         return self.pool
 
 
-def stand_in(tmp_path, volumes, domains, networks):
-    inv = inventory(tmp_path)
+def stand_in(tmp_path, volumes, domains, networks, settings=None, **host):
+    inv = inventory(tmp_path, **(settings or {}))
     p = object.__new__(provider.LibvirtProvider)
     p.inv, p.fleet, p.workdir, p.settings = inv, inv.fleet, tmp_path, inv.provider
-    p.libvirt = type("sdk", (), {"libvirtError": type("libvirtError", (Exception,), {})})
-    p.conn = _Conn(domains, _Pool(volumes), [_Net(n) for n in networks])
+    p.libvirt = _SDK
+    p.conn = _Conn(domains, volumes if isinstance(volumes, _Pool) or volumes is None else _Pool(volumes),
+                   [_Net(n) for n in networks], **host)
     p._docker = False  # no simulated robots: this host's Docker engine is not asked
     return p
 
@@ -401,3 +448,135 @@ def test_build_snapshot_builds_the_recipes_image_turns_it_into_a_golden_volume_a
     with pytest.raises(CcrpError, match="upload failed"):
         build(fake, "ccrp/vmlab-clone", "noetic", None, None, "none", False, print)
     assert removed == ["ccrp/vmlab-clone:1"] * 2
+
+# -- quotas from the host: memory, vCPUs, the pool's disk (the stand-in's numbers as libvirt gives them) ---
+
+MIB = 1 << 20
+
+
+def host(tmp_path, pool="default", settings=None, **kw):
+    """A host of 2 CPUs and 16 GiB running another fleet's 2-vCPU, 2 GiB domain beside a stopped one,
+    whose pool (100 GiB, 50 GiB free) holds two overlays and a golden volume."""
+    doms = [_Dom("ccrp-other-cri-x", owner_labels("other", "clone", "x"), "u1"),
+            _Dom("ccrp-vmlab-cri-nao1", owner_labels("vmlab", "clone", "nao1"), "u2", memory_mb=4096, vcpus=4, active=False)]
+    if pool == "default":
+        pool = _Pool([("ccrp-vmlab-cri-nao1.qcow2", 24 * MIB),  # a booted overlay: owes 1000 MiB more
+                      ("ccrp-other-cri-x.qcow2", 3 << 30),  # past overlay_mb already: owes nothing
+                      ("ccrp-vmlab-golden-20261126040000.qcow2", 1 << 30), ("ccrp-vmlab-cri-nao1-seed.iso", MIB),
+                      ("debian.qcow2", 0)])
+    return stand_in(tmp_path, pool, doms, ["ccrp-vmlab-public"], settings=settings, **kw)
+
+
+def test_quotas_are_the_hosts_memory_vcpus_and_pool_disk(tmp_path):
+    p = host(tmp_path)
+    mem, cpu, disk = p.quotas(["nao2", "nao3"])
+    scope = "libvirt host qemu:///system"
+    assert (mem.name, mem.scope, mem.limit, mem.used, mem.per_clone) == ("memory (MiB)", scope, 16384, 2048, 2048)
+    # running domains only: the stopped clone's 4 vCPUs and 4 GiB are not taken
+    assert (cpu.name, cpu.limit, cpu.used, cpu.per_clone) == ("vCPUs (2 CPUs x vcpu_overcommit 4)", 8, 2, 2)
+    assert disk.name == "disk (MiB) of storage pool ccrp" and (disk.limit, disk.per_clone) == (102400, 1024)
+    # 50 GiB used on the file system, plus what nao1's overlay has not written yet of its 1024 MiB
+    assert disk.used == 51200 + 1000 and disk.free == 50200
+    assert p.conn.pool.refreshed >= 1  # allocations as they are now, not as libvirt last saw them
+    assert [q.need(["nao2", "nao3"]) for q in (mem, cpu, disk)] == [4096, 4, 2048]
+
+
+def test_quota_settings_and_a_host_without_the_pool(tmp_path):
+    p = host(tmp_path, pool=None, settings={"vcpu_overcommit": 1.5, "vcpus": 1, "overlay_mb": 512, "memory_mb": 1024})
+    mem, cpu = p.quotas(["nao2"])  # no pool yet: no golden volume either, nothing to hold disk against
+    assert (cpu.name, cpu.limit, cpu.per_clone, mem.per_clone) == ("vCPUs (2 CPUs x vcpu_overcommit 1.5)", 3, 1, 1024)
+    for bad in ({"vcpu_overcommit": 0.5}, {"vcpu_overcommit": "4"}, {"overlay_mb": 10}):
+        with pytest.raises(InputError):
+            inventory(tmp_path, **bad)
+
+
+def test_growth_past_the_hosts_vcpus_or_disk_is_refused_in_one_line(tmp_path, ccrp_home):
+    """`fleet up`'s gate (quotas.check_growth) on the stand-in host: 6 vCPUs free of 8, three new
+    2-vCPU clones fit, four do not; the line names the quota, its numbers and the settings."""
+    from ccrp_cli.fleet import Fleet
+    from ccrp_cli.ops import quotas
+
+    p = host(tmp_path)
+    data = yaml.safe_load((tmp_path / "ccrp.yaml").read_text())
+    data["robots"] = [{"name": n} for n in ("nao1", "nao2", "nao3", "nao4", "nao5")]
+    (tmp_path / "ccrp.yaml").write_text(yaml.safe_dump(data))
+    fleet = Fleet.open(tmp_path / "ccrp.yaml")
+    said: list[str] = []
+    robots = [r.name for r in fleet.inventory.robots]
+    assert quotas.check_growth(fleet, p, robots[:4], said.append)  # nao1 has a clone: 3 new ones fit
+    with pytest.raises(quotas.QuotaError) as err:
+        quotas.check_growth(fleet, p, robots, said.append)
+    line = err.value.one_line()
+    assert "\n" not in line and said == []
+    assert err.value.message == ("libvirt quota vCPUs (2 CPUs x vcpu_overcommit 4) in libvirt host qemu:///system: "
+                                 "6 free, this needs 8")
+    assert "raise provider.vcpu_overcommit" in err.value.hint and "at most 3 of the 4 new clones" in err.value.hint
+    # the pool's disk short too: both named, the smaller fit given
+    p.conn.pool.available = 2 * 1024 * MIB
+    with pytest.raises(quotas.QuotaError) as err:
+        quotas.check_growth(fleet, p, robots, said.append)
+    assert "disk (MiB) of storage pool ccrp in libvirt host qemu:///system: 1048 free, this needs 4096" in err.value.message
+    assert "at most 1 of the 4 new clones" in err.value.hint and "lower provider.overlay_mb" in err.value.hint
+
+
+def test_doctor_shows_the_hosts_quotas(tmp_path, ccrp_home):
+    from ccrp_cli.fleet import Fleet
+    from ccrp_cli.ops import doctor
+
+    p = host(tmp_path, memory_mb=3072)  # 1 GiB free after the running domain: nao1's 2 GiB clone does not fit
+    p.conn.doms.pop(1)  # nao1 has no clone yet
+    checks = {c.check: c for c in doctor._quotas(Fleet.open(tmp_path / "ccrp.yaml"), p)}
+    mem = checks["quota memory (MiB) in libvirt host qemu:///system"]
+    assert mem.status == doctor.FAIL and "limit 3072, used 2048; the fleet's 1 clone(s) not created yet need 2048" in mem.detail
+    assert checks["quota vCPUs (2 CPUs x vcpu_overcommit 4) in libvirt host qemu:///system"].status == doctor.OK
+    assert checks["quota disk (MiB) of storage pool ccrp in libvirt host qemu:///system"].status == doctor.OK
+
+
+def test_doctor_runs_on_a_libvirt_fleet(tmp_path, ccrp_home, monkeypatch):
+    """`ccrp doctor` on libvirt: the connection, the accelerator and the host's quotas; the Docker
+    backend's snapshot-image census is not asked of a provider without an engine client (it failed
+    with AttributeError before)."""
+    from ccrp_cli import providers
+    from ccrp_cli.fleet import Fleet
+    from ccrp_cli.ops import doctor
+
+    p = host(tmp_path)
+    p.conn.getLibVersion = lambda: 9_000_000
+    p.conn.getHostname = lambda: "lab1"
+    monkeypatch.setattr(providers, "get_provider", lambda inv, *a: p)
+    checks = {c.check: c for c in doctor.run(Fleet.open(tmp_path / "ccrp.yaml"))}
+    assert checks["credentials"].detail.startswith("libvirt 9.0.0 on lab1 (qemu:///system), accel auto")
+    assert {n for n in checks if n.startswith("quota ")} == {
+        f"quota {q} in libvirt host qemu:///system" for q in
+        ("memory (MiB)", "vCPUs (2 CPUs x vcpu_overcommit 4)", "disk (MiB) of storage pool ccrp")}
+    assert "snapshot images" not in checks
+
+
+def test_a_host_without_room_refuses_before_the_golden_volume_is_built(tmp_path, ccrp_home, monkeypatch):
+    """`fleet up`, `clone create` and `fleet scale` of a fleet with no snapshot build one first
+    (actions.ensure_snapshot: minutes, a GB of pool): the quotas are checked before that build,
+    for the clones the command would create (measured: `fleet up` built the golden volume, 116 s,
+    and only then refused)."""
+    from ccrp_cli import actions
+    from ccrp_cli.fleet import Fleet
+    from ccrp_cli.ops import quotas, snapshots
+
+    built: list = []
+    monkeypatch.setattr(snapshots, "build", lambda *a, **k: built.append(a))
+    p = host(tmp_path, settings={"vcpu_overcommit": 1.0})  # 2 CPUs: the other fleet's domain takes both
+    data = yaml.safe_load((tmp_path / "ccrp.yaml").read_text())
+    data["template"] = {"prefix": "sim", "max": 8}
+    (tmp_path / "ccrp.yaml").write_text(yaml.safe_dump(data))
+    p.conn.doms.pop(1)
+    fleet = Fleet.open(tmp_path / "ccrp.yaml")
+    for call, needs in ((lambda: actions.ensure_snapshot(fleet, p, print), 2),
+                        (lambda: actions.ensure_snapshot(fleet, p, print, robots=["nao1"]), 2),
+                        (lambda: actions.fleet_scale(fleet, p, 3, print), 6)):  # nao1, sim1, sim2
+        with pytest.raises(quotas.QuotaError, match=f"0 free, this needs {needs}$"):
+            call()
+    assert built == [] and set(fleet.store.load_state().robots) == {"nao1"}
+    p.conn.doms.clear()  # room again: the build goes ahead
+    monkeypatch.setattr(snapshots, "retain", lambda *a: None)
+    monkeypatch.setattr(snapshots, "build", lambda *a, **k: built.append(a) or type("R", (), {"name": "g"}))
+    actions.ensure_snapshot(fleet, p, print)
+    assert len(built) == 1

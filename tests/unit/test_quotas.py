@@ -150,6 +150,21 @@ def test_gcp_scale_refuses_before_recording_new_robots(gcp):
     assert h.owned_ids() == before and h.fake.instances == {} and h.fake.addresses == {}
 
 
+def test_gcp_scale_that_fits_records_and_creates_the_new_robots(gcp, created):
+    from ccrp_cli import vpn
+    from tests.contract.harness_gcp import PROJECT, REGION as GCP_REGION, ZONES
+
+    inv = specs.inventory({"kind": "gcp", "project": PROJECT, "region": GCP_REGION, "zones": ZONES[:2],
+                           "operator_cidr": specs.OPERATOR_CIDR}, template={"prefix": "extra"})
+    h = gcp(inv=inv, cpu_quota=16, address_quota=20, in_use_address_quota=20)
+    fleet = fleet_of(inv)
+    vpn.init(fleet)
+    kept, new, removed = reconcile.scaled(fleet, fleet.store.load_state(), 8)
+    assert (len(kept), new, removed) == (5, ["extra1", "extra2", "extra3"], [])
+    assert len(reconcile.scale(fleet, h.provider, 8, print)) == 8 and sorted(created)[:3] == new
+    assert sorted(n for n, r in fleet.store.load_state().robots.items() if r.origin == "template") == new
+
+
 def test_gcp_fake_reports_usage_from_what_exists(gcp):
     h = gcp()
     h.provider.run_instance(h.spec("robot1", 1))

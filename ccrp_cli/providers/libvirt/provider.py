@@ -38,6 +38,8 @@ STATES = {"nostate": CloneState.PENDING, "running": CloneState.RUNNING, "blocked
 GOLDEN = re.compile(r"^ccrp-(?P<fleet>[a-z][a-z0-9]*)-golden-(?:(?P<robot>[a-z][a-z0-9]*)-)?(?P<stamp>\d{14})\.qcow2$")
 # A clone's volumes after `ccrp-<fleet>-cri-`: its robot, then what it is (LibvirtProvider.clone_volumes).
 CLONE_VOLUME = re.compile(r"^(?P<robot>[a-z][a-z0-9]*)(\.qcow2|-seed\.iso|\.console)$")
+# A clone's overlay of any fleet (the pool is shared): the disk quota holds what each may still take.
+OVERLAY = re.compile(r"^ccrp-[a-z][a-z0-9]*-cri-[a-z][a-z0-9]*\.qcow2$")
 CONSOLE_TAIL = 4 << 20  # bytes of a console log read at most (its last boots)
 PROBE_MARK = re.compile(r"Run /init as init process|Freeing unused kernel")
 PROBE_TIMEOUT = 20.0
@@ -820,15 +822,54 @@ class LibvirtProvider(CloudProvider):
             return f"libvirt {v // 1_000_000}.{v // 1000 % 1000}.{v % 1000} on {host} ({self.settings.uri}), accel {accel}"
 
     def quotas(self, robots: Sequence[str] = ()) -> list[Quota]:
-        """The libvirt host's memory: what every running domain has, against what it has in all.
-        vCPUs are not held (libvirt runs more vCPUs than cores, only slower), nor disk (overlays
-        are thin and grow with each clone's writes)."""
-        with self._errors("host memory"):
-            total_mb = self.conn.getInfo()[1]
-            used_kib = sum(d.info()[2] for d in self.conn.listAllDomains(self.libvirt.VIR_CONNECT_LIST_DOMAINS_ACTIVE))
-            return [Quota(name="memory (MiB)", scope=f"libvirt host {self.settings.uri}", limit=float(total_mb),
-                          used=round(used_kib / 1024, 1), per_clone=float(self.settings.memory_mb),
-                          hint="lower provider.memory_mb, or give the host more memory")]
+        """The libvirt host's room for new clones, each of its own numbers (docs/libvirt.md
+        "Quotas"), whoever's the domains and volumes are:
+
+        - memory (MiB): the host's memory against what its running domains were given;
+        - vCPUs: the host's CPUs times provider.vcpu_overcommit against its running domains' vCPUs;
+        - disk (MiB) of the storage pool: its file system's size against what is used on it plus what
+          the clones' overlays in the pool (any fleet's) have not taken yet of provider.overlay_mb;
+          one new clone takes overlay_mb. Left out while the pool does not exist (no golden volume
+          either: `fleet up` has nothing to boot yet).
+
+        A stopped domain takes no memory or vCPU (starting it again is not held here), its overlay
+        keeps its disk. Every clone has the fleet's size: no robot's differs."""
+        mib = 1 << 20
+        scope = f"libvirt host {self.settings.uri}"
+        with self._errors("host resources"):
+            _model, memory_mb, cpus, *_ = self.conn.getInfo()
+            running = [d.info() for d in self.conn.listAllDomains(self.libvirt.VIR_CONNECT_LIST_DOMAINS_ACTIVE)]
+            found = [
+                Quota(name="memory (MiB)", scope=scope, limit=float(memory_mb),
+                      used=round(sum(i[2] for i in running) / 1024, 1), per_clone=float(self.settings.memory_mb),
+                      hint="lower provider.memory_mb, or give the host more memory"),
+                Quota(name=f"vCPUs ({cpus} CPUs x vcpu_overcommit {self.settings.vcpu_overcommit:g})", scope=scope,
+                      limit=float(cpus) * self.settings.vcpu_overcommit, used=float(sum(i[3] for i in running)),
+                      per_clone=float(self.settings.vcpus),
+                      hint="lower provider.vcpus, or raise provider.vcpu_overcommit (the clones get slower)"),
+            ]
+            pool = self._pool_if_active()
+            if pool is not None:
+                _state, capacity, _allocation, available = pool.info()
+                owed = sum(max(0, self.settings.overlay_mb * mib - v.info()[2]) for v in pool.listAllVolumes(0)
+                           if OVERLAY.match(v.name()))
+                found.append(Quota(
+                    name=f"disk (MiB) of storage pool {self.settings.pool}", scope=scope, limit=round(capacity / mib, 1),
+                    used=round((capacity - available + owed) / mib, 1), per_clone=float(self.settings.overlay_mb),
+                    hint=f"free space where pool {self.settings.pool} is, or lower provider.overlay_mb "
+                         f"(each clone's expected writes)"))
+            return found
+
+    def _pool_if_active(self):
+        """The storage pool, refreshed (its free space and volumes' allocations as they are now), or
+        None when it does not exist or is stopped."""
+        try:
+            pool = self.api("look up the storage pool", self.conn.storagePoolLookupByName, self.settings.pool)
+        except self.libvirt.libvirtError as exc:
+            if self._missing(exc, "VIR_ERR_NO_STORAGE_POOL"):
+                return None
+            raise
+        return self._refreshed(pool) if pool.isActive() else None
 
     def close(self) -> None:
         super().close()

@@ -46,6 +46,16 @@ class LibvirtSettings(ProviderSettings):
     accel: Literal["auto", "kvm", "tcg"] = "auto"
     memory_mb: Annotated[int, Field(strict=True, ge=512, le=262_144)] = 2048
     vcpus: Annotated[int, Field(strict=True, ge=1, le=64)] = 2
+    # Quotas before growth (provider.quotas): the host's CPUs times this are the vCPUs its running
+    # domains may have in all. 4.0 is OpenStack Nova's initial_cpu_allocation_ratio: vCPUs are
+    # threads of QEMU that share cores (slower, not refused); 1.0 keeps one core per vCPU.
+    vcpu_overcommit: Annotated[float, Field(strict=True, ge=1.0, le=64.0)] = 4.0
+    # What one clone's qcow2 overlay is expected to take of the storage pool, held before a clone is
+    # created (and, for a clone's overlay already there, what it has not taken yet). An overlay holds
+    # only the clone's writes: 20-25 MB after its first boot here (docs/libvirt.md); the rest is room
+    # for journald (by default up to 10% of the 8 GiB root file system: 819 MiB) and ROS logs. The
+    # worst case is the golden volume's virtual size (8 GiB): an overlay can grow to it.
+    overlay_mb: Annotated[int, Field(strict=True, ge=64, le=1_048_576)] = 1024
     # The fleet's NAT network (plays the clouds' public network): the host is its first address,
     # clones get theirs from its DHCP range.
     public_cidr: ipaddress.IPv4Network = ipaddress.IPv4Network("192.168.150.0/24")
