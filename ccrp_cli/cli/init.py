@@ -14,7 +14,7 @@ def init(
     # No default written here: the backend says it is init's (its InitSection), and the registry
     # is read only when init runs, not by every `ccrp` start.
     provider: Annotated[str, typer.Option("--provider", show_default=False,
-                                          help="docker (clones on this host, the default), openstack, gcp or aws.")] = "",
+                                          help="docker (clones on this host, the default), libvirt (VMs on this host), openstack, gcp or aws.")] = "",
     robots: Annotated[str, typer.Option("--robots", help="Robot names, comma-separated.")] = "nao1,nao2",
     fleet: Annotated[str, typer.Option("--fleet", help="Fleet name (default: this directory's name, if it is a valid one, else 'lab').")] = "",
     distro: Annotated[str, typer.Option("--distro", help="ROS distro of the fleet: jazzy (ROS 2, the default), kilted (ROS 2) or noetic (ROS 1): one recipe each in snapshots/.")] = "jazzy",

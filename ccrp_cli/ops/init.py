@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -15,6 +16,9 @@ if TYPE_CHECKING:
 
 # Where each pool is looked for, and the size of one: the lab's choices first.
 SEARCH = {"public": ("172.30.0.0/15", 24), "common": ("10.90.0.0/16", 24), "vpn": ("10.80.0.0/12", 16)}
+# The local libvirt daemon's network definitions, running or not: a stopped one (libvirt's `default`,
+# 192.168.122.0/24) has no route yet, but clashes as soon as it starts.
+LIBVIRT_NETWORKS = "/etc/libvirt/qemu/networks"
 # A new fleet is ROS 2, on the current LTS (docs/ros2.md); `--distro noetic` for a ROS 1 fleet.
 DEFAULT_DISTRO = "jazzy"
 
@@ -37,8 +41,8 @@ def docker_subnets() -> list[ipaddress.IPv4Network]:
 
 
 def host_ranges() -> dict[str, str]:
-    """What a new network must not shadow on this host: its routes (not the default one) and its
-    DNS servers, range -> what it is."""
+    """What a new network must not shadow on this host: its routes (not the default one), libvirt's
+    networks and its DNS servers, range -> what it is."""
     ranges: dict[str, str] = {}
     try:
         for line in Path("/proc/net/route").read_text().splitlines()[1:]:
@@ -48,6 +52,15 @@ def host_ranges() -> dict[str, str]:
                 ranges[str(ipaddress.IPv4Network(f"{dest}/{mask}", strict=False))] = f"route via {f[0]}"
     except (OSError, ValueError, IndexError):
         pass
+    for path in sorted(Path(LIBVIRT_NETWORKS).glob("*.xml")):
+        try:
+            for ip in ET.parse(path).getroot().iter("ip"):
+                if ip.get("family", "ipv4") == "ipv4" and ip.get("address"):
+                    net = ipaddress.IPv4Network(f"{ip.get('address')}/{ip.get('prefix') or ip.get('netmask') or 24}",
+                                                strict=False)
+                    ranges[str(net)] = f"libvirt network {path.stem}"
+        except (OSError, ET.ParseError, ValueError):
+            pass
     try:
         for line in Path("/etc/resolv.conf").read_text().splitlines():
             f = line.split()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import os
 from pathlib import Path
@@ -21,7 +22,7 @@ def here(tmp_path, monkeypatch) -> Path:
     return work
 
 
-@pytest.mark.parametrize("provider", ["docker", "openstack", "gcp", "aws"])
+@pytest.mark.parametrize("provider", ["docker", "libvirt", "openstack", "gcp", "aws"])
 def test_init_writes_an_inventory_that_validates(here, provider):
     code, out, err = run_ccrp_inprocess("init", "--provider", provider, "--robots", "nao1,tb1", "--json", home=here / "home")
     assert code == 0, err
@@ -74,6 +75,37 @@ def test_init_makes_a_ros2_fleet_and_says_how_to_pick_noetic(here):
     inv = load_inventory(here / "ros1.yaml")
     assert (inv.ros.distro, inv.ros.ros2) == ("noetic", False)
     assert "--distro noetic" not in err
+
+
+def test_init_libvirt_gets_a_nat_network_free_on_this_host(here, monkeypatch):
+    """`ccrp init --provider libvirt`: the fleet's NAT network (provider.public_cidr) is a /24 no
+    route, Docker network, other fleet or libvirt network of this host uses, running or not (a
+    stopped libvirt network has no route yet); its pools do not overlap it."""
+    from ccrp_cli.ops import init
+
+    nets = here / "networks"
+    nets.mkdir()
+    # libvirt's own forms: a netmask (its `default`), a prefix, an IPv6 range (not ours to avoid)
+    (nets / "default.xml").write_text("<network><name>default</name><ip address='172.30.0.1' netmask='255.255.255.0'/></network>")
+    (nets / "lab.xml").write_text("<network><name>lab</name><ip address='172.30.1.1' prefix='24'/>"
+                                  "<ip family='ipv6' address='fd00::1' prefix='64'/></network>")
+    (nets / "broken.xml").write_text("<network><ip address=")
+    monkeypatch.setattr(init, "LIBVIRT_NETWORKS", str(nets))
+    assert {k: v for k, v in init.host_ranges().items() if v.startswith("libvirt")} == {
+        "172.30.0.0/24": "libvirt network default", "172.30.1.0/24": "libvirt network lab"}
+    code, out, err = run_ccrp_inprocess("init", "--provider", "libvirt", "--robots", "nao1", "--distro", "noetic",
+                                        "--json", home=here / "home")
+    assert code == 0, err
+    got = json.loads(out)
+    inv = load_inventory(here / "ccrp.yaml")
+    p = inv.provider
+    assert (p.kind, p.uri, p.accel, p.memory_mb, p.vcpus) == ("libvirt", "qemu:///system", "auto", 2048, 2)
+    assert str(p.public_cidr) == got["public"] and p.public_cidr.prefixlen == 24
+    # the search range's first two /24s are the libvirt networks' (others may be this host's Docker networks)
+    assert p.public_cidr.subnet_of(ipaddress.IPv4Network("172.30.0.0/15")) and got["public"] not in ("172.30.0.0/24", "172.30.1.0/24")
+    assert not any(p.public_cidr.overlaps(ipaddress.IPv4Network(r)) for r in init.host_ranges())
+    assert not p.public_cidr.overlaps(inv.common.cidr) and not p.public_cidr.overlaps(inv.vpn.pool)
+    assert "docs/libvirt.md" in (here / "ccrp.yaml").read_text()
 
 
 def test_init_pools_avoid_the_fleets_in_ccrp_home(here):

@@ -2,7 +2,7 @@
 booted from a qcow2 overlay of the fleet's golden volume, with a NoCloud seed carrying the same
 user-data the clouds get; the SDK (libvirt-python) is imported when the provider is made."""
 
-from ..base import Ability, ProviderInfo
+from ..base import Ability, InitSection, ProviderInfo
 from .settings import LibvirtSettings
 
 INFO = ProviderInfo(
@@ -16,4 +16,12 @@ INFO = ProviderInfo(
     user_data_limit=262_144,  # the NoCloud seed is ours: kept at GCE's size, as Docker's
     user_data_gzip=False,
     sdk_modules=(("libvirt", "libvirt"), ("paramiko", "libvirt")),
+    init=InitSection(
+        lines="  kind: libvirt                 # clones are VMs on this host's libvirt (docs/libvirt.md)\n"
+              "  uri: qemu:///system           # or qemu+ssh://user@host/system\n"
+              "  accel: auto                   # kvm when a probe VM boots with it, else tcg (emulated, several times slower)\n"
+              "  memory_mb: 2048               # per clone; `ccrp doctor` shows the host's room (memory, vCPUs, disk)\n"
+              "  vcpus: 2\n"
+              "  public_cidr: {public}     # the fleet's NAT network: the host is .1, clones at their common offset",
+        public_pool=True),
 )
