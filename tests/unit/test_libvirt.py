@@ -265,6 +265,12 @@ class _Pool:
     def listAllVolumes(self, flags):
         return self.vols
 
+    def storageVolLookupByName(self, name):
+        found = [v for v in self.vols if v.name() == name]
+        if not found:
+            raise _LibvirtError(_SDK.VIR_ERR_NO_STORAGE_VOL)
+        return found[0]
+
 
 class _Dom:
     def __init__(self, name, labels, uuid, memory_mb=2048, vcpus=2, active=True):
@@ -280,6 +286,12 @@ class _Dom:
 
     def state(self, flags):  # running or shut off, and a reason
         return [1 if self.active else 5, 1]
+
+    def isActive(self):
+        return self.active
+
+    def memoryStats(self):  # KiB; rss: the QEMU process's resident set
+        return {"actual": self.memory_kib, "rss": self.memory_kib // 4}
 
     def UUIDString(self):
         return self._uuid
@@ -307,7 +319,7 @@ class _LibvirtError(Exception):
 
 # The constants of the binding the provider reads (their values are libvirt's).
 _SDK = type("sdk", (), {"libvirtError": _LibvirtError, "VIR_CONNECT_LIST_DOMAINS_ACTIVE": 1,
-                        "VIR_ERR_NO_STORAGE_POOL": 49, "VIR_ERR_NO_NETWORK": 43, "VIR_ERR_RPC": 7})
+                        "VIR_ERR_NO_STORAGE_POOL": 49, "VIR_ERR_NO_STORAGE_VOL": 50, "VIR_ERR_NO_NETWORK": 43, "VIR_ERR_RPC": 7})
 
 
 class _Conn:
@@ -580,3 +592,12 @@ def test_a_host_without_room_refuses_before_the_golden_volume_is_built(tmp_path,
     monkeypatch.setattr(snapshots, "build", lambda *a, **k: built.append(a) or type("R", (), {"name": "g"}))
     actions.ensure_snapshot(fleet, p, print)
     assert len(built) == 1
+
+
+def test_footprint_is_the_overlays_allocation_and_the_domains_rss(tmp_path):
+    p = host(tmp_path)
+    p.conn.doms[1].active = True
+    assert p.footprint("nao1") == {"overlay_mb": 25.2, "rss_mib": 1024.0}  # 24 MiB written; 4 GiB domain, rss 1/4
+    p.conn.doms[1].active = False
+    assert p.footprint("nao1") == {"overlay_mb": 25.2}
+    assert p.footprint("nao9") == {}

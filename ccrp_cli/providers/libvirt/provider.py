@@ -525,9 +525,7 @@ class LibvirtProvider(CloudProvider):
         vols = self.clone_volumes(spec.robot)
         for stale in vols.values():  # left by an attempt that died before defining its domain
             self._delete_vol(self._refreshed(pool), stale)
-        golden = pool.storageVolLookupByName(spec.image)
-        capacity = golden.info()[1]
-        self.api("create the overlay", pool.createXML, xmldefs.volume(vols["disk"], capacity, "qcow2", backing=disk_path), 0)
+        self.create_overlay(pool, vols["disk"], spec.image, disk_path)
         created.append(vols["disk"])
         public_mac, common_mac = self.macs(spec.robot)
         self._reserve(public_mac, self.public_ip(spec.common_ip), spec.hostname)
@@ -547,6 +545,23 @@ class LibvirtProvider(CloudProvider):
         dom = self.api("define domain", self.conn.defineXML, xml)
         created.append(f"domain:{self.domain_name(spec.robot)}")
         return dom
+
+    def create_overlay(self, pool, name: str, image: str, disk_path: str) -> None:
+        """A clone's disk: qcow2 volume `name` of golden volume `image`'s virtual size, backed by it
+        (at `disk_path`): it holds only the clone's writes (bench/libvirt.py times this)."""
+        capacity = pool.storageVolLookupByName(image).info()[1]
+        self.api("create the overlay", pool.createXML, xmldefs.volume(name, capacity, "qcow2", backing=disk_path), 0)
+
+    def footprint(self, robot: str) -> dict[str, float]:
+        """What the robot's clone takes of the host now: its overlay's allocation on disk (MB) and
+        its QEMU process's resident memory (MiB; absent while the domain is off)."""
+        with self._errors(f"footprint of {robot}"):
+            dom, _info = self._domain(robot)
+            vol = self._vol(self._refreshed(self._pool()), self.clone_volumes(robot)["disk"])
+            found = {"overlay_mb": round(vol.info()[2] / 1e6, 1)} if vol is not None else {}
+            if dom is not None and dom.isActive():
+                found["rss_mib"] = round(dom.memoryStats().get("rss", 0) / 1024, 1)
+            return found
 
     def _rollback(self, pool, robot: str, created: list[str]) -> list[str]:
         left = []
