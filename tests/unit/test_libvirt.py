@@ -5,6 +5,7 @@ golden volume's layer, and the one-line error when the binding is missing."""
 from __future__ import annotations
 
 import ipaddress
+import json
 import shutil
 import sys
 import xml.etree.ElementTree as ET
@@ -601,3 +602,20 @@ def test_footprint_is_the_overlays_allocation_and_the_domains_rss(tmp_path):
     p.conn.doms[1].active = False
     assert p.footprint("nao1") == {"overlay_mb": 25.2}
     assert p.footprint("nao9") == {}
+
+
+def test_gc_runs_on_a_libvirt_fleet(tmp_path, monkeypatch):
+    """`ccrp gc` on libvirt lists the fleet's leaks (here: a clone no state records, an overlay of a robot with none);
+    the Docker snapshot-image census is not asked of it (it failed with AttributeError before)."""
+    from ccrp_cli import providers
+    from tests.inprocess_cli import run_ccrp_inprocess
+
+    p = host(tmp_path)
+    p.conn.pool.vols.append(_Vol("ccrp-vmlab-cri-nao7.qcow2", MIB))
+    monkeypatch.setattr(providers, "get_provider", lambda inv, *a: p)
+    code, out, err = run_ccrp_inprocess("gc", "--dry-run", "--json", "-i", str(tmp_path / "ccrp.yaml"), home=tmp_path / "home")
+    assert code == 0, err
+    leaks = {(r["kind"], r["name"], r["action"]) for r in json.loads(out)}
+    # no state records nao1's clone either; the golden volume is within snapshots.keep
+    assert leaks == {("instance", "ccrp-vmlab-cri-nao1", "leak"), ("volume", "ccrp-vmlab-cri-nao1.qcow2", "leak"),
+                     ("volume", "ccrp-vmlab-cri-nao1-seed.iso", "leak"), ("volume", "ccrp-vmlab-cri-nao7.qcow2", "leak")}
