@@ -134,7 +134,7 @@ def docker_measures(fleet: str) -> dict:
     client = docker.from_env()
     try:
         name = f"ccrp-{fleet}-cri-{ROBOT}"
-        size = client.api.inspect_container(name, size=True)
+        [size] = client.api.containers(all=True, size=True, filters={"name": f"^/{name}$"})  # GET /containers/json?size=1
         mem = client.containers.get(name).stats(stream=False)["memory_stats"]
         inactive = mem.get("stats", {}).get("inactive_file", mem.get("stats", {}).get("total_inactive_file", 0))
         return {"disk_mb": round(size.get("SizeRw", 0) / 1e6, 1), "image_mb": round(size.get("SizeRootFs", 0) / 1e6, 1),
