@@ -145,21 +145,15 @@ def docker_measures(fleet: str) -> dict:
 
 def cleanup_docker(fleets: list[str]) -> None:
     """What ccrp labelled with the bench fleets on the Docker engine (containers, networks, volumes,
-    images: the libvirt fleet's recipe image is Docker's too)."""
-    import docker
+    images: the libvirt fleet's recipe image is Docker's too), as docker_fleet.py cleans its own
+    (loaded by path: this file's directory is off sys.path, above)."""
+    import importlib.util
 
-    client = docker.from_env()
+    spec = importlib.util.spec_from_file_location("docker_fleet", Path(__file__).with_name("docker_fleet.py"))
+    docker_fleet = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(docker_fleet)
     for fleet in fleets:
-        flt = {"label": f"ccrp-fleet={fleet}"}
-        for c in client.containers.list(ignore_removed=True, all=True, filters=flt):
-            c.remove(force=True, v=True)
-        for n in client.networks.list(filters=flt):
-            n.remove()
-        for v in client.volumes.list(filters=flt):
-            v.remove(force=True)
-        for img in client.images.list(filters=flt):
-            client.images.remove(img.id, force=True)
-    client.close()
+        docker_fleet.cleanup_fleet(fleet)
 
 
 def load() -> list[float]:
