@@ -7,7 +7,8 @@ if docker info >/dev/null 2>&1; then exit 0; fi
 if [ -d /run/systemd/system ] && systemctl start docker >/dev/null 2>&1; then
   :
 else
-  dockerd >/var/log/ccrp-dockerd.log 2>&1 &
+  # its own session: the engine outlives the shell or job that started it (and its signals)
+  setsid dockerd >/var/log/ccrp-dockerd.log 2>&1 < /dev/null &
   echo $!
 fi
 for _ in $(seq 1 60); do
