@@ -25,26 +25,13 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.libvirt_host import gate
+
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.slow, pytest.mark.root]
 
 
-def _gate() -> str | None:
-    if os.environ.get("CCRP_E2E_LIBVIRT") != "1":
-        return "set CCRP_E2E_LIBVIRT=1 to boot VM clones (needs libvirtd: scripts/libvirt.sh)"
-    try:
-        import libvirt
-    except ImportError:
-        return "the libvirt binding is not installed (pip extra libvirt: scripts/libvirt.sh)"
-    libvirt.registerErrorHandler(lambda _c, _e: None, None)
-    try:
-        libvirt.open("qemu:///system").close()
-    except libvirt.libvirtError as exc:
-        return f"libvirtd does not answer on qemu:///system: {exc}"
-    return None
-
-
-SKIP = _gate()
+SKIP = gate()
 if SKIP:
     pytest.skip(SKIP, allow_module_level=True)
 

@@ -3,7 +3,8 @@ types it, and what the backend still holds carrying the fleet's labels (must be 
 
 One module per backend (backend_<kind>.py) exposes `open_backend(tmp_path, fleet) -> contextmanager
 yielding a Backend`; leaving the context removes everything the backend's fake or engine made,
-even when the scenario failed.
+even when the scenario failed. An opt-in backend also exposes `unavailable() -> str | None`: why
+its scenario cannot run on this machine (a skip), checked before anything is built for it.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """One user's script, run against every backend: Docker for real, and OpenStack, GCP and AWS
-through their fakes, whose servers really boot (tests/fakes/cloudboot.py).
+through their fakes, whose servers really boot (tests/fakes/cloudboot.py); libvirt for real,
+opt-in (its VMs boot in minutes each: tests/libvirt_host.py).
 
 The commands are the ones a user types, in the order a user types them. Each must exit with its
 documented code (0 ok, 1 failed, 2 bad input, 3 partial failure) and never print a traceback; at the
@@ -24,9 +25,9 @@ pytestmark = [
     pytest.mark.skipif(NO_DOCKER is not None, reason=f"needs a running Docker engine ({NO_DOCKER})"),
 ]
 
-BACKENDS = ["docker", "openstack", "gcp", "aws"]
+BACKENDS = ["docker", "openstack", "gcp", "aws", "libvirt"]
 ROBOTS = ["nao1", "nao2"]
-AUTOSTOP_BACKENDS = ("docker", "openstack")
+AUTOSTOP_BACKENDS = ("docker", "openstack", "libvirt")
 
 
 @pytest.fixture(scope="module", params=BACKENDS)
@@ -36,8 +37,10 @@ def run(request, tmp_path_factory):
         module = importlib.import_module(f"tests.scenarios.backend_{kind}")
     except ModuleNotFoundError as exc:
         pytest.skip(f"no scenario backend for {kind} ({exc})")
+    if reason := getattr(module, "unavailable", lambda: None)():  # an opt-in backend
+        pytest.skip(reason)
     fleet = f"sc{kind[:2]}{secrets.token_hex(2)}"
-    if kind == "docker":
+    if builds(kind):
         request.getfixturevalue("clone_images")("noetic")  # its snapshot build then comes from Docker's cache
     else:  # the run's one full install of the recipe, which this cloud's bake builder starts from
         request.getfixturevalue("baked_recipes")("noetic", tmp_path_factory.mktemp("bake"))
@@ -51,6 +54,13 @@ def run(request, tmp_path_factory):
             r.b.ccrp("fleet", "down", "-i", str(backend.inventory))
 
 
+def builds(kind: str) -> bool:
+    """The backend makes its snapshot on this host (`snapshot build`), not with a cloud builder."""
+    from ccrp_cli.providers import Ability, info
+
+    return Ability.LOCAL_BUILD in info(kind).abilities
+
+
 def test_validate_and_vpn_init(run):
     plan = run.json("fleet", "validate")
     assert plan["provider"] == run.b.kind and [r["name"] for r in plan["robots"]] == ROBOTS, plan
@@ -61,7 +71,7 @@ def test_validate_and_vpn_init(run):
 
 def test_snapshot(run):
     run.needs("pki")
-    if run.b.kind == "docker":
+    if builds(run.b.kind):
         run.ccrp("snapshot", "bake", code=2)  # the cloud's way: one line, nothing changed
         run.ccrp("snapshot", "build", "--if-missing")
     else:
@@ -190,8 +200,9 @@ def test_idle_clone_stops_itself_and_starts_again(run):
     """autostop: nao2's robot is away (its sim stopped in the step before), so with a fleet-wide
     idle of 30 s its clone powers itself off, while nao1's clone, whose robot is connected, stays.
     The provider keeps the clone (stopped, not deleted); `clone start` brings it back serving.
-    On Docker and OpenStack only: the agent is the same on every clone, each cloud's stop and
-    start are the restart step's, and this step costs 1-3 minutes a backend."""
+    On Docker, OpenStack and libvirt (a VM powering itself off) only: the agent is the same on
+    every clone, each cloud's stop and start are the restart step's, and this step costs 1-3
+    minutes a backend."""
     if run.b.kind not in AUTOSTOP_BACKENDS:
         pytest.skip(f"autostop's user path runs on {' and '.join(AUTOSTOP_BACKENDS)}")
     run.needs("up")
@@ -262,6 +273,10 @@ def test_fleet_scale_up_and_down(run):
     assert sorted(run.status()) == ROBOTS
 
 
+# What a quota fault's refusal names, and what one more clone needs of it, per backend that reports it.
+REPORTED_QUOTA = {"openstack": ("openstack quota instances in project of cloud", 1), "libvirt": ("libvirt quota vCPUs", 2)}
+
+
 @pytest.mark.parametrize("fault", ["quota", "zone", "storm"])
 def test_cloud_faults_give_per_robot_results_and_a_rerun_converges(run, fault):
     run.needs("up")
@@ -270,15 +285,16 @@ def test_cloud_faults_give_per_robot_results_and_a_rerun_converges(run, fault):
     with run.b.faults[fault]():
         proc = run.b.ccrp("fleet", "scale", "3", "--json", "-i", str(run.b.inventory), timeout=1200)
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
-    if fault == "quota" and run.b.kind == "openstack":
-        # This fault lowers the project's instance quota, which Nova's limits report: `fleet scale`
-        # refuses before creating anything, in one line naming the quota (ccrp_cli/ops/quotas.py). The
-        # other clouds' quota faults refuse the create itself without a lower reported quota.
+    if fault == "quota" and run.b.kind in REPORTED_QUOTA:
+        # This fault lowers a quota the backend reports (Nova's instance limit; the libvirt host's
+        # vCPUs): `fleet scale` refuses before creating anything, in one line naming the quota
+        # (ccrp_cli/ops/quotas.py). The other clouds' quota faults refuse the create itself
+        # without a lower reported quota.
+        quota, needs = REPORTED_QUOTA[run.b.kind]
         assert proc.returncode == 1, proc.stderr[-2000:]
         envelope = json.loads(proc.stdout)["error"]  # --json: the failure on stdout too
-        assert envelope["code"] == 1 and "openstack quota instances" in envelope["message"], envelope
-        assert "openstack quota instances in project of cloud" in proc.stderr, proc.stderr[-2000:]
-        assert "0 free, this needs 1" in proc.stderr, proc.stderr[-2000:]
+        assert envelope["code"] == 1 and quota in envelope["message"], envelope
+        assert quota in proc.stderr and f"0 free, this needs {needs}" in proc.stderr, proc.stderr[-2000:]
         run.ccrp("fleet", "scale", "3")  # converges once the quota is back
         assert run.status()["robot1"]["master_reachable"] is True
         run.ccrp("fleet", "scale", "2")
