@@ -37,6 +37,7 @@ from ccrp_cli.addressing import capacity
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.models.inventory import Inventory
 from ccrp_cli.render import bundles, cloudinit
+from ccrp_cli.services.registry import boots
 
 ROOT = Path(__file__).resolve().parent.parent
 TARGET_S = 2.0  # 100 robots
@@ -74,7 +75,7 @@ def run_once(robots: int) -> dict[str, float]:
         for name in names:
             view = clone_view(fleet, state, name)
             creds = fleet.pki.credentials(name)
-            cloudinit.user_data(view)
+            cloudinit.user_data(view, boots())
             rendered.append((name, bundles.clone_secrets(view, creds), bundles.edge_bundle(view, creds, "203.0.113.10")))
         t3 = time.perf_counter()
         for name, secret_files, edge_files in rendered:

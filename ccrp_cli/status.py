@@ -8,7 +8,6 @@ from typing import TYPE_CHECKING
 from .services.registry import SERVICES
 from .errors import CcrpError
 from .fleet import Fleet
-from .robot.power import parse_report
 from .models.status import StatusRow
 from .probe import health, robot_link
 from .providers.base import CloneState
@@ -67,7 +66,6 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
                     "robot_address": client["real_address"] if client else None,
                     "robot_rtt_ms": client.get("rtt_ms") if client else None,
                     "master_reachable": h["master"]["reachable"],
-                    "power": parse_report(h.get("power") or ""),  # None: no device reported since the clone booted
                     **service_fields(fleet, state, member, h),
                 }
                 row = StatusRow.model_validate(row.model_dump() | update)

@@ -20,11 +20,12 @@ def cloud_init(
     """Print the clone's cloud-init user-data (no private key; checked against the provider's limit)."""
     from ..fleet import clone_view
     from ..render import cloudinit
+    from ..services.registry import boots
     from ..providers import info
 
     fleet = options.open_fleet(inventory)
     view = clone_view(fleet, fleet.store.load_state(), robot)
-    text = cloudinit.user_data(view, install_packages=bare)
+    text = cloudinit.user_data(view, boots(), install_packages=bare)
     info(fleet.inventory.provider.kind).fit_user_data(text)
     typer.echo(text, nl=False)
 

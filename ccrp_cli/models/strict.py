@@ -24,3 +24,13 @@ class ProviderSettings(Strict):
         """Where the fleet's clones are, in the backend's words (a region, a cloud), for `ccrp
         doctor`; "" where the settings name none."""
         return ""
+
+    def operator_network(self) -> ipaddress.IPv4Network | None:
+        """Where the operator reaches the clones from (ccrp's SSH), which their firewall admits;
+        None where ccrp reaches clones without the network (Docker's exec)."""
+        return None
+
+    def bake_image(self) -> str | None:
+        """The image `snapshot bake` starts from when the settings name one (the user's own, with
+        ROS installed); None: the backend's stock Debian 12 (ProviderInfo.bake_base)."""
+        return None

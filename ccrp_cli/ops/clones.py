@@ -205,8 +205,9 @@ def clone_user_data(view, provider: Housekeeping, bare: bool) -> str:
     """A cloud clone gets ccrp's login user (render/view.py LOGIN_USER) with the fleet's operator key:
     the SSH transport logs in as it. A Docker clone has no login user; its transport is the Docker API."""
     from ..render import cloudinit
+    from ..services.registry import boots
 
-    return cloudinit.user_data(view, login_keys=provider.login_keys(), install_packages=bare)
+    return cloudinit.user_data(view, boots(), login_keys=provider.login_keys(), install_packages=bare)
 
 
 def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress) -> CloneResult:

@@ -84,7 +84,7 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
 
     # The fleet's own software, read and checked before any builder starts.
     software = snapshot_software(inv, fleet.path)
-    base = base_image or getattr(inv.provider, "image", None)
+    base = base_image or inv.provider.bake_image()
     if base is None and platform(inv.ros.distro, inv.clone_platform).ros_installed:
         # The stock Debian image has no ROS 2 to use: the platform is the user's own image.
         raise InputError(f"ros.platform {inv.ros.platform} bakes from your image with ROS {inv.ros.distro} installed "

@@ -4,24 +4,25 @@ from __future__ import annotations
 
 import ast
 import functools
-import json
 import re
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any, Sequence
 
 import yaml
 
 from ..errors import CcrpError
-from ..layout import (API_USER, BOOT_AGENTS, CCRP_ETC, ROS2_RMEM, ROS2_SYSCTL, CCRP_LIB, IMAGE_AGENTS, KNOWLEDGE_USER, LOCALE, LOCALE_SETUP, LOGIN_USER,
-                      POWER_PORT, POWER_USER, RELAY_USER, SECRETS_DIR, VPN_DIR)
+from ..layout import (BOOT_AGENTS, CCRP_ETC, ROS2_RMEM, ROS2_SYSCTL, CCRP_LIB, IMAGE_AGENTS, LOCALE, LOCALE_SETUP, LOGIN_USER,
+                      SECRETS_DIR, VPN_DIR)
 from ..models.inventory import Inventory
-from ..models.names import power_name
 from ..providers.registry import info
 from ..recipes import platform
 from ..resources import agent_source
 from ..templates import render, static
 from . import network, openvpn
 from .view import CloneView
+
+if TYPE_CHECKING:
+    from .boot import Boot
 
 PRIVATE_KEY_MARKERS = ("PRIVATE KEY", "OpenVPN Static key")
 
@@ -98,35 +99,41 @@ def _compact_python(src: str) -> str:
         return src
 
 
-POWER_SOCKET = "ccrp-power.socket"
-
-
 def ros2_sysctl() -> str:
     return ("# ccrp: receive buffers for ROS 2's UDP (a 320x240 image is four 64 KB datagrams)\n"
             f"net.core.rmem_default = {ROS2_RMEM}\nnet.core.rmem_max = {ROS2_RMEM}\n")
 
 
-def clone_units(inv: Inventory) -> list[str]:
-    """The clone's systemd units. A ROS 2 clone has no master; its relay and API manager run on
-    rclpy, its knowledge agent on the venv's Zenoh (each through ros-run)."""
-    if inv.ros.ros2:
-        return ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service",
-                "ccrp-power.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
-    return ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-rosmaster.service", "ccrp-relay.service",
-            "ccrp-autostop.service", "ccrp-power.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
+def base_units(inv: Inventory) -> list[str]:
+    """The base's systemd units: the firewall, OpenVPN and a ROS 1 clone's master (a ROS 2 clone has
+    none). The services' units follow them (their Boot declarations)."""
+    return ["ccrp-firewall.service", "ccrp-openvpn.service", *([] if inv.ros.ros2 else ["ccrp-rosmaster.service"])]
+
+
+def _system_user(name: str, **home: Any) -> dict[str, Any]:
+    return {"name": name, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, **(home or {"no_create_home": True})}
+
+
+def _unit(name: str) -> dict[str, Any]:
+    return _file(f"/etc/systemd/system/{name}", static(f"systemd/{name}"))
 
 
 def user_data_dict(
     view: CloneView,
+    boots: Sequence[Boot],
     *,
     install_packages: bool = False,
     login_keys: list[str] | None = None,
 ) -> dict[str, Any]:
-    """A cloud clone gets `login_keys` (the fleet's operator key) for LOGIN_USER, the one login ccrp's
+    """The base (OpenVPN, ROS, the firewall, the login user), then what each clone service declares
+    for the user-data (`boots`: services/registry.py boots(), in the registry's order).
+
+    A cloud clone gets `login_keys` (the fleet's operator key) for LOGIN_USER, the one login ccrp's
     SSH transport uses; without them (Docker) the clone has no login user at all."""
     a = view.addr
+    ros2 = view.inv.ros.ros2
     fw4, fw6 = network.firewall_rules(view)
-    units = clone_units(view.inv)
+    units = base_units(view.inv)
     files = [
         _file("/etc/hosts", network.clone_hosts_file(view)),
         _file(f"{CCRP_ETC}/hosts", network.clone_hosts_file(view)),  # put back at every boot (bootcmd)
@@ -137,39 +144,33 @@ def user_data_dict(
         _file("/etc/chrony/conf.d/ccrp.conf", network.chrony_conf(view, "clone")),
         _file(f"{VPN_DIR}/server.conf", openvpn.server_conf(view)),
         _file(f"{VPN_DIR}/ccd/{view.name}", openvpn.ccd_entry(view)),
-        _file(f"{VPN_DIR}/ccd/{power_name(view.name)}", openvpn.device_ccd_entry(view)),
         _file(f"{VPN_DIR}/ccrp-auth", static("clone/ccrp-auth"), "0755"),
         _file(f"{CCRP_LIB}/ros-run", static("clone/ros-run"), "0755"),
-        _file(f"{CCRP_LIB}/autostop.py", agent_source("autostop"), "0755"),
-        _file(f"{CCRP_LIB}/power.py", agent_source("power"), "0644"),
-        _file(f"{CCRP_ETC}/power.json", json.dumps({"listen": str(a.clone_vpn_ip), "port": POWER_PORT,
-                                                    "device": str(a.device_vpn_ip)}) + "\n"),
-    ] + [_file(f"/etc/systemd/system/{u}", static(f"systemd/{u}")) for u in units]
-    # The power agent's port, bound by systemd and handed to the agent (agent/power.py, inherited).
-    files.append(_file(f"/etc/systemd/system/{POWER_SOCKET}", render(f"systemd/{POWER_SOCKET}.j2", **view.ctx())))
-    if view.inv.ros.ros2:
+        *(_unit(u) for u in units),
+    ]
+    if ros2:
+        # A ROS 2 clone's graph for health.py; the image holds only the wheels' venv (providers/docker/images.py).
         files.append(_file(f"{CCRP_LIB}/ros2_graph.py", agent_source("ros2_graph"), "0644"))
-        # A ROS 2 image holds only the wheels' venv (providers/docker/images.py): the relay agent
-        # and its rclpy side come with the user-data, and run on the venv's rclpy and Zenoh.
-        files += [_file(f"{CCRP_LIB}/{name}.py", agent_source(name), "0644") for name in ("relay", "relay_ros2")]
+    sockets: list[str] = []
+    for boot in boots:
+        agents = boot.agents + (boot.ros2_agents if ros2 else ())
+        files += [_file(f"{CCRP_LIB}/{name}.py", agent_source(name), boot.agent_mode) for name in agents]
+        files += [_file(f.dest, f.content, f"{f.mode:04o}") for f in boot.files(view)]
+        files += [_unit(u) for u in boot.units]
+        files += [_file(f"/etc/systemd/system/{s}", render(f"systemd/{s}.j2", **view.ctx())) for s in boot.sockets]
+        units += boot.units
+        sockets += boot.sockets
 
     # A clone with its own kernel takes ROS 2's receive buffers from here (a container cannot).
-    sysctl = view.inv.ros.ros2 and info(view.inv.provider.kind).own_kernel
+    sysctl = ros2 and info(view.inv.provider.kind).own_kernel
     if sysctl:
         files.append(_file(ROS2_SYSCTL, ros2_sysctl()))
 
     # No "default": the images' own login users differ per cloud, so ccrp defines its own and the
     # image's is not created (keys from the cloud's key pair then go to root, with logins refused).
     users: list[Any] = [login_user(login_keys)] if login_keys else []
-    users += [
-        {"name": "openvpn", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
-        {"name": "ros", "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "homedir": "/var/lib/ros"},
-        {"name": RELAY_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
-        {"name": API_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
-        {"name": KNOWLEDGE_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True,
-         "no_create_home": True},
-        {"name": POWER_USER, "system": True, "shell": "/usr/sbin/nologin", "lock_passwd": True, "no_create_home": True},
-    ]
+    users += [_system_user("openvpn"), _system_user("ros", homedir="/var/lib/ros")]
+    users += [_system_user(u) for boot in boots for u in boot.users]
     data: dict[str, Any] = {
         "hostname": a.clone_host,
         "preserve_hostname": False,
@@ -185,9 +186,9 @@ def user_data_dict(
             ["install", "-d", "-m", "0751", "-o", "root", "-g", "openvpn", VPN_DIR],
             ["install", "-d", "-m", "0755", "-o", "ros", "-g", "ros", "/var/lib/ros"],
             ["systemctl", "daemon-reload"],
-            # Alone and first: the port is systemd's before any of ccrp's services (and their users)
-            # run. From the next boot on, sockets.target orders it before them.
-            ["systemctl", "enable", "--now", POWER_SOCKET],
+            # Alone and first: the ports are systemd's before any of ccrp's services (and their users)
+            # run. From the next boot on, sockets.target orders them before them.
+            *([["systemctl", "enable", "--now", *sockets]] if sockets else []),
             ["systemctl", "enable", "--now", *units],
             ["systemctl", "try-restart", "chrony.service"],
         ],
@@ -339,5 +340,5 @@ def dump(data: dict[str, Any]) -> str:
     return text
 
 
-def user_data(view: CloneView, **kwargs: Any) -> str:
-    return dump(user_data_dict(view, **kwargs))
+def user_data(view: CloneView, boots: Sequence[Boot], **kwargs: Any) -> str:
+    return dump(user_data_dict(view, boots, **kwargs))

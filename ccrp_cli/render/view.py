@@ -27,7 +27,7 @@ class CloneView:
 
     @property
     def operator_cidr(self) -> str | None:
-        cidr = getattr(self.inv.provider, "operator_cidr", None)
+        cidr = self.inv.provider.operator_network()
         return str(cidr) if cidr else None
 
     @property

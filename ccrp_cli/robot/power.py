@@ -15,13 +15,13 @@ installed) the first time it is used on a simulated robot.
 from __future__ import annotations
 
 import datetime as dt
-import json
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 from ..errors import CcrpError, InputError, cannot_write
 from ..fleet import Fleet, clone_view
+from ..services.power import REPORT_S, parse_report
 
 if TYPE_CHECKING:
     from ..providers.base import Lifecycle, Reaches
@@ -29,8 +29,6 @@ if TYPE_CHECKING:
 Say = Callable[[str], None]
 WANT = "/run/ccrp-power/want"  # on the clone: what ccrp asks (agent/power.py reads it), in memory
 REPORT = "/run/ccrp-power/report"  # on the clone: the device's last report (agent/power.py writes it)
-REPORT_S = 3.0  # the device reports every 3 s; three missed reports make it silent
-SILENT_S = 3 * REPORT_S
 ACTIONS = ("on", "off", "status", "bundle")
 # Writes a state file atomically and prints the clone's clock then (reports carry the clone's
 # time): a constant script, the path and state as arguments. It runs as root in /run/ccrp-power,
@@ -50,23 +48,6 @@ os.close(fd)
 os.replace(tmp, path)
 print(int(time.time()))
 """]
-
-
-def parse_report(text: str, now: float | None = None) -> dict | None:
-    """A report as the clone keeps it (one JSON line) -> {"relay", "robot", "reported_at", "age_s",
-    "silent"}; the time is the clone's, when the report arrived."""
-    try:
-        data = json.loads(text)
-        t = float(data["t"])
-        relay, robot = data["relay"], data["robot"]
-    except (ValueError, KeyError, TypeError):
-        return None
-    if relay not in ("on", "off") or robot not in ("running", "off", "starting"):
-        return None
-    now = time.time() if now is None else now
-    age = round(max(0.0, now - t), 1)
-    return {"relay": relay, "robot": robot, "age_s": age, "silent": age > SILENT_S,
-            "reported_at": dt.datetime.fromtimestamp(t, dt.timezone.utc).isoformat(timespec="seconds")}
 
 
 def read(provider: Reaches, robot: str) -> dict | None:

@@ -136,7 +136,7 @@ class ApiManager(CloneService):
     config, the agent and the backend's key once the clone serves, and restarts it."""
 
     name = "api_manager"
-    boot = Boot(units=(API_UNIT,))
+    boot = Boot(units=(API_UNIT,), users=(API_USER,))
 
     def check(self, fleet: Fleet, robot: Robot) -> None:
         key = key_path(fleet.inventory, robot)

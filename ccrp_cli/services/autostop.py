@@ -24,7 +24,8 @@ class Autostop(CloneService):
     name = "autostop"
     # Before the keys: the agent counts idle time from when OpenVPN serves (see ensure_clone).
     settings = True
-    boot = Boot(units=("ccrp-autostop.service",), agents=("autostop",))
+    # 0755 as the user-data always wrote it (its unit runs it with python3 either way).
+    boot = Boot(units=("ccrp-autostop.service",), agents=("autostop",), agent_mode="0755")
 
     def files(self, ctx: ServiceContext) -> list[BundleFile]:
         return [autostop_file(ctx.fleet, ctx.robot)]

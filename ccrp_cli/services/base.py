@@ -1,13 +1,16 @@
-"""What a clone service is (docs/architecture.md, "Clone services"): the relay, autostop, the API
-manager, knowledge sync, the robot's nodes. Each says what `fleet up` pushes to a clone for it after
-boot and how it applies it; the clone pipeline (clones.py ensure_clone) runs them in the registry's
-order (registry.py). A service imports neither the pipeline nor the registry (the `services`
-import contract), so adding one touches its own module and one registry line."""
+"""What a clone service is (docs/architecture.md, "Clone services"): the relay, autostop, robot power,
+the API manager, knowledge sync, the robot's nodes, the camera view. Each says what it adds to the
+user-data, what `fleet up` pushes to a clone for it after boot and how it applies it; the clone
+pipeline (clones.py ensure_clone) runs them in the registry's order (registry.py). A service
+imports neither the pipeline nor the registry (the `services` import contract), so adding one
+touches its own module and one registry line."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar, Protocol
+
+from ..render.boot import Boot  # what a service adds to user-data: render/ writes it, so it is render's
 
 if TYPE_CHECKING:
     from ..fleet import Fleet
@@ -30,16 +33,6 @@ class ServiceContext:
     software: str | None = None
 
 
-@dataclass(frozen=True)
-class Boot:
-    """What a service's clone gets from its user-data (render/cloudinit.py writes it, not the
-    pipeline): its systemd units and the agents (agent/<name>.py) in every clone's user-data.
-    A declaration: tests/unit/test_clone_services.py checks it against the rendered user-data."""
-
-    units: tuple[str, ...] = ()
-    agents: tuple[str, ...] = ()
-
-
 class CloneService(Protocol):
     """One clone service. A service subclasses this and keeps the defaults of what it lacks."""
 
@@ -50,6 +43,7 @@ class CloneService(Protocol):
     # Its files name the clone's partners: reshare (reconcile.py) pushes them again when the
     # fleet's membership changes, and ensure_clone tells it what this run left on the clone.
     reshared: ClassVar[bool] = False
+    # What it adds to every clone's user-data (render/boot.py), which render/cloudinit.py writes.
     boot: ClassVar[Boot] = Boot()
 
     def check(self, fleet: Fleet, robot: Robot) -> None:

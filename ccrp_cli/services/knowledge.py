@@ -21,7 +21,7 @@ from ..errors import CcrpError, InputError, shown
 from ..fleet import Fleet
 from ..models.state import FleetState
 from ..render.files import BundleFile
-from ..layout import CCRP_ETC, CCRP_LIB, SECRETS_DIR
+from ..layout import CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, SECRETS_DIR
 from .base import Boot, CloneService, ServiceContext
 
 if TYPE_CHECKING:
@@ -124,7 +124,7 @@ class Knowledge(CloneService):
     name = "knowledge"
     settings = True
     reshared = True
-    boot = Boot(units=(UNIT,))
+    boot = Boot(units=(UNIT,), users=(KNOWLEDGE_USER,))
 
     def files(self, ctx: ServiceContext) -> list[BundleFile]:
         return knowledge_files(ctx.fleet, ctx.state, ctx.robot.name, ctx.live)

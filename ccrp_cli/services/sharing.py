@@ -12,7 +12,7 @@ import json
 from dataclasses import asdict, dataclass
 
 from ..fleet import Fleet
-from ..layout import CCRP_ETC
+from ..layout import CCRP_ETC, RELAY_USER
 from ..models.inventory import Robot
 from ..models.state import FleetState
 from ..render.files import BundleFile
@@ -121,7 +121,8 @@ class Relay(CloneService):
     name = "relay"
     settings = True
     reshared = True
-    boot = Boot(units=("ccrp-relay.service",))
+    # A ROS 2 image has no agents of ccrp (the wheels' venv alone): the relay's come with the user-data.
+    boot = Boot(units=("ccrp-relay.service",), ros2_agents=("relay", "relay_ros2"), users=(RELAY_USER,))
 
     def files(self, ctx: ServiceContext) -> list[BundleFile]:
         return [relay_config_file(ctx.fleet, ctx.state, ctx.robot.name, ctx.live)]

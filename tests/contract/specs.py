@@ -28,13 +28,14 @@ def inventory(provider: dict, **extra) -> Inventory:
 
 def clone_spec(inv: Inventory, robot: str, index: int, image: str) -> CloneSpec:
     from ccrp_cli.render import cloudinit
+    from ccrp_cli.services.registry import boots
     from ccrp_cli.render.view import CloneView
 
     addr = addresses(inv, robot, index)
     peers = tuple(addresses(inv, r, i) for i, r in enumerate(ROBOTS, 1) if r != robot)
     view = CloneView(inv, inv.robot(robot), addr, peers)
     return CloneSpec(
-        robot=robot, hostname=addr.clone_host, image=image, user_data=cloudinit.user_data(view),
+        robot=robot, hostname=addr.clone_host, image=image, user_data=cloudinit.user_data(view, boots()),
         instance_id=f"{inv.fleet}-{robot}-{index}", common_ip=str(addr.common_ip), vpn_subnet=str(addr.vpn_subnet),
     )
 

@@ -17,22 +17,32 @@ RESULT = '{"v1": {"datasource": "DataSourceNoCloud", "errors": []}}'
 
 
 def test_the_registry_runs_the_services_in_fleet_ups_order():
-    assert [s.name for s in SERVICES] == ["relay", "autostop", "api_manager", "knowledge", "nodes"]
+    assert [s.name for s in SERVICES] == ["relay", "autostop", "power", "api_manager", "knowledge", "nodes", "camera"]
     # Settings go before the keys in this order; the others are applied after the clone serves.
     assert [s.name for s in SERVICES if s.settings] == ["relay", "autostop", "knowledge"]
     assert [s.name for s in SERVICES if s.reshared] == ["relay", "knowledge"]
 
 
 def test_each_services_boot_declaration_is_in_the_user_data(lab):
-    """What a service says its clone gets from the user-data is what render/cloudinit.py writes."""
+    """What a service says its clone gets from the user-data is what render/cloudinit.py writes:
+    its units (enabled at first boot, its sockets alone and first), agents, files and users."""
     from ccrp_cli.layout import CCRP_LIB
     from ccrp_cli.render import cloudinit
+    from ccrp_cli.services.registry import boots
 
     state = lab.load_allocated()
-    written = {f["path"] for f in cloudinit.user_data_dict(clone_view(lab, state, "nao1"))["write_files"]}
+    view = clone_view(lab, state, "nao1")
+    data = cloudinit.user_data_dict(view, boots())
+    written = {f["path"]: f["content"] for f in data["write_files"]}
+    users = {u["name"] for u in data["users"]}
+    enabled = [c[3:] for c in data["runcmd"] if c[:3] == ["systemctl", "enable", "--now"]]
     for service in SERVICES:
-        assert {f"/etc/systemd/system/{u}" for u in service.boot.units} <= written, service.name
-        assert {f"{CCRP_LIB}/{a}.py" for a in service.boot.agents} <= written, service.name
+        boot = service.boot
+        assert {f"/etc/systemd/system/{u}" for u in boot.units + boot.sockets} <= set(written), service.name
+        assert {f"{CCRP_LIB}/{a}.py" for a in boot.agents} <= set(written), service.name
+        assert all(written.get(f.dest) == f.content for f in boot.files(view)), service.name
+        assert set(boot.users) <= users and set(boot.units) <= set(enabled[-1]), service.name
+    assert enabled[0] == ["ccrp-power.socket"]  # the power agent's port is systemd's before any service runs
 
 
 class Clone:
@@ -179,4 +189,5 @@ def test_status_takes_each_services_fields(lab_up):
     health = {"relay": {"running": True, "peers": {"nao2": True}}, "nodes": [], "knowledge": {"running": True}}
     fields = service_fields(fleet, state, nao1, health)
     assert fields["relay_running"] and fields["relay_peers"] == {"nao2": True} and fields["nodes"] is None
+    assert fields["power"] is None  # no device reported since the clone booted
     assert fields["knowledge"]["running"] and fields["api_manager"] is None and fields["autostop_idle_s"] is None

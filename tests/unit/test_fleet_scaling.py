@@ -12,6 +12,7 @@ from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.models.state import FleetState
 from ccrp_cli.pki.store import PkiIndex
 from ccrp_cli.render import bundles, cloudinit
+from ccrp_cli.services.registry import boots
 from tests.conftest import LAB
 
 N = 40
@@ -52,7 +53,7 @@ def test_issue_and_render_every_robot_is_linear(big, monkeypatch):
     for name in names:
         view = clone_view(big, state, name)
         creds = big.pki.credentials(name)
-        cloudinit.user_data(view)
+        cloudinit.user_data(view, boots())
         bundles.edge_bundle(view, creds, "203.0.113.10")
     # Quadratic was N * N addresses() and N parses of each file.
     assert len(addr_calls) == N

@@ -421,9 +421,10 @@ def test_the_power_units_give_the_agent_systemds_socket(lab):
     from ccrp_cli.agent import power as clone_agent
     from ccrp_cli.fleet import clone_view
     from ccrp_cli.render import cloudinit
+    from ccrp_cli.services.registry import boots
 
     view = clone_view(lab, lab.load_allocated(), "nao1")
-    data = cloudinit.user_data_dict(view)
+    data = cloudinit.user_data_dict(view, boots())
     files = {f["path"]: f["content"] for f in data["write_files"]}
 
     def unit(path: str) -> dict[str, list[str]]:

@@ -19,6 +19,7 @@ import yaml
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.render import bundles, cloudinit, network, openvpn
+from ccrp_cli.services.registry import boots
 from ccrp_cli.providers import info
 from ccrp_cli.layout import SECRETS_DIR
 from tests.conftest import INVENTORIES, ROOT
@@ -53,7 +54,7 @@ def test_golden_clone_files(view):
     golden("nao1.firewall6.rules", fw6)
     golden("nao1.clone.hosts", network.clone_hosts_file(view))
     golden("nao1.clone.ros.env", network.ros_env(view, "clone"))
-    golden("nao1.user-data.yaml", cloudinit.user_data(view))
+    golden("nao1.user-data.yaml", cloudinit.user_data(view, boots()))
 
 
 def test_golden_robot_files(lab, view):
@@ -113,7 +114,7 @@ def test_every_user_data_passes_cloud_init_schema(ccrp_home, tmp_path):
     for stem, view in _all_views(ccrp_home):
         for bare in (False, True):
             keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"] if stem != "lab" else None
-            text = cloudinit.user_data(view, install_packages=bare, login_keys=keys)
+            text = cloudinit.user_data(view, boots(), install_packages=bare, login_keys=keys)
             assert text.startswith("#cloud-config\n")
             assert "PRIVATE KEY" not in text and "Static key" not in text
             info(view.inv.provider.kind).fit_user_data(text)
@@ -130,7 +131,7 @@ def test_cloud_clones_keep_their_keys_in_memory(ccrp_home):
     clone has its secrets volume there instead."""
     kinds = set()
     for _stem, view in _all_views(ccrp_home):
-        data = cloudinit.user_data_dict(view)
+        data = cloudinit.user_data_dict(view, boots())
         kinds.add(view.inv.provider.kind)
         if view.inv.provider.kind == "docker":
             assert "bootcmd" not in data
@@ -147,7 +148,7 @@ def test_cloud_clones_keep_their_keys_in_memory(ccrp_home):
 
 
 def test_user_data_never_carries_key_material(view, monkeypatch):
-    data = cloudinit.user_data_dict(view)
+    data = cloudinit.user_data_dict(view, boots())
     data["write_files"].append({"path": "/x", "content": "-----BEGIN PRIVATE KEY-----\n"})
     with pytest.raises(CcrpError, match="key material"):
         cloudinit.dump(data)

@@ -16,6 +16,7 @@ from ccrp_cli.errors import InputError
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.loader import parse_inventory
 from ccrp_cli.render import bundles, cloudinit, network
+from ccrp_cli.services.registry import boots
 from ccrp_cli.providers import info
 from tests.conftest import ROOT
 
@@ -118,8 +119,8 @@ def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_
     view = clone_view(fleet, fleet.store.load_state(), fleet.inventory.robots[0].name)
     keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"]
     texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef"),
-             "bare": cloudinit.user_data(view, install_packages=True, login_keys=keys),
-             "snapshot": cloudinit.user_data(view, login_keys=keys)}
+             "bare": cloudinit.user_data(view, boots(), install_packages=True, login_keys=keys),
+             "snapshot": cloudinit.user_data(view, boots(), login_keys=keys)}
     for what, text in texts.items():
         runcmd = yaml.safe_load(text)["runcmd"]
         assert all(step in runcmd for step in venv) == (what != "snapshot"), (what, runcmd)
@@ -161,7 +162,7 @@ def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(cc
     view = clone_view(fleet, fleet.store.load_state(), fleet.inventory.robots[0].name)
     keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"]
     texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef"),
-             "bare": cloudinit.user_data(view, install_packages=True, login_keys=keys)}
+             "bare": cloudinit.user_data(view, boots(), install_packages=True, login_keys=keys)}
     launcher = ["sh", "-c", '[ -e "$0/bin/python" ] || ln -s "$1" "$0/bin/python"', f"/opt/ros/{distro}",
                 "/usr/local/lib/ccrp/ros-python"]
     for what, text in texts.items():
@@ -259,7 +260,7 @@ def _noetic(jazzy):
 
 def test_a_jazzy_clone_runs_no_master_and_rclpy_agents(jazzy):
     view = clone_view(jazzy, jazzy.store.load_state(), "nao2")
-    data = cloudinit.user_data_dict(view)
+    data = cloudinit.user_data_dict(view, boots())
     starts = [c[3:] for c in data["runcmd"] if c[:3] == ["systemctl", "enable", "--now"]]
     assert starts[0] == ["ccrp-power.socket"]  # alone and first (unit/test_power_device.py)
     enabled = starts[1]

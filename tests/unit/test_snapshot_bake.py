@@ -227,6 +227,20 @@ def test_a_failed_terminate_after_success_is_an_error(fleet):
     assert fleet.store.load_state().snapshot is None  # not recorded: the operator has to look first
 
 
+def test_a_bake_starts_from_the_image_the_provider_settings_name(ccrp_home, tmp_path):
+    """OpenStack's provider.image (ProviderSettings.bake_image) is the base when --base-image is not
+    given; the other clouds' settings name none, so they start from their stock Debian."""
+    data = yaml.safe_load(INVENTORIES["openstack"].read_text())
+    data["provider"]["image"] = "my-debian-12"
+    path = tmp_path / "fleet.yaml"
+    path.write_text(yaml.safe_dump(data))
+    cloud = FakeCloud("openstack", [DONE])
+    cloud.images.add("my-debian-12")
+    _bake(Fleet.open(path), cloud, base_image=None)
+    assert cloud.specs[0].image == "my-debian-12"
+    assert [Fleet.open(INVENTORIES[k]).inventory.provider.bake_image() for k in ("gcp", "aws")] == [None, None]
+
+
 def test_aws_defaults_to_debians_ssm_parameter_resolved_to_its_ami(ccrp_home):
     aws = Fleet.open(INVENTORIES["aws"])
     cloud = FakeCloud("aws", [DONE])

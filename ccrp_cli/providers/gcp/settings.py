@@ -20,3 +20,6 @@ class GcpSettings(ProviderSettings):
 
     def place(self) -> str:
         return self.region
+
+    def operator_network(self) -> ipaddress.IPv4Network | None:
+        return self.operator_cidr

@@ -70,6 +70,9 @@ class LibvirtSettings(ProviderSettings):
     def networks(self) -> dict[str, ipaddress.IPv4Network]:
         return {"provider.public_cidr": self.public_cidr}
 
+    def operator_network(self) -> ipaddress.IPv4Network | None:
+        return self.operator_cidr
+
     @model_validator(mode="after")
     def _operator_is_the_host(self) -> "LibvirtSettings":
         if self.operator_cidr is None:

@@ -21,3 +21,9 @@ class OpenStackSettings(ProviderSettings):
 
     def place(self) -> str:
         return self.cloud
+
+    def operator_network(self) -> ipaddress.IPv4Network | None:
+        return self.operator_cidr
+
+    def bake_image(self) -> str | None:
+        return self.image
