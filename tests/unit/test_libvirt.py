@@ -160,8 +160,10 @@ def test_network_config_names_interfaces_by_mac():
     cfg = yaml.safe_load(seed.network_config("52:54:00:00:00:01", "52:54:00:00:00:02", "10.90.0.10",
                                              ipaddress.IPv4Network("10.90.0.0/24")))
     assert cfg["version"] == 2
-    assert cfg["ethernets"]["public"] == {"match": {"macaddress": "52:54:00:00:00:01"}, "dhcp4": True}
+    assert cfg["ethernets"]["public"] == {"match": {"macaddress": "52:54:00:00:00:01"}, "dhcp4": True,
+                                          "accept-ra": False}
     common = cfg["ethernets"]["common"]
+    assert common["accept-ra"] is False  # IPv4-only networks: no wait for a router advertisement
     assert common["match"] == {"macaddress": "52:54:00:00:00:02"} and common["addresses"] == ["10.90.0.10/24"]
     assert "gateway4" not in common and "routes" not in common
 
