@@ -160,8 +160,10 @@ def test_network_config_names_interfaces_by_mac():
     cfg = yaml.safe_load(seed.network_config("52:54:00:00:00:01", "52:54:00:00:00:02", "10.90.0.10",
                                              ipaddress.IPv4Network("10.90.0.0/24")))
     assert cfg["version"] == 2
-    assert cfg["ethernets"]["public"] == {"match": {"macaddress": "52:54:00:00:00:01"}, "dhcp4": True}
+    assert cfg["ethernets"]["public"] == {"match": {"macaddress": "52:54:00:00:00:01"}, "set-name": "public",
+                                          "dhcp4": True}
     common = cfg["ethernets"]["common"]
+    assert common["set-name"] == "common"  # the names the golden's networkd drop-ins are for
     assert common["match"] == {"macaddress": "52:54:00:00:00:02"} and common["addresses"] == ["10.90.0.10/24"]
     assert "gateway4" not in common and "routes" not in common
 
@@ -216,15 +218,25 @@ def test_missing_binding_is_one_line(tmp_path, monkeypatch):
 # -- golden volume ---------------------------------------------------------------------------------------
 
 def test_golden_layer_and_cloud_config():
-    text = goldens.DOCKERFILE.format(base="ccrp/vmlab-clone:20261126040000", packages=" ".join(goldens.VM_PACKAGES))
+    text = goldens.dockerfile("ccrp/vmlab-clone:20261126040000")
     assert text.splitlines()[1] == "FROM ccrp/vmlab-clone:20261126040000"
     assert "linux-image-cloud-amd64" in text and "rm -f /etc/ssh/ssh_host_*" in text
     cfg = yaml.safe_load(goldens.CLOUD_CFG)
     assert cfg["datasource_list"] == ["NoCloud", "None"]
-    assert "ssh" in cfg["cloud_init_modules"] and "keys-to-console" in cfg["cloud_final_modules"]
+    # The host keys on the console as soon as they are made: ccrp's login overlaps the later stages.
+    init = cfg["cloud_init_modules"]
+    assert init.index("keys-to-console") == init.index("ssh") + 1 and "keys-to-console" not in cfg["cloud_final_modules"]
     assert "bootcmd" in cfg["cloud_init_modules"]  # the secrets tmpfs (render/cloudinit.py every_boot_bootcmd)
     assert cfg["system_info"]["network"]["renderers"] == ["networkd"] and "network" not in cfg
     assert goldens.FSTAB.split()[:3] == ["/dev/vda", "/", "ext4"]
+    # No wait for IPv6 router advertisements on the NICs seed.py names.
+    for name in seed.NIC_NAMES:
+        assert f"COPY no-ra.conf /etc/systemd/network/10-cloud-init-{name}.network.d/90-ccrp-no-ra.conf" in text
+    assert "IPv6AcceptRA=no" in goldens.NO_RA_DROPIN
+    # A resolver (the DHCP server's DNS, through resolved's stub), with no LLMNR or mDNS responder.
+    assert "systemd-resolved" in goldens.VM_PACKAGES and "systemd-resolved.service" in text
+    assert "/etc/systemd/resolved.conf.d/" in text
+    assert {"LLMNR=no", "MulticastDNS=no"} <= set(goldens.RESOLVED_CONF.splitlines())
 
 
 def test_golden_needs_its_tools(monkeypatch, tmp_path):

@@ -22,17 +22,37 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ...errors import CcrpError
+from .seed import NIC_NAMES
 
 # What a VM needs beyond the container snapshot: the cloud kernel (virtio drivers, a small module
 # set) with initramfs-tools, udev (modules for the devices it finds), sshd (the transport), sudo
-# (the login user's), e2fsprogs (fsck of the root at boot).
-VM_PACKAGES = ["linux-image-cloud-amd64", "udev", "openssh-server", "sudo", "e2fsprogs"]
+# (the login user's), e2fsprogs (fsck of the root at boot), systemd-resolved (the resolver: it takes
+# the DNS server systemd-networkd got by DHCP, the NAT network's dnsmasq; networkd alone writes no
+# resolv.conf, and a container's comes from Docker).
+VM_PACKAGES = ["linux-image-cloud-amd64", "udev", "openssh-server", "sudo", "e2fsprogs", "systemd-resolved"]
+
+# No IPv6 router advertisements listened for on the clone's NICs (the fleet's networks are IPv4
+# only, xmldefs.py): while systemd-networkd solicits a router, a link without DHCP (the common one)
+# stays "configuring" until its NDisc timeout, and systemd-networkd-wait-online, which cloud-init's
+# network stage waits for, held the first boot 12 s (IPv6 link-local at 42.0 s of uptime,
+# wait-online done at 54.1 s). cloud-init 22.4 renders `accept-ra` only for DHCPv6 links, so the
+# setting is a drop-in beside the .network file it writes for each NIC (named in seed.py).
+NO_RA_DROPIN = "[Network]\nIPv6AcceptRA=no\n"
+NO_RA_DROPINS = [f"/etc/systemd/network/10-cloud-init-{name}.network.d/90-ccrp-no-ra.conf" for name in NIC_NAMES]
+
+# resolved answers on 127.0.0.53 only: no LLMNR or multicast DNS responder (on by default, UDP/TCP
+# 5355 and UDP 5353 on every link) on the clone's networks, where nothing asks for one.
+RESOLVED_CONF = "[Resolve]\nLLMNR=no\nMulticastDNS=no\n"
 
 # cloud-init in the VM: the container snapshot's module lists (templates/docker/Dockerfile.j2) and,
 # as on the clouds, `ssh` (host keys made at first boot; Ed25519 and ECDSA only: an RSA key costs
 # seconds in an emulated guest) and `keys-to-console` (their fingerprints on the serial console, which
 # ccrp pins them from). The network is cloud-init's again (the seed's network-config), rendered for
 # systemd-networkd.
+# keys-to-console runs right after `ssh`, in the network stage, not at the end of the final stage as
+# on the clouds: ccrp logs in as soon as the keys are on the console, so its login and its
+# `cloud-init status --wait` (a Python start: 8-10 s under TCG) overlap the config and final
+# stages instead of following them (the keys and their pinning are the same).
 CLOUD_CFG = """\
 datasource_list: [ NoCloud, None ]
 system_info:
@@ -41,9 +61,9 @@ system_info:
 ssh_genkeytypes: [ ed25519, ecdsa ]
 ssh_deletekeys: true
 ssh_pwauth: false
-cloud_init_modules: [ bootcmd, write-files, set_hostname, update_hostname, update_etc_hosts, users-groups, ssh ]
+cloud_init_modules: [ bootcmd, write-files, set_hostname, update_hostname, update_etc_hosts, users-groups, ssh, keys-to-console ]
 cloud_config_modules: [ locale, apt-configure, runcmd ]
-cloud_final_modules: [ package-update-upgrade-install, write-files-deferred, scripts-per-once, scripts-per-boot, scripts-per-instance, scripts-user, ssh-authkey-fingerprints, keys-to-console, final-message ]
+cloud_final_modules: [ package-update-upgrade-install, write-files-deferred, scripts-per-once, scripts-per-boot, scripts-per-instance, scripts-user, ssh-authkey-fingerprints, final-message ]
 """
 
 # ROS 1's roscore gives the master it starts 10 s to answer (roslaunch's _TIMEOUT_MASTER_START), then
@@ -58,17 +78,23 @@ RUN apt-get update \\
  && rm -rf /var/lib/apt/lists/*
 COPY 90-ccrp.cfg /etc/cloud/cloud.cfg.d/90-ccrp.cfg
 COPY fstab /etc/fstab
-RUN f=/usr/lib/python3/dist-packages/roslaunch/launch.py; [ ! -f "$f" ] \\
+COPY resolved.conf /etc/systemd/resolved.conf.d/90-ccrp.conf
+{no_ra}RUN f=/usr/lib/python3/dist-packages/roslaunch/launch.py; [ ! -f "$f" ] \\
  || sed -i 's/^_TIMEOUT_MASTER_START = 10.0 /_TIMEOUT_MASTER_START = 180.0 /' "$f" && ! grep -q '^_TIMEOUT_MASTER_START = 10.0 ' "$f"
 RUN rm -f /etc/ssh/ssh_host_* \\
  && systemctl unmask cloud-init-local.service systemd-logind.service \\
- && systemctl enable systemd-networkd.service ssh.service cloud-init-local.service cloud-init.service \\
-      cloud-config.service cloud-final.service \\
+ && systemctl enable systemd-networkd.service systemd-resolved.service ssh.service cloud-init-local.service \\
+      cloud-init.service cloud-config.service cloud-final.service \\
  && rm -rf /var/lib/cloud/instance /var/lib/cloud/instances \\
  && : > /etc/machine-id
 """
 FSTAB = "/dev/vda / ext4 defaults,errors=remount-ro 0 1\n"
 DISK_BYTES = 8 << 30  # the root file system's size: the recipe takes about 1.5 GB of it
+
+
+def dockerfile(base: str) -> str:
+    return DOCKERFILE.format(base=base, packages=" ".join(VM_PACKAGES),
+                             no_ra="".join(f"COPY no-ra.conf {path}\n" for path in NO_RA_DROPINS))
 
 
 @dataclass
@@ -109,9 +135,10 @@ def build(client, snapshot_image: str, out_dir: Path, progress=lambda msg: None,
     tag = f"{snapshot_image.rsplit(':', 1)[0]}:vm-{int(time.time())}"
     t0 = time.monotonic()
     progress(f"adding a kernel, sshd and networkd to {snapshot_image} ({tag})")
-    build_clone_image(client, tag, DOCKERFILE.format(base=snapshot_image, packages=" ".join(VM_PACKAGES)),
-                      {"ccrp-libvirt-golden": snapshot_image}, progress,
-                      files={"90-ccrp.cfg": CLOUD_CFG.encode(), "fstab": FSTAB.encode()}, what="golden volume layer")
+    build_clone_image(client, tag, dockerfile(snapshot_image), {"ccrp-libvirt-golden": snapshot_image}, progress,
+                      files={"90-ccrp.cfg": CLOUD_CFG.encode(), "fstab": FSTAB.encode(),
+                             "resolved.conf": RESOLVED_CONF.encode(), "no-ra.conf": NO_RA_DROPIN.encode()},
+                      what="golden volume layer")
     seconds["vm layer (docker build)"] = time.monotonic() - t0
     container = None
     try:
@@ -122,6 +149,11 @@ def build(client, snapshot_image: str, out_dir: Path, progress=lambda msg: None,
             container = client.containers.create(tag, command=["/bin/true"])
             _export(container, tar, root)
             seconds["export + untar"] = time.monotonic() - t0
+            # Docker mounts its own /etc/resolv.conf over the image's in every build step, so the
+            # link to resolved's stub (what Debian's systemd-resolved package makes) is made here.
+            resolv = root / "etc" / "resolv.conf"
+            resolv.unlink(missing_ok=True)
+            resolv.symlink_to("../run/systemd/resolve/stub-resolv.conf")
             kernel, initrd = _boot_files(root, out_dir)
             t0 = time.monotonic()
             raw = Path(tmp) / "root.img"

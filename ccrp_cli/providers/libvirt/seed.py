@@ -22,13 +22,19 @@ def meta_data(instance_id: str, hostname: str) -> str:
     return yaml.safe_dump({"instance-id": instance_id, "local-hostname": hostname}, sort_keys=False)
 
 
+# The clone's NICs, named by cloud-init (set-name, matched by MAC) so that the golden volume's
+# networkd drop-ins (goldens.py NO_RA_DROPINS) apply to the files cloud-init writes for them.
+NIC_NAMES = ("public", "common")
+
+
 def network_config(public_mac: str, common_mac: str, common_ip: str, common_cidr: ipaddress.IPv4Network) -> str:
     """cloud-init's network config v2: DHCP on the public (NAT) side, the clone's static address on
     the common network, no gateway there (the default route is the public side's)."""
+    public, common = NIC_NAMES
     return yaml.safe_dump({"version": 2, "ethernets": {
-        "public": {"match": {"macaddress": public_mac}, "dhcp4": True},
-        "common": {"match": {"macaddress": common_mac}, "dhcp4": False,
-                   "addresses": [f"{common_ip}/{common_cidr.prefixlen}"]},
+        public: {"match": {"macaddress": public_mac}, "set-name": public, "dhcp4": True},
+        common: {"match": {"macaddress": common_mac}, "set-name": common, "dhcp4": False,
+                 "addresses": [f"{common_ip}/{common_cidr.prefixlen}"]},
     }}, sort_keys=False)
 
 
