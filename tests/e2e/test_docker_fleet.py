@@ -848,9 +848,12 @@ def test_knowledge_reaches_every_clone_with_a_conflict_a_deletion_and_a_missed_e
     wait_for("alice.jpg on every clone", everywhere(fleet, {"alice.jpg": sha1}), SYNC_TIMEOUT, interval=0.1, since=t0)
     fleet.log.append(f"knowledge: an item added on nao1 was on nao2 and turtlebot1 {time.monotonic() - t0:.2f} s "
                      "after `knowledge add` returned")
-    row = fleet.status()["turtlebot1"]["knowledge"]
+    # The agent rewrites its status file once a second: the item is counted there at the next write
+    # (run 28 read it 0.28 s after the sync, before that write).
+    row = wait_for("turtlebot1's knowledge status counting alice.jpg", lambda: (
+        ((r := fleet.status()["turtlebot1"]["knowledge"] or {}).get("datasets") or {}).get("faces", {}).get("items") == 1,
+        r), 5)
     assert row["running"] and row["peers"]["nao1"] and row["peers"]["nao2"], row
-    assert row["datasets"]["faces"]["items"] == 1, row
     before = row["datasets"]["faces"]["tombstones"]  # an earlier test's deletions (5c2's face)
 
     # The same name, other content, on nao2: both stay, each named after its origin.
