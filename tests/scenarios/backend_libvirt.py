@@ -29,7 +29,7 @@ unavailable = gate  # why the scenario cannot run here (None: it can)
 PROVIDER = "  kind: libvirt\n  memory_mb: 1536\n  vcpus: 2\n  public_cidr: {public}\n"
 
 
-def _owned(fleet: str, goldens: bool = False) -> list[str]:
+def _owned(fleet: str) -> list[str]:
     import docker
     import libvirt
 
@@ -43,7 +43,7 @@ def _owned(fleet: str, goldens: bool = False) -> list[str]:
             if pool.isActive():
                 pool.refresh(0)
                 found += [f"volume {v.name()}" for v in pool.listAllVolumes(0) if v.name().startswith(prefix)
-                          and (goldens or not v.name().startswith(f"{prefix}golden-"))]
+                          and not v.name().startswith(f"{prefix}golden-")]
         found += [f"container {c.name}" for c in
                   client.containers.list(all=True, ignore_removed=True, filters={"label": f"ccrp-fleet={fleet}"})]
         return sorted(found)
