@@ -10,13 +10,12 @@ from __future__ import annotations
 from .api_manager import ApiManager
 from .autostop import Autostop
 from .base import Boot, CloneService
-from .camera import Camera
 from .knowledge import Knowledge
 from .power import Power
 from .sharing import Relay
 from .workloads import Nodes
 
-SERVICES: tuple[CloneService, ...] = (Relay(), Autostop(), Power(), ApiManager(), Knowledge(), Nodes(), Camera())
+SERVICES: tuple[CloneService, ...] = (Relay(), Autostop(), Power(), ApiManager(), Knowledge(), Nodes())
 
 
 def boots() -> tuple[Boot, ...]:

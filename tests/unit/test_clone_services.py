@@ -17,7 +17,7 @@ RESULT = '{"v1": {"datasource": "DataSourceNoCloud", "errors": []}}'
 
 
 def test_the_registry_runs_the_services_in_fleet_ups_order():
-    assert [s.name for s in SERVICES] == ["relay", "autostop", "power", "api_manager", "knowledge", "nodes", "camera"]
+    assert [s.name for s in SERVICES] == ["relay", "autostop", "power", "api_manager", "knowledge", "nodes"]
     # Settings go before the keys in this order; the others are applied after the clone serves.
     assert [s.name for s in SERVICES if s.settings] == ["relay", "autostop", "knowledge"]
     assert [s.name for s in SERVICES if s.reshared] == ["relay", "knowledge"]
