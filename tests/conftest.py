@@ -113,6 +113,8 @@ SLOWEST_FIRST = [
     # waited 145 s for the run's one full install of the recipe, which OpenStack's was making
     # (run 9), and found it ready when it came later (run 7).
     "tests/scenarios/test_user_path.py/openstack", "tests/e2e/test_docker_fleet.py", "tests/e2e/test_jazzy_fleet.py",
+    # VM clones under TCG: long and CPU-bound, so early enough not to be the run's tail.
+    "tests/e2e/test_libvirt.py",
     "tests/scenarios/test_user_path.py/aws", "tests/scenarios/test_user_path.py/docker",
     "tests/scenarios/test_user_path.py/gcp", "tests/scenarios/test_jazzy_cloud.py",
     "tests/e2e/test_gce_startup_script.py", "tests/e2e/test_evaluation.py", "tests/e2e/test_dashboard_browser.py",
