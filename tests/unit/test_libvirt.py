@@ -7,7 +7,9 @@ from __future__ import annotations
 import ipaddress
 import json
 import shutil
+import re
 import sys
+import time
 import xml.etree.ElementTree as ET
 
 import pytest
@@ -102,6 +104,7 @@ def test_domain_xml_devices():
     assert all(d.find("source").get("pool") == "ccrp" for d in disks)
     assert dom.find("devices/serial/log").get("file") == "/pool/ccrp-vmlab-cri-nao1.console"
     assert dom.find("devices/rng/backend").text == "/dev/urandom"
+    assert dom.find("devices/channel/target").attrib == {"type": "virtio", "name": "org.qemu.guest_agent.0"}
     assert dom.findtext("on_poweroff") == "destroy" and dom.find("features/acpi") is not None
     kvm = ET.fromstring(xmldefs.domain(domain_spec(accel="kvm")))
     assert kvm.get("type") == "kvm" and kvm.find("cpu").get("mode") == "host-passthrough"
@@ -237,6 +240,11 @@ def test_golden_layer_and_cloud_config():
     assert "systemd-resolved" in goldens.VM_PACKAGES and "systemd-resolved.service" in text
     assert "/etc/systemd/resolved.conf.d/" in text
     assert {"LLMNR=no", "MulticastDNS=no"} <= set(goldens.RESOLVED_CONF.splitlines())
+    # QEMU's guest agent, for the clock only: every RPC the installed agent lists is blocked but these.
+    assert "qemu-guest-agent" in goldens.VM_PACKAGES
+    [line] = [x for x in text.splitlines() if "qemu-ga --block-rpcs=help" in x]
+    allowed = set(re.search(r"grep -vxE '([^']+)'", line).group(1).split("|"))
+    assert allowed == {"guest-sync-delimited", "guest-sync", "guest-ping", "guest-info", "guest-get-time", "guest-set-time"}
 
 
 def test_golden_needs_its_tools(monkeypatch, tmp_path):
@@ -633,3 +641,47 @@ def test_gc_runs_on_a_libvirt_fleet(tmp_path, monkeypatch):
     # no state records nao1's clone either; the golden volume is within snapshots.keep
     assert leaks == {("instance", "ccrp-vmlab-cri-nao1", "leak"), ("volume", "ccrp-vmlab-cri-nao1.qcow2", "leak"),
                      ("volume", "ccrp-vmlab-cri-nao1-seed.iso", "leak"), ("volume", "ccrp-vmlab-cri-nao7.qcow2", "leak")}
+
+
+class _AgentDom(_Dom):
+    """A domain whose guest agent answers from its third call, its clock `behind` seconds late; a
+    time sent is applied `late` seconds after it was read, as over a busy emulated guest's agent."""
+
+    def __init__(self, behind, late=0.0, **kw):
+        super().__init__("ccrp-vmlab-cri-nao1", {}, "u1", **kw)
+        self.behind, self.late, self.calls, self.set = behind, late, 0, []
+
+    def getTime(self, flags):
+        self.calls += 1
+        if self.calls < 3:
+            raise _LibvirtError(86)  # VIR_ERR_AGENT_UNRESPONSIVE: the agent has not started yet
+        t = time.time() - self.behind
+        return {"seconds": int(t), "nseconds": int(t % 1 * 1e9)}
+
+    def setTime(self, t, flags):
+        sent = t["seconds"] + t["nseconds"] / 1e9
+        self.set.append(sent)
+        self.behind = time.time() + self.late - sent
+
+
+def test_the_host_sets_a_vm_clones_clock_through_its_guest_agent(tmp_path, monkeypatch):
+    p = stand_in(tmp_path, [], [], [])
+    monkeypatch.setattr(provider.time, "sleep", lambda s: None)
+    dom = _AgentDom(behind=0.8, late=0.06)
+    monkeypatch.setattr(p, "_domain", lambda robot: (dom, None))
+    behind = p.sync_clock("nao1", timeout=30)
+    assert 0.75 < behind < 0.85
+    # The first time sent was the host's; the guest took it 60 ms late, so the next one led by that.
+    assert len(dom.set) == 2 and abs(dom.set[0] - time.time()) < 1.0 and abs(dom.behind) < 0.005
+
+    # A domain defined before the agent (no port in its XML) keeps its clock: nothing is asked.
+    old = _AgentDom(behind=0.8)
+    old._xml = old._xml.replace("org.qemu.guest_agent.0", "org.example.other")
+    monkeypatch.setattr(p, "_domain", lambda robot: (old, None))
+    assert p.sync_clock("nao1") is None and old.calls == 0
+
+    # An agent that never answers (a golden volume without it): None once the time is up.
+    mute = _AgentDom(behind=0.8)
+    mute.calls = -10**9
+    monkeypatch.setattr(p, "_domain", lambda robot: (mute, None))
+    assert p.sync_clock("nao1", timeout=0) is None and mute.calls == -10**9 + 1 and mute.set == []

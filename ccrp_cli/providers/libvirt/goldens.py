@@ -28,8 +28,18 @@ from .seed import NIC_NAMES
 # set) with initramfs-tools, udev (modules for the devices it finds), sshd (the transport), sudo
 # (the login user's), e2fsprogs (fsck of the root at boot), systemd-resolved (the resolver: it takes
 # the DNS server systemd-networkd got by DHCP, the NAT network's dnsmasq; networkd alone writes no
-# resolv.conf, and a container's comes from Docker).
-VM_PACKAGES = ["linux-image-cloud-amd64", "udev", "openssh-server", "sudo", "e2fsprogs", "systemd-resolved"]
+# resolv.conf, and a container's comes from Docker), QEMU's guest agent (the clock, below).
+VM_PACKAGES = ["linux-image-cloud-amd64", "udev", "openssh-server", "sudo", "e2fsprogs", "systemd-resolved",
+               "qemu-guest-agent"]
+
+# A VM's clock starts from the emulated RTC, which holds whole seconds: without KVM's paravirtual
+# clock a clone started up to a second behind the host (a robot's or a peer clone's stamps then
+# looked up to a second old or in the future). The provider sets the clone's clock from the host's
+# through the guest agent once it boots (provider.py sync_clock). The agent answers only the RPCs
+# that needs; every other one (guest-exec, file access, SSH keys, passwords...) is blocked, the
+# list read from the installed agent itself so that none added by a newer version slips through.
+GUEST_AGENT_RPCS = ("guest-sync-delimited", "guest-sync", "guest-ping", "guest-info", "guest-get-time",
+                    "guest-set-time")
 
 # No IPv6 router advertisements listened for on the clone's NICs (the fleet's networks are IPv4
 # only, xmldefs.py): while systemd-networkd solicits a router, a link without DHCP (the common one)
@@ -79,7 +89,9 @@ RUN apt-get update \\
 COPY 90-ccrp.cfg /etc/cloud/cloud.cfg.d/90-ccrp.cfg
 COPY fstab /etc/fstab
 COPY resolved.conf /etc/systemd/resolved.conf.d/90-ccrp.conf
-{no_ra}RUN f=/usr/lib/python3/dist-packages/roslaunch/launch.py; [ ! -f "$f" ] \\
+{no_ra}RUN mkdir -p /etc/qemu && blocked=$(qemu-ga --block-rpcs=help | grep -vxE '{agent_rpcs}' | paste -sd, -) \\
+ && [ -n "$blocked" ] && printf '[general]\\nblock-rpcs=%s\\n' "$blocked" > /etc/qemu/qemu-ga.conf
+RUN f=/usr/lib/python3/dist-packages/roslaunch/launch.py; [ ! -f "$f" ] \\
  || sed -i 's/^_TIMEOUT_MASTER_START = 10.0 /_TIMEOUT_MASTER_START = 180.0 /' "$f" && ! grep -q '^_TIMEOUT_MASTER_START = 10.0 ' "$f"
 RUN rm -f /etc/ssh/ssh_host_* \\
  && systemctl unmask cloud-init-local.service systemd-logind.service \\
@@ -94,7 +106,8 @@ DISK_BYTES = 8 << 30  # the root file system's size: the recipe takes about 1.5 
 
 def dockerfile(base: str) -> str:
     return DOCKERFILE.format(base=base, packages=" ".join(VM_PACKAGES),
-                             no_ra="".join(f"COPY no-ra.conf {path}\n" for path in NO_RA_DROPINS))
+                             no_ra="".join(f"COPY no-ra.conf {path}\n" for path in NO_RA_DROPINS),
+                             agent_rpcs="|".join(GUEST_AGENT_RPCS))
 
 
 @dataclass

@@ -46,6 +46,8 @@ PROBE_TIMEOUT = 20.0
 # Waits on an emulated (TCG) guest get this many times the time ccrp's callers give a VM: its first
 # boot took 272 s to the end of cloud-init on this 2-core machine under load (docs/libvirt.md),
 # where `fleet up` gives a clone 300 s, and every command in it runs several times slower.
+# Setting a clone's clock (sync_clock): rounds at most, and what is close enough to the host's.
+CLOCK_ROUNDS, CLOCK_TOLERANCE = 4, 0.005
 TCG_SLOWDOWN = 3  # a guest that works gets there in about a second under KVM, two under TCG
 
 
@@ -471,21 +473,64 @@ class LibvirtProvider(CloudProvider):
         return TCG_SLOWDOWN if known else 1
 
     def wait_ready(self, robot: str, timeout: float = 600) -> None:
-        """As on a cloud; a clone started again (its host keys known already) first gets until its
-        sshd listens: the SSH transport's own retries (about 25 s) end sooner than a TCG boot does."""
+        """As on a cloud, once the clone's sshd listens: the SSH transport's own retries (about 25 s)
+        end sooner than a TCG boot gets there. A clone started again has its host keys known already;
+        a new one prints them on the console in cloud-init's first stage (goldens.py CLOUD_CFG), and
+        sshd starts only after that stage: 25 s after the keys, nao2's sshd was not listening yet in
+        one loaded run (load average 5-8)."""
         from ...retry import PollTimeout, poll
-        from ...transport.ssh import KnownHosts
 
         timeout *= self.timeout_scale(robot)
         deadline = time.monotonic() + timeout
         rec = self.query().get(robot)
-        if rec is not None and rec.public_ip and KnownHosts(self.known_hosts_path).keys(rec.provider_id):
+        if rec is not None and rec.public_ip:
             try:
                 poll(lambda: (_listening(rec.public_ip), None), timeout=timeout, interval=2.0)
             except PollTimeout:
                 raise CcrpError(f"clone of {robot}: nothing listens on {rec.public_ip}:22 after {timeout:.0f} s",
                                 hint=f"ccrp clone exec --robot {robot} -- systemctl status ssh, or read its console") from None
         super().wait_ready(robot, max(1.0, deadline - time.monotonic()))
+        self.sync_clock(robot, timeout=max(10.0, deadline - time.monotonic()))
+
+    def sync_clock(self, robot: str, timeout: float = 60) -> float | None:
+        """Set the clone's clock to this host's through its guest agent: a VM's clock starts from the
+        emulated RTC's whole seconds (goldens.py GUEST_AGENT_RPCS). Returns how far behind the host
+        the clone's clock was, in seconds; None when no agent answered within timeout (a clone whose
+        domain or golden volume predates the agent keeps the clock it booted with)."""
+        dom, _info = self._domain(robot)
+        if dom is None or xmldefs.GUEST_AGENT not in dom.XMLDesc(0):
+            return None
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                behind, _rtt = self._clock_behind(dom)
+                break
+            except self.libvirt.libvirtError:
+                # The agent starts with the guest's udev (its port appears) and may not answer yet.
+                if time.monotonic() >= deadline:
+                    return None
+                time.sleep(1.0)
+        # The guest applies the time it is sent some milliseconds after the host read it (tens
+        # under TCG on a loaded host: 15 and 69 ms behind, measured): each round adds what the
+        # clone is still behind by to the next time sent, until that is within the reading's error.
+        lead = 0.0
+        with self._errors(f"clock of the clone of {robot}"):
+            for _ in range(CLOCK_ROUNDS):
+                now = time.time_ns() + int(lead * 1e9)
+                dom.setTime({"seconds": now // 1_000_000_000, "nseconds": now % 1_000_000_000}, 0)
+                still, rtt = self._clock_behind(dom)
+                if abs(still) <= max(CLOCK_TOLERANCE, rtt / 2):
+                    break
+                lead += still
+        return behind
+
+    @staticmethod
+    def _clock_behind(dom) -> tuple[float, float]:
+        """(how far the guest's clock is behind this host's, the reading's round trip), in seconds."""
+        before = time.time()
+        guest = dom.getTime(0)
+        after = time.time()
+        return (before + after) / 2 - (guest["seconds"] + guest["nseconds"] / 1e9), after - before
 
     def has_image(self, image: str) -> bool:
         try:

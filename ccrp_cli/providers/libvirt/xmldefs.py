@@ -21,6 +21,7 @@ LABEL = f"{{{NS}}}label"
 # What a clone's serial console is logged to (virtlogd), in the pool's directory: read back through
 # the pool like any volume, so a remote libvirt host serves it too.
 CONSOLE_SUFFIX = ".console"
+GUEST_AGENT = "org.qemu.guest_agent.0"  # the agent's virtio-serial port
 
 
 def _text(parent: ET.Element, tag: str, text: str, **attrs: str) -> ET.Element:
@@ -154,8 +155,8 @@ class DomainSpec:
 def domain(spec: DomainSpec) -> str:
     """A persistent VM: direct kernel boot of the golden volume's kernel, its disk an overlay, the
     NoCloud seed a read-only second disk, one virtio NIC per network, the serial console logged to
-    a file (the console ccrp pins host keys from), a virtio RNG (sshd's keys at first boot need
-    entropy, scarce in an emulated guest)."""
+    a file (the console ccrp pins host keys from), the guest agent's port, a virtio RNG (sshd's keys
+    at first boot need entropy, scarce in an emulated guest)."""
     dom = ET.Element("domain", type="kvm" if spec.accel == "kvm" else "qemu")
     _text(dom, "name", spec.name)
     _text(dom, "title", spec.title)
@@ -194,6 +195,9 @@ def domain(spec: DomainSpec) -> str:
     ET.SubElement(serial, "target", port="0")
     console = ET.SubElement(dev, "console", type="pty")
     ET.SubElement(console, "target", type="serial", port="0")
+    # QEMU's guest agent (goldens.py): the host sets the clone's clock through it.
+    channel = ET.SubElement(dev, "channel", type="unix")
+    ET.SubElement(channel, "target", type="virtio", name=GUEST_AGENT)
     rng = ET.SubElement(dev, "rng", model="virtio")
     _text(rng, "backend", "/dev/urandom", model="random")
     ET.SubElement(dev, "memballoon", model="none")
