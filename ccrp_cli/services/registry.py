@@ -1,6 +1,6 @@
 """The clone services, in the order `fleet up` runs them (clones.py ensure_clone): the settings of
 the relay, autostop and knowledge are pushed in this order before the keys, then the API manager,
-knowledge and the nodes are applied in this order once the clone serves; `ccrp status` takes each
+knowledge, the nodes and the camera agent are applied in this order once the clone serves; `ccrp status` takes each
 one's fields; the user-data writes their units in this order too (boots()). A new service is its
 class (base.py CloneService) in its own module and one line here (docs/architecture.md, "Clone
 services")."""
@@ -10,12 +10,13 @@ from __future__ import annotations
 from .api_manager import ApiManager
 from .autostop import Autostop
 from .base import Boot, CloneService
+from .camera import Camera
 from .knowledge import Knowledge
 from .power import Power
 from .sharing import Relay
 from .workloads import Nodes
 
-SERVICES: tuple[CloneService, ...] = (Relay(), Autostop(), Power(), ApiManager(), Knowledge(), Nodes())
+SERVICES: tuple[CloneService, ...] = (Relay(), Autostop(), Power(), ApiManager(), Knowledge(), Nodes(), Camera())
 
 
 def boots() -> tuple[Boot, ...]:
