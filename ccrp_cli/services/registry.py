@@ -23,3 +23,10 @@ def boots() -> tuple[Boot, ...]:
     """What the services add to a clone's user-data, for render/cloudinit.py (which cannot import
     the services: they import render/)."""
     return tuple(s.boot for s in SERVICES)
+
+
+def image_agents() -> tuple[str, ...]:
+    """The agents a ROS 1 snapshot holds (each service's Boot.image_agents, in this order): what
+    `snapshot build` hands the provider's build and `snapshot bake` its builder's user-data, and
+    `ccrp deploy` its build in the same image (ops/snapshots.py, ops/deploy.py)."""
+    return tuple(a for s in SERVICES for a in s.boot.image_agents)
