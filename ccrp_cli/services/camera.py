@@ -42,7 +42,9 @@ def agent_file() -> BundleFile:
 
 class Camera(CloneService):
     """Every clone holds the agent (any robot may have a camera); `fleet up` pushes it once the
-    clone serves when the clone's copy is missing or another, and starts nothing."""
+    clone serves when the clone's copy is missing or another, and starts nothing. It is not among a
+    snapshot's agents (Boot.image_agents), which would spare that one push per new clone: a bake's
+    builder user-data would carry it too, and on AWS that took 12.9 of the 16 KiB gzipped to 14.7."""
 
     name = "camera"
 
