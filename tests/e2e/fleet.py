@@ -445,14 +445,15 @@ def warm_snapshot(client, distro: str) -> str:
     layer in Docker's cache and takes seconds. A lock file makes parallel workers build it once."""
     from ccrp_cli.providers.docker import images
     from ccrp_cli.recipes import platform
+    from ccrp_cli.services.registry import image_agents
     from tests.locks import host_lock
 
     plat = platform(distro, "debian-bookworm")
     tag = SNAPSHOT_CACHE.format(distro=distro)
     ensure_base(client)
     with host_lock(f"snapshot-{distro}"):
-        images.build_clone_image(client, tag, images.dockerfile("cache", distro, images.DEFAULT_BASE, plat),
-                                 {"ccrp-test-cache": distro}, files=images.build_context(plat, distro=distro))
+        images.build_clone_image(client, tag, images.dockerfile("cache", distro, images.DEFAULT_BASE, plat, agents=image_agents()),
+                                 {"ccrp-test-cache": distro}, files=images.build_context(plat, distro=distro, agents=image_agents()))
     return tag
 
 
