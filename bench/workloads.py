@@ -65,14 +65,15 @@ def cold_build(inventory: Path) -> float:
     from ccrp_cli.providers.docker import images
     from ccrp_cli.providers.docker.archive import tar_files
     from ccrp_cli.recipes import platform as recipe_platform
+    from ccrp_cli.services.registry import image_agents
     from ccrp_cli.services.workloads import snapshot_software
 
     fleet = Fleet.open(inventory)
     inv = fleet.inventory
     plat = recipe_platform(inv.ros.distro, "docker")
     software = snapshot_software(inv, fleet.path)
-    text = images.dockerfile(fleet.name, inv.ros.distro, images.DEFAULT_BASE, plat, software)
-    context = images.build_context(plat, distro=inv.ros.distro, software=software)  # wheels: from the cache
+    text = images.dockerfile(fleet.name, inv.ros.distro, images.DEFAULT_BASE, plat, software, agents=image_agents())
+    context = images.build_context(plat, distro=inv.ros.distro, software=software, agents=image_agents())  # wheels: from the cache
     entries = [("Dockerfile", text.encode(), 0o644), *((n, d, 0o644) for n, d in context.items())]
     client = docker.from_env(timeout=1800)
     tag = f"ccrp/{fleet.name}-clone:cold"

@@ -44,13 +44,7 @@ POWER_PORT = 11400
 WORKSPACE = "/opt/ccrp/workspace"
 
 # What a clone image holds beyond its recipe, on every backend (the Docker build and the clouds' bake):
-# The agents a snapshot holds (their Python packages come with the recipe's pip list); autostop's is
-# small and stdlib-only, and comes with the user-data instead. A ROS 2 image holds none: its relay
-# comes with the user-data, its API manager with its config (api_manager.py api_manager_files).
-IMAGE_AGENTS = ("relay", "api_manager")
-# What a bare clone's user-data carries of them (a stock image installing at boot): the API manager
-# is pushed by `fleet up` to the clones that run one (api_manager.api_manager_files).
-BOOT_AGENTS = ("relay",)
+# ccrp's agents are the services' to say (render/boot.py Boot.image_agents, bare_agents).
 # The locale of every clone image, set by templates/docker/Dockerfile.j2 and the clouds' bake (both
 # run this same command): generated once in the image and recorded in /etc/default/locale, so
 # cloud-init's locale module finds it set and no clone runs locale-gen at boot (seconds of CPU each).

@@ -213,6 +213,7 @@ def baked_recipes():
 
     from ccrp_cli.loader import load_inventory
     from ccrp_cli.render.cloudinit import builder_user_data
+    from ccrp_cli.services.registry import image_agents
     from tests.fakes.cloudboot import warm_bake
 
     done: dict[str, str] = {}
@@ -224,7 +225,7 @@ def baked_recipes():
             path = tmp / f"bake-{distro}.yaml"
             path.write_text(yaml.safe_dump(data))
             token = uuid.uuid4().hex[:16]
-            done[distro] = warm_bake(builder_user_data(load_inventory(path), token).encode(), progress=lambda m: None)
+            done[distro] = warm_bake(builder_user_data(load_inventory(path), token, image_agents()).encode(), progress=lambda m: None)
         return done[distro]
 
     return get

@@ -275,6 +275,7 @@ def build_install_space(fleet: Fleet, software: SnapshotSoftware, progress: Prog
     """The tar of the install space (top directory `workspace/`) built from `software` in the
     fleet's clone image, on this host's Docker engine whatever the fleet's backend."""
     from ..providers import build_workspace
+    from ..services.registry import image_agents
 
     if software.build_type is None:  # no workspace (any more): an empty install space
         buf = io.BytesIO()
@@ -283,7 +284,8 @@ def build_install_space(fleet: Fleet, software: SnapshotSoftware, progress: Prog
             info.type, info.mode = tarfile.DIRTYPE, 0o755
             tar.addfile(info)
         return buf.getvalue()
-    data = build_workspace(fleet.inventory, software, progress)
+    # In the snapshot's own image (its agents too), so the build finds the snapshot's layers cached.
+    data = build_workspace(fleet.inventory, software, image_agents(), progress)
     if len(data) > MAX_INSTALL_BYTES:
         raise CcrpError(f"the workspace's install space is {len(data) >> 20} MB, more than deploy pushes "
                         f"({MAX_INSTALL_BYTES >> 20} MB)", hint="build a new snapshot and re-create the clones")

@@ -31,6 +31,7 @@ def build(fleet: Fleet, provider: Provider, progress: Progress, bare: bool = Fal
     cloud image would (slower: the reason for snapshots, see bench/)."""
     from ..providers import info
     from ..recipes import platform
+    from ..services.registry import image_agents
     from ..services.workloads import packages_record, snapshot_software
 
     inv = fleet.inventory
@@ -39,7 +40,9 @@ def build(fleet: Fleet, provider: Provider, progress: Progress, bare: bool = Fal
     # its clones install ccrp's recipe at boot, and fleet up then refuses an inventory with software).
     software = None if bare else snapshot_software(inv, fleet.path)
     digest = software.digest if software is not None else NO_SOFTWARE
-    record = provider.build_snapshot(image_repo(fleet), inv.ros.distro, plat, software, digest, bare, progress)
+    # The agents the image holds are the services' to say (Boot.image_agents); the provider only builds.
+    record = provider.build_snapshot(image_repo(fleet), inv.ros.distro, plat, image_agents(), software, digest, bare,
+                                     progress)
     # What `ccrp deploy` cannot change on a clone made from it (apt, pip): it compares them.
     held = {} if software is None else {"packages": packages_record(software)}
     _use(fleet, record, bare, software=digest, **held)
@@ -80,6 +83,7 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
     inv = fleet.inventory
     kind = inv.provider.kind
     require(kind, Ability.BAKE, hint=f"on {kind} the golden image is built locally: `ccrp snapshot build`")
+    from ..services.registry import image_agents
     from ..services.workloads import packages_record, snapshot_software
 
     # The fleet's own software, read and checked before any builder starts.
@@ -96,7 +100,7 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
         raise InputError(f"base image {base} not found on {kind}", hint=info(kind).bake_base_hint)
     token = secrets.token_hex(8)
     # With software, ccrp logs in to build it after cloud-init: the builder's login gets the key.
-    user_data = builder_user_data(inv, token, login_keys=None if software.empty else provider.login_keys())
+    user_data = builder_user_data(inv, token, image_agents(), login_keys=None if software.empty else provider.login_keys())
     info(kind).fit_user_data(user_data)
     spec = CloneSpec(robot=BUILDER, hostname="ccrp-builder", image=base, user_data=user_data,
                      instance_id=f"{fleet.name}-builder-{token}", common_ip=_builder_common_ip(inv), role="builder")

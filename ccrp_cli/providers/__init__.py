@@ -58,10 +58,11 @@ def robot_host(fleet: str) -> RobotHost:
     return host
 
 
-def build_workspace(inv: Inventory, software, progress: Callable[[str], None]) -> bytes:
+def build_workspace(inv: Inventory, software, agents: tuple[str, ...], progress: Callable[[str], None]) -> bytes:
     """The tar of the install space (`workspace/`) of `software` (workloads.SnapshotSoftware, with a
-    workspace) built in the fleet's clone image on this host (CcrpError when no engine answers)."""
-    return _load(WORKSPACE_BUILD)(inv, software, progress)
+    workspace) built in the fleet's clone image, with the `agents` its snapshot holds (as
+    LocalBuild.build_snapshot is given them), on this host (CcrpError when no engine answers)."""
+    return _load(WORKSPACE_BUILD)(inv, software, agents, progress)
 
 
 def close_opened() -> None:

@@ -401,9 +401,12 @@ class HostImages(Protocol):
 
 class LocalBuild(Protocol):
     """What a provider with Ability.LOCAL_BUILD adds: `snapshot build` makes the golden image on this
-    machine (Docker: the clone image; libvirt: the golden volume made from it)."""
+    machine (Docker: the clone image; libvirt: the golden volume made from it): the recipe's
+    platform `plat`, ccrp's `agents` (agent/<name>.py, in /usr/local/lib/ccrp of a ROS 1 image: what
+    the core's services declare, ops/snapshots.py), the fleet's `software` (None: none) whose digest
+    labels it, or a `bare` image."""
 
-    def build_snapshot(self, repo: str, distro: str, plat, software, digest: str, bare: bool,
+    def build_snapshot(self, repo: str, distro: str, plat, agents: tuple[str, ...], software, digest: str, bare: bool,
                        progress) -> SnapshotRecord: ...
 
 

@@ -32,8 +32,16 @@ class Boot:
     agents: tuple[str, ...] = ()
     agent_mode: str = "0644"
     # Agents only a ROS 2 clone gets from its user-data: its image holds the wheels' venv alone,
-    # while a ROS 1 snapshot has them (layout.IMAGE_AGENTS).
+    # while a ROS 1 snapshot has them (image_agents).
     ros2_agents: tuple[str, ...] = ()
+    # agent/<name>.py in CCRP_LIB of every ROS 1 snapshot, whose recipe's pip list has their packages:
+    # the Docker image's build and the clouds' bake put them there, handed them by the core
+    # (ops/snapshots.py image_agents: a provider cannot import the services). A ROS 2 image holds none.
+    image_agents: tuple[str, ...] = ()
+    # Of those, what a clone of a bare image (a stock image installing the recipe at first boot) gets
+    # in its user-data instead; an agent `fleet up` pushes with its service's files is not among them
+    # (the snapshot's copy only spares that push, and a bare AWS clone's user-data has no room).
+    bare_agents: tuple[str, ...] = ()
     # System users (no login, no home) its agents run as.
     users: tuple[str, ...] = ()
     # Its own files, made for the clone (dest: the path on the clone).

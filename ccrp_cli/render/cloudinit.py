@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING, Any, Sequence
 import yaml
 
 from ..errors import CcrpError
-from ..layout import (BOOT_AGENTS, CCRP_ETC, ROS2_RMEM, ROS2_SYSCTL, CCRP_LIB, IMAGE_AGENTS, LOCALE, LOCALE_SETUP, LOGIN_USER,
-                      SECRETS_DIR, VPN_DIR)
+from ..layout import (CCRP_ETC, ROS2_RMEM, ROS2_SYSCTL, CCRP_LIB, LOCALE, LOCALE_SETUP, LOGIN_USER, SECRETS_DIR,
+                      VPN_DIR)
 from ..models.inventory import Inventory
 from ..providers.registry import info
 from ..recipes import platform
@@ -199,8 +199,9 @@ def user_data_dict(
         # reboot the keys are gone and `ccrp fleet up` pushes them again.
         data["bootcmd"] = every_boot_bootcmd()
     if install_packages:
-        # A bare base image: install at boot what a snapshot would already contain.
-        image = image_config(view.inv, agents=BOOT_AGENTS)  # the API manager comes with `fleet up`
+        # A bare base image: install at boot what a snapshot would already contain, but the agents
+        # `fleet up` pushes (the API manager's, the camera's: only their services' bare_agents).
+        image = image_config(view.inv, [a for boot in boots for a in boot.bare_agents])
         files += image.pop("write_files")
         data["runcmd"][:0] = image.pop("runcmd")
         data.update(image)
@@ -226,11 +227,12 @@ def every_boot_bootcmd() -> list[list[str]]:
     ]
 
 
-def image_config(inv: Inventory, agents: tuple[str, ...] = IMAGE_AGENTS) -> dict[str, Any]:
+def image_config(inv: Inventory, agents: Sequence[str]) -> dict[str, Any]:
     """What a snapshot holds beyond its base image, as cloud-config: what the Docker snapshot holds
     (templates/docker/Dockerfile.j2), installed on a stock Debian 12 cloud image. That is the
-    recipe's packages from Debian's archive, the relay agent and its pinned Zenoh from pip, and the
-    locale. A clone of a bare image runs it at first boot; `snapshot bake` runs it once on a builder
+    recipe's packages from Debian's archive, `agents` (agent/<name>.py: the services' image_agents,
+    a bare clone's bare_agents) with their pinned packages from pip on a ROS 1 image, and the locale.
+    A clone of a bare image runs it at first boot; `snapshot bake` runs it once on a builder
     instance."""
     plat = platform(inv.ros.distro, inv.clone_platform)
     # cloud-init's locale module is off here: it runs (config stage) before the packages are
@@ -285,14 +287,15 @@ def bake_proofs(inv: Inventory) -> list[str]:
     return ["apt", "locale"] + (["pip"] if plat.pip else []) + (["ros"] if plat.ros_installed else [])
 
 
-def builder_user_data(inv: Inventory, token: str, login_keys: list[str] | None = None) -> str:
-    """User-data of the instance `snapshot bake` captures: the image config, a proof on the console
-    per install step, and a final message carrying the token. No fleet, robot or private key in it.
+def builder_user_data(inv: Inventory, token: str, agents: Sequence[str], login_keys: list[str] | None = None) -> str:
+    """User-data of the instance `snapshot bake` captures: the image config with `agents` (the
+    services' image_agents, services/registry.py), a proof on the console per install step, and a
+    final message carrying the token. No fleet, robot or private key in it.
     `login_keys`: a bake with software: (the fleet's packages and workspace) logs in over SSH after
     cloud-init to build it; the login gets the operator key and sudo, which the build's last step
     takes away before the capture (templates/image/software-bake.sh)."""
     plat = platform(inv.ros.distro, inv.clone_platform)
-    data = image_config(inv)
+    data = image_config(inv, agents)
     # ccrp-topic, as in every Docker image; in snapshots only (a bare clone's user-data has no room
     # left for it: EC2 takes 16 KiB).
     data["write_files"].append(_file("/usr/local/bin/ccrp-topic", static("image/ccrp-topic"), "0755"))

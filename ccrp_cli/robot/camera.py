@@ -5,7 +5,9 @@ asks it on its Unix socket and prints its answer (a JPEG made with the clone's O
 
 Who starts the agent: `ccrp robot camera` (its first read), and the dashboard's Camera button
 (start_camera, a POST under the page's CSRF and Origin checks). The dashboard's frame reads, GETs,
-start nothing (latest_frame with start=False): without an agent they answer NoFrame "no-agent"."""
+start nothing (latest_frame with start=False): without an agent they answer NoFrame "no-agent".
+The agent's file, unit and socket are the camera service's (services/camera.py), whose file
+`fleet up` keeps on every clone."""
 
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from ..errors import CcrpError, InputError, shown
-from ..layout import CCRP_LIB
+from ..services.camera import AGENT, CAMERA_IDLE_S, SOCKET, UNIT, UNIT_OPTIONS, agent_file
 
 if TYPE_CHECKING:
     from ..providers.base import Lifecycle, Reaches
@@ -25,10 +27,6 @@ if TYPE_CHECKING:
 DEFAULT_TOPIC = "/camera/image_raw"
 TOPIC_RE = r"/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*"
 MAX_JPEG = 4 * 1024 * 1024  # a frame bigger than this is not a camera view (and would not fit an exec answer)
-AGENT = f"{CCRP_LIB}/camera.py"
-UNIT = "ccrp-camera"
-SOCKET = "/run/ccrp-camera/camera.sock"
-CAMERA_IDLE_S = 120
 
 # Run on the clone as `python3 -c ASK SOCKET TOPIC TIMEOUT` (names and numbers are arguments, never
 # shell text; standard library only, so it starts in milliseconds). Prints the agent's answer, or
@@ -46,13 +44,6 @@ s.sendall((json.dumps({"topic": topic, "timeout": timeout}) + "\n").encode())
 print(s.makefile("rb").readline().decode() or json.dumps({"error": "the camera agent ended the request", "why": "no-agent"}))
 """
 ASK_ARGV = ["python3", "-c", ASK, SOCKET]
-# The agent's unit: the clone's ROS environment, the `ros` user, logs and socket in memory.
-UNIT_OPTIONS = ["--description", "ccrp camera agent (ccrp robot camera, the dashboard's camera view)",
-                "--property", "User=ros", "--property", "RuntimeDirectory=ccrp-camera",
-                "--property", "RuntimeDirectoryMode=0700", "--property", "NoNewPrivileges=yes",
-                "--property", "ProtectSystem=full", "--property", "ProtectHome=yes", "--property", "PrivateTmp=yes",
-                "--setenv", "HOME=/run/ccrp-camera", "--setenv", "ROS_HOME=/run/ccrp-camera",
-                "--setenv", "ROS_LOG_DIR=/run/ccrp-camera/log"]
 
 
 class NoFrame(CcrpError):
@@ -167,13 +158,16 @@ def _ask(provider: Reaches, robot: str, topic: str, timeout: float) -> dict:
 
 
 def start_agent(provider: Reaches, robot: str) -> None:
-    """The camera agent on the clone, (re)started from this ccrp's copy of it."""
-    from ..render.files import BundleFile
-    from ..resources import agent_source
+    """The camera agent on the clone, (re)started from this ccrp's copy of it: `fleet up` puts that
+    copy there (services/camera.py); a clone without it (made before, or not brought up since ccrp
+    changed) gets it pushed here first."""
+    from ..probe import files_current
     from .evaluation import ROS_PRELUDE
     from .simulated import run_unit
 
-    provider.transport.push_files(robot, [BundleFile("camera.py", agent_source("camera"), 0o644, AGENT)], restart=[])
+    agent = agent_file()
+    if not files_current(provider, robot, [agent]):
+        provider.transport.push_files(robot, [agent], restart=[])
     argv = [*ROS_PRELUDE, "ccrp-camera", "/usr/bin/python3", AGENT, SOCKET, str(CAMERA_IDLE_S)]
     run_unit(lambda cmd: provider.transport.exec(robot, cmd, timeout=30), UNIT, argv, f"the clone of {robot!r}", UNIT_OPTIONS)
 

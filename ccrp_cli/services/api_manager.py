@@ -62,9 +62,9 @@ def google_key(path: str) -> str:
 def api_manager_files(inv: Inventory, robot: Robot) -> list[BundleFile]:
     """What `fleet up` pushes for robot's API manager: its config, its Vision key when it has one,
     and the agent (api_manager.py, and its rclpy side on ROS 2), as the knowledge agent is pushed:
-    a bare cloud clone's user-data carries only the relay (layout.BOOT_AGENTS), since with the API
-    manager too a Noetic one went over AWS's 16 KiB gzipped. A snapshot's copy is the same file,
-    so it is not sent again. [] when the clone runs none."""
+    a bare cloud clone's user-data carries only the relay (Boot.bare_agents), since with the API
+    manager too a Noetic one went over AWS's 16 KiB gzipped. A snapshot's copy (Boot.image_agents)
+    is the same file, so it is not sent again. [] when the clone runs none."""
     from ..resources import agent_source
 
     cfg = api_manager_config(inv, robot)
@@ -136,7 +136,8 @@ class ApiManager(CloneService):
     config, the agent and the backend's key once the clone serves, and restarts it."""
 
     name = "api_manager"
-    boot = Boot(units=(API_UNIT,), users=(API_USER,))
+    # The agent in every ROS 1 snapshot with its packages; pushed by fleet up where it is not.
+    boot = Boot(units=(API_UNIT,), image_agents=("api_manager",), users=(API_USER,))
 
     def check(self, fleet: Fleet, robot: Robot) -> None:
         key = key_path(fleet.inventory, robot)

@@ -1,5 +1,5 @@
 """What a clone service is (docs/architecture.md, "Clone services"): the relay, autostop, robot power,
-the API manager, knowledge sync, the robot's nodes. Each says what it adds to the
+the API manager, knowledge sync, the robot's nodes, the camera view. Each says what it adds to the
 user-data, what `fleet up` pushes to a clone for it after boot and how it applies it; the clone
 pipeline (clones.py ensure_clone) runs them in the registry's order (registry.py). A service
 imports neither the pipeline nor the registry (the `services` import contract), so adding one

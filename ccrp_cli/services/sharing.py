@@ -121,8 +121,10 @@ class Relay(CloneService):
     name = "relay"
     settings = True
     reshared = True
-    # A ROS 2 image has no agents of ccrp (the wheels' venv alone): the relay's come with the user-data.
-    boot = Boot(units=("ccrp-relay.service",), ros2_agents=("relay", "relay_ros2"), users=(RELAY_USER,))
+    # In every ROS 1 snapshot, and in a bare clone's user-data: `fleet up` pushes only its config. A
+    # ROS 2 image has no agents of ccrp (the wheels' venv alone): the relay's come with the user-data.
+    boot = Boot(units=("ccrp-relay.service",), image_agents=("relay",), bare_agents=("relay",),
+                ros2_agents=("relay", "relay_ros2"), users=(RELAY_USER,))
 
     def files(self, ctx: ServiceContext) -> list[BundleFile]:
         return [relay_config_file(ctx.fleet, ctx.state, ctx.robot.name, ctx.live)]

@@ -285,6 +285,11 @@ def test_the_camera_view_shows_the_latest_frame_from_the_clone(fleet, dashboard,
     assert got["status"] == 503 and '"why":"no-agent"' in base64.b64decode(got["body"]).decode()
     rc, _ = fleet.container("clone", "nao2").exec_run(["systemctl", "is-active", "--quiet", "ccrp-camera"])
     assert rc != 0  # no camera unit on nao2's clone
+    # ...but its agent, which `fleet up` pushed (the camera service): the start below only starts it.
+    from ccrp_cli.services.camera import AGENT, agent_file
+
+    rc, held = fleet.container("clone", "nao2").exec_run(["cat", AGENT])
+    assert rc == 0 and held.decode() == agent_file().content
     started = page_post(browser, "/api/camera/nao2/start")
     assert started == {"status": 200, "body": {"robot": "nao2", "agent": "started"}}, started
     got = page_fetch(browser, "/api/camera/nao2")

@@ -30,6 +30,7 @@ docker = pytest.importorskip("docker")
 
 from ccrp_cli.loader import load_inventory  # noqa: E402
 from ccrp_cli.render.cloudinit import builder_user_data, dump, login_user  # noqa: E402
+from ccrp_cli.services.registry import image_agents  # noqa: E402
 
 # Debian 12 minbase with what Debian's GCE image has and ccrp relies on (systemd, CA certificates,
 # sshd, sudo), and no cloud-init: kept between runs.
@@ -99,7 +100,7 @@ def image():
 
 def test_startup_script_installs_cloud_init_which_bakes_the_recipe(image, tmp_path: Path):
     inv = load_inventory(ROOT / "inventories" / "gcp.yaml")
-    (tmp_path / "user-data").write_text(builder_user_data(inv, TOKEN))
+    (tmp_path / "user-data").write_text(builder_user_data(inv, TOKEN, image_agents()))
     (tmp_path / "meta-data").write_text("instance-id: gce-startup-script-test\nlocal-hostname: ccrp-builder\n")
     shutil.copy(ROOT / "templates" / "gcp" / "startup-script", tmp_path / "startup-script")
     (tmp_path / "clone-user-data").write_text(dump({"users": [login_user([f"{KEY} clone-test-key"])]}))

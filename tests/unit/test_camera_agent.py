@@ -112,8 +112,9 @@ def test_the_client_asks_the_agent_on_its_socket(tmp_path):
 class Clone:
     """A clone whose camera agent is not running until started (its unit's systemd-run)."""
 
-    def __init__(self, frame: dict):
+    def __init__(self, frame: dict, held: dict[str, str] | None = None):
         self.frame, self.serving, self.ran, self.pushed = frame, False, [], []
+        self.held = dict(held or {})  # path -> content of what the clone holds
 
     def query(self):
         return {"nao1": object()}
@@ -121,9 +122,14 @@ class Clone:
     transport = property(lambda self: self)  # a fake clone is its own transport
     def push_files(self, robot, files, restart=()):
         self.pushed += [f.dest for f in files]
+        self.held.update({f.dest: f.content for f in files})
 
     def exec(self, robot, argv, timeout=60):
+        import hashlib
+
         self.ran.append(argv)
+        if argv[0] == "sha256sum":
+            return 0, "".join(f"{hashlib.sha256(self.held[p].encode()).hexdigest()}  {p}\n" for p in argv[1:] if p in self.held)
         if argv[0] == "systemd-run":
             self.serving = True
         if argv[:len(camera.ASK_ARGV)] == camera.ASK_ARGV:
@@ -146,3 +152,20 @@ def test_the_first_read_starts_the_agent_and_the_next_ones_only_ask(lab_up):
     assert len(clone.ran) == 1  # one exec: the client's question
 
 
+
+
+def test_a_clone_holding_the_agent_gets_it_started_not_pushed(lab_up):
+    """fleet up keeps the agent on every clone (services/camera.py): the first read only starts it.
+    A clone without this copy (made before the service, or holding an older one) gets it pushed."""
+    from ccrp_cli.services.camera import agent_file
+
+    fleet, _ = lab_up
+    jpeg = cv2.imencode(".jpg", np.zeros((8, 16, 3), np.uint8))[1].tobytes()
+    frame = {"topic": "/camera/image_raw", "width": 16, "height": 8, "encoding": "rgb8", "seq": 3,
+             "frame_id": "", "stamp": None, "age_ms": None, "jpeg": base64.b64encode(jpeg).decode()}
+    clone = Clone(frame, held={camera.AGENT: agent_file().content})
+    assert camera.latest_frame(fleet, clone, "nao1").seq == 3
+    assert clone.pushed == [] and any(argv[0] == "systemd-run" for argv in clone.ran)
+    older = Clone(frame, held={camera.AGENT: "# an older camera agent\n"})
+    assert camera.start_camera(fleet, older, "nao1") == {"robot": "nao1", "agent": "started"}
+    assert older.pushed == [camera.AGENT] and older.held[camera.AGENT] == agent_file().content

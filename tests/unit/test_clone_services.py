@@ -17,7 +17,7 @@ RESULT = '{"v1": {"datasource": "DataSourceNoCloud", "errors": []}}'
 
 
 def test_the_registry_runs_the_services_in_fleet_ups_order():
-    assert [s.name for s in SERVICES] == ["relay", "autostop", "power", "api_manager", "knowledge", "nodes"]
+    assert [s.name for s in SERVICES] == ["relay", "autostop", "power", "api_manager", "knowledge", "nodes", "camera"]
     # Settings go before the keys in this order; the others are applied after the clone serves.
     assert [s.name for s in SERVICES if s.settings] == ["relay", "autostop", "knowledge"]
     assert [s.name for s in SERVICES if s.reshared] == ["relay", "knowledge"]
@@ -148,6 +148,7 @@ def test_a_new_clone_gets_every_service_in_the_order_it_always_had(tmp_path, ccr
         ("exec", "systemctl restart ccrp-knowledge.service"),
         ("push", ["ccrp-run-mapper.service", "workloads.json"], []),
         ("exec", "apply_nodes"),
+        ("push", ["camera.py"], []),  # the camera agent: held, started by the first read
     ]
     assert "crl.pem" in secrets and "relay.key" in secrets
     assert started == ["[nao1] nodes started: mapper"]
@@ -191,3 +192,29 @@ def test_status_takes_each_services_fields(lab_up):
     assert fields["relay_running"] and fields["relay_peers"] == {"nao2": True} and fields["nodes"] is None
     assert fields["power"] is None  # no device reported since the clone booted
     assert fields["knowledge"]["running"] and fields["api_manager"] is None and fields["autostop_idle_s"] is None
+
+
+def test_the_camera_service_keeps_this_ccrps_agent_on_every_clone_and_starts_nothing(lab_up):
+    """services/camera.py: its one file is the agent where robot/camera.py's unit runs it; fleet up
+    pushes it when the clone's copy is missing or another, restarting nothing; no user-data, no field."""
+    from ccrp_cli.resources import agent_source
+    from ccrp_cli.services.base import ServiceContext
+    from ccrp_cli.services.camera import AGENT, Camera
+
+    fleet, state = lab_up
+    camera = Camera()
+    for robot in ("nao1", "nao2"):
+        [f] = camera.files(ServiceContext(fleet, state, fleet.robot(state, robot)))
+        assert (f.dest, f.mode, f.content) == (AGENT, 0o644, agent_source("camera"))
+    assert camera.boot.units == camera.boot.agents == camera.boot.sockets == () and camera.boot.files(None) == []
+    assert not camera.settings and not camera.reshared and camera.absent() == []
+    assert camera.status(fleet, state, fleet.robot(state, "nao1"), {"relay": {}}) == {}
+
+    clone = Clone()
+    assert camera.apply(clone, "nao1", [f], {}, pushed_keys=True) == []  # missing: pushed, nothing started
+    assert clone.log == [("push", ["camera.py"], [])]
+    clone.log.clear()
+    held = {AGENT: hashlib.sha256(f.content.encode()).hexdigest()}
+    assert camera.apply(clone, "nao1", [f], held, pushed_keys=False) == [] and clone.log == []  # current: left alone
+    assert camera.apply(clone, "nao1", [f], {AGENT: "0" * 64}, pushed_keys=False) == []  # another copy: replaced
+    assert clone.log == [("push", ["camera.py"], [])]

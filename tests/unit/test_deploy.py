@@ -358,14 +358,16 @@ def test_the_workspace_is_built_on_this_hosts_engine_whatever_the_backend(invent
                              images=Images(), close=lambda: done.append(("closed",)))
     monkeypatch.setattr(workspace, "local_engine", lambda: client)
     monkeypatch.setattr(images, "ensure_base", lambda c, base, plat, progress: done.append(("base", base)))
-    monkeypatch.setattr(images, "dockerfile", lambda fleet, distro, base, plat, software: f"FROM {base}")
-    monkeypatch.setattr(images, "build_context", lambda plat, progress, distro, software: {})
+    monkeypatch.setattr(images, "dockerfile", lambda fleet, distro, base, plat, software, agents: f"FROM {base} {agents}")
+    monkeypatch.setattr(images, "build_context", lambda plat, progress, distro, software, agents: dict.fromkeys(agents))
     monkeypatch.setattr(images, "build_clone_image", lambda c, tag, text, labels, progress, files, what:
-                        done.append(("build", tag, text, labels["ccrp-role"], what)))
-    data = build_workspace(inv, SimpleNamespace(digest="d1g"), lambda m: None)
+                        done.append(("build", tag, text, labels["ccrp-role"], list(files), what)))
+    data = build_workspace(inv, SimpleNamespace(digest="d1g"), ("relay", "api_manager"), lambda m: None)
     tag = f"ccrp/{inv.fleet}-deploy:d1g"
     base = inv.provider.base_image if inventory == "lab.yaml" else images.DEFAULT_BASE
     assert data == b"tar!"
-    assert done == [("base", base), ("build", tag, f"FROM {base}", "deploy", "deploy build"), ("create", tag),
+    # The snapshot's own Dockerfile and context, its agents too (the core's, as snapshot build's).
+    assert done == [("base", base), ("build", tag, f"FROM {base} ('relay', 'api_manager')", "deploy",
+                     ["relay", "api_manager"], "deploy build"), ("create", tag),
                     ("read", "/opt/ccrp/workspace"), ("removed", True),
                     ("list", (f"ccrp-fleet={inv.fleet}", "ccrp-role=deploy")), ("drop", "old", False), ("closed",)]

@@ -464,22 +464,22 @@ def test_build_snapshot_builds_the_recipes_image_turns_it_into_a_golden_volume_a
                              images=SimpleNamespace(remove=lambda tag, force: removed.append(tag)))
     monkeypatch.setattr(sdk, "docker_module", lambda: SimpleNamespace(from_env=lambda timeout: client,
                                                                       errors=__import__("docker").errors))
-    monkeypatch.setattr(images, "build_snapshot_image", lambda c, repo, fleet, distro, base, plat, software, bare, labels,
-                        progress: calls.append(("image", repo, fleet, base, bare, labels["ccrp-software"])) or f"{repo}:1")
+    monkeypatch.setattr(images, "build_snapshot_image", lambda c, repo, fleet, distro, base, plat, agents, software, bare, labels,
+                        progress: calls.append(("image", repo, fleet, base, agents, bare, labels["ccrp-software"])) or f"{repo}:1")
     golden = SimpleNamespace(qcow2=tmp_path / "g.qcow2", kernel=tmp_path / "k", initrd=tmp_path / "i", virtual_size=8)
     golden.qcow2.write_bytes(b"q")
     monkeypatch.setattr(goldens, "build", lambda c, tag, out, progress: calls.append(("golden", tag)) or golden)
     fake = SimpleNamespace(fleet="vmlab", settings=SimpleNamespace(pool="ccrp"), _pool=lambda create: calls.append("pool"),
                            import_golden=lambda *a: calls.append(("import", a[3])) or "record")
     build = provider.LibvirtProvider.build_snapshot
-    assert build(fake, "ccrp/vmlab-clone", "noetic", None, None, "none", False, print) == "record"
-    assert calls == [("image", "ccrp/vmlab-clone", "vmlab", images.DEFAULT_BASE, False, "none"),
+    assert build(fake, "ccrp/vmlab-clone", "noetic", None, ("relay",), None, "none", False, print) == "record"
+    assert calls == [("image", "ccrp/vmlab-clone", "vmlab", images.DEFAULT_BASE, ("relay",), False, "none"),
                      ("golden", "ccrp/vmlab-clone:1"), "pool", ("import", 8)]
     assert removed == ["ccrp/vmlab-clone:1"]
 
     fake.import_golden = lambda *a: (_ for _ in ()).throw(CcrpError("upload failed"))
     with pytest.raises(CcrpError, match="upload failed"):
-        build(fake, "ccrp/vmlab-clone", "noetic", None, None, "none", False, print)
+        build(fake, "ccrp/vmlab-clone", "noetic", None, ("relay",), None, "none", False, print)
     assert removed == ["ccrp/vmlab-clone:1"] * 2
 
 # -- quotas from the host: memory, vCPUs, the pool's disk (the stand-in's numbers as libvirt gives them) ---

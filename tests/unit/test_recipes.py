@@ -49,7 +49,7 @@ def test_the_distros_are_the_recipes_and_a_new_one_is_a_file(monkeypatch, tmp_pa
     try:
         inv = parse_inventory({"fleet": "lab", "provider": {"kind": "docker"}, "ros": {"distro": "rolling"}}, "x.yaml")
         assert inv.ros.ros2 and recipes.is_ros2("rolling") and not recipes.is_ros2("noetic")
-        text = images.dockerfile("lab", "rolling", images.DEFAULT_BASE, platform("rolling", "debian-bookworm"))
+        text = images.dockerfile("lab", "rolling", images.DEFAULT_BASE, platform("rolling", "debian-bookworm"), agents=("relay", "api_manager"))
         assert "python3 -m venv /opt/ros/rolling" in text and "ros-rolling-rclpy" in text
         (data / "bad.yaml").write_text((data / "noetic.yaml").read_text())  # names another distro inside
         recipes.distros.cache_clear()
@@ -62,7 +62,7 @@ def test_the_distros_are_the_recipes_and_a_new_one_is_a_file(monkeypatch, tmp_pa
 
 def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch, tmp_path):
     plat = platform("jazzy", "debian-bookworm")
-    text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, plat)
+    text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, plat, agents=("relay", "api_manager"))
     assert "FROM clone AS ros2\n" in text and "COPY --from=ros2 /opt/ros/jazzy /opt/ros/jazzy\n" in text
     assert "python3 -m venv /opt/ros/jazzy" in text and "sh /tmp/ccrp-ros2-setup /opt/ros/jazzy jazzy" in text
     # No ROS 1 agents (relay, API manager) in a ROS 2 image, and no system-wide pip install.
@@ -70,7 +70,7 @@ def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch, tmp
     fetched = []
     monkeypatch.setenv("CCRP_CACHE", str(tmp_path))
     monkeypatch.setattr(wheels, "_pip", lambda args, what, check=True: not fetched.append(what))
-    context = images.build_context(plat, distro="jazzy")
+    context = images.build_context(plat, distro="jazzy", agents=("relay", "api_manager"))  # none in a ROS 2 image
     assert set(context) == {"ros2-setup", "ccrp-topic"} and fetched == [["empy==3.3.4"], plat.pip]
     assert "COPY ccrp-topic /usr/local/bin/ccrp-topic" in text
 
@@ -78,7 +78,7 @@ def test_a_jazzy_clone_image_has_the_venv_in_a_stage_of_its_own(monkeypatch, tmp
 def test_every_image_has_ccrp_topic_and_it_refuses_bad_usage_in_one_line():
     import sys
 
-    assert set(images.build_context(platform("noetic", "debian-bookworm").model_copy(update={"pip": []}))) == {"ccrp-topic"}
+    assert set(images.build_context(platform("noetic", "debian-bookworm").model_copy(update={"pip": []}), agents=())) == {"ccrp-topic"}
     from tests.conftest import ROOT
 
     tool = str(ROOT / "templates" / "image" / "ccrp-topic")
@@ -95,7 +95,7 @@ def test_ros2_layer_installs_the_wheels_in_a_venv_with_a_setup_file():
     assert f"for p in {' '.join(plat.packages)}; do" in text
     assert "python3 -m venv /opt/ros/jazzy" in text and f"--find-links /tmp/ccrp-wheels {' '.join(plat.pip)}" in text
     assert "sh /tmp/ccrp-ros2-setup /opt/ros/jazzy jazzy" in text
-    assert "venv" not in images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "debian-bookworm"))
+    assert "venv" not in images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "debian-bookworm"), agents=("relay", "api_manager"))
 
 
 def test_venv_context_asks_for_bookworms_python_and_builds_only_the_source_packages(monkeypatch, tmp_path):

@@ -300,12 +300,14 @@ def test_cloud_image_config_installs_what_the_docker_snapshot_has():
     from ccrp_cli.loader import load_inventory
 
     docker_plat = platform("noetic", "debian-bookworm")
-    dockerfile = images.dockerfile("lab", "noetic", images.DEFAULT_BASE, docker_plat)
+    from ccrp_cli.services.registry import image_agents
+
+    dockerfile = images.dockerfile("lab", "noetic", images.DEFAULT_BASE, docker_plat, agents=image_agents())
     for path in INVENTORIES:
         inv = load_inventory(path)
         if inv.ros.ros2:  # Docker only so far: its image's venv step has no cloud-config twin
             continue
-        data = cloudinit.image_config(inv)
+        data = cloudinit.image_config(inv, image_agents())
         assert data["packages"] == docker_plat.packages
         assert f"for p in {' '.join(docker_plat.packages)}; do" in dockerfile
         assert data["runcmd"][0] == ["sh", "-c", cloudinit.LOCALE_SETUP] and cloudinit.LOCALE_SETUP in dockerfile

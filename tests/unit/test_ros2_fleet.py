@@ -16,7 +16,7 @@ from ccrp_cli.errors import InputError
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.loader import parse_inventory
 from ccrp_cli.render import bundles, cloudinit, network
-from ccrp_cli.services.registry import boots
+from ccrp_cli.services.registry import boots, image_agents
 from ccrp_cli.providers import info
 from tests.conftest import ROOT
 
@@ -92,7 +92,7 @@ def test_a_jazzy_image_has_what_the_api_manager_needs_and_user_data_its_units(cc
     names = [p.split("==")[0] for p in plat.pip]
     assert {"opencv-contrib-python-headless", "google-cloud-vision"} <= set(names), names
     inv = Fleet.open(JAZZY).inventory
-    written = {f["path"] for f in cloudinit.image_config(inv)["write_files"]}
+    written = {f["path"] for f in cloudinit.image_config(inv, image_agents())["write_files"]}
     assert not [p for p in written if p.endswith(".py")], written
 
 
@@ -118,7 +118,7 @@ def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_
             ["sh", "/usr/local/lib/ccrp/ros2-setup", f"/opt/ros/{distro}", distro]]
     view = clone_view(fleet, fleet.store.load_state(), fleet.inventory.robots[0].name)
     keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"]
-    texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef"),
+    texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef", image_agents()),
              "bare": cloudinit.user_data(view, boots(), install_packages=True, login_keys=keys),
              "snapshot": cloudinit.user_data(view, boots(), login_keys=keys)}
     for what, text in texts.items():
@@ -161,7 +161,7 @@ def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(cc
     assert plat.ros_installed and f"ros-{distro}-ros-base" in plat.packages and "python3-venv" not in plat.packages
     view = clone_view(fleet, fleet.store.load_state(), fleet.inventory.robots[0].name)
     keys = ["ssh-ed25519 AAAAC3NzaC1lZDI1NTE5AAAAIFakeKeyForSchemaOnly operator"]
-    texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef"),
+    texts = {"builder": cloudinit.builder_user_data(fleet.inventory, "0123456789abcdef", image_agents()),
              "bare": cloudinit.user_data(view, boots(), install_packages=True, login_keys=keys)}
     launcher = ["sh", "-c", '[ -e "$0/bin/python" ] || ln -s "$1" "$0/bin/python"', f"/opt/ros/{distro}",
                 "/usr/local/lib/ccrp/ros-python"]

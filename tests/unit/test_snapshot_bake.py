@@ -275,10 +275,11 @@ def test_gcp_defaults_to_debians_image_family_and_records_the_image_name(ccrp_ho
 @pytest.mark.parametrize("kind", sorted(INVENTORIES))
 def test_every_clouds_builder_user_data_passes_cloud_init_schema(ccrp_home, tmp_path, kind):
     from ccrp_cli.render.cloudinit import builder_user_data
+    from ccrp_cli.services.registry import image_agents
 
     inv = Fleet.open(INVENTORIES[kind]).inventory
     f = tmp_path / "builder.yaml"
-    f.write_text(builder_user_data(inv, "0123456789abcdef"))
+    f.write_text(builder_user_data(inv, "0123456789abcdef", image_agents()))
     proc = subprocess.run(["cloud-init", "schema", "--config-file", str(f)], capture_output=True, text=True)
     assert proc.returncode == 0 and "Valid cloud-config" in proc.stdout, proc.stdout + proc.stderr
 

@@ -141,7 +141,7 @@ def test_a_catkin_workspace_resolves_to_debian_packages_and_changes_the_digest(t
     assert snapshot_software(inv, tmp_path / "inventory.yaml").digest == before
     (ws / "src" / "mapper" / "main.cpp").write_text("int main(){return 0;}")
     assert snapshot_software(inv, tmp_path / "inventory.yaml").digest != before
-    text = images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "debian-bookworm"), snap)
+    text = images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "debian-bookworm"), snap, agents=("relay", "api_manager"))
     assert "FROM image AS workspace" in text and "catkin_make install" in text and "-DCMAKE_INSTALL_PREFIX=/opt/ccrp/workspace" in text
     assert "COPY --from=workspace /opt/ccrp/workspace /opt/ccrp/workspace" in text
     assert f"LABEL ccrp-software={snap.digest}" in text
@@ -151,7 +151,7 @@ def test_a_catkin_workspace_resolves_to_debian_packages_and_changes_the_digest(t
 def test_pip_requirements_reach_the_snapshots_pip_as_one_word_each(tmp_path):
     """A Dockerfile RUN line is a shell's: `numpy<2` unquoted would read a file named 2."""
     snap = snapshot_software(inventory(lab(software={"pip": ["numpy<2", "scipy>=1.10,!=1.11.0", "rich"]})), None)
-    text = images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "debian-bookworm"), snap)
+    text = images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "debian-bookworm"), snap, agents=("relay", "api_manager"))
     assert "/tmp/ccrp-software-wheels 'numpy<2' 'scipy!=1.11.0,>=1.10' rich \\\n" in text
 
 
@@ -172,7 +172,7 @@ def test_ros2_takes_ament_python_and_refuses_rclcpp(tmp_path):
               **{"setup.py": "from setuptools import setup; setup(name='offload')"})
     snap = snapshot_software(inventory(jazzy), tmp_path / "inventory.yaml")
     assert snap.pip == ["ros-jazzy-nav-msgs==5.3.6"] and snap.apt == []
-    text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, platform("jazzy", "debian-bookworm"), snap)
+    text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, platform("jazzy", "debian-bookworm"), snap, agents=("relay", "api_manager"))
     assert "/opt/ros/jazzy/bin/pip install --no-index --no-cache-dir --find-links /tmp/ccrp-software-wheels ros-jazzy-nav-msgs==5.3.6 wheel" in text
     assert "/tmp/ccrp-ws/src/offload" in text
     for deps, build_type in (("<depend>rclcpp</depend>", "ament_python"), ("", "ament_cmake")):

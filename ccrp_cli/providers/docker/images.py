@@ -10,9 +10,10 @@ import shutil
 import subprocess
 import tempfile
 from pathlib import Path
+from typing import Sequence
 
 from ...errors import CcrpError
-from ...layout import IMAGE_AGENTS, LOCALE_SETUP, WORKSPACE
+from ...layout import LOCALE_SETUP, WORKSPACE
 from ...recipes import Platform
 from ...resources import agent_source
 from ...templates import render, static
@@ -80,10 +81,12 @@ def ensure_base(client, base: str, plat: Platform, progress=lambda msg: None) ->
         build_base_image(client, base, sorted(set(BASE_PACKAGES + plat.packages)), progress)
 
 
-def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, software=None) -> str:
-    """A ROS 2 distro's image has its `pip` list (the ros-<distro>-* wheels) in a venv at
-    /opt/ros/<distro> (docs/ros2.md) instead of the ROS 1 agents in /usr/local. The fleet's own
-    software (workloads.SnapshotSoftware), when it has some, comes last (templates/docker/software.j2)."""
+def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, software=None, *, agents: Sequence[str]) -> str:
+    """A ROS 1 image has the recipe's `pip` list in /usr/local and ccrp's `agents` (agent/<name>.py,
+    as the core hands them: its services' image_agents; build_context carries them) in
+    /usr/local/lib/ccrp; a ROS 2 distro's has its `pip` list (the ros-<distro>-* wheels) in a venv at
+    /opt/ros/<distro> (docs/ros2.md) and no agents. The fleet's own software
+    (workloads.SnapshotSoftware), when it has some, comes last (templates/docker/software.j2)."""
     from ...recipes import is_ros2, recipe
 
     prefix = f"/opt/ros/{distro}" if is_ros2(distro) and plat.pip else ""
@@ -95,16 +98,17 @@ def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, softwar
                  "pip_command": f"{prefix}/bin/pip" if prefix else "PIP_BREAK_SYSTEM_PACKAGES=1 pip3",
                  "package_dirs": sorted({p.path.rsplit("/", 1)[0] if "/" in p.path else "." for p in software.packages})}
     return render("docker/Dockerfile.j2", fleet=fleet, distro=distro, base_image=base_image, packages=plat.packages,
-                  pip=plat.pip, locale_setup=LOCALE_SETUP, ros2_prefix=prefix, **extra)
+                  pip=plat.pip, locale_setup=LOCALE_SETUP, ros2_prefix=prefix, agents=[f"{a}.py" for a in agents], **extra)
 
 
-def build_context(plat: Platform, progress=lambda msg: None, distro: str = "noetic", software=None) -> dict[str, bytes]:
-    """Files the Dockerfile copies: the agents (relay, API manager) and the wheels of the recipe's pip packages,
+def build_context(plat: Platform, progress=lambda msg: None, distro: str = "noetic", software=None, *,
+                  agents: Sequence[str]) -> dict[str, bytes]:
+    """Files the Dockerfile copies: the `agents` (as dockerfile was given them) and the wheels of the recipe's pip packages,
     downloaded here for the image's python (bookworm: 3.11) so the build needs no index. A ROS 2 distro's
     image has the wheels only (its agents are ROS 1 only so far), fetched with their own platform tags.
     With the fleet's software: its workspace and the wheels of its `pip` list, from the same cache."""
     tool = {"ccrp-topic": static("image/ccrp-topic").encode()}  # every image has it
-    return tool | _recipe_context(plat, progress, distro) | _software_context(software, progress, plat)
+    return tool | _recipe_context(plat, progress, distro, agents) | _software_context(software, progress, plat)
 
 
 def _software_context(software, progress, plat: Platform) -> dict[str, bytes]:
@@ -120,7 +124,7 @@ def _software_context(software, progress, plat: Platform) -> dict[str, bytes]:
     return files
 
 
-def _recipe_context(plat: Platform, progress, distro: str) -> dict[str, bytes]:
+def _recipe_context(plat: Platform, progress, distro: str, agents: Sequence[str]) -> dict[str, bytes]:
     from ...recipes import is_ros2
 
     if not plat.pip:
@@ -132,8 +136,8 @@ def _recipe_context(plat: Platform, progress, distro: str) -> dict[str, bytes]:
         return venv_context(plat)
     from . import wheels
 
-    agents = {f"{name}.py": agent_source(name).encode() for name in IMAGE_AGENTS}
-    return agents | wheels.fetch(plat.pip, tuple(plat.wheel_platforms))
+    sources = {f"{name}.py": agent_source(name).encode() for name in agents}
+    return sources | wheels.fetch(plat.pip, tuple(plat.wheel_platforms))
 
 
 def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progress=lambda msg: None,
@@ -162,11 +166,11 @@ def build_clone_image(client, tag: str, text: str, labels: dict[str, str], progr
     return image_id or client.images.get(tag).id
 
 
-def build_snapshot_image(client, repo: str, fleet: str, distro: str, base: str, plat: Platform, software,
-                         bare: bool, labels: dict[str, str], progress=lambda msg: None) -> str:
+def build_snapshot_image(client, repo: str, fleet: str, distro: str, base: str, plat: Platform, agents: Sequence[str],
+                         software, bare: bool, labels: dict[str, str], progress=lambda msg: None) -> str:
     """The clone image `repo:[bare-]<stamp>` built on this engine from `base` (ccrp's own is made
-    from Debian packages when missing) with the recipe's platform and the fleet's `software` (None:
-    none); returns its tag. A `bare` image has systemd and cloud-init only: its clones install the
+    from Debian packages when missing) with the recipe's platform, ccrp's `agents` (LocalBuild) and
+    the fleet's `software` (None: none); returns its tag. A `bare` image has systemd and cloud-init only: its clones install the
     recipe at boot. The snapshot of the Docker backend, and the root file system of libvirt's."""
     import datetime as dt
 
@@ -183,6 +187,6 @@ def build_snapshot_image(client, repo: str, fleet: str, distro: str, base: str, 
     tag = f"{repo}:{'bare-' if bare else ''}{dt.datetime.now(dt.timezone.utc):%Y%m%d%H%M%S}"
     progress(f"building snapshot {tag} from {base}")
     labels = labels | {"ccrp-distro": distro, "ccrp-bare": str(bare).lower()}
-    build_clone_image(client, tag, dockerfile(fleet, distro, base, plat, software), labels, progress,
-                      build_context(plat, progress, distro, software))
+    build_clone_image(client, tag, dockerfile(fleet, distro, base, plat, software, agents=agents), labels, progress,
+                      build_context(plat, progress, distro, software, agents=agents))
     return tag

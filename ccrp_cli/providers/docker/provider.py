@@ -246,13 +246,13 @@ class DockerProvider(DockerHost):
         image = c.commit(repository=repo, tag=tag, conf={"Labels": self.snapshot_labels(robot)})
         return self.snapshot_record(image)
 
-    def build_snapshot(self, repo: str, distro: str, plat, software, digest: str, bare: bool,
+    def build_snapshot(self, repo: str, distro: str, plat, agents: tuple[str, ...], software, digest: str, bare: bool,
                        progress) -> SnapshotRecord:
         """Ability.LOCAL_BUILD: the clone image built on this engine (images.build_snapshot_image)."""
         from . import images
 
         tag = images.build_snapshot_image(self.client, repo, self.fleet, distro, self.inv.provider.base_image,  # type: ignore[union-attr]
-                                          plat, software, bare, self.snapshot_labels() | {"ccrp-software": digest},
+                                          plat, agents, software, bare, self.snapshot_labels() | {"ccrp-software": digest},
                                           progress)
         return self.snapshot_record(self.client.images.get(tag))
 

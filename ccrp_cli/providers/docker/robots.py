@@ -37,8 +37,10 @@ def sim_image(host: DockerHost, distro: str, progress=lambda msg: None) -> str:
     except host._NotFound:
         images.build_base_image(host.client, images.DEFAULT_BASE, sorted(set(images.BASE_PACKAGES + plat.packages)), progress)
     progress(f"building the simulated robots' image {tag} (once)")
-    images.build_clone_image(host.client, tag, images.dockerfile("robot-sim", distro, images.DEFAULT_BASE, plat),
-                             {"ccrp-managed": "true", "ccrp-role": "robot-image"}, progress, images.build_context(plat, progress, distro))
+    # No agents of the clones': a robot runs none (its own come with its bundle).
+    images.build_clone_image(host.client, tag, images.dockerfile("robot-sim", distro, images.DEFAULT_BASE, plat, agents=()),
+                             {"ccrp-managed": "true", "ccrp-role": "robot-image"}, progress,
+                             images.build_context(plat, progress, distro, agents=()))
     return tag
 
 

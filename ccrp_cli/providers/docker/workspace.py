@@ -32,9 +32,10 @@ def deploy_repo(fleet: str) -> str:
     return f"ccrp/{fleet}-deploy"
 
 
-def build_workspace(inv: Inventory, software, progress=lambda msg: None) -> bytes:
+def build_workspace(inv: Inventory, software, agents: tuple[str, ...], progress=lambda msg: None) -> bytes:
     """The tar of the install space (top directory `workspace/`) built from `software`
-    (workloads.SnapshotSoftware, with a workspace) in the fleet's clone image."""
+    (workloads.SnapshotSoftware, with a workspace) in the fleet's clone image, with the `agents` its
+    snapshot holds: the same Dockerfile up to the software's layers, so those alone run."""
     from ...recipes import platform
 
     client = local_engine()
@@ -47,8 +48,8 @@ def build_workspace(inv: Inventory, software, progress=lambda msg: None) -> byte
         tag = f"{deploy_repo(inv.fleet)}:{software.digest}"
         progress(f"building workspace {software.digest} in the clone image ({tag}); only the software's layers run")
         labels = owner_labels(inv.fleet, "deploy") | {"ccrp-software": software.digest}
-        images.build_clone_image(client, tag, images.dockerfile(inv.fleet, inv.ros.distro, base, plat, software), labels,
-                                 progress, images.build_context(plat, progress, inv.ros.distro, software),
+        images.build_clone_image(client, tag, images.dockerfile(inv.fleet, inv.ros.distro, base, plat, software, agents=agents),
+                                 labels, progress, images.build_context(plat, progress, inv.ros.distro, software, agents=agents),
                                  what="deploy build")
         # Read out of a container made from the image and never started.
         container = client.containers.create(tag, labels=owner_labels(inv.fleet, "deploy"))

@@ -665,11 +665,11 @@ class LibvirtProvider(CloudProvider):
             return self._download(vol, max(0, size - CONSOLE_TAIL)).decode(errors="replace")
 
     # -- snapshots: golden volumes --------------------------------------------------------------
-    def build_snapshot(self, repo: str, distro: str, plat, software, digest: str, bare: bool,
+    def build_snapshot(self, repo: str, distro: str, plat, agents: tuple[str, ...], software, digest: str, bare: bool,
                        progress) -> SnapshotRecord:
         """Ability.LOCAL_BUILD: the golden volume made on this machine. The recipe's image is built
         on the local Docker engine as the Docker backend builds its snapshot (the same recipe,
-        software and bare variant; no image is downloaded), goldens.build turns it into a qcow2
+        agents, software and bare variant; no image is downloaded), goldens.build turns it into a qcow2
         with its kernel and initramfs, and those are uploaded to the pool. The intermediate image
         is removed after; the layers under it stay the next build's cache."""
         import tempfile
@@ -685,7 +685,7 @@ class LibvirtProvider(CloudProvider):
         except docker.errors.DockerException as exc:
             raise CcrpError(f"the libvirt backend builds its golden volume with a local Docker engine, and none "
                             f"answers ({type(exc).__name__})", hint="start it: bash scripts/docker-engine.sh") from None
-        tag = build_snapshot_image(client, repo, self.fleet, distro, DEFAULT_BASE, plat, software, bare,
+        tag = build_snapshot_image(client, repo, self.fleet, distro, DEFAULT_BASE, plat, agents, software, bare,
                                    owner_labels(self.fleet, "snapshot") | {"ccrp-software": digest}, progress)
         try:
             with tempfile.TemporaryDirectory(prefix="ccrp-golden-") as tmp:
