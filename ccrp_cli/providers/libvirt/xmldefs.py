@@ -172,8 +172,10 @@ def domain(spec: DomainSpec) -> str:
     _text(os_, "initrd", spec.initrd)
     _text(os_, "cmdline", spec.cmdline)
     ET.SubElement(ET.SubElement(dom, "features"), "acpi")  # `clone stop` is an ACPI power button
-    if spec.accel == "kvm":
-        ET.SubElement(dom, "cpu", mode="host-passthrough")
+    # Under TCG, every instruction set QEMU emulates (`-cpu max`), not its default qemu64: the ROS 2
+    # wheels' native code stopped a Jazzy clone's rclpy with SIGILL on qemu64 (measured), while
+    # Debian's own packages, built for the x86-64 baseline, ran.
+    ET.SubElement(dom, "cpu", mode="host-passthrough" if spec.accel == "kvm" else "maximum")
     _text(dom, "on_poweroff", "destroy")  # autostop's poweroff leaves a stopped (defined) domain
     _text(dom, "on_reboot", "restart")
     _text(dom, "on_crash", "destroy")
