@@ -1,5 +1,6 @@
-"""Two VM clones on libvirt, end to end, on ROS 2 Jazzy (CCRP_LIBVIRT_DISTRO=noetic: ROS 1, as the
-libvirt scenario runs): `ccrp snapshot build` making the golden
+"""Two VM clones on libvirt, end to end, on ROS 1 Noetic (CCRP_LIBVIRT_DISTRO=jazzy: ROS 2, whose
+simulated robot's node the VM clone did not discover in the one run so far: docs/libvirt.md):
+`ccrp snapshot build` making the golden
 volume from the recipe (its Docker image, then providers/libvirt/goldens.py), `ccrp fleet up`
 creating nao1's and nao2's clones as qcow2 overlays booted with a NoCloud seed of the user-data ccrp
 renders, `ccrp status` saying they serve, `ccrp robot sim` putting nao1's simulated robot on the
@@ -36,7 +37,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.root]
 SKIP = gate()
 if SKIP:
     pytest.skip(SKIP, allow_module_level=True)
-DISTRO = os.environ.get("CCRP_LIBVIRT_DISTRO", "jazzy")
+DISTRO = os.environ.get("CCRP_LIBVIRT_DISTRO", "noetic")
 assert DISTRO in ("jazzy", "noetic"), DISTRO
 
 
