@@ -239,8 +239,9 @@ def test_inventory_strings_are_refused_or_one_token(tmp_path, leaf, data):
     if path[-1] == "base_image":  # written into a file ccrp generates (as software's are: test_workloads.py)
         from ccrp_cli.providers.docker.images import dockerfile
         from ccrp_cli.recipes import platform
+        from ccrp_cli.services.registry import image_agents
 
-        text = dockerfile("lab", "noetic", value, platform("noetic", "debian-bookworm"))
+        text = dockerfile("lab", "noetic", value, platform("noetic", "debian-bookworm"), agents=image_agents())
         # The value is one token of the first FROM; the others name the Dockerfile's own stages.
         assert [line for line in text.splitlines() if line.startswith("FROM")] == [
             f"FROM {value} AS clone", "FROM clone AS agents", "FROM clone AS image"]
