@@ -43,11 +43,11 @@ OVERLAY = re.compile(r"^ccrp-[a-z][a-z0-9]*-cri-[a-z][a-z0-9]*\.qcow2$")
 CONSOLE_TAIL = 4 << 20  # bytes of a console log read at most (its last boots)
 PROBE_MARK = re.compile(r"Run /init as init process|Freeing unused kernel")
 PROBE_TIMEOUT = 20.0
+# Setting a clone's clock (sync_clock): rounds at most, and what is close enough to the host's.
+CLOCK_ROUNDS, CLOCK_TOLERANCE = 4, 0.005
 # Waits on an emulated (TCG) guest get this many times the time ccrp's callers give a VM: its first
 # boot took 272 s to the end of cloud-init on this 2-core machine under load (docs/libvirt.md),
 # where `fleet up` gives a clone 300 s, and every command in it runs several times slower.
-# Setting a clone's clock (sync_clock): rounds at most, and what is close enough to the host's.
-CLOCK_ROUNDS, CLOCK_TOLERANCE = 4, 0.005
 TCG_SLOWDOWN = 3  # a guest that works gets there in about a second under KVM, two under TCG
 
 
