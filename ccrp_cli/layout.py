@@ -44,7 +44,6 @@ POWER_PORT = 11400
 WORKSPACE = "/opt/ccrp/workspace"
 
 # What a clone image holds beyond its recipe, on every backend (the Docker build and the clouds' bake):
-# ccrp's agents are the services' to say (render/boot.py Boot.image_agents, bare_agents).
 # The locale of every clone image, set by templates/docker/Dockerfile.j2 and the clouds' bake (both
 # run this same command): generated once in the image and recorded in /etc/default/locale, so
 # cloud-init's locale module finds it set and no clone runs locale-gen at boot (seconds of CPU each).

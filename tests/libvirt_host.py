@@ -9,15 +9,12 @@ from __future__ import annotations
 import os
 
 URI = "qemu:///system"
-OPT_IN = "CCRP_E2E_LIBVIRT"
 
 
-def gate(opt_in: bool = False) -> str | None:
-    """None when libvirt VM tests may run here, else why not (a skip reason). With opt_in, only when
-    CCRP_E2E_LIBVIRT=1; CCRP_E2E_LIBVIRT=0 turns every VM test off."""
-    wanted = os.environ.get(OPT_IN)
-    if wanted == "0" or (opt_in and wanted != "1"):
-        return f"set {OPT_IN}=1 to boot VM clones for this (needs libvirtd: scripts/libvirt.sh)"
+def gate() -> str | None:
+    """None when libvirt VM tests may run here, else why not (a skip reason)."""
+    if os.environ.get("CCRP_E2E_LIBVIRT") != "1":
+        return "set CCRP_E2E_LIBVIRT=1 to boot VM clones (needs libvirtd: scripts/libvirt.sh)"
     try:
         import libvirt
     except ImportError:

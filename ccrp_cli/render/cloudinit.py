@@ -199,8 +199,8 @@ def user_data_dict(
         # reboot the keys are gone and `ccrp fleet up` pushes them again.
         data["bootcmd"] = every_boot_bootcmd()
     if install_packages:
-        # A bare base image: install at boot what a snapshot would already contain, but the agents
-        # `fleet up` pushes (the API manager's, the camera's: only their services' bare_agents).
+        # A bare base image: install at boot what a snapshot would already contain, but of its
+        # agents only the services' bare_agents (the API manager's comes with `fleet up`).
         image = image_config(view.inv, [a for boot in boots for a in boot.bare_agents])
         files += image.pop("write_files")
         data["runcmd"][:0] = image.pop("runcmd")

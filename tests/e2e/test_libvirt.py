@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.slow, pytest.mark.root]
 
 
-SKIP = gate(opt_in=True)
+SKIP = gate()
 if SKIP:
     pytest.skip(SKIP, allow_module_level=True)
 DISTRO = os.environ.get("CCRP_LIBVIRT_DISTRO", "noetic")
