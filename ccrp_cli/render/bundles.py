@@ -99,10 +99,12 @@ def power_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[
 
 
 def rtps_guard(view: CloneView) -> list[BundleFile]:
-    """A ROS 2 robot's firewall for RTPS: its domain's ports only through the tunnel."""
+    """A ROS 2 robot's firewall for RTPS (its domain's ports only through the tunnel), and the
+    Fast DDS profile that has its participants announce the tunnel's end whenever they started."""
     ports = network.rtps_ports(view.addr.index)
     return [BundleFile("ccrp-rtps-guard", render("edge/ccrp-rtps-guard.j2", **view.ctx(ports=ports)), 0o755),
-            BundleFile("ccrp-rtps-guard.service", static("edge/ccrp-rtps-guard.service"), 0o644)]
+            BundleFile("ccrp-rtps-guard.service", static("edge/ccrp-rtps-guard.service"), 0o644),
+            BundleFile("fastdds.xml", render("edge/fastdds.xml.j2", **view.ctx()), 0o644)]
 
 
 def write_bundle(out: Path, files: list[BundleFile], meta: dict[str, str]) -> Path:

@@ -6,6 +6,8 @@ from ..templates import render
 from .view import CloneView
 
 HOSTS_BEGIN, HOSTS_END = "# BEGIN ccrp", "# END ccrp"
+# Where a ROS 2 robot's edge bundle installs its Fast DDS profile (templates/edge/fastdds.xml.j2).
+ROBOT_FASTDDS_PROFILE = "/etc/ccrp/fastdds.xml"
 
 
 # ROS 2 domains (docs/ros2.md): 1..100, the range whose RTPS ports (7400 + 250 * domain + up to
@@ -43,6 +45,10 @@ def ros_env(view: CloneView, side: str) -> str:
             "CCRP_FLEET": view.fleet,
             "CCRP_ROBOT": view.name,
         }
+        if side == "robot":
+            # The robot's participants announce its VPN address whenever they started, tunnel up or
+            # not (fastdds.xml.j2). Fast DDS 2 (Jazzy) reads the first name, Fast DDS 3 (Kilted) the second.
+            env["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTDDS_DEFAULT_PROFILES_FILE"] = ROBOT_FASTDDS_PROFILE
         return "".join(f"{k}={v}\n" for k, v in env.items())
     env = {
         "ROS_DISTRO": ros.distro,

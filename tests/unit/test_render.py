@@ -198,7 +198,9 @@ def test_edge_bundle_installs_idempotently(lab, view, tmp_path):
     assert hosts.count("# BEGIN ccrp") == 1 and "10.1.1.1\tprinter" in hosts
     assert "10.80.1.1       cri-nao1\n" in hosts and "cri-nao2" not in hosts  # a robot sees only its clone
     assert stat.S_IMODE((root / "etc/ccrp/robot.ovpn").stat().st_mode) == 0o600
-    assert stat.S_IMODE((root / "etc/ccrp").stat().st_mode) == 0o700
+    # Users reach ros.env by name (their ROS environment), not the directory's list; secrets are 0600.
+    assert stat.S_IMODE((root / "etc/ccrp").stat().st_mode) == 0o711
+    assert stat.S_IMODE((root / "etc/ccrp/ros.env").stat().st_mode) == 0o644
     assert "ROS_MASTER_URI=http://cri-nao1:11311" in (root / "etc/ccrp/ros.env").read_text()
     assert (root / "etc/chrony/conf.d/ccrp.conf").read_text().startswith("# ccrp: take time from clone")
     assert (root / "etc/systemd/system/ccrp-vpn.service").exists()

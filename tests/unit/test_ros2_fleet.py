@@ -7,6 +7,7 @@ from __future__ import annotations
 import shutil
 import socket
 import subprocess
+from xml.etree import ElementTree
 
 import pytest
 import yaml
@@ -288,7 +289,17 @@ def test_the_edge_bundle_of_a_jazzy_robot(jazzy):
     watchdog = _env(files["watchdog.env"].strip())
     assert watchdog["CCRP_WATCHDOG_CHECK"] == "icmp" and watchdog["CCRP_CLONE_HOST"] == str(view.addr.clone_vpn_ip)
     assert "CCRP_MASTER_PORT" not in watchdog
-    assert _env(files["ros.env"])["ROS_STATIC_PEERS"] == str(view.addr.clone_vpn_ip)
+    env = _env(files["ros.env"])
+    assert env["ROS_STATIC_PEERS"] == str(view.addr.clone_vpn_ip)
+    # Its participants announce its VPN address and loopback, whatever the tunnel was when they
+    # started; both Fast DDS 2's and 3's variables name the profile the bundle installs.
+    assert env["FASTRTPS_DEFAULT_PROFILES_FILE"] == env["FASTDDS_DEFAULT_PROFILES_FILE"] == network.ROBOT_FASTDDS_PROFILE
+    assert f'"$here/fastdds.xml" "$root{network.ROBOT_FASTDDS_PROFILE}"' in files["install.sh"]
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    rtps = ElementTree.fromstring(files["fastdds.xml"].encode()).find("f:participant[@is_default_profile='true']/f:rtps", ns)
+    for where in ("f:builtin/f:metatrafficUnicastLocatorList", "f:defaultUnicastLocatorList"):
+        assert [a.text for a in rtps.findall(f"{where}/f:locator/f:udpv4/f:address", ns)] == \
+            [str(view.addr.robot_vpn_ip), "127.0.0.1"], where
     assert "/opt/ros/${ROS_DISTRO}/setup.sh" in files["ccrp-ros.sh"]
     guard = files["ccrp-rtps-guard"]
     assert '-p udp --dport 7900:8149\n-p udp -d 239.255.0.1"' in guard and '! --dport ${2:-1194}' in guard
@@ -405,6 +416,7 @@ def test_a_robot_with_its_own_ros2_at_another_prefix_needs_only_the_bundles_env_
     (run here with a stand-in iptables that records its calls)."""
     view = clone_view(jazzy, jazzy.store.load_state(), "nao2")
     files = bundles.edge_bundle(view, jazzy.pki.credentials("nao2"), "203.0.113.10")
+    files_by_name = {f.name: f.content for f in files}
     assert not [f.name for f in files if "ros-jazzy-" in f.content or "/opt/ros/jazzy" in f.content]
     out = bundles.write_bundle(tmp_path / "bundle", files, {"robot": "nao2"})
     root = tmp_path / "root"
@@ -423,6 +435,8 @@ def test_a_robot_with_its_own_ros2_at_another_prefix_needs_only_the_bundles_env_
     assert (env["ROS_DISTRO"], env["ROS_DOMAIN_ID"], env["ROS_AUTOMATIC_DISCOVERY_RANGE"], env["RMW_IMPLEMENTATION"]) == \
         ("jazzy", str(network.ros_domain(view.addr.index)), "LOCALHOST", "rmw_fastrtps_cpp"), env
     assert env["ROS_STATIC_PEERS"] == str(view.addr.clone_vpn_ip)
+    assert env["FASTDDS_DEFAULT_PROFILES_FILE"] == network.ROBOT_FASTDDS_PROFILE
+    assert (root / network.ROBOT_FASTDDS_PROFILE.lstrip("/")).read_text() == files_by_name["fastdds.xml"]
     assert env["AMENT_PREFIX_PATH"] == str(own) and env["LD_LIBRARY_PATH"] == f"{own}/lib"
     # The guard: a stand-in iptables and getent; its files under the staging root.
     bin_dir = tmp_path / "bin"
