@@ -22,7 +22,10 @@ def HEALTH_SCRIPT() -> str:  # noqa: N802 - read like the constant it stands for
 
 
 def health(provider: Reaches, robot: str) -> dict:
-    rc, out = provider.transport.exec(robot, ["python3", "-c", HEALTH_SCRIPT()], timeout=20)
+    # The script's own waits (the ROS 2 graph's) stretch as the transport's does on an emulated CPU.
+    scale = provider.timeout_scale(robot)
+    rc, out = provider.transport.exec(robot, ["env", f"CCRP_TIME_SCALE={scale}", "python3", "-c", HEALTH_SCRIPT()],
+                                      timeout=20)
     try:
         return json.loads(out.strip().splitlines()[-1])
     except (ValueError, IndexError):

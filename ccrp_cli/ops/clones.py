@@ -198,7 +198,8 @@ def wait_serving(provider: Reaches, robot: str, master_port: int | str, timeout:
     rc, out = provider.transport.exec(robot, ["bash", "-c", WAIT_SERVING_SH, MGMT_SOCKET, str(master_port)], timeout=timeout)
     if rc != 0 or out.split()[-2:] != ["vpn=yes", "master=yes"]:
         detail = json.dumps(health(provider, robot))[:300]  # the long way, for the message only
-        raise CcrpError(f"clone {clone_host(robot)} is not serving after {timeout:.0f} s: {detail}")
+        waited = timeout * provider.timeout_scale(robot)  # as the transport stretched it
+        raise CcrpError(f"clone {clone_host(robot)} is not serving after {waited:.0f} s: {detail}")
 
 
 def clone_user_data(view, provider: Housekeeping, bare: bool) -> str:

@@ -263,6 +263,11 @@ class Reaches(Protocol):
     @property
     def transport(self) -> Transport: ...
 
+    def timeout_scale(self, robot: str) -> int:
+        """How many times longer than usual a command on this robot's clone may take (a VM whose CPU
+        is emulated: libvirt without KVM); 1 elsewhere."""
+        ...
+
 
 class Lifecycle(Reaches, Protocol):
     """A clone's life: made (or started, or reused), waited for, listed, stopped, deleted; and the

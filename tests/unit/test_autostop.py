@@ -152,6 +152,10 @@ class Clones:
             if robot == "nao1" else None
 
     transport = property(lambda self: self)  # a fake clone is its own transport
+
+    def timeout_scale(self, robot):
+        return 1
+
     def exec(self, robot, argv, timeout=60):
         if robot == "nao2":
             raise CcrpError("SSH to ccrp@192.0.2.5 failed: Unable to connect to port 22")

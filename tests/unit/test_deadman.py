@@ -137,7 +137,9 @@ def fake_ros(monkeypatch) -> dict:
     rclpy.init = lambda: None
     rclpy.create_node = lambda name: Node()
     rclpy.spin = lambda node: None
-    modules = {"rospy": rospy, "rclpy": rclpy}
+    executors = types.ModuleType("rclpy.executors")
+    executors.ExternalShutdownException = type("ExternalShutdownException", (Exception,), {})
+    modules = {"rospy": rospy, "rclpy": rclpy, "rclpy.executors": executors}
     for name, attrs in (("geometry_msgs.msg", ["Twist"]), ("sensor_msgs.msg", ["Image"]), ("std_msgs.msg", ["String"])):
         module = types.ModuleType(name)
         for attr in attrs:

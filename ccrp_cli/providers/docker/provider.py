@@ -176,6 +176,9 @@ class DockerProvider(DockerHost):
         # scale` in docs/benchmarks.md), and the engine answers at once when one runs out.
         return []
 
+    def timeout_scale(self, robot: str) -> int:
+        return 1
+
     def close(self) -> None:
         self.client.close()
 
