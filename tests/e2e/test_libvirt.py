@@ -1,18 +1,17 @@
-"""Two VM clones on libvirt, end to end, on ROS 1 Noetic (CCRP_LIBVIRT_DISTRO=jazzy: ROS 2, whose
-simulated robot's node the VM clone did not discover in the one run so far: docs/libvirt.md):
-`ccrp snapshot build` making the golden
-volume from the recipe (its Docker image, then providers/libvirt/goldens.py), `ccrp fleet up`
-creating nao1's and nao2's clones as qcow2 overlays booted with a NoCloud seed of the user-data ccrp
-renders, `ccrp status` saying they serve, `ccrp robot sim` putting nao1's simulated robot on the
-fleet's NAT bridge (providers/libvirt/robots.py) where it connects through the VPN to its clone and
-nothing else of it, nao1's /chatter (the robot's demo node) reaching nao2's clone through the relay
-over the isolated common network, and `ccrp fleet down` leaving no domain, volume, network,
-container or veth of the fleet. The VMs are shared by the module's tests, in order.
+"""Two VM clones on libvirt, end to end, on ROS 2 Jazzy (CCRP_LIBVIRT_DISTRO=noetic: ROS 1):
+`ccrp snapshot build` making the golden volume from the recipe (its Docker image, then
+providers/libvirt/goldens.py), `ccrp fleet up` creating nao1's and nao2's clones as qcow2 overlays
+booted with a NoCloud seed of the user-data ccrp renders, `ccrp status` saying they serve with the
+host's clock, `ccrp robot sim` putting nao1's simulated robot on the fleet's NAT bridge
+(providers/libvirt/robots.py) where it connects through the VPN to its clone and nothing else of it,
+nao1's /chatter (the robot's demo node) reaching nao2's clone through the relay over the isolated
+common network, and `ccrp fleet down` leaving no domain, volume, network, container or veth of the
+fleet. The VMs are shared by the module's tests, in order.
 
-Opt-in (CCRP_E2E_LIBVIRT=1), with libvirtd answering on qemu:///system and the binding installed
-(scripts/libvirt.sh): in the README's test command it took a worker 730 s and brought the run to
-29.9 minutes (docs/benchmarks.md, run 29), past what that command may take. The golden volume is made from the run's clone image of the
-distro (clone_images), so the recipe is installed once per run whatever the backend. CCRP_LIBVIRT_ACCEL (auto, kvm, tcg; default auto) is the inventory's accel."""
+It runs wherever libvirtd answers on qemu:///system with the binding installed (scripts/libvirt.sh,
+which .ci/run runs; tests/libvirt_host.py; CCRP_E2E_LIBVIRT=0 turns it off). The golden volume is
+made from the run's clone image of the distro (clone_images), so the recipe is installed once per
+run whatever the backend. CCRP_LIBVIRT_ACCEL (auto, kvm, tcg; default auto) is the inventory's accel."""
 
 from __future__ import annotations
 
@@ -38,7 +37,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.root]
 SKIP = gate()
 if SKIP:
     pytest.skip(SKIP, allow_module_level=True)
-DISTRO = os.environ.get("CCRP_LIBVIRT_DISTRO", "noetic")
+DISTRO = os.environ.get("CCRP_LIBVIRT_DISTRO", "jazzy")
 assert DISTRO in ("jazzy", "noetic"), DISTRO
 
 
@@ -113,6 +112,48 @@ def veths(vm_fleet) -> list[str]:
     mine = {veth_name(vm_fleet["fleet"].name, r) for r in ("nao1", "nao2")}
     out = subprocess.run(["ip", "-o", "link", "show"], capture_output=True, text=True, check=True).stdout
     return sorted(name for name in re.findall(r"^\d+: ([^:@]+)", out, re.M) if name in mine)
+
+
+def test_a_nat_range_in_use_fails_bootstrap_and_leaves_nothing(tmp_path):
+    """Bootstrap of a fleet whose NAT range another libvirt network already uses: a one-line error
+    with the hint, and neither of the fleet's networks left defined (the first defined, then could not
+    start: "already in use by interface")."""
+    import libvirt
+
+    from ccrp_cli.errors import CcrpError
+    from ccrp_cli.fleet import Fleet
+    from ccrp_cli.ops.init import free, used_networks
+    from ccrp_cli.providers import get_provider
+    from ccrp_cli.providers.libvirt import xmldefs
+
+    used = used_networks()
+    cidr = ipaddress.IPv4Network(free_public(used))
+    taken = f"ccrp-e2e-taken-{secrets.token_hex(3)}"
+    conn = libvirt.open("qemu:///system")
+    other = conn.networkDefineXML(xmldefs.isolated_network(taken, f"virbr-{taken[-6:]}").replace(
+        "</network>", f"<ip address='{cidr.network_address + 1}' prefix='{cidr.prefixlen}'/></network>"))
+    try:
+        other.create()
+        fleet_name = f"lv{secrets.token_hex(3)}"
+        inv = {"fleet": fleet_name, "provider": {"kind": "libvirt", "public_cidr": str(cidr)},
+               "ros": {"distro": DISTRO}, "vpn": {"pool": free("vpn", used)}, "common": {"cidr": free("common", used)},
+               "robots": [{"name": "nao1"}]}
+        (tmp_path / "ccrp.yaml").write_text(yaml.safe_dump(inv, sort_keys=False))
+        os.environ["CCRP_HOME"] = str(tmp_path / "home")
+        provider = get_provider(Fleet.open(tmp_path / "ccrp.yaml").inventory)
+        try:
+            with pytest.raises(CcrpError) as err:
+                provider.bootstrap()
+            assert "in use" in str(err.value) and "provider.public_cidr" in (err.value.hint or ""), err.value
+            assert not [n.name() for n in conn.listAllNetworks(0) if n.name().startswith(f"ccrp-{fleet_name}-")]
+        finally:
+            provider.teardown()
+            provider.close()
+    finally:
+        if other.isActive():
+            other.destroy()
+        other.undefine()
+        conn.close()
 
 
 def test_two_vm_clones_serve(vm_fleet):

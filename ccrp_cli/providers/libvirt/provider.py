@@ -246,15 +246,17 @@ class LibvirtProvider(CloudProvider):
             self._pool(create=True)
             for name, xml in ((self.public_net, xmldefs.nat_network(self.public_net, xmldefs.bridge_name(self.fleet, "public"), public)),
                               (self.common_net, xmldefs.isolated_network(self.common_net, xmldefs.bridge_name(self.fleet, "common")))):
-                net = self._network(name)
-                if net is None:
-                    try:
-                        net = self.api(f"define network {name}", self.conn.networkDefineXML, xml)
-                    except self.libvirt.libvirtError as exc:
-                        raise CcrpError(f"cannot define libvirt network {name}: {self._message(exc)}",
-                                        hint="another network uses that range: change provider.public_cidr") from None
-                if not net.isActive():
-                    self.api(f"start network {name}", net.create)
+                net, defined = self._network(name), False
+                try:
+                    if net is None:
+                        net, defined = self.api(f"define network {name}", self.conn.networkDefineXML, xml), True
+                    if not net.isActive():
+                        self.api(f"start network {name}", net.create)
+                except self.libvirt.libvirtError as exc:
+                    if defined:  # a network that cannot start ("already in use by interface ...") goes again
+                        net.undefine()
+                    raise CcrpError(f"cannot set up libvirt network {name}: {self._message(exc)}",
+                                    hint="another network uses that range: change provider.public_cidr") from None
                 net.setAutostart(1)
 
     # -- acceleration ---------------------------------------------------------------------------
