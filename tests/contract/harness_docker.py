@@ -1,5 +1,7 @@
 """The contract harness on the real Docker engine. Clones run a tiny image (ccrp/base:bookworm
 with `sleep` as its command: no systemd boot), so the suite tests the provider, not cloud-init.
+Like a clone's systemd, its PID 1 ends on the stop signal the provider gives its containers
+(SIGRTMIN+3): a bare `sleep` as PID 1 ignores it, and every stop waited out Docker's 60 s timeout.
 Faults and delays are injected in the HTTP adapter under docker-py, before a request reaches the
 engine (and under the provider's own retry layer, as a cloud's throttling would be)."""
 
@@ -21,7 +23,7 @@ from .harness import FLEET
 from .specs import FAST, Knobs, clone_spec, inventory
 
 BASE = "ccrp/base:bookworm"
-TINY = "ccrp/contract-tiny:latest"
+TINY = "ccrp/contract-tiny:2"  # 2: PID 1 ends on SIGRTMIN+3
 # Subnets of their own, so a fleet running on this engine is never in the way.
 # Ranges of the harness's networks: a free /24 of each, picked per test (tests/scenarios/backend.py free_cidr).
 PUBLIC_RANGE, COMMON_RANGE = "172.25.0.0/16", "10.197.0.0/16"
@@ -178,13 +180,14 @@ def make_harness(tmp_path):
 
 
 def _tiny_image(raw) -> bool:
-    """Tag the base with `sleep` as its command (no new layer). True when this call made it."""
+    """Tag the base with `sleep` as its command (no new layer), under a shell that exits on the
+    stop signal as systemd would. True when this call made it."""
     try:
         raw.images.get(TINY)
         return False
     except Exception:  # noqa: BLE001 - NotFound
         pass
-    data = f'FROM {BASE}\nCMD ["sleep", "infinity"]\n'.encode()
+    data = f'FROM {BASE}\nCMD ["bash", "-c", "trap \'exit 0\' TERM RTMIN+3; sleep infinity & wait"]\n'.encode()
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w") as tar:
         info = tarfile.TarInfo("Dockerfile")
