@@ -541,7 +541,9 @@ c.insert_json5("transport/link/tls", json.dumps({"root_ca_certificate": "/rogue/
 s = zenoh.open(c)
 got = []
 sub = s.declare_subscriber(sys.argv[2], lambda x: got.append(x))
-time.sleep(float(sys.argv[3]))
+end = time.monotonic() + float(sys.argv[3])
+while not got and time.monotonic() < end:  # the whole window when nothing comes; a message ends it
+    time.sleep(0.1)
 print(json.dumps({"peers": len(list(s.info.peers_zid())), "received": len(got)}), flush=True)
 os._exit(0)  # a session still re-dialling its refused peer would keep the interpreter alive
 """
@@ -575,10 +577,14 @@ def rogue_listens(fleet: E2EFleet, files: list[tuple[str, bytes, int]], seconds:
         rogue.put_archive("/", tar_files([(f"rogue/{n}", d, m) for n, d, m in files]))
         rogue.start()
         endpoint = f"tls/{fleet.plan()['nao1']['common_ip']}:7447"
+        clone = fleet.container("clone", "nao1")
         with ThreadPoolExecutor(2) as pool:
-            pool.submit(ros_sh, fleet.container("clone", "nao1"),
-                        f"timeout {seconds + 4} rostopic pub -r 5 /faces std_msgs/String 'data: rogue-bait'", seconds + 8)
-            rc, out = exec_in(rogue, ["python3", "-c", ROGUE, endpoint, f"ccrp/{fleet.name}/**", str(seconds)], timeout=40)
+            pool.submit(ros_sh, clone, f"timeout {seconds + 4} rostopic pub -r 5 /faces std_msgs/String 'data: rogue-bait'",
+                        seconds + 8)
+            try:
+                rc, out = exec_in(rogue, ["python3", "-c", ROGUE, endpoint, f"ccrp/{fleet.name}/**", str(seconds)], timeout=40)
+            finally:  # the rogue has listened: else leaving the pool waits for the rest of the publisher's timeout
+                clone.exec_run(["pkill", "-f", "data: [r]ogue-bait"])  # "[r]" matches the publisher, not this pkill
         assert rc == 0, out[-1000:]
         return json.loads(out.strip().splitlines()[-1])
     finally:
