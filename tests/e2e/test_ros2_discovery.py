@@ -1,10 +1,11 @@
 """End to end on Docker: ROS 2 Jazzy from the ros-jazzy-* wheels on the clones' Debian 12, and
 DDS discovery confined to unicast static peers (docs/ros2.md).
 
-Builds the Jazzy layer (snapshots/jazzy.yaml through providers/docker/ros2.py dockerfile and
-fetch_wheels) on the project's base image, with tcpdump added for the capture, starts two
-containers on a Docker network of its own and runs a publisher of /chatter in one and a
-subscriber in the other, each container capturing the UDP it sends and receives:
+Takes the run's Jazzy clone image (snapshots/jazzy.yaml: the recipe's packages and the
+ros-jazzy-* wheels in the venv at /opt/ros/jazzy, fetch_wheels; built once a run for every Jazzy
+fleet, tests/conftest.py clone_images) with tcpdump added for the capture, starts two containers of
+it (no systemd: a sleep) on a Docker network of its own and runs a publisher of /chatter in one and
+a subscriber in the other, each container capturing the UDP it sends and receives:
 
   1. ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and ROS_STATIC_PEERS=<the other's address>: the
      subscriber gets the messages; no multicast packet in either capture, and no packet to or
@@ -24,8 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from ccrp_cli.providers.docker import images, ros2
-from ccrp_cli.recipes import platform
+from ccrp_cli.providers.docker import images
 
 docker = pytest.importorskip("docker", reason="the Docker SDK (`pip install docker`) is not installed")
 
@@ -77,8 +77,16 @@ def client():
     return c
 
 
+# tcpdump on the run's clone image: one layer over it. A Jazzy layer of its own (providers/docker/ros2.py
+# dockerfile, tcpdump among its packages) installed the recipe's packages and the venv again each run.
+CAPTURE_LAYER = """FROM {image}
+RUN apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends tcpdump \\
+ && rm -rf /var/lib/apt/lists/*
+"""
+
+
 @pytest.fixture(scope="module")
-def pair(client):
+def pair(client, clone_images):
     """Two containers of the Jazzy image on a network of their own: ((container, address), ...)."""
     from tests.scenarios.backend import free_cidr
 
@@ -86,10 +94,7 @@ def pair(client):
     tag, name = f"ccrp-test/jazzy:{run}", f"ccrp-test-ros2-{run}"
     containers, network = [], None
     try:
-        plat = platform(DISTRO, "debian-bookworm")
-        plat = plat.model_copy(update={"packages": [*plat.packages, "tcpdump"]})
-        images.build_clone_image(client, tag, ros2.dockerfile(DISTRO, images.DEFAULT_BASE, plat), LABELS,
-                                 files=ros2.venv_context(plat))
+        images.build_clone_image(client, tag, CAPTURE_LAYER.format(image=clone_images(DISTRO)), LABELS)
         ipam = docker.types.IPAMConfig(pool_configs=[docker.types.IPAMPool(subnet=free_cidr("10.72.0.0/13"))])
         network = client.networks.create(name, driver="bridge", ipam=ipam, labels=LABELS)
         for side in ("a", "b"):
