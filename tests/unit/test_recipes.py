@@ -88,11 +88,9 @@ def test_every_image_has_ccrp_topic_and_it_refuses_bad_usage_in_one_line():
         assert "Traceback" not in proc.stderr
 
 
-def test_ros2_layer_installs_the_wheels_in_a_venv_with_a_setup_file():
+def test_a_jazzy_clone_image_installs_the_wheels_in_a_venv_with_a_setup_file_and_noetic_has_none():
     plat = platform("jazzy", "debian-bookworm")
-    text = ros2.dockerfile("jazzy", images.DEFAULT_BASE, plat)
-    assert text.startswith("# ROS 2 jazzy") and f"FROM {images.DEFAULT_BASE}\n" in text
-    assert f"for p in {' '.join(plat.packages)}; do" in text
+    text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, plat, agents=("relay",))
     assert "python3 -m venv /opt/ros/jazzy" in text and f"--find-links /tmp/ccrp-wheels {' '.join(plat.pip)}" in text
     assert "sh /tmp/ccrp-ros2-setup /opt/ros/jazzy jazzy" in text
     assert "venv" not in images.dockerfile("lab", "noetic", images.DEFAULT_BASE, platform("noetic", "debian-bookworm"), agents=("relay", "api_manager"))
