@@ -112,6 +112,9 @@ class MemoryProvider:
             raise CcrpError(f"clone {spec.hostname}: {exc}; rolled back its instance and address") from exc
         return self._record(self.api("get instance", self.cloud.get, inst.id), Origin.CREATED)
 
+    def timeout_scale(self, robot: str) -> int:
+        return 1
+
     def wait_ready(self, robot: str, timeout: float = 60) -> None:
         """Until the robot's instance runs: nothing boots in it, so that is all there is to wait for."""
         def running() -> tuple[bool, str]:
