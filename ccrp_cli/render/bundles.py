@@ -76,7 +76,7 @@ def edge_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[B
         BundleFile("ccrp-vpn.service", static("edge/ccrp-vpn.service"), 0o644),
         BundleFile("ccrp-watchdog.service", static("edge/ccrp-watchdog.service"), 0o644),
         BundleFile("install.sh", render("edge/install.sh.j2", **view.ctx()), 0o755),
-    ] + (rtps_guard(view) if view.inv.ros.ros2 else [])
+    ] + (ros2_edge(view) if view.inv.ros.ros2 else [])
 
 
 def power_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[BundleFile]:
@@ -98,7 +98,7 @@ def power_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[
     ]
 
 
-def rtps_guard(view: CloneView) -> list[BundleFile]:
+def ros2_edge(view: CloneView) -> list[BundleFile]:
     """A ROS 2 robot's firewall for RTPS (its domain's ports only through the tunnel), and the
     Fast DDS profile that has its participants announce the tunnel's end whenever they started."""
     ports = network.rtps_ports(view.addr.index)
