@@ -11,9 +11,8 @@ fleet. The VMs are shared by the module's tests, in order.
 Opt-in (CCRP_E2E_LIBVIRT=1, tests/libvirt_host.py), with libvirtd answering on qemu:///system and
 the binding installed (scripts/libvirt.sh): in the README's test command it took a worker 13.8 minutes
 and brought the run to 30.4 minutes (docs/benchmarks.md, run 33), past what that command may take.
-The golden volume is
-made from the run's clone image of the distro (clone_images), so the recipe is installed once per
-run whatever the backend. CCRP_LIBVIRT_ACCEL (auto, kvm, tcg; default auto) is the inventory's accel."""
+The golden volume is made from the run's clone image of the distro (clone_images), so the recipe is
+installed once per run whatever the backend. CCRP_LIBVIRT_ACCEL (auto, kvm, tcg; default auto) is the inventory's accel."""
 
 from __future__ import annotations
 
@@ -116,7 +115,7 @@ def veths(vm_fleet) -> list[str]:
     return sorted(name for name in re.findall(r"^\d+: ([^:@]+)", out, re.M) if name in mine)
 
 
-def test_a_nat_range_in_use_fails_bootstrap_and_leaves_nothing(tmp_path):
+def test_a_nat_range_in_use_fails_bootstrap_and_leaves_nothing(tmp_path, monkeypatch):
     """Bootstrap of a fleet whose NAT range another libvirt network already uses: a one-line error
     with the hint, and neither of the fleet's networks left defined (the first defined, then could not
     start: "already in use by interface")."""
@@ -141,7 +140,7 @@ def test_a_nat_range_in_use_fails_bootstrap_and_leaves_nothing(tmp_path):
                "ros": {"distro": DISTRO}, "vpn": {"pool": free("vpn", used)}, "common": {"cidr": free("common", used)},
                "robots": [{"name": "nao1"}]}
         (tmp_path / "ccrp.yaml").write_text(yaml.safe_dump(inv, sort_keys=False))
-        os.environ["CCRP_HOME"] = str(tmp_path / "home")
+        monkeypatch.setenv("CCRP_HOME", str(tmp_path / "home"))
         provider = get_provider(Fleet.open(tmp_path / "ccrp.yaml").inventory)
         try:
             with pytest.raises(CcrpError) as err:

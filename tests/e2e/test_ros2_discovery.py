@@ -77,8 +77,8 @@ def client():
     return c
 
 
-# tcpdump on the run's clone image: one layer over it. A Jazzy layer of its own (providers/docker/ros2.py
-# dockerfile, tcpdump among its packages) installed the recipe's packages and the venv again each run.
+# tcpdump on the run's clone image: one layer over it. A Jazzy image of its own (tcpdump among its
+# packages) installed the recipe's packages and the venv again each run.
 CAPTURE_LAYER = """FROM {image}
 RUN apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends tcpdump \\
  && rm -rf /var/lib/apt/lists/*
