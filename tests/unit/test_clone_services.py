@@ -35,14 +35,16 @@ def test_each_services_boot_declaration_is_in_the_user_data(lab):
     data = cloudinit.user_data_dict(view, boots())
     written = {f["path"]: f["content"] for f in data["write_files"]}
     users = {u["name"] for u in data["users"]}
-    enabled = [c[3:] for c in data["runcmd"] if c[:3] == ["systemctl", "enable", "--now"]]
+    started = [c[2:] for c in data["runcmd"] if c[:2] == ["systemctl", "start"]]
+    [enabled] = [c[3:] for c in data["runcmd"] if c[:3] == ["systemctl", "enable", "--no-reload"]]
     for service in SERVICES:
         boot = service.boot
         assert {f"/etc/systemd/system/{u}" for u in boot.units + boot.sockets} <= set(written), service.name
         assert {f"{CCRP_LIB}/{a}.py" for a in boot.agents} <= set(written), service.name
         assert all(written.get(f.dest) == f.content for f in boot.files(view)), service.name
-        assert set(boot.users) <= users and set(boot.units) <= set(enabled[-1]), service.name
-    assert enabled[0] == ["ccrp-power.socket"]  # the power agent's port is systemd's before any service runs
+        assert set(boot.users) <= users and set(boot.units) <= set(started[-1]), service.name
+        assert set(boot.units + boot.sockets) <= set(enabled), service.name  # and at every later boot
+    assert started[0] == ["ccrp-power.socket"]  # the power agent's port is systemd's before any service runs
 
 
 class Clone:

@@ -450,6 +450,6 @@ def test_the_power_units_give_the_agent_systemds_socket(lab):
     assert service["User"] == ["ccrp-power"] and "Sockets" not in service  # the socket of its own name
     runcmd = data["runcmd"]
     assert all(isinstance(c, list) and "sh" not in c[:1] for c in runcmd), runcmd
-    starts = [i for i, c in enumerate(runcmd) if c[:3] == ["systemctl", "enable", "--now"]]
-    assert runcmd[starts[0]] == ["systemctl", "enable", "--now", "ccrp-power.socket"]
+    starts = [i for i, c in enumerate(runcmd) if c[:2] == ["systemctl", "start"]]
+    assert runcmd[starts[0]] == ["systemctl", "start", "ccrp-power.socket"]
     assert len(starts) == 2 and "ccrp-power.service" in runcmd[starts[1]] and starts[0] < starts[1]
