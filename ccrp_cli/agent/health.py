@@ -21,6 +21,8 @@ SERVER_KEY = "/etc/openvpn/server/ccrp/keys/server.key"
 MASTER = "http://127.0.0.1:11311"
 ROS_ENV = "/etc/ccrp/ros.env"
 GRAPH = "/usr/local/lib/ccrp/ros2_graph.py"
+GRAPH_UNIT = "/etc/systemd/system/ccrp-graph.service"
+GRAPH_SOCKET = "/run/ccrp-graph/graph.sock"
 # ccrp sets it above 1 for a clone whose CPU is emulated (libvirt without KVM): the graph's query
 # took 10.8 s there once, against its 15 s limit.
 TIME_SCALE = int(os.environ.get("CCRP_TIME_SCALE") or 1)
@@ -36,7 +38,35 @@ def ros_env():
 
 def graph(env):
     """ROS 2: the nodes the clone sees in its robot's domain (a remote one is the robot's, as
-    ros2:// URIs on the robot's name, which is how status finds a robot's nodes on a master)."""
+    ros2:// URIs on the robot's name, which is how status finds a robot's nodes on a master): what
+    ccrp-graph.service's node sees, or on a clone without it (an older ccrp's) a node's own look."""
+    data = graph_report() if os.path.exists(GRAPH_UNIT) else graph_once(env)
+    robot, me = env.get("CCRP_ROBOT", ""), socket.gethostname()
+    data["nodes"] = {n: f"ros2://{robot if where == 'remote' else me}/" for n, where in data["nodes"].items()}
+    return data
+
+
+def graph_report():
+    """What ccrp-graph.service's node sees, asked through its socket."""
+    data = b""
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.settimeout(10 * TIME_SCALE)
+            s.connect(GRAPH_SOCKET)
+            while chunk := s.recv(65536):
+                data += chunk
+        report = json.loads(data)
+        if not isinstance(report["nodes"], dict) or not isinstance(report["published_topics"], list):
+            raise TypeError("not the graph keeper's report")
+        nodes = {str(n): "remote" if w == "remote" else "local" for n, w in report["nodes"].items()}
+        topics = [str(t) for t in report["published_topics"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return {"reachable": False, "error": f"ccrp-graph.service did not answer ({type(exc).__name__})",
+                "nodes": {}, "published_topics": []}
+    return {"reachable": True, "nodes": nodes, "published_topics": topics}
+
+
+def graph_once(env):
     python = f"/opt/ros/{env.get('ROS_DISTRO', '')}/bin/python"
     logs = tempfile.mkdtemp(prefix="ccrp-graph-")
     try:
@@ -49,8 +79,6 @@ def graph(env):
         return {"reachable": False, "error": str(exc)[-200:], "nodes": {}, "published_topics": []}
     finally:
         shutil.rmtree(logs, ignore_errors=True)
-    robot, me = env.get("CCRP_ROBOT", ""), socket.gethostname()
-    data["nodes"] = {n: f"ros2://{robot if where == 'remote' else me}/" for n, where in data["nodes"].items()}
     return data
 
 

@@ -14,7 +14,7 @@ def logs(
     inventory: options.Inventory,
     robot: options.Robot,
     name: Annotated[str | None, typer.Argument(help="A node of the robot's software.run, or a ccrp unit "
-                                                    "(relay, openvpn, rosmaster, ...). Default: every node.")] = None,
+                                                    "(relay, openvpn, rosmaster or graph, ...). Default: every node.")] = None,
     follow: Annotated[bool, typer.Option("--follow", "-f", help="Keep printing new lines until Ctrl-C.")] = False,
     since: Annotated[str | None, typer.Option("--since", help="Only lines of the last 10m, 2h, 1d...")] = None,
     lines: Annotated[int, typer.Option("--lines", "-n", min=1, max=10000, help="How many of the last lines.")] = 100,

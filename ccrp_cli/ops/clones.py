@@ -16,6 +16,7 @@ from typing import Callable
 from ..errors import CcrpError
 from ..fleet import Fleet, clone_view
 from ..layout import MGMT_SOCKET, SECRETS_DIR
+from ..models.inventory import Inventory
 from ..models.names import clone_host
 from ..models.state import FleetState
 from ..probe import HEALTH_SCRIPT, files_current, health, remote_digests, same
@@ -116,16 +117,26 @@ def kill_session(provider: Reaches, robot: str, cn: str | None = None) -> None:
         raise CcrpError(f"cannot end the VPN session on {clone_host(robot)}: {out.strip()[-200:]}")
 
 
+def keyed_units(inv: Inventory) -> list[str]:
+    """The units that wait for the keys ccrp pushes (ConditionPathExists), (re)started with them."""
+    return ["ccrp-openvpn.service", "ccrp-relay.service", *(["ccrp-graph.service"] if inv.ros.ros2 else [])]
+
+
 # Whether a clone serves, in bash inside it (no python start per check: with many clones booting
 # at once, the probes' own CPU slowed every boot down). The VPN: ccrp-openvpn active (Type=notify:
 # OpenVPN said it is ready) and listening on its management socket. The master: an XML-RPC
 # getPid answered with code 1, over bash's /dev/tcp. A ROS 2 clone ($PORT is `ros2`) has no master:
-# there "master" means its ROS 2 environment works (ros2_graph.py check: the RMW loads and a node
-# starts, as the ros user in the robot's domain), asked once the VPN serves and then remembered
-# for this boot in /run (a python start with the ROS libraries is about a second of CPU).
+# there "master" means its ROS 2 environment works: ccrp-graph.service listens (its node has
+# started in the robot's domain), or on a clone without that service (an older ccrp's), ros2_graph.py
+# check did as the ros user, asked once the VPN serves and then remembered for this boot in /run (a
+# python start with the ROS libraries is about a second of CPU, 15 on an emulated VM).
 # Sets $vpn and $master (yes/no).
 SERVING_SH = r"""ros2_ok() {
   [ -e /run/ccrp-ros2.ok ] && return 0
+  if [ -e /etc/systemd/system/ccrp-graph.service ]; then
+    [ -S /run/ccrp-graph/graph.sock ]
+    return
+  fi
   ( set -a; . /etc/ccrp/ros.env; set +a
     logs=$(mktemp -d) && chown ros "$logs" || exit 1
     ROS_LOG_DIR=$logs HOME=/var/lib/ros /usr/sbin/runuser -u ros -- "/opt/ros/$ROS_DISTRO/bin/python" \
@@ -277,7 +288,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         pushed = False
         if not same(have, [*keys, applied]):
             prepare_secrets_dir(provider, robot)
-            provider.transport.push_files(robot, secrets, restart=["ccrp-openvpn.service", "ccrp-relay.service"])
+            provider.transport.push_files(robot, secrets, restart=keyed_units(fleet.inventory))
             provider.transport.push_files(robot, [applied])  # last: until it is there, the next run pushes again
             pushed = True
         elif not same(have, crl):

@@ -104,10 +104,15 @@ def ros2_sysctl() -> str:
             f"net.core.rmem_default = {ROS2_RMEM}\nnet.core.rmem_max = {ROS2_RMEM}\n")
 
 
+# A ROS 2 clone's graph keeper (agent/ros2_graph.py watch) runs as its own user, and writes here.
+GRAPH_USER = "ccrp-graph"
+
+
 def base_units(inv: Inventory) -> list[str]:
-    """The base's systemd units: the firewall, OpenVPN and a ROS 1 clone's master (a ROS 2 clone has
-    none). The services' units follow them (their Boot declarations)."""
-    return ["ccrp-firewall.service", "ccrp-openvpn.service", *([] if inv.ros.ros2 else ["ccrp-rosmaster.service"])]
+    """The base's systemd units: the firewall, OpenVPN and a ROS 1 clone's master, or on a ROS 2 clone
+    its graph keeper in its place. The services' units follow them (their Boot declarations)."""
+    return ["ccrp-firewall.service", "ccrp-openvpn.service",
+            "ccrp-graph.service" if inv.ros.ros2 else "ccrp-rosmaster.service"]
 
 
 def _system_user(name: str, **home: Any) -> dict[str, Any]:
@@ -149,7 +154,8 @@ def user_data_dict(
         *(_unit(u) for u in units),
     ]
     if ros2:
-        # A ROS 2 clone's graph for health.py; the image holds only the wheels' venv (providers/docker/images.py).
+        # A ROS 2 clone's graph for health.py (ccrp-graph.service); the image holds only the wheels'
+        # venv (providers/docker/images.py).
         files.append(_file(f"{CCRP_LIB}/ros2_graph.py", agent_source("ros2_graph"), "0644"))
     sockets: list[str] = []
     for boot in boots:
@@ -170,6 +176,7 @@ def user_data_dict(
     # image's is not created (keys from the cloud's key pair then go to root, with logins refused).
     users: list[Any] = [login_user(login_keys)] if login_keys else []
     users += [_system_user("openvpn"), _system_user("ros", homedir="/var/lib/ros")]
+    users += [_system_user(GRAPH_USER)] if ros2 else []
     users += [_system_user(u) for boot in boots for u in boot.users]
     data: dict[str, Any] = {
         "hostname": a.clone_host,

@@ -347,7 +347,7 @@ class Nodes(CloneService):
 # -- logs ------------------------------------------------------------------------------------------
 
 # ccrp's own units on a clone, by the name `ccrp logs` takes (their unit is ccrp-<name>.service).
-CCRP_UNITS = ("openvpn", "relay", "rosmaster", "autostop", "power", "knowledge", "api-manager", "firewall")
+CCRP_UNITS = ("openvpn", "relay", "rosmaster", "graph", "autostop", "power", "knowledge", "api-manager", "firewall")
 
 
 def log_units(inv: Inventory, robot: Robot, name: str | None) -> list[str]:

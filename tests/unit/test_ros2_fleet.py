@@ -265,10 +265,13 @@ def test_a_jazzy_clone_runs_no_master_and_rclpy_agents(jazzy):
     starts = [c[2:] for c in data["runcmd"] if c[:2] == ["systemctl", "start"]]
     assert starts[0] == ["ccrp-power.socket"]  # alone and first (unit/test_power_device.py)
     enabled = starts[1]
-    assert enabled == ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-relay.service", "ccrp-autostop.service",
-                       "ccrp-power.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
+    assert enabled == ["ccrp-firewall.service", "ccrp-openvpn.service", "ccrp-graph.service", "ccrp-relay.service",
+                       "ccrp-autostop.service", "ccrp-power.service", "ccrp-api-manager.service", "ccrp-knowledge.service"]
     paths = {f["path"] for f in data["write_files"]}
     assert "/usr/local/lib/ccrp/ros2_graph.py" in paths and "/etc/systemd/system/ccrp-rosmaster.service" not in paths
+    # The graph keeper in the master's place, as a user of its own: not `ros`, whose nodes it reports on.
+    assert "/etc/systemd/system/ccrp-graph.service" in paths
+    assert {"ccrp-graph", "ros"} <= {u["name"] for u in data["users"]}
     assert cloudinit.ROS2_SYSCTL not in paths  # a container shares the host's kernel: `ccrp doctor` says so
     # The relay comes with the user-data (the API manager is in the image, the knowledge agent is
     # pushed by fleet up).
@@ -325,6 +328,51 @@ def test_watchdog_icmp_check_answers_for_loopback_and_not_for_a_silent_address()
         pytest.skip("raw ICMP sockets need root (the watchdog runs as root on the robot)")
     assert watchdog.echo_answered("127.0.0.1", 7, 1.0) is True
     assert watchdog.echo_answered("203.0.113.1", 8, 0.3) is False  # TEST-NET-3: nobody answers
+
+
+def test_health_asks_the_graph_keeper_and_says_when_it_does_not_answer_or_answers_oddly(tmp_path, monkeypatch):
+    """ccrp-graph.service's answer is what status shows of a ROS 2 clone's graph: a remote node as
+    the robot's, a local one as the clone's. No keeper listening, or an answer not of its shape,
+    make the graph unreachable, with why."""
+    import json
+    import socket
+    import threading
+
+    from ccrp_cli.agent import health
+
+    unit, path = tmp_path / "ccrp-graph.service", str(tmp_path / "graph.sock")
+    unit.write_text("[Unit]\n")
+    monkeypatch.setattr(health, "GRAPH_UNIT", str(unit))
+    monkeypatch.setattr(health, "GRAPH_SOCKET", path)
+    monkeypatch.setattr(health.socket, "gethostname", lambda: "cri-nao1")
+    env = {"ROS_DISTRO": "jazzy", "CCRP_ROBOT": "nao1"}
+    assert health.graph(env)["error"] == "ccrp-graph.service did not answer (FileNotFoundError)"
+
+    def keeper(answers):
+        server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        server.bind(path)
+        server.listen(1)
+
+        def run():
+            with server:
+                for answer in answers:
+                    conn, _ = server.accept()
+                    with conn:
+                        conn.sendall(answer.encode())
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        return thread
+
+    good = json.dumps({"reachable": True, "nodes": {"/nao1_demo": "remote", "/ccrp_relay": "local"},
+                       "published_topics": ["/chatter"]})
+    odd = ['{"nodes": {}}', "[1]", "{", json.dumps({"nodes": ["/a"], "published_topics": []})]
+    thread = keeper([good, *odd])
+    assert health.graph(env) == {"reachable": True, "published_topics": ["/chatter"],
+                                 "nodes": {"/nao1_demo": "ros2://nao1/", "/ccrp_relay": "ros2://cri-nao1/"}}
+    for answer in odd:
+        got = health.graph(env)
+        assert got["reachable"] is False and got["nodes"] == {} and "did not answer" in got["error"], answer
+    thread.join(5)
 
 
 def test_a_ros2_clone_whose_graph_does_not_answer_is_named_so():
