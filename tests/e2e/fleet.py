@@ -345,8 +345,8 @@ import socket, subprocess, sys, time
 ip, seconds, marker = sys.argv[1], float(sys.argv[2]), sys.argv[3].encode()
 iface = next(l.split()[1] for l in subprocess.run(["ip", "-o", "-4", "addr", "show"], capture_output=True,
                                                   text=True).stdout.splitlines() if f" {ip}/" in l)
-sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x0003))
-sock.bind((iface, 0))
+sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0)  # nothing until bound to iface (packet(7))
+sock.bind((iface, 0x0003))
 sock.settimeout(0.2)
 seen, found, deadline = 0, False, time.monotonic() + seconds
 while time.monotonic() < deadline:

@@ -40,8 +40,10 @@ pytestmark = [
 # 1194 at either end) and any other UDP, which with ROS 2 confined to the tunnel must be none.
 CAPTURE = r"""
 import json, socket, struct, sys, time
-s = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.ntohs(0x0800))
-s.bind(("eth0", 0))
+# Protocol 0 until bound: a packet socket made with its protocol gets every interface's packets
+# until bind, and a loopback datagram once came in that way (packet(7)).
+s = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0)
+s.bind(("eth0", 0x0800))
 s.settimeout(0.2)
 vpn, other, tunnel, end = 0, [], set(), time.monotonic() + float(sys.argv[1])
 while time.monotonic() < end:
