@@ -104,7 +104,7 @@ def ros2_sysctl() -> str:
             f"net.core.rmem_default = {ROS2_RMEM}\nnet.core.rmem_max = {ROS2_RMEM}\n")
 
 
-# A ROS 2 clone's graph keeper (agent/ros2_graph.py watch) runs as its own user, and writes here.
+# A ROS 2 clone's graph keeper (ccrp-graph.service: agent/ros2_graph.py serve) runs as a user of its own.
 GRAPH_USER = "ccrp-graph"
 
 
