@@ -253,7 +253,9 @@ def connected(fleet: E2EFleet, robot: str) -> Callable[[], tuple[bool, object]]:
 
 
 def exec_in(container, argv: list[str], timeout: int = 30) -> tuple[int, str]:
-    result = container.exec_run(["timeout", str(timeout), *argv])
+    # -k: a command that outlives its TERM (rospy's shutdown can hang) is killed 5 s later, else
+    # docker's exec stream, and the test reading it, would wait for ever
+    result = container.exec_run(["timeout", "-k", "5", str(timeout), *argv])
     return result.exit_code, (result.output or b"").decode(errors="replace")
 
 
@@ -275,8 +277,14 @@ def relay_through(sender, topic: str, receiver, seen_as: str, marker: str, timeo
         try:
             return echo.result()
         finally:  # else leaving the pool waits for the publisher's whole timeout
-            # "[f]ace-..." matches the publisher's command line, not this pkill's own
-            sender.exec_run(["pkill", "-f", f"data: [{marker[0]}]{marker[1:]}"])
+            stop_publisher(sender, marker)
+
+
+def stop_publisher(container, marker: str) -> None:
+    """End every process of a `rostopic pub ... 'data: <marker>'` exec: KILL, because a TERMed
+    rostopic could hang in rospy's shutdown with its `timeout` wrappers TERMed too (CI on c73867e
+    waited 80 minutes on one); "[f]ace-..." matches the publisher's command lines, not pkill's own."""
+    container.exec_run(["pkill", "-KILL", "-f", f"data: [{marker[0]}]{marker[1:]}"])
 
 
 TCP_PROBE = r"""

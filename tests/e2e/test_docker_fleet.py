@@ -73,6 +73,7 @@ from tests.e2e.fleet import (
     relay_through,
     ros_sh,
     start_fleet,
+    stop_publisher,
     tcp_probe,
     wait_for,
 )
@@ -584,7 +585,7 @@ def rogue_listens(fleet: E2EFleet, files: list[tuple[str, bytes, int]], seconds:
             try:
                 rc, out = exec_in(rogue, ["python3", "-c", ROGUE, endpoint, f"ccrp/{fleet.name}/**", str(seconds)], timeout=40)
             finally:  # the rogue has listened: else leaving the pool waits for the rest of the publisher's timeout
-                clone.exec_run(["pkill", "-f", "data: [r]ogue-bait"])  # "[r]" matches the publisher, not this pkill
+                stop_publisher(clone, "rogue-bait")
         assert rc == 0, out[-1000:]
         return json.loads(out.strip().splitlines()[-1])
     finally:
