@@ -307,14 +307,14 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         if record.created:
             provider.terminate(robot)  # roll back only what this attempt created
         raise
-    endpoint = record.public_ip
+    endpoint = record.endpoint or record.public_ip
     writer.update(
         robot, phase="ready", provider_id=record.provider_id, public_endpoint=endpoint,
         # The snapshot's id (one image may carry several names): a reused clone keeps its own.
         image=((state.snapshot or {}).get("id") or image) if record.created else rec.image,
         software=(state.snapshot or {}).get("software", NO_SOFTWARE) if record.created else rec.software,
         packages=(state.snapshot or {}).get("packages") if record.created else rec.packages,
-        addresses={"public": endpoint or "", "common": str(view.addr.common_ip),
+        addresses={"public": record.public_ip or "", "common": str(view.addr.common_ip),
                    "vpn": str(view.addr.clone_vpn_ip), "robot_vpn": str(view.addr.robot_vpn_ip)},
     )
     took = time.monotonic() - t0

@@ -106,6 +106,9 @@ class CloneRecord(BaseModel):
     public_ip: str | None = None
     common_ip: str | None = None
     origin: Origin | None = None  # set by run_instance; None on what query() lists
+    # HOST:PORT robots dial when it is not public_ip at the VPN port (a port the libvirt host
+    # forwards to the clone's, for robots outside it).
+    endpoint: str | None = None
 
     @property
     def created(self) -> bool:
@@ -126,6 +129,7 @@ ResourceKind = Literal[
     "network", "subnet", "router", "port", "floating_ip", "security_group",  # OpenStack / Docker networks
     "vpc", "route_table", "internet_gateway", "elastic_ip",  # AWS
     "route", "firewall", "address",  # GCP (address: a reserved external IP)
+    "port_forward",  # libvirt: a clone's VPN port forwarded by the host (providers/libvirt/forward.py)
 ]
 
 

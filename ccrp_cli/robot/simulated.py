@@ -110,15 +110,21 @@ class Sims:
         from ..templates import static
         from .robots import edge_files
 
-        if self.attaches and network:
-            raise InputError("--network is for cloud fleets", hint=f"simulated robots of a {self.kind} fleet sit on "
-                             "the fleet's own public network")
         state = self.fleet.store.load_state()
         self.fleet.robot(state, robot)
-        files, endpoint = edge_files(self.fleet, robot)  # refuses a robot with no clone yet
-        if self.attaches:
+        # On the fleet's own network (ROBOT_ATTACH) the robot dials its clone's address there; with
+        # --network it is outside, as a robot on the internet or a LAN, and dials the public endpoint,
+        # which on such a fleet is a forward of the host (libvirt's provider.vpn_forward) or nothing.
+        inside = self.attaches and not network
+        # refuses a robot with no clone yet
+        files, endpoint = edge_files(self.fleet, robot, self._inside(state, robot) if inside else None)
+        if self.attaches and network and not self._forwarded(state, robot):
+            raise InputError(f"--network puts the robot outside the {self.kind} fleet's own network, where its clone "
+                             "has no way in", hint="leave --network out, or (libvirt) forward the VPN ports: "
+                             "provider.vpn_forward (docs/libvirt.md)")
+        if inside:
             seat = self.clones.attach_robot(robot, state.robots[robot].index)
-        else:  # a cloud fleet's: NATed by this host, as a robot on the internet
+        else:  # a cloud fleet's, or one outside: NATed by this host, as a robot on the internet
             seat = RobotAttachment(network=network or "bridge")
         if seat.clone_image:
             image = snapshot_image(state)
@@ -166,14 +172,29 @@ class Sims:
         """The fleet's simulated robots on this host, running or not (with `running`: those that run)."""
         return self.host.names(running)
 
+    def _inside(self, state, robot: str) -> str | None:
+        """The clone's public address when the simulated robot sits on its network (ROBOT_ATTACH)."""
+        rec = state.robots.get(robot)
+        return (rec.addresses.get("public") or None) if self.attaches and rec is not None else None
+
+    def _forwarded(self, state, robot: str) -> bool:
+        """Whether robots outside the fleet's network dial the clone elsewhere than its address on it."""
+        from ..models.values import parse_endpoint
+
+        rec = state.robots.get(robot)
+        if rec is None or not rec.public_endpoint:
+            return False
+        return parse_endpoint(rec.public_endpoint, self.fleet.inventory.vpn.port).host != rec.addresses.get("public")
+
     def clone_address(self, robot: str) -> str:
         """The IPv4 address the robot dials (its clone's public endpoint, resolved here)."""
         from ..models.values import parse_endpoint
 
-        rec = self.fleet.store.load_state().robots.get(robot)
+        state = self.fleet.store.load_state()
+        rec = state.robots.get(robot)
         if rec is None or not rec.public_endpoint:
             raise InputError(f"the clone of robot {robot!r} has no public endpoint yet", hint=f"ccrp clone create --robot {robot}")
-        host = parse_endpoint(rec.public_endpoint, self.fleet.inventory.vpn.port).host
+        host = parse_endpoint(self._inside(state, robot) or rec.public_endpoint, self.fleet.inventory.vpn.port).host
         try:
             return socket.gethostbyname(host)
         except OSError as exc:

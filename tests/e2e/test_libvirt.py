@@ -57,7 +57,7 @@ def free_public(used: list[ipaddress.IPv4Network]) -> str:
 
 
 @pytest.fixture(scope="module")
-def vm_fleet(tmp_path_factory, clone_images):
+def vm_fleet(tmp_path_factory, clone_images, lan):
     """A two-robot libvirt fleet (nao1 exports /chatter, nao2 imports it) whose snapshot is a golden
     volume `ccrp snapshot build` made; everything of it, golden volumes and simulated robots
     included, is removed at the end whatever happened."""
@@ -72,7 +72,9 @@ def vm_fleet(tmp_path_factory, clone_images):
     used = used_networks()
     inv = {"fleet": f"lv{secrets.token_hex(3)}",
            "provider": {"kind": "libvirt", "accel": os.environ.get("CCRP_LIBVIRT_ACCEL", "auto"), "memory_mb": 1536,
-                        "vcpus": 2, "public_cidr": free_public(used)},
+                        "vcpus": 2, "public_cidr": free_public(used),
+                        # robots outside the host dial this address of it (the test's own, on a dummy link)
+                        "vpn_forward": {"address": lan, "base_port": 21940}},
            "ros": {"distro": DISTRO}, "vpn": {"pool": free("vpn", used)}, "common": {"cidr": free("common", used)},
            "sharing": {"engine": "relay"},
            "robots": [{"name": "nao1", "exports": ["/chatter"]}, {"name": "nao2", "imports": {"nao1": ["/chatter"]}}]}
@@ -91,12 +93,38 @@ def vm_fleet(tmp_path_factory, clone_images):
         yield {"home": home, "path": path, "fleet": fleet, "provider": provider, "timings": timings, "golden": record}
     finally:
         try:
-            provider.teardown()  # domains, the robots' containers (their veths with them), volumes, networks
+            provider.teardown()  # domains, the robots' containers (their veths with them), port forwards, volumes, networks
             for snap in provider.list_snapshots():
                 provider.delete_snapshot(snap.id)
         finally:
             provider.close()
             print(f"\nlibvirt e2e timings (s): {json.dumps({k: round(v, 1) for k, v in timings.items()})}")
+
+
+@pytest.fixture(scope="module")
+def lan():
+    """An address of this host standing for its address on the robots' LAN: on a dummy link of the
+    test's own, in the benchmarking range (RFC 2544: no network uses it); the link goes at the end."""
+    link, address = f"ccrplan{secrets.token_hex(3)}", f"198.18.{secrets.randbelow(250) + 1}.1"
+    try:
+        subprocess.run(["ip", "link", "add", link, "type", "dummy"], check=True)
+        subprocess.run(["ip", "address", "add", f"{address}/32", "dev", link], check=True)
+        subprocess.run(["ip", "link", "set", link, "up"], check=True)
+        yield address
+    finally:
+        subprocess.run(["ip", "link", "del", link], capture_output=True, check=False)
+
+
+def forward_counts(fleet: str, robot: str) -> dict[str, int]:
+    """Packets each of the robot's forward rules matched (table -> count)."""
+    counts = {}
+    for table, chain in (("nat", "PREROUTING"), ("filter", "FORWARD")):
+        out = subprocess.run(["iptables", "-w", "10", "-t", table, "-L", chain, "-v", "-n", "-x"], capture_output=True,
+                             text=True, check=True).stdout
+        for line in out.splitlines():
+            if f"ccrp:{fleet}:{robot} " in line + " ":
+                counts[table] = int(line.split()[0])
+    return counts
 
 
 def container(vm_fleet, robot: str):
@@ -246,6 +274,32 @@ def test_robot_topic_reaches_the_other_vm_clone_through_the_relay(vm_fleet):
     assert rows["nao2"]["relay_peers"] == {"nao1": True}, rows["nao2"]
 
 
+def test_a_robot_outside_the_host_reaches_its_clone_through_the_forward(vm_fleet):
+    """provider.vpn_forward: nao2's simulated robot on a Docker network of this host (outside the NAT
+    network, as a robot on the lab's LAN) dials the host's address at nao2's port, its node reaches its
+    clone through the tunnel, and the host's two rules for nao2 are what carried it."""
+    home, path, provider = vm_fleet["home"], str(vm_fleet["path"]), vm_fleet["provider"]
+    fleet, fwd = vm_fleet["fleet"].name, provider.settings.vpn_forward
+    rec = provider.query()["nao2"]
+    offset = int(ipaddress.IPv4Address(rec.public_ip)) - int(provider.settings.public_cidr.network_address)
+    assert rec.endpoint == f"{fwd.address}:{fwd.base_port + offset}", rec
+    before = forward_counts(fleet, "nao2")
+    assert set(before) == {"nat", "filter"}, before
+    t0 = time.monotonic()
+    sim = ccrp(home, "robot", "sim", "-i", path, "--robot", "nao2", "--network", "bridge", "--wait", "600", "--json",
+               timeout=900)
+    vm_fleet["timings"]["robot sim --network bridge --wait (nao2, through the forward)"] = time.monotonic() - t0
+    assert sim.returncode == 0, sim.stderr[-3000:]
+    result = json.loads(sim.stdout)
+    assert result["endpoint"] == rec.endpoint and result["network"] == "bridge", result
+    assert result["nodes"] == ["/nao2_demo"], result
+    after = forward_counts(fleet, "nao2")
+    assert after["nat"] > before["nat"] and after["filter"] > before["filter"], (before, after)
+    assert forward_counts(fleet, "nao1")["nat"] == 0  # nao1's robot sits on the NAT network: no forward for it
+    stop = ccrp(home, "robot", "sim", "-i", path, "--robot", "nao2", "--stop", timeout=300)
+    assert stop.returncode == 0, stop.stderr[-2000:]
+
+
 def test_robot_sim_stop_and_fleet_down_leave_nothing(vm_fleet):
     home, path, provider = vm_fleet["home"], str(vm_fleet["path"]), vm_fleet["provider"]
     # A second robot (no wait): `fleet down` must remove it, its port with it.
@@ -273,3 +327,6 @@ def test_robot_sim_stop_and_fleet_down_leave_nothing(vm_fleet):
 
     assert docker.from_env().containers.list(all=True, filters={"label": f"ccrp-fleet={fleet}"}) == []
     assert veths(vm_fleet) == []
+    from ccrp_cli.providers.libvirt import forward
+
+    assert forward.listed(fleet) == []  # the VPN ports' forwards went with their clones

@@ -58,7 +58,9 @@ def lab(lab_up, monkeypatch):
     fleet.store.save_state(state)
     host = Host()
     monkeypatch.setattr(providers, "robot_host", lambda name: host)
-    monkeypatch.setattr(robots, "edge_files", lambda fleet, robot: ([], "203.0.113.9:1194"))
+    # The public endpoint, unless told another address (a robot on the clones' own network: theirs).
+    monkeypatch.setattr(robots, "edge_files", lambda fleet, robot, remote=None: (
+        [], remote or fleet.store.load_state().robots[robot].public_endpoint or "203.0.113.9:1194"))
     return fleet, state, host
 
 
@@ -69,19 +71,43 @@ def test_a_robot_on_the_fleets_own_network_runs_what_the_backend_says(lab):
     assert host.started == [("nao1", SNAPSHOT, provider.seat)]
     assert provider.asked == [("nao1", state.robots["nao1"].index)]
     assert (got["container"], got["network"]) == ("c0ffee", "lab-public")
-    with pytest.raises(InputError, match="--network is for cloud fleets"):
+    # Outside the fleet's network the clone has no way in (no forward: its endpoint is its address there).
+    with pytest.raises(InputError, match="--network puts the robot outside the docker fleet's own network"):
         Sims(fleet, provider).start("nao1", network="bridge")
     assert Sims(fleet, provider).stop("nao1") and provider.detached == ["nao1"] and host.stopped == ["nao1"]
 
 
+def test_a_robot_outside_a_forwarding_fleets_network_dials_the_forward(lab):
+    """libvirt with provider.vpn_forward: the clone's public endpoint is a port of the host, its
+    address on the NAT network another. A robot on the NAT network dials the address there; one on a
+    network of this host (--network) dials the forward, as a robot on the LAN does."""
+    fleet, state, host = lab
+    rec = state.robots["nao2"]
+    rec.public_endpoint, rec.addresses = "198.51.100.7:11952", {**rec.addresses, "public": "192.168.150.12"}
+    fleet.store.save_state(state)
+    seat = RobotAttachment(network="none", name="ccrp-lab-public", address="192.168.150.254", attach=lambda pid: None)
+    provider = Attaching(seat)
+    said: list[str] = []
+    Sims(fleet, provider).start("nao2", progress=said.append)
+    assert said[0].endswith("dials 192.168.150.12 from 192.168.150.254 on ccrp-lab-public")
+    said.clear()
+    got = Sims(fleet, provider).start("nao2", network="lab-lan", progress=said.append)
+    assert said[0].endswith("dials 198.51.100.7:11952") and got["network"] == "lab-lan"
+    assert [str(a) for _, _, a in host.started] == ["ccrp-lab-public (192.168.150.254)", "lab-lan"]
+    assert provider.asked == [("nao2", rec.index)]  # the robot outside took no port on the NAT network
+
+
 def test_a_port_the_backend_wires_gets_the_robots_own_image(lab):
-    fleet, _, host = lab
+    fleet, state, host = lab
+    state.robots["nao2"].addresses = {"public": "192.168.150.12"}
+    fleet.store.save_state(state)
     seat = RobotAttachment(network="none", name="ccrp-lab-public", address="192.168.150.254", attach=lambda pid: None)
     said: list[str] = []
     got = Sims(fleet, Attaching(seat)).start("nao2", progress=said.append)  # libvirt's answer
     assert host.started == [("nao2", f"ccrp/robot-sim:{fleet.inventory.ros.distro}", seat)]
     assert got["network"] == "ccrp-lab-public (192.168.150.254)"
-    assert said[0].endswith("dials 203.0.113.9:1194 from 192.168.150.254 on ccrp-lab-public")
+    # its clone's address on the network it sits on
+    assert said[0].endswith("dials 192.168.150.12 from 192.168.150.254 on ccrp-lab-public")
 
 
 def test_a_cloud_fleets_robot_dials_from_a_network_of_this_host(lab, monkeypatch):

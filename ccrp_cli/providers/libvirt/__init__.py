@@ -22,6 +22,9 @@ INFO = ProviderInfo(
               "  accel: auto                   # kvm when a probe VM boots with it, else tcg (emulated, several times slower)\n"
               "  memory_mb: 2048               # per clone; `ccrp doctor` shows the host's room (memory, vCPUs, disk)\n"
               "  vcpus: 2\n"
-              "  public_cidr: {public}     # the fleet's NAT network: the host is .1, clones at their common offset",
+              "  public_cidr: {public}     # the fleet's NAT network: the host is .1, clones at their common offset\n"
+              "  # vpn_forward:                 # robots on the LAN reach their clones' VPN port through this host\n"
+              "  #   address: 192.168.1.20     # the host's address there; each clone at base_port + its slot\n"
+              "  #   base_port: 11940",
         public_pool=True),
 )

@@ -27,7 +27,7 @@ from ...retry import ErrorClass
 from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin,
                     OwnedResource, Quota, RobotAttachment, SnapshotRecord, owner_labels)
 from ..cloud import CloudProvider
-from . import INFO, robots, seed, xmldefs
+from . import INFO, forward, robots, seed, xmldefs
 from .settings import LibvirtSettings
 
 # virDomainState (dom.state()[0]) -> libvirt's word, then ccrp's.
@@ -72,7 +72,7 @@ def _listening(host: str, port: int = 22) -> bool:
         return False
 
 
-SHOWN_KINDS = {"instance": "domain", "robot_sim": "container"}  # as `fleet down` reports them
+SHOWN_KINDS = {"instance": "domain", "robot_sim": "container", "port_forward": "port forward"}  # as `fleet down` reports them
 
 
 def _shown(r: OwnedResource) -> str:
@@ -239,6 +239,8 @@ class LibvirtProvider(CloudProvider):
         for what, cidr in (("common.cidr", self.inv.common.cidr), ("vpn.pool", self.inv.vpn.pool)):
             if public.overlaps(cidr):
                 raise CcrpError(f"provider.public_cidr {public} overlaps {what} {cidr}", hint="change one of them")
+        if self.settings.vpn_forward is not None:
+            self._check_forward_address(str(self.settings.vpn_forward.address))
         # The operator key before clones are made in parallel: each would otherwise make its own when
         # there is none, the last one written wins, and the others' clones refuse it (measured).
         self.operator_public_key()
@@ -342,9 +344,8 @@ class LibvirtProvider(CloudProvider):
         found = self._domains(robot, "clone")
         return found[0] if found else (None, None)
 
-    def public_ip(self, common_ip: str) -> str:
-        """The clone's public address: at its common address's offset in provider.public_cidr (the
-        addressing plan gives each clone its own), reserved for its MAC on the NAT network."""
+    def _offset(self, common_ip: str) -> int:
+        """The clone's place in the addressing plan: its common address's offset in common.cidr."""
         import ipaddress
 
         pub = self.settings.public_cidr
@@ -353,7 +354,49 @@ class LibvirtProvider(CloudProvider):
         if not 2 <= offset <= hosts:  # .1 is the host's, the top the simulated robots'
             raise CcrpError(f"clone address {common_ip} has no counterpart in provider.public_cidr {pub}",
                             hint="give provider.public_cidr at least as many addresses as common.cidr")
-        return str(pub.network_address + offset)
+        return offset
+
+    def public_ip(self, common_ip: str) -> str:
+        """The clone's public address: at its common address's offset in provider.public_cidr (the
+        addressing plan gives each clone its own), reserved for its MAC on the NAT network."""
+        return str(self.settings.public_cidr.network_address + self._offset(common_ip))
+
+    # -- robots outside the host (provider.vpn_forward, forward.py) --------------------------------
+    def _forward(self, robot: str, common_ip: str | None) -> forward.Forward | None:
+        fwd = self.settings.vpn_forward
+        if fwd is None or not common_ip:
+            return None
+        offset = self._offset(common_ip)
+        return forward.Forward(self.fleet, robot, str(fwd.address), fwd.base_port + offset,
+                               str(self.settings.public_cidr.network_address + offset), self.inv.vpn.port,
+                               self.inv.vpn.proto)
+
+    @staticmethod
+    def _check_forward_address(address: str) -> None:
+        """vpn_forward.address must be this machine's: robots' packets to it are the ones forwarded."""
+        import socket
+
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            try:
+                sock.bind((address, 0))
+            except OSError:
+                raise CcrpError(f"provider.vpn_forward.address {address} is not an address of this machine",
+                                hint="give the libvirt host's address on the robots' LAN (`ip -4 address`)") from None
+
+    def _forwards(self) -> list[OwnedResource]:
+        """The fleet's port forwards, one per robot. Listed only where they can be (this machine's
+        firewall, root): with vpn_forward unset, a forward left by an earlier inventory is still found."""
+        if self.settings.uri not in robots.LOCAL_URIS:
+            return []
+        try:
+            rules = forward.listed(self.fleet)
+        except CcrpError:
+            if self.settings.vpn_forward is not None:
+                raise
+            return []
+        robots_seen = sorted({forward.robot_of(spec) for _table, spec in rules})
+        return [OwnedResource(kind="port_forward", id=forward.comment(self.fleet, r), name=forward.comment(self.fleet, r), robot=r)
+                for r in robots_seen]
 
     def _reserve(self, mac: str, ip: str, hostname: str) -> None:
         net = self._network(self.public_net)
@@ -441,9 +484,12 @@ class LibvirtProvider(CloudProvider):
     def _record(self, dom, info: xmldefs.DomainInfo, origin: Origin | None = None) -> CloneRecord:
         word = WORDS[dom.state(0)[0]] if dom.state(0)[0] < len(WORDS) else "unknown"
         mac = info.macs.get(self.public_net)
-        return CloneRecord(robot=info.labels.get(LABEL_ROBOT, ""), provider_id=dom.UUIDString(),
+        robot = info.labels.get(LABEL_ROBOT, "")
+        fw = self._forward(robot, info.common_ip)
+        return CloneRecord(robot=robot, provider_id=dom.UUIDString(),
                            state=CloneState.of(word, STATES), status=word,
-                           public_ip=self._reserved(mac) if mac else None, common_ip=info.common_ip, origin=origin)
+                           public_ip=self._reserved(mac) if mac else None, common_ip=info.common_ip, origin=origin,
+                           endpoint=fw.endpoint if fw else None)
 
     def query(self) -> dict[str, CloneRecord]:
         with self._errors("list clones"):
@@ -545,6 +591,9 @@ class LibvirtProvider(CloudProvider):
         """Define and start the clone's VM, or start the one that exists; roll back only what this
         attempt created."""
         INFO.fit_user_data(spec.user_data)
+        fw = self._forward(spec.robot, spec.common_ip)
+        if fw is not None:  # before the VM: its first boot is when a robot may first dial
+            forward.ensure(fw)
         with self._errors(f"clone of {spec.robot}"):
             dom, info = self._domain(spec.robot)
             if dom is not None:
@@ -562,6 +611,8 @@ class LibvirtProvider(CloudProvider):
                 self.api("start domain", dom.create)
             except BaseException as exc:
                 left = self._rollback(pool, spec.robot, created)
+                if fw is not None:
+                    forward.remove(self.fleet, spec.robot)
                 if left and isinstance(exc, CcrpError):
                     exc.message += f" (rollback left {', '.join(left)}: `ccrp gc` removes them)"
                 raise
@@ -652,6 +703,8 @@ class LibvirtProvider(CloudProvider):
             self.transport.forget(robot)
             existed = self._remove_domain(robot)
             self._unreserve(self.macs(robot)[0])
+            if self.settings.uri in robots.LOCAL_URIS and (self.settings.vpn_forward is not None or self._forwards()):
+                forward.remove(self.fleet, robot)
             pool = self._refreshed(self._pool())
             for name in self.clone_volumes(robot).values():
                 self._delete_vol(pool, name)
@@ -799,7 +852,8 @@ class LibvirtProvider(CloudProvider):
                     found.append(OwnedResource(kind="volume", id=name, name=name, robot=m["robot"] if m else None))
             found += [OwnedResource(kind="network", id=n.name(), name=n.name())
                       for n in self.conn.listAllNetworks(0) if n.name() in (self.public_net, self.common_net)]
-            order = ("instance", "robot_sim", "volume", "network", "image")
+            found += self._forwards()
+            order = ("instance", "robot_sim", "port_forward", "volume", "network", "image")
             return sorted(found, key=lambda r: order.index(r.kind))
 
     def delete_owned(self, resource: OwnedResource) -> None:
@@ -818,6 +872,11 @@ class LibvirtProvider(CloudProvider):
                 dom.undefine()
             elif resource.kind == "robot_sim":
                 self._delete_sim(resource.id)
+            elif resource.kind == "port_forward":
+                if resource.robot is None or resource.id != forward.comment(self.fleet, resource.robot):
+                    raise CcrpError(f"port forward {resource.id} is not fleet {self.fleet!r}'s; not deleting it")
+                if not forward.remove(self.fleet, resource.robot):
+                    raise CcrpError(f"port forward {resource.id} is gone")
             elif not self._owns_name(resource.id):
                 raise CcrpError(f"{resource.kind} {resource.id} is not fleet {self.fleet!r}'s; not deleting it")
             elif resource.kind == "image":
@@ -857,7 +916,7 @@ class LibvirtProvider(CloudProvider):
         with self._errors(f"teardown of fleet {self.fleet}"):
             doomed = [r for r in self.list_owned() if r.kind != "image"]
             for r in doomed:
-                if r.kind in ("instance", "robot_sim"):
+                if r.kind in ("instance", "robot_sim", "port_forward"):
                     self.delete_owned(r)
             pool = self._refreshed(self._pool())
             for r in doomed:

@@ -28,8 +28,7 @@ from dataclasses import dataclass
 
 from ...errors import CcrpError
 from . import xmldefs
-
-LOCAL_URIS = frozenset({"qemu:///system", "qemu+unix:///system"})
+from .settings import LOCAL_URIS
 # The robot's interface in its own network namespace (which has only lo before it).
 GUEST_IF = "eth0"
 

@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, model_validator
 
-from ...models.strict import ProviderSettings
+from ...models.strict import ProviderSettings, Strict
 from ...errors import shown
 
 # A libvirt connection URI as `virsh -c` takes it: driver[+transport]://[user@][host][:port]/path[?query],
@@ -18,6 +18,8 @@ _URI_RE = re.compile(r"[a-z][a-z0-9]*(\+[a-z0-9]+)?://([A-Za-z0-9._-]+@)?[A-Za-z
 # A storage pool's name and directory on the libvirt host: one token each.
 _POOL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", re.ASCII)
 _DIR_RE = re.compile(r"/[A-Za-z0-9._/-]{1,200}", re.ASCII)
+# The URIs of a libvirt host that is this machine (its bridges and firewall are ccrp's to touch).
+LOCAL_URIS = frozenset({"qemu:///system", "qemu+unix:///system"})
 
 
 def _uri(text: str) -> str:
@@ -36,6 +38,22 @@ def _dir(text: str) -> str:
     if not _DIR_RE.fullmatch(text) or "/../" in f"{text}/" or "//" in text:
         raise ValueError(f"{shown(text)} is not an absolute directory path")
     return text
+
+
+class VpnForward(Strict):
+    """Robots outside the libvirt host dial `address` (one of the host's, on their LAN) at
+    `base_port` plus their clone's offset in the addressing plan; the host forwards that port to
+    the clone's VPN port and nothing else (forward.py)."""
+
+    address: ipaddress.IPv4Address
+    base_port: Annotated[int, Field(strict=True, ge=1024, le=65_000)] = 11940
+
+    @model_validator(mode="after")
+    def _an_address_robots_can_dial(self) -> "VpnForward":
+        a = self.address
+        if a.is_loopback or a.is_unspecified or a.is_multicast or a.is_link_local:
+            raise ValueError(f"vpn_forward.address {a} is not an address robots can dial (give the host's LAN address)")
+        return self
 
 
 class LibvirtSettings(ProviderSettings):
@@ -66,6 +84,9 @@ class LibvirtSettings(ProviderSettings):
     # and consoles; created by `fleet up` when missing, shared by fleets, never removed by ccrp.
     pool: Annotated[str, AfterValidator(_pool)] = "ccrp"
     pool_dir: Annotated[str, AfterValidator(_dir)] = "/var/lib/libvirt/images/ccrp"
+    # Robots outside the libvirt host reach their clones' VPN port through it (None: only robots on
+    # the host itself, as `ccrp robot sim` makes them, reach the clones).
+    vpn_forward: VpnForward | None = None
 
     def networks(self) -> dict[str, ipaddress.IPv4Network]:
         return {"provider.public_cidr": self.public_cidr}
@@ -77,4 +98,15 @@ class LibvirtSettings(ProviderSettings):
     def _operator_is_the_host(self) -> "LibvirtSettings":
         if self.operator_cidr is None:
             self.operator_cidr = ipaddress.IPv4Network(f"{next(self.public_cidr.hosts())}/32")
+        fwd = self.vpn_forward
+        if fwd is not None:
+            if self.uri not in LOCAL_URIS:
+                raise ValueError(f"vpn_forward is made by this machine's firewall, and provider.uri {self.uri} is another "
+                                 f"machine's libvirt (forward the VPN ports there, or run ccrp on that host)")
+            if fwd.address in self.public_cidr:
+                raise ValueError(f"vpn_forward.address {fwd.address} is in provider.public_cidr {self.public_cidr}: "
+                                 f"give the host's address on the robots' LAN")
+            if fwd.base_port + self.public_cidr.num_addresses > 65_535:
+                raise ValueError(f"vpn_forward.base_port {fwd.base_port} leaves no port for the last addresses of "
+                                 f"{self.public_cidr}: at most {65_535 - self.public_cidr.num_addresses}")
         return self
