@@ -5,8 +5,9 @@ booted with a NoCloud seed of the user-data ccrp renders, `ccrp status` saying t
 host's clock, `ccrp robot sim` putting nao1's simulated robot on the fleet's NAT bridge
 (providers/libvirt/robots.py) where it connects through the VPN to its clone and nothing else of it,
 nao1's /chatter (the robot's demo node) reaching nao2's clone through the relay over the isolated
-common network, and `ccrp fleet down` leaving no domain, volume, network, container or veth of the
-fleet. The VMs are shared by the module's tests, in order.
+common network, nao2's simulated robot outside the NAT network (`robot sim --network bridge`)
+reaching its clone through the host's forward of its VPN port (provider.vpn_forward), and `ccrp
+fleet down` leaving no domain, volume, network, container, veth or port forward of the fleet. The VMs are shared by the module's tests, in order.
 
 Opt-in (CCRP_E2E_LIBVIRT=1, tests/libvirt_host.py), with libvirtd answering on qemu:///system and
 the binding installed (scripts/libvirt.sh): in the README's test command it took a worker 13.8 minutes
