@@ -703,7 +703,7 @@ class LibvirtProvider(CloudProvider):
             self.transport.forget(robot)
             existed = self._remove_domain(robot)
             self._unreserve(self.macs(robot)[0])
-            if self.settings.uri in robots.LOCAL_URIS and (self.settings.vpn_forward is not None or self._forwards()):
+            if any(r.robot == robot for r in self._forwards()):
                 forward.remove(self.fleet, robot)
             pool = self._refreshed(self._pool())
             for name in self.clone_volumes(robot).values():
