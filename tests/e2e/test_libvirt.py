@@ -74,7 +74,7 @@ def vm_fleet(tmp_path_factory, clone_images, lan):
     inv = {"fleet": f"lv{secrets.token_hex(3)}",
            "provider": {"kind": "libvirt", "accel": os.environ.get("CCRP_LIBVIRT_ACCEL", "auto"), "memory_mb": 1536,
                         "vcpus": 2, "public_cidr": free_public(used),
-                        # robots outside the host dial this address of it (the test's own, on a dummy link)
+                        # robots outside the host dial this address of it (the test's own, on a bridge with no port)
                         "vpn_forward": {"address": lan, "base_port": 21940}},
            "ros": {"distro": DISTRO}, "vpn": {"pool": free("vpn", used)}, "common": {"cidr": free("common", used)},
            "sharing": {"engine": "relay"},
@@ -104,11 +104,11 @@ def vm_fleet(tmp_path_factory, clone_images, lan):
 
 @pytest.fixture(scope="module")
 def lan():
-    """An address of this host standing for its address on the robots' LAN: on a dummy link of the
+    """An address of this host standing for its address on the robots' LAN: on a bridge (no port) of the
     test's own, in the benchmarking range (RFC 2544: no network uses it); the link goes at the end."""
     link, address = f"ccrplan{secrets.token_hex(3)}", f"198.18.{secrets.randbelow(250) + 1}.1"
     try:
-        subprocess.run(["ip", "link", "add", link, "type", "dummy"], check=True)
+        subprocess.run(["ip", "link", "add", link, "type", "bridge"], check=True)
         subprocess.run(["ip", "address", "add", f"{address}/32", "dev", link], check=True)
         subprocess.run(["ip", "link", "set", link, "up"], check=True)
         yield address
