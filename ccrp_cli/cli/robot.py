@@ -34,7 +34,7 @@ def sim(
     robot: Annotated[str | None, typer.Option("--robot", "-r", help="Robot name (with --stop and no --robot: every simulated robot of the fleet).")] = None,
     stop: Annotated[bool, typer.Option("--stop", help="Stop and remove the simulated robot.")] = False,
     wait: Annotated[float, typer.Option("--wait", help="Seconds to wait until the robot's VPN is up and its node is on its clone's master (0: don't wait).")] = 0,
-    network: Annotated[str | None, typer.Option("--network", callback=options.cloud_name, help="Docker network of this host the robot runs on (cloud fleets; default `bridge`). Docker fleets: always <fleet>-public.")] = None,
+    network: Annotated[str | None, typer.Option("--network", callback=options.cloud_name, help="Docker network of this host the robot runs on (cloud fleets; default `bridge`). Docker and libvirt fleets: their own network, unless a libvirt fleet forwards its VPN ports (provider.vpn_forward): then the robot may be outside.")] = None,
     link: Annotated[str | None, typer.Option("--link", help="Emulate the path to the clone: eu (50 ms round trip), us (180 ms), DELAY_MS[/JITTER_MS[/LOSS_PCT]], or none. On a running robot only the link changes.")] = None,
     as_json: options.Json = False,
 ) -> None:

@@ -182,9 +182,9 @@ class Sims:
         from ..models.values import parse_endpoint
 
         rec = state.robots.get(robot)
-        if rec is None or not rec.public_endpoint:
+        if rec is None or not rec.public_endpoint or not rec.addresses.get("public"):
             return False
-        return parse_endpoint(rec.public_endpoint, self.fleet.inventory.vpn.port).host != rec.addresses.get("public")
+        return parse_endpoint(rec.public_endpoint, self.fleet.inventory.vpn.port).host != rec.addresses["public"]
 
     def clone_address(self, robot: str) -> str:
         """The IPv4 address the robot dials (its clone's public endpoint, resolved here)."""
