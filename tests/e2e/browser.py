@@ -86,10 +86,17 @@ def chromium(scratch: Path):
 
 
 def cell(driver, robot: str, col: str) -> str:
+    from selenium.common.exceptions import StaleElementReferenceException
     from selenium.webdriver.common.by import By
 
-    found = driver.find_elements(By.CSS_SELECTOR, f'tr[data-robot="{robot}"] td[data-col="{col}"]')
-    return found[0].text if found else ""
+    for attempt in range(5):
+        found = driver.find_elements(By.CSS_SELECTOR, f'tr[data-robot="{robot}"] td[data-col="{col}"]')
+        try:
+            return found[0].text if found else ""
+        except StaleElementReferenceException:  # the page redrew the row between the find and the read
+            if attempt == 4:                     # (it refreshes every second; run 42 met it once)
+                raise
+    return ""
 
 
 def wait(driver, what: str, until, timeout: float):
