@@ -25,9 +25,7 @@ from tests.libvirt_host import URI, gate
 
 from .backend import Backend, free_cidr, inventory_text
 
-def unavailable() -> str | None:
-    """Why the scenario cannot run here (None: it can)."""
-    return gate(scenario=True)
+unavailable = gate  # why the scenario cannot run here (None: it can)
 PROVIDER = "  kind: libvirt\n  memory_mb: 1536\n  vcpus: 2\n  public_cidr: {public}\n"
 
 
