@@ -51,8 +51,11 @@ def files_current(provider: Reaches, robot: str, files: list) -> bool:
 def robot_link(h: dict, robot: str) -> tuple[dict | None, list[str]]:
     """From a clone's health: the robot's VPN client entry (or None) and its nodes on the master."""
     client = next((c for c in h["vpn"]["clients"] if c["cn"] == robot), None)
-    # A robot node advertises an XML-RPC URI on the robot's own hostname.
-    nodes = sorted(n for n, uri in h["master"]["nodes"].items() if urlparse(uri).hostname == robot)
+    # A robot node advertises an XML-RPC URI on the robot's own hostname (ROS 2: agent/ros2_graph.py
+    # places it). rmw names an endpoint seen before its node's name _NODE_NAME_UNKNOWN_: no node yet
+    # (under load, run 43 of docs/benchmarks.md, `robot sim --wait` took one for the robot's).
+    nodes = sorted(n for n, uri in h["master"]["nodes"].items()
+                   if urlparse(uri).hostname == robot and "_NODE_NAME_UNKNOWN_" not in n)
     return client, nodes
 
 

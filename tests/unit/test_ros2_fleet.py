@@ -375,6 +375,18 @@ def test_health_asks_the_graph_keeper_and_says_when_it_does_not_answer_or_answer
     thread.join(5)
 
 
+def test_a_node_not_named_yet_is_not_the_robots():
+    """An endpoint discovered before its participant's node names (rmw's `_NODE_NAME_UNKNOWN_`) is
+    no node yet: run 43's `robot sim --wait` on the Jazzy OpenStack scenario took it for the robot's."""
+    from ccrp_cli.probe import robot_link
+
+    h = {"vpn": {"clients": [{"cn": "nao1", "real_address": "203.0.113.5:40000"}]},
+         "master": {"nodes": {"/_NODE_NAME_UNKNOWN_": "ros2://nao1/", "/ccrp_relay": "ros2://cri-nao1/"}}}
+    assert robot_link(h, "nao1")[1] == []
+    h["master"]["nodes"]["/nao1_demo"] = "ros2://nao1/"
+    assert robot_link(h, "nao1")[1] == ["/nao1_demo"]
+
+
 def test_a_ros2_clone_whose_graph_does_not_answer_is_named_so():
     from ccrp_cli.alerts import clone_alerts
     from ccrp_cli.models.status import StatusRow
