@@ -7,11 +7,12 @@ host's clock, `ccrp robot sim` putting nao1's simulated robot on the fleet's NAT
 nao1's /chatter (the robot's demo node) reaching nao2's clone through the relay over the isolated
 common network, nao2's simulated robot outside the NAT network (`robot sim --network bridge`)
 reaching its clone through the host's forward of its VPN port (provider.vpn_forward), and `ccrp
-fleet down` leaving no domain, volume, network, container, veth or port forward of the fleet. The VMs are shared by the module's tests, in order.
+fleet down` leaving no domain, volume, network, container, veth or port forward of the fleet. The
+VMs are shared by the module's tests, in order.
 
 Opt-in (CCRP_E2E_LIBVIRT=1, tests/libvirt_host.py), with libvirtd answering on qemu:///system and
-the binding installed (scripts/libvirt.sh): in the README's test command it took a worker 12 minutes
-and the run 27.8-30.4 minutes (docs/benchmarks.md, runs 41-43), too near or past what that command may take.
+the binding installed (scripts/libvirt.sh): in the README's test command it took a worker 12-13
+minutes and the run 27.8-30.4 (docs/benchmarks.md, runs 41-43), too near or past what it may take.
 The golden volume is made from the run's clone image of the distro (clone_images), so the recipe is
 installed once per run whatever the backend. CCRP_LIBVIRT_ACCEL (auto, kvm, tcg; default auto) is the inventory's accel."""
 
