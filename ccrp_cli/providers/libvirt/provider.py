@@ -366,10 +366,8 @@ class LibvirtProvider(CloudProvider):
         fwd = self.settings.vpn_forward
         if fwd is None or not common_ip:
             return None
-        offset = self._offset(common_ip)
-        return forward.Forward(self.fleet, robot, str(fwd.address), fwd.base_port + offset,
-                               str(self.settings.public_cidr.network_address + offset), self.inv.vpn.port,
-                               self.inv.vpn.proto)
+        return forward.Forward(self.fleet, robot, str(fwd.address), fwd.base_port + self._offset(common_ip),
+                               self.public_ip(common_ip), self.inv.vpn.port, self.inv.vpn.proto)
 
     @staticmethod
     def _check_forward_address(address: str) -> None:
