@@ -256,6 +256,8 @@ def main() -> None:
         "disk_vm_over_container": round(vm_clone["disk_mb"] / docker_clone["disk_mb"], 1) if docker_clone["disk_mb"] else None,
         "memory_vm_over_container": round(vm_clone["memory_mib"] / docker_clone["memory_mib"], 1),
     }
+    if bare and bare.get("clone_s"):
+        result["ratios"]["ready_bare_over_snapshot_vm"] = round(bare["clone_s"] / vm_clone["ready"]["clone_s"], 1)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (args.out or RESULTS / "libvirt.json").write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=1))
