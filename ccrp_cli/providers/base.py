@@ -215,6 +215,9 @@ class ProviderInfo:
     # What run_instance is given for a captured snapshot: GCE boots from an image's name, the
     # others from its id (Glance names need not be unique).
     image_ref: Literal["id", "name"] = "id"
+    # Whether create_snapshot captures a running clone; libvirt copies a stopped clone's disk and
+    # refuses a running one in one line (QEMU holds the disk's write lock).
+    snapshots_running: bool = True
     # Whether a clone runs its own kernel (a VM) or shares the host's (a container): only the former
     # can take kernel settings from its user-data (sysctls such as ROS 2's receive buffers).
     own_kernel: bool = True

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-KINDS = ("docker", "aws", "openstack", "gcp", "memory")
+KINDS = ("docker", "aws", "openstack", "gcp", "memory", "libvirt")
 AVAILABLE = [k for k in KINDS if (Path(__file__).parent / f"harness_{k}.py").exists()]
 
 

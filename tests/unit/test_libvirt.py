@@ -341,7 +341,8 @@ class _LibvirtError(Exception):
 
 # The constants of the binding the provider reads (their values are libvirt's).
 _SDK = type("sdk", (), {"libvirtError": _LibvirtError, "VIR_CONNECT_LIST_DOMAINS_ACTIVE": 1,
-                        "VIR_ERR_NO_STORAGE_POOL": 49, "VIR_ERR_NO_STORAGE_VOL": 50, "VIR_ERR_NO_NETWORK": 43, "VIR_ERR_RPC": 7})
+                        "VIR_ERR_NO_STORAGE_POOL": 49, "VIR_ERR_NO_STORAGE_VOL": 50, "VIR_ERR_NO_NETWORK": 43, "VIR_ERR_RPC": 7,
+                        "VIR_DOMAIN_RUNNING": 1})
 
 
 class _Conn:
@@ -411,6 +412,31 @@ def test_list_owned_and_the_leak_rule(tmp_path):
     leaks = find_leaks(state, owned, [])
     assert sorted(r.name for r in leaks) == ["ccrp-vmlab-cri-nao2.qcow2", "ccrp-vmlab-golden-20250101000000.initrd"]
     assert p.leftovers() == [f"{'domain' if r.kind == 'instance' else r.kind} {r.name}" for r in owned if r.kind != "image"]
+
+
+class _LateListener(_Dom):
+    """A guest early in its boot: the power button does nothing until its third press."""
+
+    presses = 0
+
+    def shutdown(self):
+        self.presses += 1
+        self.active = self.presses < 3
+
+
+def test_stop_presses_the_power_button_again_until_the_guest_listens(tmp_path, monkeypatch):
+    import threading
+
+    monkeypatch.setattr(provider, "PRESS_AGAIN", 0.01)
+    dom = _LateListener("ccrp-vmlab-cri-nao1", owner_labels("vmlab", "clone", "nao1"), "uuid-1")
+    p = stand_in(tmp_path, volumes=[], domains=[dom], networks=[])
+    p._lock, p._emulated = threading.Lock(), {"nao1": False}
+    forgot = []
+    p.transport = type("SshStandIn", (), {"forget": lambda _self, robot: forgot.append(robot)})()
+    assert p.stop_instance("nao1") is True
+    assert dom.presses == 3 and not dom.active and forgot == ["nao1"]
+    assert p.stop_instance("nao1") is False  # stopped already: no press
+    assert dom.presses == 3
 
 
 def test_ssh_is_let_in_from_the_host_on_the_nat_network(tmp_path, ccrp_home):

@@ -15,6 +15,7 @@ INFO = ProviderInfo(
     abilities=frozenset({Ability.LOCAL_BUILD, Ability.ROBOT_ATTACH}),
     user_data_limit=262_144,  # the NoCloud seed is ours: kept at GCE's size, as Docker's
     user_data_gzip=False,
+    snapshots_running=False,
     sdk_modules=(("libvirt", "libvirt"), ("paramiko", "libvirt")),
     init=InitSection(
         lines="  kind: libvirt                 # clones are VMs on this host's libvirt (docs/libvirt.md)\n"

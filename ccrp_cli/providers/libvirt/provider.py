@@ -48,6 +48,7 @@ CLOCK_ROUNDS, CLOCK_TOLERANCE = 4, 0.005
 # Waits on an emulated (TCG) guest get this many times the time ccrp's callers give a VM: its first
 # boot took 272 s to the end of cloud-init on this 2-core machine under load (docs/libvirt.md),
 # where `fleet up` gives a clone 300 s, and every command in it runs several times slower.
+PRESS_AGAIN, PRESS_FOR = 10, 60  # s: stop_instance's power button presses
 TCG_SLOWDOWN = 3  # a guest that works gets there in about a second under KVM, two under TCG
 
 
@@ -682,7 +683,9 @@ class LibvirtProvider(CloudProvider):
 
     def stop_instance(self, robot: str) -> bool:
         """The ACPI power button: systemd in the clone shuts it down (autostop's poweroff ends the
-        same way)."""
+        same way). Pressed again every PRESS_AGAIN s while the VM runs, for up to PRESS_FOR s (times
+        the TCG slowdown): a press before the guest's kernel has loaded its button driver, early in
+        its boot, is lost (the contract suite's clones are stopped right after they start)."""
         with self._errors(f"stop clone of {robot}"):
             dom, _info = self._domain(robot)
             if dom is None or dom.state(0)[0] != self.libvirt.VIR_DOMAIN_RUNNING:
@@ -690,7 +693,19 @@ class LibvirtProvider(CloudProvider):
             # paramiko still took the old connection for active after the VM's power-off, and the
             # first command after a restart was reset: closed now.
             self.transport.forget(robot)
-            self.api("shut down domain", dom.shutdown)
+            deadline = time.monotonic() + PRESS_FOR * self.timeout_scale(robot)
+            while dom.isActive():
+                try:
+                    self.api("shut down domain", dom.shutdown)
+                except self.libvirt.libvirtError:
+                    if dom.isActive():
+                        raise
+                    break  # it powered off between the check and the press
+                pressed = time.monotonic()
+                while dom.isActive() and time.monotonic() - pressed < PRESS_AGAIN:
+                    time.sleep(0.5)
+                if time.monotonic() > deadline:
+                    break  # still shutting down, or not listening: the caller waits on, then says so
             return True
 
     def terminate(self, robot: str) -> bool:
