@@ -133,6 +133,6 @@ def test_every_backend_is_protected_and_in_the_contract_suite():
     contracts = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
     backends = next(c for c in contracts if c["id"] == "backends")
     assert set(backends["protected_modules"]) == {f"ccrp_cli.providers.{kind}" for kind in REGISTRY}
-    # libvirt is a preview with no fake of its own (docs/libvirt.md); memory registers itself.
-    assert set(KINDS) == set(REGISTRY) - {"libvirt"} | {"memory"}
+    # memory registers itself (a test-only backend).
+    assert set(KINDS) == set(REGISTRY) | {"memory"}
     assert all((ROOT / "tests" / "contract" / f"harness_{kind}.py").exists() for kind in KINDS)
