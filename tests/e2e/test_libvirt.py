@@ -10,11 +10,10 @@ reaching its clone through the host's forward of its VPN port (provider.vpn_forw
 fleet down` leaving no domain, volume, network, container, veth or port forward of the fleet. The
 VMs are shared by the module's tests, in order.
 
-Opt-in (CCRP_E2E_LIBVIRT=1, tests/libvirt_host.py), with libvirtd answering on qemu:///system and
-the binding installed (scripts/libvirt.sh): in the README's test command it took a worker 12-13
-minutes and the run 27.8-30.4 (docs/benchmarks.md, runs 41-43), too near or past what it may take.
-The golden volume is made from the run's clone image of the distro (clone_images), so the recipe is
-installed once per run whatever the backend. CCRP_LIBVIRT_ACCEL (auto, kvm, tcg; default auto) is the inventory's accel."""
+It runs wherever libvirtd answers on qemu:///system with the binding installed (scripts/libvirt.sh,
+which .ci/run runs; tests/libvirt_host.py; CCRP_E2E_LIBVIRT=0 turns it off). The golden volume
+is made from the run's clone image of the distro (clone_images), so the recipe is installed once per
+run whatever the backend. CCRP_LIBVIRT_ACCEL (auto, kvm, tcg; default auto) is the inventory's accel."""
 
 from __future__ import annotations
 

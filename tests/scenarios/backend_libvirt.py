@@ -25,7 +25,9 @@ from tests.libvirt_host import URI, gate
 
 from .backend import Backend, free_cidr, inventory_text
 
-unavailable = gate  # why the scenario cannot run here (None: it can)
+def unavailable() -> str | None:
+    """Why the scenario cannot run here (None: it can)."""
+    return gate(scenario=True)
 PROVIDER = "  kind: libvirt\n  memory_mb: 1536\n  vcpus: 2\n  public_cidr: {public}\n"
 
 
