@@ -48,8 +48,8 @@ CLOCK_ROUNDS, CLOCK_TOLERANCE = 4, 0.005
 # Waits on an emulated (TCG) guest get this many times the time ccrp's callers give a VM: its first
 # boot took 272 s to the end of cloud-init on this 2-core machine under load (docs/libvirt.md),
 # where `fleet up` gives a clone 300 s, and every command in it runs several times slower.
-PRESS_AGAIN, PRESS_FOR = 10, 60  # s: stop_instance's power button presses
 TCG_SLOWDOWN = 3  # a guest that works gets there in about a second under KVM, two under TCG
+PRESS_AGAIN, PRESS_FOR = 10, 60  # s: stop_instance's power button presses (PRESS_FOR times the above)
 
 
 def _sdk():
