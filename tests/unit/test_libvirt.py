@@ -342,7 +342,7 @@ class _LibvirtError(Exception):
 # The constants of the binding the provider reads (their values are libvirt's).
 _SDK = type("sdk", (), {"libvirtError": _LibvirtError, "VIR_CONNECT_LIST_DOMAINS_ACTIVE": 1,
                         "VIR_ERR_NO_STORAGE_POOL": 49, "VIR_ERR_NO_STORAGE_VOL": 50, "VIR_ERR_NO_NETWORK": 43, "VIR_ERR_RPC": 7,
-                        "VIR_DOMAIN_RUNNING": 1})
+                        "VIR_DOMAIN_RUNNING": 1, "VIR_DOMAIN_DESTROY_GRACEFUL": 1})
 
 
 class _Conn:
@@ -415,13 +415,17 @@ def test_list_owned_and_the_leak_rule(tmp_path):
 
 
 class _LateListener(_Dom):
-    """A guest early in its boot: the power button does nothing until its third press."""
+    """A guest early in its boot: the power button does nothing until press number `hears` (never
+    when 0: a hung guest), whose power can be cut."""
 
-    presses = 0
+    presses, hears, cut = 0, 3, None
 
     def shutdown(self):
         self.presses += 1
-        self.active = self.presses < 3
+        self.active = self.presses != self.hears
+
+    def destroyFlags(self, flags):
+        self.cut, self.active = flags, False
 
 
 def test_stop_presses_the_power_button_again_until_the_guest_listens(tmp_path, monkeypatch):
@@ -434,9 +438,23 @@ def test_stop_presses_the_power_button_again_until_the_guest_listens(tmp_path, m
     forgot = []
     p.transport = type("SshStandIn", (), {"forget": lambda _self, robot: forgot.append(robot)})()
     assert p.stop_instance("nao1") is True
-    assert dom.presses == 3 and not dom.active and forgot == ["nao1"]
+    assert dom.presses == 3 and not dom.active and forgot == ["nao1"] and dom.cut is None
     assert p.stop_instance("nao1") is False  # stopped already: no press
     assert dom.presses == 3
+
+
+def test_stop_cuts_the_power_of_a_guest_that_never_listens(tmp_path, monkeypatch):
+    import threading
+
+    monkeypatch.setattr(provider, "PRESS_AGAIN", 0.01)
+    monkeypatch.setattr(provider, "PRESS_FOR", 1.2)
+    dom = _LateListener("ccrp-vmlab-cri-nao1", owner_labels("vmlab", "clone", "nao1"), "uuid-1")
+    dom.hears = 0
+    p = stand_in(tmp_path, volumes=[], domains=[dom], networks=[])
+    p._lock, p._emulated = threading.Lock(), {"nao1": False}
+    p.transport = type("SshStandIn", (), {"forget": lambda _self, robot: None})()
+    assert p.stop_instance("nao1") is True
+    assert dom.presses >= 2 and dom.cut == _SDK.VIR_DOMAIN_DESTROY_GRACEFUL and not dom.active
 
 
 def test_ssh_is_let_in_from_the_host_on_the_nat_network(tmp_path, ccrp_home):

@@ -685,7 +685,9 @@ class LibvirtProvider(CloudProvider):
         """The ACPI power button: systemd in the clone shuts it down (autostop's poweroff ends the
         same way). Pressed again every PRESS_AGAIN s while the VM runs, for up to PRESS_FOR s (times
         the TCG slowdown): a press before the guest's kernel has loaded its button driver, early in
-        its boot, is lost (the contract suite's clones are stopped right after they start)."""
+        its boot, is lost (the contract suite's clones are stopped right after they start). A guest
+        still running then does not listen (a hung kernel): its power is cut, as the clouds' stop
+        does after its grace period, so that `clone restart` restarts a clone that no longer answers."""
         with self._errors(f"stop clone of {robot}"):
             dom, _info = self._domain(robot)
             if dom is None or dom.state(0)[0] != self.libvirt.VIR_DOMAIN_RUNNING:
@@ -704,8 +706,10 @@ class LibvirtProvider(CloudProvider):
                 pressed = time.monotonic()
                 while dom.isActive() and time.monotonic() - pressed < PRESS_AGAIN:
                     time.sleep(0.5)
-                if time.monotonic() > deadline:
-                    break  # still shutting down, or not listening: the caller waits on, then says so
+                if time.monotonic() > deadline and dom.isActive():
+                    # QEMU ends on SIGTERM (its caches flushed to the overlay), the domain stays defined.
+                    self.api("power off domain", dom.destroyFlags, self.libvirt.VIR_DOMAIN_DESTROY_GRACEFUL)
+                    break
             return True
 
     def terminate(self, robot: str) -> bool:
