@@ -17,7 +17,7 @@ from ..errors import CcrpError
 from ..models.inventory import Inventory
 from ..layout import LOGIN_USER
 from ..retry import Backoff, ErrorClass, call
-from .base import CloneRecord, autostop_note, check_cloud_init
+from .base import CloneRecord, autostop_note, wait_cloud_init
 
 # The login on every cloud clone: the clone's user-data creates it with the operator key
 # (render/cloudinit.py login_user), whatever user the base image has of its own.
@@ -141,7 +141,7 @@ class CloudProvider:
 
     def wait_ready(self, robot: str, timeout: float = 600) -> None:
         """Until cloud-init has finished on the instance: pin its host keys from the console (unless
-        known_hosts has them under its instance id), SSH in, `cloud-init status --wait`."""
+        known_hosts has them under its instance id), SSH in, wait for cloud-init's result."""
         from ..transport.ssh import KnownHosts
 
         deadline = time.monotonic() + timeout
@@ -151,9 +151,11 @@ class CloudProvider:
         else:
             rec, pins = self._wait_for_host_keys(robot, deadline)
             ssh = self.transport.session(robot, rec, pins)
-        left = max(1, math.ceil(deadline - time.monotonic()))
-        rc, out = ssh.exec([*ssh.sudo, "timeout", str(left), "cloud-init", "status", "--wait", "--long"], timeout=left + 30)
-        check_cloud_init(robot, rc, out, timeout)
+
+        def run(argv: list[str]) -> tuple[int, str]:
+            left = max(1, math.ceil(deadline - time.monotonic()))
+            return ssh.exec([*ssh.sudo, "timeout", str(left), *argv], timeout=left + 30)
+        wait_cloud_init(robot, run, timeout)
 
     def connect(self, robot: str, rec: CloneRecord, timeout: float = 300) -> None:
         """Open the SSH session to an instance query() does not list as a clone (the builder of

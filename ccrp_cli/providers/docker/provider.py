@@ -14,24 +14,13 @@ from ...store import FleetStore, ensure_state_id, read_state_id
 from ..base import (
     LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Finding, ImageOutcome, Origin,
     OwnedResource, Quota, RobotAttachment, SnapshotRecord,
-    autostop_note, check_cloud_init, cloud_init_clean, owner_labels,
+    autostop_note, owner_labels, wait_cloud_init,
 )
 from . import INFO, snapshot_images
 from .archive import tar_files
 from .host import DockerHost, EngineTransport
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
-RESULT_JSON = "/run/cloud-init/result.json"
-# Until $0 (cloud-init's result) exists or systemd says the boot is over (cloud-final is part of
-# it), then print it. systemctl every second, the file test every 0.2 s.
-WAIT_RESULT_SH = """i=0
-until [ -e "$0" ]; do
-  if [ $((i % 5)) -eq 4 ]; then
-    case $(systemctl is-system-running 2>/dev/null) in running|degraded|maintenance|stopping) break ;; esac
-  fi
-  i=$((i + 1)); sleep 0.2
-done
-cat "$0" 2>/dev/null"""
 # What a systemd container (a clone, a simulated robot) gets beyond Docker's defaults: NET_ADMIN for
 # the tunnel and the firewall, SYS_ADMIN for systemd's per-unit mount namespaces. Docker's default
 # seccomp profile stays on (it allows mount/unshare to a SYS_ADMIN container).
@@ -197,15 +186,7 @@ class DockerProvider(DockerHost):
 
     def wait_ready(self, robot: str, timeout: float = 300) -> None:
         """Wait for cloud-init to finish inside the clone; fail with its own error detail."""
-        # `cloud-init status --wait` is a Python program polling in the clone: about 0.3 s of CPU
-        # per clone, measured. A shell loop waits for cloud-init's result.json of this boot (/run
-        # is a tmpfs), or for the boot to be over without one; anything but a clean result then
-        # gets cloud-init's own answer.
-        rc, out = self.exec(robot, ["sh", "-c", WAIT_RESULT_SH, RESULT_JSON], timeout=timeout)
-        if rc == 0 and cloud_init_clean(out):
-            return
-        rc, out = self.exec(robot, ["cloud-init", "status", "--wait", "--long"], timeout=timeout)
-        check_cloud_init(robot, rc, out, timeout)
+        wait_cloud_init(robot, lambda argv: self.exec(robot, argv, timeout=timeout), timeout)
 
     def query(self) -> dict[str, CloneRecord]:
         return {

@@ -60,9 +60,9 @@ RESOLVED_CONF = "[Resolve]\nLLMNR=no\nMulticastDNS=no\n"
 # ccrp pins them from). The network is cloud-init's again (the seed's network-config), rendered for
 # systemd-networkd.
 # keys-to-console runs right after `ssh`, in the network stage, not at the end of the final stage as
-# on the clouds: ccrp logs in as soon as the keys are on the console, so its login and its
-# `cloud-init status --wait` (a Python start: 8-10 s under TCG) overlap the config and final
-# stages instead of following them (the keys and their pinning are the same).
+# on the clouds: ccrp logs in as soon as the keys are on the console, so its login and its wait for
+# cloud-init's result overlap the config and final stages instead of following them (the keys and
+# their pinning are the same).
 CLOUD_CFG = """\
 datasource_list: [ NoCloud, None ]
 system_info:
