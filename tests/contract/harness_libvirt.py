@@ -115,6 +115,8 @@ class LibvirtHarness(Knobs):
 
         found = []
         for dom in self.raw.listAllDomains(0):
+            if not dom.name().startswith(f"ccrp-{FLEET}-"):  # others' (the VM test's) may go meanwhile
+                continue
             labels = xmldefs.domain_info(dom.XMLDesc(0)).labels
             if labels.get(LABEL_FLEET) == FLEET and labels.get(LABEL_MANAGED) == "true" and (
                     robot is None or labels.get(LABEL_ROBOT) == robot):

@@ -342,7 +342,8 @@ class _LibvirtError(Exception):
 # The constants of the binding the provider reads (their values are libvirt's).
 _SDK = type("sdk", (), {"libvirtError": _LibvirtError, "VIR_CONNECT_LIST_DOMAINS_ACTIVE": 1,
                         "VIR_ERR_NO_STORAGE_POOL": 49, "VIR_ERR_NO_STORAGE_VOL": 50, "VIR_ERR_NO_NETWORK": 43, "VIR_ERR_RPC": 7,
-                        "VIR_DOMAIN_RUNNING": 1, "VIR_DOMAIN_DESTROY_GRACEFUL": 1})
+                        "VIR_DOMAIN_RUNNING": 1, "VIR_DOMAIN_DESTROY_GRACEFUL": 1,
+                        "VIR_ERR_NO_DOMAIN": 42})
 
 
 class _Conn:
@@ -455,6 +456,20 @@ def test_stop_cuts_the_power_of_a_guest_that_never_listens(tmp_path, monkeypatch
     p.transport = type("SshStandIn", (), {"forget": lambda _self, robot: None})()
     assert p.stop_instance("nao1") is True
     assert dom.presses >= 2 and dom.cut == _SDK.VIR_DOMAIN_DESTROY_GRACEFUL and not dom.active
+
+
+class _Undefined(_Dom):
+    """A domain listed, then undefined before its XML is read (another robot's rollback)."""
+
+    def XMLDesc(self, flags):
+        raise _LibvirtError(_SDK.VIR_ERR_NO_DOMAIN)
+
+
+def test_a_domain_gone_between_listing_and_reading_is_not_an_error(tmp_path):
+    p = stand_in(tmp_path, volumes=[], networks=[], domains=[
+        _Undefined("ccrp-vmlab-cri-nao2", owner_labels("vmlab", "clone", "nao2"), "uuid-2"),
+        _Dom("ccrp-vmlab-cri-nao1", owner_labels("vmlab", "clone", "nao1"), "uuid-1")])
+    assert [d.name() for d, _info in p._domains()] == ["ccrp-vmlab-cri-nao1"]
 
 
 def test_ssh_is_let_in_from_the_host_on_the_nat_network(tmp_path, ccrp_home):

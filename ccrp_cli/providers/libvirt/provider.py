@@ -331,12 +331,18 @@ class LibvirtProvider(CloudProvider):
 
     # -- clones ---------------------------------------------------------------------------------
     def _domains(self, robot: str | None = None, role: str | None = None) -> list:
-        """This fleet's domains: name prefix AND metadata labels."""
+        """This fleet's domains: name prefix AND metadata labels. One undefined between the listing and
+        the read (a robot's rollback in a parallel `fleet up`) is gone, not an error."""
         found = []
         for dom in self.conn.listAllDomains(0):
             if not self._owns_name(dom.name()):
                 continue
-            info = xmldefs.domain_info(dom.XMLDesc(0))
+            try:
+                info = xmldefs.domain_info(dom.XMLDesc(0))
+            except self.libvirt.libvirtError as exc:
+                if self._missing(exc, "VIR_ERR_NO_DOMAIN"):
+                    continue
+                raise
             if self._is_owned(info.labels, robot) and (role is None or info.labels.get(LABEL_ROLE) == role):
                 found.append((dom, info))
         return found
