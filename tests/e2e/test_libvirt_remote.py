@@ -63,8 +63,8 @@ def sshd(tmp_path_factory):
         subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(d / name)], check=True)
     (d / "authorized_keys").write_text((d / "client.pub").read_text())
     port = free_port()
-    (d / "known_hosts").write_text(f"[127.0.0.1]:{port} {(d / 'host.pub').read_text().split(' ', 2)[0]} "
-                                   f"{(d / 'host.pub').read_text().split(' ', 2)[1]}\n")
+    key_type, key = (d / "host.pub").read_text().split()[:2]
+    (d / "known_hosts").write_text(f"[127.0.0.1]:{port} {key_type} {key}\n")
     wrapper = d / "ssh"
     wrapper.write_text(f'#!/bin/sh\nexec ssh -o UserKnownHostsFile={d}/known_hosts -o StrictHostKeyChecking=yes '
                        f'-o BatchMode=yes -o IdentitiesOnly=yes "$@"\n')
