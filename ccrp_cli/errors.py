@@ -4,6 +4,8 @@ failure() is the one translation of any exception into that, for the CLI (cli/ma
 
 from __future__ import annotations
 
+import re
+
 # Exit codes (README: Commands).
 OK = 0
 FAILED = 1
@@ -25,7 +27,7 @@ class CcrpError(Exception):
         text = " ".join(self.message.split())
         if self.hint:
             text += f" (hint: {' '.join(self.hint.split())})"
-        return text
+        return printable(text)  # a message may hold a clone's output (a failed step's, its journal's)
 
     def envelope(self) -> dict:
         """What `--json` prints on stdout for a failure (README: Commands)."""
@@ -74,6 +76,23 @@ def shown(value: object, limit: int = SHOWN_CHARS) -> str:
     """repr() of a user's value for an error line, cut to `limit` characters with an ellipsis."""
     text = repr(value)
     return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+# A clone's text (its journal, a command's output, its agents' reports) is the clone's to choose, and
+# a node there is the user's code: on a terminal, ESC]52 writes the operator's clipboard, ESC[2J
+# clears the screen, a CR or a newline inside one message forges a line of ccrp's own, and a lone
+# U+009B is CSI to an 8-bit terminal. So every control character is shown as its escape: C0 (a tab
+# only moves the cursor on, and stays), DEL and C1. A backslash stays as it is: text that spells
+# `\x1b` shows the same as an escaped ESC, which is harmless and keeps paths and regexes readable.
+_CONTROL = re.compile("[\x00-\x08\x0a-\x1f\x7f-\x9f]")
+_NAMED = {"\n": "\\n", "\r": "\\r"}
+
+
+def printable(text: str) -> str:
+    """`text` safe for a terminal: each control character but tab as its escape (`\\x1b`, `\\n`).
+    cli/output.py passes every line and table cell it writes through this, and one_line() does;
+    --json keeps the exact text, which JSON encodes itself."""
+    return _CONTROL.sub(lambda m: _NAMED.get(m.group()) or f"\\x{ord(m.group()):02x}", text)
 
 
 class cannot_write:  # noqa: N801 - used as `with cannot_write(out):`

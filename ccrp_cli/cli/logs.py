@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from . import options
+from . import options, output
 
 
 def logs(
@@ -24,7 +24,7 @@ def logs(
     `ccrp logs --robot nao1 mapper -f`."""
     from ..models.values import parse_duration
     from ..providers import get_provider
-    from ..services.workloads import log_units, read_journal
+    from ..services.workloads import FOLLOW_PAGE, log_units, read_journal
 
     since_s = parse_duration(since, "--since") if since else None
     fleet = options.open_fleet(inventory)
@@ -33,19 +33,25 @@ def logs(
     entries, cursor = read_journal(provider, robot, units, lines, since_s)
     _show(entries, as_json)
     try:
+        full = False
         while follow:
-            time.sleep(1.0)
-            entries, cursor = read_journal(provider, robot, units, lines, cursor=cursor)
+            if not full:  # a full page: more is waiting, read on at once
+                time.sleep(1.0)
+            # Bounded pages: a node that logs faster than we poll costs lag, never our memory.
+            entries, cursor = read_journal(provider, robot, units, FOLLOW_PAGE, cursor=cursor)
+            full = len(entries) >= FOLLOW_PAGE
             _show(entries, as_json)
     except KeyboardInterrupt:  # the way to end --follow: not an interruption of anything
         pass
 
 
 def _show(entries: list[dict], as_json: bool) -> None:
+    """The clone's lines: with --json the exact text (JSON escapes control characters), for humans
+    through output.line, which escapes them (a node's ESC]52 must not reach the terminal)."""
     import json
 
     for e in entries:
         if as_json:
             print(json.dumps(e), flush=True)
         else:
-            print(f"{e['time'][:23]} {e['unit'].removesuffix('.service')}: {e['message']}", flush=True)
+            output.line(f"{e['time'][:23]} {e['unit'].removesuffix('.service')}: {e['message']}")

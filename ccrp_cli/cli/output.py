@@ -1,4 +1,6 @@
-"""The one output path: JSON on stdout for --json, tables for humans; messages on stderr."""
+"""The one output path: JSON on stdout for --json, tables for humans; messages on stderr. What it
+writes for humans goes through errors.printable: a clone's text (logs, failed steps, status cells)
+must not drive the operator's terminal. JSON keeps the exact text (json escapes control characters)."""
 
 from __future__ import annotations
 
@@ -7,11 +9,17 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from ..errors import CcrpError, Interrupted
+from ..errors import CcrpError, Interrupted, printable
 
 
 def err(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+    print(printable(message), file=sys.stderr, flush=True)
+
+
+def line(text: str) -> None:
+    """One line on stdout for humans (`ccrp logs`): its control characters escaped, a newline in
+    `text` included, so one message stays one line."""
+    print(printable(text), flush=True)
 
 
 def info(message: str) -> None:
@@ -46,12 +54,15 @@ def failed(exc: CcrpError, as_json: bool) -> None:
 def table(columns: Sequence[str], rows: Sequence[Sequence[Any]], title: str | None = None) -> None:
     from rich.console import Console
     from rich.table import Table
+    from rich.text import Text
 
     t = Table(title=title, title_justify="left", box=None, header_style="bold", pad_edge=False)
     for col in columns:
         t.add_column(col)
     for row in rows:
-        t.add_row(*("" if v is None else str(v) for v in row))
+        # Text, not str: rich would read `[link=...]` or `[red]` in a cell (a node's name, an
+        # error a clone wrote) as markup and write its escape sequences; a Text is shown as it is.
+        t.add_row(*(Text("" if v is None else printable(str(v))) for v in row))
     console = Console()
     if not console.is_terminal:  # pipes and files get whole cells, never "…"
         console.width = 100_000

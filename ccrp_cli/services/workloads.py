@@ -366,16 +366,25 @@ def log_units(inv: Inventory, robot: Robot, name: str | None) -> list[str]:
                      hint=f"nodes: {', '.join(nodes) or 'none'}; ccrp units: {', '.join(CCRP_UNITS)}")
 
 
+# Lines `ccrp logs --follow` reads per poll at most (it reads on at once after a full page).
+FOLLOW_PAGE = 500
+
+
 def read_journal(provider: Reaches, robot: str, units: list[str], lines: int, since_s: int | None = None,
                  cursor: str | None = None) -> tuple[list[dict], str | None]:
-    """Journal entries of `units` on robot's clone (the last `lines`, or those after `cursor`),
-    each {time, unit, message}, and the cursor to read on from. Through the provider's exec, so
-    the same on every backend."""
-    argv = ["journalctl", "--no-pager", "--output", "json", "--output-fields", "MESSAGE,_SYSTEMD_UNIT,UNIT,SYSLOG_IDENTIFIER"]
+    """Journal entries of `units` on robot's clone (the last `lines`, or the first `lines` after
+    `cursor`), each {time, unit, message}, and the cursor to read on from. Through the provider's
+    exec, so the same on every backend. The text is the clone's, exactly: a terminal gets it
+    through cli/output.py, which escapes control characters.
+
+    One answer is bounded: `lines` entries, and journalctl's JSON gives a field over 4096 bytes as
+    null (no --all), so a node that logs huge lines or floods cannot fill the operator's memory."""
+    argv = ["journalctl", "--no-pager", "--output", "json", "--output-fields",
+            "MESSAGE,_SYSTEMD_UNIT,UNIT,_PID,SYSLOG_IDENTIFIER"]
     for unit in units:
         argv += ["--unit", unit]
     if cursor:
-        argv += ["--after-cursor", cursor]
+        argv += ["--after-cursor", cursor, "--lines", str(lines)]  # the first `lines` after the cursor
     else:
         argv += ["--lines", str(lines)]
         if since_s:
@@ -396,7 +405,11 @@ def read_journal(provider: Reaches, robot: str, units: list[str], lines: int, si
         if isinstance(message, list):  # journald gives bytes that are not UTF-8 as a list of ints
             message = bytes(b for b in message if isinstance(b, int) and 0 <= b < 256).decode(errors="replace")
         micros = e.get("__REALTIME_TIMESTAMP")
-        entries.append({"time": _iso(micros), "unit": e.get("UNIT") or e.get("_SYSTEMD_UNIT") or "",
+        # The unit is journald's _SYSTEMD_UNIT (from the sender's cgroup; a field with `_` no sender
+        # sets). UNIT is any sender's to write, so a node could label its lines as another unit's: it
+        # counts only from systemd itself (_PID 1: the unit started, failed, is restarting).
+        unit = (e.get("UNIT") if e.get("_PID") == "1" else None) or e.get("_SYSTEMD_UNIT")
+        entries.append({"time": _iso(micros), "unit": unit if isinstance(unit, str) else "",
                         "ident": e.get("SYSLOG_IDENTIFIER") or "", "message": message if isinstance(message, str) else ""})
     return entries, cursor
 

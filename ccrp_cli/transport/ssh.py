@@ -24,6 +24,7 @@ from typing import Callable, Iterable
 
 from ..errors import CcrpError
 from ..retry import Backoff, ErrorClass, call
+from . import EXEC_OUTPUT_MAX, too_much
 
 FP_BEGIN, FP_END = "-----BEGIN SSH HOST KEY FINGERPRINTS-----", "-----END SSH HOST KEY FINGERPRINTS-----"
 KEYS_BEGIN, KEYS_END = "-----BEGIN SSH HOST KEY KEYS-----", "-----END SSH HOST KEY KEYS-----"
@@ -283,6 +284,8 @@ class SshTransport:
                 if not data:
                     break
                 out += data
+                if len(out) > EXEC_OUTPUT_MAX:  # closing the channel (below) ends the command
+                    raise CcrpError(too_much(shlex.join(argv), self.host))
             # The exit status follows the end of output; -1 when the command died of a signal.
             if not chan.status_event.wait(max(0.0, deadline - time.monotonic()) or 1.0):
                 raise CcrpError(f"`{shlex.join(argv)[:120]}` on {self.host} sent no exit status")

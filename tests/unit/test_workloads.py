@@ -326,7 +326,7 @@ def test_logs_reads_the_journal_through_the_provider():
     assert entries[0]["time"].startswith("2023-11-14T22:13:20")
     assert clone.argv[-4:] == ["--lines", "50", "--since", "-600s"]
     read_journal(clone, "nao1", ["ccrp-run-mapper.service"], 50, cursor="c2")
-    assert clone.argv[-2:] == ["--after-cursor", "c2"]
+    assert clone.argv[-4:] == ["--after-cursor", "c2", "--lines", "50"]  # a bounded page after the cursor
 
 
 def test_logs_cli_refuses_bad_input_in_one_line(tmp_path):

@@ -9,6 +9,7 @@ from typing import Any
 
 from ...errors import CcrpError
 from ...retry import Backoff, ErrorClass, call
+from ...transport import EXEC_OUTPUT_MAX, too_much
 from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE
 from .archive import tar_files
 
@@ -107,8 +108,19 @@ class DockerHost:
 
     def exec(self, robot: str, argv: list[str], timeout: float = 60, role: str = "clone") -> tuple[int, str]:
         c = self._running(robot, role)
-        result = c.exec_run(["timeout", str(int(timeout)), *argv], demux=False)
-        return result.exit_code, (result.output or b"").decode(errors="replace")
+        # exec_run would read the whole output, however much: stream it and stop at the cap (the
+        # command's `timeout` then ends it in the container).
+        run = self.client.api.exec_create(c.id, ["timeout", str(int(timeout)), *argv])["Id"]
+        stream = self.client.api.exec_start(run, stream=True)
+        out = bytearray()
+        try:
+            for chunk in stream:
+                out += chunk
+                if len(out) > EXEC_OUTPUT_MAX:
+                    raise CcrpError(too_much(" ".join(argv), f"the {role} container of robot {robot!r}"))
+        finally:
+            stream.close()
+        return self.client.api.exec_inspect(run)["ExitCode"], out.decode(errors="replace")
 
     def wait_systemd(self, robot: str, role: str = "clone", timeout: float = 60) -> None:
         """Until systemd inside the container has finished booting."""
@@ -150,7 +162,7 @@ class DockerHost:
 
 
 class EngineTransport:
-    """base.Transport through the engine: commands run with exec_run and files go in as archive
+    """base.Transport through the engine: commands run as engine execs and files go in as archive
     uploads, into the fleet's containers of one role (DockerProvider's: its clones), with no login
     or session to keep."""
 
