@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..errors import InputError
+from ..errors import InputError, printable
 from .auth import Auth, allowed_hosts, check_token, new_token
 from .events import Broker, Monitor, pki_alerts
 
@@ -191,9 +191,17 @@ def serve(inventory: Path, bind: str, token: str | None, interval: float) -> Non
         provider.close()
 
 
+class _Printable(logging.Formatter):
+    """Log lines as the terminal must show them: a request's path (percent-decoded, so `%1b` is an
+    ESC) or a clone's text in a line has its control characters escaped (errors.printable)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return printable(super().format(record))
+
+
 def _log_to_stderr() -> None:
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("ccrp: dashboard: %(message)s"))
+    handler.setFormatter(_Printable("ccrp: dashboard: %(message)s"))
     log.addHandler(handler)
     log.setLevel(logging.INFO)
     log.propagate = False

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterable
 
-from ..errors import CcrpError
+from ..errors import CcrpError, printable
 from ..retry import Backoff, ErrorClass, call
 from . import EXEC_OUTPUT_MAX, too_much
 
@@ -82,7 +82,7 @@ def fingerprints_from_console(text: str) -> frozenset[str]:
 
 
 def _stderr_warning(message: str) -> None:
-    print(f"ccrp: warning: {message}", file=sys.stderr, flush=True)
+    print(printable(f"ccrp: warning: {message}"), file=sys.stderr, flush=True)  # it names what a server sent
 
 
 class KnownHosts:

@@ -245,3 +245,13 @@ def test_an_engine_exec_stops_reading_a_container_that_floods_it():
 class Chunks(list):
     def close(self) -> None:
         pass
+
+
+def test_the_dashboards_log_lines_escape_a_requests_path():
+    import logging
+
+    from ccrp_cli.dashboard.server import _Printable
+
+    record = logging.makeLogRecord({"msg": '%s "GET %s" refused', "args": ("10.0.0.9", "/\x1b]52;c;eA==\x07\n200 OK")})
+    assert _Printable("ccrp: dashboard: %(message)s").format(record) == \
+        'ccrp: dashboard: 10.0.0.9 "GET /\\x1b]52;c;eA==\\x07\\n200 OK" refused'
