@@ -97,5 +97,5 @@ def exec_(
     from ..providers import get_provider
 
     rc, out = get_provider(fleet.inventory).transport.exec(robot, command, timeout=timeout)
-    typer.echo(out, nl=False)
+    output.command_output(out)
     raise typer.Exit(rc)

@@ -30,6 +30,16 @@ def warn(message: str) -> None:
     err(f"ccrp: warning: {message}")
 
 
+def command_output(text: str) -> None:
+    """What a command run on a clone printed (`ccrp clone exec`): exact into a pipe or a file, which
+    asked for its bytes; on a terminal each line with its control characters escaped (line ends and
+    tabs kept), as the clone's text everywhere else."""
+    if sys.stdout.isatty():
+        text = "\n".join(printable(part) for part in text.split("\n"))
+    sys.stdout.write(text)
+    sys.stdout.flush()
+
+
 def emit_json(data: Any) -> None:
     json.dump(data, sys.stdout, indent=2, default=str)
     sys.stdout.write("\n")

@@ -255,3 +255,17 @@ def test_the_dashboards_log_lines_escape_a_requests_path():
     record = logging.makeLogRecord({"msg": '%s "GET %s" refused', "args": ("10.0.0.9", "/\x1b]52;c;eA==\x07\n200 OK")})
     assert _Printable("ccrp: dashboard: %(message)s").format(record) == \
         'ccrp: dashboard: 10.0.0.9 "GET /\\x1b]52;c;eA==\\x07\\n200 OK" refused'
+
+
+def test_clone_exec_output_is_exact_in_a_pipe_and_escaped_on_a_terminal(capsys, monkeypatch):
+    import sys
+
+    from ccrp_cli.cli import output
+
+    text = f"line 1\n{EVIL}\n"
+    output.command_output(text)
+    assert capsys.readouterr().out == text  # `ccrp clone exec -- cat f > f.copy` gets what the clone sent
+    monkeypatch.setattr(sys.stdout, "isatty", lambda: True)
+    output.command_output(text)
+    out = capsys.readouterr().out
+    assert out == "line 1\nhi\\x1b]52;c;cm0gLXJmIH4K\\x07 \\x1b[2J\\x9b31m\\x7f\nccrp: deployed\\rX\ttab\n"  # lines kept
