@@ -27,6 +27,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from ccrp_cli.providers.libvirt.settings import URI_PARAMS_ENV
 from tests.libvirt_host import gate
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -101,7 +102,9 @@ def remote_fleet(tmp_path_factory, clone_images, sshd):
     tmp = tmp_path_factory.mktemp("libvirt-remote")
     home = tmp / "home"
     used = used_networks()
-    uri = f"qemu+ssh://root@127.0.0.1:{port}/system?keyfile={key}&command={wrapper}"
+    # The client key is the inventory's (a URI may name it); the wrapper that pins the host key is this
+    # machine's, from the environment: an inventory's URI cannot name a program (settings.py).
+    uri = f"qemu+ssh://root@127.0.0.1:{port}/system?keyfile={key}"
     inv = {"fleet": f"lr{secrets.token_hex(3)}",
            "provider": {"kind": "libvirt", "uri": uri, "accel": os.environ.get("CCRP_LIBVIRT_ACCEL", "auto"),
                         "memory_mb": 1536, "vcpus": 1, "public_cidr": free_public(used)},
@@ -110,9 +113,13 @@ def remote_fleet(tmp_path_factory, clone_images, sshd):
     path = tmp / "ccrp.yaml"
     path.write_text(yaml.safe_dump(inv, sort_keys=False))
     try:
-        yield {"home": home, "path": str(path), "fleet": inv["fleet"], "uri": uri}
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv(URI_PARAMS_ENV, f"command={wrapper}")
+            yield {"home": home, "path": str(path), "fleet": inv["fleet"], "uri": uri, "wrapper": wrapper}
     finally:
-        ccrp(home, "fleet", "down", "-i", str(path), timeout=600)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv(URI_PARAMS_ENV, f"command={wrapper}")
+            ccrp(home, "fleet", "down", "-i", str(path), timeout=600)
         import libvirt
 
         conn = libvirt.open("qemu:///system")  # the same host, asked directly: what is left of the fleet
@@ -128,6 +135,12 @@ def remote_fleet(tmp_path_factory, clone_images, sshd):
 
 def test_a_fleet_through_qemu_ssh_builds_boots_serves_and_goes(remote_fleet, sshd):
     home, path, fleet = remote_fleet["home"], remote_fleet["path"], remote_fleet["fleet"]
+    # The same wrapper named by the inventory is refused in one line (exit 2): it would run a program.
+    named = Path(path).with_name("named.yaml")
+    named.write_text(Path(path).read_text().replace(remote_fleet["uri"], f"{remote_fleet['uri']}&command={remote_fleet['wrapper']}"))
+    refused = ccrp(home, "fleet", "validate", "-i", str(named), timeout=60)
+    assert refused.returncode == 2 and "parameter command is refused" in refused.stderr, refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
     timings = {}
     t0 = time.monotonic()
     built = ccrp(home, "snapshot", "build", "-i", path, "--json")

@@ -80,6 +80,91 @@ def test_remote_uri_accepted(tmp_path):
     assert inventory(tmp_path, uri="qemu+ssh://ops@lab1.example/system", accel="tcg").provider.uri.startswith("qemu+ssh://")
 
 
+@pytest.mark.parametrize("uri", [
+    "qemu:///system", "qemu+unix:///system", "qemu:///session", "qemu+ssh://ops@lab1.example/system",
+    "qemu+ssh://root@127.0.0.1:2222/system?keyfile=/root/.ssh/lab_ed25519", "qemu+ssh://lab1/system?mode=direct&proxy=native",
+    "qemu+tls://lab1.example/system", "qemu://lab1.example/system", "qemu+ssh://ops@[fd00::5]/system",
+])
+def test_uris_ccrp_opens_load(tmp_path, uri):
+    assert inventory(tmp_path, uri=uri).provider.uri == uri
+
+
+@pytest.mark.parametrize("uri,line", [
+    # Issue 39: opening these ran a program of the inventory's, or took the host unverified.
+    ("qemu+ext:///system?command=/tmp/x", "transport qemu+ext is refused"),
+    ("qemu+tcp://10.0.0.5/system", "transport qemu+tcp is refused"),
+    ("qemu+libssh://lab1/system", "transport qemu+libssh is refused"),
+    ("qemu+ssh://h/system?command=./x", "parameter command is refused: it runs a program on this machine"),
+    ("qemu+ssh://h/system?netcat=/tmp/nc", "parameter netcat is refused"),
+    ("qemu+ssh://h/system?keyfile=/k&socket=/tmp/s", "parameter socket is refused"),
+    ("qemu+unix:///system?socket=/tmp/s", "parameter socket is refused"),
+    ("qemu+ssh://h/system?no_verify=1", "parameter no_verify is refused: it turns off the check"),
+    ("qemu+tls://h/system?no_verify=1", "parameter no_verify is refused"),
+    ("qemu+ssh://h/system?No_Verify=1", "parameter No_Verify is refused"),  # libvirt reads names in any case
+    ("qemu+ssh://h/system?no_tty=1", "parameter no_tty is refused"),
+    ("qemu+ssh://h/system?known_hosts_verify=ignore", "parameter known_hosts_verify is refused"),
+    ("qemu+ssh://h/system?sshauth=password", "parameter sshauth is refused"),
+    ("qemu+tls://h/system?pkipath=/tmp/pki", "parameter pkipath is refused"),
+    ("qemu+tls://h/system?tls_priority=NORMAL", "parameter tls_priority is refused"),
+    ("qemu+ssh://h/system?name=qemu/system", "parameter name is refused"),
+    ("qemu+ssh://h/system?frobnicate=1", "parameter frobnicate is refused: ccrp does not know it"),
+    ("qemu+ssh://h/system?mode=x", "mode=x: give one of auto, direct, legacy"),
+    ("qemu+ssh://h/system?keyfile", "parameter keyfile has no value"),
+    ("qemu+ssh:///system", "qemu+ssh needs a host"),
+    ("qemu+unix://h/system", "qemu+unix is this machine's socket"),
+    ("qemu:///embed", "path /embed is not"),
+    ("qemu+ssh://-oProxyCommand/system", "is not a libvirt URI"),  # a host ssh would read as an option
+    ("qemu+ssh://-F.x@h/system", "is not a libvirt URI"),
+    ("qemu+ssh://h/system?command=%2Ftmp%2Fx", "is not a libvirt URI"),  # no escapes to hide a name or value in
+    ("qemu+ssh://h/system;command=/x", "is not a libvirt URI"),
+])
+def test_uris_that_run_programs_or_skip_checks_are_refused_in_one_line(tmp_path, uri, line):
+    with pytest.raises(InputError) as err:
+        inventory(tmp_path, uri=uri)
+    text = err.value.one_line()
+    assert "\n" not in text and "provider.uri" in text and line in text, text
+
+
+def test_fleet_validate_refuses_a_uri_that_names_a_program(tmp_path):
+    """What issue 39 tried: `fleet validate` accepted it and `ccrp status` ran the script."""
+    import subprocess
+
+    ran = tmp_path / "ran"
+    script = tmp_path / "x"
+    script.write_text(f"#!/bin/sh\ntouch {ran}\n")
+    script.chmod(0o755)
+    data = {"fleet": "vmlab", "provider": {"kind": "libvirt", "uri": f"qemu+ext:///system?command={script}"},
+            "robots": [{"name": "nao1"}]}
+    (tmp_path / "ccrp.yaml").write_text(yaml.safe_dump(data))
+    env = {k: v for k, v in __import__("os").environ.items() if k != "CCRP_INVENTORY"} | {"CCRP_HOME": str(tmp_path / "home")}
+    for argv in (["fleet", "validate"], ["status"]):
+        out = subprocess.run([sys.executable, "-m", "ccrp_cli", *argv, "-i", str(tmp_path / "ccrp.yaml")],
+                             capture_output=True, text=True, env=env, timeout=120)
+        assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+        assert "transport qemu+ext is refused" in out.stderr and "Traceback" not in out.stderr
+    assert not ran.exists()
+
+
+def test_the_operators_uri_parameters_come_from_the_environment(tmp_path, monkeypatch):
+    """A wrapper ssh (the remote e2e test's) is this machine's: added from CCRP_LIBVIRT_URI_PARAMS
+    to the inventory's URI when the connection is opened, never read from the inventory."""
+    from types import SimpleNamespace
+
+    from ccrp_cli.providers.libvirt.settings import URI_PARAMS_ENV, connect_uri
+
+    assert connect_uri("qemu+ssh://h/system", {}) == "qemu+ssh://h/system"
+    assert connect_uri("qemu+ssh://h/system?keyfile=/k", {URI_PARAMS_ENV: "command=/opt/ssh"}) == \
+        "qemu+ssh://h/system?keyfile=/k&command=/opt/ssh"
+    with pytest.raises(InputError, match=URI_PARAMS_ENV):
+        connect_uri("qemu+ssh://h/system", {URI_PARAMS_ENV: "command=/opt/ssh -v"})
+    opened = []
+    monkeypatch.setattr(provider, "_sdk", lambda: SimpleNamespace(open=opened.append, libvirtError=Exception))
+    monkeypatch.setenv(URI_PARAMS_ENV, "command=/opt/ssh-pinned")
+    inv = inventory(tmp_path, uri="qemu+ssh://ops@lab1/system")
+    provider.LibvirtProvider(inv, tmp_path)
+    assert opened == ["qemu+ssh://ops@lab1/system?command=/opt/ssh-pinned"]
+
+
 # -- domain XML ------------------------------------------------------------------------------------------
 
 def test_domain_xml_round_trip():

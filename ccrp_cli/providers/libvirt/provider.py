@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 import re
 import threading
 import time
@@ -28,7 +29,7 @@ from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRe
                     OwnedResource, Quota, RobotAttachment, SnapshotRecord, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, forward, robots, seed, xmldefs
-from .settings import LibvirtSettings
+from .settings import LibvirtSettings, connect_uri
 
 # virDomainState (dom.state()[0]) -> libvirt's word, then ccrp's.
 WORDS = ("nostate", "running", "blocked", "paused", "shutdown", "shutoff", "crashed", "pmsuspended")
@@ -96,7 +97,9 @@ class LibvirtProvider(CloudProvider):
         self.settings: LibvirtSettings = inv.provider  # type: ignore[assignment]
         self.libvirt = _sdk()
         try:
-            self.conn = self.libvirt.open(self.settings.uri)
+            # The operator's own URI parameters (an ssh wrapper...) come from the environment, never
+            # from the inventory (settings.py).
+            self.conn = self.libvirt.open(connect_uri(self.settings.uri, os.environ))
         except self.libvirt.libvirtError as exc:
             raise CcrpError(f"cannot connect to libvirt at {self.settings.uri}: {self._message(exc)}",
                             hint="start libvirtd (scripts/libvirt.sh) or check provider.uri") from None
