@@ -229,7 +229,7 @@ def test_an_engine_exec_stops_reading_a_container_that_floods_it():
     flood = Flood()
     container = SimpleNamespace(id="c1", status="running", labels={LABEL_FLEET: "lab", LABEL_ROLE: "clone", LABEL_ROBOT: "nao1"})
     api = SimpleNamespace(exec_create=lambda cid, argv: {"Id": "e1"}, exec_start=lambda run, stream: flood,
-                          exec_inspect=lambda run: {"ExitCode": 0})
+                          exec_inspect=lambda run: {"Running": False, "ExitCode": 0})
     host = DockerHost.__new__(DockerHost)  # no engine: the client is a fake
     host.fleet, host._NotFound = "lab", LookupError
     host.client = SimpleNamespace(api=api, containers=SimpleNamespace(get=lambda name: container))
@@ -238,7 +238,8 @@ def test_an_engine_exec_stops_reading_a_container_that_floods_it():
     assert flood.closed and EXEC_OUTPUT_MAX < flood.sent <= EXEC_OUTPUT_MAX + (1 << 16)
     # A bounded answer comes back whole, with its exit status.
     api.exec_start = lambda run, stream: Chunks([b"a\n", b"\x1b[2Jb\n"])
-    api.exec_inspect = lambda run: {"ExitCode": 3}
+    inspected = iter([{"Running": True, "ExitCode": None}, {"Running": False, "ExitCode": 3}])
+    api.exec_inspect = lambda run: next(inspected)  # the engine records the exit status a moment later
     assert host.exec("nao1", ["cat", "x"]) == (3, "a\n\x1b[2Jb\n")  # the exact text: printing escapes it
 
 

@@ -5,6 +5,7 @@ alone (they run here, whatever cloud their clones are on)."""
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from ...errors import CcrpError
@@ -108,19 +109,27 @@ class DockerHost:
 
     def exec(self, robot: str, argv: list[str], timeout: float = 60, role: str = "clone") -> tuple[int, str]:
         c = self._running(robot, role)
+        api, where = self.client.api, f"the {role} container of robot {robot!r}"
         # exec_run would read the whole output, however much: stream it and stop at the cap (the
         # command's `timeout` then ends it in the container).
-        run = self.client.api.exec_create(c.id, ["timeout", str(int(timeout)), *argv])["Id"]
-        stream = self.client.api.exec_start(run, stream=True)
+        run = api.exec_create(c.id, ["timeout", str(int(timeout)), *argv])["Id"]
+        stream = api.exec_start(run, stream=True)
         out = bytearray()
         try:
             for chunk in stream:
                 out += chunk
                 if len(out) > EXEC_OUTPUT_MAX:
-                    raise CcrpError(too_much(" ".join(argv), f"the {role} container of robot {robot!r}"))
+                    raise CcrpError(too_much(" ".join(argv), where))
         finally:
             stream.close()
-        return self.client.api.exec_inspect(run)["ExitCode"], out.decode(errors="replace")
+        # The engine records the exit status just after the output ends; the stream also ends
+        # quietly when its socket times out, the command still running.
+        deadline = time.monotonic() + 5
+        while (done := api.exec_inspect(run))["Running"] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if done["Running"]:
+            raise CcrpError(f"`{' '.join(argv)[:120]}` in {where} stopped answering and still runs")
+        return done["ExitCode"], out.decode(errors="replace")
 
     def wait_systemd(self, robot: str, role: str = "clone", timeout: float = 60) -> None:
         """Until systemd inside the container has finished booting."""
