@@ -333,6 +333,71 @@ def test_golden_layer_and_cloud_config():
     assert allowed == {"guest-sync-delimited", "guest-sync", "guest-ping", "guest-info", "guest-get-time", "guest-set-time"}
 
 
+def golden_tree(tmp_path):
+    root = tmp_path / "root"
+    (root / "boot").mkdir(parents=True)
+    (root / "usr/lib/linux").mkdir(parents=True)
+    (root / "usr/lib/linux/vmlinuz-6.1.0-28-cloud-amd64").write_bytes(b"kernel of the tree")
+    (root / "boot/initrd.img-6.1.0-28-cloud-amd64").write_bytes(b"initramfs of the tree")
+    secret = tmp_path / "ca.key"  # outside the tree, as the fleet's CA key would be
+    secret.write_bytes(b"PRIVATE KEY")
+    return root, secret
+
+
+@pytest.mark.parametrize("link", ["/usr/lib/linux/vmlinuz-6.1.0-28-cloud-amd64",  # absolute: the tree's path
+                                  "../usr/lib/linux/vmlinuz-6.1.0-28-cloud-amd64",
+                                  "../../../../../../usr/lib/linux/vmlinuz-6.1.0-28-cloud-amd64"])  # .. stops at the root
+def test_boot_files_follow_links_inside_the_golden_tree_only(tmp_path, link):
+    root, _ = golden_tree(tmp_path)
+    (root / "boot/vmlinuz-6.1.0-28-cloud-amd64").symlink_to(link)
+    out = tmp_path / "out"
+    out.mkdir()
+    kernel, initrd = goldens._boot_files(root, out)
+    assert kernel.read_bytes() == b"kernel of the tree" and initrd.read_bytes() == b"initramfs of the tree"
+    assert not kernel.is_symlink()
+
+
+@pytest.mark.parametrize("case", ["absolute", "relative", "boot-dir", "fifo"])
+def test_a_boot_file_leading_out_of_the_golden_tree_is_refused_in_one_line(tmp_path, case):
+    """Issue 39: a package of the build pointed boot/vmlinuz-* at a file of the host (the fleet's CA
+    key), which was copied out as the kernel and uploaded to the pool."""
+    root, secret = golden_tree(tmp_path)
+    kernel = root / "boot/vmlinuz-6.1.0-28-cloud-amd64"
+    if case == "absolute":
+        kernel.symlink_to(secret)
+    elif case == "relative":
+        kernel.symlink_to("../" * 12 + str(secret).lstrip("/"))
+    elif case == "boot-dir":  # boot itself a link to a directory of the host holding a kernel
+        outside = tmp_path / "host-boot"
+        outside.mkdir()
+        (outside / "vmlinuz-6.1").write_bytes(b"PRIVATE KEY")
+        (outside / "initrd.img-6.1").write_bytes(b"PRIVATE KEY")
+        shutil.rmtree(root / "boot")
+        (root / "boot").symlink_to(outside)
+    else:  # a FIFO (or a device node: tar extracts them as root) would be read as the kernel
+        import os
+
+        os.mkfifo(kernel)
+    out = tmp_path / "out"
+    out.mkdir()
+    with pytest.raises(CcrpError) as err:
+        goldens._boot_files(root, out)
+    assert "\n" not in err.value.one_line() and "golden tree" in err.value.message
+    assert not any(p.read_bytes() == b"PRIVATE KEY" for p in out.iterdir())
+
+
+def test_tree_paths_stay_in_the_tree(tmp_path):
+    root, _ = golden_tree(tmp_path)
+    host_etc = tmp_path / "host-etc"  # resolv.conf is replaced in the tree's /etc, never in one of the host's
+    host_etc.mkdir()
+    (root / "etc").symlink_to(host_etc)
+    assert goldens.tree_path(root, "etc") == root / str(host_etc).lstrip("/")
+    assert goldens.tree_path(root, "usr/lib/../../../..") == root
+    (root / "loop").symlink_to("/loop")
+    with pytest.raises(CcrpError, match="more than 40 links"):
+        goldens.tree_path(root, "loop/x")
+
+
 def test_golden_needs_its_tools(monkeypatch, tmp_path):
     monkeypatch.setattr(goldens.shutil, "which", lambda name: None if name == "qemu-img" else f"/usr/bin/{name}")
     with pytest.raises(CcrpError) as err:

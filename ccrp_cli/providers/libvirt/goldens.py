@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import os
 import shutil
+import stat
 import subprocess
 import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 from ...errors import CcrpError
 from .seed import NIC_NAMES
@@ -168,7 +169,7 @@ def build(client, snapshot_image: str, out_dir: Path, progress=lambda msg: None,
             seconds["export + untar"] = time.monotonic() - t0
             # Docker mounts its own /etc/resolv.conf over the image's in every build step, so the
             # link to resolved's stub (what Debian's systemd-resolved package makes) is made here.
-            resolv = root / "etc" / "resolv.conf"
+            resolv = tree_path(root, "etc") / "resolv.conf"  # not through a link out of the tree
             resolv.unlink(missing_ok=True)
             resolv.symlink_to("../run/systemd/resolve/stub-resolv.conf")
             kernel, initrd = _boot_files(root, out_dir)
@@ -211,15 +212,60 @@ def _export(container, tar: str, root: Path) -> None:
         raise CcrpError(f"unpacking the snapshot's files failed: {b''.join(err).decode(errors='replace').strip()[-300:]}")
 
 
+# Links followed on one path at most (Linux's own limit, past which it says ELOOP).
+MAX_LINKS = 40
+
+
+def tree_path(root: Path, rel: str) -> Path:
+    """Where `rel` is in the tree at `root` as the tree's own system would see it: each link on the
+    way followed from the tree's root (an absolute link is a path of the tree, `..` stops at its
+    root), so no link leads out of it. The tree is the build's, which its packages (the workspace's
+    too) wrote, and ccrp reads it as root: a boot/vmlinuz-* pointing at the fleet's CA key would
+    have become a pool volume, maybe on another host. The path returned has no link left in it."""
+    todo = [part for part in PurePosixPath(rel).parts if part != "/"]
+    done: list[str] = []
+    links = 0
+    while todo:
+        part = todo.pop(0)
+        if part == "..":
+            if done:
+                done.pop()
+            continue
+        here = root.joinpath(*done, part)
+        if not here.is_symlink():
+            done.append(part)
+            continue
+        links += 1
+        if links > MAX_LINKS:
+            raise CcrpError(f"the golden tree's /{rel} goes through more than {MAX_LINKS} links")
+        target = os.readlink(here)
+        if target.startswith("/"):
+            done = []
+        todo = [p for p in PurePosixPath(target).parts if p != "/"] + todo
+    return root.joinpath(*done)
+
+
 def _boot_files(root: Path, out_dir: Path) -> tuple[Path, Path]:
-    """The kernel and initramfs of the tree (one each: the layer installs one kernel), copied out."""
-    kernels = sorted((root / "boot").glob("vmlinuz-*"))
-    initrds = sorted((root / "boot").glob("initrd.img-*"))
+    """The kernel and initramfs of the tree (one each: the layer installs one kernel), copied out:
+    regular files of the tree, links followed inside it only (tree_path)."""
+    boot = tree_path(root, "boot")
+    kernels = sorted(boot.glob("vmlinuz-*"))
+    initrds = sorted(boot.glob("initrd.img-*"))
     if len(kernels) != 1 or len(initrds) != 1:
         raise CcrpError(f"the golden tree has {len(kernels)} kernels and {len(initrds)} initramfs images, not one each")
-    kernel, initrd = out_dir / "vmlinuz", out_dir / "initrd.img"
-    shutil.copyfile(kernels[0], kernel)
-    shutil.copyfile(initrds[0], initrd)
-    os.chmod(kernel, 0o644)
-    os.chmod(initrd, 0o644)
-    return kernel, initrd
+    out = []
+    for found, name in ((kernels[0], "vmlinuz"), (initrds[0], "initrd.img")):
+        rel = found.relative_to(root).as_posix()
+        src = tree_path(root, rel)
+        try:
+            regular = stat.S_ISREG(os.lstat(src).st_mode)
+        except FileNotFoundError:
+            regular = False
+        if not regular:  # a link to nothing in the tree, a directory, a device node or a FIFO
+            raise CcrpError(f"the golden tree's /{rel} is not a file of the tree (it leads to /{src.relative_to(root).as_posix()})",
+                            hint="a package of the build replaced the kernel: check the fleet's software")
+        dest = out_dir / name
+        shutil.copyfile(src, dest, follow_symlinks=False)
+        os.chmod(dest, 0o644)
+        out.append(dest)
+    return out[0], out[1]
