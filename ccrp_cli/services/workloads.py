@@ -57,8 +57,15 @@ class Package:
 def workspace_dir(inv_path: Path | None, software: Software) -> Path | None:
     if software.workspace is None:
         return None
-    base = inv_path.parent if inv_path is not None else Path.cwd()
+    base = (inv_path.parent if inv_path is not None else Path.cwd()).resolve()
     path = (base / software.workspace).resolve()
+    # Resolved, the workspace stays in the inventory's directory, as its text must (models/software.py):
+    # it is read whole into the snapshot, where the workspace's own code runs, so a link (`ws -> ~`)
+    # must not pull the operator's home, keys and all, into the build.
+    if not path.is_relative_to(base):
+        raise InputError(f"software.workspace {shown(software.workspace)} leads out of the inventory's directory "
+                         f"(to {shown(str(path), 200)})",
+                         hint="put the workspace itself in the inventory's directory (or the inventory beside it), not a link to it")
     if not path.is_dir():
         raise InputError(f"software.workspace {shown(software.workspace)}: no directory {path}",
                          hint="give the workspace's directory (holding src/) relative to the inventory")

@@ -201,6 +201,27 @@ def test_a_missing_or_empty_workspace_is_one_line(tmp_path):
         snapshot_software(inv, tmp_path / "inventory.yaml")
 
 
+@pytest.mark.parametrize("link", ["absolute", "relative"])
+def test_a_workspace_that_links_out_of_the_inventorys_directory_is_refused(tmp_path, link):
+    """Issue 39: `ws -> ~` pulled the operator's home into the snapshot's build."""
+    home = workspace(tmp_path / "home", "mapper", CATKIN_XML.format(name="mapper", deps=""))
+    (home / "id_ed25519").write_text("PRIVATE KEY")
+    fleet = tmp_path / "fleet"
+    fleet.mkdir()
+    (fleet / "ws").symlink_to(home if link == "absolute" else "../home")
+    with pytest.raises(InputError) as err:
+        snapshot_software(inventory(lab(software={"workspace": "ws"})), fleet / "inventory.yaml")
+    line = err.value.one_line()
+    assert "\n" not in line and "leads out of the inventory's directory" in line and str(home) in line
+
+
+def test_a_workspace_linked_within_the_inventorys_directory_is_read(tmp_path):
+    workspace(tmp_path / "src-tree" / "ws", "mapper", CATKIN_XML.format(name="mapper", deps=""))
+    (tmp_path / "ws").symlink_to("src-tree/ws")
+    out = snapshot_software(inventory(lab(software={"workspace": "ws"})), tmp_path / "inventory.yaml")
+    assert [p.name for p in out.packages] == ["mapper"]
+
+
 # -- the node units -------------------------------------------------------------------------------
 
 def test_a_command_reaches_systemd_word_for_word():
