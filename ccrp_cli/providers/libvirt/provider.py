@@ -29,7 +29,7 @@ from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRe
                     OwnedResource, Quota, RobotAttachment, SnapshotRecord, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, forward, robots, seed, xmldefs
-from .settings import LibvirtSettings, connect_uri
+from .settings import URI_PARAMS_ENV, LibvirtSettings, connect_uri
 
 # virDomainState (dom.state()[0]) -> libvirt's word, then ccrp's.
 WORDS = ("nostate", "running", "blocked", "paused", "shutdown", "shutoff", "crashed", "pmsuspended")
@@ -96,13 +96,15 @@ class LibvirtProvider(CloudProvider):
         super().__init__(inv, workdir)
         self.settings: LibvirtSettings = inv.provider  # type: ignore[assignment]
         self.libvirt = _sdk()
+        # The operator's own URI parameters (an ssh wrapper...) come from the environment, never
+        # from the inventory (settings.py).
+        uri = connect_uri(self.settings.uri, os.environ)
         try:
-            # The operator's own URI parameters (an ssh wrapper...) come from the environment, never
-            # from the inventory (settings.py).
-            self.conn = self.libvirt.open(connect_uri(self.settings.uri, os.environ))
+            self.conn = self.libvirt.open(uri)
         except self.libvirt.libvirtError as exc:
-            raise CcrpError(f"cannot connect to libvirt at {self.settings.uri}: {self._message(exc)}",
-                            hint="start libvirtd (scripts/libvirt.sh) or check provider.uri") from None
+            raise CcrpError(f"cannot connect to libvirt at {uri}: {self._message(exc)}",
+                            hint="start libvirtd (scripts/libvirt.sh) or check provider.uri" +
+                                 (f" and {URI_PARAMS_ENV}" if uri != self.settings.uri else "")) from None
         self._lock = threading.Lock()
         self._accel: str | None = None
         self._emulated: dict[str, bool] = {}  # robot -> its domain runs under TCG
