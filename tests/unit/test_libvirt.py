@@ -110,6 +110,7 @@ def test_uris_ccrp_opens_load(tmp_path, uri):
     ("qemu+ssh://h/system?frobnicate=1", "parameter frobnicate is refused: ccrp does not know it"),
     ("qemu+ssh://h/system?mode=x", "mode=x: give one of auto, direct, legacy"),
     ("qemu+ssh://h/system?keyfile", "parameter keyfile has no value"),
+    ("qemu+ssh://h/system?keyfile=-oProxyCommand=x", "give the key's absolute path"),
     ("qemu+ssh:///system", "qemu+ssh needs a host"),
     ("qemu+unix://h/system", "qemu+unix is this machine's socket"),
     ("qemu:///embed", "path /embed is not"),

@@ -48,8 +48,9 @@ _REFUSED = {
     "tls_priority": "can let TLS use weak versions and ciphers",
     "name": "names the URI the libvirt host opens, with parameters of its own",
 }
-# The operator's own parameters for every URI ccrp opens (a wrapper ssh command, a test's known_hosts):
-# from the environment, never from an inventory, added to the query as given.
+# The operator's own parameters for every URI ccrp opens (a wrapper ssh command that pins the host's
+# key, as tests/e2e/test_libvirt_remote.py gives): from the environment, never from an inventory,
+# added to the query as given.
 URI_PARAMS_ENV = "CCRP_LIBVIRT_URI_PARAMS"
 # A storage pool's name and directory on the libvirt host: one token each.
 _POOL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", re.ASCII)
@@ -86,6 +87,8 @@ def _uri(text: str) -> str:
             raise ValueError(f"parameter {name}={value}: give one of {', '.join(allowed)}")
         if not value:
             raise ValueError(f"parameter {name} has no value")
+        if key == "keyfile" and not value.startswith("/"):  # a file of this machine, never read as an option
+            raise ValueError(f"parameter keyfile={value}: give the key's absolute path")
     return text
 
 
