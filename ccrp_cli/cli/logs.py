@@ -35,7 +35,7 @@ def logs(
     try:
         full = False
         while follow:
-            if not full:  # a full page: more is waiting, read on at once
+            if not full:  # after a full page more is waiting: read on at once
                 time.sleep(1.0)
             # Bounded pages: a node that logs faster than we poll costs lag, never our memory.
             entries, cursor = read_journal(provider, robot, units, FOLLOW_PAGE, cursor=cursor)

@@ -92,14 +92,20 @@ def test_logs_follow_reads_bounded_pages(tmp_path, monkeypatch):
     from ccrp_cli.cli import logs
 
     clone = Journal([entry(n, f"line {n}") for n in range(3)], stop_after=3)
+    sleeps = []
     monkeypatch.setattr(providers, "get_provider", lambda inventory: clone)
-    monkeypatch.setattr(logs.time, "sleep", lambda s: None)
+    monkeypatch.setattr(logs.time, "sleep", sleeps.append)
     code, out, err = run_ccrp_inprocess("logs", "-i", str(LAB), "--robot", "nao1", "relay", "-f", "-n", "20",
                                         home=tmp_path / "home")
-    assert code == 0 and len(clone.argvs) == 4, err
+    assert code == 0 and len(clone.argvs) == 4 and len(sleeps) == 3, err
     assert clone.argvs[0][-2:] == ["--lines", "20"]
     for argv in clone.argvs[1:]:  # each poll: at most FOLLOW_PAGE entries after the last cursor
         assert argv[-4:] == ["--after-cursor", "c2", "--lines", str(workloads.FOLLOW_PAGE)], argv
+    # A full page: more is waiting, read at once (a node that floods costs lag, not memory).
+    clone.argvs.clear(), sleeps.clear()
+    monkeypatch.setattr(workloads, "FOLLOW_PAGE", 3)
+    run_ccrp_inprocess("logs", "-i", str(LAB), "--robot", "nao1", "relay", "-f", home=tmp_path / "home")
+    assert len(clone.argvs) == 4 and len(sleeps) == 1 and clone.argvs[1][-1] == "3", clone.argvs
 
 
 class EvilJournal(DeployClones):
