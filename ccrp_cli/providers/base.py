@@ -285,6 +285,7 @@ class Transport(Protocol):
     """How the core reaches into a clone: Docker execs in the container, the clouds and libvirt log in
     over SSH with pinned host keys (cloud.py SshClones). Commands run as root."""
 
+    # (exit status, stdout and stderr); output past transport.EXEC_OUTPUT_MAX fails the command (CcrpError).
     def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]: ...
     # Each file (render/files.py BundleFile) to its `dest` with its mode and group, then the units restarted.
     def push_files(self, robot: str, files: Sequence, restart: Sequence[str] = ()) -> None: ...
