@@ -76,7 +76,9 @@ def clone_alerts(row: StatusRow) -> list[dict]:
         extra = f"; stale nodes on its master: {', '.join(row.stale_nodes)}" if row.stale_nodes else ""
         alerts.append(_alert("warning", "robot-disconnected", robot, f"{robot} is not connected to its clone{extra}"))
     for node in row.nodes or []:  # the robot's own software (docs/workloads.md)
-        if node.state == "failed" or (node.restarts or 0) >= RESTART_LOOP:
+        # auto-restart: it ended and systemd waits to start it again, which is what a node whose
+        # program is missing does every 3 s (`fleet up` and deploy fail such a node at once too).
+        if node.state == "failed" or node.sub == "auto-restart" or (node.restarts or 0) >= RESTART_LOOP:
             alerts.append(_alert("error", "node-failing", robot,
                                  f"node {node.name} on {robot}'s clone is {node.state} after {node.restarts or 0} "
                                  f"restart(s): ccrp logs --robot {robot} {node.name}"))

@@ -297,9 +297,16 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
             provider.transport.push_files(robot, crl, restart=[])
         if pushed or seen is None or not seen.serving:
             wait_serving(provider, robot, port)
+        # What a service started must stay up (the robot's nodes: deploy's health check, one window
+        # for them all): a node that crash-loops is not "started". A clone just created or started
+        # has booted, and its enabled units with it.
+        booted, failing = record.origin is not Origin.REUSED, []
         for service in SERVICES:
             started = service.apply(provider, robot, wanted[service.name], have, pushed)
-            if started:
+            why = service.verify(provider, robot, wanted[service.name], started, booted)
+            if why is not None:
+                failing.append(why)
+            elif started:
                 progress(f"[{robot}] {service.name} started: {', '.join(started)}")
         writer.relay_current[robot] = "".join(f.content for s in SERVICES if s.reshared for f in wanted[s.name])
     except BaseException:
@@ -317,6 +324,9 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         addresses={"public": record.public_ip or "", "common": str(view.addr.common_ip),
                    "vpn": str(view.addr.clone_vpn_ip), "robot_vpn": str(view.addr.robot_vpn_ip)},
     )
+    if failing:
+        # The clone serves and is recorded (its nodes' logs can be read); the command fails for it.
+        raise CcrpError("; ".join(failing))
     took = time.monotonic() - t0
     progress(f"[{robot}] clone {view.addr.clone_host} ready in {took:.1f}s ({endpoint})")
     return CloneResult(robot, "created" if record.created else "reused", endpoint or "", took, record.origin)

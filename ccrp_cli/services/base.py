@@ -66,6 +66,13 @@ class CloneService(Protocol):
         progress line."""
         return []
 
+    def verify(self, clone: Reaches, robot: str, files: list[BundleFile], started: list[str],
+               booted: bool) -> str | None:
+        """Whether what apply() `started`, and on a clone that has just `booted` what started with
+        it, stays up: None, or why not in one line (the clone is kept and recorded; the command
+        fails for its robot)."""
+        return None
+
     def status(self, fleet: Fleet, state: FleetState, robot: Robot, health: dict | None) -> dict:
         """Its fields of robot's `ccrp status` row (models/status.py StatusRow), from the clone's
         health report (None: the clone was not asked)."""

@@ -331,6 +331,79 @@ def apply_nodes(provider: Reaches, robot: str, files: list[BundleFile], have: di
     return restart
 
 
+# A node (re)started by `ccrp deploy`, `fleet up` or a clone's start must stay active this long,
+# without an automatic restart: a node whose program is missing crash-loops, and systemd shows it
+# `activating` between tries.
+HEALTH_SECONDS = 3.0
+HEALTH_INTERVAL = 0.5
+JOURNAL_LINES = 5  # of a failing node's log, in its robot's result
+
+
+def node_health(provider: Reaches, robot: str, nodes: list[str], stop=None) -> tuple[str, str] | None:
+    """(unit, why) of the first of `nodes` that is not active, or is restarted by systemd, during
+    HEALTH_SECONDS: one window for them all, one `systemctl show` each HEALTH_INTERVAL. None when
+    all stayed up (at once when there are none). `stop` (a threading.Event): once set, the check
+    raises Stopped, so an interrupted command does not wait it out."""
+    import time
+
+    units = [unit_name(n) for n in nodes]
+    if not units:
+        return None
+    first: dict[str, int] = {}
+    end = time.monotonic() + HEALTH_SECONDS
+    while True:
+        if stop is not None and stop.is_set():
+            raise Stopped()
+        _, out = provider.transport.exec(robot, ["systemctl", "show", "--property", "Id,ActiveState,SubState,NRestarts",
+                                                 *units], timeout=20)
+        shown_ = {}
+        for block in out.strip().split("\n\n"):
+            props = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
+            if props.get("Id"):
+                shown_[props["Id"]] = props
+        for unit in units:
+            props = shown_.get(unit, {})
+            state = f"{props.get('ActiveState', '?')}/{props.get('SubState', '?')}"
+            if props.get("ActiveState") != "active":
+                return unit, f"is {state}"
+            restarts = int(props.get("NRestarts", "0") or 0)
+            if restarts > first.setdefault(unit, restarts):
+                return unit, f"restarted {restarts - first[unit]} time(s)"
+        if time.monotonic() >= end:
+            return None
+        time.sleep(HEALTH_INTERVAL)
+
+
+class Stopped(Exception):
+    """The command was interrupted (Ctrl-C) while a clone's nodes were being checked."""
+
+
+def last_lines(provider: Reaches, robot: str, unit: str) -> str:
+    """The last JOURNAL_LINES of unit's journal on robot's clone, in one line."""
+    try:
+        entries, _ = read_journal(provider, robot, [unit], JOURNAL_LINES)
+    except CcrpError as exc:
+        return f"(journal unreadable: {exc.message})"
+    return " | ".join(e["message"] for e in entries[-JOURNAL_LINES:]) or "(no journal lines)"
+
+
+def started_nodes_failing(provider: Reaches, robot: str, files: list[BundleFile], started: list[str],
+                          booted: bool) -> str | None:
+    """Whether the nodes `fleet up`, `clone create`, `fleet scale` or a clone's start started stay
+    up (deploy's check, node_health): those apply_nodes (re)started, and every node of a clone that
+    has just booted (its enabled units started with it). None when they do; else one line naming
+    the robot, the node and its last journal lines."""
+    nodes = list(json.loads(files[-1].content)["nodes"]) if files else []
+    checked = nodes if booted else [n for n in nodes if n in started]
+    failing = node_health(provider, robot, checked)
+    if failing is None:
+        return None
+    unit, why = failing
+    node = unit.removeprefix(UNIT_PREFIX).removesuffix(".service")
+    return (f"robot {robot!r}'s node {node} ({unit}) {why}: it does not stay up "
+            f"(ccrp logs --robot {robot} {node}); its last lines: {last_lines(provider, robot, unit)}")
+
+
 class Nodes(CloneService):
     """The robot's `run` nodes: their units and index pushed, changed ones restarted, once the clone
     serves; their code is the snapshot's (or what `ccrp deploy` left on a kept clone)."""
@@ -346,6 +419,10 @@ class Nodes(CloneService):
     def apply(self, clone: Reaches, robot: str, files: list[BundleFile], have: dict[str, str],
               pushed_keys: bool) -> list[str]:
         return apply_nodes(clone, robot, files, have)
+
+    def verify(self, clone: Reaches, robot: str, files: list[BundleFile], started: list[str],
+               booted: bool) -> str | None:
+        return started_nodes_failing(clone, robot, files, started, booted)
 
     def status(self, fleet: Fleet, state: FleetState, robot: Robot, health: dict | None) -> dict:
         return {} if health is None else {"nodes": health.get("nodes") or None}

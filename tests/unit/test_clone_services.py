@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 
+import pytest
 import yaml
 
 from ccrp_cli.ops import clones
@@ -47,6 +48,14 @@ def test_each_services_boot_declaration_is_in_the_user_data(lab):
     assert started[0] == ["ccrp-power.socket"]  # the power agent's port is systemd's before any service runs
 
 
+@pytest.fixture(autouse=True)
+def one_health_look(monkeypatch):
+    """The nodes' health check looks once (its window is 3 s)."""
+    from ccrp_cli.services import workloads
+
+    monkeypatch.setattr(workloads, "HEALTH_SECONDS", 0)
+
+
 class Clone:
     """A provider with one clone that keeps what is pushed to it and answers ensure_clone's
     commands as a serving clone does; `log` is every push and command, in order."""
@@ -58,6 +67,7 @@ class Clone:
         self.held: dict[str, str] = {}
         self.log: list[tuple] = []
         self.origin = Origin.CREATED
+        self.node_state = "active"
 
     transport = property(lambda self: self)  # a fake clone is its own transport
 
@@ -71,6 +81,12 @@ class Clone:
 
     def wait_ready(self, robot, timeout=300) -> None:
         self.log.append(("wait_ready",))
+
+    def bootstrap(self) -> None:
+        pass
+
+    def query(self) -> dict[str, CloneRecord]:
+        return {"nao1": CloneRecord(robot="nao1", provider_id="c1", state=CloneState.RUNNING, status="running")}
 
     def terminate(self, robot) -> None:
         self.log.append(("terminate",))
@@ -93,6 +109,12 @@ class Clone:
         if script == clones.SECRETS_DIR_SH:
             self.log.append(("prepare_secrets_dir",))
             return 0, "1\n2\n"
+        if argv[:2] == ["systemctl", "show"]:  # the nodes' health check: every node active
+            self.log.append(("node_health", argv[4:]))
+            sub = {"active": "running", "activating": "auto-restart"}.get(self.node_state, self.node_state)
+            return 0, "".join(f"Id={u}\nActiveState={self.node_state}\nSubState={sub}\nNRestarts=0\n\n" for u in argv[4:])
+        if argv[0] == "journalctl":
+            return 0, '{"__CURSOR": "c1", "MESSAGE": "mapper: No such file or directory"}\n'
         names = {api_manager.HAS_UNIT_SH: "has_api_unit", workloads.APPLY_SH: "apply_nodes"}
         self.log.append(("exec", names[script] if script in names else " ".join(argv)))
         return 0, ""
@@ -150,6 +172,7 @@ def test_a_new_clone_gets_every_service_in_the_order_it_always_had(tmp_path, ccr
         ("exec", "systemctl restart ccrp-knowledge.service"),
         ("push", ["ccrp-run-mapper.service", "workloads.json"], []),
         ("exec", "apply_nodes"),
+        ("node_health", ["ccrp-run-mapper.service"]),  # what it started stays up
         ("push", ["camera.py"], []),  # the camera agent: held, started by the first read
     ]
     assert "crl.pem" in secrets and "relay.key" in secrets
@@ -181,6 +204,56 @@ def test_a_reused_clone_gets_a_changed_setting_before_anything_else(tmp_path, cc
     clone.origin = Origin.REUSED
     assert up_nao1(fleet_with_every_service(tmp_path, ccrp_home, idle="30m"), clone) == []
     assert clone.log == [("run_instance", "reused"), ("probe",), ("push", ["autostop.json"], [])]
+
+
+def test_a_node_that_does_not_stay_up_fails_fleet_up_and_clone_start(tmp_path, ccrp_home):
+    """Issue 39: a node whose program is missing exits 127 and systemd restarts it every 3 s,
+    `activating` in between. fleet up made it with `nodes started` and exit 0; now the nodes it
+    starts get deploy's health check, and one that does not stay up fails the robot (exit 1),
+    naming robot, node and its last lines. The clone is kept and recorded, to read its logs."""
+    from ccrp_cli import vpn
+    from ccrp_cli.alerts import clone_alerts
+    from ccrp_cli.cli import output
+    from ccrp_cli.models.status import StatusRow
+    from ccrp_cli.ops import reconcile
+
+    fleet = fleet_with_every_service(tmp_path, ccrp_home)
+    vpn.init(fleet)
+    state = fleet.load_allocated()
+    state.snapshot = {"image": "ccrp/lab-clone:1", "id": "sha256:1"}
+    fleet.store.save_state(state)
+    clone = Clone()
+    clone.node_state = "activating"
+    said: list[str] = []
+    items = reconcile.up(fleet, clone, said.append, only=["nao1"], quotas_checked=True)
+    [item] = items
+    assert item.action == "failed" and output.results(items, as_json=False) == 1, item
+    assert item.detail.startswith("robot 'nao1''s node mapper (ccrp-run-mapper.service) is activating/auto-restart: "
+                                  "it does not stay up (ccrp logs --robot nao1 mapper); its last lines: "
+                                  "mapper: No such file or directory"), item.detail
+    assert not any("nodes started" in line for line in said), said
+    assert ("terminate",) not in clone.log and fleet.store.load_state().robots["nao1"].phase == "ready"
+
+    # A clone started again (`clone start`, the dashboard's Start) runs its nodes from its boot:
+    # every one is checked, though fleet up restarted none.
+    clone.origin, clone.node_state = Origin.RESUMED, "active"
+    clone.log.clear()
+    assert [i.action for i in reconcile.up(fleet, clone, said.append, only=["nao1"], quotas_checked=True)] == ["reused"]
+    assert ("node_health", ["ccrp-run-mapper.service"]) in clone.log and ("exec", "apply_nodes") not in clone.log
+    clone.node_state = "failed"
+    assert [i.action for i in reconcile.up(fleet, clone, said.append, only=["nao1"], quotas_checked=True)] == ["failed"]
+    # A clone kept as it was starts nothing: nothing checked, no seconds added.
+    clone.origin = Origin.REUSED
+    clone.log.clear()
+    assert [i.action for i in reconcile.up(fleet, clone, said.append, only=["nao1"], quotas_checked=True)] == ["reused"]
+    assert not any(e[0] == "node_health" for e in clone.log), clone.log
+
+    # Status raises the restart-loop alert for such a node at once, not after 3 restarts.
+    row = StatusRow(robot="nao1", clone="cri-nao1", phase="ready", status="running", state="running",
+                    ros_distro="noetic", common_ip="10.90.0.10", vpn_subnet="10.80.1.0/24", master_reachable=True,
+                    vpn_connected=True, nodes=[{"name": "mapper", "state": "activating", "sub": "auto-restart",
+                                                "restarts": 0, "digest": "d1"}])
+    assert [a["kind"] for a in clone_alerts(row)] == ["node-failing"]
 
 
 def test_status_takes_each_services_fields(lab_up):

@@ -122,7 +122,7 @@ function ownNodesCell(row) {
   const nodes = row.nodes || [];
   if (!nodes.length) return ["-", "off"];
   const text = nodes.map((n) => n.name + " " + n.state + (n.restarts ? ` (${n.restarts} restarts)` : "")).join(", ");
-  const bad = nodes.some((n) => n.state === "failed" || (n.restarts || 0) >= 3);
+  const bad = nodes.some((n) => n.state === "failed" || n.sub === "auto-restart" || (n.restarts || 0) >= 3);
   return [text, bad ? "bad" : nodes.every((n) => n.state === "active") ? "ok" : "warn"];
 }
 
