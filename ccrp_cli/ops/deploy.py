@@ -8,9 +8,11 @@ Docker engine whatever the fleet's backend). Every clone runs the same Debian 12
 same tar serves every backend. Each clone gets it base64-encoded as a root-only
 file, and one fixed script (DEPLOY_SH, names and digests as argv words) unpacks it beside the
 current one and swaps them; then the node units are brought in line (workloads.apply_nodes: only
-those whose inputs changed restart) and each restarted unit must stay up for HEALTH_SECONDS. A
-unit that does not is reported with its last journal lines, and the clone goes back to the
-workspace and units it had: the previous version keeps running.
+those whose inputs changed restart) and each restarted unit must stay up (workloads.node_health,
+the check `fleet up` makes too). A unit that does not is reported with its last journal lines, and
+the clone goes back to the workspace and units it had: the previous version keeps running. Until
+the check passed, the clone holds a pending mark: a deploy stopped before (Ctrl-C, killed) is
+finished by the next one. Ctrl-C starts no further clone and puts those being changed back.
 
 apt and pip packages are the snapshot's: a change of them needs a new snapshot and new clones.
 """
@@ -20,7 +22,9 @@ from __future__ import annotations
 import base64
 import io
 import json
+import re
 import tarfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -36,13 +40,14 @@ from ..services.workloads import (
     INDEX,
     NO_SOFTWARE,
     SnapshotSoftware,
+    Stopped,
     absent_index,
     apply_nodes,
+    last_lines,
     node_files,
+    node_health,
     packages_record,
-    read_journal,
     snapshot_software,
-    unit_name,
 )
 
 if TYPE_CHECKING:
@@ -50,21 +55,26 @@ if TYPE_CHECKING:
 
 Progress = Callable[[str], None]
 
+NODE = re.compile(r"[a-z][a-z0-9-]*")  # a NodeName: what the clone's index may pass on to its scripts
 DEPLOY_DIR = "/var/lib/ccrp/deploy"  # root-only (0700): the pushed tar, the previous units, the digest
-HEALTH_SECONDS = 3.0  # a restarted node must stay active this long, without an automatic restart
-HEALTH_INTERVAL = 0.5
-JOURNAL_LINES = 5  # of a failing node's log, in its robot's result
 MAX_INSTALL_BYTES = 256 << 20  # the install space's tar, pushed to every clone
 
 # On the clone, as root: $1 the action, then its argv words (a digest: hex; node names:
 # [a-z][a-z0-9-]*). D: what deploy keeps; W: the install space; U: the units; I: the index.
-#   probe [PATH...]     what the clone runs: its workspace digest, the index, sha256 of PATHs
+#   probe [PATH...]     what the clone runs: its workspace digest, the index, a deploy pending on
+#                       it, sha256 of PATHs
 #   stage DIGEST|-      unpack D/DIGEST.tar.b64 into W.new (- : no new workspace); keep the units
 #                       and index as they are in D/prev, for a rollback
-#   swap DIGEST         W -> W.prev, W.new -> W; D/current says DIGEST
-#   rollback yes|no N.. the workspace back (yes: it was swapped), the units and index of D/prev
-#                       back, nodes N restarted and every previous node started
-#   commit              forget W.prev and D/prev
+#   begin               D/pending says `nodes`: the units are about to change
+#   swap DIGEST         D/pending says `swapping`; W -> W.prev, W.new -> W; D/current says DIGEST;
+#                       D/pending says `swapped`
+#   rollback N..        the workspace back (D/pending says it was swapped), the units and index of
+#                       D/prev back, nodes N restarted and every previous node started; each step
+#                       tried, those that failed named (exit 1)
+#   commit              forget D/pending, then W.prev and D/prev
+# D/pending is there from the moment the clone's software changes until its nodes passed their check
+# (commit) or it went back (rollback): a deploy stopped in between (killed, the link lost) leaves it,
+# and the next deploy finishes the check, or rolls back, instead of taking the clone as it is.
 DEPLOY_SH = r"""set -eu
 D=/var/lib/ccrp/deploy W=/opt/ccrp/workspace U=/etc/systemd/system I=/etc/ccrp/workloads.json
 act=$1; shift
@@ -72,6 +82,7 @@ case $act in
 probe)
   printf '== current\n'; cat "$D/current" 2>/dev/null || true
   printf '\n== index\n'; cat "$I" 2>/dev/null || true
+  printf '\n== pending\n'; cat "$D/pending" 2>/dev/null || true
   printf '\n== digests\n'; [ $# -eq 0 ] || sha256sum "$@" 2>/dev/null || true
   ;;
 stage)
@@ -91,50 +102,68 @@ stage)
 stage-clean)
   rm -rf "$W.new" "$D/prev" "$D"/*.tar.b64
   ;;
+begin)
+  echo nodes > "$D/pending"
+  ;;
 swap)
+  # Each step leaves what a rollback needs: W.prev (empty when there was no workspace) and
+  # current.prev (empty when there was no digest) once W and current have moved.
+  echo swapping > "$D/pending"
   rm -rf "$W.prev"
-  if [ -e "$W" ]; then mv "$W" "$W.prev"; fi
+  if [ -e "$W" ]; then mv "$W" "$W.prev"; else mkdir "$W.prev"; fi
+  if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else : > "$D/current.prev"; fi
   mv "$W.new" "$W"
-  if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else rm -f "$D/current.prev"; fi
   echo "$1" > "$D/current"
+  echo swapped > "$D/pending"
   ;;
 rollback)
-  if [ "$1" = yes ]; then
-    rm -rf "$W.failed"
-    if [ -e "$W" ]; then mv "$W" "$W.failed"; fi
-    if [ -e "$W.prev" ]; then mv "$W.prev" "$W"; fi
-    rm -rf "$W.failed"
-    if [ -e "$D/current.prev" ]; then mv "$D/current.prev" "$D/current"; else rm -f "$D/current"; fi
-  fi
-  shift
+  # Every step is tried, whatever failed before it: a unit that will not enable must not keep the
+  # previous nodes from starting. The steps that failed are named at the end.
+  set +e
+  failed=
+  step() { "$@" >/dev/null 2>&1 || failed="$failed, $*"; }
+  if [ ! -d "$D/prev" ]; then echo "nothing to roll back to: $D/prev is gone" >&2; exit 1; fi
+  case $(cat "$D/pending" 2>/dev/null) in swap*)
+    if [ -e "$W.prev" ]; then
+      step rm -rf "$W.failed"
+      if [ -e "$W" ]; then step mv -T "$W" "$W.failed"; fi
+      step mv -T "$W.prev" "$W"
+      step rm -rf "$W.failed"
+    fi
+    if [ -s "$D/current.prev" ]; then step mv "$D/current.prev" "$D/current"
+    elif [ -e "$D/current.prev" ]; then step rm -f "$D/current" "$D/current.prev"; fi
+  esac
   for f in "$U"/ccrp-run-*.service; do
     [ -e "$f" ] || continue
     n=${f##*/}
     [ -e "$D/prev/$n" ] && continue
-    systemctl disable --now "$n" >/dev/null 2>&1 || true
-    rm -f "$f"
+    systemctl disable --now "$n" >/dev/null 2>&1
+    step rm -f "$f"
   done
   for f in "$D/prev"/ccrp-run-*.service; do
     [ -e "$f" ] || continue
-    cp -p "$f" "$U/"
+    step cp -p "$f" "$U/"
   done
-  if [ -e "$D/prev/workloads.json" ]; then cp -p "$D/prev/workloads.json" "$I"; else rm -f "$I"; fi
-  systemctl daemon-reload
+  if [ -e "$D/prev/workloads.json" ]; then step cp -p "$D/prev/workloads.json" "$I"; else step rm -f "$I"; fi
+  step systemctl daemon-reload
   for f in "$D/prev"/ccrp-run-*.service; do
     [ -e "$f" ] || continue
-    systemctl enable "${f##*/}" 2>/dev/null
+    step systemctl enable "${f##*/}"
   done
   for n in "$@"; do
     [ -e "$U/ccrp-run-$n.service" ] || continue
-    systemctl restart "ccrp-run-$n.service"
+    step systemctl restart "ccrp-run-$n.service"
   done
   for f in "$D/prev"/ccrp-run-*.service; do
     [ -e "$f" ] || continue
-    systemctl start "${f##*/}"
+    step systemctl start "${f##*/}"
   done
+  rm -f "$D/pending"
+  if [ -n "$failed" ]; then echo "steps that failed: ${failed#, }" >&2; exit 1; fi
   ;;
 commit)
-  rm -rf "$W.prev" "$D/prev" "$D/current.prev"
+  rm -f "$D/pending"  # first: the nodes passed their check; the rest is tidying up
+  rm -rf "$W.prev" "$W.new" "$D/prev" "$D/current.prev"
   ;;
 *)
   echo "unknown action $act" >&2; exit 2
@@ -165,6 +194,10 @@ class Change:
     start: list[str] = field(default_factory=list)
     restart: list[str] = field(default_factory=list)
     stop: list[str] = field(default_factory=list)
+    # A deploy stopped before its check left the clone so (DEPLOY_SH's D/pending: nodes, swapping,
+    # swapped), "" when none did; `running` are the nodes its index names.
+    pending: str = ""
+    running: list[str] = field(default_factory=list)
 
     @property
     def workspace(self) -> bool:
@@ -180,8 +213,18 @@ class Change:
     def current(self) -> bool:
         return not self.workspace and self.nodes_current
 
+    @property
+    def unsettled(self) -> bool:
+        """A deploy left the clone unchecked with other software than the inventory's (or in the
+        middle of its swap): it goes back before anything else."""
+        return bool(self.pending) and (self.pending == "swapping" or not self.current)
+
     def summary(self) -> str:
+        if self.pending and not self.unsettled:
+            return f"{STOPPED_BEFORE}: check its nodes ({', '.join(self.running) or 'none'})"
         parts = [f"workspace {self.old} -> {self.new}"] if self.workspace else [f"workspace {self.new} (unchanged)"]
+        if self.unsettled:
+            parts.insert(0, f"roll back {STOPPED_BEFORE}, then (as now)")
         for word, names in (("start", self.start), ("restart", self.restart), ("stop", self.stop)):
             if names:
                 parts.append(f"{word} {', '.join(names)}")
@@ -195,7 +238,8 @@ def probe(fleet: Fleet, provider: Reaches, state, robot: str, new: str) -> Chang
     out = _script(provider, robot, "probe", *(f.dest for f in probed), timeout=30)
     _, _, rest = out.partition("== current\n")
     current, _, rest = rest.partition("\n== index\n")
-    index_text, _, digests = rest.partition("\n== digests\n")
+    index_text, _, rest = rest.partition("\n== pending\n")
+    pending, _, digests = rest.partition("\n== digests\n")
     have = {line.split()[1]: line.split()[0] for line in digests.splitlines() if len(line.split()) == 2}
     try:
         index = json.loads(index_text) if index_text.strip() else {}
@@ -211,7 +255,8 @@ def probe(fleet: Fleet, provider: Reaches, state, robot: str, new: str) -> Chang
     return Change(robot, str(old), new, files, have,
                   start=[n for n in new_nodes if n not in old_nodes],
                   restart=[n for n in new_nodes if n in old_nodes and old_nodes[n] != new_nodes[n]],
-                  stop=[n for n in old_nodes if n not in new_nodes])
+                  stop=[n for n in old_nodes if n not in new_nodes],
+                  pending=pending.strip(), running=[n for n in old_nodes if isinstance(n, str) and NODE.fullmatch(n)])
 
 
 # -- which clones -----------------------------------------------------------------------------------
@@ -294,46 +339,49 @@ def build_install_space(fleet: Fleet, software: SnapshotSoftware, progress: Prog
 
 # -- on each clone ----------------------------------------------------------------------------------
 
-def health(provider: Reaches, robot: str, nodes: list[str], seconds: float, interval: float) -> tuple[str, str] | None:
-    """(unit, why) of the first of `nodes` that is not active, or restarted by systemd, during
-    `seconds`; None when all stayed up."""
-    units = [unit_name(n) for n in nodes]
-    if not units:
-        return None
-    first: dict[str, int] = {}
-    end = time.monotonic() + seconds
-    while True:
-        _, out = provider.transport.exec(robot, ["systemctl", "show", "--property", "Id,ActiveState,SubState,NRestarts", *units],
-                                         timeout=20)
-        shown = {}
-        for block in out.strip().split("\n\n"):
-            props = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
-            if props.get("Id"):
-                shown[props["Id"]] = props
-        for unit in units:
-            props = shown.get(unit, {})
-            state = f"{props.get('ActiveState', '?')}/{props.get('SubState', '?')}"
-            if props.get("ActiveState") != "active":
-                return unit, f"is {state}"
-            restarts = int(props.get("NRestarts", "0") or 0)
-            if restarts > first.setdefault(unit, restarts):
-                return unit, f"restarted {restarts - first[unit]} time(s)"
-        if time.monotonic() >= end:
-            return None
-        time.sleep(interval)
+STOPPED_BEFORE = "a deploy stopped before its check"  # what a clone's pending mark is, in results
 
 
-def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str | None, progress: Progress) -> CloneResult:
+def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str | None, progress: Progress,
+          stop: threading.Event | None = None, reprobe: Callable[[], Change] | None = None) -> CloneResult:
     """Bring one clone to the inventory's software and nodes; back to what it ran if a restarted
-    node fails its health check."""
+    node fails its health check. A deploy stopped before its check on this clone (its pending mark)
+    is finished first: checked and committed when it brought the inventory's software, else rolled
+    back (then `reprobe` says what the clone runs). `stop` set (Ctrl-C): a clone being changed goes
+    back as it was, its result `interrupted`."""
     t0 = time.monotonic()
     robot = change.robot
+    took = lambda: time.monotonic() - t0  # noqa: E731
+    note = ""
+    if change.unsettled:
+        # Never checked, and not what the inventory wants: back to the version before it first.
+        ok, back = _rollback(provider, robot, change.running)
+        if not ok:
+            return _result(progress, robot, "failed", f"{STOPPED_BEFORE}: {back}", took())
+        assert reprobe is not None
+        change, note = reprobe(), f"{STOPPED_BEFORE} rolled back; "
+        progress(f"[{robot}] {note}{back}")
+    elif change.pending:
+        # The inventory's software, left unchecked: the check the stopped deploy did not make.
+        try:
+            failing = node_health(provider, robot, change.running, stop)
+        except Stopped:
+            return _result(progress, robot, "interrupted", f"{STOPPED_BEFORE}, left for the next deploy to check", took())
+        if failing is not None:
+            return _failed(provider, robot, failing, change.running, f"after {STOPPED_BEFORE}", progress, took)
+        _quietly(lambda: _script(provider, robot, "commit"))
+        writer.update(robot, software=change.new)
+        return _result(progress, robot, "deployed", f"{STOPPED_BEFORE} finished: its nodes stay up; software {change.new}",
+                       took())
     if change.current:
         if writer.state.robots[robot].software != change.new:  # state lost track: the clone says
             writer.update(robot, software=change.new)
-        return CloneResult(robot, "current", f"software {change.new}", time.monotonic() - t0)
+        if note:
+            return _result(progress, robot, "deployed", f"{note}software {change.new}", took())
+        return CloneResult(robot, "current", f"software {change.new}", took())
     if change.workspace:
-        assert tar_b64 is not None
+        if tar_b64 is None:  # the clone went back to a workspace this run did not build
+            return _result(progress, robot, "failed", f"{note}its workspace differs: ccrp deploy again", took())
         provider.transport.exec(robot, ["mkdir", "-p", "-m", "0700", DEPLOY_DIR], timeout=30)
         provider.transport.push_files(robot, [BundleFile(f"{change.new}.tar.b64", tar_b64, 0o600,
                                                          f"{DEPLOY_DIR}/{change.new}.tar.b64")], restart=[])
@@ -342,43 +390,66 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
     except CcrpError:
         _quietly(lambda: _script(provider, robot, "stage-clean"))  # nothing was swapped: only the staging goes
         raise
-    swapped, restarted = False, []
+    changed, restarted = False, []
     try:
+        _check(stop)
+        # From here the clone holds its pending mark until commit or rollback (DEPLOY_SH).
+        changed = True
         if change.workspace:
             _script(provider, robot, "swap", change.new)
-            swapped = True
+        else:
+            _script(provider, robot, "begin")
+        _check(stop)
         # A changed workspace changes every node's digest (it is one of their inputs): all restart.
         restarted = apply_nodes(provider, robot, change.files, change.have)
-        failing = health(provider, robot, restarted, HEALTH_SECONDS, HEALTH_INTERVAL)
+        failing = node_health(provider, robot, restarted, stop)
     except BaseException as exc:
-        back = _rollback(provider, robot, swapped, restarted or change.start + change.restart)
+        if changed:
+            back = _rollback(provider, robot, restarted or change.start + change.restart)[1]
+        else:
+            _quietly(lambda: _script(provider, robot, "stage-clean"))
+            back = "nothing changed"
+        if isinstance(exc, Stopped):
+            return _result(progress, robot, "interrupted", f"{note}{back}", took())
         if not isinstance(exc, Exception):
-            raise  # Ctrl-C: the clone is back as it was; the interruption goes on
+            raise  # a Ctrl-C in this thread: the clone is back as it was; the interruption goes on
         why = exc.one_line() if isinstance(exc, CcrpError) else f"{type(exc).__name__}: {exc}"
-        raise CcrpError(f"{why}; {back}") from None
+        raise CcrpError(f"{note}{why}; {back}") from None
     if failing is not None:
-        unit, why = failing
-        try:
-            entries, _ = read_journal(provider, robot, [unit], JOURNAL_LINES)
-            lines = " | ".join(e["message"] for e in entries[-JOURNAL_LINES:]) or "(no journal lines)"
-        except CcrpError as exc:
-            lines = f"(journal unreadable: {exc.message})"
-        back = _rollback(provider, robot, swapped, restarted)
-        detail = f"{unit} {why} after the deploy; {back}; its last lines: {lines}"
-        progress(f"[{robot}] failed: {detail}")
-        return CloneResult(robot, "failed", detail, time.monotonic() - t0)
+        return _failed(provider, robot, failing, restarted, f"{note}after the deploy", progress, took)
     _quietly(lambda: _script(provider, robot, "commit"))
     writer.update(robot, software=change.new)
-    progress(f"[{robot}] deployed: {change.summary()}")
-    return CloneResult(robot, "deployed", change.summary(), time.monotonic() - t0)
+    return _result(progress, robot, "deployed", note + change.summary(), took())
 
 
-def _rollback(provider: Reaches, robot: str, swapped: bool, restarted: list[str]) -> str:
+def _check(stop: threading.Event | None) -> None:
+    if stop is not None and stop.is_set():
+        raise Stopped()
+
+
+def _result(progress: Progress, robot: str, action: str, detail: str, seconds: float) -> CloneResult:
+    progress(f"[{robot}] {action}: {detail}")
+    return CloneResult(robot, action, detail, seconds)
+
+
+def _failed(provider: Reaches, robot: str, failing: tuple[str, str], restart: list[str], when: str,
+            progress: Progress, took: Callable[[], float]) -> CloneResult:
+    """A node failed its check: its last lines read, then the clone rolled back."""
+    unit, why = failing
+    lines = last_lines(provider, robot, unit)
+    back = _rollback(provider, robot, restart)[1]
+    return _result(progress, robot, "failed", f"{unit} {why} {when}; {back}; its last lines: {lines}", took())
+
+
+def _rollback(provider: Reaches, robot: str, restart: list[str]) -> tuple[bool, str]:
+    """DEPLOY_SH's rollback, `restart` the nodes restarted on the version going away: whether it
+    went through, and what to say. It tries every step, so a failed one leaves the others done."""
     try:
-        _script(provider, robot, "rollback", "yes" if swapped else "no", *restarted)
-        return "rolled back: the previous version runs"
+        _script(provider, robot, "rollback", *restart)
+        return True, "rolled back: the previous version runs"
     except CcrpError as exc:
-        return f"the rollback failed too ({exc.message}): ccrp clone exec --robot {robot} -- systemctl status 'ccrp-run-*'"
+        return False, (f"the rollback did not go through ({exc.message}): "
+                       f"ccrp clone exec --robot {robot} -- systemctl status 'ccrp-run-*'")
 
 
 def _quietly(fn: Callable[[], object]) -> None:
@@ -392,7 +463,9 @@ def _quietly(fn: Callable[[], object]) -> None:
 
 def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | None = None, type_: str | None = None,
            dry_run: bool = False) -> list[CloneResult]:
-    """`ccrp deploy`: the caller holds the fleet lock unless dry_run."""
+    """`ccrp deploy`: the caller holds the fleet lock unless dry_run. Ctrl-C: no further clone is
+    started, those being changed go back as they were, each robot's line says which (then the
+    interruption goes on)."""
     from .reconcile import _fan_out
 
     state = fleet.store.load_state()
@@ -408,25 +481,33 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
                                         "no running clone: ccrp fleet up (or ccrp clone start) first")
     live = [n for n in names if n in running]
     changes: dict[str, Change] = {}
+    stop = threading.Event()  # set by _fan_out on Ctrl-C: the pool's threads never see it
 
     def look(name: str) -> CloneResult:
         changes[name] = probe(fleet, provider, state, name, software.digest)
         return CloneResult(name, "probed")
 
-    for r in _fan_out(look, live, progress, provider):
+    for r in _fan_out(look, live, progress, provider, stop):
         if r.action == "failed":
             results[r.robot] = r
     if dry_run:
         for name, ch in changes.items():
-            results[name] = CloneResult(name, "current" if ch.current else "would deploy",
-                                        f"software {ch.new}" if ch.current else ch.summary())
+            quiet = ch.current and not ch.pending
+            results[name] = CloneResult(name, "current" if quiet else "would deploy",
+                                        f"software {ch.new}" if quiet else ch.summary())
         return [results[n] for n in names]
     tar_b64 = None
-    if any(ch.workspace for ch in changes.values()):
+    # A clone rolled back from a stopped deploy may then need the workspace.
+    if any(ch.workspace or ch.unsettled for ch in changes.values()):
         # One build for every clone; a failure leaves every clone as it was.
         tar_b64 = base64.b64encode(build_install_space(fleet, software, progress)).decode()
     writer = StateWriter(fleet, state)
     todo = [n for n in live if n in changes]
-    for r in _fan_out(lambda n: apply(provider, writer, changes[n], tar_b64, progress), todo, progress, provider):
+
+    def one(name: str) -> CloneResult:
+        return apply(provider, writer, changes[name], tar_b64, progress, stop,
+                     lambda: probe(fleet, provider, state, name, software.digest))
+
+    for r in _fan_out(one, todo, progress, provider, stop):
         results[r.robot] = r
     return [results[n] for n in names]

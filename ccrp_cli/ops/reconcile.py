@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import json
+import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import TYPE_CHECKING
 
 from ..addressing import allocate
@@ -68,11 +69,20 @@ def _software_note(state, robot: str, stale: str | None, inventory_software: str
     return None
 
 
-def _fan_out(fn, robots: list[str], progress: Progress, provider: Lifecycle) -> list[CloneResult]:
+def _fan_out(fn, robots: list[str], progress: Progress, provider: Lifecycle,
+             stop: threading.Event | None = None) -> list[CloneResult]:
     """fn(robot) for every robot on a pool bounded by the provider: its max_parallel says how many
-    clones it can create at once (CPU-bound local containers vs API-latency-bound clouds)."""
+    clones it can create at once (CPU-bound local containers vs API-latency-bound clouds).
+
+    Ctrl-C reaches the main thread only, which waits here: then no robot not yet started starts,
+    `stop` is set for the running ones (ccrp deploy's put their clones back; others finish what
+    they do), each robot left out is named, and the interruption goes on once they are done."""
+    stop = stop if stop is not None else threading.Event()
+
     def run(robot: str) -> CloneResult:
         t0 = time.monotonic()
+        if stop.is_set():
+            return CloneResult(robot, "not started", "interrupted")
         try:
             return fn(robot)
         except CcrpError as exc:
@@ -84,8 +94,37 @@ def _fan_out(fn, robots: list[str], progress: Progress, provider: Lifecycle) -> 
 
     if not robots:
         return []
-    with ThreadPoolExecutor(max_workers=min(provider.max_parallel, len(robots))) as pool:
-        return list(pool.map(run, robots))
+    pool = ThreadPoolExecutor(max_workers=min(provider.max_parallel, len(robots)))
+    futures = [pool.submit(run, robot) for robot in robots]
+    try:
+        _wait_all(futures)
+    except KeyboardInterrupt:
+        stop.set()
+        for f in futures:
+            f.cancel()
+        busy = [r for r, f in zip(robots, futures) if f.running()]
+        if busy:
+            progress(f"interrupted: waiting for {', '.join(busy)} (no other clone is started)")
+        while True:
+            try:
+                _wait_all([f for f in futures if not f.cancelled()])
+                break
+            except KeyboardInterrupt:  # again: still the same answer, the clones must not be left half done
+                progress(f"still waiting for {', '.join(r for r, f in zip(robots, futures) if f.running())}")
+        for robot, f in zip(robots, futures):
+            if f.cancelled() or f.result().action == "not started":
+                progress(f"[{robot}] not started: interrupted")
+        raise
+    finally:
+        pool.shutdown(wait=False)
+    return [f.result() for f in futures]
+
+
+def _wait_all(futures) -> None:
+    """Until every future is done, waking every 0.5 s: Ctrl-C is then seen at once whichever of the
+    process's threads the signal reached (the main thread's handler runs at its next wake)."""
+    while not all(f.done() for f in futures):
+        wait(futures, timeout=0.5)
 
 
 def up(fleet: Fleet, provider: Provider, progress: Progress, only: list[str] | None = None,

@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from ccrp_cli.ops import deploy
+from ccrp_cli.services import workloads
 from ccrp_cli.errors import InputError
 from ccrp_cli.fleet import Fleet
 from ccrp_cli.providers.base import CloneRecord, CloneState
@@ -158,8 +159,8 @@ def built(monkeypatch):
         return install_tar("v2")
 
     monkeypatch.setattr(deploy, "build_install_space", build)
-    monkeypatch.setattr(deploy, "HEALTH_SECONDS", 0.2)
-    monkeypatch.setattr(deploy, "HEALTH_INTERVAL", 0.05)
+    monkeypatch.setattr(workloads, "HEALTH_SECONDS", 0.2)
+    monkeypatch.setattr(workloads, "HEALTH_INTERVAL", 0.05)
     return calls
 
 
@@ -195,7 +196,7 @@ def test_a_changed_run_list_restarts_only_that_node_without_a_build(fleet, built
     write_inventory(tmp_path, run=[{"name": "mapper", "command": ["mapper", "--fast"]}, {"name": "faces", "command": ["faces"]}])
     [result] = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao2")
     assert result.action == "deployed" and "start faces" in result.detail and "restart mapper" in result.detail, result
-    assert built == [] and clones.scripts("nao2") == ["probe", "stage", "commit"]  # no workspace swapped
+    assert built == [] and clones.scripts("nao2") == ["probe", "stage", "begin", "commit"]  # no workspace swapped
     assert clones.at("nao2", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
     assert "--fast" in clones.at("nao2", MAPPER).read_text()
 
@@ -282,7 +283,7 @@ def test_the_install_space_swap_and_rollback_for_real(tmp_path):
     assert clones.at("r", "/opt/ccrp/workspace.prev/setup.sh").read_text() == "v1"
     clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("new a")
     clones.at("r", "/etc/systemd/system/ccrp-run-b.service").write_text("new b")
-    deploy._script(clones, "r", "rollback", "yes", "a", "b")
+    deploy._script(clones, "r", "rollback", "a", "b")
     assert clones.at("r", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
     assert clones.at("r", "/etc/systemd/system/ccrp-run-a.service").read_text() == "old a"
     assert not clones.at("r", "/etc/systemd/system/ccrp-run-b.service").exists()
@@ -290,6 +291,141 @@ def test_the_install_space_swap_and_rollback_for_real(tmp_path):
     assert "disable --now ccrp-run-b.service" in calls and "restart ccrp-run-a.service" in calls
     assert "restart ccrp-run-b.service" not in calls
     assert not clones.at("r", "/opt/ccrp/workspace.prev").exists()
+
+
+def test_a_rollback_whose_enable_fails_still_starts_the_previous_nodes(tmp_path):
+    """Issue 39: DEPLOY_SH's rollback runs every step whatever failed before it (it stopped at a
+    failed `systemctl enable` under `set -e`, before the previous nodes started) and names what
+    failed."""
+    clones = Clones(tmp_path, ["r"])
+    (clones.bin / "systemctl").write_text('#!/bin/sh\necho "$@" >> "$CALLS"\n[ "$1" != enable ]\n')
+    clones.at("r", "/opt/ccrp/workspace").mkdir(parents=True)
+    clones.at("r", "/opt/ccrp/workspace/setup.sh").write_text("v1")
+    clones.at("r", "/etc/systemd/system").mkdir(parents=True)
+    clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("old a")
+    clones.exec("r", ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
+    import base64
+
+    clones.at("r", f"{deploy.DEPLOY_DIR}/d2.tar.b64").write_text(base64.b64encode(install_tar("v2")).decode())
+    for action in (["stage", "d2"], ["swap", "d2"]):
+        deploy._script(clones, "r", *action)
+    assert clones.at("r", "/var/lib/ccrp/deploy/pending").read_text() == "swapped\n"
+    clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("new a")
+    with pytest.raises(deploy.CcrpError) as failed:
+        deploy._script(clones, "r", "rollback", "a")
+    assert "steps that failed: systemctl enable ccrp-run-a.service" in failed.value.message, failed.value.message
+    calls = clones.calls("r")
+    assert calls[-3:] == ["enable ccrp-run-a.service", "restart ccrp-run-a.service", "start ccrp-run-a.service"], calls
+    assert clones.at("r", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+    assert clones.at("r", "/etc/systemd/system/ccrp-run-a.service").read_text() == "old a"
+    assert not clones.at("r", "/var/lib/ccrp/deploy/pending").exists()
+    assert not clones.at("r", "/var/lib/ccrp/deploy/current").exists()  # the clone had none before
+
+
+def test_ctrl_c_starts_no_further_clone_and_puts_the_one_mid_swap_back(fleet, built, monkeypatch):
+    """Issue 39: Ctrl-C reaches the main thread only. The clone being changed (nao1, in its health
+    check) goes back as it was; those queued behind it (one at a time here) are not started; each
+    robot's line says which; then the interruption goes on (exit 130 in the CLI)."""
+    import _thread
+
+    fleet, clones, old = fleet
+    change_workspace(fleet)
+    clones.max_parallel = 1
+    monkeypatch.setattr(workloads, "HEALTH_SECONDS", 30.0)  # the interruption, not the window, ends the check
+    real = clones.exec
+
+    def ctrl_c(robot, argv, timeout=60):
+        if argv[:2] == ["systemctl", "show"] and not said_ctrl_c:
+            said_ctrl_c.append(robot)
+            _thread.interrupt_main()  # as SIGINT: KeyboardInterrupt in the main thread
+        return real(robot, argv, timeout)
+
+    said_ctrl_c: list[str] = []
+    clones.exec = ctrl_c
+    said: list[str] = []
+    with pytest.raises(KeyboardInterrupt):
+        deploy.deploy(Fleet.open(fleet.path), clones, said.append)
+    assert said_ctrl_c == ["nao1"]
+    assert clones.scripts("nao1") == ["probe", "stage", "swap", "rollback"]
+    assert clones.at("nao1", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+    assert not clones.at("nao1", "/var/lib/ccrp/deploy/pending").exists()
+    for robot in ("nao2", "turtlebot1"):  # queued: probed, never changed
+        assert clones.scripts(robot) == ["probe"] and clones.calls(robot) == [], robot
+        assert clones.at(robot, "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+    assert "[nao1] interrupted: rolled back: the previous version runs" in said, said
+    assert "[nao2] not started: interrupted" in said and "[turtlebot1] not started: interrupted" in said, said
+    state = Fleet.open(fleet.path).store.load_state()
+    assert {rec.software for rec in state.robots.values()} == {old}
+
+
+def killed_after_the_swap(fleet: Fleet, clones: Clones, robot: str) -> str:
+    """What a deploy killed between the swap and its health check leaves on robot's clone (its
+    steps run here as apply runs them, then nothing): the new workspace and units, unchecked."""
+    import base64
+
+    fleet = Fleet.open(fleet.path)
+    state = fleet.store.load_state()
+    software = snapshot_software(fleet.inventory, fleet.path)
+    change = deploy.probe(fleet, clones, state, robot, software.digest)
+    tar = base64.b64encode(install_tar("v2")).decode()
+    clones.exec(robot, ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
+    clones.at(robot, f"{deploy.DEPLOY_DIR}/{change.new}.tar.b64").write_text(tar)
+    deploy._script(clones, robot, "stage", change.new)
+    deploy._script(clones, robot, "swap", change.new)
+    workloads.apply_nodes(clones, robot, change.files, change.have)
+    clones.execs.clear()
+    return change.new
+
+
+def test_a_deploy_killed_before_its_check_is_checked_by_the_next(fleet, built):
+    """Issue 39: the clone keeps a pending mark from the swap to the commit; the next deploy does
+    not take the clone as current, it makes the check and commits."""
+    fleet, clones, old = fleet
+    new = change_workspace(fleet)
+    assert killed_after_the_swap(fleet, clones, "nao1") == new
+    assert clones.at("nao1", "/var/lib/ccrp/deploy/pending").exists()
+    dry = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1", dry_run=True)
+    assert [(r.action, r.detail) for r in dry] == [("would deploy", "a deploy stopped before its check: check its nodes (mapper)")]
+    [result] = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert result.action == "deployed" and "finished" in result.detail and new in result.detail, result
+    assert clones.scripts("nao1") == ["probe", "probe", "commit"]  # the dry run's probe, then this one's
+    assert any(argv[:2] == ["systemctl", "show"] for _, argv in clones.execs)
+    assert not clones.at("nao1", "/var/lib/ccrp/deploy/pending").exists()
+    assert not clones.at("nao1", "/opt/ccrp/workspace.prev").exists()
+    assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == new != old
+    again = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert [r.action for r in again] == ["current"] and built == []
+
+
+def test_a_deploy_killed_before_its_check_whose_node_fails_goes_back(fleet, built):
+    fleet, clones, old = fleet
+    change_workspace(fleet)
+    killed_after_the_swap(fleet, clones, "nao1")
+    clones.states["ccrp-run-mapper.service"] = ("activating", "auto-restart", 1)
+    [result] = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert result.action == "failed", result
+    assert "ccrp-run-mapper.service is activating/auto-restart after a deploy stopped before its check" in result.detail
+    assert "rolled back" in result.detail and "line 7" in result.detail
+    assert clones.scripts("nao1") == ["probe", "rollback"]
+    assert clones.at("nao1", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+    assert not clones.at("nao1", "/var/lib/ccrp/deploy/pending").exists()
+    assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == old
+
+
+def test_a_deploy_killed_before_its_check_then_other_software_goes_back_first(fleet, built, tmp_path):
+    """The inventory changed since the killed deploy: what it left (never checked, not wanted) goes
+    back to the version before it, then the inventory's software is deployed as on any clone."""
+    fleet, clones, _ = fleet
+    change_workspace(fleet)
+    killed_after_the_swap(fleet, clones, "nao1")
+    write_inventory(tmp_path, run=[{"name": "mapper", "command": ["mapper", "--fast"]}])
+    said: list[str] = []
+    [result] = deploy.deploy(Fleet.open(fleet.path), clones, said.append, robot="nao1")
+    assert result.action == "deployed" and result.detail.startswith("a deploy stopped before its check rolled back; "), result
+    assert clones.scripts("nao1") == ["probe", "rollback", "probe", "stage", "swap", "commit"]
+    assert clones.at("nao1", "/opt/ccrp/workspace/setup.sh").read_text() == "v2"
+    assert "--fast" in clones.at("nao1", MAPPER).read_text()
+    assert not clones.at("nao1", "/var/lib/ccrp/deploy/pending").exists()
 
 
 def test_bad_targets_are_one_line(fleet, built, tmp_path):
