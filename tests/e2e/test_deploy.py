@@ -8,12 +8,14 @@ on failure."""
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 
 import pytest
 import yaml
 
+from ccrp_cli.services.workloads import read_journal
 from tests.conftest import ROOT
 from tests.e2e.fleet import NO_DOCKER, E2EFleet, exec_in, start_fleet, wait_for
 
@@ -66,6 +68,33 @@ def _set_version(fleet: E2EFleet, version: str) -> None:
     start = text.index('VERSION = "')
     end = text.index('"', start + len('VERSION = "'))
     init.write_text(text[:start] + f'VERSION = "{version}"' + text[end + 1:])
+
+
+EVIL = "ccrp-e2e \x1b]52;c;ZXZpbA==\x07 \x1b[2J \u009b31m \rX"
+SHOWN = "ccrp-e2e \\x1b]52;c;ZXZpbA==\\x07 \\x1b[2J \\x9b31m \\rX"
+RAW = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f]")  # what a terminal acts on (a tab and line ends aside)
+
+
+def _journal_pages(fleet: E2EFleet) -> None:
+    """read_journal against the clone's own journalctl: a page after a cursor is the entries that
+    follow it, at most `lines`; systemd's own lines about the node (_PID 1) are the node's."""
+    container = fleet.container("clone", "nao1")
+
+    class Clone:
+        transport = property(lambda self: self)
+
+        def exec(self, robot, argv, timeout=60):
+            return exec_in(container, argv, timeout=int(timeout))
+
+    unit = "ccrp-run-mapper.service"
+    every, _ = read_journal(Clone(), "nao1", [unit], 1000)  # all of them: the node started a few times
+    assert len(every) >= 3 and {e["unit"] for e in every} == {unit}, every[-10:]
+    assert any(e["message"].startswith("Started ") for e in every), every[-10:]  # systemd's, _PID 1
+    _, out = exec_in(container, ["journalctl", "--unit", unit, "--output", "json"])
+    cursors = [json.loads(line)["__CURSOR"] for line in out.splitlines() if line.startswith("{")]
+    # The journal's head does not move while the node logs on: the page after its first entry.
+    page, after = read_journal(Clone(), "nao1", [unit], 2, cursor=cursors[0])
+    assert [e["message"] for e in page] == [e["message"] for e in every[1:3]] and after == cursors[2], page
 
 
 def _software(fleet: E2EFleet) -> str | None:
@@ -121,7 +150,9 @@ def test_a_workspace_that_does_not_build_changes_nothing(fleet: E2EFleet, up: st
 def test_a_node_that_exits_at_once_is_rolled_back(fleet: E2EFleet, up: str) -> None:
     inventory = fleet.inventory.read_text()
     data = yaml.safe_load(inventory)
-    data["software"]["run"][0]["command"] = ["python3", "-c", "raise SystemExit(3)"]
+    # Before it exits, the node writes what would drive the operator's terminal: OSC 52 (the
+    # clipboard), a screen clear, C1 CSI, a CR (docs/security.md); ccrp shows them escaped.
+    data["software"]["run"][0]["command"] = ["python3", "-c", f"print({EVIL!r}, flush=True); raise SystemExit(3)"]
     before, starts = _software(fleet), _starts(fleet, "1.1")
     fleet.inventory.write_text(yaml.safe_dump(data, sort_keys=False))
     try:
@@ -132,6 +163,11 @@ def test_a_node_that_exits_at_once_is_rolled_back(fleet: E2EFleet, up: str) -> N
     [row] = json.loads(proc.stdout)
     assert row["robot"] == "nao1" and row["action"] == "failed", row
     assert "ccrp-run-mapper.service" in row["detail"] and "rolled back" in row["detail"], row
+    assert EVIL in row["detail"], row  # --json: the node's exact text, which JSON escapes
+    assert SHOWN in proc.stderr and not RAW.search(proc.stderr), proc.stderr[-2000:]  # "[nao1] failed: ..."
+    logs = fleet.inv("logs", "--robot", "nao1", "mapper", "--lines", "200")
+    assert SHOWN in logs.stdout and not RAW.search(logs.stdout), logs.stdout[-2000:]
+    _journal_pages(fleet)
     # The previous unit runs again, with the version deployed before.
     assert _active(fleet) == "active"
     unit = exec_in(fleet.container("clone", "nao1"), ["cat", "/etc/systemd/system/ccrp-run-mapper.service"])[1]
