@@ -276,3 +276,14 @@ def test_clone_exec_output_is_exact_in_a_pipe_and_escaped_on_a_terminal(capsys, 
     output.command_output(text)
     out = capsys.readouterr().out
     assert out == "line 1\nhi\\x1b]52;c;cm0gLXJmIH4K\\x07 \\x1b[2J\\x9b31m\\x7f\nccrp: deployed\\rX\ttab\n"  # lines kept
+
+
+def test_the_cap_is_above_the_largest_answer_ccrp_asks_for():
+    from ccrp_cli.robot.camera import MAX_JPEG
+    from ccrp_cli.services.knowledge import MAX_ITEM
+
+    def b64(n: int) -> int:
+        return 4 * ((n + 2) // 3)
+
+    # `knowledge merge` reads an item as one line of base64; a camera frame comes in JSON, as base64.
+    assert b64(MAX_ITEM) + 1 < EXEC_OUTPUT_MAX and b64(MAX_JPEG) + 4096 < EXEC_OUTPUT_MAX
