@@ -41,6 +41,14 @@ def _docstrings(tree) -> list:
             and isinstance(node.body[0].value.value, str)]
 
 
+def compact_shell(src: str) -> str:
+    """A shell script as user-data carries it: its comment lines gone, the shebang kept (as agents'
+    sources are compacted: AWS takes 16 KiB gzipped). Only for scripts with no here-document or
+    multi-line string, where a line starting with # is always a comment."""
+    return "".join(line for i, line in enumerate(src.splitlines(keepends=True))
+                   if i == 0 or not line.lstrip().startswith("#"))
+
+
 _COMPACTING = threading.Lock()
 
 
@@ -149,8 +157,8 @@ def user_data_dict(
         _file("/etc/chrony/conf.d/ccrp.conf", network.chrony_conf(view, "clone")),
         _file(f"{VPN_DIR}/server.conf", openvpn.server_conf(view)),
         _file(f"{VPN_DIR}/ccd/{view.name}", openvpn.ccd_entry(view)),
-        _file(f"{VPN_DIR}/ccrp-auth", static("clone/ccrp-auth"), "0755"),
-        _file(f"{CCRP_LIB}/ros-run", static("clone/ros-run"), "0755"),
+        _file(f"{VPN_DIR}/ccrp-auth", compact_python(static("clone/ccrp-auth")), "0755"),  # a python script
+        _file(f"{CCRP_LIB}/ros-run", compact_shell(static("clone/ros-run")), "0755"),
         *(_unit(u) for u in units),
     ]
     if ros2:

@@ -1,0 +1,82 @@
+"""The workspace's code runs in the nodes, never in ccrp's agents (issue 39, part 1; docs/security.md).
+
+ccrp's agents hold its keys (the relay and knowledge agents relay.key, the API manager the Google
+key): a workspace package that installs a module named like one they import (`zenoh`, a stdlib
+name), a library on LD_LIBRARY_PATH or a setup.sh of its own would run as them. templates/clone/
+ros-run gives the workspace to `--workspace` alone, which only the node units (ccrp-run-*) pass,
+and drops whatever search path the caller's environment (ros.env, Environment=) carries."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+from ccrp_cli.services.workloads import node_unit
+from ccrp_cli.models.software import RunNode
+from tests.conftest import ROOT
+
+ROS_RUN = "/usr/local/lib/ccrp/ros-run"
+
+
+def test_only_the_node_units_run_with_the_workspace():
+    agents = {}
+    for unit in sorted((ROOT / "templates" / "systemd").glob("*.service")):
+        for line in unit.read_text().splitlines():
+            if line.startswith("ExecStart") and ROS_RUN in line:
+                agents[unit.name] = line
+    # Every agent the clone's ROS environment runs: none of them with the workspace.
+    assert set(agents) >= {"ccrp-relay.service", "ccrp-knowledge.service", "ccrp-api-manager.service",
+                           "ccrp-graph.service", "ccrp-rosmaster.service"}, agents
+    assert not [line for name, line in agents.items() if name != "ccrp-run.service" and "--workspace" in line], agents
+    node = node_unit(RunNode(name="mapper", command=["python3", "-m", "pkg.node"]), "d1")
+    assert f'ExecStart={ROS_RUN} --workspace "python3" "-m" "pkg.node"' in node, node
+
+
+def _clone(tmp_path: Path) -> tuple[Path, dict]:
+    """ros-run with the clone's /opt moved under tmp_path: a distro whose setup.sh puts its site (with
+    the real `zenoh`) on PYTHONPATH, and a workspace that shadows `zenoh` and `json` in its own site,
+    has a lib/ for LD_LIBRARY_PATH and a setup.sh that runs code (a marker file) when sourced."""
+    opt = tmp_path / "opt"
+    distro_site, ws = opt / "ros" / "fake" / "site", opt / "ccrp" / "workspace"
+    ws_site = ws / "lib" / "python3" / "site-packages"
+    for d in (distro_site, ws_site):
+        d.mkdir(parents=True)
+    (distro_site / "zenoh.py").write_text("WHO = 'distro'\n")
+    (opt / "ros" / "fake" / "setup.sh").write_text(f'export PYTHONPATH={distro_site}${{PYTHONPATH:+:$PYTHONPATH}}\n')
+    for name in ("zenoh", "json"):
+        (ws_site / f"{name}.py").write_text(f"open({str(tmp_path / 'imported')!r}, 'a').write({name!r})\nWHO = 'workspace'\n")
+    (ws / "setup.sh").write_text(f"touch {tmp_path / 'sourced'}\n"
+                                 f"export PYTHONPATH={ws_site}${{PYTHONPATH:+:$PYTHONPATH}}\n"
+                                 f"export LD_LIBRARY_PATH={ws / 'lib'}${{LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}}\n"
+                                 f"export AMENT_PREFIX_PATH={ws}\n")
+    script = tmp_path / "ros-run"
+    script.write_text((ROOT / "templates" / "clone" / "ros-run").read_text().replace("/opt/", f"{opt}/"))
+    script.chmod(0o755)
+    # What a unit's environment could carry in (ros.env, Environment=): the workspace's paths.
+    env = {"PATH": "/usr/bin:/bin", "ROS_DISTRO": "fake", "PYTHONPATH": str(ws_site),
+           "LD_LIBRARY_PATH": str(ws / "lib"), "AMENT_PREFIX_PATH": str(ws), "HOME": str(tmp_path)}
+    return script, env
+
+
+PROBE = ("import json, os, zenoh; print(zenoh.WHO, json.__name__, os.environ.get('PYTHONPATH'), "
+         "os.environ.get('LD_LIBRARY_PATH'), os.environ.get('AMENT_PREFIX_PATH'), os.environ.get('PYTHONNOUSERSITE'))")
+
+
+def test_an_agent_gets_the_distro_never_the_workspace(tmp_path):
+    script, env = _clone(tmp_path)
+    out = subprocess.run([str(script), "/usr/bin/python3", "-c", PROBE], env=env, capture_output=True, text=True, check=True)
+    distro_site = tmp_path / "opt" / "ros" / "fake" / "site"
+    assert out.stdout.split() == ["distro", "json", str(distro_site), "None", "None", "1"], out
+    # Neither the workspace's setup.sh nor any of its modules ran.
+    assert not (tmp_path / "sourced").exists() and not (tmp_path / "imported").exists()
+
+
+def test_a_node_gets_the_distro_then_the_workspace(tmp_path):
+    script, env = _clone(tmp_path)
+    out = subprocess.run([str(script), "--workspace", "/usr/bin/python3", "-c", PROBE], env=env, capture_output=True,
+                         text=True, check=True)
+    ws = tmp_path / "opt" / "ccrp" / "workspace"
+    who, _, pythonpath, ld_path, ament, _ = out.stdout.split()
+    assert who == "workspace" and ament == str(ws) and ld_path == str(ws / "lib"), out
+    assert pythonpath.split(":") == [str(ws / "lib" / "python3" / "site-packages"), str(tmp_path / "opt" / "ros" / "fake" / "site")]
+    assert (tmp_path / "sourced").exists() and (tmp_path / "imported").read_text() == "jsonzenoh"
