@@ -63,7 +63,8 @@ MAX_INSTALL_BYTES = 256 << 20  # the install space's tar, pushed to every clone
 # [a-z][a-z0-9-]*). D: what deploy keeps; W: the install space; U: the units; I: the index.
 #   probe [PATH...]     what the clone runs: its workspace digest, the index, a deploy pending on
 #                       it, sha256 of PATHs
-#   stage DIGEST|-      unpack D/DIGEST.tar.b64 into W.new (- : no new workspace); keep the units
+#   stage DIGEST|-      unpack D/DIGEST.tar.b64 into W.new (- : no new workspace), setuid/setgid
+#                       bits stripped, device files and FIFOs refused; keep the units
 #                       and index as they are in D/prev, for a rollback
 #   begin               D/pending says `nodes`: the units are about to change
 #   swap DIGEST         D/pending says `swapping`; W -> W.prev, W.new -> W; D/current says DIGEST;
@@ -94,9 +95,20 @@ stage)
     cp -p "$f" "$D/prev/"
   done
   if [ "$1" != - ]; then
-    mkdir -p "$W.new"
+    # Unpacked as root, so no file of the tar's may keep a privilege: W.new stays root-only until
+    # checked, a device file or FIFO is refused, and setuid and setgid bits go (a 4755 file would
+    # come out root's setuid program). templates/docker/software.j2 and software-bake.sh do the same.
+    mkdir -p -m 0700 "$W.new"
     base64 -d "$D/$1.tar.b64" | tar -x --no-same-owner -C "$W.new" --strip-components=1
     rm -f "$D/$1.tar.b64"
+    odd=$(find "$W.new" ! -type f ! -type d ! -type l | head -n 1)
+    if [ -n "$odd" ]; then
+      rm -rf "$W.new"
+      echo "the install space holds ${odd#"$W.new"/}, a device file or FIFO: refused (only files, directories and links)" >&2
+      exit 1
+    fi
+    find "$W.new" -perm /6000 ! -type l -exec chmod ug-s {} +
+    chmod 0755 "$W.new"
   fi
   ;;
 stage-clean)

@@ -114,6 +114,9 @@ def ros2_sysctl() -> str:
 
 # A ROS 2 clone's graph keeper (ccrp-graph.service: agent/ros2_graph.py serve) runs as a user of its own.
 GRAPH_USER = "ccrp-graph"
+# So does a ROS 1 clone's master (ccrp-rosmaster.service): not `ros`, whose nodes are the user's code
+# and could otherwise write its home or signal and trace it.
+MASTER_USER = "ccrp-rosmaster"
 
 
 def base_units(inv: Inventory) -> list[str]:
@@ -184,7 +187,7 @@ def user_data_dict(
     # image's is not created (keys from the cloud's key pair then go to root, with logins refused).
     users: list[Any] = [login_user(login_keys)] if login_keys else []
     users += [_system_user("openvpn"), _system_user("ros", homedir="/var/lib/ros")]
-    users += [_system_user(GRAPH_USER)] if ros2 else []
+    users += [_system_user(GRAPH_USER if ros2 else MASTER_USER)]
     users += [_system_user(u) for boot in boots for u in boot.users]
     data: dict[str, Any] = {
         "hostname": a.clone_host,

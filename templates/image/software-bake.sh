@@ -51,6 +51,14 @@ ament_python)
 none) ;;
 *) echo "unknown build type $CCRP_BUILD" >&2; exit 2 ;;
 esac
+if [ -d "$W" ]; then
+  # Built as root: a device file or FIFO is refused, setuid and setgid bits go (a 4755 file would be
+  # root's setuid program on every clone), as templates/docker/software.j2 and ccrp deploy do.
+  step "install space checked"
+  bad=$(find "$W" ! -type f ! -type d ! -type l | head -n 1)
+  if [ -n "$bad" ]; then echo "the install space holds $bad, a device file or FIFO: refused (only files, directories and links)" >&2; exit 1; fi
+  find "$W" -perm /6000 ! -type l -exec chmod ug-s {} +
+fi
 rm -rf "$B"
 apt-get clean
 step "login removed"

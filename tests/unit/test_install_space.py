@@ -1,0 +1,162 @@
+"""No privilege out of the user's install space (issue 39, part 3; docs/security.md): it is unpacked
+and built as root, so a 4755 file would come out root's setuid program on every clone. ccrp deploy's
+stage (DEPLOY_SH), the Docker snapshot's layers (templates/docker/software.j2) and the clouds' bake
+(templates/image/software-bake.sh) strip setuid and setgid bits and refuse device files and FIFOs.
+The ROS 1 master runs with the nodes' hardening, as a user of its own."""
+
+from __future__ import annotations
+
+import base64
+import io
+import os
+import re
+import stat
+import subprocess
+import tarfile
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import yaml
+
+from ccrp_cli.errors import CcrpError
+from ccrp_cli.fleet import clone_view
+from ccrp_cli.ops import deploy
+from ccrp_cli.render import cloudinit
+from ccrp_cli.services.registry import boots
+from ccrp_cli.templates import render
+from tests.conftest import ROOT
+
+MOVED = re.compile(r"(/etc/systemd/system|/etc/ccrp|/opt/ccrp|/var/lib/ccrp)")
+
+
+def _tar(members: list[tuple[str, bytes | str | None, int]]) -> bytes:
+    """An install space as deploy reads it out of the image (top directory `workspace/`): (name,
+    bytes of a file | a link's target | None for a directory | "fifo", mode)."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for name, data, mode in [("workspace", None, 0o755), *members]:
+            info = tarfile.TarInfo(name)
+            info.mode = mode
+            if data is None:
+                info.type = tarfile.DIRTYPE
+            elif data == "fifo":
+                info.type = tarfile.FIFOTYPE
+            elif isinstance(data, str):
+                info.type, info.linkname = tarfile.SYMTYPE, data
+            if isinstance(data, bytes):
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+            else:
+                tar.addfile(info)
+    return buf.getvalue()
+
+
+class Clone:
+    """A clone that is a directory: DEPLOY_SH runs for real with the clone's paths moved under it."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.transport = self
+
+    def at(self, path: str) -> Path:
+        return self.root / path.lstrip("/")
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
+        base = str(self.root)
+        proc = subprocess.run([MOVED.sub(lambda m: base + m.group(1), w) for w in argv], capture_output=True,
+                              text=True, check=False, env={"PATH": "/usr/bin:/bin"})
+        return proc.returncode, (proc.stdout + proc.stderr).replace(base, "")
+
+
+def _stage(tmp_path: Path, members) -> Clone:
+    clone = Clone(tmp_path / "clone")
+    pushed = clone.at(f"{deploy.DEPLOY_DIR}/d1.tar.b64")
+    pushed.parent.mkdir(parents=True)
+    pushed.write_bytes(base64.b64encode(_tar(members)))
+    deploy._script(clone, "nao1", "stage", "d1")
+    return clone
+
+
+def test_deploy_strips_setuid_and_setgid_bits_from_the_install_space(tmp_path):
+    outside = tmp_path / "passwd"  # a setuid program elsewhere, which a link in the tar names
+    outside.write_text("x")
+    outside.chmod(0o4755)
+    clone = _stage(tmp_path, [("workspace/bin", None, 0o2775), ("workspace/bin/tool", b"#!/bin/sh\n", 0o4755),
+                              ("workspace/bin/group", b"#!/bin/sh\n", 0o2711), ("workspace/bin/both", b"x", 0o6750),
+                              ("workspace/bin/link", str(outside), 0o777)])
+    new = clone.at("/opt/ccrp/workspace.new")
+    modes = {p.name: stat.S_IMODE(p.lstat().st_mode) for p in (new / "bin").iterdir() if not p.is_symlink()}
+    assert modes == {"tool": 0o755, "group": 0o711, "both": 0o750}, {k: oct(v) for k, v in modes.items()}
+    assert stat.S_IMODE((new / "bin").stat().st_mode) == 0o775
+    assert stat.S_IMODE(new.stat().st_mode) == 0o755  # readable by the nodes once swapped in
+    assert stat.S_IMODE(outside.stat().st_mode) == 0o4755  # a link is never followed
+    assert not clone.at(f"{deploy.DEPLOY_DIR}/d1.tar.b64").exists()
+
+
+def test_deploy_refuses_a_fifo_in_the_install_space_in_one_line(tmp_path):
+    with pytest.raises(CcrpError) as err:
+        _stage(tmp_path, [("workspace/share", None, 0o755), ("workspace/share/pipe", "fifo", 0o666)])
+    assert str(err.value) == ("deploy step stage failed on robot 'nao1''s clone: the install space holds share/pipe, "
+                              "a device file or FIFO: refused (only files, directories and links)")
+    assert not (tmp_path / "clone" / "opt" / "ccrp" / "workspace.new").exists()
+
+
+def _tree(root: Path) -> Path:
+    """An install space as a build leaves it: a setuid, a setgid program and a plain one."""
+    (root / "lib" / "pkg").mkdir(parents=True)
+    for name, mode in (("su", 0o4755), ("sg", 0o2755), ("plain", 0o755)):
+        (root / "lib" / "pkg" / name).write_text("x")
+        (root / "lib" / "pkg" / name).chmod(mode)
+    return root
+
+
+def _modes(root: Path) -> dict[str, int]:
+    return {p.name: stat.S_IMODE(p.stat().st_mode) for p in (root / "lib" / "pkg").iterdir()}
+
+
+@pytest.mark.parametrize("build_type", ["catkin", "ament_python"])
+def test_the_docker_snapshot_strips_setuid_bits_and_refuses_a_fifo(tmp_path, build_type):
+    prefix = _tree(tmp_path / "ws")
+    text = render("docker/software.j2", software=SimpleNamespace(build_type=build_type, digest="d1"), prefix=str(prefix),
+                  build_apt=["catkin"], sw_apt=[], sw_pip=[], pip_command="pip", package_dirs=["src/a"],
+                  ros2_prefix="/opt/ros/jazzy")
+    # The build's RUN step after the install: the lines from the check on, as its shell runs them.
+    [check] = [line.strip().removeprefix("&& ").removesuffix(" \\") for line in text.splitlines()
+               if line.strip().startswith(f"&& bad=$(find {prefix} ")]
+    subprocess.run(["sh", "-ec", check], check=True)
+    assert _modes(prefix) == {"su": 0o755, "sg": 0o755, "plain": 0o755}
+    os.mkfifo(prefix / "lib" / "pkg" / "pipe")
+    proc = subprocess.run(["sh", "-ec", check], capture_output=True, text=True)
+    assert proc.returncode == 1 and proc.stderr == (f"the install space holds {prefix}/lib/pkg/pipe, a device file or "
+                                                    "FIFO: refused (only files, directories and links)\n"), proc.stderr
+
+
+def test_the_clouds_bake_strips_setuid_bits_and_refuses_a_fifo(tmp_path):
+    prefix = _tree(tmp_path / "ws")
+    script = (ROOT / "templates" / "image" / "software-bake.sh").read_text()
+    # The step after the build, run on its own with W moved (the rest installs packages as root).
+    block = script[script.index('if [ -d "$W" ]; then'):script.index('rm -rf "$B"')]
+    run = lambda: subprocess.run(["sh", "-euc", f'step() {{ echo "== $*"; }}; W={prefix}\n{block}'],  # noqa: E731
+                                 capture_output=True, text=True)
+    assert run().returncode == 0
+    assert _modes(prefix) == {"su": 0o755, "sg": 0o755, "plain": 0o755}
+    os.mkfifo(prefix / "lib" / "pkg" / "pipe")
+    proc = run()
+    assert proc.returncode == 1 and "the install space holds" in proc.stderr and "pipe, a device file or FIFO" in proc.stderr
+
+
+def test_the_ros1_master_has_the_nodes_hardening_and_a_home_they_cannot_write(lab):
+    data = yaml.safe_load(cloudinit.user_data(clone_view(lab, lab.store.load_state(), "nao1"), boots()))
+    unit = next(f["content"] for f in data["write_files"] if f["path"] == "/etc/systemd/system/ccrp-rosmaster.service")
+    settings = dict(line.split("=", 1) for line in unit.splitlines() if "=" in line and not line.startswith("#"))
+    # A user of its own, not the nodes' `ros`: its home (~/.ros, ~/.local) is nothing they can write.
+    assert settings["User"] == cloudinit.MASTER_USER != "ros"
+    assert cloudinit.MASTER_USER in {u["name"] for u in data["users"]}
+    assert settings["StateDirectory"] == "ccrp-rosmaster" and settings["StateDirectoryMode"] == "0700"
+    env = dict(word.split("=", 1) for word in settings["Environment"].split())
+    assert env == {"HOME": "/var/lib/ccrp-rosmaster", "ROS_HOME": "/var/lib/ccrp-rosmaster", "PYTHONNOUSERSITE": "1"}
+    for key, value in {"NoNewPrivileges": "yes", "ProtectSystem": "strict", "ProtectHome": "yes", "PrivateTmp": "yes",
+                       "RestrictSUIDSGID": "yes"}.items():
+        assert settings.get(key) == value, (key, unit)
+    assert settings["ExecStart"] == "/usr/local/lib/ccrp/ros-run roscore --port ${ROS_MASTER_PORT}"  # no workspace
