@@ -71,10 +71,14 @@ SERVICES=(
 )
 
 pid_of() { local f="$RUN/$1.pid"; [ -s "$f" ] && kill -0 "$(cat "$f")" 2>/dev/null && cat "$f"; }
+# A process and all its descendants.
+descendants() {
+  ps -e -o pid=,ppid= | awk -v root="$1" '{p[$1]=$2} END {for (x in p) {y=x; while (y && y!=root) y=p[y]; if (y==root) print x}}'
+}
 # Memory (RSS, MB) of a process and all its descendants.
 tree_rss() {
   local pids
-  pids=$(ps -e -o pid=,ppid= | awk -v root="$1" '{p[$1]=$2} END {for (x in p) {y=x; while (y && y!=root) y=p[y]; if (y==root) print x}}')
+  pids=$(descendants "$1")
   [ -n "$pids" ] && ps -o rss= -p $(echo $pids | tr ' ' ',') | awk '{s+=$1} END {printf "%d", s/1024}' || echo 0
 }
 
@@ -102,14 +106,15 @@ down() {
   for ((i=${#SERVICES[@]}-1; i>=0; i--)); do
     IFS='|' read -r name user port cmd <<<"${SERVICES[$i]}"
     pid=$(pid_of "$name") || { rm -f "$RUN/$name.pid"; continue; }
+    local tree
+    tree=$(descendants "$pid")
     kill "$pid" 2>/dev/null || true
     for _ in $(seq 1 50); do kill -0 "$pid" 2>/dev/null || break; sleep 0.2; done
-    kill -9 "$pid" 2>/dev/null || true
+    # what outlived it (a child that left the process group), then by force
+    kill -9 "$pid" $tree 2>/dev/null || true
     rm -f "$RUN/$name.pid"
     say "stopped $name ($pid)"
   done
-  # rabbitmq-server starts Erlang's port mapper as a daemon of its own.
-  [ -s "$RUN/epmd.pid" ] && kill "$(cat "$RUN/epmd.pid")" 2>/dev/null && say "stopped epmd"; rm -f "$RUN/epmd.pid"
   # Nova's guests (libvirt domains named instance-*): stopped, left defined for Nova's next start.
   local dom
   for dom in $(virsh -c qemu:///system list --name 2>/dev/null | grep '^instance-' || true); do
@@ -171,6 +176,7 @@ APT_PACKAGES=(
   neutron-api neutron-rpc-server neutron-linuxbridge-agent neutron-dhcp-agent neutron-l3-agent
   neutron-metadata-agent
   python3-openstackclient uwsgi-plugin-python3
+  tini                   # each daemon under tini, a subreaper (PID 1 here reaps no orphans)
 )
 bash scripts/libvirt.sh >/dev/null || fail "libvirt" "/var/log/libvirt/libvirtd.log"
 . scripts/apt-missing.sh
@@ -419,9 +425,12 @@ start() {  # start NAME: unless running, start it as its user, pid file, log fil
     local -a run=()
     # setpriv execs the daemon itself (su and runuser stay as its parent): the pid is the daemon's.
     [ "$user" != root ] && run=(setpriv "--reuid=$user" "--regid=$(id -gn "$user")" --init-groups)
-    # Not backgrounded under setsid's own fork: this shell is no process-group leader, so setsid
-    # execs too, and the daemon leaves this script's session (a Ctrl-C here does not stop it).
-    HOME=$(getent passwd "$user" | cut -d: -f6) setsid "${run[@]}" $cmd </dev/null >>"$LOGS/$name.log" 2>&1 &
+    # Under tini as a subreaper (as scripts/libvirt.sh runs libvirtd): PID 1 here reaps no orphans,
+    # and the agents' dnsmasq/haproxy and RabbitMQ's epmd daemonise; tini reaps them, and -g
+    # passes a stop signal to the whole process group (rabbitmq-server is a shell over Erlang).
+    # setsid: the daemon leaves this script's session (a Ctrl-C here does not stop it); this
+    # shell is no process-group leader, so setsid execs instead of forking and $! is tini's pid.
+    HOME=$(getent passwd "$user" | cut -d: -f6) setsid tini -s -g -- "${run[@]}" $cmd </dev/null >>"$LOGS/$name.log" 2>&1 &
     echo $! >"$RUN/$name.pid"
     say "started $name (pid $!, log $LOGS/$name.log)"
   fi
@@ -449,7 +458,6 @@ if ! done_once databases; then
   mark databases
 fi
 start rabbitmq
-pgrep -u rabbitmq -x epmd >"$RUN/epmd.pid" || true
 if ! done_once rabbit_user; then
   step rabbit_user rabbitmqctl -q add_user openstack "$PW"
   step rabbit_user rabbitmqctl -q set_permissions openstack ".*" ".*" ".*"
