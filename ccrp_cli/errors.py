@@ -84,7 +84,10 @@ def shown(value: object, limit: int = SHOWN_CHARS) -> str:
 # U+009B is CSI to an 8-bit terminal. So every control character is shown as its escape: C0 (a tab
 # only moves the cursor on, and stays), DEL and C1. A backslash stays as it is: text that spells
 # `\x1b` shows the same as an escaped ESC, which is harmless and keeps paths and regexes readable.
-_CONTROL = re.compile("[\x00-\x08\x0a-\x1f\x7f-\x9f]")
+# The bidirectional overrides and isolates (U+202A-202E, U+2066-2069), the marks and zero-width
+# characters (U+200B-200F) and the BOM do not drive a terminal but reorder or hide what the operator
+# reads (a line that shows as "ok" holds something else): escaped too, as `\u202e`.
+_CONTROL = re.compile("[\x00-\x08\x0a-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u2069\ufeff]")
 _NAMED = {"\n": "\\n", "\r": "\\r"}
 
 
@@ -92,7 +95,11 @@ def printable(text: str) -> str:
     """`text` safe for a terminal: each control character but tab as its escape (`\\x1b`, `\\n`).
     cli/output.py passes every line and table cell it writes through this, and one_line() does;
     --json keeps the exact text, which JSON encodes itself."""
-    return _CONTROL.sub(lambda m: _NAMED.get(m.group()) or f"\\x{ord(m.group()):02x}", text)
+    return _CONTROL.sub(lambda m: _NAMED.get(m.group()) or _escape(ord(m.group())), text)
+
+
+def _escape(code: int) -> str:
+    return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
 
 
 class cannot_write:  # noqa: N801 - used as `with cannot_write(out):`

@@ -30,6 +30,8 @@ def test_printable_escapes_every_control_character_and_keeps_the_text():
     assert printable(EVIL) == "hi\\x1b]52;c;cm0gLXJmIH4K\\x07 \\x1b[2J\\x9b31m\\x7f\\nccrp: deployed\\rX\ttab"
     assert printable("é ü ✓ C:\\path \\x1b") == "é ü ✓ C:\\path \\x1b"  # text, and a backslash, as they are
     assert printable(printable(EVIL)) == printable(EVIL)  # escaping twice changes nothing
+    # A right-to-left override makes "ok\u202e...gnilaf" read as something else; a zero-width space hides.
+    assert printable("ok\u202egnilaf\u2066x\u2069\u200by\ufeff") == "ok\\u202egnilaf\\u2066x\\u2069\\u200by\\ufeff"
     assert not RAW.search(printable("".join(map(chr, range(0x100)))))
     assert CcrpError(f"deploy step stage failed: {EVIL}", hint="\x1b[2J").one_line() == (
         "deploy step stage failed: hi\\x1b]52;c;cm0gLXJmIH4K\\x07 \\x1b[2J\\x9b31m\\x7f ccrp: deployed X tab"  # whitespace: one space
