@@ -23,6 +23,7 @@ import json
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import pytest
 
@@ -130,11 +131,37 @@ KILTED = pytest.param("kilted", marks=pytest.mark.skipif(
     os.environ.get("CCRP_E2E_KILTED") != "1", reason="opt-in: CCRP_E2E_KILTED=1 (a Kilted image and fleet: minutes)"))
 
 
+# A package of the workspace that installs a module named `zenoh`, as ccrp's relay and knowledge
+# agents import (issue 39, part 1): imported, it says so on stderr (the journal) and fails. ccrp's
+# agents never get the workspace, so it is only ever the nodes' (ros-run --workspace).
+SHADOW = "ccrp-e2e: the workspace's zenoh imported"
+SHADOW_PACKAGE = {
+    "package.xml": '<?xml version="1.0"?>\n<package format="3"><name>ccrp_e2e_shadow</name><version>1.0.0</version>'
+                   '<description>e2e</description><maintainer email="e2e@example.org">e2e</maintainer>'
+                   '<license>MIT</license><export><build_type>ament_python</build_type></export></package>\n',
+    "setup.py": 'from setuptools import setup\nsetup(name="ccrp_e2e_shadow", version="1.0.0", py_modules=["zenoh"])\n',
+    "zenoh.py": f'import os, sys\nsys.stderr.write("{SHADOW} by uid %d\\n" % os.getuid())\n'
+                f'raise ImportError("{SHADOW}")\n',
+}
+
+
+def _shadowed_workspace(tmp_path_factory) -> Path:
+    """The offloading example's workspace with the package above beside its own."""
+    import shutil
+
+    ws = tmp_path_factory.mktemp("shadowed") / "ws"
+    shutil.copytree(OFFLOAD / "ros2" / "ws", ws, ignore=shutil.ignore_patterns("build", "install", "log", "__pycache__"))
+    (ws / "src" / "ccrp_e2e_shadow").mkdir()
+    for name, text in SHADOW_PACKAGE.items():
+        (ws / "src" / "ccrp_e2e_shadow" / name).write_text(text)
+    return ws
+
+
 @pytest.fixture(scope="module", params=["jazzy", KILTED])
 def fleet(request, tmp_path_factory) -> E2EFleet:
     distro = request.param
     return start_fleet(request, tmp_path_factory, "e2j" if distro == "jazzy" else "e2k", lambda d: _lab_on(distro, d),
-                       copy={"ws": OFFLOAD / "ros2" / "ws"} if distro == "jazzy" else None)
+                       copy={"ws": _shadowed_workspace(tmp_path_factory)} if distro == "jazzy" else None)
 
 
 def _distro(fleet: E2EFleet) -> str:
@@ -337,6 +364,25 @@ def test_a_topic_nao1_exports_reaches_nao2s_clone_with_its_type_and_qos(fleet: E
     rc, out = exec_in(clone2, ["ccrp-topic", "echo", "/nao1/chatter", "-n", "1", "-t", "40"], timeout=60)
     assert rc == 0 and "hello from nao1" in out, f"{out}\n{agent_journals(fleet, ['nao2'])}"
     fleet.log.append(f"Jazzy relay restarted in {took:.1f} s")
+
+
+def test_the_workspace_never_runs_in_ccrps_agents(fleet: E2EFleet, sim) -> None:
+    """Issue 39, part 1: the workspace shadows `zenoh` (SHADOW_PACKAGE). A node gets it (ros-run
+    --workspace, as the ros user), so the shadow is real; the relay, knowledge, API manager and graph
+    agents never imported it, and the relays still carry nao1's /chatter (the test above)."""
+    _jazzy_only(fleet)
+    clone = fleet.container("clone", "nao1")
+    rc, out = exec_in(clone, ["sh", "-c", "set -a; . /etc/ccrp/ros.env; set +a; exec runuser -u ros -- "
+                              "/usr/local/lib/ccrp/ros-run --workspace python3 -c 'import zenoh'"])
+    assert rc != 0 and f"{SHADOW} by uid " in out, out
+    for robot in ("nao1", "nao2"):
+        agents = ["ccrp-relay", "ccrp-knowledge", "ccrp-graph", *(["ccrp-api-manager"] if robot == "nao1" else [])]
+        rc, journal = exec_in(fleet.container("clone", robot),
+                              ["journalctl", "--no-pager", "-o", "cat", *(f"--unit={u}.service" for u in agents)])
+        assert rc == 0 and journal.strip() and SHADOW not in journal, journal[-3000:]
+        rc, active = exec_in(fleet.container("clone", robot), ["systemctl", "is-active", *(f"{u}.service" for u in agents)])
+        assert active.split() == ["active"] * len(agents), (robot, active)
+    assert fleet.status()["nao2"]["relay_peers"] == {"nao1": True}
 
 
 def test_what_nao2_imports_reaches_robot_nao2_itself(fleet: E2EFleet, sim) -> None:
