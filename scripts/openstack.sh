@@ -150,6 +150,12 @@ down() {
       for chain in $($ipt -t "$table" -S 2>/dev/null | awk '/^-N neutron-/ {print $2}'); do $ipt -t "$table" -X "$chain" 2>/dev/null || true; done
     done
   done
+  # The NAT rules of the external network (comment ccrp-openstack).
+  for table in nat filter; do
+    iptables -t "$table" -S | grep -- '--comment ccrp-openstack' | while read -r rule; do
+      eval "iptables -t $table ${rule/-A /-D }" || true
+    done
+  done
   for s in $(ipset list -n 2>/dev/null | grep '^NIPv' || true); do ipset destroy "$s" 2>/dev/null || true; done
   say "down in $(( $(date +%s) - T0 )) s"
 }
@@ -391,6 +397,9 @@ interface_driver = linuxbridge
 dhcp_driver = neutron.agent.linux.dhcp.Dnsmasq
 enable_isolated_metadata = true
 force_metadata = true
+# dnsmasq is the instances' DNS server; it forwards to this host's resolvers, reached through the
+# qdhcp namespace's default route (the subnet's router) and the NAT below.
+dnsmasq_dns_servers = $(awk '/^nameserver/ {print $2}' /etc/resolv.conf | paste -sd, -)
 EOF
 write_conf /etc/neutron/metadata_agent.ini root:neutron <<EOF
 [DEFAULT]
@@ -408,10 +417,20 @@ chown keystone:keystone /var/log/keystone
 if ! ip link show "$EXT_BRIDGE" >/dev/null 2>&1; then
   ip link add "$EXT_BRIDGE" type bridge
 fi
-ip addr show dev "$EXT_BRIDGE" | grep -q "inet $EXT_HOST_IP/" || ip addr add "$EXT_HOST_IP/24" dev "$EXT_BRIDGE"
+[[ "$(ip -4 -o addr show dev "$EXT_BRIDGE")" == *"inet $EXT_HOST_IP/"* ]] || ip addr add "$EXT_HOST_IP/24" dev "$EXT_BRIDGE"
 ip link set "$EXT_BRIDGE" up
 # Security groups on linuxbridge see bridged frames through iptables (Docker already sets it).
 sysctl -qw net.bridge.bridge-nf-call-iptables=1 net.bridge.bridge-nf-call-ip6tables=1
+# Instances reach what this host reaches (Debian's mirrors and PyPI: `ccrp snapshot bake`'s builder
+# runs apt and pip) through their router's SNAT to the external network and this host's NAT, as
+# libvirt's NAT networks do. Three rules, each tagged with the comment ccrp-openstack, inserted
+# before Docker's (its FORWARD policy is DROP) and matching the external bridge only; --down
+# deletes them. ip_forward is already 1 (Docker).
+nat_rule() { iptables -t "$1" -C "${@:2}" -m comment --comment ccrp-openstack -j "$JUMP" 2>/dev/null \
+  || iptables -t "$1" -I "${@:2}" -m comment --comment ccrp-openstack -j "$JUMP"; }
+JUMP=MASQUERADE nat_rule nat POSTROUTING -s "$EXT_CIDR" ! -d "$EXT_CIDR"
+JUMP=ACCEPT nat_rule filter FORWARD -i "$EXT_BRIDGE" ! -o "$EXT_BRIDGE"
+JUMP=ACCEPT nat_rule filter FORWARD -o "$EXT_BRIDGE" -m conntrack --ctstate RELATED,ESTABLISHED
 
 # ---------------------------------------------------------------------------------------------
 # 3. Daemons.
