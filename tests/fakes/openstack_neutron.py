@@ -28,6 +28,10 @@ def new_id() -> str:
 class NeutronApi:
     """Mixed into FakeOpenStack, which holds the stores (self.networks, self.ports...)."""
 
+    # Tags in a POST body need Neutron's `tag-creation` extension (2023.1 on). Zed's Neutron (Debian
+    # 12, scripts/openstack.sh) refuses them with this 400: False plays that Neutron.
+    tag_creation = True
+
     # -- requests --------------------------------------------------------------------------------
     def _network(self, method, path, query, body, context):
         if path == "/":
@@ -48,6 +52,8 @@ class NeutronApi:
         store = getattr(self, collection)
         if not parts[1:]:
             if method == "POST":
+                if not self.tag_creation and "tags" in body[singular]:
+                    raise ApiError(400, "Attribute 'tags' not allowed in POST")
                 context.status_code = 201
                 return {singular: getattr(self, f"_create_{collection}")(body[singular])}
             return {kind.replace("-", "_"): [r for r in store.values() if self._matches(r, query)]}

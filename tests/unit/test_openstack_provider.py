@@ -299,3 +299,31 @@ def test_what_rollback_cannot_delete_is_named_and_left_for_gc(h):
     [leak] = [r for r in h.provider.list_owned() if r.kind == "port"]
     h.provider.delete_owned(leak)
     assert ports_of(h, "robot1") == []
+
+
+def test_neutron_without_tag_creation_gets_its_tags_after_the_post(h):
+    """Zed's Neutron (Debian 12, scripts/openstack.sh) refuses `tags` in a POST body (400 "Attribute
+    'tags' not allowed in POST"; the tag-creation extension came in 2023.1): each resource is created
+    bare, then tagged with PUT .../tags, once the refusal was seen."""
+    h.fake.tag_creation = False
+    rec = h.provider.run_instance(h.spec("robot1", 1))
+    [port] = ports_of(h, "robot1")
+    [fip] = fips_of(h, "robot1")
+    assert rec.public_ip == fip["floating_ip_address"] and port["device_id"] == rec.provider_id
+    for store in (h.fake.networks, h.fake.subnets, h.fake.routers, h.fake.sgs):
+        assert all(f"{LABEL_FLEET}=ct" in r["tags"] for r in store.values() if r["name"].startswith("ccrp-ct"))
+    h.provider.run_instance(h.spec("robot2", 2))
+    # the refusal is met once per provider, not once per resource
+    assert h.fake.calls[("PUT", "network:/v2.0/ports/{id}/tags")] == 2
+    assert h.provider.terminate("robot1") is True and ports_of(h, "robot1") == [] and fips_of(h, "robot1") == []
+
+
+def test_a_resource_that_could_not_be_tagged_is_deleted_again(h):
+    h.fake.tag_creation = False
+    h.provider.bootstrap()
+    h.fake.fail_next[("PUT", "network:/v2.0/ports/{id}/tags")] = (403, "tagging refused")
+    with pytest.raises(CcrpError):
+        h.provider.run_instance(h.spec("robot1", 1))
+    assert [p for p in h.fake.ports.values() if not p["tags"] and p["device_owner"] != "network:router_interface"
+            and p["device_owner"] != "network:router_gateway"] == []
+    assert h.instances_for("robot1") == 0

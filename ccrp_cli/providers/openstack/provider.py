@@ -82,6 +82,38 @@ class OpenStackProvider(Images, Owned, CloudProvider):
     def tags(self, role: str, robot: str | None = None) -> list[str]:
         return [f"{k}={v}" for k, v in owner_labels(self.fleet, role, robot).items()]
 
+    def create_tagged(self, what: str, fn, delete, tags: list[str], **attrs):
+        """A Neutron resource created with ccrp's ownership tags. Neutron takes `tags` in the POST
+        body only with its `tag-creation` extension (2023.1 on); Zed's answers 400 "Attribute 'tags'
+        not allowed in POST" (seen on scripts/openstack.sh's cloud). There the resource is created
+        bare and tagged at once (PUT .../tags, the `standard-attr-tag` extension); one that could not
+        be tagged is deleted again, since no listing by tag would ever find it."""
+        from openstack.exceptions import BadRequestException
+
+        if not self._cache.get("no-tag-creation"):
+            def post():
+                try:
+                    return fn(tags=tags, **attrs)
+                except BadRequestException as exc:
+                    if "'tags' not allowed in POST" not in str(exc):
+                        raise
+                    return None
+            res = self.api(f"create {what}", post)
+            if res is not None:
+                return res
+            with self._lock:
+                self._cache["no-tag-creation"] = True
+        res = self.api(f"create {what}", fn, **attrs)
+        try:
+            self.api(f"tag {what}", self.network.set_tags, res, tags)
+        except BaseException:
+            try:
+                self.api(f"delete untagged {what}", delete, res, ignore_missing=True)
+            except Exception:  # noqa: BLE001 - the tagging failure is the one to report
+                pass
+            raise
+        return res
+
     def classify_error(self, exc: BaseException):
         return errors.classify(exc)
 
@@ -219,9 +251,10 @@ class OpenStackProvider(Images, Owned, CloudProvider):
         if port is not None:
             return port
         pairs = [{"ip_address": spec.vpn_subnet}] if spec.vpn_subnet else []
-        port = self.api("create port", self.network.create_port, name=self.server_name(spec.robot, spec.role),
-                        network_id=net.id, fixed_ips=[{"subnet_id": subnet.id, "ip_address": spec.common_ip}],
-                        allowed_address_pairs=pairs, security_group_ids=[sg.id], tags=self.tags(spec.role, spec.robot))
+        port = self.create_tagged("port", self.network.create_port, self.network.delete_port, self.tags(spec.role, spec.robot),
+                                  name=self.server_name(spec.robot, spec.role), network_id=net.id,
+                                  fixed_ips=[{"subnet_id": subnet.id, "ip_address": spec.common_ip}],
+                                  allowed_address_pairs=pairs, security_group_ids=[sg.id])
         created.append(("port", port))
         return port
 
@@ -271,8 +304,9 @@ class OpenStackProvider(Images, Owned, CloudProvider):
         free = next((f for f in self.owned("fips", spec.role, robot) if not f.port_id), None)
         if free is not None:  # allocated by an attempt that died before attaching it
             return self.api("attach floating IP", self.network.update_ip, free, port_id=port.id)
-        fip = self.api("create floating IP", self.network.create_ip, floating_network_id=ext.id, port_id=port.id,
-                       tags=self.tags(spec.role, robot), description=f"ccrp fleet {self.fleet}: clone of {robot}")
+        fip = self.create_tagged("floating IP", self.network.create_ip, self.network.delete_ip, self.tags(spec.role, robot),
+                                 floating_network_id=ext.id, port_id=port.id,
+                                 description=f"ccrp fleet {self.fleet}: clone of {robot}")
         created.append(("floating_ip", fip))
         return fip
 

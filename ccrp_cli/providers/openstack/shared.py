@@ -36,15 +36,15 @@ def common_network(p: "OpenStackProvider", create: bool):
         if net is None and not create:
             raise CcrpError(f"fleet {p.fleet!r} has no common network yet", hint="run `ccrp fleet up` (it bootstraps the network)")
         if net is None:
-            net = p.api("create network", p.network.create_network, name=p.name("common"),
-                        tags=p.tags("network"), description=f"ccrp fleet {p.fleet}: common network")
+            net = p.create_tagged("network", p.network.create_network, p.network.delete_network, p.tags("network"),
+                                  name=p.name("common"), description=f"ccrp fleet {p.fleet}: common network")
     subnet = next((s for s in p.listing("subnets", p.network.subnets, network_id=net.id) if s.cidr == cidr), None)
     if subnet is None and p.settings.network:
         raise CcrpError(f"network {p.settings.network!r} has no subnet {cidr} (common.cidr)",
                         hint="set common.cidr to that network's subnet")
     if subnet is None:
-        subnet = p.api("create subnet", p.network.create_subnet, name=p.name("common"), network_id=net.id,
-                       ip_version=4, cidr=cidr, tags=p.tags("network"))
+        subnet = p.create_tagged("subnet", p.network.create_subnet, p.network.delete_subnet, p.tags("network"),
+                                 name=p.name("common"), network_id=net.id, ip_version=4, cidr=cidr)
     return net, subnet
 
 
@@ -52,8 +52,8 @@ def router(p: "OpenStackProvider", subnet, ext) -> None:
     """The fleet's router from its own common subnet to the external network (floating IPs)."""
     r = next(iter(p.owned("routers", "network")), None)
     if r is None:
-        r = p.api("create router", p.network.create_router, name=p.name("router"), tags=p.tags("network"),
-                  external_gateway_info={"network_id": ext.id})
+        r = p.create_tagged("router", p.network.create_router, p.network.delete_router, p.tags("network"),
+                            name=p.name("router"), external_gateway_info={"network_id": ext.id})
     if subnet.id not in router_subnets(p, r):
         # positional: the keyword is subnet_id in openstacksdk 3, subnet in 4
         p.api("add router interface", p.network.add_interface_to_router, r, subnet.id)
@@ -69,8 +69,8 @@ def security_group(p: "OpenStackProvider"):
     from the common network (topic sharing). Stale ingress rules (an old operator CIDR) go."""
     sg = next(iter(p.owned("security_groups", "network")), None)
     if sg is None:
-        sg = p.api("create security group", p.network.create_security_group, name=p.name("clones"),
-                   tags=p.tags("network"), description=f"ccrp fleet {p.fleet}: clones")
+        sg = p.create_tagged("security group", p.network.create_security_group, p.network.delete_security_group,
+                             p.tags("network"), name=p.name("clones"), description=f"ccrp fleet {p.fleet}: clones")
     vpn = p.inv.vpn
     wanted = {
         (vpn.proto, vpn.port, vpn.port, "0.0.0.0/0"),
