@@ -296,6 +296,18 @@ except OSError as exc:
 NOBODY = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]
 
 
+def test_the_master_runs_as_a_user_of_its_own_without_new_privileges(fleet: E2EFleet, clone):
+    """Issue 39, part 3: the ROS master (which fleet up found serving) runs as ccrp-rosmaster, not
+    the nodes' `ros`, with no new privileges; its home is its own, which the nodes' user cannot write."""
+    status = proc_status(clone, main_pid(clone, "ccrp-rosmaster.service"))
+    rc, user = exec_in(clone, ["getent", "passwd", status["Uid"].split()[0]])
+    assert user.split(":")[0] == "ccrp-rosmaster" and status["NoNewPrivs"].strip() == "1", (user, status)
+    rc, home = exec_in(clone, ["stat", "-c", "%U %a", "/var/lib/ccrp-rosmaster"])
+    assert home.split() == ["ccrp-rosmaster", "700"], home
+    rc, out = exec_in(clone, ["runuser", "-u", "ros", "--", "touch", "/var/lib/ccrp-rosmaster/e2e-probe"])
+    assert rc != 0 and "Permission denied" in out, out
+
+
 def test_a_local_user_cannot_take_the_power_agents_port(fleet: E2EFleet, clone):
     """Port 11400 is unprivileged: who binds the clone's VPN address there first gets the power
     device's reports and answers `relay: on/off`. systemd holds it (ccrp-power.socket) from boot on
