@@ -29,9 +29,7 @@ if TYPE_CHECKING:
 UNIT_DIR = "/etc/systemd/system"
 UNIT_PREFIX = "ccrp-run-"
 INDEX = "/etc/ccrp/workloads.json"  # the nodes ccrp put on this clone, with their digests
-# The nodes' entry: the distro's environment, then the workspace's (templates/clone/ros-run). ccrp's
-# own agents use ros-run without --workspace: the workspace's code never runs as them.
-ROS_RUN = "/usr/local/lib/ccrp/ros-run --workspace"
+ROS_RUN = "/usr/local/lib/ccrp/ros-run"
 NO_SOFTWARE = "none"  # the digest of a snapshot (or inventory) without software of the user's
 
 # Directories of a workspace that are build output, not source (catkin, colcon) or tool state.

@@ -133,7 +133,7 @@ KILTED = pytest.param("kilted", marks=pytest.mark.skipif(
 
 # A package of the workspace that installs a module named `zenoh`, as ccrp's relay and knowledge
 # agents import (issue 39, part 1): imported, it says so on stderr (the journal) and fails. ccrp's
-# agents never get the workspace, so it is only ever the nodes' (ros-run --workspace).
+# agents never get the workspace, so it is only ever the nodes' (CCRP_WORKSPACE=1 in their units).
 SHADOW = "ccrp-e2e: the workspace's zenoh imported"
 SHADOW_PACKAGE = {
     "package.xml": '<?xml version="1.0"?>\n<package format="3"><name>ccrp_e2e_shadow</name><version>1.0.0</version>'
@@ -367,13 +367,14 @@ def test_a_topic_nao1_exports_reaches_nao2s_clone_with_its_type_and_qos(fleet: E
 
 
 def test_the_workspace_never_runs_in_ccrps_agents(fleet: E2EFleet, sim) -> None:
-    """Issue 39, part 1: the workspace shadows `zenoh` (SHADOW_PACKAGE). A node gets it (ros-run
-    --workspace, as the ros user), so the shadow is real; the relay, knowledge, API manager and graph
-    agents never imported it, and the relays still carry nao1's /chatter (the test above)."""
+    """Issue 39, part 1: the workspace shadows `zenoh` (SHADOW_PACKAGE). A node gets it (ros-run with
+    the node units' CCRP_WORKSPACE=1, as the ros user), so the shadow is real; the relay, knowledge,
+    API manager and graph agents never imported it, and the relays still carry nao1's /chatter (the
+    test above)."""
     _jazzy_only(fleet)
     clone = fleet.container("clone", "nao1")
     rc, out = exec_in(clone, ["sh", "-c", "set -a; . /etc/ccrp/ros.env; set +a; exec runuser -u ros -- "
-                              "/usr/local/lib/ccrp/ros-run --workspace python3 -c 'import zenoh'"])
+                              "env CCRP_WORKSPACE=1 /usr/local/lib/ccrp/ros-run python3 -c 'import zenoh'"])
     assert rc != 0 and f"{SHADOW} by uid " in out, out
     for robot in ("nao1", "nao2"):
         agents = ["ccrp-relay", "ccrp-knowledge", "ccrp-graph", *(["ccrp-api-manager"] if robot == "nao1" else [])]

@@ -3,8 +3,8 @@
 ccrp's agents hold its keys (the relay and knowledge agents relay.key, the API manager the Google
 key): a workspace package that installs a module named like one they import (`zenoh`, a stdlib
 name), a library on LD_LIBRARY_PATH or a setup.sh of its own would run as them. templates/clone/
-ros-run gives the workspace to `--workspace` alone, which only the node units (ccrp-run-*) pass,
-and drops whatever search path the caller's environment (ros.env, Environment=) carries."""
+ros-run gives the workspace only where CCRP_WORKSPACE=1, which only the node units (ccrp-run-*)
+set, and drops whatever search path the caller's environment (ros.env, Environment=) carries."""
 
 from __future__ import annotations
 
@@ -19,17 +19,16 @@ ROS_RUN = "/usr/local/lib/ccrp/ros-run"
 
 
 def test_only_the_node_units_run_with_the_workspace():
-    agents = {}
-    for unit in sorted((ROOT / "templates" / "systemd").glob("*.service")):
-        for line in unit.read_text().splitlines():
-            if line.startswith("ExecStart") and ROS_RUN in line:
-                agents[unit.name] = line
+    agents = {unit.name: unit.read_text() for unit in sorted((ROOT / "templates" / "systemd").glob("*.service"))
+              if unit.name != "ccrp-run.service" and f"ExecStart={ROS_RUN} " in unit.read_text()}
     # Every agent the clone's ROS environment runs: none of them with the workspace.
     assert set(agents) >= {"ccrp-relay.service", "ccrp-knowledge.service", "ccrp-api-manager.service",
                            "ccrp-graph.service", "ccrp-rosmaster.service"}, agents
-    assert not [line for name, line in agents.items() if name != "ccrp-run.service" and "--workspace" in line], agents
+    settings = {name: [line for line in text.splitlines() if not line.startswith("#")] for name, text in agents.items()}
+    assert not [name for name, lines in settings.items() if any("CCRP_WORKSPACE" in line for line in lines)], agents
     node = node_unit(RunNode(name="mapper", command=["python3", "-m", "pkg.node"]), "d1")
-    assert f'ExecStart={ROS_RUN} --workspace "python3" "-m" "pkg.node"' in node, node
+    assert "Environment=HOME=/var/lib/ros CCRP_WORKSPACE=1\n" in node, node
+    assert f'ExecStart={ROS_RUN} "python3" "-m" "pkg.node"' in node, node
 
 
 def _clone(tmp_path: Path) -> tuple[Path, dict]:
@@ -67,14 +66,18 @@ def test_an_agent_gets_the_distro_never_the_workspace(tmp_path):
     out = subprocess.run([str(script), "/usr/bin/python3", "-c", PROBE], env=env, capture_output=True, text=True, check=True)
     distro_site = tmp_path / "opt" / "ros" / "fake" / "site"
     assert out.stdout.split() == ["distro", "json", str(distro_site), "None", "None", "1"], out
+    # Nor where the variable says anything but 1.
+    other = subprocess.run([str(script), "/usr/bin/python3", "-c", PROBE], env={**env, "CCRP_WORKSPACE": "yes"},
+                           capture_output=True, text=True, check=True)
+    assert other.stdout == out.stdout, other
     # Neither the workspace's setup.sh nor any of its modules ran.
     assert not (tmp_path / "sourced").exists() and not (tmp_path / "imported").exists()
 
 
 def test_a_node_gets_the_distro_then_the_workspace(tmp_path):
     script, env = _clone(tmp_path)
-    out = subprocess.run([str(script), "--workspace", "/usr/bin/python3", "-c", PROBE], env=env, capture_output=True,
-                         text=True, check=True)
+    out = subprocess.run([str(script), "/usr/bin/python3", "-c", PROBE], env={**env, "CCRP_WORKSPACE": "1"},
+                         capture_output=True, text=True, check=True)
     ws = tmp_path / "opt" / "ccrp" / "workspace"
     who, _, pythonpath, ld_path, ament, _ = out.stdout.split()
     assert who == "workspace" and ament == str(ws) and ld_path == str(ws / "lib"), out

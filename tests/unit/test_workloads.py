@@ -229,7 +229,7 @@ def test_a_command_reaches_systemd_word_for_word():
     inv = inventory(lab(software={"run": [{"name": "mapper", "command": ["python3", "-m", "pkg.node", "--name=$X"],
                                            "cpu": 0.5, "memory": "512MiB", "restart": "always"}]}))
     text = node_unit(inv.software.run[0], "d1")
-    assert 'ExecStart=/usr/local/lib/ccrp/ros-run --workspace "python3" "-m" "pkg.node" "--name=$$X"' in text
+    assert 'ExecStart=/usr/local/lib/ccrp/ros-run "python3" "-m" "pkg.node" "--name=$$X"' in text
     assert "User=ros" in text and "CPUQuota=50%" in text and "MemoryMax=536870912" in text and "Restart=always" in text
 
 
