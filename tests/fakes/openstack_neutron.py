@@ -29,7 +29,8 @@ class NeutronApi:
     """Mixed into FakeOpenStack, which holds the stores (self.networks, self.ports...)."""
 
     # Tags in a POST body need Neutron's `tag-creation` extension (2023.1 on). Zed's Neutron (Debian
-    # 12, scripts/openstack.sh) refuses them with this 400: False plays that Neutron.
+    # 12, scripts/openstack.sh) refuses them with this 400, except on a port, whose POST it accepts
+    # and whose tags it drops: False plays that Neutron.
     tag_creation = True
 
     # -- requests --------------------------------------------------------------------------------
@@ -53,7 +54,9 @@ class NeutronApi:
         if not parts[1:]:
             if method == "POST":
                 if not self.tag_creation and "tags" in body[singular]:
-                    raise ApiError(400, "Attribute 'tags' not allowed in POST")
+                    if kind != "ports":
+                        raise ApiError(400, "Attribute 'tags' not allowed in POST")
+                    body[singular] = {k: v for k, v in body[singular].items() if k != "tags"}
                 context.status_code = 201
                 return {singular: getattr(self, f"_create_{collection}")(body[singular])}
             return {kind.replace("-", "_"): [r for r in store.values() if self._matches(r, query)]}

@@ -316,6 +316,12 @@ def test_neutron_without_tag_creation_gets_its_tags_after_the_post(h):
     # the refusal is met once per provider, not once per resource
     assert h.fake.calls[("PUT", "network:/v2.0/ports/{id}/tags")] == 2
     assert h.provider.terminate("robot1") is True and ports_of(h, "robot1") == [] and fips_of(h, "robot1") == []
+    # a port's POST is accepted with its tags dropped (201, tags []): a new run whose first
+    # creation is a port (`ccrp clone create` on a bootstrapped fleet) still tags it
+    h.provider._cache.pop("no-tag-creation")
+    h.provider.run_instance(h.spec("robot3", 3))
+    [port] = ports_of(h, "robot3")
+    assert {"ccrp-managed=true", "ccrp-fleet=ct", "ccrp-robot=robot3"} <= set(port["tags"])
 
 
 def test_a_resource_that_could_not_be_tagged_is_deleted_again(h):

@@ -84,10 +84,11 @@ class OpenStackProvider(Images, Owned, CloudProvider):
 
     def create_tagged(self, what: str, fn, delete, tags: list[str], **attrs):
         """A Neutron resource created with ccrp's ownership tags. Neutron takes `tags` in the POST
-        body only with its `tag-creation` extension (2023.1 on); Zed's answers 400 "Attribute 'tags'
-        not allowed in POST" (seen on scripts/openstack.sh's cloud). There the resource is created
-        bare and tagged at once (PUT .../tags, the `standard-attr-tag` extension); one that could not
-        be tagged is deleted again, since no listing by tag would ever find it."""
+        body only with its `tag-creation` extension (2023.1 on). Zed's (scripts/openstack.sh's cloud)
+        answers 400 "Attribute 'tags' not allowed in POST" for networks, subnets, routers, security
+        groups and floating IPs, and for a port accepts the POST and drops the tags (201, `tags: []`).
+        Either way the resource is tagged at once (PUT .../tags, the `standard-attr-tag` extension);
+        one that could not be tagged is deleted again, since no listing by tag would ever find it."""
         from openstack.exceptions import BadRequestException
 
         if not self._cache.get("no-tag-creation"):
@@ -99,11 +100,15 @@ class OpenStackProvider(Images, Owned, CloudProvider):
                         raise
                     return None
             res = self.api(f"create {what}", post)
-            if res is not None:
+            if res is not None and set(tags) <= set(getattr(res, "tags", None) or []):
                 return res
-            with self._lock:
-                self._cache["no-tag-creation"] = True
-        res = self.api(f"create {what}", fn, **attrs)
+            if res is None:
+                with self._lock:
+                    self._cache["no-tag-creation"] = True
+        else:
+            res = None
+        if res is None:
+            res = self.api(f"create {what}", fn, **attrs)
         try:
             self.api(f"tag {what}", self.network.set_tags, res, tags)
         except BaseException:
