@@ -4,6 +4,7 @@ clone's paths moved under the directory and a stand-in systemctl; the build is r
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import re
@@ -265,20 +266,27 @@ def test_dry_run_says_what_would_change_and_changes_nothing(fleet, built, tmp_pa
     assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == old
 
 
-def test_the_install_space_swap_and_rollback_for_real(tmp_path):
-    """DEPLOY_SH alone: stage and swap keep the previous workspace, rollback brings it back and
-    removes a unit the failed version added."""
+def swapped_clone(tmp_path, systemctl: str | None = None) -> Clones:
+    """A clone r that ran workspace v1 and unit ccrp-run-a, then staged and swapped in v2 (DEPLOY_SH
+    alone); `systemctl`: the script its systemctl is instead of the recording one."""
     clones = Clones(tmp_path, ["r"])
+    if systemctl is not None:
+        (clones.bin / "systemctl").write_text(systemctl)
     clones.at("r", "/opt/ccrp/workspace").mkdir(parents=True)
     clones.at("r", "/opt/ccrp/workspace/setup.sh").write_text("v1")
     clones.at("r", "/etc/systemd/system").mkdir(parents=True)
     clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("old a")
     clones.exec("r", ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
-    import base64
-
     clones.at("r", f"{deploy.DEPLOY_DIR}/d2.tar.b64").write_text(base64.b64encode(install_tar("v2")).decode())
     for action in (["stage", "d2"], ["swap", "d2"]):
         deploy._script(clones, "r", *action)
+    return clones
+
+
+def test_the_install_space_swap_and_rollback_for_real(tmp_path):
+    """DEPLOY_SH alone: stage and swap keep the previous workspace, rollback brings it back and
+    removes a unit the failed version added."""
+    clones = swapped_clone(tmp_path)
     assert clones.at("r", "/opt/ccrp/workspace/setup.sh").read_text() == "v2"
     assert clones.at("r", "/opt/ccrp/workspace.prev/setup.sh").read_text() == "v1"
     clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("new a")
@@ -297,18 +305,7 @@ def test_a_rollback_whose_enable_fails_still_starts_the_previous_nodes(tmp_path)
     """Issue 39: DEPLOY_SH's rollback runs every step whatever failed before it (it stopped at a
     failed `systemctl enable` under `set -e`, before the previous nodes started) and names what
     failed."""
-    clones = Clones(tmp_path, ["r"])
-    (clones.bin / "systemctl").write_text('#!/bin/sh\necho "$@" >> "$CALLS"\n[ "$1" != enable ]\n')
-    clones.at("r", "/opt/ccrp/workspace").mkdir(parents=True)
-    clones.at("r", "/opt/ccrp/workspace/setup.sh").write_text("v1")
-    clones.at("r", "/etc/systemd/system").mkdir(parents=True)
-    clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("old a")
-    clones.exec("r", ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
-    import base64
-
-    clones.at("r", f"{deploy.DEPLOY_DIR}/d2.tar.b64").write_text(base64.b64encode(install_tar("v2")).decode())
-    for action in (["stage", "d2"], ["swap", "d2"]):
-        deploy._script(clones, "r", *action)
+    clones = swapped_clone(tmp_path, systemctl='#!/bin/sh\necho "$@" >> "$CALLS"\n[ "$1" != enable ]\n')
     assert clones.at("r", "/var/lib/ccrp/deploy/pending").read_text() == "swapped\n"
     clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("new a")
     with pytest.raises(deploy.CcrpError) as failed:
