@@ -70,6 +70,15 @@ SERVICES=(
   "neutron-metadata-agent|root|0|neutron-metadata-agent --config-file /etc/neutron/neutron.conf --config-file /etc/neutron/metadata_agent.ini"
 )
 
+# The script's own iptables rules (comment ccrp-openstack), deleted.
+del_tagged() {
+  local table rule
+  for table in nat filter; do
+    iptables -t "$table" -S | grep -- '--comment ccrp-openstack' | while read -r rule; do
+      eval "iptables -t $table ${rule/-A /-D }" || true
+    done
+  done
+}
 pid_of() { local f="$RUN/$1.pid"; [ -s "$f" ] && kill -0 "$(cat "$f")" 2>/dev/null && cat "$f"; }
 # A process and all its descendants.
 descendants() {
@@ -151,11 +160,7 @@ down() {
     done
   done
   # The NAT rules of the external network (comment ccrp-openstack).
-  for table in nat filter; do
-    iptables -t "$table" -S | grep -- '--comment ccrp-openstack' | while read -r rule; do
-      eval "iptables -t $table ${rule/-A /-D }" || true
-    done
-  done
+  del_tagged
   for s in $(ipset list -n 2>/dev/null | grep '^NIPv' || true); do ipset destroy "$s" 2>/dev/null || true; done
   say "down in $(( $(date +%s) - T0 )) s"
 }
@@ -422,15 +427,21 @@ ip link set "$EXT_BRIDGE" up
 # Security groups on linuxbridge see bridged frames through iptables (Docker already sets it).
 sysctl -qw net.bridge.bridge-nf-call-iptables=1 net.bridge.bridge-nf-call-ip6tables=1
 # Instances reach what this host reaches (Debian's mirrors and PyPI: `ccrp snapshot bake`'s builder
-# runs apt and pip) through their router's SNAT to the external network and this host's NAT, as
-# libvirt's NAT networks do. Three rules, each tagged with the comment ccrp-openstack, inserted
-# before Docker's (its FORWARD policy is DROP) and matching the external bridge only; --down
-# deletes them. ip_forward is already 1 (Docker).
-nat_rule() { iptables -t "$1" -C "${@:2}" -m comment --comment ccrp-openstack -j "$JUMP" 2>/dev/null \
-  || iptables -t "$1" -I "${@:2}" -m comment --comment ccrp-openstack -j "$JUMP"; }
-JUMP=MASQUERADE nat_rule nat POSTROUTING -s "$EXT_CIDR" ! -d "$EXT_CIDR"
-JUMP=ACCEPT nat_rule filter FORWARD -i "$EXT_BRIDGE" ! -o "$EXT_BRIDGE"
-JUMP=ACCEPT nat_rule filter FORWARD -o "$EXT_BRIDGE" -m conntrack --ctstate RELATED,ESTABLISHED
+# runs apt and pip) through their router's SNAT to the external network and this host's NAT out of
+# its uplink, as libvirt's NAT networks do. Three rules, each tagged with the comment
+# ccrp-openstack, inserted before Docker's (its FORWARD policy is DROP); --down deletes them.
+# ip_forward is already 1 (Docker). Each names the uplink: with bridge-nf-call-iptables, frames
+# bridged between a router and an instance pass the host's nat table too, and a MASQUERADE
+# without `-o` rewrote the host's SSH to a floating IP (198.51.100.1 -> the instance) to come
+# from the uplink's address, which the clone's firewall then dropped.
+UPLINK=$(ip -4 route show default | awk '{for (i = 1; i < NF; i++) if ($i == "dev") {print $(i + 1); exit}}')
+del_tagged
+if [ -n "$UPLINK" ]; then
+  tag=(-m comment --comment ccrp-openstack)
+  iptables -t nat -I POSTROUTING -s "$EXT_CIDR" -o "$UPLINK" "${tag[@]}" -j MASQUERADE
+  iptables -I FORWARD -i "$EXT_BRIDGE" -o "$UPLINK" "${tag[@]}" -j ACCEPT
+  iptables -I FORWARD -i "$UPLINK" -o "$EXT_BRIDGE" -m conntrack --ctstate RELATED,ESTABLISHED "${tag[@]}" -j ACCEPT
+fi
 
 # ---------------------------------------------------------------------------------------------
 # 3. Daemons.
