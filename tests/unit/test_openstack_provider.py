@@ -333,3 +333,11 @@ def test_a_resource_that_could_not_be_tagged_is_deleted_again(h):
     assert [p for p in h.fake.ports.values() if not p["tags"] and p["device_owner"] != "network:router_interface"
             and p["device_owner"] != "network:router_gateway"] == []
     assert h.instances_for("robot1") == 0
+
+
+def test_timeout_scale_is_one_unless_the_operator_says_the_cloud_emulates_the_cpu(h, monkeypatch):
+    assert h.provider.timeout_scale("robot1") == 1
+    monkeypatch.setenv("CCRP_OPENSTACK_TIMEOUT_SCALE", "6")
+    assert h.provider.timeout_scale("robot1") == 6
+    monkeypatch.setenv("CCRP_OPENSTACK_TIMEOUT_SCALE", "fast")
+    assert h.provider.timeout_scale("robot1") == 1

@@ -119,6 +119,17 @@ class OpenStackProvider(Images, Owned, CloudProvider):
             raise
         return res
 
+    def timeout_scale(self, robot: str) -> int:
+        """1, as on any cloud, unless CCRP_OPENSTACK_TIMEOUT_SCALE says how many times slower this
+        cloud's clones are: a Nova that emulates the CPU (QEMU TCG, as scripts/openstack.sh's
+        all-in-one cloud does; docs/openstack.md), which no API tells a project's user."""
+        import os
+
+        try:
+            return max(1, int(os.environ.get("CCRP_OPENSTACK_TIMEOUT_SCALE", "1")))
+        except ValueError:
+            return 1
+
     def classify_error(self, exc: BaseException):
         return errors.classify(exc)
 
