@@ -332,7 +332,14 @@ discover_hosts_in_cells_interval = 30
 # /dev/kvm exists here but guests do not run under it: QEMU's TCG.
 virt_type = qemu
 connection_uri = qemu:///system
-cpu_mode = none
+# Not QEMU's default qemu64 (cpu_mode = none): a jazzy clone's ccrp-graph and relay (ROS 2 and
+# Zenoh wheels) died there with SIGILL. The libvirt backend gives TCG guests <cpu mode='maximum'>,
+# which Zed's cpu_mode cannot say; Westmere is the newest named model libvirt reports usable under
+# TCG here (virsh domcapabilities --virttype qemu), and QEMU 7.2's TCG emulates AVX2 and the other
+# x86-64-v3 instructions named below.
+cpu_mode = custom
+cpu_models = Westmere
+cpu_model_extra_flags = avx, avx2, fma, f16c, bmi1, bmi2, movbe, xsave, abm
 [vnc]
 enabled = false
 [oslo_concurrency]
