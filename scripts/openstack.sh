@@ -76,7 +76,7 @@ del_tagged() {
   for table in nat filter; do
     iptables -t "$table" -S | grep -- '--comment ccrp-openstack' | while read -r rule; do
       eval "iptables -t $table ${rule/-A /-D }" || true
-    done
+    done || true
   done
 }
 pid_of() { local f="$RUN/$1.pid"; [ -s "$f" ] && kill -0 "$(cat "$f")" 2>/dev/null && cat "$f"; }
@@ -152,9 +152,10 @@ down() {
   local ipt table rule chain
   for ipt in iptables ip6tables; do
     for table in filter nat mangle raw; do
+      # (|| true: under set -e and pipefail, a table without such rules ends grep with 1)
       $ipt -t "$table" -S 2>/dev/null | grep -E '^-A [A-Z]+ .*-j neutron-' | while read -r rule; do
         eval "$ipt -t $table ${rule/-A /-D }" 2>/dev/null || true
-      done
+      done || true
       for chain in $($ipt -t "$table" -S 2>/dev/null | awk '/^-N neutron-/ {print $2}'); do $ipt -t "$table" -F "$chain"; done
       for chain in $($ipt -t "$table" -S 2>/dev/null | awk '/^-N neutron-/ {print $2}'); do $ipt -t "$table" -X "$chain" 2>/dev/null || true; done
     done
