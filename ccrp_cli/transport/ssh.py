@@ -165,6 +165,11 @@ def classify_connect(exc: BaseException) -> ErrorClass:
         return ErrorClass.RETRYABLE
     if isinstance(exc, SSHException) and isinstance(exc.__context__, TimeoutError):
         return ErrorClass.RETRYABLE  # "Error reading SSH protocol banner": a read that timed out
+    if isinstance(exc, SSHException) and str(exc) == "No existing session":
+        # The server closed the connection after the key exchange, before authentication ended: sshd
+        # restarting while the clone boots (seen on a libvirt VM under TCG and load). A refused key
+        # is AuthenticationException, a changed host key BadHostKeyException: both stay fatal.
+        return ErrorClass.RETRYABLE
     return ErrorClass.FATAL
 
 

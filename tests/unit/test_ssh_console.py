@@ -194,6 +194,8 @@ def test_connect_errors_worth_a_retry():
     assert classify_connect(NoValidConnectionsError({("192.0.2.7", 22): ConnectionRefusedError()})) is ErrorClass.RETRYABLE
     assert classify_connect(NoValidConnectionsError({("192.0.2.7", 22): PermissionError()})) is ErrorClass.FATAL
     assert classify_connect(paramiko.AuthenticationException()) is ErrorClass.FATAL
+    assert classify_connect(paramiko.SSHException("No existing session")) is ErrorClass.RETRYABLE  # closed mid-handshake
+    assert classify_connect(paramiko.SSHException("Incompatible ssh peer (no acceptable kex algorithm)")) is ErrorClass.FATAL
     assert classify_connect(paramiko.BadHostKeyException("h", _server_key(), _server_key())) is ErrorClass.FATAL
     assert classify_connect(CcrpError("pin mismatch")) is ErrorClass.FATAL
 
