@@ -58,7 +58,9 @@ def clone_alerts(row: StatusRow) -> list[dict]:
     if row.unreachable:
         return [_alert("error", "clone-unreachable", robot,
                        f"clone of {robot} is listed {status.split(' (')[0]} but does not answer (booting, or shutting down)")]
-    if status != "running":
+    # ccrp's word for the clone, the same on every provider: OpenStack's running clone is ACTIVE, GCP's
+    # RUNNING (the real AIO cloud showed "clone of r1 is down (ACTIVE)" while it served).
+    if row.state != "running":
         return [_alert("error", "clone-down", robot, f"clone of {robot} is down ({status})")]
     alerts = []
     if row.secrets is False:

@@ -200,7 +200,9 @@ def test_security_headers_on_every_answer(dash):
 def test_alerts_from_status_rows():
     kinds = lambda r: [a["kind"] for a in row_alerts(r)]  # noqa: E731
     assert kinds(row()) == []
-    assert kinds(row(status="exited")) == ["clone-down"]
+    assert kinds(row(status="exited", state="stopped")) == ["clone-down"]
+    assert kinds(row(status="ACTIVE")) == []  # OpenStack's word for a running clone
+    assert kinds(row(status="SHUTOFF", state="stopped")) == ["clone-down"]
     assert kinds(row(status="running (unreachable)", unreachable="exec failed: boom")) == ["clone-unreachable"]
     assert kinds(row(status="stopped (idle)")) == ["clone-stopped-idle"]
     assert kinds(row(status="absent", phase="ready")) == ["clone-down"]

@@ -51,7 +51,7 @@ def base_row(**changes) -> StatusRow:
 def test_a_brainless_robot_is_an_alert_also_when_its_clone_is_down():
     lost = watchdog.parse(out(f"lost {T}", f"stopped {T}"))
     assert [a["kind"] for a in row_alerts(base_row())] == []
-    alerts = row_alerts(base_row(status="exited", vpn_connected=False, watchdog=lost))
+    alerts = row_alerts(base_row(status="exited", state="stopped", vpn_connected=False, watchdog=lost))
     assert [a["kind"] for a in alerts] == ["clone-down", "robot-brainless"]
     assert alerts[1]["level"] == "error" and alerts[1]["robot"] == "nao1"
     assert alerts[1]["text"] == (f"nao1 is brainless since {SINCE[11:19]} UTC: its watchdog lost the clone and ran "
@@ -103,7 +103,7 @@ def test_simulated_robots_are_read_in_their_containers(lab_up, monkeypatch):
 def test_fleet_alerts_join_rows_and_pki_most_serious_first(lab_up):
     fleet, _ = lab_up
     lost = watchdog.parse(out(f"lost {T}", f"stopped {T}"))
-    rows = [base_row(), base_row(robot="nao2", vpn_connected=False), base_row(robot="turtlebot1", status="exited",
+    rows = [base_row(), base_row(robot="nao2", vpn_connected=False), base_row(robot="turtlebot1", status="exited", state="stopped",
                                                                               vpn_connected=False, watchdog=lost)]
     alerts = fleet_alerts(fleet, rows)
     got = [(a["level"], a["kind"], a["robot"]) for a in alerts]

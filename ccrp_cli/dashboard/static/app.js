@@ -79,7 +79,7 @@ function vpnCell(row) {
   }
   if (row.revoked_at) return ["revoked " + row.revoked_at.slice(0, 10), "bad"];
   if (row.secrets === false) return ["no (keys gone: fleet up)", "bad"];
-  return ["no", row.status === "running" ? "warn" : "off"];
+  return ["no", row.state === "running" ? "warn" : "off"];
 }
 
 function nodesCell(row) {
