@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -344,8 +345,6 @@ def node_health(provider: Reaches, robot: str, nodes: list[str], stop=None) -> t
     HEALTH_SECONDS: one window for them all, one `systemctl show` each HEALTH_INTERVAL. None when
     all stayed up (at once when there are none). `stop` (a threading.Event): once set, the check
     raises Stopped, so an interrupted command does not wait it out."""
-    import time
-
     units = [unit_name(n) for n in nodes]
     if not units:
         return None
@@ -356,13 +355,13 @@ def node_health(provider: Reaches, robot: str, nodes: list[str], stop=None) -> t
             raise Stopped()
         _, out = provider.transport.exec(robot, ["systemctl", "show", "--property", "Id,ActiveState,SubState,NRestarts",
                                                  *units], timeout=20)
-        shown_ = {}
+        seen = {}
         for block in out.strip().split("\n\n"):
             props = dict(line.split("=", 1) for line in block.splitlines() if "=" in line)
             if props.get("Id"):
-                shown_[props["Id"]] = props
+                seen[props["Id"]] = props
         for unit in units:
-            props = shown_.get(unit, {})
+            props = seen.get(unit, {})
             state = f"{props.get('ActiveState', '?')}/{props.get('SubState', '?')}"
             if props.get("ActiveState") != "active":
                 return unit, f"is {state}"
