@@ -62,8 +62,10 @@ def call(fn: Callable[..., T], *args, classify: Classifier, what: str, backoff: 
     raise AssertionError("unreachable")
 
 
-def across_zones(zones: Iterable[str], fn: Callable[[str], T], *, classify: Classifier, what: str) -> T:
-    """fn(zone) for each zone in order until one works; only ZONE-class failures move on."""
+def across_zones(zones: Iterable[str], fn: Callable[[str], T], *, classify: Classifier, what: str,
+                 exhausted: Callable[[str, list[str], BaseException], CcrpError | None] = lambda *_: None) -> T:
+    """fn(zone) for each zone in order until one works; only ZONE-class failures move on. When every
+    zone failed, `exhausted(what, tried, last)` may name the cause better than "no capacity"."""
     tried: list[str] = []
     last: BaseException | None = None
     for zone in zones:
@@ -74,6 +76,8 @@ def across_zones(zones: Iterable[str], fn: Callable[[str], T], *, classify: Clas
                 raise
             tried.append(zone)
             last = exc
+    if last is not None and (err := exhausted(what, tried, last)) is not None:
+        raise err from last
     raise CcrpError(
         f"{what}: no capacity in zones {', '.join(tried) or '(none listed)'} ({str(last)[:160]})",
         hint="add zones to the inventory's provider.zones or pick another instance type",

@@ -60,6 +60,10 @@ if TYPE_CHECKING:
     from .cloudboot import CloudBoot
 
 NO_VALID_HOST = "No valid host was found. There are not enough hosts available."
+# What Zed's Nova says when hosts were found but the build failed on each (scripts/openstack.sh's
+# cloud said it for a config drive nova-compute could not write).
+BUILD_FAILED = ("Exceeded maximum number of retries. Exhausted all hosts available for retrying build failures "
+                "for instance {id}.")
 MAX_USER_DATA_B64 = 65_535  # Nova's limit on the base64 text
 FIP_POOL = ipaddress.IPv4Network("203.0.113.0/24")  # TEST-NET-3: never contacted
 BOOT_FIP_RANGE = "172.29.0.0/16"  # booting: the floating-IP pool is a free /24 of it, a Docker network
@@ -99,6 +103,7 @@ class FakeOpenStack(NeutronApi):
         self._n = 0
         self.delay_s = 0.0
         self.no_capacity: set[str] = set()  # zones where the scheduler finds no host
+        self.build_fails: set[str] = set()  # zones whose hosts fail every build
         # The project's quotas (Nova: instances, cores, RAM in MB; Neutron: floating IPs), enforced
         # at create and reported with their usage (compute /limits, network /quotas/<id>/details)
         # from what exists. Small, as a new project's are: the benchmark raises them.
@@ -367,7 +372,7 @@ class FakeOpenStack(NeutronApi):
         for port in ports:
             port.update(device_id=server["id"], device_owner=f"compute:{server['OS-EXT-AZ:availability_zone']}")
         self.servers[server["id"]] = server
-        if self.boot is not None and server["OS-EXT-AZ:availability_zone"] not in self.no_capacity:
+        if self.boot is not None and server["OS-EXT-AZ:availability_zone"] not in self.no_capacity | self.build_fails:
             self._in_background(server, "spawning", self._boot_server)
         return {"id": server["id"], "links": [], "adminPass": "x", "OS-DCF:diskConfig": "MANUAL",
                 "security_groups": [{"name": "default"}]}
@@ -376,6 +381,9 @@ class FakeOpenStack(NeutronApi):
         if server["status"] == "BUILD":  # the scheduler decides on the first look
             if server["OS-EXT-AZ:availability_zone"] in self.no_capacity:
                 server.update(status="ERROR", fault={"code": 500, "message": NO_VALID_HOST, "created": now()})
+            elif server["OS-EXT-AZ:availability_zone"] in self.build_fails:
+                server.update(status="ERROR", fault={"code": 500, "message": BUILD_FAILED.format(id=server["id"]),
+                                                     "created": now()})
             elif self.boot is None:  # booting: ACTIVE once the container runs (_boot_server)
                 server["status"] = "ACTIVE"
                 server["console"] = (

@@ -15,7 +15,7 @@ from ccrp_cli.errors import CcrpError
 from ccrp_cli.providers.base import LABEL_FLEET, LABEL_ROBOT, Origin
 from ccrp_cli.retry import ErrorClass
 from tests.contract.harness_openstack import make_harness
-from tests.fakes.openstack_cloud import NO_VALID_HOST
+from tests.fakes.openstack_cloud import BUILD_FAILED, NO_VALID_HOST
 
 pytest.importorskip("openstack")
 
@@ -76,6 +76,22 @@ def test_no_capacity_anywhere_rolls_back_and_says_so(h):
     with pytest.raises(CcrpError) as err:
         h.provider.run_instance(h.spec("robot1", 1))
     assert "no capacity in zones az1, az2" in err.value.one_line() and "provider.zones" in err.value.one_line()
+    assert h.owned_ids() == before
+
+
+def test_build_failures_on_every_host_are_not_called_a_lack_of_capacity(h):
+    """Real Nova's fault when its compute hosts fail a build: the next zone is tried, and when all
+    fail the user reads that the cloud could not build it, not "no capacity" (docs/openstack.md, 3)."""
+    h.fake.build_fails = {"az1"}
+    rec = h.provider.run_instance(h.spec("robot1", 1))
+    assert h.fake.servers[rec.provider_id]["OS-EXT-AZ:availability_zone"] == "az2"
+    h.fake.build_fails = {"az1", "az2"}
+    before = h.owned_ids()
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(h.spec("robot2", 2))
+    line = err.value.one_line()
+    assert "could not build it in zones az1, az2" in line and "Exhausted all hosts" in line
+    assert "no capacity" not in line and "nova-compute" in err.value.hint
     assert h.owned_ids() == before
 
 
@@ -206,6 +222,7 @@ def test_classify_error():
     assert errors.classify(http(409, "Quota exceeded for resources: ['floatingip'].")) is ErrorClass.REGION
     assert errors.classify(errors.ServerFault(NO_VALID_HOST)) is ErrorClass.ZONE
     assert errors.classify(errors.ServerFault("Build of instance aborted: image broken")) is ErrorClass.FATAL
+    assert errors.classify(errors.ServerFault(BUILD_FAILED.format(id="x"))) is ErrorClass.ZONE
     assert errors.classify(http(400, "Invalid key_name provided.")) is ErrorClass.FATAL
     assert errors.classify(http(401, "The request you have made requires authentication.")) is ErrorClass.FATAL
 

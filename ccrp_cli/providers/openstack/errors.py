@@ -10,8 +10,14 @@ from ...retry import ErrorClass
 
 RETRYABLE_STATUS = {429, 500, 502, 503, 504}
 # Nova's scheduler and the hypervisors word "this zone is full" in several ways.
-CAPACITY = re.compile(r"no valid host|not enough hosts|insufficient|capacity|availability zone .* not available"
-                      r"|exceeded maximum number of retries", re.I)
+CAPACITY = re.compile(r"no valid host|not enough hosts|insufficient|capacity|availability zone .* not available", re.I)
+# Nova's words when the scheduler found hosts but the build failed on each (the compute host's fault:
+# a config drive it could not write, an image it could not boot). Another zone's hosts may build it,
+# so it moves on as for capacity, but the user is told the cause is on the cloud's side: met on a
+# real Nova (docs/openstack.md, difference 3), where "no capacity" sent users the wrong way.
+BUILD_FAILED = re.compile(r"exhausted all hosts|exceeded maximum number of retries", re.I)
+BUILD_HINT = ("the cloud's compute hosts failed to build it (not a lack of capacity): ask the cloud's admin, whose "
+              "nova-compute log says why, or try another image or flavor")
 QUOTA = re.compile(r"quota|over ?limit|overquota", re.I)
 QUOTA_HINT = ("raise the project's quota (`openstack quota show`) or delete servers / floating IPs it "
               "no longer needs")
@@ -36,7 +42,7 @@ def classify(exc: BaseException) -> ErrorClass:
     from keystoneauth1 import exceptions as ksa
 
     if isinstance(exc, ServerFault):
-        return ErrorClass.ZONE if CAPACITY.search(str(exc)) else ErrorClass.FATAL
+        return ErrorClass.ZONE if CAPACITY.search(str(exc)) or BUILD_FAILED.search(str(exc)) else ErrorClass.FATAL
     if isinstance(exc, (ksa.ConnectionError, ksa.RetriableConnectionFailure)):
         return ErrorClass.RETRYABLE
     try:
@@ -56,7 +62,7 @@ def classify(exc: BaseException) -> ErrorClass:
         return ErrorClass.RETRYABLE
     if status in (403, 409, 413) and QUOTA.search(text):
         return ErrorClass.REGION
-    if status in (400, 409, 500) and CAPACITY.search(text):
+    if status in (400, 409, 500) and (CAPACITY.search(text) or BUILD_FAILED.search(text)):
         return ErrorClass.ZONE
     return ErrorClass.FATAL
 
@@ -76,6 +82,8 @@ def to_ccrp(what: str, cloud: str, exc: BaseException) -> CcrpError:
     if status == 401 or type(exc).__name__ in ("Unauthorized", "MissingAuthPlugin", "NoMatchingPlugin"):
         return CcrpError(f"{what}: cloud {cloud!r} refused the credentials: {msg}",
                          hint=f"check the {cloud!r} entry of clouds.yaml (or OS_CLOUD) and `openstack token issue`")
+    if kind is ErrorClass.ZONE and BUILD_FAILED.search(msg):
+        return CcrpError(f"{what}: the cloud could not build the server: {msg}", hint=BUILD_HINT)
     if kind is ErrorClass.ZONE:
         return CcrpError(f"{what}: no capacity: {msg}", hint="add zones to the inventory's provider.zones or pick another flavor")
     return CcrpError(f"{what}: {msg or type(exc).__name__}")

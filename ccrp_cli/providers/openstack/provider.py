@@ -133,6 +133,14 @@ class OpenStackProvider(Images, Owned, CloudProvider):
     def classify_error(self, exc: BaseException):
         return errors.classify(exc)
 
+    @staticmethod
+    def _build_failed(what: str, tried: list[str], last: BaseException) -> CcrpError | None:
+        """Every zone's hosts failed the build: the cloud's fault, not a lack of capacity."""
+        if not errors.BUILD_FAILED.search(str(last)):
+            return None
+        return CcrpError(f"{what}: the cloud could not build it in zones {', '.join(tried)}: {errors.message_of(last)}",
+                         hint=errors.BUILD_HINT)
+
     def listing(self, what: str, fn, **query) -> list:
         """A list call (the SDK returns a lazy generator: the requests happen inside api())."""
         return self.api(f"list {what}", lambda: list(fn(**query)))
@@ -226,7 +234,8 @@ class OpenStackProvider(Images, Owned, CloudProvider):
                 port = self._port(spec, server, net, subnet, sg, created)
                 if server is None:
                     server = across_zones(self._zones(spec.robot), lambda z: self._boot(spec, port, user_data, z, created),
-                                          classify=self.classify_error, what=f"server for {spec.robot}")
+                                          classify=self.classify_error, what=f"server for {spec.robot}",
+                                          exhausted=self._build_failed)
                 fip = self._floating_ip(spec, port, ext, created)
             except BaseException as exc:  # Ctrl-C too: what this attempt made must not linger
                 left = self._rollback(created)
