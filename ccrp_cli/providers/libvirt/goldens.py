@@ -65,7 +65,7 @@ RESOLVED_CONF = "[Resolve]\nLLMNR=no\nMulticastDNS=no\n"
 # cloud-init's result overlap the config and final stages instead of following them (the keys and
 # their pinning are the same).
 CLOUD_CFG = """\
-datasource_list: [ NoCloud, None ]
+datasource_list: [ NoCloud, ConfigDrive, None ]
 system_info:
   network:
     renderers: [ networkd ]
@@ -87,6 +87,7 @@ cloud_final_modules: [ package-update-upgrade-install, write-files-deferred, scr
 DOCKERFILE = """\
 # A ccrp snapshot made a VM's root file system (ccrp_cli/providers/libvirt/goldens.py).
 FROM {base}
+COPY initramfs-modules /usr/share/initramfs-tools/modules.d/ccrp-config-drive
 RUN apt-get update \\
  && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends {packages} \\
  && rm -rf /var/lib/apt/lists/*
@@ -105,6 +106,12 @@ RUN rm -f /etc/ssh/ssh_host_* \\
  && rm -rf /var/lib/cloud/instance /var/lib/cloud/instances \\
  && : > /etc/machine-id
 """
+# The same golden boots on OpenStack (scripts/openstack.sh uploads one to Glance): Nova hands
+# cloud-init its data on a config drive, an ISO on an IDE CD-ROM of QEMU's `pc` machine. cloud-init's
+# ds-identify looks for its `config-2` label at the very start of boot, when only the initramfs's
+# drivers have run; without these two the CD-ROM appeared later and cloud-init disabled itself (no
+# host keys, no user-data). The libvirt backend's NoCloud seed is found first, as before.
+INITRAMFS_MODULES = "ata_piix\nsr_mod\n"
 FSTAB = "/dev/vda / ext4 defaults,errors=remount-ro 0 1\n"
 DISK_BYTES = 8 << 30  # the root file system's size: the recipe takes about 1.5 GB of it
 
@@ -155,7 +162,8 @@ def build(client, snapshot_image: str, out_dir: Path, progress=lambda msg: None,
     progress(f"adding a kernel, sshd and networkd to {snapshot_image} ({tag})")
     build_clone_image(client, tag, dockerfile(snapshot_image), {"ccrp-libvirt-golden": snapshot_image}, progress,
                       files={"90-ccrp.cfg": CLOUD_CFG.encode(), "fstab": FSTAB.encode(),
-                             "resolved.conf": RESOLVED_CONF.encode(), "no-ra.conf": NO_RA_DROPIN.encode()},
+                             "resolved.conf": RESOLVED_CONF.encode(), "no-ra.conf": NO_RA_DROPIN.encode(),
+                             "initramfs-modules": INITRAMFS_MODULES.encode()},
                       what="golden volume layer")
     seconds["vm layer (docker build)"] = time.monotonic() - t0
     container = None
