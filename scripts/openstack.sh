@@ -637,5 +637,15 @@ os.chmod(tmp, 0o600)
 os.replace(tmp, path)
 PY
 
+# 5. The base image `ccrp snapshot bake` starts from: Debian 12 from Debian's packages, made by
+# ccrp's own golden builder (scripts/openstack_image.py; kept when current). It needs ccrp's venv and
+# the Docker engine (scripts/setup.sh, scripts/docker-engine.sh).
+if [ -x .venv/bin/python ] && docker info >/dev/null 2>&1; then
+  say "base image: debian-12-genericcloud-amd64 (built and uploaded unless current: ~2 min)"
+  step base-image env OS_CLIENT_CONFIG_FILE="$CLOUDS_YAML" .venv/bin/python scripts/openstack_image.py --cloud ccrp-aio-admin
+else
+  say "base image skipped: needs .venv (bash scripts/setup.sh) and Docker (bash scripts/docker-engine.sh); then run this again"
+fi
+
 status
 say "ready in $(( $(date +%s) - T0 )) s: OS_CLOUD=ccrp-aio openstack server list (clouds.yaml: $CLOUDS_YAML)"
