@@ -4,7 +4,8 @@ so the suite tests the provider, not cloud-init (as the Docker harness's `sleep`
 Debian cloud kernel and its initramfs with, as the root file system, a static busybox whose init
 loads the ACPI button driver and runs acpid, which powers the VM off at the power button (what
 `clone stop` presses; a clone's systemd does the same). Built once per machine from Debian's
-packages (the image ccrp-test/vm-tiny), a few MB of disk per run.
+packages (the image ccrp-test/vm-tiny, tests/tiny_vm.py, shared with the real OpenStack's harness),
+a few MB of disk per run.
 
 Faults and delays are injected around each libvirt call the provider makes through its retry layer
 (`provider.api`), before the call reaches libvirtd: a dropped RPC connection (what the provider
@@ -15,49 +16,24 @@ but the VPN ports `provider.vpn_forward` forwards (tests/unit/test_libvirt_forwa
 
 from __future__ import annotations
 
-import atexit
-import io
 import ipaddress
 import shlex
-import shutil
 import subprocess
-import tarfile
-import tempfile
 import threading
 import time
 import uuid
 from collections import Counter
 from contextlib import contextmanager
-from pathlib import Path
 
 import pytest
 import yaml
 
 from ccrp_cli.providers.base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE
 
+from ..tiny_vm import DISK_BYTES, tiny_files
 from .harness import FLEET
 from .specs import FAST, OPERATOR_CIDR, Knobs, clone_spec, inventory
 
-BASE = "ccrp/base:bookworm"
-TINY = "ccrp-test/vm-tiny:1"
-TINY_DOCKERFILE = f"""FROM {BASE}
-RUN apt-get update \\
- && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends linux-image-cloud-amd64 busybox-static \\
- && rm -rf /var/lib/apt/lists/*
-"""
-# PID 1 of the tiny VM. acpid runs ./PWRF/00000080 (under /etc/acpi) when the power button is pressed.
-INIT = """#!/bin/busybox sh
-/bin/busybox mount -t proc proc /proc
-/bin/busybox mount -t sysfs sys /sys
-/bin/busybox mount -t devtmpfs dev /dev
-/bin/busybox insmod /lib/evdev.ko
-/bin/busybox insmod /lib/button.ko
-/bin/busybox acpid -d -c /etc/acpi &
-echo "ccrp contract VM up"
-while :; do /bin/busybox sleep 3600; done
-"""
-POWER_BUTTON = "#!/bin/busybox sh\n/bin/busybox poweroff -f\n"
-DISK_BYTES = 16 << 20
 PUBLIC_RANGE = "192.168.208.0/20"
 
 
@@ -204,53 +180,6 @@ class LibvirtHarness(Knobs):
         return rules
 
 
-_TINY: dict[str, Path] = {}
-
-
-def _tiny_files(client) -> dict[str, Path]:
-    """The tiny VM's kernel, initramfs and root file system (qcow2), made once per process."""
-    if _TINY:
-        return _TINY
-    try:
-        client.images.get(TINY)
-    except Exception:  # noqa: BLE001 - NotFound: built once per machine
-        buf = io.BytesIO()
-        with tarfile.open(fileobj=buf, mode="w") as tar:
-            info = tarfile.TarInfo("Dockerfile")
-            info.size = len(TINY_DOCKERFILE)
-            tar.addfile(info, io.BytesIO(TINY_DOCKERFILE.encode()))
-        buf.seek(0)
-        client.images.build(fileobj=buf, custom_context=True, tag=TINY, rm=True)
-    out = Path(tempfile.mkdtemp(prefix="ccrp-contract-vm-"))
-    atexit.register(shutil.rmtree, out, True)
-    container = client.containers.create(TINY, command=["/bin/true"])
-    try:
-        for src in ("/boot", "/bin/busybox", "/lib/modules"):
-            stream, _ = container.get_archive(src)
-            with tarfile.open(fileobj=io.BytesIO(b"".join(stream))) as tar:
-                tar.extractall(out / "x", filter="tar")
-    finally:
-        container.remove(force=True)
-    root = out / "root"
-    for d in ("bin", "sbin", "lib", "proc", "sys", "dev", "run", "var/log", "etc/acpi/PWRF"):
-        (root / d).mkdir(parents=True, exist_ok=True)
-    shutil.copy(out / "x" / "busybox", root / "bin" / "busybox")
-    for module in ("input/evdev.ko", "acpi/button.ko"):  # modules of the cloud kernel: the power button's events
-        shutil.copy(next((out / "x" / "modules").glob(f"*/kernel/drivers/{module}")), root / "lib")
-    for path, text in (("sbin/init", INIT), ("etc/acpi/PWRF/00000080", POWER_BUTTON)):
-        (root / path).write_text(text)
-        (root / path).chmod(0o755)
-    raw = out / "root.img"
-    with open(raw, "wb") as fh:
-        fh.truncate(DISK_BYTES)
-    subprocess.run(["mkfs.ext4", "-F", "-q", "-d", str(root), str(raw)], check=True, capture_output=True)
-    subprocess.run(["qemu-img", "convert", "-f", "raw", "-O", "qcow2", str(raw), str(out / "golden.qcow2")],
-                   check=True, capture_output=True)
-    _TINY.update(qcow2=out / "golden.qcow2", kernel=next((out / "x" / "boot").glob("vmlinuz-*")),
-                 initrd=next((out / "x" / "boot").glob("initrd.img-*")))
-    return _TINY
-
-
 @contextmanager
 def make_harness(tmp_path):
     from tests.libvirt_host import URI, gate
@@ -269,7 +198,7 @@ def make_harness(tmp_path):
     from tests.e2e.fleet import ensure_base
 
     ensure_base(client)
-    files = _tiny_files(client)
+    files = tiny_files(client)
     used = used_networks()
     # accel tcg: the contract is the provider's, not the host's; no probe VM per test.
     inv = inventory({"kind": "libvirt", "accel": "tcg", "memory_mb": 512, "vcpus": 1,
