@@ -60,7 +60,7 @@ def main() -> int:
     t0 = time.monotonic()
     cas = {p.name: p.read_bytes() for p in sorted(CA_DIR.glob("*.crt"))}
     # The build's inputs: a change to any of them (the golden's layer, the packages, the CAs) makes a new image.
-    digest = hashlib.sha256("\0".join([layer(cas), goldens.dockerfile(BASE), goldens.CLOUD_CFG, goldens.INITRAMFS_MODULES,
+    digest = hashlib.sha256("\0".join([layer(cas), goldens.dockerfile(BASE), goldens.CLOUD_CFG, goldens.INITRAMFS_MODULES, goldens.DS_IDENTIFY_CFG,
                                        *(f"{k}={v.hex()}" for k, v in cas.items())]).encode()).hexdigest()[:16]
     conn = openstack.connect(cloud=args.cloud)
     current = [i for i in conn.image.images(name=NAME) if i.status == "active"]

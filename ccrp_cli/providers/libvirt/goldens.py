@@ -92,6 +92,7 @@ RUN apt-get update \\
  && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends {packages} \\
  && rm -rf /var/lib/apt/lists/*
 COPY 90-ccrp.cfg /etc/cloud/cloud.cfg.d/90-ccrp.cfg
+COPY ds-identify.cfg /etc/cloud/ds-identify.cfg
 COPY fstab /etc/fstab
 COPY resolved.conf /etc/systemd/resolved.conf.d/90-ccrp.conf
 {no_ra}RUN mkdir -p /etc/qemu && blocked=$(qemu-ga --block-rpcs=help | grep -vxE '{agent_rpcs}' | paste -sd, -) \\
@@ -108,10 +109,15 @@ RUN rm -f /etc/ssh/ssh_host_* \\
 """
 # The same golden boots on OpenStack (scripts/openstack.sh uploads one to Glance): Nova hands
 # cloud-init its data on a config drive, an ISO on an IDE CD-ROM of QEMU's `pc` machine. cloud-init's
-# ds-identify looks for its `config-2` label at the very start of boot, when only the initramfs's
-# drivers have run; without these two the CD-ROM appeared later and cloud-init disabled itself (no
-# host keys, no user-data). The libvirt backend's NoCloud seed is found first, as before.
+# ds-identify (a systemd generator, at the very start of boot) decides whether cloud-init runs at all;
+# on Nova it disabled it (no host keys, no user-data: the console showed no cloud-init line), first
+# with the CD-ROM's drivers only on the root file system, then still with them in the initramfs (sr0
+# found 1.4 s before the root was mounted). With `policy: enabled` cloud-init always runs and tries
+# the datasource list itself, NoCloud first (libvirt's seed, as before), then the config drive, which
+# it finds by its label once udev has settled. The drivers stay in the initramfs: the drive is there
+# from the start.
 INITRAMFS_MODULES = "ata_piix\nsr_mod\n"
+DS_IDENTIFY_CFG = "policy: enabled\n"
 FSTAB = "/dev/vda / ext4 defaults,errors=remount-ro 0 1\n"
 DISK_BYTES = 8 << 30  # the root file system's size: the recipe takes about 1.5 GB of it
 
@@ -163,7 +169,7 @@ def build(client, snapshot_image: str, out_dir: Path, progress=lambda msg: None,
     build_clone_image(client, tag, dockerfile(snapshot_image), {"ccrp-libvirt-golden": snapshot_image}, progress,
                       files={"90-ccrp.cfg": CLOUD_CFG.encode(), "fstab": FSTAB.encode(),
                              "resolved.conf": RESOLVED_CONF.encode(), "no-ra.conf": NO_RA_DROPIN.encode(),
-                             "initramfs-modules": INITRAMFS_MODULES.encode()},
+                             "initramfs-modules": INITRAMFS_MODULES.encode(), "ds-identify.cfg": DS_IDENTIFY_CFG.encode()},
                       what="golden volume layer")
     seconds["vm layer (docker build)"] = time.monotonic() - t0
     container = None
