@@ -1,7 +1,7 @@
 # ccrp developer entry points. `make test` is the command CI runs (see README).
 PY := .venv/bin/python
 
-.PHONY: setup quickstart test unit quick bench clean
+.PHONY: setup quickstart test unit quick bench clean openstack e2e-openstack-real
 
 setup:
 	bash scripts/setup.sh
@@ -24,6 +24,15 @@ unit:
 # examples instead of 1000.
 quick:
 	CCRP_FUZZ_EXAMPLES=100 $(PY) -m pytest -n 3 --dist loadgroup --basetemp=/tmp/ccrpquick tests/unit tests/contract
+
+# A real single-node OpenStack on this machine (docs/openstack.md), and ccrp's user path on it: init, bake,
+# fleet up of two clones, a robot through its floating IP, a shared topic, deploy, stop/start, fleet
+# down (about 35 minutes on 2 cores: Nova emulates the guests' CPU). Not part of `make test`.
+openstack:
+	bash scripts/openstack.sh
+
+e2e-openstack-real: openstack
+	CCRP_E2E_OPENSTACK_REAL=1 $(PY) -m pytest -v -s --basetemp=/tmp/ccrp-osreal tests/e2e/test_openstack_real.py
 
 bench:
 	$(PY) bench/startup.py
