@@ -59,18 +59,19 @@ def progress(msg: str) -> None:
     print(f"bench {time.strftime('%H:%M:%S')}: {msg}", file=sys.stderr, flush=True)
 
 
-def inventories(args) -> dict[str, dict]:
+def inventories(args, distro: str = "noetic", robot: str = ROBOT, lv: str = LV, dk: str = DK) -> dict[str, dict]:
+    """The libvirt fleet `lv` and the Docker fleet `dk`, one robot each (also bench/openstack_real.py's)."""
     # Pools no route, Docker or libvirt network, or fleet of this host overlaps: as `ccrp init`
     # picks them; free() takes each it returns, so the two fleets get different ones.
     from ccrp_cli.ops.init import free, used_networks
 
     used = used_networks()
-    base = {"ros": {"distro": "noetic"}, "robots": [{"name": ROBOT}]}
+    base = {"ros": {"distro": distro}, "robots": [{"name": robot}]}
     return {
-        LV: {"fleet": LV, "provider": {"kind": "libvirt", "accel": args.accel, "memory_mb": args.memory_mb,
+        lv: {"fleet": lv, "provider": {"kind": "libvirt", "accel": args.accel, "memory_mb": args.memory_mb,
                                        "vcpus": args.vcpus, "public_cidr": free("public", used)},
              "vpn": {"pool": free("vpn", used)}, "common": {"cidr": free("common", used)}, **base},
-        DK: {"fleet": DK, "provider": {"kind": "docker", "public_cidr": free("public", used)},
+        dk: {"fleet": dk, "provider": {"kind": "docker", "public_cidr": free("public", used)},
              "vpn": {"pool": free("vpn", used)}, "common": {"cidr": free("common", used)}, **base},
     }
 
@@ -106,10 +107,10 @@ def provider_of(home: Path, inventory: Path):
     return fleet, get_provider(fleet.inventory)
 
 
-def ready(rows: list[dict], wall: float) -> dict:
-    [row] = [r for r in rows if r["robot"] == ROBOT]
+def ready(rows: list[dict], wall: float, robot: str = ROBOT) -> dict:
+    [row] = [r for r in rows if r["robot"] == robot]
     if row["action"] != "created":
-        raise SystemExit(f"fleet up did not create {ROBOT}'s clone: {row}")
+        raise SystemExit(f"fleet up did not create {robot}'s clone: {row}")
     return {"clone_s": row["seconds"], "wall_s": round(wall, 1)}
 
 
@@ -127,13 +128,13 @@ def overlay_times(provider, image: str, n: int) -> list[float]:
     return times
 
 
-def docker_measures(fleet: str) -> dict:
+def docker_measures(fleet: str, robot: str = ROBOT) -> dict:
     """The clone container's RW layer and memory, as `docker ps --size` and `docker stats` give them."""
     import docker
 
     client = docker.from_env()
     try:
-        name = f"ccrp-{fleet}-cri-{ROBOT}"
+        name = f"ccrp-{fleet}-cri-{robot}"
         [size] = client.api.containers(all=True, size=True, filters={"name": f"^/{name}$"})  # GET /containers/json?size=1
         mem = client.containers.get(name).stats(stream=False)["memory_stats"]
         inactive = mem.get("stats", {}).get("inactive_file", mem.get("stats", {}).get("total_inactive_file", 0))
@@ -154,6 +155,20 @@ def cleanup_docker(fleets: list[str]) -> None:
     spec.loader.exec_module(docker_fleet)
     for fleet in fleets:
         docker_fleet.cleanup_fleet(fleet)
+
+
+def remove_snapshots(provider, fleet: str) -> list[str]:
+    """The fleet's snapshots deleted (after its `fleet down`), the provider closed; the names of
+    what is left of the fleet, said on stderr."""
+    try:
+        for snap in provider.list_snapshots():
+            provider.delete_snapshot(snap.id)
+        left = [r.name for r in provider.list_owned()]
+        if left:
+            progress(f"left of {fleet}: {left}")
+        return left
+    finally:
+        provider.close()
 
 
 def load() -> list[float]:
@@ -234,12 +249,7 @@ def main() -> None:
                 lv.run("fleet", "down")
                 dk.run("fleet", "down")
                 if lv_provider is not None:
-                    for snap in lv_provider.list_snapshots():
-                        lv_provider.delete_snapshot(snap.id)
-                    left = lv_provider.list_owned()
-                    if left:
-                        progress(f"left of {LV}: {[r.name for r in left]}")
-                    lv_provider.close()
+                    remove_snapshots(lv_provider, LV)
             finally:
                 cleanup_docker([LV, DK])
 
