@@ -18,6 +18,9 @@ def init(
     robots: Annotated[str, typer.Option("--robots", help="Robot names, comma-separated.")] = "nao1,nao2",
     fleet: Annotated[str, typer.Option("--fleet", help="Fleet name (default: this directory's name, if it is a valid one, else 'lab').")] = "",
     distro: Annotated[str, typer.Option("--distro", help="ROS distro of the fleet: jazzy (ROS 2, the default), kilted (ROS 2) or noetic (ROS 1): one recipe each in snapshots/.")] = "jazzy",
+    cloud: Annotated[str | None, typer.Option("--cloud", callback=options.cloud_name, show_default=False,
+                                       help="openstack: the clouds.yaml entry; flavor, external network and this host's "
+                                            "address are then asked of that cloud.")] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="File to write (never overwritten).")] = Path(options.DEFAULT_INVENTORY),
     as_json: options.Json = False,
 ) -> None:
@@ -26,7 +29,8 @@ def init(
     from ..ops.init import default_fleet, write
     from ..recipes import is_ros2
 
-    result = write(out, provider, [r.strip() for r in robots.split(",") if r.strip()], fleet or default_fleet(), distro)
+    result = write(out, provider, [r.strip() for r in robots.split(",") if r.strip()], fleet or default_fleet(), distro,
+                   cloud or "")
     output.info(f"wrote {out} (fleet {result['fleet']!r} on {result['provider']}, ROS {distro}, robots {', '.join(result['robots'])}); "
                 f"next: ccrp fleet validate, then ccrp fleet up")
     if is_ros2(distro):

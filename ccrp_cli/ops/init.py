@@ -116,8 +116,10 @@ def default_fleet() -> str:
     return name if NAME_RE.fullmatch(name) else "lab"
 
 
-def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str = DEFAULT_DISTRO) -> dict:
-    """Write the first inventory of `provider` (empty: init's default backend) to `path`."""
+def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str = DEFAULT_DISTRO,
+          cloud: str = "") -> dict:
+    """Write the first inventory of `provider` (empty: init's default backend) to `path`; with
+    `cloud`, the backend's values asked of that cloud (InitSection.discover)."""
     from ..models.names import check_name
     from ..recipes import distros
     from ..templates import render
@@ -134,16 +136,34 @@ def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str 
         check_name(name)
     if len(set(robots)) != len(robots) or not robots:
         raise InputError("--robots: one or more different names, comma-separated", hint="e.g. --robots nao1,nao2")
+    if cloud and section.discover is None:
+        raise InputError(f"--cloud is for --provider {', '.join(k for k, v in sections.items() if v.discover)}",
+                         hint="the other backends' first inventory needs no cloud entry")
     if path.exists():
         raise InputError(f"{path} exists: ccrp init never overwrites an inventory", hint="edit it, or remove it first")
+    values = dict(section.values)
+    if cloud:
+        from ..providers import _load
+
+        from ..models.values import check_cloud_name
+
+        values |= _load(section.discover)(cloud)
+        # Names the cloud chose reach the file: one token each, or nothing is written.
+        for key, value in values.items():
+            if key != "operator_note":
+                try:
+                    check_cloud_name(value)
+                except ValueError as exc:
+                    raise InputError(f"cloud {shown(cloud)} answered a {key} that ccrp will not write: {exc}") from None
     used = used_networks()
     pools = {"public": free("public", used) if section.public_pool else None,
              "common": free("common", used), "vpn_pool": free("vpn", used)}
     others = [d for d in distros() if d != distro]
-    text = render("init/ccrp.yaml.j2", fleet=fleet, provider_lines=section.lines.format(public=pools["public"]),
+    text = render("init/ccrp.yaml.j2", fleet=fleet, provider_lines=section.lines.format(public=pools["public"], **values),
                   autostop=section.autostop, robots=robots, distro=distro, ros2=distros()[distro] == 2, others=others,
                   **pools)
     with cannot_write(path):
         with open(path, "x") as fh:  # exclusive: a file made meanwhile is not overwritten either
             fh.write(text)
-    return {"path": str(path), "fleet": fleet, "provider": provider, "distro": distro, "robots": robots, **pools}
+    found = {k: v for k, v in values.items() if k != "operator_note"} if cloud else {}
+    return {"path": str(path), "fleet": fleet, "provider": provider, "distro": distro, "robots": robots, **pools, **found}

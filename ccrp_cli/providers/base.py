@@ -218,6 +218,10 @@ class InitSection:
     autostop: bool = True
     # What `ccrp init` writes with no --provider (one backend says so).
     default: bool = False
+    # `ccrp init --cloud NAME`: "module:function" (as ProviderInfo.factory) that asks the cloud for the
+    # values of `lines`' other fields; `values` are those fields' defaults, written without --cloud.
+    discover: str | None = None
+    values: tuple[tuple[str, str], ...] = ()
 
 
 @dataclass(frozen=True)

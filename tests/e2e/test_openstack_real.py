@@ -4,8 +4,9 @@ CCRP_E2E_OPENSTACK_REAL=1 (`make e2e-openstack-real`); about 35 minutes on 2 cor
 emulates the guests' CPU (TCG), so it is not part of the README's test command.
 
 What a user types, in a directory of their own, against the `ccrp-aio` entry the script wrote to
-clouds.yaml: `ccrp init --provider openstack`, four keys set (cloud, flavor, operator_cidr, and the
-offloading example's workspace as the robots' software), `ccrp doctor`, `ccrp snapshot bake` (a
+clouds.yaml: `ccrp init --provider openstack --cloud ccrp-aio` (flavor, external network and this
+host's address asked of the cloud), the offloading example's workspace added as the robots' software
+and r1's /chatter as a topic r2 imports, `ccrp doctor`, `ccrp snapshot bake` (a
 builder instance from the script's Debian 12 image installs ROS 2 Jazzy and the workspace, is
 captured, is deleted), `ccrp fleet up` of two clones with floating IPs, `ccrp robot sim` (a simulated
 robot on this host dials its clone's floating IP over OpenVPN: certificate and password), r1's
@@ -135,11 +136,13 @@ def fleet(tmp_path_factory):
     f = Fleet(tmp, f"osr{secrets.token_hex(2)}")
     f.dir.mkdir()
     shutil.copytree(OFFLOAD / "ros2", f.dir / "ros2", ignore=shutil.ignore_patterns("build", "install", "log"))
-    f.ok("init", "--provider", "openstack", "--robots", "r1,r2", "--fleet", f.name)
+    # `--cloud` asks the cloud for the flavor, the external network and this host's address as the
+    # clones see it (the external bridge's): the provider section runs as written.
+    f.ok("init", "--provider", "openstack", "--cloud", CLOUD, "--robots", "r1,r2", "--fleet", f.name)
     inv = yaml.safe_load((f.dir / "ccrp.yaml").read_text())
-    # The four keys a user of this cloud sets: its clouds.yaml entry, a flavor it has, the address
-    # its clones see this host as (the external bridge's), and the robots' software.
-    inv["provider"].update(cloud=CLOUD, flavor="ccrp.small", operator_cidr="198.51.100.1/32")
+    assert inv["provider"] == {"kind": "openstack", "cloud": CLOUD, "flavor": "ccrp.small", "external_network": "public",
+                               "operator_cidr": "198.51.100.1/32"}, inv["provider"]
+    # What the user adds: a topic to share, and the robots' own software.
     robots = {r["name"]: r for r in inv["robots"]}
     robots["r1"]["exports"] = ["/chatter"]
     robots["r2"]["imports"] = {"r1": ["/chatter"]}

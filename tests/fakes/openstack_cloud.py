@@ -166,12 +166,14 @@ class FakeOpenStack(NeutronApi):
             res.setdefault("router:external", False)
             res.setdefault("subnets", [])
             res.setdefault("status", "ACTIVE")
+        if collection == "subnets":
+            res.setdefault("ip_version", 4)  # Neutron answers it for every subnet
         getattr(self, collection)[res["id"]] = res
         return res
 
-    def add_flavor(self, name: str) -> dict:
+    def add_flavor(self, name: str, **sizes) -> dict:
         flavor = {"id": new_id(), "name": name, "vcpus": 2, "ram": 4096, "disk": 20,
-                  "os-flavor-access:is_public": True, "OS-FLV-EXT-DATA:ephemeral": 0, "swap": 0}
+                  "os-flavor-access:is_public": True, "OS-FLV-EXT-DATA:ephemeral": 0, "swap": 0, **sizes}
         self.flavors[flavor["id"]] = flavor
         return flavor
 
@@ -348,7 +350,8 @@ class FakeOpenStack(NeutronApi):
             if flavor is not None and used[what] + flavor[size] > limit:
                 raise ApiError(403, f"Quota exceeded for {what}: Requested {flavor[size]}, but already used "
                                     f"{used[what]} of {limit} {what}", "Forbidden")
-        self._get(self.images, req.get("imageRef", ""), "image")
+        if req.get("imageRef", "") not in self.images:  # Nova's words, naming no image (not Glance's 404)
+            raise ApiError(400, "Can not find requested image", "badRequest")
         self._get(self.flavors, req.get("flavorRef", ""), "flavor")
         if req.get("key_name") and req["key_name"] not in self.keypairs:
             raise ApiError(400, "Invalid key_name provided.")

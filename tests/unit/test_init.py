@@ -160,3 +160,70 @@ def test_commands_as_typed_in_a_new_fleet_make_its_pki(here):
     code, _, err = run_ccrp_inprocess("vpn", "issue-cert", "--robot", "ghost", home=here / "home")
     assert code == 2 and err.splitlines() == ["ccrp: using inventory ccrp.yaml",
                                               "ccrp: error: robot 'ghost' is not in fleet 'lab2' (robots: nao1)"], err
+
+
+@pytest.fixture
+def fake_cloud(tmp_path, monkeypatch):
+    """`ccrp init --cloud ccrp-fake` against the in-memory OpenStack (tests/fakes/openstack_cloud.py),
+    reached through openstacksdk's real connection; this host's route is the test's to say."""
+    pytest.importorskip("openstack")
+    import openstack
+
+    from ccrp_cli.providers.openstack import discover, provider
+    from tests.contract.harness_openstack import _isolated_env
+    from tests.fakes.openstack_cloud import FakeOpenStack
+
+    fake = FakeOpenStack()
+    config = fake.clouds_yaml(tmp_path, "ccrp-fake")
+
+    def connect(cloud):
+        conn = openstack.connect(cloud=cloud)
+        fake.attach(conn)
+        return conn
+
+    monkeypatch.setattr(provider, "_connect", connect)
+    routes = {}
+    monkeypatch.setattr(discover, "_source_address", lambda target: routes.get(target))
+    with _isolated_env(OS_CLIENT_CONFIG_FILE=str(config), OS_CLIENT_SECURE_FILE=str(tmp_path / "none.yaml")):
+        yield fake, routes
+
+
+def test_init_cloud_asks_openstack_for_flavor_network_and_this_hosts_address(here, fake_cloud):
+    """The values a first inventory needs, from the cloud: the smallest flavor a clone fits in, the
+    external network, and this host's address when the cloud sees it as it is (on the external
+    network's subnet here, as with scripts/openstack.sh's cloud); behind NAT the placeholder stays."""
+    import ipaddress as ip
+
+    fake, routes = fake_cloud
+    fake.add_flavor("tiny", vcpus=1, ram=512, disk=1)
+    fake.add_flavor("c1.clone", vcpus=1, ram=2048, disk=20)
+    subnet = next(s for s in fake.subnets.values() if s["name"] == "public-v4")
+    inside = str(next(ip.IPv4Network(subnet["cidr"]).hosts()))
+    routes["identity.example.com"] = ip.IPv4Address(inside)
+    code, out, err = run_ccrp_inprocess("init", "--provider", "openstack", "--cloud", "ccrp-fake", "--json", home=here / "home")
+    assert code == 0, err
+    inv = load_inventory(here / "ccrp.yaml")
+    assert (inv.provider.cloud, inv.provider.flavor, inv.provider.external_network) == ("ccrp-fake", "c1.clone", "public")
+    assert str(inv.provider.operator_cidr) == f"{inside}/32"
+    assert json.loads(out)["operator_cidr"] == f"{inside}/32"
+
+    routes["identity.example.com"] = ip.IPv4Address("192.168.1.20")  # behind NAT: the cloud sees another
+    code, _, err = run_ccrp_inprocess("init", "--provider", "openstack", "--cloud", "ccrp-fake", "-o", "nat.yaml",
+                                      home=here / "home")
+    assert code == 0, err
+    text = (here / "nat.yaml").read_text()
+    assert "operator_cidr: 203.0.113.0/24 # SSH to clones only from here: put your public address range" in text, text
+
+
+def test_init_cloud_writes_nothing_a_cloud_could_inject_and_says_what_is_missing(here, fake_cloud):
+    fake, _routes = fake_cloud
+    fake.flavors.clear()
+    code, _, err = run_ccrp_inprocess("init", "--provider", "openstack", "--cloud", "ccrp-fake", home=here / "home")
+    assert code == 2 and "no public flavor a clone fits in" in err and err.count("\n") == 1, err
+    fake.add_flavor("big\nprovider: {kind: docker}", vcpus=4, ram=8192, disk=40)  # a name that would add a key
+    code, _, err = run_ccrp_inprocess("init", "--provider", "openstack", "--cloud", "ccrp-fake", home=here / "home")
+    assert code == 2 and "answered a flavor that ccrp will not write" in err and err.count("\n") == 1, err
+    for argv in (("--provider", "docker", "--cloud", "ccrp-fake"), ("--provider", "openstack", "--cloud", "a b")):
+        code, _, err = run_ccrp_inprocess("init", *argv, home=here / "home")
+        assert code == 2 and err.count("\n") == 1, (argv, err)
+    assert not (here / "ccrp.yaml").exists()

@@ -20,8 +20,11 @@ INFO = ProviderInfo(
                    "provider.image or --base-image",
     init=InitSection(
         "  kind: openstack\n"
-        "  cloud: mycloud                # your entry in clouds.yaml (or set OS_CLOUD)\n"
-        "  flavor: m1.medium\n"
-        "  external_network: public      # floating IPs come from here\n"
-        "  operator_cidr: 203.0.113.0/24 # SSH to clones only from here: put your own address range"),
+        "  cloud: {cloud:<22} # your entry in clouds.yaml (or set OS_CLOUD)\n"
+        "  flavor: {flavor}\n"
+        "  external_network: {external_network:<11} # floating IPs come from here\n"
+        "  operator_cidr: {operator_cidr} # SSH to clones only from here: {operator_note}",
+        discover=".openstack.discover:init_values",
+        values=(("cloud", "mycloud"), ("flavor", "m1.medium"), ("external_network", "public"),
+                ("operator_cidr", "203.0.113.0/24"), ("operator_note", "put your own address range"))),
 )
