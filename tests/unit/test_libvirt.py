@@ -312,7 +312,13 @@ def test_golden_layer_and_cloud_config():
     assert text.splitlines()[1] == "FROM ccrp/vmlab-clone:20261126040000"
     assert "linux-image-cloud-amd64" in text and "rm -f /etc/ssh/ssh_host_*" in text
     cfg = yaml.safe_load(goldens.CLOUD_CFG)
-    assert cfg["datasource_list"] == ["NoCloud", "None"]
+    # libvirt's NoCloud seed first; the same golden boots on Nova from its config drive, cloud-init
+    # running whatever ds-identify guessed, the drive's drivers in the initramfs (docs/openstack.md).
+    assert cfg["datasource_list"] == ["NoCloud", "ConfigDrive", "None"]
+    assert yaml.safe_load(goldens.DS_IDENTIFY_CFG) == {"policy": "enabled"}
+    assert "COPY ds-identify.cfg /etc/cloud/ds-identify.cfg" in text
+    assert set(goldens.INITRAMFS_MODULES.split()) == {"ata_piix", "sr_mod"}
+    assert text.index("/usr/share/initramfs-tools/modules.d/") < text.index("linux-image-cloud-amd64")
     # The host keys on the console as soon as they are made: ccrp's login overlaps the later stages.
     init = cfg["cloud_init_modules"]
     assert init.index("keys-to-console") == init.index("ssh") + 1 and "keys-to-console" not in cfg["cloud_final_modules"]
