@@ -111,6 +111,7 @@ class FakeOpenStack(NeutronApi):
         self.max_cores = 200
         self.max_ram = 409_600
         self.max_fips = 50
+        self.refuse_auth = False  # Keystone refuses the credentials (401), as for a wrong password
         self.fail_fip_for: set[str] = set()  # robots whose next floating IP request fails
         self.fail_next: dict[tuple[str, str], tuple[int, str]] = {}  # (METHOD, "host:/template") -> one error
         # name -> resource dict, per collection (Neutron/Glance/Nova shapes, as on the wire)
@@ -246,6 +247,8 @@ class FakeOpenStack(NeutronApi):
 
     # -- Keystone -------------------------------------------------------------------------------
     def _identity(self, method, path, query, body, context):
+        if method == "POST" and path == "/v3/auth/tokens" and self.refuse_auth:
+            raise ApiError(401, "The request you have made requires authentication.", "Unauthorized")
         if method == "POST" and path == "/v3/auth/tokens":
             context.status_code = 201
             context.headers["X-Subject-Token"] = uuid.uuid4().hex

@@ -107,6 +107,29 @@ def test_quota_is_one_line_error_with_hint_and_nothing_left(h):
     assert h.api_calls()["POST compute:/v2.1/servers"] == 1  # REGION class: no retry, no other zone
 
 
+def test_an_image_deleted_after_the_lookup_is_named_with_a_hint(h, monkeypatch):
+    """A real Nova answers 400 "Can not find requested image" when the image left Glance between
+    ccrp's lookup and the POST (docs/openstack.md, differences): ccrp names the image and hints."""
+    spec = h.spec("robot1", 1)
+    find = h.provider.find
+
+    def find_then_delete(what, fn, name_or_id):
+        found = find(what, fn, name_or_id)
+        if what == "image":
+            h.fake.images.pop(found.id)
+        return found
+
+    monkeypatch.setattr(h.provider, "find", find_then_delete)
+    before = h.owned_ids()
+    with pytest.raises(CcrpError) as err:
+        h.provider.run_instance(spec)
+    line = err.value.one_line()
+    assert "\n" not in line and f"image {spec.image!r} not found" in line and "Can not find requested image" in line
+    assert "ccrp snapshot list" in err.value.hint
+    assert h.owned_ids() == before  # the port rolled back
+    assert h.api_calls()["POST compute:/v2.1/servers"] == 1  # no retry, no other zone
+
+
 def test_lookup_by_name_and_metadata_prevents_duplicates_after_a_crash(h, tmp_path):
     """ccrp created the server and died before saving state: the next run (a new process, a new
     provider) finds it by name + metadata instead of booting a second one."""
@@ -238,6 +261,19 @@ def test_console_output_and_credentials(h):
     assert {n: (q.limit, q.used, q.need(missing)) for n, q in quotas.items()} == {
         "instances": (100, 1, len(missing)), "cores": (200, 2, 2 * len(missing)),
         "ram (MB)": (409_600, 4096, 4096 * len(missing)), "floating-ips": (50, 1, len(missing))}
+
+
+def test_wrong_credentials_are_one_line_with_a_hint_in_doctor_too(h, tmp_path):
+    """A real Keystone's 401 reaches `ccrp doctor` (Connection.authorize) as a bare SDKException
+    whose text only says "(HTTP 401)" (docs/openstack.md, differences): still the credentials' line."""
+    h.fake.refuse_auth = True
+    provider = h.new_provider(h.provider.inv, tmp_path / "other")
+    for call in (provider.check_credentials, provider.bootstrap):
+        with pytest.raises(CcrpError) as err:
+            call()
+        line = err.value.one_line()
+        assert "\n" not in line and "refused the credentials" in line and "(HTTP 401)" in line, line
+        assert "clouds.yaml" in err.value.hint
 
 
 def test_missing_sdk_names_the_extra(monkeypatch, tmp_path):

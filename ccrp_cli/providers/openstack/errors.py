@@ -18,6 +18,10 @@ CAPACITY = re.compile(r"no valid host|not enough hosts|insufficient|capacity|ava
 BUILD_FAILED = re.compile(r"exhausted all hosts|exceeded maximum number of retries", re.I)
 BUILD_HINT = ("the cloud's compute hosts failed to build it (not a lack of capacity): ask the cloud's admin, whose "
               "nova-compute log says why, or try another image or flavor")
+# Nova's answer (400) to a server whose image is not in Glance (deleted after ccrp looked it up).
+IMAGE_GONE = re.compile(r"can not find requested image", re.I)
+IMAGE_HINT = "ccrp snapshot list / ccrp snapshot build"
+UNAUTHORIZED = re.compile(r"\(HTTP 401\)")
 QUOTA = re.compile(r"quota|over ?limit|overquota", re.I)
 QUOTA_HINT = ("raise the project's quota (`openstack quota show`) or delete servers / floating IPs it "
               "no longer needs")
@@ -79,7 +83,10 @@ def to_ccrp(what: str, cloud: str, exc: BaseException) -> CcrpError:
     kind, status, msg = classify(exc), status_of(exc), message_of(exc)
     if kind is ErrorClass.REGION:
         return CcrpError(f"{what}: quota exceeded on cloud {cloud!r}: {msg}", hint=QUOTA_HINT)
-    if status == 401 or type(exc).__name__ in ("Unauthorized", "MissingAuthPlugin", "NoMatchingPlugin"):
+    # Connection.authorize() (`ccrp doctor`) re-raises keystoneauth's 401 as a bare SDKException:
+    # only its text says "(HTTP 401)" (met on a real Keystone, docs/openstack.md, differences).
+    if status == 401 or type(exc).__name__ in ("Unauthorized", "MissingAuthPlugin", "NoMatchingPlugin") \
+            or UNAUTHORIZED.search(msg):
         return CcrpError(f"{what}: cloud {cloud!r} refused the credentials: {msg}",
                          hint=f"check the {cloud!r} entry of clouds.yaml (or OS_CLOUD) and `openstack token issue`")
     if kind is ErrorClass.ZONE and BUILD_FAILED.search(msg):

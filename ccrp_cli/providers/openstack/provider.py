@@ -287,14 +287,23 @@ class OpenStackProvider(Images, Owned, CloudProvider):
         """One server in one zone, until ACTIVE. A server the scheduler could not place goes to
         ERROR: delete it and raise ServerFault so across_zones tries the next zone."""
         flavor = self._flavor(spec.robot)
-        image = self._find("image", spec.image, self.image.find_image, "ccrp snapshot list / ccrp snapshot build")
+        image = self._find("image", spec.image, self.image.find_image, errors.IMAGE_HINT)
         extra = {"availability_zone": zone} if zone else {}
-        server = self.api("create server", self.compute.create_server, name=self.server_name(spec.robot, spec.role),
-                          image_id=image.id, flavor_id=flavor.id, networks=[{"port": port.id}], user_data=user_data,
-                          config_drive=True, key_name=self.name(), metadata=owner_labels(self.fleet, spec.role, spec.robot),
-                          **extra)
+        from openstack.exceptions import BadRequestException, ResourceFailure
+
+        try:
+            server = self.api("create server", self.compute.create_server, name=self.server_name(spec.robot, spec.role),
+                              image_id=image.id, flavor_id=flavor.id, networks=[{"port": port.id}], user_data=user_data,
+                              config_drive=True, key_name=self.name(),
+                              metadata=owner_labels(self.fleet, spec.role, spec.robot), **extra)
+        except BadRequestException as exc:
+            # Deleted from Glance after the lookup above: a real Nova answers 400 "Can not find
+            # requested image", naming no image (docs/openstack.md, differences).
+            if not errors.IMAGE_GONE.search(errors.message_of(exc)):
+                raise
+            raise CcrpError(f"image {spec.image!r} not found on cloud {self.settings.cloud!r} "
+                            f"(Nova: {errors.message_of(exc)})", hint=errors.IMAGE_HINT) from None
         created.append(("instance", server))
-        from openstack.exceptions import ResourceFailure
 
         try:
             return self.api("wait for server", self.compute.wait_for_server, server, status="ACTIVE",
