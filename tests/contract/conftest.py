@@ -1,4 +1,6 @@
-"""The provider contract suite runs once per backend whose harness module exists."""
+"""The provider contract suite runs once per backend whose harness module exists. The parameter
+is the module's suffix: `openstack_real` (the real cloud, opt-in) runs the provider of kind
+`openstack`, as `openstack` (the fake) does."""
 
 from __future__ import annotations
 
@@ -7,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-KINDS = ("docker", "aws", "openstack", "gcp", "memory", "libvirt")
+KINDS = ("docker", "aws", "openstack", "gcp", "memory", "libvirt", "openstack_real")
 AVAILABLE = [k for k in KINDS if (Path(__file__).parent / f"harness_{k}.py").exists()]
 
 
