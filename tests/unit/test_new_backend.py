@@ -128,7 +128,7 @@ def test_every_backend_is_protected_and_in_the_contract_suite():
     """The other places docs/architecture.md says a new backend touches."""
     import tomllib
 
-    from tests.contract.conftest import KINDS
+    from tests.contract.conftest import KINDS, VARIANTS
 
     contracts = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
     backends = next(c for c in contracts if c["id"] == "backends")
@@ -136,3 +136,4 @@ def test_every_backend_is_protected_and_in_the_contract_suite():
     # memory registers itself (a test-only backend).
     assert set(KINDS) == set(REGISTRY) | {"memory"}
     assert all((ROOT / "tests" / "contract" / f"harness_{kind}.py").exists() for kind in KINDS)
+    assert set(VARIANTS.values()) <= set(KINDS)  # a variant runs an existing backend's provider
