@@ -105,11 +105,12 @@ def tiny_root(conn, name: str) -> str:
             atexit.register(_delete_images)
             _IMAGES["kernel"] = upload_image(conn, f"ccrp-ct{RUN}-tiny-kernel", files["kernel"], "aki", "aki")
             _IMAGES["ramdisk"] = upload_image(conn, f"ccrp-ct{RUN}-tiny-ramdisk", files["initrd"], "ari", "ari")
-    image_id = upload_image(conn, name, _IMAGES["qcow2"], "qcow2", "bare", kernel_id=_IMAGES["kernel"],
-                            ramdisk_id=_IMAGES["ramdisk"], os_command_line=CMDLINE)
-    with _IMAGES_LOCK:
+        if f"root:{name}" in _IMAGES:
+            return _IMAGES[f"root:{name}"]
+        image_id = upload_image(conn, name, _IMAGES["qcow2"], "qcow2", "bare", kernel_id=_IMAGES["kernel"],
+                                ramdisk_id=_IMAGES["ramdisk"], os_command_line=CMDLINE)
         _IMAGES[f"root:{name}"] = image_id
-    return image_id
+        return image_id
 
 
 def shared_ids() -> list[str]:
@@ -118,11 +119,18 @@ def shared_ids() -> list[str]:
 
 
 def _delete_images() -> None:
+    """At the process's end: the root images first, then the kernel and ramdisk they name."""
+    import sys
+
     conn = connect()
     try:
-        for key, image_id in _IMAGES.items():
-            if key != "qcow2":
+        for key, image_id in sorted(_IMAGES.items(), key=lambda kv: not kv[0].startswith("root:")):
+            if key == "qcow2":
+                continue
+            try:
                 conn.image.delete_image(image_id, ignore_missing=True)
+            except Exception as exc:  # noqa: BLE001 - the others still go; this one is said
+                print(f"harness_openstack_real: image {image_id} not deleted: {exc}", file=sys.stderr)
     finally:
         conn.close()
 
