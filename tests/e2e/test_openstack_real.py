@@ -34,6 +34,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.e2e.fleet import wait_for
+
 ROOT = Path(__file__).resolve().parents[2]
 CLOUD = os.environ.get("CCRP_OPENSTACK_CLOUD", "ccrp-aio")
 SCALE = os.environ.get("CCRP_OPENSTACK_TIMEOUT_SCALE", "6")
@@ -62,7 +64,7 @@ if SKIP:
 
 def openstack(*args: str) -> list | dict:
     proc = subprocess.run(["openstack", *args, "-f", "json"], env={**os.environ, "OS_CLOUD": CLOUD},
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300, interval=5)
     assert proc.returncode == 0, f"openstack {' '.join(args)}: {proc.stderr[-500:]}"
     return json.loads(proc.stdout or "[]")
 
@@ -120,17 +122,6 @@ def _set_version(fleet: Fleet, version: str) -> None:
     init.write_text(text[:start] + f'VERSION = "{version}"' + text[end + 1:])
 
 
-def _wait(what: str, probe, timeout: float, interval: float = 5.0):
-    deadline = time.monotonic() + timeout
-    while True:
-        done, last = probe()
-        if done:
-            return last
-        if time.monotonic() > deadline:
-            pytest.fail(f"{what}: not within {timeout:.0f} s; last: {json.dumps(last, default=str)[:1500]}")
-        time.sleep(interval)
-
-
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("osreal")
@@ -154,10 +145,10 @@ def fleet(tmp_path_factory):
         yield f
     finally:
         try:
-            f.ccrp("robot", "sim", "--robot", "r1", "--stop", timeout=300)
+            f.ccrp("robot", "sim", "--robot", "r1", "--stop", timeout=300, interval=5)
             f.ccrp("fleet", "down", timeout=1800)
             for snap in json.loads(f.ccrp("snapshot", "list", "--json", timeout=300).stdout or "[]"):
-                f.ccrp("snapshot", "delete", snap["id"], "--force", timeout=600)
+                f.ccrp("snapshot", "delete", snap["id"], "--force", timeout=600, interval=5)
         finally:
             print(f"\nOpenStack (real) e2e timings (s): {json.dumps(f.timings)}")
             if out := os.environ.get("CCRP_OPENSTACK_TIMINGS"):
@@ -212,23 +203,23 @@ def test_a_topic_r1_exports_reaches_r2s_clone_over_the_common_network(fleet: Fle
                    timeout=900)
     fleet.timings["relay: first 2 messages of r1's /chatter on r2's clone"] = round(time.monotonic() - t0, 1)
     assert out.count('{"data": "hello from r1 #') == 2, out[-2000:]
-    _wait("r2's relay link to r1", lambda: ((row := fleet.status()["r2"]).get("relay_peers") == {"r1": True}, row),
-          timeout=300)
+    wait_for("r2's relay link to r1", lambda: ((row := fleet.status()["r2"]).get("relay_peers") == {"r1": True}, row),
+          timeout=300, interval=5)
 
 
 def _started(fleet: Fleet, robot: str, version: str) -> tuple[bool, str]:
-    proc = fleet.ccrp("logs", "--robot", robot, "mapper", "--lines", "300", timeout=300)
+    proc = fleet.ccrp("logs", "--robot", robot, "mapper", "--lines", "300", timeout=300, interval=5)
     return f"ccrp_offload {version} started" in proc.stdout, proc.stdout[-1000:] + proc.stderr[-500:]
 
 
 def test_deploy_brings_a_new_version_to_the_running_clones(fleet: Fleet) -> None:
     before = fleet.servers()
-    _wait("mapper 1.0 on r1's clone", lambda: _started(fleet, "r1", "1.0"), timeout=600)
+    wait_for("mapper 1.0 on r1's clone", lambda: _started(fleet, "r1", "1.0"), timeout=600, interval=5)
     _set_version(fleet, "1.1")
     rows = json.loads(fleet.ok("deploy", "--json", timeout=3600, timed="deploy (2 clones)"))
     assert sorted((r["robot"], r["action"]) for r in rows) == [("r1", "deployed"), ("r2", "deployed")], rows
     for robot in ("r1", "r2"):
-        _wait(f"mapper 1.1 on {robot}'s clone", lambda r=robot: _started(fleet, r, "1.1"), timeout=600)
+        wait_for(f"mapper 1.1 on {robot}'s clone", lambda r=robot: _started(fleet, r, "1.1"), timeout=600, interval=5)
     after = fleet.servers()
     assert {n: s["ID"] for n, s in after.items()} == {n: s["ID"] for n, s in before.items()}  # the same servers
     assert [r["action"] for r in json.loads(fleet.ok("deploy", "--json", timeout=1200))] == ["current", "current"]
@@ -246,16 +237,16 @@ def test_clone_stop_and_start_keep_the_server_and_its_floating_ip(fleet: Fleet) 
     row = fleet.status()["r2"]
     assert row["public_ip"] == ip and row["phase"] == "ready" and row["state"] == "running", row
     # The restarted clone runs the deployed version, and r1's topic reaches it again.
-    _wait("mapper 1.1 on r2's restarted clone", lambda: _started(fleet, "r2", "1.1"), timeout=600)
+    wait_for("mapper 1.1 on r2's restarted clone", lambda: _started(fleet, "r2", "1.1"), timeout=600, interval=5)
     out = fleet.ok("clone", "exec", "--robot", "r2", "--", "ccrp-topic", "echo", "/r1/chatter", "-n", "1", "-t", "300",
                    timeout=900)
     assert '{"data": "hello from r1 #' in out, out[-2000:]
 
 
 def test_fleet_down_and_snapshot_delete_leave_nothing_of_the_fleet(fleet: Fleet) -> None:
-    fleet.ok("robot", "sim", "--robot", "r1", "--stop", timeout=300)
+    fleet.ok("robot", "sim", "--robot", "r1", "--stop", timeout=300, interval=5)
     fleet.ok("fleet", "down", timeout=1800, timed="fleet down")
     snaps = json.loads(fleet.ok("snapshot", "list", "--json", timeout=300))
     for snap in snaps:
-        fleet.ok("snapshot", "delete", snap["id"], "--force", timeout=600)
+        fleet.ok("snapshot", "delete", snap["id"], "--force", timeout=600, interval=5)
     assert fleet.leftovers() == {}
