@@ -27,6 +27,21 @@ def _owned_labels(labels: dict, robot: str | None) -> bool:
             and (robot is None or labels.get(LABEL_ROBOT) == robot))
 
 
+def public_ingress(groups, common) -> set[tuple[str, int, str]]:
+    """(protocol, port, source) of each ingress rule of the security groups (Neutron's dicts) that
+    admits traffic from outside the common network."""
+    rules = set()
+    for sg in groups:
+        for r in sg["security_group_rules"]:
+            if r["direction"] != "ingress":
+                continue
+            prefix = r["remote_ip_prefix"] or ("0.0.0.0/0" if not r["remote_group_id"] else None)
+            if prefix and not (ipaddress.ip_network(prefix).version == 4
+                               and ipaddress.ip_network(prefix).subnet_of(common)):
+                rules.add((r["protocol"] or "any", r["port_range_min"] or -1, prefix))
+    return rules
+
+
 class OpenStackHarness:
     kind = "openstack"
 
@@ -95,19 +110,8 @@ class OpenStackHarness:
         return any(resource_id in store for store in stores)
 
     def public_ingress(self) -> set[tuple[str, int, str]]:
-        common = self.provider.inv.common.cidr
-        rules = set()
-        for sg in self.fake.sgs.values():
-            if not OWNED_TAGS <= set(sg["tags"]):
-                continue
-            for r in sg["security_group_rules"]:
-                if r["direction"] != "ingress":
-                    continue
-                prefix = r["remote_ip_prefix"] or ("0.0.0.0/0" if not r["remote_group_id"] else None)
-                if prefix and not (ipaddress.ip_network(prefix).version == 4
-                                   and ipaddress.ip_network(prefix).subnet_of(common)):
-                    rules.add((r["protocol"] or "any", r["port_range_min"] or -1, prefix))
-        return rules
+        groups = [sg for sg in self.fake.sgs.values() if OWNED_TAGS <= set(sg["tags"])]
+        return public_ingress(groups, self.provider.inv.common.cidr)
 
     def user_data_sent(self, robot: str) -> bytes:
         return base64.b64decode(self._servers(robot)[0]["user_data"])

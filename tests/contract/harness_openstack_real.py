@@ -19,7 +19,6 @@ connections of the harness's own (the project's, and the admin's for a server's 
 from __future__ import annotations
 
 import atexit
-import ipaddress
 import json
 import os
 import re
@@ -36,6 +35,7 @@ from ccrp_cli.providers.base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LAB
 from ccrp_cli.retry import Backoff
 
 from ..tiny_vm import CMDLINE, tiny_files
+from .harness_openstack import public_ingress
 from .specs import OPERATOR_CIDR, clone_spec, inventory
 
 CLOUD = "ccrp-aio"
@@ -292,18 +292,10 @@ class RealOpenStackHarness:
         return False
 
     def public_ingress(self) -> set[tuple[str, int, str]]:
-        common = self.provider.inv.common.cidr
         want = f"{LABEL_MANAGED}=true,{LABEL_FLEET}={self.fleet}"
-        rules = set()
-        for sg in self.cloud.network.security_groups(tags=want):
-            for r in sg.security_group_rules:
-                if r["direction"] != "ingress":
-                    continue
-                prefix = r["remote_ip_prefix"] or ("0.0.0.0/0" if not r["remote_group_id"] else None)
-                if prefix and not (ipaddress.ip_network(prefix).version == 4
-                                   and ipaddress.ip_network(prefix).subnet_of(common)):
-                    rules.add((r["protocol"] or "any", r["port_range_min"] or -1, prefix))
-        return rules
+        groups = [{"security_group_rules": sg.security_group_rules}
+                  for sg in self.cloud.network.security_groups(tags=want)]
+        return public_ingress(groups, self.provider.inv.common.cidr)
 
     def user_data_sent(self, robot: str) -> bytes:
         """Nova's copy of the server's user-data (shown to the admin only, microversion 2.3+)."""
