@@ -335,6 +335,9 @@ def builder_user_data(inv: Inventory, token: str, agents: Sequence[str], login_k
         ["apt-get", "clean"],
         # Every clone must get its own machine-id on first boot (DHCP client ids derive from it).
         ["truncate", "-s", "0", "/etc/machine-id"],
+        # A cloud may capture the builder running (OpenStack's libvirt driver does, without asking
+        # the guest): what is still in its page cache would not be in the snapshot.
+        ["sync"],
     ]
     # Without a `users` entry cloud-init would create the image's default user (admin, debian...)
     # with the cloud's key pair and sudo, and the snapshot would carry that login into every clone.

@@ -65,4 +65,8 @@ step "login removed"
 rm -f /etc/sudoers.d/90-cloud-init-users
 home=$(getent passwd "$CCRP_LOGIN" | cut -d: -f6)
 [ -z "$home" ] || rm -rf "$home/.ssh"
+# The capture follows at once, and a cloud may take it from the running builder without asking the
+# guest (OpenStack's libvirt driver): the install space was still in the page cache, and clones of
+# a real Nova's snapshot had no workspace (`No module named 'ccrp_offload'`, docs/openstack.md).
+sync
 echo "ccrp-software built"
