@@ -146,6 +146,14 @@ def test_the_clouds_bake_strips_setuid_bits_and_refuses_a_fifo(tmp_path):
     assert proc.returncode == 1 and "the install space holds" in proc.stderr and "pipe, a device file or FIFO" in proc.stderr
 
 
+def test_the_clouds_bake_writes_the_install_space_back_before_it_says_built():
+    """The capture follows "ccrp-software built" at once, and a real Nova captured the builder with
+    the workspace's setup.sh still in its page cache (docs/openstack.md, difference 7)."""
+    lines = [line.strip() for line in (ROOT / "templates" / "image" / "software-bake.sh").read_text().splitlines()
+             if line.strip() and not line.lstrip().startswith("#")]
+    assert lines[-2:] == ["sync", 'echo "ccrp-software built"']
+
+
 def test_the_ros1_master_has_the_nodes_hardening_and_a_home_they_cannot_write(lab):
     data = yaml.safe_load(cloudinit.user_data(clone_view(lab, lab.store.load_state(), "nao1"), boots()))
     unit = next(f["content"] for f in data["write_files"] if f["path"] == "/etc/systemd/system/ccrp-rosmaster.service")
