@@ -213,50 +213,27 @@ def summarise(calls: list[dict]) -> dict:
                 f"{c['service']} {c['method']} {c['path']}" for c in quota).most_common())}}
 
 
-class Tee(io.TextIOBase):
-    """Writes to a buffer and to the real stream (ccrp's lines show while a command runs)."""
+class Tee(io.StringIO):
+    """Keeps what is written and passes it to the real stream (ccrp's lines show while a command runs)."""
 
     def __init__(self, stream) -> None:
-        self.buffer_ = io.StringIO()
+        super().__init__()
         self.stream = stream
 
     def write(self, s: str) -> int:
-        self.buffer_.write(s)
         self.stream.write(s)
         self.stream.flush()
-        return len(s)
-
-    def flush(self) -> None:
-        self.stream.flush()
+        return super().write(s)
 
 
 def ccrp_inprocess(*args: str, home: Path, env: dict[str, str]) -> tuple[int, str, str, float]:
     """(exit code, stdout, stderr, wall seconds) of `ccrp ARGS` run in this process through its
-    console entry point, as tests/inprocess_cli.py runs it, stderr also passed through."""
-    from ccrp_cli.cli.main import run
+    console entry point (tests/inprocess_cli.py), stderr also passed through."""
+    from tests.inprocess_cli import run_ccrp_inprocess
 
-    out, err = io.StringIO(), Tee(sys.stderr)
-    changes = {"CCRP_HOME": str(home), **env}
-    saved_argv, saved_env = sys.argv, {k: os.environ.get(k) for k in changes}
-    sys.argv = ["ccrp", *args]
-    os.environ.update(changes)
-    code = 0
     t0 = time.perf_counter()
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                run()
-            except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    finally:
-        wall = time.perf_counter() - t0
-        sys.argv = saved_argv
-        for key, value in saved_env.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
-    return code, out.getvalue(), err.buffer_.getvalue(), wall
+    code, out, err = run_ccrp_inprocess(*args, home=home, env=env, err=Tee(sys.stderr))
+    return code, out, err, time.perf_counter() - t0
 
 
 # -- what is left of a fleet on the cloud, seen with openstacksdk -----------------------------------

@@ -12,11 +12,13 @@ import sys
 from pathlib import Path
 
 
-def run_ccrp_inprocess(*args: str, home: Path, env: dict[str, str] | None = None) -> tuple[int, str, str]:
-    """(exit code, stdout, stderr) of `ccrp ARGS` with CCRP_HOME=home and `env` set meanwhile."""
+def run_ccrp_inprocess(*args: str, home: Path, env: dict[str, str] | None = None,
+                       err: io.StringIO | None = None) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of `ccrp ARGS` with CCRP_HOME=home and `env` set meanwhile;
+    `err`: the stream stderr goes to (a StringIO's subclass that also shows it, for a benchmark)."""
     from ccrp_cli.cli.main import run
 
-    out, err = io.StringIO(), io.StringIO()
+    out, err = io.StringIO(), err if err is not None else io.StringIO()
     changes = {"CCRP_HOME": str(home), **(env or {})}
     saved_argv, saved_env = sys.argv, {k: os.environ.get(k) for k in changes}
     sys.argv = ["ccrp", *args]
@@ -27,7 +29,7 @@ def run_ccrp_inprocess(*args: str, home: Path, env: dict[str, str] | None = None
             try:
                 run()
             except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else 1
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     finally:
         sys.argv = saved_argv
         for key, value in saved_env.items():
