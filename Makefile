@@ -27,7 +27,7 @@ quick:
 
 # A real single-node OpenStack on this machine (docs/openstack.md), and ccrp's user path on it: init, bake,
 # fleet up of two clones, a robot through its floating IP, a shared topic, deploy, stop/start, fleet
-# down (about 35 minutes on 2 cores: Nova emulates the guests' CPU). Not part of `make test`.
+# down (about 45 minutes on 2 cores, 20 of them the bake: Nova emulates the guests' CPU). Not part of `make test`.
 openstack:
 	bash scripts/openstack.sh
 
