@@ -34,10 +34,9 @@ BASE = "ccrp/base-bare:bookworm"
 # the golden's VM layer (kernel, udev, sshd, sudo, networkd, resolved): hostnamectl needs D-Bus.
 PACKAGES = ["dbus", "iproute2", "netbase", "procps", "less", "gnupg", "python3"]
 CA_DIR = Path("/usr/local/share/ca-certificates")
-CMDLINE = "root=/dev/vda rw console=tty0 console=ttyS0,115200n8"
 
 
-def layer(cas: dict[str, bytes]) -> str:
+def layer() -> str:
     return (f"FROM {BASE}\n"
             "COPY extra-ca/ /usr/local/share/ca-certificates/\n"
             "RUN apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends "
@@ -50,7 +49,7 @@ def main() -> int:
 
     from ccrp_cli.errors import CcrpError
     from ccrp_cli.providers.docker.images import BARE_PACKAGES, BASE_PACKAGES, build_base_image, build_clone_image
-    from ccrp_cli.providers.libvirt import goldens
+    from ccrp_cli.providers.libvirt import goldens, xmldefs
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cloud", default="ccrp-aio-admin", help="clouds.yaml entry that may upload public images")
@@ -60,7 +59,7 @@ def main() -> int:
     t0 = time.monotonic()
     cas = {p.name: p.read_bytes() for p in sorted(CA_DIR.glob("*.crt"))}
     # The build's inputs: a change to any of them (the golden's layer, the packages, the CAs) makes a new image.
-    digest = hashlib.sha256("\0".join([layer(cas), goldens.dockerfile(BASE), goldens.CLOUD_CFG, goldens.INITRAMFS_MODULES, goldens.DS_IDENTIFY_CFG,
+    digest = hashlib.sha256("\0".join([layer(), goldens.dockerfile(BASE), goldens.CLOUD_CFG, goldens.INITRAMFS_MODULES, goldens.DS_IDENTIFY_CFG,
                                        *(f"{k}={v.hex()}" for k, v in cas.items())]).encode()).hexdigest()[:16]
     conn = openstack.connect(cloud=args.cloud)
     current = [i for i in conn.image.images(name=NAME) if i.status == "active"]
@@ -75,19 +74,19 @@ def main() -> int:
             build_base_image(client, BASE, BASE_PACKAGES + BARE_PACKAGES, say)
         tag = "ccrp/openstack-base:bookworm"
         files = {f"extra-ca/{k}": v for k, v in cas.items()} or {"extra-ca/.keep": b""}
-        build_clone_image(client, tag, layer(cas), {"ccrp-openstack-base": digest}, say, files=files,
+        build_clone_image(client, tag, layer(), {"ccrp-openstack-base": digest}, say, files=files,
                           what="base image layer")
         with tempfile.TemporaryDirectory(prefix="ccrp-os-image-", dir="/var/tmp") as tmp:
             golden = goldens.build(client, tag, Path(tmp), say)
             say(f"built in {time.monotonic() - t0:.0f} s; uploading to Glance ({args.cloud})")
-            common = {"visibility": "public", "container_format": "bare"}
             kernel = conn.image.create_image(name=f"{NAME}-vmlinuz", disk_format="aki", container_format="aki",
                                              visibility="public", filename=str(golden.kernel), ccrp_build=digest)
             initrd = conn.image.create_image(name=f"{NAME}-initrd", disk_format="ari", container_format="ari",
                                              visibility="public", filename=str(golden.initrd), ccrp_build=digest)
             root = conn.image.create_image(name=NAME, disk_format="qcow2", filename=str(golden.qcow2),
-                                           kernel_id=kernel.id, ramdisk_id=initrd.id, os_command_line=CMDLINE,
-                                           os_distro="debian", os_version="12", ccrp_build=digest, **common)
+                                           kernel_id=kernel.id, ramdisk_id=initrd.id, os_command_line=xmldefs.KERNEL_CMDLINE,
+                                           os_distro="debian", os_version="12", ccrp_build=digest, visibility="public",
+                                           container_format="bare")
         # The previous build's images go once the new one is active (a bake running meanwhile keeps its own).
         for old in current:
             for ref in ((old.properties or {}).get("kernel_id"), (old.properties or {}).get("ramdisk_id"), old.id):

@@ -35,7 +35,7 @@ while :; do /bin/busybox sleep 3600; done
 POWER_BUTTON = "#!/bin/busybox sh\n/bin/busybox poweroff -f\n"
 DISK_BYTES = 16 << 20
 # The kernel command line the root file system boots with (libvirt's xmldefs.DomainSpec.cmdline).
-CMDLINE = "root=/dev/vda rw console=tty0 console=ttyS0,115200n8"
+from ccrp_cli.providers.libvirt.xmldefs import KERNEL_CMDLINE as CMDLINE  # noqa: E402 - the golden's
 
 _TINY: dict[str, Path] = {}
 

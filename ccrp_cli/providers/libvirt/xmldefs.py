@@ -126,6 +126,11 @@ def volume(name: str, capacity: int, fmt: str, backing: str | None = None, backi
 
 # -- domains --------------------------------------------------------------------------------------------
 
+# The golden's kernel command line (also Nova's `os_command_line` for it, scripts/openstack_image.py):
+# root is the whole disk (no partition table: the golden volume is one ext4 file system).
+KERNEL_CMDLINE = "root=/dev/vda rw console=tty0 console=ttyS0,115200n8"
+
+
 @dataclass(frozen=True)
 class Nic:
     network: str
@@ -148,8 +153,7 @@ class DomainSpec:
     initrd: str
     console_log: str  # path on the libvirt host
     nics: tuple[Nic, ...]
-    # Root is the whole disk (no partition table): the golden volume is one ext4 file system.
-    cmdline: str = "root=/dev/vda rw console=tty0 console=ttyS0,115200n8"
+    cmdline: str = KERNEL_CMDLINE
 
 
 def domain(spec: DomainSpec) -> str:
