@@ -142,11 +142,13 @@ class CloudProvider:
     def wait_ready(self, robot: str, timeout: float = 600) -> None:
         """Until cloud-init has finished on the instance: pin its host keys from the console (unless
         known_hosts has them under its instance id), SSH in, wait for cloud-init's result."""
-        from ..transport.ssh import KnownHosts
+        from ..transport.ssh import SSH_PORT, KnownHosts, wait_listening
 
         deadline = time.monotonic() + timeout
         rec = self.query().get(robot)
         if rec is not None and rec.public_ip and KnownHosts(self.known_hosts_path).keys(rec.provider_id):
+            # A server started again: its keys are known, its sshd answers once it has booted.
+            wait_listening(rec.public_ip, SSH_PORT, max(1.0, deadline - time.monotonic()), CONSOLE_POLL)
             ssh = self.transport.session(robot, rec)
         else:
             rec, pins = self._wait_for_host_keys(robot, deadline)

@@ -13,6 +13,7 @@ Never paramiko's AutoAddPolicy.
 from __future__ import annotations
 
 import base64
+import errno
 import hashlib
 import re
 import shlex
@@ -154,14 +155,21 @@ class PinnedHostKeyPolicy:
             self.known_hosts.add(self.alias, key.get_name(), key.get_base64())
 
 
+def _booting(exc: BaseException) -> bool:
+    """What connecting to a guest that is still booting gives: refused until sshd listens, timeouts
+    until its network is up, "no route to host" while the cloud's router gets no ARP answer for it
+    (a started OpenStack server, seen on a real Nova)."""
+    return isinstance(exc, (ConnectionRefusedError, TimeoutError)) or (
+        isinstance(exc, OSError) and exc.errno == errno.EHOSTUNREACH)
+
+
 def classify_connect(exc: BaseException) -> ErrorClass:
-    """Only connection refused and timeouts are worth another try (sshd not up yet)."""
+    """Only a guest still booting is worth another try."""
     from paramiko.ssh_exception import NoValidConnectionsError, SSHException
 
-    transient = (ConnectionRefusedError, TimeoutError)
     if isinstance(exc, NoValidConnectionsError):
-        return ErrorClass.RETRYABLE if all(isinstance(e, transient) for e in exc.errors.values()) else ErrorClass.FATAL
-    if isinstance(exc, transient):
+        return ErrorClass.RETRYABLE if all(_booting(e) for e in exc.errors.values()) else ErrorClass.FATAL
+    if _booting(exc):
         return ErrorClass.RETRYABLE
     if isinstance(exc, SSHException) and isinstance(exc.__context__, TimeoutError):
         return ErrorClass.RETRYABLE  # "Error reading SSH protocol banner": a read that timed out
@@ -171,6 +179,27 @@ def classify_connect(exc: BaseException) -> ErrorClass:
         # is AuthenticationException, a changed host key BadHostKeyException: both stay fatal.
         return ErrorClass.RETRYABLE
     return ErrorClass.FATAL
+
+
+def wait_listening(host: str, port: int, timeout: float, interval: float = 5.0) -> None:
+    """Until something accepts TCP connections on host:port, for a guest that boots for minutes (a
+    started cloud server under emulation): the SSH connect's own retries cover seconds. An error
+    other than a booting guest's is left to the SSH connect that follows, which names it."""
+    import socket
+
+    from ..retry import PollTimeout, poll
+
+    def accepts() -> tuple[bool, None]:
+        try:
+            with socket.create_connection((host, port), timeout=min(10.0, interval * 2)):
+                return True, None
+        except OSError as exc:
+            return not _booting(exc), None
+    try:
+        poll(accepts, timeout=timeout, interval=interval)
+    except PollTimeout:
+        raise CcrpError(f"SSH to {host}:{port} did not answer within {timeout:.0f} s",
+                        hint="the instance may not have booted: read its console log") from None
 
 
 class ChannelOpenError(CcrpError):

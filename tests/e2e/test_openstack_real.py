@@ -105,8 +105,9 @@ class Fleet:
         found: dict[str, list[str]] = {}
         for kind in ("server", "port", "floating ip", "security group", "router", "network", "subnet", "keypair",
                      "image"):
-            rows = openstack(*kind.split(), "list", "--long") if kind not in ("keypair", "server") else \
-                openstack(*kind.split(), "list")
+            # `--long` adds the tags where the list has it (the security group list shows them as is).
+            long = () if kind in ("keypair", "server", "security group") else ("--long",)
+            rows = openstack(*kind.split(), "list", *long)
             mine = [r.get("Name") or r.get("ID") for r in rows
                     if str(r.get("Name") or "").startswith(prefix) or tag in (r.get("Tags") or [])
                     or tag in str(r.get("Tags") or r.get("Properties") or "")]

@@ -3,9 +3,13 @@ the paramiko host-key policy built on it (real keys, generated here; no network)
 
 from __future__ import annotations
 
+import errno
 import itertools
 import shutil
+import socket
 import subprocess
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -18,6 +22,7 @@ from ccrp_cli.transport.ssh import (
     classify_connect,
     fingerprint,
     fingerprints_from_console,
+    wait_listening,
 )
 
 paramiko = pytest.importorskip("paramiko")
@@ -198,6 +203,32 @@ def test_connect_errors_worth_a_retry():
     assert classify_connect(paramiko.SSHException("Incompatible ssh peer (no acceptable kex algorithm)")) is ErrorClass.FATAL
     assert classify_connect(paramiko.BadHostKeyException("h", _server_key(), _server_key())) is ErrorClass.FATAL
     assert classify_connect(CcrpError("pin mismatch")) is ErrorClass.FATAL
+    # A started server behind a cloud router before its guest answers ARP (a real Nova).
+    unreachable = OSError(errno.EHOSTUNREACH, "No route to host")
+    assert classify_connect(NoValidConnectionsError({("192.0.2.7", 22): unreachable})) is ErrorClass.RETRYABLE
+    assert classify_connect(OSError(errno.ENETUNREACH, "Network is unreachable")) is ErrorClass.FATAL
+
+
+def test_wait_listening_waits_for_a_late_sshd_and_gives_up_in_one_line():
+    """A started clone's sshd listens only once it has booted: wait_listening waits for it on a real
+    socket (a port that refuses first, then listens), and names the address when it never does."""
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()  # refused until the listener below binds it
+    listener = socket.socket()
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    late = threading.Timer(0.5, lambda: (listener.bind(("127.0.0.1", port)), listener.listen()))
+    late.start()
+    try:
+        t0 = time.monotonic()
+        wait_listening("127.0.0.1", port, timeout=10, interval=0.1)
+        assert 0.4 < time.monotonic() - t0 < 5
+    finally:
+        late.join()
+        listener.close()
+    with pytest.raises(CcrpError, match=rf"^SSH to 127.0.0.1:{port} did not answer within 1 s$"):
+        wait_listening("127.0.0.1", port, timeout=1, interval=0.1)
 
 
 # -- what a cloud clone's user-data gives the SSH transport ----------------------------------------
