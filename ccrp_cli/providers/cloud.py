@@ -144,6 +144,7 @@ class CloudProvider:
         known_hosts has them under its instance id), SSH in, wait for cloud-init's result."""
         from ..transport.ssh import SSH_PORT, KnownHosts, wait_listening
 
+        timeout *= self.timeout_scale(robot)  # a cloud that emulates the CPU boots its guests slowly
         deadline = time.monotonic() + timeout
         rec = self.query().get(robot)
         if rec is not None and rec.public_ip and KnownHosts(self.known_hosts_path).keys(rec.provider_id):

@@ -394,3 +394,20 @@ def test_timeout_scale_is_one_unless_the_operator_says_the_cloud_emulates_the_cp
     assert h.provider.timeout_scale("robot1") == 6
     monkeypatch.setenv("CCRP_OPENSTACK_TIMEOUT_SCALE", "fast")
     assert h.provider.timeout_scale("robot1") == 1
+
+
+def test_wait_ready_gives_a_slow_cloud_its_scale_times_longer(h, monkeypatch):
+    """On the real single-node Nova (CPU emulated, CCRP_OPENSTACK_TIMEOUT_SCALE=6) two clones took
+    more than the 300 s of wait_ready to finish cloud-init: the deadline is the scaled one."""
+    import time as _time
+
+    waits = []
+
+    def keys_never_shown(robot, deadline):
+        waits.append(deadline - _time.monotonic())
+        raise CcrpError("stop here")
+    monkeypatch.setattr(h.provider, "_wait_for_host_keys", keys_never_shown)
+    monkeypatch.setenv("CCRP_OPENSTACK_TIMEOUT_SCALE", "6")
+    with pytest.raises(CcrpError, match="stop here"):
+        h.provider.wait_ready("robot1", timeout=300)
+    assert 1790 < waits[0] <= 1800
