@@ -87,11 +87,16 @@ def main() -> int:
                                            kernel_id=kernel.id, ramdisk_id=initrd.id, os_command_line=xmldefs.KERNEL_CMDLINE,
                                            os_distro="debian", os_version="12", ccrp_build=digest, visibility="public",
                                            container_format="bare")
-        # The previous build's images go once the new one is active (a bake running meanwhile keeps its own).
+        # The previous build's root image goes once the new one is active; its kernel and initramfs only
+        # when no image names them any more: a snapshot of a server booted from it (every clone image
+        # `snapshot bake` made) carries its kernel_id and ramdisk_id and boots only while they exist.
+        # Parts of an upload interrupted before its root image go the same way.
         for old in current:
-            for ref in ((old.properties or {}).get("kernel_id"), (old.properties or {}).get("ramdisk_id"), old.id):
-                if ref:
-                    conn.image.delete_image(ref, ignore_missing=True)
+            conn.image.delete_image(old, ignore_missing=True)
+        named = {(i.properties or {}).get(k) for i in conn.image.images() for k in ("kernel_id", "ramdisk_id")}
+        for part in [*conn.image.images(name=f"{NAME}-vmlinuz"), *conn.image.images(name=f"{NAME}-initrd")]:
+            if part.id not in named:
+                conn.image.delete_image(part, ignore_missing=True)
     except CcrpError as exc:
         say(f"FAILED: {exc}")
         return 1
