@@ -224,7 +224,7 @@ class LibvirtClient:
         if self._docker is None:
             self._docker = False
             if self.local:
-                from ..docker.host import DockerHost
+                from ..docker.client import DockerHost
 
                 try:
                     self._docker = DockerHost(self.fleet)
