@@ -169,7 +169,7 @@ def fake_cloud(tmp_path, monkeypatch):
     pytest.importorskip("openstack")
     import openstack
 
-    from ccrp_cli.providers.openstack import discover, provider
+    from ccrp_cli.providers.openstack import client, discover
     from tests.contract.harness_openstack import _isolated_env
     from tests.fakes.openstack_cloud import FakeOpenStack
 
@@ -181,7 +181,7 @@ def fake_cloud(tmp_path, monkeypatch):
         fake.attach(conn)
         return conn
 
-    monkeypatch.setattr(provider, "_connect", connect)
+    monkeypatch.setattr(client, "_connect", connect)
     routes = {}
     monkeypatch.setattr(discover, "_source_address", lambda target: routes.get(target))
     with _isolated_env(OS_CLIENT_CONFIG_FILE=str(config), OS_CLIENT_SECURE_FILE=str(tmp_path / "none.yaml")):

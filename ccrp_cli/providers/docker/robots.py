@@ -11,7 +11,7 @@ from ...errors import CcrpError
 from ...templates import static
 from ..base import LABEL_ROBOT, RobotAttachment, owner_labels
 from .archive import tar_files
-from .host import DockerHost
+from .client import DockerHost
 from .provider import CLONE_CAPS, CLONE_SECURITY_OPT
 
 BUNDLE_DIR = "opt/ccrp-bundle"

@@ -1,6 +1,6 @@
 """The Docker engine on this host, for a fleet: the client (every request retried on 429/503),
 names and labels, and running commands in ccrp's systemd containers (clones and simulated
-robots). DockerProvider builds the clone lifecycle on it; simulated robots of cloud fleets use it
+robots): the Docker backend's client. DockerProvider builds the clone lifecycle on it; simulated robots of cloud fleets use it
 alone (they run here, whatever cloud their clones are on)."""
 
 from __future__ import annotations
