@@ -3,10 +3,15 @@ tags again, and `fleet down`'s teardown in dependency order."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from ...errors import CcrpError
 from ..base import LABEL_ROBOT, OwnedResource
 from . import tags
 from .images import _backing
+
+if TYPE_CHECKING:
+    from .network import Network
 
 LIVE = ["pending", "running", "stopping", "stopped"]
 
@@ -33,6 +38,8 @@ TEARDOWN = ["instance", "elastic_ip", "volume", "security_group", "key_pair", "r
 
 class Owned:
     """Mixed into AwsProvider: the calls it makes are the provider's (self.api, self.ec2...)."""
+
+    _net: Network | None  # the provider's (AwsProvider.network)
 
     def list_owned(self) -> list[OwnedResource]:
         owned: list[OwnedResource] = []

@@ -16,6 +16,7 @@ import base64
 import hashlib
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any, cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
@@ -24,7 +25,9 @@ from ..cloud import CloudProvider
 from . import INFO, network, tags
 from .errors import INSTALL_HINT, as_ccrp, classify, error_code
 from .images import Images
+from .network import Network
 from .owned import KINDS, LIVE, Owned
+from .settings import AwsSettings
 
 GONE = ["shutting-down", "terminated"]
 # Instance families counted by "Running On-Demand Standard (A, C, D, H, I, M, R, T, Z) instances"
@@ -54,7 +57,7 @@ class AwsProvider(Images, Owned, CloudProvider):
             from botocore.exceptions import BotoCoreError
         except ImportError:
             raise CcrpError("the AWS SDK (boto3) is not installed", hint=INSTALL_HINT) from None
-        self.settings = inv.provider
+        self.settings = cast(AwsSettings, inv.provider)  # get_provider picked this backend by these settings' kind
         try:
             self.session = boto3.Session(profile_name=self.settings.profile, region_name=self.settings.region)
         except BotoCoreError as exc:  # unknown profile
@@ -62,8 +65,8 @@ class AwsProvider(Images, Owned, CloudProvider):
         # retry.call is the one place for retries: botocore's own are off.
         self._config = config = Config(retries={"total_max_attempts": 1}, connect_timeout=10, read_timeout=60)
         self.ec2 = self.session.client("ec2", config=config)
-        self._net: network.Network | None = None
-        self._service_quotas = None  # its client, made when quotas are first read
+        self._net: Network | None = None
+        self._service_quotas: Any = None  # its client (boto3's, untyped), made when quotas are first read
 
     # -- errors ------------------------------------------------------------------------------
     def classify_error(self, exc: BaseException):
@@ -101,7 +104,7 @@ class AwsProvider(Images, Owned, CloudProvider):
         return self._describe("instance", tags.filters(self.fleet, role, robot) + [{"Name": "instance-state-name", "Values": states}])
 
     @property
-    def network(self) -> network.Network:
+    def network(self) -> Network:
         if self._net is None:
             self._net = network.find(self)
         if self._net is None:
@@ -136,7 +139,7 @@ class AwsProvider(Images, Owned, CloudProvider):
         payload, _gzipped = INFO.fit_user_data(spec.user_data)  # cloud-init detects gzip itself
         return self._complete(self._launch(spec, net, payload, generation=len(seen)), spec, net, Origin.CREATED)
 
-    def _launch(self, spec: CloneSpec, net: network.Network, user_data: bytes, generation: int) -> dict:
+    def _launch(self, spec: CloneSpec, net: Network, user_data: bytes, generation: int) -> dict:
         instance_type = self._instance_type(spec.robot)
         # ClientToken makes a retried RunInstances (lost answer, throttling) return the same
         # instance. A token stays bound to its instance after termination, so a relaunch after
@@ -162,7 +165,7 @@ class AwsProvider(Images, Owned, CloudProvider):
             generation += 1
         raise CcrpError(f"clone {spec.hostname}: AWS keeps returning terminated instances for its client token")
 
-    def _complete(self, inst: dict, spec: CloneSpec, net: network.Network, origin: Origin) -> CloneRecord:
+    def _complete(self, inst: dict, spec: CloneSpec, net: Network, origin: Origin) -> CloneRecord:
         iid = inst["InstanceId"]
         new_eip: dict | None = None
         step = "disable source/dest check"
@@ -206,7 +209,7 @@ class AwsProvider(Images, Owned, CloudProvider):
                 undone.append(f"NOT {what} ({exc.message})")
         return undone
 
-    def _route(self, net: network.Network, cidr: str, instance_id: str) -> None:
+    def _route(self, net: Network, cidr: str, instance_id: str) -> None:
         rt = self.api("describe route table", self.ec2.describe_route_tables, RouteTableIds=[net.route_table_id])["RouteTables"][0]
         current = next((r for r in rt["Routes"] if r.get("DestinationCidrBlock") == cidr), None)
         if current is None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 from pathlib import Path
+from typing import TYPE_CHECKING, Callable, cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
@@ -13,12 +14,16 @@ from ...layout import AUTOSTOP_NOTE, VPN_DIR
 from ...store import FleetStore, ensure_state_id, read_state_id
 from ..base import (
     LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Finding, ImageOutcome, Origin,
-    OwnedResource, Quota, RobotAttachment, SnapshotRecord,
+    ImageSoftware, OwnedResource, Quota, RobotAttachment, SnapshotRecord,
     autostop_note, owner_labels, wait_cloud_init,
 )
 from . import INFO, snapshot_images
 from .archive import tar_files
 from .host import DockerHost, EngineTransport
+from .settings import DockerSettings
+
+if TYPE_CHECKING:
+    from ...recipes import Platform
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
 # What a systemd container (a clone, a simulated robot) gets beyond Docker's defaults: NET_ADMIN for
@@ -56,9 +61,9 @@ class DockerProvider(DockerHost):
         """Create (or reuse) the fleet's public and common networks."""
         from docker.types import IPAMConfig, IPAMPool
 
-        provider = self.inv.provider
+        provider = cast(DockerSettings, self.inv.provider)  # get_provider picked this backend by these settings' kind
         for name, cidr, internal in (
-            (self.public_net, provider.public_cidr, False),  # type: ignore[union-attr]
+            (self.public_net, provider.public_cidr, False),
             (self.common_net, self.inv.common.cidr, True),
         ):
             existing = self.client.networks.list(names=[name])
@@ -230,12 +235,13 @@ class DockerProvider(DockerHost):
         image = c.commit(repository=repo, tag=tag, conf={"Labels": self.snapshot_labels(robot)})
         return self.snapshot_record(image)
 
-    def build_snapshot(self, repo: str, distro: str, plat, agents: tuple[str, ...], software, digest: str, bare: bool,
-                       progress) -> SnapshotRecord:
+    def build_snapshot(self, repo: str, distro: str, plat: Platform, agents: tuple[str, ...],
+                       software: ImageSoftware | None, digest: str, bare: bool,
+                       progress: Callable[[str], None]) -> SnapshotRecord:
         """Ability.LOCAL_BUILD: the clone image built on this engine (images.build_snapshot_image)."""
         from . import images
 
-        tag = images.build_snapshot_image(self.client, repo, self.fleet, distro, self.inv.provider.base_image,  # type: ignore[union-attr]
+        tag = images.build_snapshot_image(self.client, repo, self.fleet, distro, cast(DockerSettings, self.inv.provider).base_image,
                                           plat, agents, software, bare, self.snapshot_labels() | {"ccrp-software": digest},
                                           progress)
         return self.snapshot_record(self.client.images.get(tag))

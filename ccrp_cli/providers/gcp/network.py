@@ -13,6 +13,8 @@ from .ownership import tail
 class Network:
     """Mixed into GcpProvider: the calls it makes are the provider's (self._call, self.c...)."""
 
+    _subnet_link: str | None  # the provider's (set in GcpProvider.__init__)
+
     def bootstrap(self) -> None:
         """The VPC network and its subnetwork in the region (the common network), and the
         fleet's firewall rules: create what is missing, reuse what exists."""

@@ -16,6 +16,8 @@ SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images d
 class Owned:
     """Mixed into GcpProvider: the calls it makes are the provider's (self._call, self.c...)."""
 
+    _subnet_link: str | None  # the provider's (set in GcpProvider.__init__)
+
     def _owned(self) -> list[tuple[OwnedResource, str | None]]:
         """(resource, zone) for everything carrying the fleet's marks."""
         owned: list[tuple[OwnedResource, str | None]] = []

@@ -14,6 +14,7 @@ import threading
 from collections.abc import Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any, cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
@@ -29,6 +30,7 @@ from .images import Images
 from .network import Network
 from .owned import Owned
 from .ownership import Names, description_marks, request_id, same_resource, tail
+from .settings import GcpSettings
 
 log = logging.getLogger(__name__)
 
@@ -67,8 +69,8 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
         from google.api_core import exceptions
 
         self._NotFound, self._Conflict = exceptions.NotFound, exceptions.Conflict
-        self.settings = inv.provider
-        self.project, self.region = self.settings.project, self.settings.region  # type: ignore[union-attr]
+        self.settings = cast(GcpSettings, inv.provider)  # get_provider picked this backend by these settings' kind
+        self.project, self.region = self.settings.project, self.settings.region
         self.names = Names(self.fleet)
         self._clients = clients
         self._lock = threading.Lock()
@@ -153,14 +155,15 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
     # -- instances --------------------------------------------------------------------------
     def _zones(self, robot: str) -> list[str]:
         override = self.inv.robot(robot)
-        return [override.zone] if override and override.zone else list(self.settings.zones)  # type: ignore[union-attr]
+        return [override.zone] if override and override.zone else list(self.settings.zones)
 
     def _machine_type(self, robot: str) -> str:
         override = self.inv.robot(robot)
-        return (override and override.instance_type) or self.settings.machine_type  # type: ignore[union-attr]
+        return (override and override.instance_type) or self.settings.machine_type
 
-    def _instances(self, role: str | None = None, robot: str | None = None) -> list[tuple[str, object]]:
-        """(zone, instance) of every instance carrying the fleet's labels (and role / robot)."""
+    def _instances(self, role: str | None = None, robot: str | None = None) -> list[tuple[str, Any]]:
+        """(zone, instance) of every instance carrying the fleet's labels (and role / robot); the
+        instance is the SDK's compute_v1.Instance, which mypy does not read (pyproject.toml)."""
         request = self.compute.AggregatedListInstancesRequest(
             project=self.project, filter=self.names.label_filter(role, robot))
         found = []
@@ -450,7 +453,7 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
             region = self._call("get region", self.c.regions.get, project=self.project, region=self.region)
             reserved = {a.name for a in self._addresses()} if robots else set()
             machine = {r: self._machine_type(r) for r in robots}
-            default = self.settings.machine_type  # type: ignore[union-attr]
+            default = self.settings.machine_type
 
             def cpus(machine_type: str, metric: str) -> float:
                 return float(self._vcpus(machine_type)) if cpu_metric(machine_type) == metric else 0.0
@@ -477,7 +480,7 @@ class GcpProvider(Network, Images, Owned, CloudProvider):
     def _vcpus(self, machine_type: str) -> int:
         """The machine type's vCPUs, looked up once per type."""
         if machine_type not in self._machine_cpus:
-            zone = self.settings.zones[0]  # type: ignore[union-attr]
+            zone = self.settings.zones[0]
             self._machine_cpus[machine_type] = self._call(
                 "get machine type", self.c.machine_types.get, project=self.project, zone=zone,
                 machine_type=machine_type).guest_cpus

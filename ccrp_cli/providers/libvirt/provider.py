@@ -21,15 +21,20 @@ import time
 from collections.abc import Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING, Callable, cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import ErrorClass
 from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin,
-                    OwnedResource, Quota, RobotAttachment, SnapshotRecord, owner_labels)
+                    ImageSoftware, OwnedResource, Quota, RobotAttachment, SnapshotRecord, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, forward, robots, seed, xmldefs
 from .settings import URI_PARAMS_ENV, LibvirtSettings, connect_uri
+
+if TYPE_CHECKING:
+    from ...recipes import Platform
+    from ..docker.host import DockerHost
 
 # virDomainState (dom.state()[0]) -> libvirt's word, then ccrp's.
 WORDS = ("nostate", "running", "blocked", "paused", "shutdown", "shutoff", "crashed", "pmsuspended")
@@ -94,7 +99,7 @@ class LibvirtProvider(CloudProvider):
 
     def __init__(self, inv: Inventory, workdir: Path) -> None:
         super().__init__(inv, workdir)
-        self.settings: LibvirtSettings = inv.provider  # type: ignore[assignment]
+        self.settings = cast(LibvirtSettings, inv.provider)  # get_provider picked this backend by these settings' kind
         self.libvirt = _sdk()
         # The operator's own URI parameters (an ssh wrapper...) come from the environment, never
         # from the inventory (settings.py).
@@ -466,7 +471,7 @@ class LibvirtProvider(CloudProvider):
         if self.settings.uri in robots.LOCAL_URIS:
             robots.release(self.fleet, robot)
 
-    _docker = None  # this host's Docker engine, once asked (False: none, or the libvirt host is elsewhere)
+    _docker: DockerHost | bool | None = None  # this host's Docker engine, once asked (False: none, or the libvirt host is elsewhere)
 
     def _sim_host(self):
         """This host's Docker engine when simulated robots of the fleet can be on it (a local URI):
@@ -513,7 +518,7 @@ class LibvirtProvider(CloudProvider):
         if not image.endswith(".qcow2") or any(v is None for v in vols):
             raise CcrpError(f"golden volume {image} (with its .vmlinuz and .initrd) is not in storage pool {self.settings.pool}",
                             hint="import the fleet's snapshot (docs/libvirt.md)")
-        return tuple(v.path() for v in vols)  # type: ignore[return-value]
+        return tuple(v.path() for v in vols)
 
     def timeout_scale(self, robot: str) -> int:
         """TCG_SLOWDOWN for a clone emulated by TCG (its domain type is qemu), else 1."""
@@ -542,8 +547,9 @@ class LibvirtProvider(CloudProvider):
         deadline = time.monotonic() + timeout
         rec = self.query().get(robot)
         if rec is not None and rec.public_ip:
+            ip = rec.public_ip
             try:
-                poll(lambda: (_listening(rec.public_ip), None), timeout=timeout, interval=2.0)
+                poll(lambda: (_listening(ip), None), timeout=timeout, interval=2.0)
             except PollTimeout:
                 raise CcrpError(f"clone of {robot}: nothing listens on {rec.public_ip}:22 after {timeout:.0f} s",
                                 hint=f"ccrp clone exec --robot {robot} -- systemctl status ssh, or read its console") from None
@@ -748,8 +754,9 @@ class LibvirtProvider(CloudProvider):
             return self._download(vol, max(0, size - CONSOLE_TAIL)).decode(errors="replace")
 
     # -- snapshots: golden volumes --------------------------------------------------------------
-    def build_snapshot(self, repo: str, distro: str, plat, agents: tuple[str, ...], software, digest: str, bare: bool,
-                       progress) -> SnapshotRecord:
+    def build_snapshot(self, repo: str, distro: str, plat: Platform, agents: tuple[str, ...],
+                       software: ImageSoftware | None, digest: str, bare: bool,
+                       progress: Callable[[str], None]) -> SnapshotRecord:
         """Ability.LOCAL_BUILD: the golden volume made on this machine. The recipe's image is built
         on the local Docker engine as the Docker backend builds its snapshot (the same recipe,
         agents, software and bare variant; no image is downloaded), goldens.build turns it into a qcow2
@@ -845,6 +852,7 @@ class LibvirtProvider(CloudProvider):
             import xml.etree.ElementTree as ET
 
             os_ = ET.fromstring(dom.XMLDesc(0)).find("os")
+            assert os_ is not None, "a domain's XML has its <os> (xmldefs.py)"
             sources = [(pool.storageVolLookupByName(self.clone_volumes(robot)["disk"]), target, "qcow2")]
             sources += [(self.conn.storageVolLookupByPath(os_.findtext(tag)), f"{stem}.{ext}", "raw")
                         for tag, ext in (("kernel", "vmlinuz"), ("initrd", "initrd"))]
@@ -963,7 +971,7 @@ class LibvirtProvider(CloudProvider):
             v = self.conn.getLibVersion()
             host = self.conn.getHostname()
             probed = self._probed()
-            accel = self.settings.accel
+            accel: str = self.settings.accel
             if accel == "auto":
                 found = probed.get(self.settings.uri)
                 accel = f"auto: {found} ({probed.get(self.settings.uri + ' why', '')})" if found else \

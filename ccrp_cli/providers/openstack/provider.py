@@ -10,12 +10,13 @@ import threading
 from collections.abc import Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import across_zones
 from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState,
-                    Origin, OwnedResource, Quota, owner_labels)
+                    Origin, OwnedResource, Quota, ResourceKind, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, errors, shared
 from .images import Images
@@ -54,7 +55,7 @@ class OpenStackProvider(Images, Owned, CloudProvider):
 
     def __init__(self, inv: Inventory, workdir: Path) -> None:
         super().__init__(inv, workdir)
-        self.settings: OpenStackSettings = inv.provider  # type: ignore[assignment]
+        self.settings = cast(OpenStackSettings, inv.provider)  # get_provider picked this backend by these settings' kind
         self.conn = _connect(self.settings.cloud)
         self._lock = threading.Lock()
         self._cache: dict[str, object] = {}  # shared lookups (network, flavor...) for parallel clones
@@ -394,7 +395,8 @@ class OpenStackProvider(Images, Owned, CloudProvider):
             servers = self.servers(robot)
             for server in servers:
                 self._delete_server(server)
-            for kind, collection in (("floating_ip", "fips"), ("port", "ports")):
+            kinds: tuple[tuple[ResourceKind, str], ...] = (("floating_ip", "fips"), ("port", "ports"))
+            for kind, collection in kinds:
                 for res in self.owned(collection, None, robot):
                     self._delete(OwnedResource(kind=kind, id=res.id, name=res.name or "", robot=robot))
             return bool(servers)
