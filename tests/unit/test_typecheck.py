@@ -21,6 +21,8 @@ BACKENDS = ROOT / "tests" / "typecheck" / "backends.py"
 ABILITY_PROTOCOLS = {Ability.LOCAL_BUILD: "LocalBuild", Ability.BAKE: "Bake", Ability.ROBOT_ATTACH: "RobotAttach",
                      Ability.HOST_IMAGES: "HostImages"}
 
+# The mypy runs share its cache (.mypy_cache): on one worker, one after the other.
+pytestmark = pytest.mark.xdist_group("mypy")
 needs_mypy = pytest.mark.skipif(importlib.util.find_spec("mypy") is None,
                                 reason="mypy is not installed (the dev extra: pip install -e '.[dev]')")
 
