@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
-from typing import Annotated, Literal, Union
+from typing import TYPE_CHECKING, Annotated, Literal, Union
 
 from pydantic import Field, field_validator, model_validator
 
@@ -12,7 +12,7 @@ from ..errors import shown
 from .distro import Distro, RobotRos
 from .names import Name, Topic
 from .software import Software, TypeSettings, merge
-from .strict import Strict
+from .strict import ProviderSettings, Strict
 from .values import CloudName, Duration, Port, Size, StrictInt
 
 RobotType = Literal["nao", "turtlebot", "generic"]
@@ -230,7 +230,10 @@ def _provider_union():
     return Annotated[Union[tuple(i.settings for i in REGISTRY.values())], Field(discriminator="kind")]  # type: ignore[valid-type]
 
 
-Provider = _provider_union()
+if TYPE_CHECKING:  # the type checker sees what every backend's settings are; the union is made at run time
+    Provider = ProviderSettings
+else:
+    Provider = _provider_union()
 
 
 class SnapshotSettings(Strict):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
+from typing import TYPE_CHECKING
 
 from pydantic import BaseModel, ConfigDict
 
@@ -13,6 +14,9 @@ class Strict(BaseModel):
 
 class ProviderSettings(Strict):
     """The base of a backend's `provider:` section (providers/<kind>/settings.py)."""
+
+    if TYPE_CHECKING:  # each backend's settings declare it as their Literal (the union's discriminator)
+        kind: str
 
     def networks(self) -> dict[str, ipaddress.IPv4Network]:
         """Networks the backend makes from these settings, by their inventory key: the inventory

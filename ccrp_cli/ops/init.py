@@ -142,7 +142,7 @@ def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str 
     if path.exists():
         raise InputError(f"{path} exists: ccrp init never overwrites an inventory", hint="edit it, or remove it first")
     values = dict(section.values)
-    if cloud:
+    if cloud and section.discover is not None:  # refused above without one
         from ..providers import _load
 
         from ..models.values import check_cloud_name

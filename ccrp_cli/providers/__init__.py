@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 from ..store import FleetStore
-from .base import Ability, Provider, ProviderInfo, RobotHost
+from .base import Ability, ImageSoftware, Provider, ProviderInfo, RobotHost
 from .registry import REGISTRY, info, require
 
 if TYPE_CHECKING:
@@ -58,7 +58,8 @@ def robot_host(fleet: str) -> RobotHost:
     return host
 
 
-def build_workspace(inv: Inventory, software, agents: tuple[str, ...], progress: Callable[[str], None]) -> bytes:
+def build_workspace(inv: Inventory, software: ImageSoftware, agents: tuple[str, ...],
+                    progress: Callable[[str], None]) -> bytes:
     """The tar of the install space (`workspace/`) of `software` (workloads.SnapshotSoftware, with a
     workspace) built in the fleet's clone image, with the `agents` its snapshot holds (as
     LocalBuild.build_snapshot is given them), on this host (CcrpError when no engine answers)."""

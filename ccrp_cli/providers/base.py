@@ -6,12 +6,15 @@ import gzip
 import json
 from dataclasses import dataclass
 from enum import Enum
-from typing import Callable, Iterable, Literal, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Iterable, Literal, Protocol, Sequence
 
 from pydantic import BaseModel
 
 from ..errors import CcrpError
 from ..layout import AUTOSTOP_BOOT_LINE, AUTOSTOP_MARK
+
+if TYPE_CHECKING:
+    from ..recipes import Platform
 
 # Labels / tags on every resource ccrp creates; list, delete and gc filter on them.
 LABEL_MANAGED = "ccrp-managed"
@@ -442,6 +445,33 @@ class HostImages(Protocol):
     def images_finding(self) -> Finding: ...
 
 
+class WorkspacePackage(Protocol):
+    """A package of the fleet's workspace, as an image build places it (services/workloads.py Package)."""
+
+    @property
+    def path(self) -> str: ...  # its package.xml, relative to the workspace
+
+
+class ImageSoftware(Protocol):
+    """The fleet's own software as a LocalBuild puts it in the image (services/workloads.py
+    SnapshotSoftware, which the core reads and checks; templates/docker/software.j2)."""
+
+    @property
+    def digest(self) -> str: ...
+    @property
+    def empty(self) -> bool: ...
+    @property
+    def apt(self) -> list[str]: ...
+    @property
+    def pip_install(self) -> list[str]: ...
+    @property
+    def build_type(self) -> str | None: ...
+    @property
+    def workspace(self) -> Sequence[tuple[str, bytes]]: ...  # (path in the workspace, content)
+    @property
+    def packages(self) -> Sequence[WorkspacePackage]: ...
+
+
 class LocalBuild(Protocol):
     """What a provider with Ability.LOCAL_BUILD adds: `snapshot build` makes the golden image on this
     machine (Docker: the clone image; libvirt: the golden volume made from it): the recipe's
@@ -449,8 +479,9 @@ class LocalBuild(Protocol):
     the core's services declare, ops/snapshots.py), the fleet's `software` (None: none) whose digest
     labels it, or a `bare` image."""
 
-    def build_snapshot(self, repo: str, distro: str, plat, agents: tuple[str, ...], software, digest: str, bare: bool,
-                       progress) -> SnapshotRecord: ...
+    def build_snapshot(self, repo: str, distro: str, plat: Platform, agents: tuple[str, ...],
+                       software: ImageSoftware | None, digest: str, bare: bool,
+                       progress: Callable[[str], None]) -> SnapshotRecord: ...
 
 
 class Bake(Protocol):

@@ -139,7 +139,8 @@ class Relay(CloneService):
 def matrix(fleet: Fleet, state: FleetState) -> list[dict]:
     """`ccrp topics`: who exports what to whom, as rows."""
     members = fleet.members(state)
-    rows = [{"source": r.source, "topic": r.topic, "dest": r.dest, "as": r.local_name} for r in routes(members)]
+    rows: list[dict[str, str | None]] = [{"source": r.source, "topic": r.topic, "dest": r.dest, "as": r.local_name}
+                                         for r in routes(members)]
     exported = {(r["source"], r["topic"]) for r in rows}
     # Exports nobody imports yet: shown so the operator sees what is offered.
     rows += [{"source": m.name, "topic": t, "dest": None, "as": None}
