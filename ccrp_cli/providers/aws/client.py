@@ -5,12 +5,14 @@ into one-line CcrpErrors, and the tagged lookups the other modules of the backen
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import Backoff, call
 from . import tags
 from .errors import INSTALL_HINT, as_ccrp, classify
+from .settings import AwsSettings
 
 LIVE = ["pending", "running", "stopping", "stopped"]
 
@@ -42,7 +44,7 @@ class AwsClient:
         except ImportError:
             raise CcrpError("the AWS SDK (boto3) is not installed", hint=INSTALL_HINT) from None
         self.inv, self.fleet, self.workdir = inv, inv.fleet, Path(workdir)
-        self.settings = inv.provider
+        self.settings = cast(AwsSettings, inv.provider)  # get_provider picked this backend by these settings' kind
         try:
             self.session = boto3.Session(profile_name=self.settings.profile, region_name=self.settings.region)
         except BotoCoreError as exc:  # unknown profile

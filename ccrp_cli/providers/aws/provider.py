@@ -17,6 +17,7 @@ import base64
 import hashlib
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
@@ -25,6 +26,7 @@ from ..cloud import CloudProvider
 from . import INFO, images, network, owned, tags
 from .client import LIVE, AwsClient
 from .errors import error_code
+from .network import Network
 
 GONE = ["shutting-down", "terminated"]
 # Instance families counted by "Running On-Demand Standard (A, C, D, H, I, M, R, T, Z) instances"
@@ -50,10 +52,10 @@ class AwsProvider(CloudProvider):
         super().__init__(inv, workdir)
         self.client = AwsClient(inv, workdir)
         self.settings = self.client.settings
-        self._service_quotas = None  # its client, made when quotas are first read
+        self._service_quotas: Any = None  # its client (boto3's, untyped), made when quotas are first read
 
     @property
-    def network(self) -> network.Network:
+    def network(self) -> Network:
         return network.current(self.client)
 
     def _record(self, inst: dict, origin: Origin | None = None, public_ip: str | None = None) -> CloneRecord:
@@ -116,7 +118,7 @@ class AwsProvider(CloudProvider):
         payload, _gzipped = INFO.fit_user_data(spec.user_data)  # cloud-init detects gzip itself
         return self._complete(self._launch(spec, net, payload, generation=len(seen)), spec, net, Origin.CREATED)
 
-    def _launch(self, spec: CloneSpec, net: network.Network, user_data: bytes, generation: int) -> dict:
+    def _launch(self, spec: CloneSpec, net: Network, user_data: bytes, generation: int) -> dict:
         c = self.client
         instance_type = self._instance_type(spec.robot)
         # ClientToken makes a retried RunInstances (lost answer, throttling) return the same
@@ -143,7 +145,7 @@ class AwsProvider(CloudProvider):
             generation += 1
         raise CcrpError(f"clone {spec.hostname}: AWS keeps returning terminated instances for its client token")
 
-    def _complete(self, inst: dict, spec: CloneSpec, net: network.Network, origin: Origin) -> CloneRecord:
+    def _complete(self, inst: dict, spec: CloneSpec, net: Network, origin: Origin) -> CloneRecord:
         c = self.client
         iid = inst["InstanceId"]
         new_eip: dict | None = None
@@ -189,7 +191,7 @@ class AwsProvider(CloudProvider):
                 undone.append(f"NOT {what} ({exc.message})")
         return undone
 
-    def _route(self, net: network.Network, cidr: str, instance_id: str) -> None:
+    def _route(self, net: Network, cidr: str, instance_id: str) -> None:
         c = self.client
         rt = c.api("describe route table", c.ec2.describe_route_tables, RouteTableIds=[net.route_table_id])["RouteTables"][0]
         current = next((r for r in rt["Routes"] if r.get("DestinationCidrBlock") == cidr), None)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 from pathlib import Path
+from typing import cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
@@ -23,6 +24,7 @@ from ..base import (
 from . import INFO, images, network, owned, snapshot_images
 from .archive import tar_files
 from .client import DockerHost, EngineTransport
+from .settings import DockerSettings
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
 # What a systemd container (a clone, a simulated robot) gets beyond Docker's defaults: NET_ADMIN for
@@ -194,7 +196,7 @@ class DockerProvider(DockerHost):
 
     def build_snapshot(self, repo: str, distro: str, plat, agents: tuple[str, ...], software, digest: str, bare: bool,
                        progress) -> SnapshotRecord:
-        return images.build_snapshot(self, self.state_dir, repo, distro, self.inv.provider.base_image,  # type: ignore[union-attr]
+        return images.build_snapshot(self, self.state_dir, repo, distro, cast(DockerSettings, self.inv.provider).base_image,
                                      plat, agents, software, digest, bare, progress)
 
     def snapshot_labels(self, robot: str | None = None) -> dict[str, str]:

@@ -6,12 +6,13 @@ modules of the backend share (the fleet's instances)."""
 
 from __future__ import annotations
 
+import builtins
 import logging
 import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
@@ -19,6 +20,7 @@ from ...retry import Backoff, ErrorClass, call
 from ..base import LABEL_ROBOT
 from .errors import LOGIN_HINT, as_ccrp_error, classify
 from .ownership import Names, tail
+from .settings import GcpSettings
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +83,8 @@ class GcpClient:
 
         self.NotFound, self.Conflict = exceptions.NotFound, exceptions.Conflict
         self.inv, self.fleet, self.workdir = inv, inv.fleet, Path(workdir)
-        self.settings = inv.provider
-        self.project, self.region = self.settings.project, self.settings.region  # type: ignore[union-attr]
+        self.settings = cast(GcpSettings, inv.provider)  # get_provider picked this backend by these settings' kind
+        self.project, self.region = self.settings.project, self.settings.region
         self.names = Names(self.fleet)
         self._clients = clients
         self._lock = threading.Lock()
@@ -168,7 +170,7 @@ class GcpClient:
             raise as_ccrp_error(what, exc, self.region) from exc
 
     # -- the fleet's instances ---------------------------------------------------------------------
-    def instances(self, role: str | None = None, robot: str | None = None) -> list[tuple[str, object]]:
+    def instances(self, role: str | None = None, robot: str | None = None) -> builtins.list[tuple[str, Any]]:  # `list` here is the method
         """(zone, instance) of every instance carrying the fleet's labels (and role / robot)."""
         request = self.compute.AggregatedListInstancesRequest(
             project=self.project, filter=self.names.label_filter(role, robot))

@@ -95,11 +95,11 @@ class GcpProvider(CloudProvider):
     # -- instances --------------------------------------------------------------------------
     def _zones(self, robot: str) -> list[str]:
         override = self.inv.robot(robot)
-        return [override.zone] if override and override.zone else list(self.settings.zones)  # type: ignore[union-attr]
+        return [override.zone] if override and override.zone else list(self.settings.zones)
 
     def _machine_type(self, robot: str) -> str:
         override = self.inv.robot(robot)
-        return (override and override.instance_type) or self.settings.machine_type  # type: ignore[union-attr]
+        return (override and override.instance_type) or self.settings.machine_type
 
     def _image_source(self, image: str) -> dict:
         """spec.image as the insert request needs it: a machine image, an image URL/path
@@ -388,7 +388,7 @@ class GcpProvider(CloudProvider):
             region = c.call("get region", c.clients.regions.get, project=c.project, region=c.region)
             reserved = {a.name for a in self._addresses()} if robots else set()
             machine = {r: self._machine_type(r) for r in robots}
-            default = self.settings.machine_type  # type: ignore[union-attr]
+            default = self.settings.machine_type
 
             def cpus(machine_type: str, metric: str) -> float:
                 return float(self._vcpus(machine_type)) if cpu_metric(machine_type) == metric else 0.0
@@ -416,7 +416,7 @@ class GcpProvider(CloudProvider):
         """The machine type's vCPUs, looked up once per type."""
         c = self.client
         if machine_type not in self._machine_cpus:
-            zone = self.settings.zones[0]  # type: ignore[union-attr]
+            zone = self.settings.zones[0]
             self._machine_cpus[machine_type] = c.call(
                 "get machine type", c.clients.machine_types.get, project=c.project, zone=zone,
                 machine_type=machine_type).guest_cpus

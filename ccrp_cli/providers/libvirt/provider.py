@@ -235,9 +235,9 @@ class LibvirtProvider(CloudProvider):
         timeout *= self.timeout_scale(robot)
         deadline = time.monotonic() + timeout
         rec = self.query().get(robot)
-        if rec is not None and rec.public_ip:
+        if rec is not None and (ip := rec.public_ip):
             try:
-                poll(lambda: (_listening(rec.public_ip), None), timeout=timeout, interval=2.0)
+                poll(lambda: (_listening(ip), None), timeout=timeout, interval=2.0)
             except PollTimeout:
                 raise CcrpError(f"clone of {robot}: nothing listens on {rec.public_ip}:22 after {timeout:.0f} s",
                                 hint=f"ccrp clone exec --robot {robot} -- systemctl status ssh, or read its console") from None
@@ -451,7 +451,7 @@ class LibvirtProvider(CloudProvider):
             v = c.conn.getLibVersion()
             host = c.conn.getHostname()
             probed = self._probed()
-            accel = self.settings.accel
+            accel: str = self.settings.accel
             if accel == "auto":
                 found = probed.get(self.settings.uri)
                 accel = f"auto: {found} ({probed.get(self.settings.uri + ' why', '')})" if found else \
