@@ -19,7 +19,7 @@ def create(inventory: options.Inventory, robot: options.Robot, as_json: options.
 
     fleet, provider = options.open_provider(inventory)
     fleet.robot(fleet.store.load_state(), robot)  # an unknown robot is bad input, before any PKI is made
-    from ..actions import ensure_pki, ensure_snapshot
+    from ..ops.verbs import ensure_pki, ensure_snapshot
 
     ensure_pki(fleet, output.info)
     with fleet.store.lock():
@@ -32,7 +32,7 @@ def create(inventory: options.Inventory, robot: options.Robot, as_json: options.
 def start(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Start the robot's stopped clone (stopped by autostop or in the cloud's console): its disk is as it
     was; ccrp pushes its keys again and waits until it serves. A running clone is left as it is."""
-    from ..actions import clone_start
+    from ..ops.verbs import clone_start
 
     fleet, provider = options.open_provider(inventory)
     items = clone_start(fleet, provider, robot, output.info)
@@ -43,7 +43,7 @@ def start(inventory: options.Inventory, robot: options.Robot, as_json: options.J
 def stop(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Stop the robot's clone: it costs no compute while stopped, its disk and keys stay. `ccrp clone
     start` (or the next `fleet up`) starts it again. Stopped already: left as it is."""
-    from ..actions import clone_stop
+    from ..ops.verbs import clone_stop
 
     fleet, provider = options.open_provider(inventory)
     raise typer.Exit(output.results(clone_stop(fleet, provider, robot, output.info), as_json))
@@ -53,7 +53,7 @@ def stop(inventory: options.Inventory, robot: options.Robot, as_json: options.Js
 def restart(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Stop the robot's clone and start it again, then wait until it serves: the cure for a clone
     that no longer answers, since the provider stops it, not the clone itself."""
-    from ..actions import clone_restart
+    from ..ops.verbs import clone_restart
 
     fleet, provider = options.open_provider(inventory)
     raise typer.Exit(output.results(clone_restart(fleet, provider, robot, output.info), as_json))

@@ -61,7 +61,7 @@ def up(inventory: options.Inventory, as_json: options.Json = False) -> None:
     from ..ops import reconcile
 
     fleet, provider = options.open_provider(inventory)
-    from ..actions import ensure_pki, ensure_snapshot
+    from ..ops.verbs import ensure_pki, ensure_snapshot
 
     ensure_pki(fleet, output.info)
     with fleet.store.lock():
@@ -77,7 +77,7 @@ def scale(
     as_json: options.Json = False,
 ) -> None:
     """Grow or shrink the fleet to SIZE clones with template robots (inventory robots always stay)."""
-    from ..actions import fleet_scale
+    from ..ops.verbs import fleet_scale
 
     fleet, provider = options.open_provider(inventory)
     items = fleet_scale(fleet, provider, size, output.info)

@@ -11,7 +11,7 @@ from typing import Callable, Iterable, Literal, Protocol, Sequence
 from pydantic import BaseModel
 
 from ..errors import CcrpError
-from ..layout import AUTOSTOP_BOOT_LINE, AUTOSTOP_MARK
+from ..models.layout import AUTOSTOP_BOOT_LINE, AUTOSTOP_MARK
 
 # Labels / tags on every resource ccrp creates; list, delete and gc filter on them.
 LABEL_MANAGED = "ccrp-managed"

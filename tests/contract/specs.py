@@ -3,7 +3,7 @@ real rendered user-data of each clone (as clones.ensure_clone does)."""
 
 from __future__ import annotations
 
-from ccrp_cli.addressing import addresses
+from ccrp_cli.models.addressing import addresses
 from ccrp_cli.models.inventory import Inventory
 from ccrp_cli.providers.base import CloneSpec
 from ccrp_cli.retry import Backoff

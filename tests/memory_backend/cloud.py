@@ -13,7 +13,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 
-from ccrp_cli.layout import AUTOSTOP_MARK
+from ccrp_cli.models.layout import AUTOSTOP_MARK
 
 
 class Throttled(Exception):

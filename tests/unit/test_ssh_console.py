@@ -206,7 +206,7 @@ def test_connect_errors_worth_a_retry():
 def test_cloud_clone_user_data_creates_ccrps_login_user_with_the_operator_key(ccrp_home, tmp_path):
     import yaml
 
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
     from ccrp_cli.ops.clones import clone_user_data
     from ccrp_cli.fleet import Fleet, clone_view
     from ccrp_cli.providers.cloud import SSH_USER, CloudProvider

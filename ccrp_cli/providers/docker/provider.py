@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
-from ...layout import AUTOSTOP_NOTE, VPN_DIR
+from ...models.layout import AUTOSTOP_NOTE, VPN_DIR
 from ...store import FleetStore, ensure_state_id, read_state_id
 from ..base import (
     LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Finding, ImageOutcome, Origin,

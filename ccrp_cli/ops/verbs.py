@@ -11,16 +11,16 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from .providers.base import Lifecycle, Provider
+    from ..providers.base import Lifecycle, Provider
 
 Say = Callable[[str], None]
 
 
 def clone_start(fleet, provider: Provider, robot: str, say: Say) -> list:
     """`ccrp clone start`: start the robot's stopped clone, push its keys again, wait until it serves."""
-    from .ops import reconcile
-    from .errors import InputError
-    from .providers.base import Origin
+    from . import reconcile
+    from ..errors import InputError
+    from ..providers.base import Origin
 
     fleet.robot(fleet.store.load_state(), robot)
     # Asked first: `fleet up` would create a clone that does not exist, and `clone start` must not.
@@ -38,10 +38,10 @@ def clone_stop(fleet, provider: Lifecycle, robot: str, say: Say, timeout: float 
     and ccrp waits until it says stopped. `clone start`, or the next `fleet up`, starts it again."""
     import time
 
-    from . import retry
-    from .ops.clones import CloneResult
-    from .errors import CcrpError, InputError
-    from .providers.base import CloneState
+    from .. import retry
+    from .clones import CloneResult
+    from ..errors import CcrpError, InputError
+    from ..providers.base import CloneState
 
     fleet.robot(fleet.store.load_state(), robot)
     t0 = time.monotonic()
@@ -79,7 +79,7 @@ def clone_restart(fleet, provider: Provider, robot: str, say: Say) -> list:
 
 def fleet_scale(fleet, provider: Provider, size: int, say: Say) -> list:
     """`ccrp fleet scale SIZE`: grow or shrink the fleet with template robots."""
-    from .ops import reconcile
+    from . import reconcile
 
     kept, new, _removed = reconcile.scaled(fleet, fleet.store.load_state(), size)  # bad input makes no PKI, no snapshot
     ensure_pki(fleet, say)
@@ -112,9 +112,9 @@ def ensure_snapshot(fleet, provider: Provider, say: Say, robots: list[str] | Non
     (`ccrp snapshot bake`: a builder instance, minutes, billed), so there the clone says so.
     The clones of `robots` (default: every member) are held against the quotas first: a host
     without room for them refuses before minutes of building (and a GB of libvirt pool)."""
-    from .ops import snapshots
-    from .ops.quotas import check_growth
-    from .providers import Ability
+    from . import snapshots
+    from .quotas import check_growth
+    from ..providers import Ability
 
     recorded = fleet.store.load_state().snapshot or {}
     if Ability.LOCAL_BUILD not in provider.abilities or (recorded.get("image") and provider.has_image(recorded["image"])):
@@ -130,7 +130,7 @@ def robot_teleop(fleet, provider: Lifecycle, robot: str, linear: float, angular:
                  timeout: float = 5.0, keep: bool = False) -> dict:
     """`ccrp robot teleop` and the dashboard's drive keys: one velocity command through the clone.
     No fleet lock: it changes nothing ccrp records, and an operator must not wait behind a scale."""
-    from .robot.evaluation import send_command
+    from ..robot.evaluation import send_command
 
     return send_command(fleet, provider, robot, linear, angular, topic, timeout, keep)
 
@@ -139,6 +139,6 @@ def robot_power(fleet, robot: str, action: str, say: Say, timeout: float = 30) -
     """`ccrp robot power on|off|status` and the dashboard's Power buttons: through the robot's clone
     to its power device, waiting for its report. No fleet lock: ccrp records nothing (a first use
     on a simulated robot issues its device's certificate under the lock)."""
-    from .robot.power import power
+    from ..robot.power import power
 
     return power(fleet, robot, action, say, timeout)
