@@ -15,17 +15,10 @@ app = typer.Typer(help="One robot's clone: create, start, stop, restart, delete,
 @app.command()
 def create(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Create the robot's clone from the fleet's snapshot (idempotent: reuses an existing one)."""
-    from ..ops import reconcile
+    from ..ops.verbs import clone_create
 
     fleet, provider = options.open_provider(inventory)
-    fleet.robot(fleet.store.load_state(), robot)  # an unknown robot is bad input, before any PKI is made
-    from ..ops.verbs import ensure_pki, ensure_snapshot
-
-    ensure_pki(fleet, output.info)
-    with fleet.store.lock():
-        ensure_snapshot(fleet, provider, output.info, robots=[robot])
-        items = reconcile.up(fleet, provider, output.info, only=[robot])
-    raise typer.Exit(output.results(items, as_json))
+    raise typer.Exit(output.results(clone_create(fleet, provider, robot, output.info), as_json))
 
 
 @app.command()
@@ -62,17 +55,10 @@ def restart(inventory: options.Inventory, robot: options.Robot, as_json: options
 @app.command()
 def delete(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Delete the robot's clone and its secrets volume (the robot keeps its certificates and addresses)."""
-    fleet, provider = options.open_provider(inventory)
-    with fleet.store.lock():
-        state = fleet.store.load_state()
-        existed = robot in provider.query()
-        from ..ops.clones import StateWriter
-        from ..ops.reconcile import retire
+    from ..ops.verbs import clone_delete
 
-        [item] = retire(fleet, provider, StateWriter(fleet, state), [robot], output.info, forget=False)
-        if not existed:
-            item.action = "absent"
-    raise typer.Exit(output.results([item], as_json))
+    fleet, provider = options.open_provider(inventory)
+    raise typer.Exit(output.results(clone_delete(fleet, provider, robot, output.info), as_json))
 
 
 @app.command("list")

@@ -64,12 +64,9 @@ def issue_cert(
     """Issue the robot's client certificate and its clone's server certificate.
 
     Also the one way back in for a revoked robot (with a new password and tls-crypt key)."""
-    fleet = options.open_fleet(inventory)
-    fleet.robot(fleet.store.load_state(), robot)
-    from ..ops.verbs import ensure_pki
+    from ..ops.verbs import vpn_issue
 
-    ensure_pki(fleet, output.info)
-    records = _ops().issue(fleet, robot, renew, _provider(fleet) if renew else None, output.info)
+    records = vpn_issue(options.open_fleet(inventory), robot, renew, output.info)
     if not as_json:
         for r in records:
             output.info(f"{'issued' if r['issued'] else 'kept valid'} {r['profile']} certificate {r['cn']} ({r['path']})")

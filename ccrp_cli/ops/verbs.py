@@ -1,5 +1,6 @@
-"""Operations a user starts from the CLI or from the dashboard: one body each, so `ccrp clone
-start` and the dashboard's Start button do exactly the same thing (under the fleet lock).
+"""Operations a user starts from the CLI or from the dashboard, each whole (PKI, fleet lock,
+snapshot, reconcile, the result): one body each, so `ccrp clone start` and the dashboard's Start
+button do exactly the same thing. docs/architecture.md "Code map" lists every verb's function.
 
 `say` receives progress lines (the CLI prints them on stderr, the dashboard pushes them to the
 page). Each returns what the CLI renders: per-robot results or certificate records.
@@ -14,6 +15,50 @@ if TYPE_CHECKING:
     from ..providers.base import Lifecycle, Provider
 
 Say = Callable[[str], None]
+
+
+def fleet_up(fleet, provider: Provider, say: Say) -> list:
+    """`ccrp fleet up`: create or reuse every robot's clone (the PKI and the snapshot first if the fleet has none)."""
+    from . import reconcile
+
+    ensure_pki(fleet, say)
+    with fleet.store.lock():
+        ensure_snapshot(fleet, provider, say)
+        return reconcile.up(fleet, provider, say)
+
+
+def fleet_down(fleet, provider: Provider, say: Say) -> list[str]:
+    """`ccrp fleet down`: remove what ccrp created for the fleet (PKI and state stay)."""
+    from . import reconcile
+
+    with fleet.store.lock():
+        return reconcile.down(fleet, provider, say)
+
+
+def clone_create(fleet, provider: Provider, robot: str, say: Say) -> list:
+    """`ccrp clone create`: create or reuse one robot's clone, as `fleet up` does for every robot."""
+    from . import reconcile
+
+    fleet.robot(fleet.store.load_state(), robot)  # an unknown robot is bad input, before any PKI is made
+    ensure_pki(fleet, say)
+    with fleet.store.lock():
+        ensure_snapshot(fleet, provider, say, robots=[robot])
+        return reconcile.up(fleet, provider, say, only=[robot])
+
+
+def clone_delete(fleet, provider: Provider, robot: str, say: Say) -> list:
+    """`ccrp clone delete`: the robot's clone and its secrets volume go (the robot keeps its
+    certificates and addresses)."""
+    from .clones import StateWriter
+    from .reconcile import retire
+
+    with fleet.store.lock():
+        state = fleet.store.load_state()
+        existed = robot in provider.query()
+        [item] = retire(fleet, provider, StateWriter(fleet, state), [robot], say, forget=False)
+        if not existed:
+            item.action = "absent"
+    return [item]
 
 
 def clone_start(fleet, provider: Provider, robot: str, say: Say) -> list:
@@ -88,11 +133,88 @@ def fleet_scale(fleet, provider: Provider, size: int, say: Say) -> list:
         return reconcile.scale(fleet, provider, size, say)
 
 
+def vpn_issue(fleet, robot: str, renew: bool, say: Say) -> list[dict[str, Any]]:
+    """`ccrp vpn issue-cert`: the robot's client and its clone's server certificates (the PKI
+    first if the fleet has none); with `renew`, a running clone takes the new set at once."""
+    from . import vpn
+    from ..providers import get_provider
+
+    fleet.robot(fleet.store.load_state(), robot)
+    ensure_pki(fleet, say)
+    return vpn.issue(fleet, robot, renew, get_provider(fleet.inventory) if renew else None, say)
+
+
 def vpn_revoke(fleet, provider: Provider, robot: str, say: Say, cert: str = "client") -> list[dict[str, Any]]:
     """`ccrp vpn revoke`: revoke the robot's certificates, end its session, push the CRL."""
     from . import vpn
 
     return vpn.revoke(fleet, robot, cert, provider, say)
+
+
+def snapshot_build(fleet, provider: Provider, say: Say, if_missing: bool = False, bare: bool = False):
+    """`ccrp snapshot build`: the golden image from the recipe, recorded for new clones. With
+    `if_missing`, the recorded one is kept while its image exists and holds the inventory's
+    software."""
+    from . import snapshots
+    from ..services.workloads import stale_snapshot
+
+    with fleet.store.lock():
+        recorded = fleet.store.load_state().snapshot or {}
+        current = recorded.get("image")
+        # Kept only while it holds the inventory's software (a changed workspace needs a new one).
+        if if_missing and current and provider.has_image(current) and bool(recorded.get("bare")) == bare \
+                and stale_snapshot(fleet, fleet.store.load_state()) is None:
+            say(f"snapshot {current} exists; new clones start from it")
+            return provider.snapshot_record(provider.client.images.get(current))
+        record = snapshots.build(fleet, provider, say, bare=bare)
+        snapshots.retain(fleet, provider, say)
+    say(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
+    return record
+
+
+def snapshot_bake(fleet, provider: Provider, say: Say, base_image: str | None, timeout: float):
+    """`ccrp snapshot bake`: a builder instance installs the recipe, is captured, then terminated."""
+    from . import snapshots
+
+    with fleet.store.lock():
+        record = snapshots.bake(fleet, provider, say, base_image=base_image, timeout=timeout)
+        snapshots.retain(fleet, provider, say)
+    return record
+
+
+def snapshot_create(fleet, provider: Provider, robot: str, use: bool):
+    """`ccrp snapshot create`: capture a configured clone as a snapshot."""
+    from . import snapshots
+
+    with fleet.store.lock():
+        return snapshots.create(fleet, provider, robot, use)
+
+
+def snapshot_delete(fleet, provider: Provider, snapshot: str, force: bool) -> None:
+    """`ccrp snapshot delete`."""
+    from . import snapshots
+
+    with fleet.store.lock():
+        snapshots.delete(fleet, provider, snapshot, force)
+
+
+def gc(fleet, provider: Provider, dry_run: bool, unlabelled: bool, say: Say) -> tuple[list, list]:
+    """`ccrp gc`: the fleet's leaked resources, and on a host that keeps the snapshot images
+    (Ability.HOST_IMAGES) the orphan images, deleted unless `dry_run`: (leaks, images)."""
+    from .gc import collect, collect_images
+    from ..errors import CcrpError
+    from ..providers import Ability
+
+    if not dry_run and not fleet.store.state_path.exists():
+        # Without state every owned resource looks leaked: a wrong CCRP_HOME would wipe the fleet.
+        raise CcrpError(f"no state for fleet {fleet.name!r} in {fleet.store.root}: everything would count as a leak",
+                        hint="run where the fleet's state lives (CCRP_HOME), `ccrp gc --dry-run` to look, or `ccrp fleet down`")
+    with fleet.store.lock():  # no `fleet up` may create clones while we decide what is a leak
+        leaks = collect(fleet.store.load_state(), provider, dry_run, say, fleet.inventory.snapshots.keep)
+        images = []
+        if Ability.HOST_IMAGES in provider.abilities:  # snapshot images live on this host, whatever their state
+            images = collect_images(provider, dry_run, unlabelled, say)
+    return leaks, images
 
 
 def ensure_pki(fleet, say: Say) -> None:
