@@ -155,7 +155,6 @@ def snapshot_build(fleet, provider: Provider, say: Say, if_missing: bool = False
     """`ccrp snapshot build`: the golden image from the recipe, recorded for new clones. With
     `if_missing`, the recorded one is kept while its image exists and holds the inventory's
     software."""
-    from . import snapshots
     from ..services.workloads import stale_snapshot
 
     with fleet.store.lock():
@@ -166,8 +165,15 @@ def snapshot_build(fleet, provider: Provider, say: Say, if_missing: bool = False
                 and stale_snapshot(fleet, fleet.store.load_state()) is None:
             say(f"snapshot {current} exists; new clones start from it")
             return provider.snapshot_record(provider.client.images.get(current))
-        record = snapshots.build(fleet, provider, say, bare=bare)
-        snapshots.retain(fleet, provider, say)
+        return _build(fleet, provider, say, bare)
+
+
+def _build(fleet, provider: Provider, say: Say, bare: bool = False):
+    """Build the golden image, record it, drop the snapshots retention lets go (under the fleet lock)."""
+    from . import snapshots
+
+    record = snapshots.build(fleet, provider, say, bare=bare)
+    snapshots.retain(fleet, provider, say)
     say(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
     return record
 
@@ -234,7 +240,6 @@ def ensure_snapshot(fleet, provider: Provider, say: Say, robots: list[str] | Non
     (`ccrp snapshot bake`: a builder instance, minutes, billed), so there the clone says so.
     The clones of `robots` (default: every member) are held against the quotas first: a host
     without room for them refuses before minutes of building (and a GB of libvirt pool)."""
-    from . import snapshots
     from .quotas import check_growth
     from ..providers import Ability
 
@@ -243,9 +248,7 @@ def ensure_snapshot(fleet, provider: Provider, say: Say, robots: list[str] | Non
         return
     check_growth(fleet, provider, [r.name for r in fleet.members(fleet.load_allocated())] if robots is None else robots, say)
     say(f"fleet {fleet.name!r} has no snapshot yet: building it (as `ccrp snapshot build`)")
-    record = snapshots.build(fleet, provider, say)
-    snapshots.retain(fleet, provider, say)
-    say(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
+    _build(fleet, provider, say)
 
 
 def robot_teleop(fleet, provider: Lifecycle, robot: str, linear: float, angular: float, topic: str = "cmd_vel",
