@@ -271,6 +271,10 @@ class ProviderInfo:
     bake_base_hint: str = ""
     # `ccrp init --provider <kind>`: None for a backend init does not offer.
     init: InitSection | None = None
+    # `ccrp init`'s scan of this host, whatever backend the new inventory names: "module:function"
+    # (as factory) returning the ranges this backend has taken here, range -> what it is (Docker's
+    # networks, libvirt's); a new fleet's pools avoid them. None: it takes none of this host's.
+    host_networks: str | None = None
     # `ccrp doctor`'s row for reaching the backend ("<kind> client" unless it names its own), and
     # whether that answer is the credential (Docker: the engine answering), or the account is
     # checked apart (check_credentials: the clouds').
