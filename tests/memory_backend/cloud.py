@@ -26,7 +26,7 @@ class Refused(Exception):
 
 @dataclass
 class Resource:
-    kind: str  # a base.ResourceKind: instance, address, firewall, network, image
+    kind: str  # an OwnedResource.kind: instance, address, firewall, network, image
     id: str
     name: str
     labels: dict[str, str]

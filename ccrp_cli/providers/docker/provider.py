@@ -13,8 +13,8 @@ from ...models.layout import AUTOSTOP_NOTE, VPN_DIR
 from ...store import FleetStore, ensure_state_id, read_state_id
 from ..base import (
     LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Finding, ImageOutcome, Origin,
-    OwnedResource, Quota, RobotAttachment, SnapshotRecord,
-    autostop_note, owner_labels, wait_cloud_init,
+    OwnedResource, Quota, RobotAttachment, Role, SnapshotRecord,
+    autostop_note, with_roles, owner_labels, wait_cloud_init,
 )
 from . import INFO, snapshot_images
 from .archive import tar_files
@@ -24,6 +24,8 @@ SEED_DIR = "var/lib/cloud/seed/nocloud"
 # What a systemd container (a clone, a simulated robot) gets beyond Docker's defaults: NET_ADMIN for
 # the tunnel and the firewall, SYS_ADMIN for systemd's per-unit mount namespaces. Docker's default
 # seccomp profile stays on (it allows mount/unshare to a SYS_ADMIN container).
+# What each kind is to the fleet (`ccrp gc`); volumes belong to a robot.
+ROLES = {"container": Role.CLONE, "robot_sim": Role.ROBOT_SIDE, "image": Role.IMAGE, "network": Role.BOOTSTRAP}
 CLONE_CAPS = ["NET_ADMIN", "SYS_ADMIN"]
 CLONE_SECURITY_OPT = ["no-new-privileges"]
 # Docker's container states in ccrp's words.
@@ -341,7 +343,7 @@ class DockerProvider(DockerHost):
         # `ccrp deploy`'s build of the workspace (deploy.py): cache only, no state records it.
         owned += [OwnedResource(kind="image", id=i.id.removeprefix("sha256:")[:12], name=(i.tags or ["<untagged>"])[0])
                   for i in self.client.images.list(filters=self._filters("deploy"))]
-        return owned
+        return with_roles(owned, ROLES)
 
     def delete_owned(self, resource: OwnedResource) -> None:
         getter = {"container": self.client.containers, "robot_sim": self.client.containers, "volume": self.client.volumes,

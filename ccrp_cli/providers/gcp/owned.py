@@ -4,13 +4,16 @@ firewalls, subnetworks and networks marked in their description), deleting it, a
 from __future__ import annotations
 
 from ...errors import CcrpError
-from ..base import LABEL_ROBOT, OwnedResource
+from ..base import LABEL_ROBOT, OwnedResource, Role, with_roles
 from .ownership import description_marks
 
 # Teardown order: what points at an instance goes first, the network it lives on last.
 # An address is released once its instance is gone (GCE refuses while it is in use).
 TEARDOWN_ORDER = ("route", "instance", "address", "firewall", "subnet", "network")
 SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images do
+# What each kind is to the fleet (`ccrp gc`); routes and addresses belong to a robot.
+ROLES = {"instance": Role.CLONE, "image": Role.IMAGE, "firewall": Role.BOOTSTRAP, "subnet": Role.BOOTSTRAP,
+         "network": Role.BOOTSTRAP}
 
 
 class Owned:
@@ -41,7 +44,7 @@ class Owned:
 
     def list_owned(self) -> list[OwnedResource]:
         with self._errors("list owned resources"):
-            return [res for res, _zone in self._owned()]
+            return with_roles((res for res, _zone in self._owned()), ROLES)
 
     def _start_delete(self, res: OwnedResource, zone: str | None):
         where = {

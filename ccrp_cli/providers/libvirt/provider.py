@@ -26,7 +26,7 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import ErrorClass
 from ..base import (LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin,
-                    OwnedResource, Quota, RobotAttachment, SnapshotRecord, owner_labels)
+                    OwnedResource, Quota, RobotAttachment, Role, SnapshotRecord, owner_labels, with_roles)
 from ..cloud import CloudProvider
 from . import INFO, forward, robots, seed, xmldefs
 from .settings import URI_PARAMS_ENV, LibvirtSettings, connect_uri
@@ -74,6 +74,8 @@ def _listening(host: str, port: int = 22) -> bool:
         return False
 
 
+# What each kind is to the fleet (`ccrp gc`); volumes and port forwards belong to a robot.
+ROLES = {"instance": Role.CLONE, "robot_sim": Role.ROBOT_SIDE, "image": Role.IMAGE, "network": Role.BOOTSTRAP}
 SHOWN_KINDS = {"instance": "domain", "robot_sim": "container", "port_forward": "port forward"}  # as `fleet down` reports them
 
 
@@ -882,7 +884,7 @@ class LibvirtProvider(CloudProvider):
                       for n in self.conn.listAllNetworks(0) if n.name() in (self.public_net, self.common_net)]
             found += self._forwards()
             order = ("instance", "robot_sim", "port_forward", "volume", "network", "image")
-            return sorted(found, key=lambda r: order.index(r.kind))
+            return with_roles(sorted(found, key=lambda r: order.index(r.kind)), ROLES)
 
     def delete_owned(self, resource: OwnedResource) -> None:
         with self._errors(f"delete {resource.kind} {resource.id}"):
