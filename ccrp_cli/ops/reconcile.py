@@ -8,7 +8,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor, wait
 from typing import TYPE_CHECKING, cast
 
-from ..addressing import allocate
+from ..models.addressing import allocate
 from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
 from ..errors import CcrpError, InputError
 from ..fleet import Fleet

@@ -141,7 +141,7 @@ def software_env(software: SnapshotSoftware) -> dict[str, str]:
     software layers take (providers/docker/images.py dockerfile)."""
     from ..recipes import is_ros2, recipe
     from ..render.cloudinit import ros2_prefix
-    from ..layout import LOGIN_USER
+    from ..models.layout import LOGIN_USER
 
     ros2 = is_ros2(software.distro)
     prefix = ros2_prefix(software.distro)

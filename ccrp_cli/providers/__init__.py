@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 from ..store import FleetStore
 from .base import Ability, ImageSoftware, Provider, ProviderInfo, RobotHost
-from .registry import REGISTRY, info, require
+from .registry import REGISTRY, declare, info, require
 
 if TYPE_CHECKING:
     # For the annotation only: models/inventory.py imports registry.py, which runs this package's
@@ -79,16 +79,10 @@ def close_opened() -> None:
 
 def register(backend: ProviderInfo) -> None:
     """Add a backend that lives outside ccrp_cli (a test's: tests/memory_backend), as the registry's
-    line adds one of ccrp's own: the inventory takes its `provider:` settings from then on."""
-    from ..models.inventory import provider_union_changed
-
-    REGISTRY[backend.kind] = backend
-    provider_union_changed()
+    line adds one of ccrp's own: the loader takes its `provider:` settings from then on."""
+    declare(backend)
 
 
 def unregister(kind: str) -> None:
-    """Undo register(): the inventory refuses the backend's kind again."""
-    from ..models.inventory import provider_union_changed
-
+    """Undo register(): the loader refuses the backend's kind again."""
     del REGISTRY[kind]
-    provider_union_changed()

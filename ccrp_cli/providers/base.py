@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Callable, Iterable, Literal, Protocol, Sequenc
 from pydantic import BaseModel
 
 from ..errors import CcrpError
-from ..layout import AUTOSTOP_BOOT_LINE, AUTOSTOP_MARK
+from ..models.layout import AUTOSTOP_BOOT_LINE, AUTOSTOP_MARK
 
 if TYPE_CHECKING:
     from ..recipes import Platform
@@ -152,23 +152,32 @@ class SnapshotRecord(BaseModel):
     size_mb: float | None = None
 
 
-# Every kind of resource a provider creates and lists as owned (what `ccrp gc` and `fleet down` see).
-ResourceKind = Literal[
-    "instance", "container", "robot_sim", "volume", "image", "snapshot", "key_pair",  # compute, images
-    "network", "subnet", "router", "port", "floating_ip", "security_group",  # OpenStack / Docker networks
-    "vpc", "route_table", "internet_gateway", "elastic_ip",  # AWS
-    "route", "firewall", "address",  # GCP (address: a reserved external IP)
-    "port_forward",  # libvirt: a clone's VPN port forwarded by the host (providers/libvirt/forward.py)
-]
+class Role(str, Enum):
+    """What an owned resource is to the fleet, in ccrp's words: `ccrp gc` judges a resource by its
+    role; its kind is the backend's own word (instance, vpc, port_forward...)."""
+
+    BOOTSTRAP = "bootstrap"  # one per fleet, made or reused by bootstrap (networks, firewalls, key pair)
+    CLONE = "clone"  # a robot's clone (an instance, a container)
+    IMAGE = "image"  # a snapshot image (the fleet's, or a cache no state records)
+    ROBOT_SIDE = "robot-side"  # started by hand for a robot (`ccrp robot sim`), not recorded as a clone
+    PER_ROBOT = "per-robot"  # what belongs to one robot's clone (its public IP, volumes, routes)
 
 
 class OwnedResource(BaseModel):
     """Anything in the cloud carrying the fleet's ownership labels (what `ccrp gc` looks at)."""
 
-    kind: ResourceKind
+    kind: str  # the backend's own word, for messages and its delete_owned
     id: str
     name: str = ""
     robot: str | None = None
+    # Set by the backend where it lists what it owns (with_roles): gc reads nothing else.
+    role: Role = Role.PER_ROBOT
+
+
+def with_roles(found: Iterable[OwnedResource], roles: dict[str, Role]) -> list[OwnedResource]:
+    """`found` with each resource's role, from the backend's own table kind -> role (a kind it does
+    not name belongs to a robot)."""
+    return [r.model_copy(update={"role": roles.get(r.kind, Role.PER_ROBOT)}) for r in found]
 
 
 class Quota(BaseModel):
@@ -265,6 +274,10 @@ class ProviderInfo:
     bake_base_hint: str = ""
     # `ccrp init --provider <kind>`: None for a backend init does not offer.
     init: InitSection | None = None
+    # `ccrp init`'s scan of this host, whatever backend the new inventory names: "module:function"
+    # (as factory) returning the ranges this backend has taken here, range -> what it is (Docker's
+    # networks, libvirt's); a new fleet's pools avoid them. None: it takes none of this host's.
+    host_networks: str | None = None
     # `ccrp doctor`'s row for reaching the backend ("<kind> client" unless it names its own), and
     # whether that answer is the credential (Docker: the engine answering), or the account is
     # checked apart (check_credentials: the clouds').

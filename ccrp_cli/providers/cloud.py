@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ..errors import CcrpError
 from ..models.inventory import Inventory
-from ..layout import LOGIN_USER
+from ..models.layout import LOGIN_USER
 from ..retry import Backoff, ErrorClass, call
 from .base import CloneRecord, autostop_note, wait_cloud_init
 

@@ -21,7 +21,7 @@ from ..errors import CcrpError, InputError, shown
 from ..fleet import Fleet
 from ..models.state import FleetState
 from ..render.files import BundleFile
-from ..layout import CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, SECRETS_DIR
+from ..models.layout import CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, SECRETS_DIR
 from .base import Boot, CloneService, ServiceContext
 
 if TYPE_CHECKING:

@@ -82,6 +82,7 @@ def test_init_libvirt_gets_a_nat_network_free_on_this_host(here, monkeypatch):
     route, Docker network, other fleet or libvirt network of this host uses, running or not (a
     stopped libvirt network has no route yet); its pools do not overlap it."""
     from ccrp_cli.ops import init
+    from ccrp_cli.providers.libvirt import host_networks
 
     nets = here / "networks"
     nets.mkdir()
@@ -90,7 +91,7 @@ def test_init_libvirt_gets_a_nat_network_free_on_this_host(here, monkeypatch):
     (nets / "lab.xml").write_text("<network><name>lab</name><ip address='172.30.1.1' prefix='24'/>"
                                   "<ip family='ipv6' address='fd00::1' prefix='64'/></network>")
     (nets / "broken.xml").write_text("<network><ip address=")
-    monkeypatch.setattr(init, "LIBVIRT_NETWORKS", str(nets))
+    monkeypatch.setattr(host_networks, "NETWORKS", str(nets))
     assert {k: v for k, v in init.host_ranges().items() if v.startswith("libvirt")} == {
         "172.30.0.0/24": "libvirt network default", "172.30.1.0/24": "libvirt network lab"}
     code, out, err = run_ccrp_inprocess("init", "--provider", "libvirt", "--robots", "nao1", "--distro", "noetic",

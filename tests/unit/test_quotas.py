@@ -125,7 +125,7 @@ def test_gcp_up_refuses_over_static_addresses_and_creates_nothing(gcp):
 
 
 def test_gcp_clone_create_fits_where_the_fleet_does_not(gcp, created):
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     h = gcp(address_quota=2)
     fleet = fleet_of(h.inv)
@@ -151,7 +151,7 @@ def test_gcp_scale_refuses_before_recording_new_robots(gcp):
 
 
 def test_gcp_scale_that_fits_records_and_creates_the_new_robots(gcp, created):
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
     from tests.contract.harness_gcp import PROJECT, REGION as GCP_REGION, ZONES
 
     inv = specs.inventory({"kind": "gcp", "project": PROJECT, "region": GCP_REGION, "zones": ZONES[:2],
@@ -231,7 +231,7 @@ def test_openstack_without_quota_details_checks_the_compute_limits(openstack):
 
 
 def test_openstack_happy_path_passes_the_gate(openstack, created):
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     fleet = fleet_of(openstack.provider.inv)
     vpn.init(fleet)

@@ -4,7 +4,7 @@ tags again, and `fleet down`'s teardown in dependency order."""
 from __future__ import annotations
 
 from ...errors import CcrpError
-from ..base import LABEL_ROBOT, OwnedResource
+from ..base import LABEL_ROBOT, OwnedResource, Role, with_roles
 from . import images, tags
 from .client import KINDS, AwsClient
 
@@ -12,6 +12,10 @@ from .client import KINDS, AwsClient
 # (as on Docker): `ccrp snapshot delete` removes them.
 TEARDOWN = ["instance", "elastic_ip", "volume", "security_group", "key_pair", "route_table", "subnet",
             "internet_gateway", "vpc"]
+# What each kind is to the fleet (`ccrp gc`); Elastic IPs, volumes and EBS snapshots belong to a robot.
+ROLES = {"instance": Role.CLONE, "image": Role.IMAGE, "security_group": Role.BOOTSTRAP, "key_pair": Role.BOOTSTRAP,
+         "route_table": Role.BOOTSTRAP, "subnet": Role.BOOTSTRAP, "internet_gateway": Role.BOOTSTRAP,
+         "vpc": Role.BOOTSTRAP}
 
 
 def list_owned(c: AwsClient) -> list[OwnedResource]:
@@ -27,7 +31,7 @@ def list_owned(c: AwsClient) -> list[OwnedResource]:
             t = tags.as_dict(item)
             name = t.get("Name") or item.get("GroupName") or item.get("KeyName") or item.get("PublicIp") or ""
             owned.append(OwnedResource(kind=kind, id=rid, name=name, robot=t.get(LABEL_ROBOT)))
-    return owned
+    return with_roles(owned, ROLES)
 
 
 def delete_owned(c: AwsClient, resource: OwnedResource) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Sequence
 
 from ...errors import CcrpError
-from ...layout import LOCALE_SETUP, WORKSPACE
+from ...models.layout import LOCALE_SETUP, WORKSPACE
 from ...recipes import Platform
 from ...resources import agent_source
 from ...store import ensure_state_id, read_state_id

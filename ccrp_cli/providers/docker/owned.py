@@ -7,7 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ...errors import CcrpError
-from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, OwnedResource
+from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, OwnedResource, Role, with_roles
 from . import images
 from .client import DockerHost
 
@@ -29,6 +29,10 @@ def teardown(c: DockerHost) -> list[str]:
     return removed
 
 
+# What each kind is to the fleet (`ccrp gc`); volumes belong to a robot.
+ROLES = {"container": Role.CLONE, "robot_sim": Role.ROBOT_SIDE, "image": Role.IMAGE, "network": Role.BOOTSTRAP}
+
+
 def list_owned(c: DockerHost, state_dir: Path) -> list[OwnedResource]:
     label = {"label": [f"{LABEL_FLEET}={c.fleet}"]}
     owned = [
@@ -44,7 +48,7 @@ def list_owned(c: DockerHost, state_dir: Path) -> list[OwnedResource]:
     # `ccrp deploy`'s build of the workspace (deploy.py): cache only, no state records it.
     owned += [OwnedResource(kind="image", id=i.id.removeprefix("sha256:")[:12], name=(i.tags or ["<untagged>"])[0])
               for i in c.client.images.list(filters=c._filters("deploy"))]
-    return owned
+    return with_roles(owned, ROLES)
 
 
 def delete_owned(c: DockerHost, resource: OwnedResource) -> None:

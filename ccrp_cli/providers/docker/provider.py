@@ -14,7 +14,7 @@ from typing import cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
-from ...layout import AUTOSTOP_NOTE, VPN_DIR
+from ...models.layout import AUTOSTOP_NOTE, VPN_DIR
 from ...store import FleetStore
 from ..base import (
     LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Finding, ImageOutcome, Origin,

@@ -4,7 +4,7 @@ firewalls, subnetworks and networks marked in their description), deleting it, a
 from __future__ import annotations
 
 from ...errors import CcrpError
-from ..base import LABEL_ROBOT, OwnedResource
+from ..base import LABEL_ROBOT, OwnedResource, Role, with_roles
 from . import images
 from .client import GcpClient
 from .ownership import description_marks
@@ -13,6 +13,9 @@ from .ownership import description_marks
 # An address is released once its instance is gone (GCE refuses while it is in use).
 TEARDOWN_ORDER = ("route", "instance", "address", "firewall", "subnet", "network")
 SNAPSHOT_KINDS = ("image",)  # survive `fleet down`, as Docker snapshot images do
+# What each kind is to the fleet (`ccrp gc`); routes and addresses belong to a robot.
+ROLES = {"instance": Role.CLONE, "image": Role.IMAGE, "firewall": Role.BOOTSTRAP, "subnet": Role.BOOTSTRAP,
+         "network": Role.BOOTSTRAP}
 
 
 def marked(c: GcpClient) -> list[tuple[OwnedResource, str | None]]:
@@ -41,7 +44,7 @@ def marked(c: GcpClient) -> list[tuple[OwnedResource, str | None]]:
 
 def list_owned(c: GcpClient) -> list[OwnedResource]:
     with c.errors("list owned resources"):
-        return [res for res, _zone in marked(c)]
+        return with_roles((res for res, _zone in marked(c)), ROLES)
 
 
 def start_delete(c: GcpClient, res: OwnedResource, zone: str | None):

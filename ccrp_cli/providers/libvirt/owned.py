@@ -7,12 +7,14 @@ from __future__ import annotations
 import re
 
 from ...errors import CcrpError
-from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, OwnedResource
+from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, OwnedResource, Role, with_roles
 from . import forward, images, network, xmldefs
 from .client import LibvirtClient
 
 # A clone's volumes after `ccrp-<fleet>-cri-`: its robot, then what it is (LibvirtClient.clone_volumes).
 CLONE_VOLUME = re.compile(r"^(?P<robot>[a-z][a-z0-9]*)(\.qcow2|-seed\.iso|\.console)$")
+# What each kind is to the fleet (`ccrp gc`); volumes and port forwards belong to a robot.
+ROLES = {"instance": Role.CLONE, "robot_sim": Role.ROBOT_SIDE, "image": Role.IMAGE, "network": Role.BOOTSTRAP}
 SHOWN_KINDS = {"instance": "domain", "robot_sim": "container", "port_forward": "port forward"}  # as `fleet down` reports them
 ORDER = ("instance", "robot_sim", "port_forward", "volume", "network", "image")
 
@@ -52,7 +54,7 @@ def list_owned(c: LibvirtClient) -> list[OwnedResource]:
         found += [OwnedResource(kind="network", id=n.name(), name=n.name())
                   for n in c.conn.listAllNetworks(0) if n.name() in (c.public_net, c.common_net)]
         found += network.forwards(c)
-        return sorted(found, key=lambda r: ORDER.index(r.kind))
+        return with_roles(sorted(found, key=lambda r: ORDER.index(r.kind)), ROLES)
 
 
 def delete_owned(c: LibvirtClient, resource: OwnedResource) -> None:

@@ -4,12 +4,15 @@ checking ownership on the cloud, and `fleet down`'s teardown in dependency order
 from __future__ import annotations
 
 from ...errors import CcrpError
-from ..base import LABEL_ROBOT, OwnedResource
+from ..base import LABEL_ROBOT, OwnedResource, Role, with_roles
 from . import images, network
 from .client import OpenStackClient
 
 # teardown / gc order: what depends on something is deleted before it.
 ORDER = ("instance", "floating_ip", "port", "router", "subnet", "network", "security_group", "key_pair", "image")
+# What each kind is to the fleet (`ccrp gc`); floating IPs and ports belong to a robot.
+ROLES = {"instance": Role.CLONE, "image": Role.IMAGE, "router": Role.BOOTSTRAP, "subnet": Role.BOOTSTRAP,
+         "network": Role.BOOTSTRAP, "security_group": Role.BOOTSTRAP, "key_pair": Role.BOOTSTRAP}
 NEUTRON = {  # OwnedResource.kind -> Neutron collection (openstack.network proxy: list / get / delete)
     "floating_ip": ("ips", "get_ip", "delete_ip"),
     "port": ("ports", "get_port", "delete_port"),
@@ -35,7 +38,7 @@ def list_owned(c: OpenStackClient, public_key: str) -> list[OwnedResource]:
             found.append(OwnedResource(kind="key_pair", id=kp.name, name=kp.name))
         found += [OwnedResource(kind="image", id=i.id, name=i.name or "", robot=i.properties.get(LABEL_ROBOT))
                   for i in images.owned_images(c)]
-        return sorted(found, key=lambda r: ORDER.index(r.kind))
+        return with_roles(sorted(found, key=lambda r: ORDER.index(r.kind)), ROLES)
 
 
 def delete_owned(c: OpenStackClient, public_key: str, resource: OwnedResource) -> None:
