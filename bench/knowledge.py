@@ -46,7 +46,7 @@ def pki(home: Path, n: int):
     import yaml
 
     os.environ["CCRP_HOME"] = str(home / "home")
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
     from ccrp_cli.fleet import Fleet
 
     data = yaml.safe_load((ROOT / "inventories" / "lab.yaml").read_text())

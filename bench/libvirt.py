@@ -116,15 +116,18 @@ def ready(rows: list[dict], wall: float, robot: str = ROBOT) -> dict:
 
 def overlay_times(provider, image: str, n: int) -> list[float]:
     """LibvirtProvider.create_overlay of `n` overlays of the golden volume, timed one by one."""
-    pool = provider._pool()
-    disk_path = provider.golden(image)[0]
+    from ccrp_cli.providers.libvirt import images
+
+    c = provider.client
+    pool = c.pool()
+    disk_path = images.golden(c, image)[0]
     times = []
     for k in range(n):
-        name = f"{provider.domain_name(f'ovl{k}')}.qcow2"  # a clone volume's name: `ccrp gc` finds a leftover
+        name = f"{c.domain_name(f'ovl{k}')}.qcow2"  # a clone volume's name: `ccrp gc` finds a leftover
         t0 = time.perf_counter()
         provider.create_overlay(pool, name, image, disk_path)
         times.append(round(time.perf_counter() - t0, 4))
-        provider._delete_vol(provider._refreshed(pool), name)
+        c.delete_vol(c.refreshed(pool), name)
     return times
 
 

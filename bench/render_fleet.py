@@ -32,8 +32,8 @@ from pathlib import Path
 
 import yaml
 
-from ccrp_cli import vpn
-from ccrp_cli.addressing import capacity
+from ccrp_cli.ops import vpn
+from ccrp_cli.models.addressing import capacity
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.models.inventory import Inventory
 from ccrp_cli.render import bundles, cloudinit

@@ -8,8 +8,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Callable, Mapping
 
-from .addressing import CloneAddresses, addresses, allocate, capacity
-from .errors import InputError, shown
+from .models.addressing import CloneAddresses, addresses, allocate, capacity
+from .errors import CcrpError, InputError, shown
 from .loader import load_inventory
 from .models.inventory import Inventory, Robot
 from .models.state import FleetState, RobotRecord
@@ -120,3 +120,9 @@ def clone_view(fleet: Fleet, state: FleetState, name: str):
     plan = fleet.plan(state)
     peers = tuple(a for n, a in plan.items() if n != name)
     return CloneView(fleet.inventory, robot, plan[name], peers)
+
+
+def snapshot_image(state: FleetState) -> str:
+    if not state.snapshot or not state.snapshot.get("image"):
+        raise CcrpError("the fleet has no snapshot to create clones from", hint="run `ccrp snapshot build -i INVENTORY`")
+    return state.snapshot["image"]

@@ -5,15 +5,16 @@ from __future__ import annotations
 import json
 import os
 import stat
+from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Union
 
 import yaml
-from pydantic import ValidationError
+from pydantic import Field, ValidationError
 
 from .errors import InputError, shown
 from .models.inventory import Inventory
-from .providers.registry import REGISTRY
+from .providers.registry import REGISTRY, kinds
 
 # Bounds on what an inventory may cost to read (docs/inventory.md: Limits). PyYAML (pure Python)
 # composes about 40,000 nodes a second: the node bound keeps a hostile file near a quarter of a
@@ -71,6 +72,21 @@ def _mapping_no_duplicates(loader: _InventoryLoader, node: yaml.MappingNode) -> 
 _InventoryLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_no_duplicates)
 
 
+def inventory_model() -> type[Inventory]:
+    """The inventory whose `provider:` is one of the registry's backends' settings, chosen by its
+    `kind` (a backend register() adds counts from then on)."""
+    return _inventory_model(tuple(i.settings for i in REGISTRY.values()))
+
+
+@cache
+def _inventory_model(settings: tuple[type, ...]) -> type[Inventory]:
+    class LoadedInventory(Inventory):
+        provider: Annotated[Union[settings], Field(discriminator="kind")]  # type: ignore[assignment,valid-type]
+
+    LoadedInventory.__name__ = LoadedInventory.__qualname__ = "Inventory"  # as errors and reprs name it
+    return LoadedInventory
+
+
 def _loc(loc: tuple[Any, ...]) -> str:
     out = ""
     for i, part in enumerate(loc):
@@ -96,7 +112,7 @@ def _describe(err: dict[str, Any]) -> str:
         pattern = err.get("ctx", {}).get("pattern", "")
         return f"{where}: {shown(err['input'])} does not match {pattern}"
     if kind == "union_tag_invalid":
-        return f"{where}: unknown provider kind {shown(err['input'].get('kind'))} (expected docker, openstack, gcp or aws)"
+        return f"{where}: unknown provider kind {shown(err['input'].get('kind'))} (expected {kinds()})"
     msg = err["msg"].removeprefix("Value error, ")
     value = err.get("input")
     if isinstance(value, str) and len(value) > 60:  # pydantic quotes some inputs whole (an IP network's)
@@ -135,7 +151,7 @@ def parse_inventory(data: Any, source: str) -> Inventory:
     except ValueError:
         raise InputError(f"{source}: .nan and .inf are not accepted") from None
     try:
-        return Inventory.model_validate_json(text, strict=True)
+        return inventory_model().model_validate_json(text, strict=True)
     except ValidationError as exc:
         errors = exc.errors()
         more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""

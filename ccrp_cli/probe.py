@@ -11,6 +11,7 @@ import time
 from urllib.parse import urlparse
 
 from .errors import CcrpError
+from .models.names import clone_host
 from .providers.base import Reaches
 from .resources import agent_source
 from .retry import PollTimeout, poll
@@ -72,3 +73,11 @@ def wait_connected(provider: Reaches, robot: str, timeout: float) -> dict:
         raise CcrpError(f"robot {robot!r} did not connect to its clone within {timeout:.0f} s",
                         hint=f"ccrp clone exec --robot {robot} -- journalctl -u ccrp-openvpn -n 50") from None
     return {"robot": robot, "seconds": round(time.monotonic() - t0, 2), "address": client["real_address"], "nodes": nodes}
+
+
+def kill_session(provider: Reaches, robot: str, cn: str | None = None) -> None:
+    """End a live VPN session on the robot's clone (management interface): the robot's, or that
+    of `cn` (its power device's)."""
+    rc, out = provider.transport.exec(robot, ["python3", "-c", HEALTH_SCRIPT(), "kill", cn or robot], timeout=20)
+    if rc != 0:
+        raise CcrpError(f"cannot end the VPN session on {clone_host(robot)}: {out.strip()[-200:]}")

@@ -68,7 +68,7 @@ def ccrp(ccrp_home):
 @pytest.fixture
 def lab(ccrp_home):
     """The lab fleet with its CA and certificates for every robot."""
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
     from ccrp_cli.fleet import Fleet
 
     fleet = Fleet.open(LAB)

@@ -15,24 +15,17 @@ app = typer.Typer(help="One robot's clone: create, start, stop, restart, delete,
 @app.command()
 def create(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Create the robot's clone from the fleet's snapshot (idempotent: reuses an existing one)."""
-    from ..ops import reconcile
+    from ..ops.verbs import clone_create
 
     fleet, provider = options.open_provider(inventory)
-    fleet.robot(fleet.store.load_state(), robot)  # an unknown robot is bad input, before any PKI is made
-    from ..actions import ensure_pki, ensure_snapshot
-
-    ensure_pki(fleet, output.info)
-    with fleet.store.lock():
-        ensure_snapshot(fleet, provider, output.info, robots=[robot])
-        items = reconcile.up(fleet, provider, output.info, only=[robot])
-    raise typer.Exit(output.results(items, as_json))
+    raise typer.Exit(output.results(clone_create(fleet, provider, robot, output.info), as_json))
 
 
 @app.command()
 def start(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Start the robot's stopped clone (stopped by autostop or in the cloud's console): its disk is as it
     was; ccrp pushes its keys again and waits until it serves. A running clone is left as it is."""
-    from ..actions import clone_start
+    from ..ops.verbs import clone_start
 
     fleet, provider = options.open_provider(inventory)
     items = clone_start(fleet, provider, robot, output.info)
@@ -43,7 +36,7 @@ def start(inventory: options.Inventory, robot: options.Robot, as_json: options.J
 def stop(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Stop the robot's clone: it costs no compute while stopped, its disk and keys stay. `ccrp clone
     start` (or the next `fleet up`) starts it again. Stopped already: left as it is."""
-    from ..actions import clone_stop
+    from ..ops.verbs import clone_stop
 
     fleet, provider = options.open_provider(inventory)
     raise typer.Exit(output.results(clone_stop(fleet, provider, robot, output.info), as_json))
@@ -53,7 +46,7 @@ def stop(inventory: options.Inventory, robot: options.Robot, as_json: options.Js
 def restart(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Stop the robot's clone and start it again, then wait until it serves: the cure for a clone
     that no longer answers, since the provider stops it, not the clone itself."""
-    from ..actions import clone_restart
+    from ..ops.verbs import clone_restart
 
     fleet, provider = options.open_provider(inventory)
     raise typer.Exit(output.results(clone_restart(fleet, provider, robot, output.info), as_json))
@@ -62,17 +55,10 @@ def restart(inventory: options.Inventory, robot: options.Robot, as_json: options
 @app.command()
 def delete(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Delete the robot's clone and its secrets volume (the robot keeps its certificates and addresses)."""
-    fleet, provider = options.open_provider(inventory)
-    with fleet.store.lock():
-        state = fleet.store.load_state()
-        existed = robot in provider.query()
-        from ..ops.clones import StateWriter
-        from ..ops.reconcile import retire
+    from ..ops.verbs import clone_delete
 
-        [item] = retire(fleet, provider, StateWriter(fleet, state), [robot], output.info, forget=False)
-        if not existed:
-            item.action = "absent"
-    raise typer.Exit(output.results([item], as_json))
+    fleet, provider = options.open_provider(inventory)
+    raise typer.Exit(output.results(clone_delete(fleet, provider, robot, output.info), as_json))
 
 
 @app.command("list")

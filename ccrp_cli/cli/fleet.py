@@ -58,16 +58,10 @@ def validate(inventory: options.Inventory, as_json: options.Json = False) -> Non
 @app.command()
 def up(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Create or reuse every robot's clone, in parallel (idempotent; safe to re-run after a crash)."""
-    from ..ops import reconcile
+    from ..ops.verbs import fleet_up
 
     fleet, provider = options.open_provider(inventory)
-    from ..actions import ensure_pki, ensure_snapshot
-
-    ensure_pki(fleet, output.info)
-    with fleet.store.lock():
-        ensure_snapshot(fleet, provider, output.info)
-        items = reconcile.up(fleet, provider, output.info)
-    raise typer.Exit(output.results(items, as_json))
+    raise typer.Exit(output.results(fleet_up(fleet, provider, output.info), as_json))
 
 
 @app.command()
@@ -77,7 +71,7 @@ def scale(
     as_json: options.Json = False,
 ) -> None:
     """Grow or shrink the fleet to SIZE clones with template robots (inventory robots always stay)."""
-    from ..actions import fleet_scale
+    from ..ops.verbs import fleet_scale
 
     fleet, provider = options.open_provider(inventory)
     items = fleet_scale(fleet, provider, size, output.info)
@@ -87,11 +81,10 @@ def scale(
 @app.command()
 def down(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Remove every container, network and volume ccrp created for the fleet (PKI and state stay)."""
-    from ..ops import reconcile
+    from ..ops.verbs import fleet_down
 
     fleet, provider = options.open_provider(inventory)
-    with fleet.store.lock():
-        removed = reconcile.down(fleet, provider, output.info)
+    removed = fleet_down(fleet, provider, output.info)
     if as_json:
         output.emit_json({"removed": removed})
 

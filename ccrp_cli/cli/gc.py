@@ -21,20 +21,10 @@ def gc(
     Known: recorded clones, their public IPs/volumes/routes, the fleet's network, firewall and key
     pair, and its snapshots. On Docker, also snapshot images of any fleet whose state directory
     is gone (orphans). Run with --dry-run first to see what would go."""
-    from ..errors import CcrpError
-    from ..ops.gc import collect, collect_images
-    from ..providers import Ability
+    from ..ops.verbs import gc
 
     fleet, provider = options.open_provider(inventory)
-    if not dry_run and not fleet.store.state_path.exists():
-        # Without state every owned resource looks leaked: a wrong CCRP_HOME would wipe the fleet.
-        raise CcrpError(f"no state for fleet {fleet.name!r} in {fleet.store.root}: everything would count as a leak",
-                        hint="run where the fleet's state lives (CCRP_HOME), `ccrp gc --dry-run` to look, or `ccrp fleet down`")
-    with fleet.store.lock():  # no `fleet up` may create clones while we decide what is a leak
-        leaks = collect(fleet.store.load_state(), provider, dry_run, output.info, fleet.inventory.snapshots.keep)
-        images = []
-        if Ability.HOST_IMAGES in provider.abilities:  # snapshot images live on this host, whatever their state
-            images = collect_images(provider, dry_run, unlabelled, output.info)
+    leaks, images = gc(fleet, provider, dry_run, unlabelled, output.info)
     results = leaks + images
     output.emit([r.as_dict() for r in results], as_json, ["KIND", "ID", "NAME", "ROBOT", "RESULT", "DETAIL"],
                 [(r.resource.kind, r.resource.id, r.resource.name, r.resource.robot, r.action, r.detail) for r in results])

@@ -29,22 +29,9 @@ def build(
     from ..providers import Ability
 
     fleet, provider = options.open_provider(inventory, Ability.LOCAL_BUILD, "the golden image is baked in the cloud: `ccrp snapshot bake`")
-    with fleet.store.lock():
-        recorded = fleet.store.load_state().snapshot or {}
-        current = recorded.get("image")
-        # Kept only while it holds the inventory's software (a changed workspace needs a new one).
-        from ..services.workloads import stale_snapshot
+    from ..ops.verbs import snapshot_build
 
-        if if_missing and current and provider.has_image(current) and bool(recorded.get("bare")) == bare \
-                and stale_snapshot(fleet, fleet.store.load_state()) is None:
-            output.info(f"snapshot {current} exists; new clones start from it")
-            _show([provider.snapshot_record(provider.client.images.get(current))], as_json)
-            return
-        from ..ops import snapshots
-
-        record = snapshots.build(fleet, provider, output.info, bare=bare)
-        snapshots.retain(fleet, provider, output.info)
-    output.info(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
+    record = snapshot_build(fleet, provider, output.info, if_missing, bare)
     _show([record], as_json)
 
 
@@ -59,11 +46,9 @@ def bake(
     from ..providers import Ability
 
     fleet, provider = options.open_provider(inventory, Ability.BAKE, "the golden image is built on this host: `ccrp snapshot build`")
-    with fleet.store.lock():
-        from ..ops import snapshots
+    from ..ops.verbs import snapshot_bake
 
-        record = snapshots.bake(fleet, provider, output.info, base_image=base_image, timeout=timeout)
-        snapshots.retain(fleet, provider, output.info)
+    record = snapshot_bake(fleet, provider, output.info, base_image, timeout)
     output.info(f"snapshot {record.name} ({record.id}) recorded: new clones of fleet {fleet.name!r} start from it")
     _show([record], as_json)
 
@@ -76,11 +61,10 @@ def create(
     as_json: options.Json = False,
 ) -> None:
     """Capture a configured clone as a snapshot (its secrets volume is not included)."""
-    fleet, provider = options.open_provider(inventory)
-    with fleet.store.lock():
-        from ..ops import snapshots
+    from ..ops.verbs import snapshot_create
 
-        record = snapshots.create(fleet, provider, robot, use)
+    fleet, provider = options.open_provider(inventory)
+    record = snapshot_create(fleet, provider, robot, use)
     _show([record], as_json)
 
 
@@ -104,9 +88,8 @@ def delete(
     force: Annotated[bool, typer.Option(help="Delete even the snapshot new clones use.")] = False,
 ) -> None:
     """Delete a snapshot."""
-    fleet, provider = options.open_provider(inventory)
-    with fleet.store.lock():
-        from ..ops import snapshots
+    from ..ops.verbs import snapshot_delete
 
-        snapshots.delete(fleet, provider, snapshot, force)
+    fleet, provider = options.open_provider(inventory)
+    snapshot_delete(fleet, provider, snapshot, force)
     output.info(f"deleted snapshot {snapshot}")

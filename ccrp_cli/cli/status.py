@@ -16,7 +16,7 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
     brainless, certificate or CRL near expiry...), as the dashboard shows them."""
     from ..alerts import fleet_alerts
     from ..providers import get_provider
-    from ..status import fleet_status
+    from ..ops.status import fleet_status
     from ..robot.watchdog import cell as watchdog_cell
     from ..robot.watchdog import power_cell
 

@@ -12,7 +12,7 @@ from . import options, output
 app = typer.Typer(help="Fleet PKI: CA, robot and clone certificates, revocation.", no_args_is_help=True, rich_markup_mode=None)
 
 def _ops():
-    from .. import vpn
+    from ..ops import vpn
 
     return vpn
 
@@ -64,12 +64,9 @@ def issue_cert(
     """Issue the robot's client certificate and its clone's server certificate.
 
     Also the one way back in for a revoked robot (with a new password and tls-crypt key)."""
-    fleet = options.open_fleet(inventory)
-    fleet.robot(fleet.store.load_state(), robot)
-    from ..actions import ensure_pki
+    from ..ops.verbs import vpn_issue
 
-    ensure_pki(fleet, output.info)
-    records = _ops().issue(fleet, robot, renew, _provider(fleet) if renew else None, output.info)
+    records = vpn_issue(options.open_fleet(inventory), robot, renew, output.info)
     if not as_json:
         for r in records:
             output.info(f"{'issued' if r['issued'] else 'kept valid'} {r['profile']} certificate {r['cn']} ({r['path']})")
@@ -86,7 +83,7 @@ def revoke(
     as_json: options.Json = False,
 ) -> None:
     """Revoke the robot's certificates: its live session ends and every running clone gets the CRL."""
-    from ..actions import vpn_revoke
+    from ..ops.verbs import vpn_revoke
 
     fleet = options.open_fleet(inventory)
     records = vpn_revoke(fleet, _provider(fleet), robot, output.info, cert.value)

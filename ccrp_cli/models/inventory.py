@@ -7,12 +7,11 @@ from typing import Annotated, Literal, Union
 
 from pydantic import Field, field_validator, model_validator
 
-from ..providers.registry import REGISTRY, Ability, info
 from ..errors import shown
 from .distro import Distro, RobotRos
 from .names import Name, Topic
 from .software import Software, TypeSettings, merge
-from .strict import Strict
+from .strict import ProviderSettings, Strict
 from .values import CloudName, Duration, Port, Size, StrictInt
 
 RobotType = Literal["nao", "turtlebot", "generic"]
@@ -224,15 +223,6 @@ class Sharing(Strict):
         return engine
 
 
-# Each backend's settings model lives in its own package (providers/<kind>/settings.py); the
-# registry collects them, so a new backend touches its package and one registry line.
-def _provider_union():
-    return Annotated[Union[tuple(i.settings for i in REGISTRY.values())], Field(discriminator="kind")]  # type: ignore[valid-type]
-
-
-Provider = _provider_union()
-
-
 class SnapshotSettings(Strict):
     # `snapshot build`/`bake` keep this many of the newest snapshots, and any a clone runs from.
     keep: Annotated[int, Field(strict=True, ge=1, le=100)] = 2
@@ -240,7 +230,9 @@ class SnapshotSettings(Strict):
 
 class Inventory(Strict):
     fleet: Name
-    provider: Provider
+    # Each backend's settings model lives in its own package (providers/<kind>/settings.py): the
+    # loader validates this section with the one the registry gives for its kind (inventory_model).
+    provider: ProviderSettings
     ros: RosSettings = RosSettings()
     vpn: VpnSettings = VpnSettings()
     common: CommonNetwork = CommonNetwork()
@@ -294,7 +286,7 @@ class Inventory(Strict):
     def clone_platform(self) -> str:
         """The recipe's platform the clones run (snapshots/<distro>.yaml `platforms:`): `ros.platform`,
         else the backend's (its ProviderInfo.platform)."""
-        return self.ros.platform or REGISTRY[self.provider.kind].platform
+        return self.ros.platform or self.provider.platform
 
     def may_share_knowledge(self, robot: str) -> bool:
         """Whether robot's clone may take part in knowledge sync (its firewall opens the port)."""
@@ -336,7 +328,7 @@ class Inventory(Strict):
         platforms = recipe(self.ros.distro).platforms
         if name not in platforms:
             raise ValueError(f"ros.platform {name} is not one of ros.distro {self.ros.distro}'s ({', '.join(platforms)})")
-        if platforms[name].clouds_only and Ability.BAKE not in info(self.provider.kind).abilities:
+        if platforms[name].clouds_only and not self.provider.bakes:
             # Baked from the user's own image: a backend that bakes nothing runs the others only.
             raise ValueError(f"ros.platform {name} is for clouds (baked from your own image); {self.provider.kind} "
                              f"clones run {', '.join(n for n, p in platforms.items() if not p.clouds_only)}")
@@ -429,11 +421,3 @@ class Inventory(Strict):
     def robot(self, name: str) -> Robot | None:
         return next((r for r in self.robots if r.name == name), None)
 
-
-def provider_union_changed() -> None:
-    """The registry gained or lost a backend (providers.register): the inventory's `provider:` is
-    the union of the settings of those it holds now."""
-    from pydantic.fields import FieldInfo
-
-    Inventory.model_fields["provider"] = FieldInfo.from_annotation(_provider_union())
-    Inventory.model_rebuild(force=True)

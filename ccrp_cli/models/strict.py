@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
+from typing import TYPE_CHECKING, ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
@@ -12,7 +13,18 @@ class Strict(BaseModel):
 
 
 class ProviderSettings(Strict):
-    """The base of a backend's `provider:` section (providers/<kind>/settings.py)."""
+    """The base of a backend's `provider:` section (providers/<kind>/settings.py). The inventory
+    holds one of these; the loader validates the section with the settings classes the registry
+    holds (loader.inventory_model), so models/ never imports providers/."""
+
+    # What the inventory asks of the backend, set on its settings class by the registry from its
+    # ProviderInfo (providers/registry.py declare): the recipe's platform its clones run, and
+    # whether it bakes images (Ability.BAKE).
+    platform: ClassVar[str] = ""
+    bakes: ClassVar[bool] = False
+
+    if TYPE_CHECKING:  # each backend's settings declare it as their Literal (the union's discriminator)
+        kind: str
 
     def networks(self) -> dict[str, ipaddress.IPv4Network]:
         """Networks the backend makes from these settings, by their inventory key: the inventory

@@ -6,7 +6,6 @@ StateWriter, which serialises them and saves atomically after each change.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import threading
 import time
@@ -14,12 +13,13 @@ from dataclasses import dataclass
 from typing import Callable
 
 from ..errors import CcrpError
-from ..fleet import Fleet, clone_view
-from ..layout import MGMT_SOCKET, SECRETS_DIR
+from ..fleet import Fleet, clone_view, snapshot_image
+from ..models.layout import MGMT_SOCKET, SECRETS_DIR
 from ..models.inventory import Inventory
 from ..models.names import clone_host
 from ..models.state import FleetState
-from ..probe import HEALTH_SCRIPT, files_current, health, remote_digests, same
+from ..render.files import applied_marker
+from ..probe import files_current, health, kill_session, remote_digests, same
 from ..providers.base import (
     CloneSpec,
     CloneState,
@@ -60,12 +60,6 @@ class StateWriter:
             self.fleet.store.save_state(self.state)
 
 
-def snapshot_image(state: FleetState) -> str:
-    if not state.snapshot or not state.snapshot.get("image"):
-        raise CcrpError("the fleet has no snapshot to create clones from", hint="run `ccrp snapshot build -i INVENTORY`")
-    return state.snapshot["image"]
-
-
 @dataclass
 class CloneResult:
     robot: str
@@ -76,17 +70,6 @@ class CloneResult:
 
     def row(self) -> tuple:
         return (self.robot, self.action, f"{self.seconds:.1f}s", self.detail)
-
-
-def applied_marker(files: list):
-    """The file pushed after `files` once their groups are set and the units restarted. A run
-    killed between copying the files and restarting OpenVPN (which starts only when its key is
-    there) leaves files that match and a server that never started: without the marker the next
-    run took them for done, and the clone failed `not serving` on every run after."""
-    from ..render.files import BundleFile
-
-    listing = "".join(f"{f.dest} {f.group} {f.mode:o} {hashlib.sha256(f.content.encode()).hexdigest()}\n" for f in files)
-    return BundleFile(".applied", hashlib.sha256(listing.encode()).hexdigest() + "\n", 0o600, f"{SECRETS_DIR}/.applied")
 
 
 # Hands the secrets directory to the openvpn group ($1 = mode) and prints the device of / and of
@@ -107,14 +90,6 @@ def prepare_secrets_dir(provider: Reaches, robot: str) -> None:
             hint=f"the clone's user-data mounts a tmpfs there at boot; recreate the clone: ccrp clone delete -i INVENTORY "
                  f"--robot {robot}, then ccrp clone create -i INVENTORY --robot {robot}",
         )
-
-
-def kill_session(provider: Reaches, robot: str, cn: str | None = None) -> None:
-    """End a live VPN session on the robot's clone (management interface): the robot's, or that
-    of `cn` (its power device's)."""
-    rc, out = provider.transport.exec(robot, ["python3", "-c", HEALTH_SCRIPT(), "kill", cn or robot], timeout=20)
-    if rc != 0:
-        raise CcrpError(f"cannot end the VPN session on {clone_host(robot)}: {out.strip()[-200:]}")
 
 
 def keyed_units(inv: Inventory) -> list[str]:

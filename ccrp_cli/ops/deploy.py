@@ -28,7 +28,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 from .clones import CloneResult, StateWriter
 from ..errors import CcrpError, InputError
@@ -51,6 +51,7 @@ from ..services.workloads import (
 )
 
 if TYPE_CHECKING:
+    from ..models.state import FleetState
     from ..providers.base import Provider, Reaches
 
 Progress = Callable[[str], None]
@@ -243,11 +244,12 @@ class Change:
         return "; ".join(parts)
 
 
-def probe(fleet: Fleet, provider: Reaches, state, robot: str, new: str) -> Change:
+def probe(fleet: Fleet, provider: Reaches, state: FleetState, robot: str, new: str) -> Change:
     """What robot's clone runs (one round trip) against the inventory's software `new`."""
     files = node_files(fleet.inventory, fleet.robot(state, robot), new)
     probed = files or [absent_index()]
-    out = _script(provider, robot, "probe", *(f.dest for f in probed), timeout=30)
+    # Files pushed to the clone: each has its dest.
+    out = _script(provider, robot, "probe", *(cast(str, f.dest) for f in probed), timeout=30)
     _, _, rest = out.partition("== current\n")
     current, _, rest = rest.partition("\n== index\n")
     index_text, _, rest = rest.partition("\n== pending\n")
@@ -273,7 +275,7 @@ def probe(fleet: Fleet, provider: Reaches, state, robot: str, new: str) -> Chang
 
 # -- which clones -----------------------------------------------------------------------------------
 
-def targets(fleet: Fleet, state, robot: str | None, type_: str | None) -> list[str]:
+def targets(fleet: Fleet, state: FleetState, robot: str | None, type_: str | None) -> list[str]:
     """The robots --robot / --type name (every member without them); unknown ones: exit 2."""
     members = fleet.members(state)
     if robot is not None and type_ is not None:
@@ -289,7 +291,7 @@ def targets(fleet: Fleet, state, robot: str | None, type_: str | None) -> list[s
     return [r.name for r in members]
 
 
-def check_packages(state, robots: list[str], software: SnapshotSoftware) -> None:
+def check_packages(state: FleetState, robots: list[str], software: SnapshotSoftware) -> None:
     """Refuse (before anything) when the inventory's apt/pip packages are not those each clone's
     snapshot holds: deploy changes the workspace and the nodes, never the packages."""
     want = packages_record(software)

@@ -81,7 +81,7 @@ def host_receive_buffer(path: str = RMEM_DEFAULT) -> Check:
     """ROS 2 clones sharing this host's kernel (containers) get its default UDP receive buffer, which
     no clone can raise for itself (not per network namespace): VM clones get ccrp's from their
     user-data (layout.ROS2_RMEM)."""
-    from ..layout import ROS2_RMEM
+    from ..models.layout import ROS2_RMEM
 
     try:
         have = int(open(path).read())

@@ -19,18 +19,10 @@ from typing import TYPE_CHECKING, Callable
 
 from ..errors import CcrpError
 from ..models.state import FleetState
-from ..providers.base import OwnedResource, SnapshotRecord
+from ..providers.base import OwnedResource, Role, SnapshotRecord
 
 if TYPE_CHECKING:
     from ..providers.base import HostImages, Provider
-
-# One per fleet, created or reused by bootstrap.
-BOOTSTRAP_KINDS = {"network", "vpc", "subnet", "router", "route_table", "internet_gateway", "security_group",
-                   "firewall", "key_pair"}
-INSTANCE_KINDS = {"instance", "server", "container"}
-IMAGE_KINDS = {"image", "machine_image"}
-# Started by hand for a robot (`ccrp robot sim`), not recorded as a clone.
-ROBOT_KINDS = {"robot_sim"}
 
 
 @dataclass
@@ -40,7 +32,8 @@ class GcResult:
     detail: str = ""
 
     def as_dict(self) -> dict:
-        return {**self.resource.model_dump(), "action": self.action, "detail": self.detail}
+        # The role is gc's own reading; the rows show what the backend calls the resource.
+        return {**self.resource.model_dump(exclude={"role"}), "action": self.action, "detail": self.detail}
 
 
 def find_leaks(state: FleetState, owned: list[OwnedResource], snapshots: list[SnapshotRecord]) -> list[OwnedResource]:
@@ -51,13 +44,13 @@ def find_leaks(state: FleetState, owned: list[OwnedResource], snapshots: list[Sn
     images = {s.id for s in snapshots} | {s.name for s in snapshots} | set((state.snapshot or {}).values())
 
     def known(r: OwnedResource) -> bool:
-        if r.kind in BOOTSTRAP_KINDS:
+        if r.role is Role.BOOTSTRAP:
             return True
-        if r.kind in INSTANCE_KINDS:
+        if r.role is Role.CLONE:
             return r.id in clones or r.robot in in_flight
-        if r.kind in IMAGE_KINDS:
+        if r.role is Role.IMAGE:
             return r.id in images or r.name in images
-        if r.kind in ROBOT_KINDS:
+        if r.role is Role.ROBOT_SIDE:
             return r.robot in state.robots
         return r.robot in live
 
@@ -72,7 +65,7 @@ def collect(state: FleetState, provider: Provider, dry_run: bool, progress: Call
     snapshots = provider.list_snapshots()
     extra = {s.id for s in surplus(state, snapshots, keep)}  # beyond retention: gc removes them too
     leaks = find_leaks(state, provider.list_owned(), [s for s in snapshots if s.id not in extra])
-    leaks.sort(key=lambda r: r.kind not in INSTANCE_KINDS)
+    leaks.sort(key=lambda r: r.role is not Role.CLONE)
     if dry_run:
         return [GcResult(r, "leak") for r in leaks]
     results = []

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import ipaddress
 import json
-import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,33 +15,16 @@ if TYPE_CHECKING:
 
 # Where each pool is looked for, and the size of one: the lab's choices first.
 SEARCH = {"public": ("172.30.0.0/15", 24), "common": ("10.90.0.0/16", 24), "vpn": ("10.80.0.0/12", 16)}
-# The local libvirt daemon's network definitions, running or not: a stopped one (libvirt's `default`,
-# 192.168.122.0/24) has no route yet, but clashes as soon as it starts.
-LIBVIRT_NETWORKS = "/etc/libvirt/qemu/networks"
 # A new fleet is ROS 2, on the current LTS (docs/ros2.md); `--distro noetic` for a ROS 1 fleet.
 DEFAULT_DISTRO = "jazzy"
 
 
-def docker_subnets() -> list[ipaddress.IPv4Network]:
-    """The IPv4 subnets of this host's Docker networks (none when no engine answers)."""
-    from ..providers.sdk import docker_module
-
-    try:
-        client = docker_module().from_env(timeout=5)
-    except Exception:  # noqa: BLE001 - no engine here: nothing of Docker's to avoid
-        return []
-    try:
-        return [ipaddress.IPv4Network(cfg["Subnet"], strict=False) for net in client.networks.list()
-                for cfg in (net.attrs.get("IPAM") or {}).get("Config") or [] if ":" not in cfg.get("Subnet", ":")]
-    except Exception:  # noqa: BLE001 - same
-        return []
-    finally:
-        client.close()
-
-
 def host_ranges() -> dict[str, str]:
-    """What a new network must not shadow on this host: its routes (not the default one), libvirt's
-    networks and its DNS servers, range -> what it is."""
+    """What a new network must not shadow on this host: its routes (not the default one), what the
+    backends have taken here (ProviderInfo.host_networks: Docker's networks, libvirt's) and its DNS
+    servers, range -> what it is."""
+    from ..providers import REGISTRY, _load
+
     ranges: dict[str, str] = {}
     try:
         for line in Path("/proc/net/route").read_text().splitlines()[1:]:
@@ -52,15 +34,9 @@ def host_ranges() -> dict[str, str]:
                 ranges[str(ipaddress.IPv4Network(f"{dest}/{mask}", strict=False))] = f"route via {f[0]}"
     except (OSError, ValueError, IndexError):
         pass
-    for path in sorted(Path(LIBVIRT_NETWORKS).glob("*.xml")):
-        try:
-            for ip in ET.parse(path).getroot().iter("ip"):
-                if ip.get("family", "ipv4") == "ipv4" and ip.get("address"):
-                    net = ipaddress.IPv4Network(f"{ip.get('address')}/{ip.get('prefix') or ip.get('netmask') or 24}",
-                                                strict=False)
-                    ranges[str(net)] = f"libvirt network {path.stem}"
-        except (OSError, ET.ParseError, ValueError):
-            pass
+    for backend in REGISTRY.values():
+        if backend.host_networks:
+            ranges |= _load(backend.host_networks)()
     try:
         for line in Path("/etc/resolv.conf").read_text().splitlines():
             f = line.split()
@@ -72,9 +48,9 @@ def host_ranges() -> dict[str, str]:
 
 
 def used_networks() -> list[ipaddress.IPv4Network]:
-    """What a new fleet's pools must not overlap: Docker's networks, this host's routes and DNS
-    servers, and the addresses of every fleet in $CCRP_HOME."""
-    used = docker_subnets() + [ipaddress.IPv4Network(r) for r in host_ranges()]
+    """What a new fleet's pools must not overlap: this host's routes, DNS servers and backends'
+    networks, and the addresses of every fleet in $CCRP_HOME."""
+    used = [ipaddress.IPv4Network(r) for r in host_ranges()]
     for state in ccrp_home().glob("*/state.json"):
         try:
             robots = json.loads(state.read_text()).get("robots", {})
@@ -142,7 +118,7 @@ def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str 
     if path.exists():
         raise InputError(f"{path} exists: ccrp init never overwrites an inventory", hint="edit it, or remove it first")
     values = dict(section.values)
-    if cloud:
+    if cloud and section.discover is not None:  # refused above without one
         from ..providers import _load
 
         from ..models.values import check_cloud_name

@@ -19,6 +19,7 @@ from ..providers.base import Quota
 from ..providers.registry import info
 
 if TYPE_CHECKING:
+    from ..fleet import Fleet
     from ..providers.base import Housekeeping, Lifecycle, Provider
 
 class QuotaError(CcrpError):
@@ -46,7 +47,7 @@ class Use:
         return f"{kind} quota {q.name} in {q.scope}: {q.free:g} free, this needs {self.need:g}"
 
 
-def new_clones(fleet, provider: Lifecycle, robots: Sequence[str]) -> list[str]:
+def new_clones(fleet: Fleet, provider: Lifecycle, robots: Sequence[str]) -> list[str]:
     """Those of `robots` whose clone `fleet up` would create: none in the cloud, not revoked (a
     revoked robot gets no clone, reconcile.plan)."""
     if not robots:
@@ -101,6 +102,6 @@ def check(provider: Provider, creating: Sequence[str], progress: Callable[[str],
     return found
 
 
-def check_growth(fleet, provider: Provider, robots: Sequence[str], progress: Callable[[str], None]) -> list[Use]:
+def check_growth(fleet: Fleet, provider: Provider, robots: Sequence[str], progress: Callable[[str], None]) -> list[Use]:
     """check() for the clones `fleet up` would create among `robots`."""
     return check(provider, new_clones(fleet, provider, robots), progress)

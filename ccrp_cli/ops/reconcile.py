@@ -6,9 +6,9 @@ import json
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, wait
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
-from ..addressing import allocate
+from ..models.addressing import allocate
 from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
 from ..errors import CcrpError, InputError
 from ..fleet import Fleet
@@ -19,6 +19,7 @@ from ..retry import PollTimeout, poll
 from ..services.workloads import NO_SOFTWARE, check_snapshot, snapshot_software, stale_snapshot
 
 if TYPE_CHECKING:
+    from ..models.state import FleetState
     from ..providers.base import Lifecycle, Provider, Reaches
 
 
@@ -54,7 +55,7 @@ def plan(fleet: Fleet, provider: Lifecycle) -> list[dict]:
     return rows
 
 
-def _software_note(state, robot: str, stale: str | None, inventory_software: str | None = None) -> str | None:
+def _software_note(state: FleetState, robot: str, stale: str | None, inventory_software: str | None = None) -> str | None:
     """Whether robot's clone runs the inventory's software (docs/workloads.md): None when it does."""
     rec = state.robots.get(robot)
     if stale is not None:
@@ -152,7 +153,7 @@ def up(fleet: Fleet, provider: Provider, progress: Progress, only: list[str] | N
     return results
 
 
-def _check_software(fleet: Fleet, state, provider: Lifecycle, targets: list[str]) -> None:
+def _check_software(fleet: Fleet, state: FleetState, provider: Lifecycle, targets: list[str]) -> None:
     """Refuse when a clone would not run the inventory's software: one the snapshot would make while
     it holds other software, or one that runs other software. A clone `ccrp deploy` brought to the
     inventory's software is started or reused as it is: after a deploy, `clone start` and `fleet up`
@@ -207,7 +208,8 @@ def drain(provider: Reaches, partners: list[str], leaving: set[str], progress: P
     except CcrpError as exc:  # a partner that stopped answering: its links go with it anyway
         progress(f"not waiting for partners to let go: {exc.one_line()}")
     except PollTimeout as exc:
-        progress(f"{', '.join(exc.last)} still linked to {', '.join(sorted(leaving))} after {exc.seconds:.0f} s; deleting anyway")
+        still = cast("list[str]", exc.last)  # the probe's answer: the partners still linked
+        progress(f"{', '.join(still)} still linked to {', '.join(sorted(leaving))} after {exc.seconds:.0f} s; deleting anyway")
 
 
 def reshare(fleet: Fleet, provider: Lifecycle, progress: Progress, known: dict[str, str] | None = None) -> list[str]:
@@ -233,7 +235,7 @@ def reshare(fleet: Fleet, provider: Lifecycle, progress: Progress, known: dict[s
     return changed
 
 
-def check_scale(fleet: Fleet, state, size: int) -> tuple[list[str], int]:
+def check_scale(fleet: Fleet, state: FleetState, size: int) -> tuple[list[str], int]:
     """The fleet's template robots (oldest first) and how many of them `size` wants; InputError
     when the inventory cannot give `size` (callers check first, before they make anything)."""
     inv = fleet.inventory
@@ -252,7 +254,7 @@ def check_scale(fleet: Fleet, state, size: int) -> tuple[list[str], int]:
     return template, want
 
 
-def scaled(fleet: Fleet, state, size: int) -> tuple[list[str], list[str], list[str]]:
+def scaled(fleet: Fleet, state: FleetState, size: int) -> tuple[list[str], list[str], list[str]]:
     """What scaling to `size` does: the members kept, the new template robots (named with the
     first free numbers), the template robots removed (the newest first)."""
     inv = fleet.inventory

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, Protocol, cast
 
 from ..errors import CcrpError
 from ..fleet import Fleet
@@ -11,7 +11,11 @@ from ..providers.base import SnapshotRecord
 from ..services.workloads import NO_SOFTWARE, SnapshotSoftware
 
 if TYPE_CHECKING:
-    from ..providers.base import Images, Lifecycle, Provider
+    from ..models.state import FleetState
+    from ..providers.base import Bake, CloneRecord, Images, Lifecycle, LocalBuild, Provider, Reaches
+
+    class Baker(Reaches, Bake, Protocol):
+        """What `snapshot bake` asks of a provider with Ability.BAKE beside the lifecycle."""
 
 Progress = Callable[[str], None]
 
@@ -41,8 +45,9 @@ def build(fleet: Fleet, provider: Provider, progress: Progress, bare: bool = Fal
     software = None if bare else snapshot_software(inv, fleet.path)
     digest = software.digest if software is not None else NO_SOFTWARE
     # The agents the image holds are the services' to say (Boot.image_agents); the provider only builds.
-    record = provider.build_snapshot(image_repo(fleet), inv.ros.distro, plat, image_agents(), software, digest, bare,
-                                     progress)
+    builder = cast("LocalBuild", provider)  # Ability.LOCAL_BUILD: `snapshot build` requires it (cli/options.py)
+    record = builder.build_snapshot(image_repo(fleet), inv.ros.distro, plat, image_agents(), software, digest, bare,
+                                    progress)
     # What `ccrp deploy` cannot change on a clone made from it (apt, pip): it compares them.
     held = {} if software is None else {"packages": packages_record(software)}
     _use(fleet, record, bare, software=digest, **held)
@@ -83,6 +88,7 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
     inv = fleet.inventory
     kind = inv.provider.kind
     require(kind, Ability.BAKE, hint=f"on {kind} the golden image is built locally: `ccrp snapshot build`")
+    baker = cast("Baker", provider)  # what Ability.BAKE adds, required just above
     from ..services.registry import image_agents
     from ..services.workloads import packages_record, snapshot_software
 
@@ -108,9 +114,9 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
     progress(f"booting the builder from {base}; it installs ROS {inv.ros.distro} and the recipe (10-20 min)")
     try:
         builder = provider.run_instance(spec)
-        _wait_baked(provider, token, bake_proofs(inv), timeout, poll, progress)
+        _wait_baked(baker, token, bake_proofs(inv), timeout, poll, progress)
         if not software.empty:
-            install_software(provider, builder, software, progress, timeout)
+            install_software(baker, builder, software, progress, timeout)
         name = f"ccrp-{fleet.name}-{inv.ros.distro}-{_stamp()}"
         progress(f"capturing snapshot {name}")
         record = provider.create_snapshot(BUILDER, name)
@@ -122,8 +128,8 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
     # As `snapshot build` records it: fleet up refuses a snapshot whose software is not the
     # inventory's, fleet plan names clones made with another, deploy compares the packages.
     held = {} if software.empty else {"packages": packages_record(software)}
-    _use(fleet, record, image=image, region=inv.provider.place(), base=base, name=record.name, software=software.digest,
-         **held)
+    _use(fleet, record, bare=False, image=image, region=inv.provider.place(), base=base, name=record.name,
+         software=software.digest, **held)
     return record
 
 
@@ -135,7 +141,7 @@ def software_env(software: SnapshotSoftware) -> dict[str, str]:
     software layers take (providers/docker/images.py dockerfile)."""
     from ..recipes import is_ros2, recipe
     from ..render.cloudinit import ros2_prefix
-    from ..layout import LOGIN_USER
+    from ..models.layout import LOGIN_USER
 
     ros2 = is_ros2(software.distro)
     prefix = ros2_prefix(software.distro)
@@ -165,7 +171,7 @@ def workspace_tar(software: SnapshotSoftware) -> bytes:
     return buf.getvalue()
 
 
-def install_software(provider: Provider, builder, software: SnapshotSoftware, progress: Progress, timeout: float) -> None:
+def install_software(provider: Baker, builder: CloneRecord, software: SnapshotSoftware, progress: Progress, timeout: float) -> None:
     """The fleet's software on the builder, over SSH after cloud-init installed the recipe (user-data
     has a size limit, and the workspace is the user's whole source): its workspace pushed as a
     root-only file, then templates/image/software-bake.sh installs the packages, builds it into
@@ -201,7 +207,7 @@ def install_software(provider: Provider, builder, software: SnapshotSoftware, pr
     progress(f"software {software.digest} built on the builder after {time.monotonic() - t0:.0f} s")
 
 
-def _wait_baked(provider: Provider, token: str, proofs: list[str], timeout: float, poll: float, progress: Progress) -> None:
+def _wait_baked(provider: Bake, token: str, proofs: list[str], timeout: float, poll: float, progress: Progress) -> None:
     """Until the builder's console shows cloud-init's final message; then every install proof must be there."""
     import re
     import time
@@ -245,14 +251,15 @@ def _terminate_builder(provider: Lifecycle, progress: Progress, failing: bool) -
 
 # -- retention -------------------------------------------------------------------------------------
 
-def in_use(state) -> dict[str, list[str]] | None:
+def in_use(state: FleetState) -> dict[str, list[str]] | None:
     """Snapshot (name or id) -> who uses it: "new clones" for the recorded one, and the robots
     whose clone was created from it. None when a clone's snapshot is not known (a clone created
     before ccrp recorded it): then nothing may be deleted."""
     used: dict[str, list[str]] = {}
+    recorded = state.snapshot or {}
     for key in ("image", "id"):
-        if (state.snapshot or {}).get(key):
-            used.setdefault(state.snapshot[key], []).append("new clones")
+        if recorded.get(key):
+            used.setdefault(recorded[key], []).append("new clones")
     for robot, rec in sorted(state.robots.items()):
         if rec.provider_id:
             if not rec.image:
@@ -267,7 +274,7 @@ def users(record: SnapshotRecord, used: dict[str, list[str]] | None) -> list[str
     return sorted({u for key in (record.id, record.name) for u in used.get(key, [])}, key=lambda u: (u != "new clones", u))
 
 
-def surplus(state, snapshots: list[SnapshotRecord], keep: int) -> list[SnapshotRecord]:
+def surplus(state: FleetState, snapshots: list[SnapshotRecord], keep: int) -> list[SnapshotRecord]:
     """What retention removes: beyond the `keep` newest, every snapshot no clone runs from and
     new clones do not get."""
     used = in_use(state)

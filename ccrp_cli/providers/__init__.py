@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 from ..store import FleetStore
-from .base import Ability, Provider, ProviderInfo, RobotHost
-from .registry import REGISTRY, info, require
+from .base import Ability, ImageSoftware, Provider, ProviderInfo, RobotHost
+from .registry import REGISTRY, declare, info, require
 
 if TYPE_CHECKING:
     # For the annotation only: models/inventory.py imports registry.py, which runs this package's
@@ -58,7 +58,8 @@ def robot_host(fleet: str) -> RobotHost:
     return host
 
 
-def build_workspace(inv: Inventory, software, agents: tuple[str, ...], progress: Callable[[str], None]) -> bytes:
+def build_workspace(inv: Inventory, software: ImageSoftware, agents: tuple[str, ...],
+                    progress: Callable[[str], None]) -> bytes:
     """The tar of the install space (`workspace/`) of `software` (workloads.SnapshotSoftware, with a
     workspace) built in the fleet's clone image, with the `agents` its snapshot holds (as
     LocalBuild.build_snapshot is given them), on this host (CcrpError when no engine answers)."""
@@ -78,16 +79,10 @@ def close_opened() -> None:
 
 def register(backend: ProviderInfo) -> None:
     """Add a backend that lives outside ccrp_cli (a test's: tests/memory_backend), as the registry's
-    line adds one of ccrp's own: the inventory takes its `provider:` settings from then on."""
-    from ..models.inventory import provider_union_changed
-
-    REGISTRY[backend.kind] = backend
-    provider_union_changed()
+    line adds one of ccrp's own: the loader takes its `provider:` settings from then on."""
+    declare(backend)
 
 
 def unregister(kind: str) -> None:
-    """Undo register(): the inventory refuses the backend's kind again."""
-    from ..models.inventory import provider_union_changed
-
+    """Undo register(): the loader refuses the backend's kind again."""
     del REGISTRY[kind]
-    provider_union_changed()

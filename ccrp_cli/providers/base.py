@@ -6,12 +6,15 @@ import gzip
 import json
 from dataclasses import dataclass
 from enum import Enum
-from typing import Callable, Iterable, Literal, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Iterable, Literal, Protocol, Sequence
 
 from pydantic import BaseModel
 
 from ..errors import CcrpError
-from ..layout import AUTOSTOP_BOOT_LINE, AUTOSTOP_MARK
+from ..models.layout import AUTOSTOP_BOOT_LINE, AUTOSTOP_MARK
+
+if TYPE_CHECKING:
+    from ..recipes import Platform
 
 # Labels / tags on every resource ccrp creates; list, delete and gc filter on them.
 LABEL_MANAGED = "ccrp-managed"
@@ -149,23 +152,32 @@ class SnapshotRecord(BaseModel):
     size_mb: float | None = None
 
 
-# Every kind of resource a provider creates and lists as owned (what `ccrp gc` and `fleet down` see).
-ResourceKind = Literal[
-    "instance", "container", "robot_sim", "volume", "image", "snapshot", "key_pair",  # compute, images
-    "network", "subnet", "router", "port", "floating_ip", "security_group",  # OpenStack / Docker networks
-    "vpc", "route_table", "internet_gateway", "elastic_ip",  # AWS
-    "route", "firewall", "address",  # GCP (address: a reserved external IP)
-    "port_forward",  # libvirt: a clone's VPN port forwarded by the host (providers/libvirt/forward.py)
-]
+class Role(str, Enum):
+    """What an owned resource is to the fleet, in ccrp's words: `ccrp gc` judges a resource by its
+    role; its kind is the backend's own word (instance, vpc, port_forward...)."""
+
+    BOOTSTRAP = "bootstrap"  # one per fleet, made or reused by bootstrap (networks, firewalls, key pair)
+    CLONE = "clone"  # a robot's clone (an instance, a container)
+    IMAGE = "image"  # a snapshot image (the fleet's, or a cache no state records)
+    ROBOT_SIDE = "robot-side"  # started by hand for a robot (`ccrp robot sim`), not recorded as a clone
+    PER_ROBOT = "per-robot"  # what belongs to one robot's clone (its public IP, volumes, routes)
 
 
 class OwnedResource(BaseModel):
     """Anything in the cloud carrying the fleet's ownership labels (what `ccrp gc` looks at)."""
 
-    kind: ResourceKind
+    kind: str  # the backend's own word, for messages and its delete_owned
     id: str
     name: str = ""
     robot: str | None = None
+    # Set by the backend where it lists what it owns (with_roles): gc reads nothing else.
+    role: Role = Role.PER_ROBOT
+
+
+def with_roles(found: Iterable[OwnedResource], roles: dict[str, Role]) -> list[OwnedResource]:
+    """`found` with each resource's role, from the backend's own table kind -> role (a kind it does
+    not name belongs to a robot)."""
+    return [r.model_copy(update={"role": roles.get(r.kind, Role.PER_ROBOT)}) for r in found]
 
 
 class Quota(BaseModel):
@@ -262,6 +274,10 @@ class ProviderInfo:
     bake_base_hint: str = ""
     # `ccrp init --provider <kind>`: None for a backend init does not offer.
     init: InitSection | None = None
+    # `ccrp init`'s scan of this host, whatever backend the new inventory names: "module:function"
+    # (as factory) returning the ranges this backend has taken here, range -> what it is (Docker's
+    # networks, libvirt's); a new fleet's pools avoid them. None: it takes none of this host's.
+    host_networks: str | None = None
     # `ccrp doctor`'s row for reaching the backend ("<kind> client" unless it names its own), and
     # whether that answer is the credential (Docker: the engine answering), or the account is
     # checked apart (check_credentials: the clouds').
@@ -442,6 +458,33 @@ class HostImages(Protocol):
     def images_finding(self) -> Finding: ...
 
 
+class WorkspacePackage(Protocol):
+    """A package of the fleet's workspace, as an image build places it (services/workloads.py Package)."""
+
+    @property
+    def path(self) -> str: ...  # its package.xml, relative to the workspace
+
+
+class ImageSoftware(Protocol):
+    """The fleet's own software as a LocalBuild puts it in the image (services/workloads.py
+    SnapshotSoftware, which the core reads and checks; templates/docker/software.j2)."""
+
+    @property
+    def digest(self) -> str: ...
+    @property
+    def empty(self) -> bool: ...
+    @property
+    def apt(self) -> list[str]: ...
+    @property
+    def pip_install(self) -> list[str]: ...
+    @property
+    def build_type(self) -> str | None: ...
+    @property
+    def workspace(self) -> Sequence[tuple[str, bytes]]: ...  # (path in the workspace, content)
+    @property
+    def packages(self) -> Sequence[WorkspacePackage]: ...
+
+
 class LocalBuild(Protocol):
     """What a provider with Ability.LOCAL_BUILD adds: `snapshot build` makes the golden image on this
     machine (Docker: the clone image; libvirt: the golden volume made from it): the recipe's
@@ -449,8 +492,9 @@ class LocalBuild(Protocol):
     the core's services declare, ops/snapshots.py), the fleet's `software` (None: none) whose digest
     labels it, or a `bare` image."""
 
-    def build_snapshot(self, repo: str, distro: str, plat, agents: tuple[str, ...], software, digest: str, bare: bool,
-                       progress) -> SnapshotRecord: ...
+    def build_snapshot(self, repo: str, distro: str, plat: Platform, agents: tuple[str, ...],
+                       software: ImageSoftware | None, digest: str, bare: bool,
+                       progress: Callable[[str], None]) -> SnapshotRecord: ...
 
 
 class Bake(Protocol):

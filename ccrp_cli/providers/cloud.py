@@ -11,11 +11,12 @@ import math
 import os
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from ..errors import CcrpError
 from ..models.inventory import Inventory
-from ..layout import LOGIN_USER
+from ..models.layout import LOGIN_USER
 from ..retry import Backoff, ErrorClass, call
 from .base import CloneRecord, autostop_note, wait_cloud_init
 
@@ -248,7 +249,7 @@ class SshClones:
         limit = str(max(1, math.ceil(timeout)))
         return self._run(robot, lambda ssh: ssh.exec([*ssh.sudo, "timeout", limit, *argv], timeout=timeout + 30))
 
-    def push_files(self, robot: str, files: list, restart: list[str] = ()) -> None:
+    def push_files(self, robot: str, files: Sequence, restart: Sequence[str] = ()) -> None:
         def push(ssh) -> None:
             ssh.put_files(files)
             if restart:  # one job each, ordered by their units (the graph keeper after OpenVPN)

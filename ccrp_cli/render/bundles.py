@@ -12,7 +12,7 @@ from ..pki.store import RobotCredentials
 from ..store import atomic_write, ensure_dir
 from . import network, openvpn
 from ..templates import render, static
-from ..layout import RELAY_USER, SECRETS_DIR
+from ..models.layout import RELAY_USER, SECRETS_DIR
 from .files import BundleFile
 from .view import CloneView
 
@@ -83,7 +83,7 @@ def power_bundle(view: CloneView, creds: RobotCredentials, remote: str) -> list[
     """What the robot's power device installs: its own VPN client of the robot's clone (its
     certificate, key and password) and the agent that reports to the clone's power agent and sets
     the relay (docs/dashboard.md, Robot power)."""
-    from ..layout import POWER_PORT
+    from ..models.layout import POWER_PORT
 
     a = view.addr
     env = f"CCRP_POWER_CLONE={a.clone_vpn_ip}\nCCRP_POWER_PORT={POWER_PORT}\n"

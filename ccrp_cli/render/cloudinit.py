@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import yaml
 
 from ..errors import CcrpError
-from ..layout import (CCRP_ETC, ROS2_RMEM, ROS2_SYSCTL, CCRP_LIB, LOCALE, LOCALE_SETUP, LOGIN_USER, SECRETS_DIR,
+from ..models.layout import (CCRP_ETC, ROS2_RMEM, ROS2_SYSCTL, CCRP_LIB, LOCALE, LOCALE_SETUP, LOGIN_USER, SECRETS_DIR,
                       VPN_DIR)
 from ..models.inventory import Inventory
 from ..providers.registry import info

@@ -4,7 +4,10 @@ manager's push) need not import the renderers, their templates and the PKI."""
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
+
+from ..models.layout import SECRETS_DIR
 
 
 @dataclass(frozen=True)
@@ -14,3 +17,12 @@ class BundleFile:
     mode: int
     dest: str | None = None  # absolute path on the target, for pushed bundles
     group: str = "root"
+
+
+def applied_marker(files: list):
+    """The file pushed after `files` once their groups are set and the units restarted. A run
+    killed between copying the files and restarting OpenVPN (which starts only when its key is
+    there) leaves files that match and a server that never started: without the marker the next
+    run took them for done, and the clone failed `not serving` on every run after."""
+    listing = "".join(f"{f.dest} {f.group} {f.mode:o} {hashlib.sha256(f.content.encode()).hexdigest()}\n" for f in files)
+    return BundleFile(".applied", hashlib.sha256(listing.encode()).hexdigest() + "\n", 0o600, f"{SECRETS_DIR}/.applied")

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..addressing import CloneAddresses
-from ..layout import POWER_PORT, SECRETS_DIR, VPN_DIR
+from ..models.addressing import CloneAddresses
+from ..models.layout import POWER_PORT, SECRETS_DIR, VPN_DIR
 from ..models.inventory import Inventory, Robot
 
 

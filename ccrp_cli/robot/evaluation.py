@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Callable, Iterator
 
 from ..errors import CcrpError, InputError, shown
 from ..fleet import Fleet
-from ..layout import CCRP_LIB
+from ..models.layout import CCRP_LIB
 from .simulated import Sims, run_unit
 
 if TYPE_CHECKING:

@@ -78,7 +78,7 @@ def push_passwd(fleet: Fleet, provider: Lifecycle, robot: str, say: Say) -> None
     password hash, or without them once the device is revoked. OpenVPN's checks read the file at
     every handshake: nothing restarts, the robot's session stays. A clone not running gets it with
     its other secrets when it is next brought up."""
-    from ..ops.clones import applied_marker
+    from ..render.files import applied_marker
     from ..probe import files_current
     from ..providers.base import CloneState
     from ..render import bundles
@@ -143,7 +143,7 @@ def end_dead_session(provider: Reaches, robot: str, say: Say) -> None:
     until its keepalive drops it (up to 2 minutes with the server's `keepalive 10 60`), and status
     would show a robot that is off as connected. The device's report says the robot is off: its
     session is dead, so it is ended on the clone now (as `vpn revoke` ends one)."""
-    from ..ops.clones import kill_session
+    from ..probe import kill_session
 
     try:
         kill_session(provider, robot)

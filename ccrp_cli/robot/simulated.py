@@ -105,7 +105,7 @@ class Sims:
 
     def start(self, robot: str, network: str | None = None, wait: float = 0, progress: Progress = lambda m: None) -> dict:
         """(Re)create the robot's simulated robot; with `wait`, until its node is on its clone."""
-        from ..ops.clones import snapshot_image
+        from ..fleet import snapshot_image
         from ..providers.base import RobotAttachment
         from ..templates import static
         from .robots import edge_files

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from ..errors import CcrpError, shown
 from ..models.inventory import Inventory, Robot
 from ..render.files import BundleFile
-from ..layout import API_USER, CCRP_ETC, SECRETS_DIR
+from ..models.layout import API_USER, CCRP_ETC, SECRETS_DIR
 from .base import Boot, CloneService, ServiceContext
 
 if TYPE_CHECKING:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 
 from ..fleet import Fleet
-from ..layout import CCRP_ETC
+from ..models.layout import CCRP_ETC
 from ..models.inventory import Robot
 from ..models.state import FleetState
 from ..render.files import BundleFile

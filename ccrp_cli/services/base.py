@@ -48,6 +48,7 @@ class CloneService(Protocol):
 
     def check(self, fleet: Fleet, robot: Robot) -> None:
         """Refuse, before the clone is made, what the operator's inputs make impossible."""
+        return None  # a service with nothing to refuse (a body: mypy takes an empty one as abstract)
 
     def files(self, ctx: ServiceContext) -> list[BundleFile]:
         """What `fleet up` pushes for it to ctx.robot's clone; [] when that clone runs none."""

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from ..layout import CCRP_LIB
+from ..models.layout import CCRP_LIB
 from ..render.files import BundleFile
 from .base import CloneService, ServiceContext
 

@@ -14,14 +14,14 @@ import base64
 import json
 import secrets
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..agent.knowledge import name_problem
 from ..errors import CcrpError, InputError, shown
 from ..fleet import Fleet
 from ..models.state import FleetState
 from ..render.files import BundleFile
-from ..layout import CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, SECRETS_DIR
+from ..models.layout import CCRP_ETC, CCRP_LIB, KNOWLEDGE_USER, SECRETS_DIR
 from .base import Boot, CloneService, ServiceContext
 
 if TYPE_CHECKING:
@@ -207,7 +207,9 @@ def check_quota(fleet: Fleet, dataset: str, robot: str, listed: dict, items: lis
     agent checks each add too, and a partner's items on their way may still fill it first."""
     import hashlib
 
-    quota = fleet.inventory.services.knowledge.datasets[dataset].quota
+    knowledge = fleet.inventory.services.knowledge
+    assert knowledge is not None, "add_items checked the dataset is shared (_check)"
+    quota = knowledge.datasets[dataset].quota
     have = {(i["name"], i["sha256"]) for i in listed["items"]}
     new = {(n, hashlib.sha256(data).hexdigest()): len(data) for n, data in items}
     new = {k: size for k, size in new.items() if k not in have}
@@ -268,7 +270,8 @@ class _Once:
         self.seen: set[tuple] = set()
         self.count = self.dups = 0
 
-    def write(self, writer, conn, key, t: int, data: bytes) -> None:
+    # rosbags' Writer and connection of either bag format (rosbags.* is not type-checked: pyproject.toml).
+    def write(self, writer: Any, conn: Any, key: tuple, t: int, data: bytes) -> None:
         import hashlib
 
         mark = (key, t, hashlib.sha256(data).digest())
@@ -289,7 +292,7 @@ def merge_bag_files(paths: list[Path], out: Path, names: list[str] | None = None
 
     from rosbags.rosbag1 import Reader, ReaderError, Writer
 
-    def ident(c) -> tuple[str, str, str]:
+    def ident(c: Any) -> tuple[str, str, str]:
         return c.topic, c.msgtype, c.digest
 
     once = _Once()

@@ -13,7 +13,7 @@ import time
 from typing import TYPE_CHECKING
 
 from ..fleet import Fleet
-from ..layout import CCRP_ETC, POWER_PORT, POWER_USER, VPN_DIR
+from ..models.layout import CCRP_ETC, POWER_PORT, POWER_USER, VPN_DIR
 from ..models.inventory import Robot
 from ..models.names import power_name
 from ..models.state import FleetState

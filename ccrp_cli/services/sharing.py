@@ -12,7 +12,7 @@ import json
 from dataclasses import asdict, dataclass
 
 from ..fleet import Fleet
-from ..layout import CCRP_ETC, RELAY_USER
+from ..models.layout import CCRP_ETC, RELAY_USER
 from ..models.inventory import Robot
 from ..models.state import FleetState
 from ..render.files import BundleFile
@@ -61,7 +61,7 @@ def zenoh_id(fleet: str, robot: str) -> str:
 def relay_config(fleet: Fleet, state: FleetState, robot: str, live: set[str] | None = None) -> dict:
     """/etc/ccrp/relay.json of robot's clone. Not secret: the TLS files it names come as secrets.
     `live`: the clones taken as up (by default those state calls ready)."""
-    from ..layout import SECRETS_DIR
+    from ..models.layout import SECRETS_DIR
 
     inv = fleet.inventory
     plan = fleet.plan(state)
@@ -139,7 +139,8 @@ class Relay(CloneService):
 def matrix(fleet: Fleet, state: FleetState) -> list[dict]:
     """`ccrp topics`: who exports what to whom, as rows."""
     members = fleet.members(state)
-    rows = [{"source": r.source, "topic": r.topic, "dest": r.dest, "as": r.local_name} for r in routes(members)]
+    rows: list[dict[str, str | None]] = [{"source": r.source, "topic": r.topic, "dest": r.dest, "as": r.local_name}
+                                         for r in routes(members)]
     exported = {(r["source"], r["topic"]) for r in rows}
     # Exports nobody imports yet: shown so the operator sees what is offered.
     rows += [{"source": m.name, "topic": t, "dest": None, "as": None}

@@ -14,7 +14,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..errors import CcrpError, InputError, shown
 from ..models.inventory import Inventory, Robot
@@ -25,6 +25,8 @@ from .base import CloneService, ServiceContext
 if TYPE_CHECKING:
     from ..fleet import Fleet
     from ..models.state import FleetState
+    import threading
+
     from ..providers.base import Reaches
 
 UNIT_DIR = "/etc/systemd/system"
@@ -227,7 +229,7 @@ def snapshot_software(inv: Inventory, inv_path: Path | None) -> SnapshotSoftware
     return out
 
 
-def stale_snapshot(fleet, state, want: str | None = None) -> str | None:
+def stale_snapshot(fleet: Fleet, state: FleetState, want: str | None = None) -> str | None:
     """Why the fleet's snapshot cannot serve the inventory's software (None when it can). `want`:
     the inventory's digest when the caller has it (reading it hashes the whole workspace)."""
     want = want or snapshot_software(fleet.inventory, fleet.path).digest
@@ -238,7 +240,7 @@ def stale_snapshot(fleet, state, want: str | None = None) -> str | None:
             else f"the snapshot holds software {have}, the inventory names none")
 
 
-def check_snapshot(fleet, state, provider_kind: str) -> None:
+def check_snapshot(fleet: Fleet, state: FleetState, provider_kind: str) -> None:
     """Refuse to create or update clones whose snapshot lacks the inventory's software."""
     why = stale_snapshot(fleet, state)
     if why is not None and state.snapshot:
@@ -340,7 +342,7 @@ HEALTH_INTERVAL = 0.5
 JOURNAL_LINES = 5  # of a failing node's log, in its robot's result
 
 
-def node_health(provider: Reaches, robot: str, nodes: list[str], stop=None) -> tuple[str, str] | None:
+def node_health(provider: Reaches, robot: str, nodes: list[str], stop: threading.Event | None = None) -> tuple[str, str] | None:
     """(unit, why) of the first of `nodes` that is not active, or is restarted by systemd, during
     HEALTH_SECONDS: one window for them all, one `systemctl show` each HEALTH_INTERVAL. None when
     all stayed up (at once when there are none). `stop` (a threading.Event): once set, the check
@@ -464,8 +466,8 @@ def read_journal(provider: Reaches, robot: str, units: list[str], lines: int, si
     null (no --all), so a node that logs huge lines or floods cannot fill the operator's memory."""
     argv = ["journalctl", "--no-pager", "--output", "json", "--output-fields",
             "MESSAGE,_SYSTEMD_UNIT,UNIT,_PID,SYSLOG_IDENTIFIER"]
-    for unit in units:
-        argv += ["--unit", unit]
+    for name in units:
+        argv += ["--unit", name]
     if cursor:
         argv += ["--after-cursor", cursor, "--lines", str(lines)]  # the first `lines` after the cursor
     else:
@@ -497,7 +499,7 @@ def read_journal(provider: Reaches, robot: str, units: list[str], lines: int, si
     return entries, cursor
 
 
-def _iso(micros) -> str:
+def _iso(micros: Any) -> str:  # journald's __REALTIME_TIMESTAMP, whatever the clone sent
     import datetime as dt
 
     try:

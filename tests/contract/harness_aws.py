@@ -46,7 +46,7 @@ class AwsHarness(Knobs):
         # on EC2. Held from before-call to after-call(-error) by the thread that took it.
         self._moto = threading.Lock()
         self._holding = threading.local()
-        events = provider.ec2.meta.events
+        events = provider.client.ec2.meta.events
         events.register("before-call.ec2", self._before_call)
         events.register("after-call.ec2", self._release)
         events.register("after-call-error.ec2", self._release)
@@ -183,7 +183,7 @@ def make_harness(tmp_path):
                      "instance_type": "t3.medium", "operator_cidr": OPERATOR_CIDR})
     with mock_aws():
         provider = AwsProvider(inv, tmp_path / "store")
-        provider.backoff = FAST
+        provider.client.backoff = FAST
         provider.bootstrap()
         yield AwsHarness(provider, boto3.client("ec2", region_name=REGION))
     # mock_aws's exit discards every fake resource: nothing outlives the test.

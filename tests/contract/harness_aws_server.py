@@ -64,7 +64,7 @@ class AwsServerHarness(AwsHarness):
         # Before botocore parses the answer: moto's server answers an exception of its own with a
         # 500 and an HTML page, which botocore cannot parse (ResponseParserError, not a ClientError).
         # Only the server's answers pass here: a throttle injected by throttle() never reached it.
-        provider.ec2.meta.events.register("before-parse.ec2", self._count_5xx)
+        provider.client.ec2.meta.events.register("before-parse.ec2", self._count_5xx)
 
     def _count_5xx(self, operation_model, response_dict, **_):
         if response_dict["status_code"] >= 500:
@@ -160,10 +160,10 @@ def make_harness(tmp_path, threaded: bool = True):
                 os.environ.pop(var, None)
             provider = AwsProvider(inv, Path(tmp_path) / "store")
             raw = boto3.Session(region_name=REGION).client("ec2")
-        for client in (provider.ec2, raw):
+        for client in (provider.client.ec2, raw):
             if client.meta.endpoint_url != server.url:
                 raise RuntimeError(f"boto3 client not sent to the moto server: {client.meta.endpoint_url}")
-        provider.backoff = FAST
+        provider.client.backoff = FAST
         provider.bootstrap()
         yield AwsServerHarness(provider, raw, server)
     finally:

@@ -37,7 +37,7 @@ from google.cloud import compute_v1 as c
 from ccrp_cli.models.inventory import Inventory
 from ccrp_cli.providers.base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneSpec, owner_labels
 from ccrp_cli.providers.gcp.provider import GcpProvider
-from ccrp_cli.providers.gcp.clients import Clients
+from ccrp_cli.providers.gcp.client import Clients
 from ccrp_cli.providers.gcp.ownership import description_marks, tail
 
 from . import specs
@@ -692,7 +692,7 @@ class GcpHarness:
         self.fake = fake or FakeProject()
         self.inv = inv or inventory()
         self.provider = GcpProvider(self.inv, tmp_path / "store", clients=self.fake.clients)
-        self.provider.backoff = specs.FAST
+        self.provider.client.backoff = specs.FAST
 
     def spec(self, robot: str, index: int) -> CloneSpec:
         return specs.clone_spec(self.inv, robot, index, PUBLIC_IMAGE)

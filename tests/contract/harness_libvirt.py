@@ -8,7 +8,7 @@ packages (the image ccrp-test/vm-tiny, tests/tiny_vm.py, shared with the real Op
 a few MB of disk per run.
 
 Faults and delays are injected around each libvirt call the provider makes through its retry layer
-(`provider.api`), before the call reaches libvirtd: a dropped RPC connection (what the provider
+(`provider.client.api`), before the call reaches libvirtd: a dropped RPC connection (what the provider
 retries) stands for a cloud's throttling. The clones' public ingress is what their firewall lets in
 from outside the VPN and the common network, read from the NoCloud seed each VM booted with:
 libvirt has no security groups, and the fleet's NAT network lets nothing in from outside the host
@@ -55,15 +55,15 @@ class LibvirtHarness(Knobs):
     kind = "libvirt"
 
     def __init__(self, provider, conn) -> None:
-        self.provider, self.raw, self.libvirt = provider, conn, provider.libvirt
+        self.provider, self.raw, self.libvirt = provider, conn, provider.client.libvirt
         self.calls: Counter = Counter()
         self._lock = threading.Lock()
         self._fraction, self._delay, self._n = 0.0, 0.0, 0
         self._fail_robots: set[str] = set()
         self.foreign: list[str] = []
         self.golden = ""
-        api = provider.api
-        provider.api = lambda what, fn, *a, **kw: api(what, self._attempt(what, fn), *a, **kw)
+        api = provider.client.api
+        provider.client.api = lambda what, fn, *a, **kw: api(what, self._attempt(what, fn), *a, **kw)
 
     def _attempt(self, what: str, fn):
         def attempt(*args, **kwargs):
@@ -206,7 +206,7 @@ def make_harness(tmp_path):
                     common={"cidr": free("common", used)}, vpn={"pool": free("vpn", used)})
     raw = libvirt.open(URI)
     provider = LibvirtProvider(inv, tmp_path / "store")
-    provider.backoff = FAST
+    provider.client.backoff = FAST
     harness = None
     try:
         provider.bootstrap()

@@ -53,9 +53,9 @@ class OpenStackHarness:
         from ccrp_cli.providers.openstack.provider import OpenStackProvider
 
         provider = OpenStackProvider(inv, workdir)
-        self.fake.attach(provider.conn)
-        provider.backoff = FAST
-        provider.poll_interval = 0.01
+        self.fake.attach(provider.client.conn)
+        provider.client.backoff = FAST
+        provider.client.poll_interval = 0.01
         return provider
 
     # -- knobs ----------------------------------------------------------------------------------

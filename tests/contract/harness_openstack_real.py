@@ -11,7 +11,7 @@ button): uploaded to Glance once per run as aki/ari images and a root image nami
 the harness reads and deletes only what it or its provider made.
 
 Faults are injected on the provider's own HTTP transport (a requests adapter mounted on the
-keystoneauth session of `provider.conn`), before a request leaves the process: throttling answers
+keystoneauth session of `provider.client.conn`), before a request leaves the process: throttling answers
 503/429 for a fraction of the service calls, the marked robot's floating-IP POST answers Neutron's
 400, and `api_calls` counts what the transport saw. The cloud is read around the provider with
 connections of the harness's own (the project's, and the admin's for a server's user-data)."""
@@ -215,7 +215,7 @@ class RealOpenStackHarness:
         self.foreign: list[str] = []
         self.leaks: list[str] = []
         for prefix in ("http://", "https://"):
-            provider.conn.session.session.mount(prefix, _http_adapter(self))
+            provider.client.conn.session.session.mount(prefix, _http_adapter(self))
 
     def _throttled(self) -> bool:
         """Every (1/fraction)-th service call, deterministically, as the fake does."""
@@ -336,8 +336,8 @@ def make_provider(fleet: str, workdir, cloud: str = CLOUD, flavor: str = FLAVOR)
     inv = inventory({"kind": "openstack", "cloud": cloud, "flavor": flavor, "external_network": EXTERNAL,
                      "operator_cidr": OPERATOR_CIDR}, fleet=fleet)
     provider = OpenStackProvider(inv, workdir)
-    provider.backoff = BACKOFF
-    provider.poll_interval = POLL
+    provider.client.backoff = BACKOFF
+    provider.client.poll_interval = POLL
     return provider
 
 

@@ -3,7 +3,8 @@ real rendered user-data of each clone (as clones.ensure_clone does)."""
 
 from __future__ import annotations
 
-from ccrp_cli.addressing import addresses
+from ccrp_cli.loader import inventory_model
+from ccrp_cli.models.addressing import addresses
 from ccrp_cli.models.inventory import Inventory
 from ccrp_cli.providers.base import CloneSpec
 from ccrp_cli.retry import Backoff
@@ -18,7 +19,7 @@ FAST = Backoff(attempts=20, base=0.001, cap=0.01)
 
 
 def inventory(provider: dict, **extra) -> Inventory:
-    return Inventory.model_validate({
+    return inventory_model().model_validate({
         "fleet": FLEET,
         "provider": provider,
         "robots": [{"name": r, "exports": [f"/{r}/odom"]} for r in ROBOTS],

@@ -52,7 +52,7 @@ def crash_fleet(request, clone_images):
 
 # From 2 clones: killed while adding two, while removing three, and (aimed) as the first new
 # clone's secrets land, before OpenVPN restarts with them: that one failed on every later run
-# before the secrets got their completion marker (clones.applied_marker).
+# before the secrets got their completion marker (render/files.applied_marker).
 @pytest.mark.parametrize(("size", "delay", "aimed"), [(4, 2.5, False), (1, 1.2, False), (3, 0.0, True)],
                          ids=["grow-to-4", "shrink-to-1", "grow-to-3-as-secrets-land"])
 def test_fleet_scale_killed_converges_on_next_run(crash_fleet, size, delay, aimed):

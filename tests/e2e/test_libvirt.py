@@ -200,8 +200,8 @@ def test_two_vm_clones_serve(vm_fleet):
     for rec in recs.values():
         assert rec.state.value == "running" and ipaddress.IPv4Address(rec.public_ip) in provider.settings.public_cidr
     # A clone's disk is an overlay of the golden volume: only its writes are its own.
-    pool = provider._pool()
-    disk = pool.storageVolLookupByName(provider.clone_volumes("nao1")["disk"])
+    pool = provider.client.pool()
+    disk = pool.storageVolLookupByName(provider.client.clone_volumes("nao1")["disk"])
     golden = pool.storageVolLookupByName(vm_fleet["golden"].id)
     assert golden.path() in disk.XMLDesc(0)
     vm_fleet["timings"]["overlay MB after fleet up"] = disk.info()[2] / 1e6
@@ -217,7 +217,7 @@ def test_two_vm_clones_serve(vm_fleet):
     # alone starts it up to a second late): the guest's own clock, read through the agent, against
     # the host's before and after the call.
     for robot in ("nao1", "nao2"):
-        dom = provider.conn.lookupByName(provider.domain_name(robot))
+        dom = provider.client.conn.lookupByName(provider.client.domain_name(robot))
         before = time.time()
         guest = dom.getTime(0)
         after = time.time()
@@ -319,10 +319,10 @@ def test_robot_sim_stop_and_fleet_down_leave_nothing(vm_fleet):
     assert down.returncode == 0, down.stderr[-2000:]
     assert provider.leftovers() == []
     fleet = vm_fleet["fleet"].name
-    conn = provider.conn
+    conn = provider.client.conn
     assert not [d.name() for d in conn.listAllDomains(0) if d.name().startswith(f"ccrp-{fleet}-")]
     assert not [n.name() for n in conn.listAllNetworks(0) if n.name().startswith(f"ccrp-{fleet}-")]
-    pool = provider._pool()
+    pool = provider.client.pool()
     pool.refresh(0)
     assert [v.name() for v in pool.listAllVolumes(0) if v.name().startswith(f"ccrp-{fleet}-")
             and not v.name().startswith(f"ccrp-{fleet}-golden-")] == []

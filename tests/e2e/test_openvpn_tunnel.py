@@ -23,7 +23,7 @@ import pytest
 import yaml
 from cryptography import x509
 
-from ccrp_cli import vpn
+from ccrp_cli.ops import vpn
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.pki.store import RobotCredentials
 from ccrp_cli.render import openvpn

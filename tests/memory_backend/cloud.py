@@ -13,7 +13,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 
-from ccrp_cli.layout import AUTOSTOP_MARK
+from ccrp_cli.models.layout import AUTOSTOP_MARK
 
 
 class Throttled(Exception):
@@ -26,7 +26,7 @@ class Refused(Exception):
 
 @dataclass
 class Resource:
-    kind: str  # a base.ResourceKind: instance, address, firewall, network, image
+    kind: str  # an OwnedResource.kind: instance, address, firewall, network, image
     id: str
     name: str
     labels: dict[str, str]

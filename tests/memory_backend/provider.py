@@ -10,7 +10,7 @@ from ccrp_cli.errors import CcrpError
 from ccrp_cli.models.inventory import Inventory
 from ccrp_cli.providers.base import (
     LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin,
-    OwnedResource, Quota, SnapshotRecord, autostop_note, owner_labels,
+    OwnedResource, Quota, Role, SnapshotRecord, autostop_note, owner_labels, with_roles,
 )
 
 from . import INFO, cloud
@@ -19,6 +19,8 @@ from .cloud import Resource, Throttled
 STATES = {"pending": CloneState.PENDING, "running": CloneState.RUNNING, "stopped": CloneState.STOPPED}
 # What teardown removes, in order: an instance before the address it holds, the network last.
 TEARDOWN = ("instance", "address", "firewall", "network")
+# What each kind is to the fleet (`ccrp gc`); an address belongs to a robot.
+ROLES = {"instance": Role.CLONE, "image": Role.IMAGE, "firewall": Role.BOOTSTRAP, "network": Role.BOOTSTRAP}
 
 
 def _classify(exc: BaseException) -> retry.ErrorClass:
@@ -186,8 +188,8 @@ class MemoryProvider:
         return autostop_note("\n".join(found[0].data["console"])) if found else None
 
     def list_owned(self) -> list[OwnedResource]:
-        return [OwnedResource(kind=r.kind, id=r.id, name=r.name, robot=r.labels.get(LABEL_ROBOT))
-                for r in self._owned()]
+        return with_roles((OwnedResource(kind=r.kind, id=r.id, name=r.name, robot=r.labels.get(LABEL_ROBOT))
+                           for r in self._owned()), ROLES)
 
     def delete_owned(self, resource: OwnedResource) -> None:
         res = self.api(f"get {resource.kind}", self.cloud.get, resource.id)

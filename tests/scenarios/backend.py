@@ -160,9 +160,9 @@ def free_cidr(within: str, prefix: int = 24, skip: int = 0) -> str:
     import ipaddress
     import random
 
-    from ccrp_cli.ops.init import docker_subnets, host_ranges
+    from ccrp_cli.ops.init import host_ranges
 
-    used = docker_subnets() + [ipaddress.IPv4Network(r) for r in host_ranges()]
+    used = [ipaddress.IPv4Network(r) for r in host_ranges()]
     candidates = list(ipaddress.IPv4Network(within).subnets(new_prefix=prefix))
     # Parallel workers of one run (pytest-xdist) pick from disjoint shares: a network is made only
     # later (at `fleet up`), so two workers must never pick the same range meanwhile.

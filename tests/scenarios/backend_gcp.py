@@ -55,7 +55,7 @@ def open_backend(tmp_path: Path, fleet: str, echo: bool = False):
     process's stderr as it comes (progress under `pytest -s`)."""
     from google.cloud import compute_v1  # noqa: F401 - the SDK first: its absence is a skip, not a leak
 
-    from ccrp_cli.providers.gcp.clients import Clients
+    from ccrp_cli.providers.gcp.client import Clients
     from tests.contract.harness_gcp import PROJECT, REGION, ZONES
     from tests.fakes.cloudboot import CloudBoot
     from tests.fakes.gce_boot import BootingProject

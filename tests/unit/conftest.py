@@ -12,7 +12,7 @@ from tests.unit.aws_fakes import REGION
 @pytest.fixture
 def lab_up(ccrp_home):
     """The lab fleet with every clone recorded as ready."""
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     fleet = Fleet.open(LAB)
     vpn.init(fleet)

@@ -2,7 +2,7 @@ import ipaddress
 
 import pytest
 
-from ccrp_cli.addressing import addresses, allocate, capacity
+from ccrp_cli.models.addressing import addresses, allocate, capacity
 from ccrp_cli.errors import InputError
 from ccrp_cli.loader import load_inventory
 from tests.conftest import LAB

@@ -163,7 +163,7 @@ class Clones:
 
 
 def test_status_shows_a_clone_stopped_idle_and_one_that_does_not_answer(lab_up):
-    from ccrp_cli.status import fleet_status
+    from ccrp_cli.ops.status import fleet_status
 
     fleet, _ = lab_up
     rows = {r.robot: r for r in fleet_status(fleet, Clones())}
@@ -184,7 +184,7 @@ class Garbled(Clones):
 
 
 def test_a_malformed_health_report_marks_its_row_not_the_whole_status(lab_up):
-    from ccrp_cli.status import fleet_status
+    from ccrp_cli.ops.status import fleet_status
 
     fleet, _ = lab_up
     rows = {r.robot: r for r in fleet_status(fleet, Garbled())}

@@ -30,14 +30,14 @@ def make(tmp_path, bootstrap: bool = True, **settings):
     from ccrp_cli.providers.aws.provider import AwsProvider
 
     p = AwsProvider(inventory(PROVIDER | settings), tmp_path / "store")
-    p.backoff = FAST
+    p.client.backoff = FAST
     if bootstrap:
         p.bootstrap()
     return p
 
 
 def image(p) -> str:
-    return p.ec2.register_image(Name="base", RootDeviceName="/dev/sda1", Architecture="x86_64")["ImageId"]
+    return p.client.ec2.register_image(Name="base", RootDeviceName="/dev/sda1", Architecture="x86_64")["ImageId"]
 
 
 @pytest.mark.parametrize("code,status,expected", [
@@ -80,17 +80,17 @@ def test_bootstrap_converges_security_group_and_is_idempotent(mocked, tmp_path):
     p = make(tmp_path)
     net = p.network
     # Someone opens the ROS master to the world by hand: the next bootstrap closes it.
-    p.ec2.authorize_security_group_ingress(GroupId=net.security_group_id, IpPermissions=[
+    p.client.ec2.authorize_security_group_ingress(GroupId=net.security_group_id, IpPermissions=[
         {"IpProtocol": "tcp", "FromPort": 11311, "ToPort": 11311, "IpRanges": [{"CidrIp": "0.0.0.0/0"}]}])
     p.bootstrap()
     from ccrp_cli.providers.aws import network
 
-    sg = p.ec2.describe_security_groups(GroupIds=[net.security_group_id])["SecurityGroups"][0]
+    sg = p.client.ec2.describe_security_groups(GroupIds=[net.security_group_id])["SecurityGroups"][0]
     assert {(r[0], r[1], r[3]) for r in network.ingress_rules(sg)} == {
         ("udp", 1194, "0.0.0.0/0"), ("tcp", 22, "198.51.100.0/24"), ("-1", -1, "10.90.0.0/24")}
     assert p.network == net
-    assert len(p.ec2.describe_vpcs(Filters=[{"Name": "tag:ccrp-fleet", "Values": ["ct"]}])["Vpcs"]) == 1
-    key = p.ec2.describe_key_pairs(KeyNames=["ccrp-ct"], IncludePublicKey=True)["KeyPairs"][0]
+    assert len(p.client.ec2.describe_vpcs(Filters=[{"Name": "tag:ccrp-fleet", "Values": ["ct"]}])["Vpcs"]) == 1
+    key = p.client.ec2.describe_key_pairs(KeyNames=["ccrp-ct"], IncludePublicKey=True)["KeyPairs"][0]
     assert key["PublicKey"].split()[:2] == p.operator_public_key().split()[:2]
 
 
@@ -119,7 +119,7 @@ def test_vpc_without_internet_gateway_is_refused(mocked, tmp_path):
 
 def test_common_subnet_falls_back_to_the_next_zone(mocked, tmp_path):
     p = make(tmp_path, bootstrap=False)
-    inject_error(p.ec2, "CreateSubnet", "Unsupported",
+    inject_error(p.client.ec2, "CreateSubnet", "Unsupported",
                  "The requested Availability Zone us-east-1a is currently constrained",
                  when=lambda body: body.get("AvailabilityZone") == "us-east-1a")
     p.bootstrap()
@@ -132,23 +132,23 @@ def test_large_user_data_is_gzipped_within_the_limit(mocked, tmp_path):
     spec.user_data += "".join(f"# padding line {i}: the same words again and again\n" for i in range(600))
     assert len(spec.user_data.encode()) > 16_384
     rec = p.run_instance(spec)
-    sent = base64.b64decode(p.ec2.describe_instance_attribute(InstanceId=rec.provider_id, Attribute="userData")["UserData"]["Value"])
+    sent = base64.b64decode(p.client.ec2.describe_instance_attribute(InstanceId=rec.provider_id, Attribute="userData")["UserData"]["Value"])
     assert len(sent) <= 16_384 and gzip.decompress(sent).decode() == spec.user_data
 
 
 def test_capacity_error_at_launch_leaves_nothing(mocked, tmp_path):
     p = make(tmp_path)
-    inject_error(p.ec2, "RunInstances", "InsufficientInstanceCapacity", "We currently do not have sufficient t3.medium capacity")
+    inject_error(p.client.ec2, "RunInstances", "InsufficientInstanceCapacity", "We currently do not have sufficient t3.medium capacity")
     with pytest.raises(CcrpError) as err:
         p.run_instance(clone_spec(p.inv, "robot1", 1, image(p)))
     assert "capacity" in err.value.one_line() and "instance_type" in (err.value.hint or "")
-    assert p.query() == {} and not p.ec2.describe_addresses()["Addresses"]
+    assert p.query() == {} and not p.client.ec2.describe_addresses()["Addresses"]
 
 
 def test_throttling_gives_up_with_one_line(mocked, tmp_path):
     p = make(tmp_path)
     for _ in range(FAST.attempts):
-        inject_error(p.ec2, "DescribeInstances", "RequestLimitExceeded", "Request limit exceeded.", status=503)
+        inject_error(p.client.ec2, "DescribeInstances", "RequestLimitExceeded", "Request limit exceeded.", status=503)
     with pytest.raises(CcrpError, match=f"still failing after {FAST.attempts} attempts"):
         p.query()
 
@@ -156,20 +156,20 @@ def test_throttling_gives_up_with_one_line(mocked, tmp_path):
 def test_clone_route_and_source_dest_check(mocked, tmp_path):
     p = make(tmp_path)
     rec = p.run_instance(clone_spec(p.inv, "robot2", 2, image(p)))
-    rt = p.ec2.describe_route_tables(RouteTableIds=[p.network.route_table_id])["RouteTables"][0]
+    rt = p.client.ec2.describe_route_tables(RouteTableIds=[p.network.route_table_id])["RouteTables"][0]
     assert {"10.80.2.0/24": rec.provider_id} == {r["DestinationCidrBlock"]: r["InstanceId"] for r in rt["Routes"] if r.get("InstanceId")}
-    attr = p.ec2.describe_instance_attribute(InstanceId=rec.provider_id, Attribute="sourceDestCheck")
+    attr = p.client.ec2.describe_instance_attribute(InstanceId=rec.provider_id, Attribute="sourceDestCheck")
     assert attr["SourceDestCheck"]["Value"] is False
     assert rec.common_ip == "10.90.0.11" and rec.public_ip
     p.terminate("robot2")
-    rt = p.ec2.describe_route_tables(RouteTableIds=[p.network.route_table_id])["RouteTables"][0]
+    rt = p.client.ec2.describe_route_tables(RouteTableIds=[p.network.route_table_id])["RouteTables"][0]
     assert not [r for r in rt["Routes"] if r.get("InstanceId")]
 
 
 def test_console_output_falls_back_when_latest_is_unsupported(mocked, tmp_path):
     p = make(tmp_path)
     p.run_instance(clone_spec(p.inv, "robot1", 1, image(p)))
-    inject_error(p.ec2, "GetConsoleOutput", "UnsupportedOperation", "Latest is only supported on Nitro instances",
+    inject_error(p.client.ec2, "GetConsoleOutput", "UnsupportedOperation", "Latest is only supported on Nitro instances",
                  when=lambda body: body.get("Latest") in ("true", True))
     assert "Linux version" in p.console_output("robot1")  # moto's console text, decoded from base64
     with pytest.raises(CcrpError, match="no clone"):

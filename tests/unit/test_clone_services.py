@@ -27,7 +27,7 @@ def test_the_registry_runs_the_services_in_fleet_ups_order():
 def test_each_services_boot_declaration_is_in_the_user_data(lab):
     """What a service says its clone gets from the user-data is what render/cloudinit.py writes:
     its units (enabled at first boot, its sockets alone and first), agents, files and users."""
-    from ccrp_cli.layout import CCRP_LIB
+    from ccrp_cli.models.layout import CCRP_LIB
     from ccrp_cli.render import cloudinit
     from ccrp_cli.services.registry import boots
 
@@ -133,7 +133,7 @@ def fleet_with_every_service(tmp_path, ccrp_home, rate: float = 1.0, idle: str |
 
 
 def up_nao1(fleet: Fleet, clone: Clone) -> list[str]:
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     state = fleet.load_allocated()
     if not fleet.pki.exists():  # as `fleet up` does before ensure_clone
@@ -211,7 +211,7 @@ def test_a_node_that_does_not_stay_up_fails_fleet_up_and_clone_start(tmp_path, c
     `activating` in between. fleet up made it with `nodes started` and exit 0; now the nodes it
     starts get deploy's health check, and one that does not stay up fails the robot (exit 1),
     naming robot, node and its last lines. The clone is kept and recorded, to read its logs."""
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
     from ccrp_cli.alerts import clone_alerts
     from ccrp_cli.cli import output
     from ccrp_cli.models.status import StatusRow
@@ -257,7 +257,7 @@ def test_a_node_that_does_not_stay_up_fails_fleet_up_and_clone_start(tmp_path, c
 
 
 def test_status_takes_each_services_fields(lab_up):
-    from ccrp_cli.status import service_fields
+    from ccrp_cli.ops.status import service_fields
 
     fleet, state = lab_up
     nao1 = fleet.robot(state, "nao1")

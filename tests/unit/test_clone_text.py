@@ -232,7 +232,7 @@ def test_an_ssh_exec_stops_reading_a_clone_that_floods_it():
 
 def test_an_engine_exec_stops_reading_a_container_that_floods_it():
     from ccrp_cli.providers.base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE
-    from ccrp_cli.providers.docker.host import DockerHost
+    from ccrp_cli.providers.docker.client import DockerHost
 
     flood = Flood()
     container = SimpleNamespace(id="c1", status="running", labels={LABEL_FLEET: "lab", LABEL_ROLE: "clone", LABEL_ROBOT: "nao1"})

@@ -7,7 +7,8 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from ccrp_cli import addressing, vpn
+from ccrp_cli.models import addressing
+from ccrp_cli.ops import vpn
 from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.models.state import FleetState
 from ccrp_cli.pki.store import PkiIndex

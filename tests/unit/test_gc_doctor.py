@@ -8,7 +8,7 @@ import pytest
 
 from ccrp_cli.ops.gc import find_leaks
 from ccrp_cli.models.state import FleetState, RobotRecord
-from ccrp_cli.providers.base import CloneSpec, OwnedResource, SnapshotRecord
+from ccrp_cli.providers.base import CloneSpec, OwnedResource, Role, SnapshotRecord
 
 from .aws_fakes import REGION
 
@@ -20,8 +20,13 @@ robots:
 """
 
 
+# The roles the backends set on these kinds (AWS's and Docker's tables); gc reads only the role.
+ROLES = {"vpc": Role.BOOTSTRAP, "security_group": Role.BOOTSTRAP, "key_pair": Role.BOOTSTRAP, "network": Role.BOOTSTRAP,
+         "instance": Role.CLONE, "image": Role.IMAGE, "robot_sim": Role.ROBOT_SIDE}
+
+
 def R(kind, rid, robot=None, name=""):
-    return OwnedResource(kind=kind, id=rid, robot=robot, name=name)
+    return OwnedResource(kind=kind, id=rid, robot=robot, name=name, role=ROLES.get(kind, Role.PER_ROBOT))
 
 
 def test_leak_rule():

@@ -345,7 +345,7 @@ def test_failed_polls_of_an_operation_are_retried(h):
 
     done = c.Operation(name="operation-1", status=c.Operation.Status.DONE)
     op, polls = _operation(exceptions.ServiceUnavailable("Backend Error"), exceptions.TooManyRequests("slow down"), done)
-    h.provider._wait(op, "create instance cri-robot1")
+    h.provider.client.wait(op, "create instance cri-robot1")
     assert len(polls) == 3
 
 
@@ -357,7 +357,7 @@ def test_an_operations_own_error_is_not_polled_again(h):
                          error=c.Error(errors=[c.Errors(code="ZONE_RESOURCE_POOL_EXHAUSTED", message="stock-out")]))
     op, polls = _operation(failed)
     with pytest.raises(exceptions.GoogleAPICallError) as err:
-        h.provider._wait(op, "create instance cri-robot1")
+        h.provider.client.wait(op, "create instance cri-robot1")
     assert len(polls) == 1
     assert classify(err.value) is ErrorClass.ZONE  # the caller moves to the next zone
 

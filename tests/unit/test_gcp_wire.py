@@ -16,7 +16,8 @@ from google.auth.credentials import AnonymousCredentials  # noqa: E402
 
 from ccrp_cli.providers.base import CloneSpec  # noqa: E402
 from ccrp_cli.providers.gcp.provider import GcpProvider  # noqa: E402
-from ccrp_cli.providers.gcp.clients import Clients  # noqa: E402
+from ccrp_cli.providers.gcp import network  # noqa: E402
+from ccrp_cli.providers.gcp.client import Clients  # noqa: E402
 from ccrp_cli.retry import Backoff  # noqa: E402
 from tests.contract.harness_gcp import PROJECT, REGION, ZONES, inventory  # noqa: E402
 
@@ -45,7 +46,7 @@ def instance() -> dict:
 def wire(tmp_path):
     inv = inventory()
     provider = GcpProvider(inv, tmp_path, clients=Clients.connect(credentials=AnonymousCredentials()))
-    provider.backoff = Backoff(attempts=4, sleep=lambda s: None)
+    provider.client.backoff = Backoff(attempts=4, sleep=lambda s: None)
     with requests_mock.Mocker() as m:
         # Bootstrap finds the network, its subnetwork and the three rules as they should be.
         m.get(f"{API}/global/networks/ccrp-ct-net", json={
@@ -54,7 +55,7 @@ def wire(tmp_path):
         m.get(f"{API}/regions/{REGION}/subnetworks", json={"items": [{
             "name": "ccrp-ct-common", "network": f"{LINK}/global/networks/ccrp-ct-net", "ipCidrRange": "10.90.0.0/24",
             "selfLink": f"{LINK}/regions/{REGION}/subnetworks/ccrp-ct-common"}]})
-        for rule in provider.firewall_rules(f"{LINK}/global/networks/ccrp-ct-net"):
+        for rule in network.firewall_rules(provider.client, f"{LINK}/global/networks/ccrp-ct-net"):
             m.get(f"{API}/global/firewalls/{rule.name}", json=json.loads(type(rule).to_json(rule)))
         m.get(f"{API}/aggregated/instances", json={"items": {}})
         # The clone's address is missing at first, reserved, then read back with its IP.
@@ -156,7 +157,7 @@ def test_request_id_depends_only_on_the_clone_and_zone(wire, tmp_path):
     first = [r for r in m.request_history if r.method == "POST" and "/instances" in r.url][-1]
     # Another process (a re-run after a crash) sends the same id for the same clone and zone.
     other = GcpProvider(provider.inv, tmp_path / "other", clients=Clients.connect(credentials=AnonymousCredentials()))
-    other.backoff = provider.backoff
+    other.client.backoff = provider.client.backoff
     m.post(f"{API}/zones/{ZONE}/instances", json=op("operation-1", f"{LINK}/zones/{ZONE}/instances/{NAME}"))
     other.bootstrap()
     other.run_instance(spec())

@@ -10,7 +10,7 @@ import sys
 import tomllib
 from pathlib import Path
 
-from ccrp_cli import layout
+from ccrp_cli.models import layout
 from ccrp_cli.agent import autostop, health
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -82,6 +82,7 @@ def test_init_libvirt_gets_a_nat_network_free_on_this_host(here, monkeypatch):
     route, Docker network, other fleet or libvirt network of this host uses, running or not (a
     stopped libvirt network has no route yet); its pools do not overlap it."""
     from ccrp_cli.ops import init
+    from ccrp_cli.providers.libvirt import host_networks
 
     nets = here / "networks"
     nets.mkdir()
@@ -90,7 +91,7 @@ def test_init_libvirt_gets_a_nat_network_free_on_this_host(here, monkeypatch):
     (nets / "lab.xml").write_text("<network><name>lab</name><ip address='172.30.1.1' prefix='24'/>"
                                   "<ip family='ipv6' address='fd00::1' prefix='64'/></network>")
     (nets / "broken.xml").write_text("<network><ip address=")
-    monkeypatch.setattr(init, "LIBVIRT_NETWORKS", str(nets))
+    monkeypatch.setattr(host_networks, "NETWORKS", str(nets))
     assert {k: v for k, v in init.host_ranges().items() if v.startswith("libvirt")} == {
         "172.30.0.0/24": "libvirt network default", "172.30.1.0/24": "libvirt network lab"}
     code, out, err = run_ccrp_inprocess("init", "--provider", "libvirt", "--robots", "nao1", "--distro", "noetic",
@@ -169,7 +170,7 @@ def fake_cloud(tmp_path, monkeypatch):
     pytest.importorskip("openstack")
     import openstack
 
-    from ccrp_cli.providers.openstack import discover, provider
+    from ccrp_cli.providers.openstack import client, discover
     from tests.contract.harness_openstack import _isolated_env
     from tests.fakes.openstack_cloud import FakeOpenStack
 
@@ -181,7 +182,7 @@ def fake_cloud(tmp_path, monkeypatch):
         fake.attach(conn)
         return conn
 
-    monkeypatch.setattr(provider, "_connect", connect)
+    monkeypatch.setattr(client, "_connect", connect)
     routes = {}
     monkeypatch.setattr(discover, "_source_address", lambda target: routes.get(target))
     with _isolated_env(OS_CLIENT_CONFIG_FILE=str(config), OS_CLIENT_SECURE_FILE=str(tmp_path / "none.yaml")):

@@ -19,7 +19,7 @@ from ccrp_cli.errors import CcrpError, InputError
 from ccrp_cli.loader import load_inventory
 from ccrp_cli.providers import REGISTRY
 from ccrp_cli.providers.base import Ability, CloneState, owner_labels
-from ccrp_cli.providers.libvirt import goldens, provider, seed, xmldefs
+from ccrp_cli.providers.libvirt import client, goldens, images, provider, seed, xmldefs
 
 
 def inventory(tmp_path, **settings):
@@ -159,7 +159,7 @@ def test_the_operators_uri_parameters_come_from_the_environment(tmp_path, monkey
     with pytest.raises(InputError, match=URI_PARAMS_ENV):
         connect_uri("qemu+ssh://h/system", {URI_PARAMS_ENV: "command=/opt/ssh -v"})
     opened = []
-    monkeypatch.setattr(provider, "_sdk", lambda: SimpleNamespace(open=opened.append, libvirtError=Exception))
+    monkeypatch.setattr(client, "_sdk", lambda: SimpleNamespace(open=opened.append, libvirtError=Exception))
     monkeypatch.setenv(URI_PARAMS_ENV, "command=/opt/ssh-pinned")
     inv = inventory(tmp_path, uri="qemu+ssh://ops@lab1/system")
     provider.LibvirtProvider(inv, tmp_path)
@@ -292,7 +292,7 @@ def test_every_libvirt_state_has_a_ccrp_state():
     ("ccrp-vmlab-cri-nao1.qcow2", None, None),
 ])
 def test_golden_volume_names(name, fleet, robot):
-    m = provider.GOLDEN.match(name)
+    m = images.GOLDEN.match(name)
     assert (m["fleet"] if m else None, m["robot"] if m else None) == (fleet, robot)
 
 
@@ -531,12 +531,14 @@ class _Conn:
 
 def stand_in(tmp_path, volumes, domains, networks, settings=None, **host):
     inv = inventory(tmp_path, **(settings or {}))
-    p = object.__new__(provider.LibvirtProvider)
-    p.inv, p.fleet, p.workdir, p.settings = inv, inv.fleet, tmp_path, inv.provider
-    p.libvirt = _SDK
-    p.conn = _Conn(domains, volumes if isinstance(volumes, _Pool) or volumes is None else _Pool(volumes),
+    c = object.__new__(client.LibvirtClient)
+    c.inv, c.fleet, c.workdir, c.settings = inv, inv.fleet, tmp_path, inv.provider
+    c.libvirt = _SDK
+    c.conn = _Conn(domains, volumes if isinstance(volumes, _Pool) or volumes is None else _Pool(volumes),
                    [_Net(n) for n in networks], **host)
-    p._docker = False  # no simulated robots: this host's Docker engine is not asked
+    c._docker = False  # no simulated robots: this host's Docker engine is not asked
+    p = object.__new__(provider.LibvirtProvider)
+    p.inv, p.fleet, p.workdir, p.settings, p.client = inv, inv.fleet, tmp_path, inv.provider, c
     return p
 
 
@@ -626,7 +628,7 @@ def test_a_domain_gone_between_listing_and_reading_is_not_an_error(tmp_path):
     p = stand_in(tmp_path, volumes=[], networks=[], domains=[
         _Undefined("ccrp-vmlab-cri-nao2", owner_labels("vmlab", "clone", "nao2"), "uuid-2"),
         _Dom("ccrp-vmlab-cri-nao1", owner_labels("vmlab", "clone", "nao1"), "uuid-1")])
-    assert [d.name() for d, _info in p._domains()] == ["ccrp-vmlab-cri-nao1"]
+    assert [d.name() for d, _info in p.client.domains()] == ["ccrp-vmlab-cri-nao1"]
 
 
 def test_ssh_is_let_in_from_the_host_on_the_nat_network(tmp_path, ccrp_home):
@@ -645,8 +647,8 @@ def test_ssh_is_let_in_from_the_host_on_the_nat_network(tmp_path, ccrp_home):
 
 def test_public_address_is_reserved_at_the_common_offset(tmp_path):
     p = stand_in(tmp_path, [], [], [])
-    p.inv = inventory(tmp_path, public_cidr="192.168.151.0/24")
-    p.settings = p.inv.provider
+    p.inv = p.client.inv = inventory(tmp_path, public_cidr="192.168.151.0/24")
+    p.settings = p.client.settings = p.inv.provider
     assert p.public_ip("10.90.0.10") == "192.168.151.10"  # common.cidr 10.90.0.0/24, clone k at .9 + k
     with pytest.raises(CcrpError, match="no counterpart"):
         p.public_ip("10.90.1.10")
@@ -674,6 +676,7 @@ def test_build_snapshot_builds_the_recipes_image_turns_it_into_a_golden_volume_a
 
     from ccrp_cli.providers.docker import images
     from ccrp_cli.providers import sdk
+    from ccrp_cli.providers.libvirt import images as lv_images
 
     calls: list = []
     removed: list = []
@@ -686,15 +689,15 @@ def test_build_snapshot_builds_the_recipes_image_turns_it_into_a_golden_volume_a
     golden = SimpleNamespace(qcow2=tmp_path / "g.qcow2", kernel=tmp_path / "k", initrd=tmp_path / "i", virtual_size=8)
     golden.qcow2.write_bytes(b"q")
     monkeypatch.setattr(goldens, "build", lambda c, tag, out, progress: calls.append(("golden", tag)) or golden)
-    fake = SimpleNamespace(fleet="vmlab", settings=SimpleNamespace(pool="ccrp"), _pool=lambda create: calls.append("pool"),
-                           import_golden=lambda *a: calls.append(("import", a[3])) or "record")
-    build = provider.LibvirtProvider.build_snapshot
+    fake = SimpleNamespace(fleet="vmlab", settings=SimpleNamespace(pool="ccrp"), pool=lambda create: calls.append("pool"))
+    monkeypatch.setattr(lv_images, "import_golden", lambda *a: calls.append(("import", a[4])) or "record")
+    build = lv_images.build_snapshot
     assert build(fake, "ccrp/vmlab-clone", "noetic", None, ("relay",), None, "none", False, print) == "record"
     assert calls == [("image", "ccrp/vmlab-clone", "vmlab", images.DEFAULT_BASE, ("relay",), False, "none"),
                      ("golden", "ccrp/vmlab-clone:1"), "pool", ("import", 8)]
     assert removed == ["ccrp/vmlab-clone:1"]
 
-    fake.import_golden = lambda *a: (_ for _ in ()).throw(CcrpError("upload failed"))
+    monkeypatch.setattr(lv_images, "import_golden", lambda *a: (_ for _ in ()).throw(CcrpError("upload failed")))
     with pytest.raises(CcrpError, match="upload failed"):
         build(fake, "ccrp/vmlab-clone", "noetic", None, ("relay",), None, "none", False, print)
     assert removed == ["ccrp/vmlab-clone:1"] * 2
@@ -727,7 +730,7 @@ def test_quotas_are_the_hosts_memory_vcpus_and_pool_disk(tmp_path):
     assert disk.name == "disk (MiB) of storage pool ccrp" and (disk.limit, disk.per_clone) == (102400, 1024)
     # 50 GiB used on the file system, plus what nao1's overlay has not written yet of its 1024 MiB
     assert disk.used == 51200 + 1000 and disk.free == 50200
-    assert p.conn.pool.refreshed >= 1  # allocations as they are now, not as libvirt last saw them
+    assert p.client.conn.pool.refreshed >= 1  # allocations as they are now, not as libvirt last saw them
     assert [q.need(["nao2", "nao3"]) for q in (mem, cpu, disk)] == [4096, 4, 2048]
 
 
@@ -762,7 +765,7 @@ def test_growth_past_the_hosts_vcpus_or_disk_is_refused_in_one_line(tmp_path, cc
                                  "6 free, this needs 8")
     assert "raise provider.vcpu_overcommit" in err.value.hint and "at most 3 of the 4 new clones" in err.value.hint
     # the pool's disk short too: both named, the smaller fit given
-    p.conn.pool.available = 2 * 1024 * MIB
+    p.client.conn.pool.available = 2 * 1024 * MIB
     with pytest.raises(quotas.QuotaError) as err:
         quotas.check_growth(fleet, p, robots, said.append)
     assert "disk (MiB) of storage pool ccrp in libvirt host qemu:///system: 1048 free, this needs 4096" in err.value.message
@@ -774,7 +777,7 @@ def test_doctor_shows_the_hosts_quotas(tmp_path, ccrp_home):
     from ccrp_cli.ops import doctor
 
     p = host(tmp_path, memory_mb=3072)  # 1 GiB free after the running domain: nao1's 2 GiB clone does not fit
-    p.conn.doms.pop(1)  # nao1 has no clone yet
+    p.client.conn.doms.pop(1)  # nao1 has no clone yet
     checks = {c.check: c for c in doctor._quotas(Fleet.open(tmp_path / "ccrp.yaml"), p)}
     mem = checks["quota memory (MiB) in libvirt host qemu:///system"]
     assert mem.status == doctor.FAIL and "limit 3072, used 2048; the fleet's 1 clone(s) not created yet need 2048" in mem.detail
@@ -791,8 +794,8 @@ def test_doctor_runs_on_a_libvirt_fleet(tmp_path, ccrp_home, monkeypatch):
     from ccrp_cli.ops import doctor
 
     p = host(tmp_path)
-    p.conn.getLibVersion = lambda: 9_000_000
-    p.conn.getHostname = lambda: "lab1"
+    p.client.conn.getLibVersion = lambda: 9_000_000
+    p.client.conn.getHostname = lambda: "lab1"
     monkeypatch.setattr(providers, "get_provider", lambda inv, *a: p)
     # the fake connection stands in for the SDK, which CI's setup does not install (libvirt-dev)
     monkeypatch.setattr(doctor, "_installed", lambda module: True)
@@ -806,10 +809,10 @@ def test_doctor_runs_on_a_libvirt_fleet(tmp_path, ccrp_home, monkeypatch):
 
 def test_a_host_without_room_refuses_before_the_golden_volume_is_built(tmp_path, ccrp_home, monkeypatch):
     """`fleet up`, `clone create` and `fleet scale` of a fleet with no snapshot build one first
-    (actions.ensure_snapshot: minutes, a GB of pool): the quotas are checked before that build,
+    (verbs.ensure_snapshot: minutes, a GB of pool): the quotas are checked before that build,
     for the clones the command would create (measured: `fleet up` built the golden volume, 116 s,
     and only then refused)."""
-    from ccrp_cli import actions
+    from ccrp_cli.ops import verbs
     from ccrp_cli.fleet import Fleet
     from ccrp_cli.ops import quotas, snapshots
 
@@ -819,26 +822,26 @@ def test_a_host_without_room_refuses_before_the_golden_volume_is_built(tmp_path,
     data = yaml.safe_load((tmp_path / "ccrp.yaml").read_text())
     data["template"] = {"prefix": "sim", "max": 8}
     (tmp_path / "ccrp.yaml").write_text(yaml.safe_dump(data))
-    p.conn.doms.pop(1)
+    p.client.conn.doms.pop(1)
     fleet = Fleet.open(tmp_path / "ccrp.yaml")
-    for call, needs in ((lambda: actions.ensure_snapshot(fleet, p, print), 2),
-                        (lambda: actions.ensure_snapshot(fleet, p, print, robots=["nao1"]), 2),
-                        (lambda: actions.fleet_scale(fleet, p, 3, print), 6)):  # nao1, sim1, sim2
+    for call, needs in ((lambda: verbs.ensure_snapshot(fleet, p, print), 2),
+                        (lambda: verbs.ensure_snapshot(fleet, p, print, robots=["nao1"]), 2),
+                        (lambda: verbs.fleet_scale(fleet, p, 3, print), 6)):  # nao1, sim1, sim2
         with pytest.raises(quotas.QuotaError, match=f"0 free, this needs {needs}$"):
             call()
     assert built == [] and set(fleet.store.load_state().robots) == {"nao1"}
-    p.conn.doms.clear()  # room again: the build goes ahead
+    p.client.conn.doms.clear()  # room again: the build goes ahead
     monkeypatch.setattr(snapshots, "retain", lambda *a: None)
     monkeypatch.setattr(snapshots, "build", lambda *a, **k: built.append(a) or type("R", (), {"name": "g"}))
-    actions.ensure_snapshot(fleet, p, print)
+    verbs.ensure_snapshot(fleet, p, print)
     assert len(built) == 1
 
 
 def test_footprint_is_the_overlays_allocation_and_the_domains_rss(tmp_path):
     p = host(tmp_path)
-    p.conn.doms[1].active = True
+    p.client.conn.doms[1].active = True
     assert p.footprint("nao1") == {"overlay_mb": 25.2, "rss_mib": 1024.0}  # 24 MiB written; 4 GiB domain, rss 1/4
-    p.conn.doms[1].active = False
+    p.client.conn.doms[1].active = False
     assert p.footprint("nao1") == {"overlay_mb": 25.2}
     assert p.footprint("nao9") == {}
 
@@ -850,7 +853,7 @@ def test_gc_runs_on_a_libvirt_fleet(tmp_path, monkeypatch):
     from tests.inprocess_cli import run_ccrp_inprocess
 
     p = host(tmp_path)
-    p.conn.pool.vols.append(_Vol("ccrp-vmlab-cri-nao7.qcow2", MIB))
+    p.client.conn.pool.vols.append(_Vol("ccrp-vmlab-cri-nao7.qcow2", MIB))
     monkeypatch.setattr(providers, "get_provider", lambda inv, *a: p)
     code, out, err = run_ccrp_inprocess("gc", "--dry-run", "--json", "-i", str(tmp_path / "ccrp.yaml"), home=tmp_path / "home")
     assert code == 0, err
@@ -885,7 +888,7 @@ def test_the_host_sets_a_vm_clones_clock_through_its_guest_agent(tmp_path, monke
     p = stand_in(tmp_path, [], [], [])
     monkeypatch.setattr(provider.time, "sleep", lambda s: None)
     dom = _AgentDom(behind=0.8, late=0.06)
-    monkeypatch.setattr(p, "_domain", lambda robot: (dom, None))
+    monkeypatch.setattr(p.client, "domain", lambda robot: (dom, None))
     behind = p.sync_clock("nao1", timeout=30)
     assert 0.75 < behind < 0.85
     # The first time sent was the host's; the guest took it 60 ms late, so the next one led by that.
@@ -894,11 +897,11 @@ def test_the_host_sets_a_vm_clones_clock_through_its_guest_agent(tmp_path, monke
     # A domain defined before the agent (no port in its XML) keeps its clock: nothing is asked.
     old = _AgentDom(behind=0.8)
     old._xml = old._xml.replace("org.qemu.guest_agent.0", "org.example.other")
-    monkeypatch.setattr(p, "_domain", lambda robot: (old, None))
+    monkeypatch.setattr(p.client, "domain", lambda robot: (old, None))
     assert p.sync_clock("nao1") is None and old.calls == 0
 
     # An agent that never answers (a golden volume without it): None once the time is up.
     mute = _AgentDom(behind=0.8)
     mute.calls = -10**9
-    monkeypatch.setattr(p, "_domain", lambda robot: (mute, None))
+    monkeypatch.setattr(p.client, "domain", lambda robot: (mute, None))
     assert p.sync_clock("nao1", timeout=0) is None and mute.calls == -10**9 + 1 and mute.set == []

@@ -13,7 +13,7 @@ import sys
 import pytest
 
 from ccrp_cli.errors import CcrpError, InputError
-from ccrp_cli.providers.libvirt import forward
+from ccrp_cli.providers.libvirt import forward, network
 
 from ccrp_cli.providers.base import owner_labels
 
@@ -47,11 +47,11 @@ def test_bad_vpn_forward_is_one_line(tmp_path, settings, says):
 
 def test_each_clone_gets_the_port_of_its_place_in_the_plan(tmp_path):
     p = stand_in(tmp_path, [], [], [], settings={"vpn_forward": FORWARD})
-    fw = p._forward("nao1", "10.90.0.10")  # common.cidr 10.90.0.0/24: offset 10, public .10
+    fw = network.vpn_forward(p.client, "nao1", "10.90.0.10")  # common.cidr 10.90.0.0/24: offset 10, public .10
     assert (fw.endpoint, fw.clone_ip, fw.vpn_port, fw.proto) == ("198.51.100.7:11950", "192.168.150.10", 1194, "udp")
     assert str(fw) == "udp 198.51.100.7:11950 -> 192.168.150.10:1194"
-    assert p._forward("nao2", "10.90.0.11").port == 11951
-    assert stand_in(tmp_path, [], [], [])._forward("nao1", "10.90.0.10") is None  # no vpn_forward: none
+    assert network.vpn_forward(p.client, "nao2", "10.90.0.11").port == 11951
+    assert network.vpn_forward(stand_in(tmp_path, [], [], []).client, "nao1", "10.90.0.10") is None  # no vpn_forward: none
     nat, filt = fw.rules()
     assert nat == ("nat", ["PREROUTING", "-d", "198.51.100.7/32", "-p", "udp", "-m", "udp", "--dport", "11950", "-m", "comment",
                            "--comment", "ccrp:vmlab:nao1", "-j", "DNAT", "--to-destination", "192.168.150.10:1194"])
@@ -63,7 +63,7 @@ def test_each_clone_gets_the_port_of_its_place_in_the_plan(tmp_path):
 def test_the_clones_record_names_the_forward_as_its_endpoint(tmp_path, monkeypatch):
     p = stand_in(tmp_path, [], [_Dom("ccrp-vmlab-cri-nao1", owner_labels("vmlab", "clone", "nao1"), "uuid-1")], [],
                  settings={"vpn_forward": FORWARD})
-    monkeypatch.setattr(p, "_reserved", lambda mac: "192.168.150.10")
+    monkeypatch.setattr(network, "reserved", lambda c, mac: "192.168.150.10")
     rec = p.query()["nao1"]
     assert (rec.public_ip, rec.endpoint) == ("192.168.150.10", "198.51.100.7:11950")
 
@@ -105,11 +105,9 @@ def test_forwards_are_owned_leak_with_their_clone_and_go_with_fleet_down(tmp_pat
 
 
 def test_the_forward_address_must_be_this_machines(tmp_path):
-    from ccrp_cli.providers.libvirt.provider import LibvirtProvider
-
-    LibvirtProvider._check_forward_address("127.0.0.1")
+    network.check_forward_address("127.0.0.1")
     with pytest.raises(CcrpError, match="is not an address of this machine") as err:
-        LibvirtProvider._check_forward_address("198.51.100.7")  # TEST-NET-2: no host has it
+        network.check_forward_address("198.51.100.7")  # TEST-NET-2: no host has it
     assert "ip -4 address" in err.value.hint
 
 

@@ -12,7 +12,8 @@ import pytest
 
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.providers.base import owner_labels
-from ccrp_cli.providers.libvirt import robots, xmldefs
+from ccrp_cli.providers.libvirt import network, robots, xmldefs
+from ccrp_cli.providers.libvirt import owned as owned_module
 
 from .test_libvirt import _Conn, _Pool, inventory, stand_in
 
@@ -138,16 +139,16 @@ class _NetConn(_Conn):
 def bridged(tmp_path, net, uri="qemu:///system"):
     p = stand_in(tmp_path, [], [], [])
     if uri != "qemu:///system":
-        p.inv = inventory(tmp_path, uri=uri)
-        p.settings = p.inv.provider
-    p.conn = _NetConn([], _Pool([]), [net])
+        p.inv = p.client.inv = inventory(tmp_path, uri=uri)
+        p.settings = p.client.settings = p.inv.provider
+    p.client.conn = _NetConn([], _Pool([]), [net])
     return p
 
 
 def test_robot_port_on_the_fleets_nat_network(tmp_path):
     xml = xmldefs.nat_network("ccrp-vmlab-public", xmldefs.bridge_name("vmlab", "public"), NET)
     p = bridged(tmp_path, _NatNet(xml))
-    got = p.robot_port("nao2", 2)
+    got = network.robot_port(p.client, "nao2", 2)
     assert (got.network, got.bridge, str(got.address)) == (
         "ccrp-vmlab-public", xmldefs.bridge_name("vmlab", "public"), "192.168.150.253/24")
     # An older network (DHCP to .254) that leased the robot's address refuses it.
@@ -155,17 +156,17 @@ def test_robot_port_on_the_fleets_nat_network(tmp_path):
     old.find("ip/dhcp/range").set("end", "192.168.150.254")
     p = bridged(tmp_path, _NatNet(ET.tostring(old, encoding="unicode"), [{"ipaddr": "192.168.150.254"}]))
     with pytest.raises(CcrpError, match="leased or reserved"):
-        p.robot_port("nao1", 1)
+        network.robot_port(p.client, "nao1", 1)
     p = bridged(tmp_path, _NatNet(xml, active=False))
     with pytest.raises(CcrpError, match="no running network") as err:
-        p.robot_port("nao1", 1)
+        network.robot_port(p.client, "nao1", 1)
     assert "fleet up" in err.value.hint
 
 
 def test_robot_port_refused_for_a_remote_host_before_asking_it(tmp_path):
     p = bridged(tmp_path, None, uri="qemu+ssh://ops@lab1/system")
     with pytest.raises(CcrpError, match="not this machine"):
-        p.robot_port("nao1", 1)
+        network.robot_port(p.client, "nao1", 1)
 
 
 class _Container:
@@ -177,7 +178,7 @@ class _Container:
         self.removed = True
 
 
-def test_fleet_down_and_gc_find_the_robots_containers(tmp_path):
+def test_fleet_down_and_gc_find_the_robots_containers(tmp_path, monkeypatch):
     from ccrp_cli.ops.gc import find_leaks
     from ccrp_cli.models.state import FleetState
 
@@ -186,7 +187,7 @@ def test_fleet_down_and_gc_find_the_robots_containers(tmp_path):
             _Container("c" * 64, "ccrp-vmlab-nao9", "robot-sim", "nao9"),
             _Container("d" * 64, "ccrp-vmlab-cri-nao1", "clone", "nao1")]  # a Docker fleet's clone: not a sim
     p = stand_in(tmp_path, [], [], ["ccrp-vmlab-public"])
-    p._sims = lambda: [c for c in sims if c.labels["ccrp-role"] in ("robot-sim", "power-sim")]
+    monkeypatch.setattr(owned_module, "sims", lambda c: [s for s in sims if s.labels["ccrp-role"] in ("robot-sim", "power-sim")])
     owned = p.list_owned()
     assert [(r.kind, r.name) for r in owned] == [
         ("robot_sim", "ccrp-vmlab-nao1-power"), ("robot_sim", "ccrp-vmlab-nao1"), ("robot_sim", "ccrp-vmlab-nao9"),
@@ -195,7 +196,7 @@ def test_fleet_down_and_gc_find_the_robots_containers(tmp_path):
     state = FleetState.model_validate({"fleet": "vmlab", "robots": {"nao1": {"index": 1}}})
     assert [r.name for r in find_leaks(state, owned, [])] == ["ccrp-vmlab-nao9"]  # gc: a robot the fleet lost
     released = []
-    p.release_robot_port = released.append
+    monkeypatch.setattr(network, "release_robot_port", lambda c, robot: released.append(robot))
     p.delete_owned(owned[2])
     assert sims[2].removed and not sims[0].removed and released == ["nao9"]  # its veth, if the kernel kept it
     with pytest.raises(CcrpError, match="gone or not fleet"):
@@ -220,7 +221,7 @@ def test_bootstrap_makes_the_operator_key_before_any_clone(tmp_path):
         done.append("pool")
         raise CcrpError("stop here")
 
-    p._pool = pool
+    p.client.pool = pool
     with pytest.raises(CcrpError, match="stop here"):
         p.bootstrap()
     assert done == ["key", "pool"]

@@ -254,7 +254,7 @@ def test_both_nodes_log_the_same_version_at_start():
     ("ros2", "offload2", "jazzy", ["python3", "-m", "ccrp_offload.scan_to_map"]),
 ])
 def test_the_inventories_run_the_workspace_on_two_nao_clones(ros, fleet, distro, command):
-    from ccrp_cli.models.inventory import Inventory
+    from ccrp_cli.loader import inventory_model
 
     path = EXAMPLE / f"{ros}.yaml"
     data = yaml.safe_load(path.read_text())
@@ -263,7 +263,7 @@ def test_the_inventories_run_the_workspace_on_two_nao_clones(ros, fleet, distro,
     assert [(r["name"], r["type"]) for r in data["robots"]] == [("nao1", "nao"), ("nao2", "nao")]
     assert data["software"] == {"workspace": f"{ros}/ws", "run": [{"name": "mapper", "command": command}]}
     assert (path.parent / data["software"]["workspace"] / "src" / "ccrp_offload" / "package.xml").is_file()
-    inv = Inventory.model_validate(data)
+    inv = inventory_model().model_validate(data)
     assert inv.ros.distro == distro
     # Its workspace resolves (every package.xml key has an entry in the recipe's rosdep table).
     from ccrp_cli.services.workloads import snapshot_software

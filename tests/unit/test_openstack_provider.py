@@ -13,6 +13,7 @@ import pytest
 
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.providers.base import LABEL_FLEET, LABEL_ROBOT, Origin
+from ccrp_cli.providers.openstack import network
 from ccrp_cli.retry import ErrorClass
 from tests.contract.harness_openstack import make_harness
 from tests.fakes.openstack_cloud import BUILD_FAILED, NO_VALID_HOST
@@ -111,7 +112,7 @@ def test_an_image_deleted_after_the_lookup_is_named_with_a_hint(h, monkeypatch):
     """A real Nova answers 400 "Can not find requested image" when the image left Glance between
     ccrp's lookup and the POST (docs/openstack.md, differences): ccrp names the image and hints."""
     spec = h.spec("robot1", 1)
-    find = h.provider.find
+    find = h.provider.client.find
 
     def find_then_delete(what, fn, name_or_id):
         found = find(what, fn, name_or_id)
@@ -119,7 +120,7 @@ def test_an_image_deleted_after_the_lookup_is_named_with_a_hint(h, monkeypatch):
             h.fake.images.pop(found.id)
         return found
 
-    monkeypatch.setattr(h.provider, "find", find_then_delete)
+    monkeypatch.setattr(h.provider.client, "find", find_then_delete)
     before = h.owned_ids()
     with pytest.raises(CcrpError) as err:
         h.provider.run_instance(spec)
@@ -144,7 +145,7 @@ def test_lookup_by_name_and_metadata_prevents_duplicates_after_a_crash(h, tmp_pa
 def test_a_port_left_by_a_crash_before_the_server_is_reused(h):
     spec = h.spec("robot1", 1)
     p = h.provider
-    ext, net, subnet, sg = p._fleet_resources()
+    ext, net, subnet, sg = network.fleet_resources(p.client)
     p._port(spec, None, net, subnet, sg, [])  # the attempt died right after this
     rec = p.run_instance(spec)
     assert rec.created and len(ports_of(h, "robot1")) == 1 and rec.common_ip == spec.common_ip
@@ -185,8 +186,8 @@ def test_teardown_in_dependency_order_keeps_snapshots(h):
 
 def test_security_group_drops_a_stale_operator_rule(h):
     inv = h.provider.inv
-    h.provider.inv = inv.model_copy(update={"provider": inv.provider.model_copy(update={"operator_cidr": "192.0.2.0/24"})})
-    h.provider.settings = h.provider.inv.provider
+    h.provider.inv = h.provider.client.inv = inv.model_copy(update={"provider": inv.provider.model_copy(update={"operator_cidr": "192.0.2.0/24"})})
+    h.provider.settings = h.provider.client.settings = h.provider.inv.provider
     h.provider.bootstrap()
     assert h.public_ingress() == {("udp", 1194, "0.0.0.0/0"), ("tcp", 22, "192.0.2.0/24")}
 
@@ -277,7 +278,7 @@ def test_wrong_credentials_are_one_line_with_a_hint_in_doctor_too(h, tmp_path):
 
 
 def test_missing_sdk_names_the_extra(monkeypatch, tmp_path):
-    from ccrp_cli.providers.openstack.provider import _connect
+    from ccrp_cli.providers.openstack.client import _connect
 
     monkeypatch.setitem(sys.modules, "openstack", None)
     with pytest.raises(CcrpError) as err:
@@ -286,7 +287,7 @@ def test_missing_sdk_names_the_extra(monkeypatch, tmp_path):
 
 
 def test_unknown_cloud_is_one_line(tmp_path, monkeypatch):
-    from ccrp_cli.providers.openstack.provider import _connect
+    from ccrp_cli.providers.openstack.client import _connect
 
     (tmp_path / "clouds.yaml").write_text("clouds: {}\n")
     monkeypatch.setenv("OS_CLIENT_CONFIG_FILE", str(tmp_path / "clouds.yaml"))
@@ -371,7 +372,7 @@ def test_neutron_without_tag_creation_gets_its_tags_after_the_post(h):
     assert h.provider.terminate("robot1") is True and ports_of(h, "robot1") == [] and fips_of(h, "robot1") == []
     # a port's POST is accepted with its tags dropped (201, tags []): a new run whose first
     # creation is a port (`ccrp clone create` on a bootstrapped fleet) still tags it
-    h.provider._cache.pop("no-tag-creation")
+    h.provider.client._cache.pop("no-tag-creation")
     h.provider.run_instance(h.spec("robot3", 3))
     [port] = ports_of(h, "robot3")
     assert {"ccrp-managed=true", "ccrp-fleet=ct", "ccrp-robot=robot3"} <= set(port["tags"])

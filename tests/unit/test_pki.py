@@ -10,7 +10,7 @@ import subprocess
 import pytest
 from cryptography import x509
 
-from ccrp_cli import vpn
+from ccrp_cli.ops import vpn
 from ccrp_cli.fleet import Fleet
 from ccrp_cli.pki.secrets import hash_password, tls_crypt_key, verify_password
 from tests.conftest import LAB, ROOT

@@ -23,7 +23,7 @@ from tests.unit.helpers import openssl_verify
 
 
 def test_the_device_has_a_certificate_and_password_of_its_own(lab):
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
     from ccrp_cli.pki.store import RobotRevoked
 
     pki, v = lab.pki, lab.inventory.vpn

@@ -125,7 +125,7 @@ def test_gcp_up_refuses_over_static_addresses_and_creates_nothing(gcp):
 
 
 def test_gcp_clone_create_fits_where_the_fleet_does_not(gcp, created):
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     h = gcp(address_quota=2)
     fleet = fleet_of(h.inv)
@@ -151,7 +151,7 @@ def test_gcp_scale_refuses_before_recording_new_robots(gcp):
 
 
 def test_gcp_scale_that_fits_records_and_creates_the_new_robots(gcp, created):
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
     from tests.contract.harness_gcp import PROJECT, REGION as GCP_REGION, ZONES
 
     inv = specs.inventory({"kind": "gcp", "project": PROJECT, "region": GCP_REGION, "zones": ZONES[:2],
@@ -231,7 +231,7 @@ def test_openstack_without_quota_details_checks_the_compute_limits(openstack):
 
 
 def test_openstack_happy_path_passes_the_gate(openstack, created):
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     fleet = fleet_of(openstack.provider.inv)
     vpn.init(fleet)
@@ -323,11 +323,11 @@ def test_aws_vcpu_quota_counts_running_standard_instances_and_each_robots_type(a
                                "operator_cidr": specs.OPERATOR_CIDR})
         inv.robots[1].instance_type = "m5.xlarge"
         p = AwsProvider(inv, tmp_path / "store")
-        p._service_quotas = p.session.client("service-quotas")
+        p._service_quotas = p.client.session.client("service-quotas")
         _Answer(p._service_quotas, 12)
-        image = p.ec2.register_image(Name="base", RootDeviceName="/dev/sda1", Architecture="x86_64")["ImageId"]
-        p.ec2.run_instances(ImageId=image, MinCount=1, MaxCount=1, InstanceType="t3.medium")  # 2 vCPUs
-        p.ec2.run_instances(ImageId=image, MinCount=1, MaxCount=1, InstanceType="g5.xlarge")  # not standard
+        image = p.client.ec2.register_image(Name="base", RootDeviceName="/dev/sda1", Architecture="x86_64")["ImageId"]
+        p.client.ec2.run_instances(ImageId=image, MinCount=1, MaxCount=1, InstanceType="t3.medium")  # 2 vCPUs
+        p.client.ec2.run_instances(ImageId=image, MinCount=1, MaxCount=1, InstanceType="g5.xlarge")  # not standard
         got = {q.name: q for q in p.quotas(["robot1", "robot2", "robot3"])}
         vcpus = got["Running On-Demand Standard instances (vCPUs)"]
         assert (vcpus.limit, vcpus.used, vcpus.per_clone, vcpus.per_robot) == (12, 2, 2, {"robot2": 4})
@@ -337,7 +337,7 @@ def test_aws_vcpu_quota_counts_running_standard_instances_and_each_robots_type(a
         assert "aws quota Running On-Demand Standard instances (vCPUs) in region us-east-1: 10 free, " \
                "this needs 12" in line and "L-1216C47A" in line
         assert "create at most 4 of the 5 new clones" in line  # 2 + 4 + 2 + 2 of the 10
-        assert len(p.ec2.describe_instances()["Reservations"]) == 2
+        assert len(p.client.ec2.describe_instances()["Reservations"]) == 2
 
 
 def test_aws_without_service_quotas_counts_running_instances(aws_env, tmp_path):

@@ -11,7 +11,7 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-from ccrp_cli import vpn  # noqa: E402
+from ccrp_cli.ops import vpn  # noqa: E402
 from ccrp_cli.fleet import Fleet  # noqa: E402
 from tests.conftest import LAB  # noqa: E402
 

@@ -21,7 +21,7 @@ from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.render import bundles, cloudinit, network, openvpn
 from ccrp_cli.services.registry import boots
 from ccrp_cli.providers import info
-from ccrp_cli.layout import SECRETS_DIR
+from ccrp_cli.models.layout import SECRETS_DIR
 from tests.conftest import INVENTORIES, ROOT
 
 GOLDEN = ROOT / "tests" / "golden"

@@ -123,9 +123,9 @@ def test_a_cloud_fleets_robot_dials_from_a_network_of_this_host(lab, monkeypatch
     assert provider.detached == []  # nothing of the backend's to let go of
 
 
-def test_docker_and_libvirt_answer_the_same_call(tmp_path):
+def test_docker_and_libvirt_answer_the_same_call(tmp_path, monkeypatch):
     from ccrp_cli.providers.docker.provider import DockerProvider
-    from ccrp_cli.providers.libvirt import xmldefs
+    from ccrp_cli.providers.libvirt import network, xmldefs
 
     from .test_libvirt_robots import NET, _NatNet, bridged
 
@@ -140,7 +140,7 @@ def test_docker_and_libvirt_answer_the_same_call(tmp_path):
     assert (seat.network, str(seat), seat.clone_image) == ("none", "ccrp-vmlab-public (192.168.150.253)", False)
     assert seat.attach is not None
     released: list[str] = []
-    p.release_robot_port = released.append
+    monkeypatch.setattr(network, "release_robot_port", lambda c, robot: released.append(robot))
     p.detach_robot("nao2")
     assert released == ["nao2"]
 

@@ -26,7 +26,7 @@ JAZZY = ROOT / "inventories" / "lab-jazzy.yaml"
 
 @pytest.fixture
 def jazzy(ccrp_home):
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     fleet = Fleet.open(JAZZY)
     vpn.init(fleet)
@@ -105,7 +105,7 @@ def test_a_ros2_fleet_on_a_cloud_installs_the_wheels_venv_and_passes_cloud_init_
     """A cloud's image (`snapshot bake`'s builder, or a bare clone's first boot) gets the same venv as
     the Docker image: the recipe's wheels from the index, then ros2-setup writes its setup.sh. Each
     ROS 2 distro the same way, from its recipe."""
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     data = yaml.safe_load((ROOT / "inventories" / f"{kind}.yaml").read_text())
     data["ros"]["distro"] = distro
@@ -150,7 +150,7 @@ def test_an_image_with_its_own_ros2_gets_no_venv_and_passes_cloud_init_schema(cc
     Its builder and a bare clone write nothing over that prefix (no venv, no setup.sh of ours): the
     agents' packages go to the system python, /opt/ros/jazzy/bin/python becomes a launcher only where
     none is, and the bake proves the image's ROS as the agents start it."""
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     data = yaml.safe_load((ROOT / "inventories" / f"{kind}.yaml").read_text())
     data["ros"] = {"distro": distro, "platform": "ubuntu-noble-ros"}

@@ -37,7 +37,7 @@ def test_relay_config_lists_partners_only_and_drops_clones_that_are_down(lab_up)
 def test_partners_are_admitted_by_the_cn_of_their_current_relay_certificate(lab_up):
     """relay.json trusts the relay CA only and names each partner's certificate CN, which the
     agent turns into Zenoh access control; a partner whose relay certificate was revoked drops out."""
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     fleet, state = lab_up
     cfg = relay_config(fleet, state, "nao1")
@@ -99,7 +99,7 @@ def test_relay_cns_follow_every_change_of_the_index(lab_up):
     assert first["nao1"] == "relay-nao1-1"
     fleet.pki.issue_relay("nao1", "10.90.0.99", 30)  # replaced: a new index.json
     assert fleet.pki.relay_cns()["nao1"] == "relay-nao1-2"
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
 
     vpn.revoke(fleet, "nao1", cert="relay")
     assert "nao1" not in fleet.pki.relay_cns()

@@ -17,7 +17,7 @@ from ccrp_cli.fleet import Fleet
 from ccrp_cli.providers import info
 from ccrp_cli.providers.base import CloneRecord, CloneState, Origin, SnapshotRecord
 from ccrp_cli.recipes import platform
-from ccrp_cli.layout import LOCALE_SETUP
+from ccrp_cli.models.layout import LOCALE_SETUP
 from ccrp_cli.render.cloudinit import PRIVATE_KEY_MARKERS
 from tests.conftest import ROOT
 

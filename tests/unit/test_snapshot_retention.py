@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from ccrp_cli.ops.gc import collect
 from ccrp_cli.models.state import FleetState, RobotRecord
-from ccrp_cli.providers.base import OwnedResource, SnapshotRecord
+from ccrp_cli.providers.base import OwnedResource, Role, SnapshotRecord
 from ccrp_cli.ops.snapshots import in_use, surplus, users
 
 
@@ -22,7 +22,7 @@ class Provider:
         return list(self.snapshots)
 
     def list_owned(self):
-        return [OwnedResource(kind="image", id=s.id, name=s.name) for s in self.snapshots]
+        return [OwnedResource(kind="image", id=s.id, name=s.name, role=Role.IMAGE) for s in self.snapshots]
 
     def delete_owned(self, resource):
         self.deleted.append(resource.id)

@@ -237,7 +237,7 @@ def test_wait_listening_waits_for_a_late_sshd_and_gives_up_in_one_line():
 def test_cloud_clone_user_data_creates_ccrps_login_user_with_the_operator_key(ccrp_home, tmp_path):
     import yaml
 
-    from ccrp_cli import vpn
+    from ccrp_cli.ops import vpn
     from ccrp_cli.ops.clones import clone_user_data
     from ccrp_cli.fleet import Fleet, clone_view
     from ccrp_cli.providers.cloud import SSH_USER, CloudProvider

@@ -26,7 +26,7 @@ AUTH = {"AuthFailure", "UnauthorizedOperation", "InvalidClientTokenId", "Unrecog
 INSTALL_HINT = "pip install 'ccrp[aws]'"
 
 
-def error_code(exc: BaseException) -> str:
+def error_code(exc: BaseException | None) -> str:
     response = getattr(exc, "response", None) or getattr(exc, "last_response", None) or {}
     return (response.get("Error") or {}).get("Code", "")
 

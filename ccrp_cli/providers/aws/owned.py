@@ -4,108 +4,96 @@ tags again, and `fleet down`'s teardown in dependency order."""
 from __future__ import annotations
 
 from ...errors import CcrpError
-from ..base import LABEL_ROBOT, OwnedResource
-from . import tags
-from .images import _backing
+from ..base import LABEL_ROBOT, OwnedResource, Role, with_roles
+from . import images, tags
+from .client import KINDS, AwsClient
 
-LIVE = ["pending", "running", "stopping", "stopped"]
-
-# kind -> (describe call, result key, id filter, id field, extra describe args)
-KINDS: dict[str, tuple[str, str, str, str, dict]] = {
-    "instance": ("describe_instances", "Reservations", "instance-id", "InstanceId",
-                 {"Filters": [{"Name": "instance-state-name", "Values": LIVE}]}),
-    "elastic_ip": ("describe_addresses", "Addresses", "allocation-id", "AllocationId", {}),
-    "volume": ("describe_volumes", "Volumes", "volume-id", "VolumeId", {}),
-    "image": ("describe_images", "Images", "image-id", "ImageId", {"Owners": ["self"]}),
-    "snapshot": ("describe_snapshots", "Snapshots", "snapshot-id", "SnapshotId", {"OwnerIds": ["self"]}),
-    "security_group": ("describe_security_groups", "SecurityGroups", "group-id", "GroupId", {}),
-    "key_pair": ("describe_key_pairs", "KeyPairs", "key-pair-id", "KeyPairId", {}),
-    "route_table": ("describe_route_tables", "RouteTables", "route-table-id", "RouteTableId", {}),
-    "subnet": ("describe_subnets", "Subnets", "subnet-id", "SubnetId", {}),
-    "internet_gateway": ("describe_internet_gateways", "InternetGateways", "internet-gateway-id", "InternetGatewayId", {}),
-    "vpc": ("describe_vpcs", "Vpcs", "vpc-id", "VpcId", {}),
-}
 # Teardown order: what depends on something is removed before it. Snapshots outlive the fleet
 # (as on Docker): `ccrp snapshot delete` removes them.
 TEARDOWN = ["instance", "elastic_ip", "volume", "security_group", "key_pair", "route_table", "subnet",
             "internet_gateway", "vpc"]
+# What each kind is to the fleet (`ccrp gc`); Elastic IPs, volumes and EBS snapshots belong to a robot.
+ROLES = {"instance": Role.CLONE, "image": Role.IMAGE, "security_group": Role.BOOTSTRAP, "key_pair": Role.BOOTSTRAP,
+         "route_table": Role.BOOTSTRAP, "subnet": Role.BOOTSTRAP, "internet_gateway": Role.BOOTSTRAP,
+         "vpc": Role.BOOTSTRAP}
 
 
-class Owned:
-    """Mixed into AwsProvider: the calls it makes are the provider's (self.api, self.ec2...)."""
+def list_owned(c: AwsClient) -> list[OwnedResource]:
+    owned: list[OwnedResource] = []
+    backing: set[str] = set()  # EBS snapshots of an owned image go with their image
+    for kind in KINDS:
+        for item in c.describe(kind, tags.filters(c.fleet)):
+            if kind == "image":
+                backing |= images.backing(item)
+            rid = item[KINDS[kind][3]]
+            if kind == "snapshot" and rid in backing:
+                continue
+            t = tags.as_dict(item)
+            name = t.get("Name") or item.get("GroupName") or item.get("KeyName") or item.get("PublicIp") or ""
+            owned.append(OwnedResource(kind=kind, id=rid, name=name, robot=t.get(LABEL_ROBOT)))
+    return with_roles(owned, ROLES)
 
-    def list_owned(self) -> list[OwnedResource]:
-        owned: list[OwnedResource] = []
-        backing: set[str] = set()  # EBS snapshots of an owned image go with their image
-        for kind in KINDS:
-            for item in self._describe(kind, tags.filters(self.fleet)):
-                if kind == "image":
-                    backing |= _backing(item)
-                rid = item[KINDS[kind][3]]
-                if kind == "snapshot" and rid in backing:
-                    continue
-                t = tags.as_dict(item)
-                name = t.get("Name") or item.get("GroupName") or item.get("KeyName") or item.get("PublicIp") or ""
-                owned.append(OwnedResource(kind=kind, id=rid, name=name, robot=t.get(LABEL_ROBOT)))
-        return owned
 
-    def delete_owned(self, resource: OwnedResource) -> None:
-        if not self._delete(resource.kind, resource.id):
-            raise CcrpError(f"{resource.kind} {resource.id} is not owned by fleet {self.fleet!r} (or is gone)")
+def delete_owned(c: AwsClient, resource: OwnedResource) -> None:
+    if not delete(c, resource.kind, resource.id):
+        raise CcrpError(f"{resource.kind} {resource.id} is not owned by fleet {c.fleet!r} (or is gone)")
 
-    def _delete(self, kind: str, rid: str) -> bool:
-        """Delete one resource after checking, again, that it carries the fleet's tags.
-        False when there is no such owned resource (never touched)."""
-        if kind not in KINDS:
-            raise CcrpError(f"unknown AWS resource kind {kind!r}")
-        found = self._describe(kind, tags.filters(self.fleet) + [{"Name": KINDS[kind][2], "Values": [rid]}])
-        if not found:
-            return False
-        item, ec2 = found[0], self.ec2
-        if kind == "instance":
-            self._terminate_ids([rid])
-        elif kind == "elastic_ip":
-            self._release(item)
-        elif kind == "volume" and item["State"] != "available":
-            if item["State"] != "in-use":
-                return False  # deleting with its terminated instance
-            raise CcrpError(f"volume {rid} is attached to an instance", hint="delete the instance first")
-        elif kind == "image":
-            self.api("deregister image", ec2.deregister_image, ImageId=rid)
-            # Its EBS snapshots were made by CreateImage from the fleet's clone: they go with it.
-            for snap in sorted(_backing(item)):
-                self.api("delete snapshot", ec2.delete_snapshot, SnapshotId=snap)
-        elif kind == "route_table":
-            for a in item.get("Associations", []):
-                if not a.get("Main"):
-                    self.api("disassociate route table", ec2.disassociate_route_table, AssociationId=a["RouteTableAssociationId"])
-            self.api("delete route table", ec2.delete_route_table, RouteTableId=rid)
-        elif kind == "internet_gateway":
-            for a in item.get("Attachments", []):
-                self.api("detach internet gateway", ec2.detach_internet_gateway, InternetGatewayId=rid, VpcId=a["VpcId"])
-            self.api("delete internet gateway", ec2.delete_internet_gateway, InternetGatewayId=rid)
-        else:
-            op, arg = {"volume": ("delete_volume", "VolumeId"), "snapshot": ("delete_snapshot", "SnapshotId"),
-                       "security_group": ("delete_security_group", "GroupId"), "key_pair": ("delete_key_pair", "KeyName"),
-                       "subnet": ("delete_subnet", "SubnetId"), "vpc": ("delete_vpc", "VpcId")}[kind]
-            self.api(op.replace("_", " "), getattr(ec2, op), **{arg: item["KeyName"] if kind == "key_pair" else rid})
-        return True
 
-    def teardown(self) -> list[str]:
-        """Everything the fleet owns except its snapshots, dependents first."""
-        owned = sorted((r for r in self.list_owned() if r.kind in TEARDOWN), key=lambda r: TEARDOWN.index(r.kind))
-        removed: list[str] = []
-        instances = [r.id for r in owned if r.kind == "instance"]
-        if instances:
-            self._terminate_ids(instances)
-            # Security groups, subnets and volumes stay in use until the instances are really gone.
-            self._wait("instance_terminated", instances)
-            removed += [f"instance {r.name or r.id}" for r in owned if r.kind == "instance"]
-        for r in owned:
-            if r.kind != "instance" and self._delete(r.kind, r.id):
-                removed.append(f"{r.kind} {r.name or r.id}")
-        self._net = None
-        return removed
+def delete(c: AwsClient, kind: str, rid: str) -> bool:
+    """Delete one resource after checking, again, that it carries the fleet's tags.
+    False when there is no such owned resource (never touched)."""
+    if kind not in KINDS:
+        raise CcrpError(f"unknown AWS resource kind {kind!r}")
+    found = c.describe(kind, tags.filters(c.fleet) + [{"Name": KINDS[kind][2], "Values": [rid]}])
+    if not found:
+        return False
+    item, ec2 = found[0], c.ec2
+    if kind == "instance":
+        c.terminate_ids([rid])
+    elif kind == "elastic_ip":
+        c.release(item)
+    elif kind == "volume" and item["State"] != "available":
+        if item["State"] != "in-use":
+            return False  # deleting with its terminated instance
+        raise CcrpError(f"volume {rid} is attached to an instance", hint="delete the instance first")
+    elif kind == "image":
+        c.api("deregister image", ec2.deregister_image, ImageId=rid)
+        # Its EBS snapshots were made by CreateImage from the fleet's clone: they go with it.
+        for snap in sorted(images.backing(item)):
+            c.api("delete snapshot", ec2.delete_snapshot, SnapshotId=snap)
+    elif kind == "route_table":
+        for a in item.get("Associations", []):
+            if not a.get("Main"):
+                c.api("disassociate route table", ec2.disassociate_route_table, AssociationId=a["RouteTableAssociationId"])
+        c.api("delete route table", ec2.delete_route_table, RouteTableId=rid)
+    elif kind == "internet_gateway":
+        for a in item.get("Attachments", []):
+            c.api("detach internet gateway", ec2.detach_internet_gateway, InternetGatewayId=rid, VpcId=a["VpcId"])
+        c.api("delete internet gateway", ec2.delete_internet_gateway, InternetGatewayId=rid)
+    else:
+        op, arg = {"volume": ("delete_volume", "VolumeId"), "snapshot": ("delete_snapshot", "SnapshotId"),
+                   "security_group": ("delete_security_group", "GroupId"), "key_pair": ("delete_key_pair", "KeyName"),
+                   "subnet": ("delete_subnet", "SubnetId"), "vpc": ("delete_vpc", "VpcId")}[kind]
+        c.api(op.replace("_", " "), getattr(ec2, op), **{arg: item["KeyName"] if kind == "key_pair" else rid})
+    return True
 
-    def leftovers(self) -> list[str]:
-        return [f"{r.kind} {r.name or r.id}" for r in self.list_owned() if r.kind in TEARDOWN]
+
+def teardown(c: AwsClient) -> list[str]:
+    """Everything the fleet owns except its snapshots, dependents first."""
+    owned = sorted((r for r in list_owned(c) if r.kind in TEARDOWN), key=lambda r: TEARDOWN.index(r.kind))
+    removed: list[str] = []
+    instances = [r.id for r in owned if r.kind == "instance"]
+    if instances:
+        c.terminate_ids(instances)
+        # Security groups, subnets and volumes stay in use until the instances are really gone.
+        c.wait("instance_terminated", instances)
+        removed += [f"instance {r.name or r.id}" for r in owned if r.kind == "instance"]
+    for r in owned:
+        if r.kind != "instance" and delete(c, r.kind, r.id):
+            removed.append(f"{r.kind} {r.name or r.id}")
+    c.net = None
+    return removed
+
+
+def leftovers(c: AwsClient) -> list[str]:
+    return [f"{r.kind} {r.name or r.id}" for r in list_owned(c) if r.kind in TEARDOWN]

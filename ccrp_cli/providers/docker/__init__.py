@@ -19,6 +19,7 @@ INFO = ProviderInfo(
         lines="  kind: docker                  # clones are containers on this host\n"
               "  public_cidr: {public}     # <fleet>-public: what simulated robots dial",
         public_pool=True, autostop=False, default=True),
+    host_networks=".docker.host_networks:subnets",
     reach="engine",
     reach_is_credential=True,  # the engine answering is all there is
 )

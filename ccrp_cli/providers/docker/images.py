@@ -1,5 +1,6 @@
 """Images for the Docker backend: the base image (from Debian packages, since Docker Hub may be
-unreachable) and the golden clone image built from a snapshot recipe."""
+unreachable), the golden clone image built from a snapshot recipe, and the fleet's snapshots
+(images of this engine labelled with the fleet and its state)."""
 
 from __future__ import annotations
 
@@ -13,11 +14,14 @@ from pathlib import Path
 from typing import Sequence
 
 from ...errors import CcrpError
-from ...layout import LOCALE_SETUP, WORKSPACE
+from ...models.layout import LOCALE_SETUP, WORKSPACE
 from ...recipes import Platform
 from ...resources import agent_source
+from ...store import ensure_state_id, read_state_id
 from ...templates import render, static
+from ..base import LABEL_FLEET, LABEL_ROBOT, SnapshotRecord, owner_labels
 from .archive import tar_files
+from .client import DockerHost
 
 DEFAULT_BASE = "ccrp/base:bookworm"
 # Enough for systemd to boot and apt to work; the recipe adds the rest at `snapshot build`.
@@ -190,3 +194,77 @@ def build_snapshot_image(client, repo: str, fleet: str, distro: str, base: str, 
     build_clone_image(client, tag, dockerfile(fleet, distro, base, plat, software, agents=agents), labels, progress,
                       build_context(plat, progress, distro, software, agents=agents))
     return tag
+
+
+# -- the fleet's snapshots: images of this engine ------------------------------------------------------
+def snapshot_labels(c: DockerHost, state_dir: Path, robot: str | None = None) -> dict[str, str]:
+    """Owner labels of a snapshot image, with the state it belongs to (`ccrp gc` finds the
+    images of deleted state directories by them)."""
+    from .snapshot_images import state_labels
+
+    return owner_labels(c.fleet, "snapshot", robot) | state_labels(state_dir, ensure_state_id(state_dir))
+
+
+def snapshot_record(image) -> SnapshotRecord:
+    return SnapshotRecord(
+        id=image.id.removeprefix("sha256:")[:12],
+        name=(image.tags or ["<untagged>"])[0],
+        created=image.attrs.get("Created", "")[:19],
+        source=image.labels.get(LABEL_ROBOT) or "build",
+        size_mb=round(image.attrs.get("Size", 0) / 1e6, 1),
+    )
+
+
+def create_snapshot(c: DockerHost, state_dir: Path, robot: str, name: str) -> SnapshotRecord:
+    container = c._running(robot)
+    # The secrets volume is not part of a commit: the snapshot carries no key.
+    repo, _, tag = name.rpartition(":")
+    # Labels through the config, not a LABEL line: the state directory's path is taken as it
+    # is (spaces, quotes, `$`), and these win over the clone's own labels the image inherits.
+    image = container.commit(repository=repo, tag=tag, conf={"Labels": snapshot_labels(c, state_dir, robot)})
+    return snapshot_record(image)
+
+
+def build_snapshot(c: DockerHost, state_dir: Path, repo: str, distro: str, base_image: str, plat, agents: tuple[str, ...],
+                   software, digest: str, bare: bool, progress) -> SnapshotRecord:
+    """Ability.LOCAL_BUILD: the clone image built on this engine (build_snapshot_image)."""
+    tag = build_snapshot_image(c.client, repo, c.fleet, distro, base_image, plat, agents, software, bare,
+                               snapshot_labels(c, state_dir) | {"ccrp-software": digest}, progress)
+    return snapshot_record(c.client.images.get(tag))
+
+
+def list_snapshots(c: DockerHost, state_dir: Path) -> list[SnapshotRecord]:
+    """This state's snapshots, and the fleet's from before images were labelled with their
+    state: a fleet of the same name in another CCRP_HOME has its own (retention and gc of
+    this one must not touch them)."""
+    from .snapshot_images import LABEL_STATE_ID
+
+    mine = read_state_id(state_dir)
+    found = [i for i in c.client.images.list(filters=c._filters("snapshot"))
+             if i.labels.get(LABEL_STATE_ID) in (None, mine)]
+    return sorted((snapshot_record(i) for i in found), key=lambda s: s.created)
+
+
+def delete_snapshot(c: DockerHost, snapshot_id: str) -> None:
+    try:
+        image = c.client.images.get(snapshot_id)
+    except c._NotFound:
+        raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list") from None
+    if image.labels.get(LABEL_FLEET) != c.fleet:
+        raise CcrpError(f"image {snapshot_id} is not a snapshot of fleet {c.fleet!r}")
+    c.client.images.remove(image.id, force=True)
+
+
+def has_image(c: DockerHost, image: str) -> bool:
+    try:
+        c.client.images.get(image)
+        return True
+    except c._NotFound:
+        return False
+
+
+def ensure_image(c: DockerHost, image: str) -> None:
+    try:
+        c.client.images.get(image)
+    except c._NotFound:
+        raise CcrpError(f"snapshot image {image} not found", hint="run `ccrp snapshot build -i INVENTORY`") from None

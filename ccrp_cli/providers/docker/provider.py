@@ -1,24 +1,30 @@
 """Docker provider: clones are systemd containers on <fleet>-public and <fleet>-common, booted
 by cloud-init from a NoCloud seed with the same user-data a cloud VM gets. Secrets go through the
-Docker API into a per-clone volume, never into user-data, labels, environment or image layers."""
+Docker API into a per-clone volume, never into user-data, labels, environment or image layers.
+
+This class is the containers' lifecycle. It is the backend's client (client.py DockerHost: the
+engine, which simulated robots and libvirt's fleets use alone too) and composes the fleet's networks
+(network.py), its snapshot images (images.py) and what the fleet owns (owned.py)."""
 
 from __future__ import annotations
 
 import datetime as dt
 from pathlib import Path
+from typing import cast
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
-from ...layout import AUTOSTOP_NOTE, VPN_DIR
-from ...store import FleetStore, ensure_state_id, read_state_id
+from ...models.layout import AUTOSTOP_NOTE, VPN_DIR
+from ...store import FleetStore
 from ..base import (
-    LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Finding, ImageOutcome, Origin,
+    LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Finding, ImageOutcome, Origin,
     OwnedResource, Quota, RobotAttachment, SnapshotRecord,
     autostop_note, owner_labels, wait_cloud_init,
 )
-from . import INFO, snapshot_images
+from . import INFO, images, network, owned, snapshot_images
 from .archive import tar_files
-from .host import DockerHost, EngineTransport
+from .client import DockerHost, EngineTransport
+from .settings import DockerSettings
 
 SEED_DIR = "var/lib/cloud/seed/nocloud"
 # What a systemd container (a clone, a simulated robot) gets beyond Docker's defaults: NET_ADMIN for
@@ -51,32 +57,9 @@ class DockerProvider(DockerHost):
     def transport(self) -> EngineTransport:
         return self._transport
 
-    # -- networks -----------------------------------------------------------------------------
+    # -- the fleet's networks (network.py) ---------------------------------------------------------
     def bootstrap(self) -> None:
-        """Create (or reuse) the fleet's public and common networks."""
-        from docker.types import IPAMConfig, IPAMPool
-
-        provider = self.inv.provider
-        for name, cidr, internal in (
-            (self.public_net, provider.public_cidr, False),  # type: ignore[union-attr]
-            (self.common_net, self.inv.common.cidr, True),
-        ):
-            existing = self.client.networks.list(names=[name])
-            existing = [n for n in existing if n.name == name]
-            if existing:
-                if existing[0].attrs.get("Labels", {}).get(LABEL_FLEET) != self.fleet:
-                    raise CcrpError(f"Docker network {name} exists and is not ccrp's", hint="remove or rename it")
-                continue
-            try:
-                self.client.networks.create(
-                    name, driver="bridge", internal=internal, labels=owner_labels(self.fleet, "network"),
-                    ipam=IPAMConfig(pool_configs=[IPAMPool(subnet=str(cidr))]),
-                )
-            except self._APIError as exc:
-                raise CcrpError(
-                    f"cannot create Docker network {name} ({cidr}): {exc.explanation}",
-                    hint="another network uses that subnet: change provider.public_cidr or common.cidr",
-                ) from None
+        network.bootstrap(self, self.inv)
 
     # -- clones -------------------------------------------------------------------------------
     def _record(self, c, origin: Origin | None = None) -> CloneRecord:
@@ -106,7 +89,7 @@ class DockerProvider(DockerHost):
             existing.start()
             existing.reload()
             return self._record(existing, Origin.RESUMED)
-        self._ensure_image(spec.image)
+        images.ensure_image(self, spec.image)
         volume = self.volume_name(spec.robot)
         labels = owner_labels(self.fleet, "clone", spec.robot)
         self.client.volumes.create(volume, labels=owner_labels(self.fleet, "secrets", spec.robot))
@@ -171,19 +154,6 @@ class DockerProvider(DockerHost):
     def close(self) -> None:
         self.client.close()
 
-    def has_image(self, image: str) -> bool:
-        try:
-            self.client.images.get(image)
-            return True
-        except self._NotFound:
-            return False
-
-    def _ensure_image(self, image: str) -> None:
-        try:
-            self.client.images.get(image)
-        except self._NotFound:
-            raise CcrpError(f"snapshot image {image} not found", hint="run `ccrp snapshot build -i INVENTORY`") from None
-
     def wait_ready(self, robot: str, timeout: float = 300) -> None:
         """Wait for cloud-init to finish inside the clone; fail with its own error detail."""
         wait_cloud_init(robot, lambda argv: self.exec(robot, argv, timeout=timeout), timeout)
@@ -220,52 +190,29 @@ class DockerProvider(DockerHost):
             v.remove(force=True)
         return False
 
-    # -- snapshots ----------------------------------------------------------------------------
+    # -- snapshots: images of this engine (images.py) --------------------------------------------
     def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        c = self._running(robot)
-        # The secrets volume is not part of a commit: the snapshot carries no key.
-        repo, _, tag = name.rpartition(":")
-        # Labels through the config, not a LABEL line: the state directory's path is taken as it
-        # is (spaces, quotes, `$`), and these win over the clone's own labels the image inherits.
-        image = c.commit(repository=repo, tag=tag, conf={"Labels": self.snapshot_labels(robot)})
-        return self.snapshot_record(image)
+        return images.create_snapshot(self, self.state_dir, robot, name)
 
     def build_snapshot(self, repo: str, distro: str, plat, agents: tuple[str, ...], software, digest: str, bare: bool,
                        progress) -> SnapshotRecord:
-        """Ability.LOCAL_BUILD: the clone image built on this engine (images.build_snapshot_image)."""
-        from . import images
-
-        tag = images.build_snapshot_image(self.client, repo, self.fleet, distro, self.inv.provider.base_image,  # type: ignore[union-attr]
-                                          plat, agents, software, bare, self.snapshot_labels() | {"ccrp-software": digest},
-                                          progress)
-        return self.snapshot_record(self.client.images.get(tag))
+        return images.build_snapshot(self, self.state_dir, repo, distro, cast(DockerSettings, self.inv.provider).base_image,
+                                     plat, agents, software, digest, bare, progress)
 
     def snapshot_labels(self, robot: str | None = None) -> dict[str, str]:
-        """Owner labels of a snapshot image, with the state it belongs to (`ccrp gc` finds the
-        images of deleted state directories by them)."""
-        from .snapshot_images import state_labels
-
-        return owner_labels(self.fleet, "snapshot", robot) | state_labels(self.state_dir, ensure_state_id(self.state_dir))
+        return images.snapshot_labels(self, self.state_dir, robot)
 
     def snapshot_record(self, image) -> SnapshotRecord:
-        return SnapshotRecord(
-            id=image.id.removeprefix("sha256:")[:12],
-            name=(image.tags or ["<untagged>"])[0],
-            created=image.attrs.get("Created", "")[:19],
-            source=image.labels.get(LABEL_ROBOT) or "build",
-            size_mb=round(image.attrs.get("Size", 0) / 1e6, 1),
-        )
+        return images.snapshot_record(image)
 
     def list_snapshots(self) -> list[SnapshotRecord]:
-        """This state's snapshots, and the fleet's from before images were labelled with their
-        state: a fleet of the same name in another CCRP_HOME has its own (retention and gc of
-        this one must not touch them)."""
-        from .snapshot_images import LABEL_STATE_ID
+        return images.list_snapshots(self, self.state_dir)
 
-        mine = read_state_id(self.state_dir)
-        images = [i for i in self.client.images.list(filters=self._filters("snapshot"))
-                  if i.labels.get(LABEL_STATE_ID) in (None, mine)]
-        return sorted((self.snapshot_record(i) for i in images), key=lambda s: s.created)
+    def delete_snapshot(self, snapshot_id: str) -> None:
+        images.delete_snapshot(self, snapshot_id)
+
+    def has_image(self, image: str) -> bool:
+        return images.has_image(self, image)
 
     # -- snapshot images of other states (Ability.HOST_IMAGES, snapshot_images.py) ----------------
     def sweep_images(self, dry_run: bool, unlabelled: bool, progress=lambda msg: None) -> list[ImageOutcome]:
@@ -273,15 +220,6 @@ class DockerProvider(DockerHost):
 
     def images_finding(self) -> Finding:
         return snapshot_images.finding(self.client, self.fleet, self.state_dir)
-
-    def delete_snapshot(self, snapshot_id: str) -> None:
-        try:
-            image = self.client.images.get(snapshot_id)
-        except self._NotFound:
-            raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list") from None
-        if image.labels.get(LABEL_FLEET) != self.fleet:
-            raise CcrpError(f"image {snapshot_id} is not a snapshot of fleet {self.fleet!r}")
-        self.client.images.remove(image.id, force=True)
 
     def stop_note(self, robot: str) -> str | None:
         """From the stopped container's disk: a Docker clone has no console that outlives it."""
@@ -308,65 +246,19 @@ class DockerProvider(DockerHost):
     def detach_robot(self, robot: str) -> None:
         pass  # nothing outlives the robot's container: its network is the fleet's
 
-    # -- whole fleet ----------------------------------------------------------------------------
-    def teardown(self) -> list[str]:
-        """Remove every container, volume and network carrying the fleet's labels."""
-        removed = []
-        found = self.client.containers.list(all=True, ignore_removed=True, filters={"label": [f"{LABEL_FLEET}={self.fleet}"]})
-        # A simulated power device first: it holds its robot's power-line volume, which goes with the robot.
-        for c in sorted(found, key=lambda c: c.labels.get(LABEL_ROLE) != "power-sim"):
-            c.remove(force=True, v=True)
-            removed.append(f"container {c.name}")
-        for v in self.client.volumes.list(filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):
-            v.remove(force=True)
-            removed.append(f"volume {v.name}")
-        for n in self.client.networks.list(filters={"label": [f"{LABEL_FLEET}={self.fleet}"]}):
-            n.remove()
-            removed.append(f"network {n.name}")
-        return removed
 
-    # -- everything owned (gc) -------------------------------------------------------------------
+    # -- everything owned (owned.py) ---------------------------------------------------------------
     def list_owned(self) -> list[OwnedResource]:
-        label = {"label": [f"{LABEL_FLEET}={self.fleet}"]}
-        owned = [
-            OwnedResource(kind="container" if c.labels.get(LABEL_ROLE) == "clone" else "robot_sim", id=c.id[:12],
-                          name=c.name, robot=c.labels.get(LABEL_ROBOT))
-            for c in self.client.containers.list(all=True, ignore_removed=True, filters=label)
-        ]
-        owned += [OwnedResource(kind="volume", id=v.name, name=v.name, robot=(v.attrs.get("Labels") or {}).get(LABEL_ROBOT))
-                  for v in self.client.volumes.list(filters=label)]
-        owned += [OwnedResource(kind="network", id=n.name, name=n.name) for n in self.client.networks.list(filters=label)]
-        owned += [OwnedResource(kind="image", id=s.id, name=s.name, robot=None if s.source == "build" else s.source)
-                  for s in self.list_snapshots()]
-        # `ccrp deploy`'s build of the workspace (deploy.py): cache only, no state records it.
-        owned += [OwnedResource(kind="image", id=i.id.removeprefix("sha256:")[:12], name=(i.tags or ["<untagged>"])[0])
-                  for i in self.client.images.list(filters=self._filters("deploy"))]
-        return owned
+        return owned.list_owned(self, self.state_dir)
 
     def delete_owned(self, resource: OwnedResource) -> None:
-        getter = {"container": self.client.containers, "robot_sim": self.client.containers, "volume": self.client.volumes,
-                  "network": self.client.networks, "image": self.client.images}[resource.kind]
-        try:
-            obj = getter.get(resource.id)
-        except self._NotFound:
-            raise CcrpError(f"{resource.kind} {resource.id} is gone") from None
-        labels = obj.labels if resource.kind in ("container", "robot_sim", "image") else obj.attrs.get("Labels") or {}
-        if labels.get(LABEL_FLEET) != self.fleet:  # checked again: never remove what is not ours
-            raise CcrpError(f"{resource.kind} {resource.id} is not owned by fleet {self.fleet!r}")
-        if resource.kind == "image":
-            self.client.images.remove(obj.id, force=True)
-        elif resource.kind == "network":
-            obj.remove()
-        else:
-            obj.remove(force=True, **({"v": True} if resource.kind != "volume" else {}))
+        owned.delete_owned(self, resource)
+
+    def teardown(self) -> list[str]:
+        return owned.teardown(self)
 
     def leftovers(self) -> list[str]:
-        label = {"label": [f"{LABEL_FLEET}={self.fleet}"]}
-        return (
-            [f"container {c.name}" for c in self.client.containers.list(all=True, ignore_removed=True, filters=label)]
-            + [f"volume {v.name}" for v in self.client.volumes.list(filters=label)]
-            + [f"network {n.name}" for n in self.client.networks.list(filters=label)]
-        )
+        return owned.leftovers(self)
 
 
 def now_tag() -> str:

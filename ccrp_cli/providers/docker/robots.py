@@ -7,11 +7,13 @@ base.RobotHost the core reaches them through (providers.robot_host), whatever th
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from ...errors import CcrpError
 from ...templates import static
 from ..base import LABEL_ROBOT, RobotAttachment, owner_labels
 from .archive import tar_files
-from .host import DockerHost
+from .client import DockerHost
 from .provider import CLONE_CAPS, CLONE_SECURITY_OPT
 
 BUNDLE_DIR = "opt/ccrp-bundle"
@@ -50,7 +52,7 @@ POWER_DIR = "/var/lib/ccrp/power"
 SUPPLY_PATH = "/usr/local/lib/ccrp/ccrp-power-supply"
 
 
-def _create(provider: DockerHost, robot: str, role: str, image: str, network: str, bundle: list, extra: list,
+def _create(provider: DockerHost, robot: str, role: str, image: str, network: str, bundle: Sequence, extra: list,
             attach=None, **options):
     """A systemd container of the robot's (a simulated robot or its power device) on `network`,
     with `bundle` in BUNDLE_DIR and `extra` files, booted and its bundle's install.sh run.
@@ -88,7 +90,7 @@ def _create(provider: DockerHost, robot: str, role: str, image: str, network: st
     return c
 
 
-def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node: str, network: str,
+def start(provider: DockerHost, robot: str, image: str, bundle: Sequence, demo_node: str, network: str,
           python: str = "/usr/bin/python3", attach=None) -> str:
     """(Re)create the simulated robot on `network` and install `bundle` in it, then run `demo_node`
     with `python` (a ROS 2 distro's own, /opt/ros/<distro>/bin/python) and its stand-in power
@@ -119,7 +121,7 @@ def start(provider: DockerHost, robot: str, image: str, bundle: list, demo_node:
     return c.id[:12]
 
 
-def start_device(provider: DockerHost, robot: str, bundle: list) -> str:
+def start_device(provider: DockerHost, robot: str, bundle: Sequence) -> str:
     """(Re)create the simulated robot's power device: a container of its own beside the robot (same
     image and network), sharing only the robot's power line (POWER_DIR), with the device bundle
     installed as on a real device. It reads the robot's state from the supply's file."""
@@ -167,20 +169,20 @@ class RobotContainers(DockerHost):
     def exec(self, robot: str, argv: list[str], timeout: float = 60, role: str = "robot-sim") -> tuple[int, str]:
         return super().exec(robot, argv, timeout=timeout, role=role)
 
-    def push_files(self, robot: str, files: list, restart: list[str] = (), role: str = "robot-sim") -> None:
+    def push_files(self, robot: str, files: Sequence, restart: Sequence[str] = (), role: str = "robot-sim") -> None:
         super().push_files(robot, files, restart, role=role)
 
     def robot_image(self, distro: str, progress=lambda msg: None) -> str:
         return sim_image(self, distro, progress)
 
-    def start(self, robot: str, image: str, bundle: list, demo_node: str, attachment: RobotAttachment,
+    def start(self, robot: str, image: str, bundle: Sequence, demo_node: str, attachment: RobotAttachment,
               python: str = "/usr/bin/python3") -> str:
         return start(self, robot, image, bundle, demo_node, attachment.network, python, attachment.attach)
 
     def stop(self, robot: str) -> bool:
         return stop(self, robot)
 
-    def start_device(self, robot: str, bundle: list) -> str:
+    def start_device(self, robot: str, bundle: Sequence) -> str:
         return start_device(self, robot, bundle)
 
     def close(self) -> None:

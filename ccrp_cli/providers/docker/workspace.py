@@ -7,7 +7,7 @@ backend. The core reaches it as providers.build_workspace."""
 from __future__ import annotations
 
 from ...errors import CcrpError
-from ...layout import WORKSPACE
+from ...models.layout import WORKSPACE
 from ...models.inventory import Inventory
 from ..base import owner_labels
 from . import INFO, images

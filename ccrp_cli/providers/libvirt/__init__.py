@@ -28,4 +28,5 @@ INFO = ProviderInfo(
               "  #   address: 192.168.1.20     # the host's address there; each clone at base_port + its slot\n"
               "  #   base_port: 11940",
         public_pool=True),
+    host_networks=".libvirt.host_networks:defined",
 )

@@ -52,7 +52,7 @@ def operator_address(targets: list[str], own_ranges: list[ipaddress.IPv4Network]
 
 
 def init_values(cloud: str) -> dict[str, str]:
-    from .provider import _connect
+    from .client import _connect
 
     conn = _connect(cloud)
     try:

@@ -4,52 +4,58 @@ from __future__ import annotations
 
 from ...errors import CcrpError
 from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE, SnapshotRecord, owner_labels
+from .client import OpenStackClient
 
 
-class Images:
-    """Mixed into OpenStackProvider: the calls it makes are the provider's (self.api, self.image...)."""
+def create_snapshot(c: OpenStackClient, robot: str, name: str) -> SnapshotRecord:
+    """A Glance image of the clone's server, with the labels as properties and tags."""
+    with c.errors(f"snapshot of {robot}"):
+        server = c.running_server(robot)
+        # A builder's image is a build, not a robot's clone: no robot label, source "build".
+        source = robot if (server.metadata or {}).get(LABEL_ROLE) == "clone" else None
+        labels = owner_labels(c.fleet, "snapshot", source)
+        image = c.api("create server image", c.compute.create_server_image, server, name, metadata=labels)
+        try:
+            for tag in c.tags("snapshot", source):
+                c.api("tag image", c.image.add_tag, image, tag)
+            image = c.api("wait for image", c.image.wait_for_status, image, status="active",
+                          failures=["killed", "deleted", "deactivated"], interval=c.poll_interval,
+                          wait=c.image_timeout)
+        except BaseException:
+            try:  # what this attempt made must not linger; the failure is the one to report
+                c.api("delete image", c.image.delete_image, image.id, ignore_missing=True)
+            except Exception:  # noqa: BLE001
+                pass
+            raise
+        return snapshot_record(image)
 
-    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        """A Glance image of the clone's server, with the labels as properties and tags."""
-        with self._errors(f"snapshot of {robot}"):
-            server = self._running_server(robot)
-            # A builder's image is a build, not a robot's clone: no robot label, source "build".
-            source = robot if (server.metadata or {}).get(LABEL_ROLE) == "clone" else None
-            labels = owner_labels(self.fleet, "snapshot", source)
-            image = self.api("create server image", self.compute.create_server_image, server, name, metadata=labels)
-            try:
-                for tag in self.tags("snapshot", source):
-                    self.api("tag image", self.image.add_tag, image, tag)
-                image = self.api("wait for image", self.image.wait_for_status, image, status="active",
-                                 failures=["killed", "deleted", "deactivated"], interval=self.poll_interval,
-                                 wait=self.image_timeout)
-            except BaseException:
-                self._rollback([("image", image)])
-                raise
-            return self._snapshot_record(image)
 
-    def _snapshot_record(self, image) -> SnapshotRecord:
-        props = image.properties or {}
-        return SnapshotRecord(id=image.id, name=image.name or "", created=(image.created_at or "")[:19],
-                              source=props.get(LABEL_ROBOT) or "build",
-                              size_mb=round(image.size / 1e6, 1) if image.size else None)
+def snapshot_record(image) -> SnapshotRecord:
+    props = image.properties or {}
+    return SnapshotRecord(id=image.id, name=image.name or "", created=(image.created_at or "")[:19],
+                          source=props.get(LABEL_ROBOT) or "build",
+                          size_mb=round(image.size / 1e6, 1) if image.size else None)
 
-    def _images(self) -> list:
-        found = self.listing("images", self.image.images, tag=f"{LABEL_FLEET}={self.fleet}")
-        return [i for i in found if self._is_owned(i.properties)]
 
-    def list_snapshots(self) -> list[SnapshotRecord]:
-        with self._errors("list snapshots"):
-            return sorted((self._snapshot_record(i) for i in self._images()), key=lambda s: s.created)
+def owned_images(c: OpenStackClient) -> list:
+    found = c.listing("images", c.image.images, tag=f"{LABEL_FLEET}={c.fleet}")
+    return [i for i in found if c.is_owned(i.properties)]
 
-    def delete_snapshot(self, snapshot_id: str) -> None:
-        with self._errors(f"delete snapshot {snapshot_id}"):
-            image = self.find("image", self.image.find_image, snapshot_id)
-            if image is None:
-                raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list")
-            if not self._is_owned(image.properties):
-                raise CcrpError(f"image {snapshot_id} is not a snapshot of fleet {self.fleet!r}")
-            self.api("delete image", self.image.delete_image, image)
 
-    def has_image(self, image: str) -> bool:
-        return self.find("image", self.image.find_image, image) is not None
+def list_snapshots(c: OpenStackClient) -> list[SnapshotRecord]:
+    with c.errors("list snapshots"):
+        return sorted((snapshot_record(i) for i in owned_images(c)), key=lambda s: s.created)
+
+
+def delete_snapshot(c: OpenStackClient, snapshot_id: str) -> None:
+    with c.errors(f"delete snapshot {snapshot_id}"):
+        image = c.find("image", c.image.find_image, snapshot_id)
+        if image is None:
+            raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list")
+        if not c.is_owned(image.properties):
+            raise CcrpError(f"image {snapshot_id} is not a snapshot of fleet {c.fleet!r}")
+        c.api("delete image", c.image.delete_image, image)
+
+
+def has_image(c: OpenStackClient, image: str) -> bool:
+    return c.find("image", c.image.find_image, image) is not None

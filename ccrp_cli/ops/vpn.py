@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any, Callable
 
-from .errors import CcrpError
+from ..errors import CcrpError
 
-from .fleet import Fleet
-from .pki.store import CRL_WARN_DAYS
+from ..fleet import Fleet
+from ..pki.store import CRL_WARN_DAYS
 
 if TYPE_CHECKING:
-    from .providers.base import Lifecycle, Provider
+    from ..providers.base import Lifecycle, Provider
 
 
 def init(fleet: Fleet) -> dict[str, Any]:
@@ -62,11 +62,11 @@ def revoke(fleet: Fleet, robot: str, cert: str = "client", provider: Provider | 
         _push_crl(fleet, provider, robot, kill=sorted({rec.cn for rec in revoked if rec.profile in ("client", "power")}),
                   progress=progress)
         if "client" in kinds:
-            from .ops.reconcile import reshare
+            from .reconcile import reshare
 
             reshare(fleet, provider, progress)  # its partners drop the revoked robot's clone
         elif kinds == ("power",):
-            from .robot.power import push_passwd
+            from ..robot.power import push_passwd
 
             push_passwd(fleet, provider, robot, progress)  # the clone forgets the device's name
         else:
@@ -75,7 +75,7 @@ def revoke(fleet: Fleet, robot: str, cert: str = "client", provider: Provider | 
 
 
 def _running(provider: Lifecycle) -> list[str]:
-    from .providers.base import CloneState
+    from ..providers.base import CloneState
 
     return sorted(name for name, rec in provider.query().items() if rec.state is CloneState.RUNNING)
 
@@ -83,7 +83,7 @@ def _running(provider: Lifecycle) -> list[str]:
 def _replace_on_clone(fleet: Fleet, provider: Provider, robot: str, progress: Callable[[str], None]) -> None:
     """A running clone of `robot` gets its new certificates and secrets at once (fleet up for that
     robot: OpenVPN and the relay restart, partners get the new relay CN)."""
-    from .ops.reconcile import up
+    from .reconcile import up
 
     if robot not in _running(provider):
         return
@@ -106,8 +106,8 @@ def _push_crl(fleet: Fleet, provider: Lifecycle, robot: str, kill: list[str], pr
     the new CRL."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from .ops.clones import kill_session
-    from .render.bundles import crl_file
+    from ..probe import kill_session
+    from ..render.bundles import crl_file
 
     crl = crl_file(fleet.pki.crl_path.read_text())
     running = _running(provider)

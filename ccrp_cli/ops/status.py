@@ -5,17 +5,17 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
-from .services.registry import SERVICES
-from .errors import CcrpError
-from .fleet import Fleet
-from .models.status import StatusRow
-from .probe import health, robot_link
-from .providers.base import CloneState
+from ..services.registry import SERVICES
+from ..errors import CcrpError
+from ..fleet import Fleet
+from ..models.status import StatusRow
+from ..probe import health, robot_link
+from ..providers.base import CloneState
 
 if TYPE_CHECKING:
-    from .models.inventory import Robot
-    from .models.state import FleetState
-    from .providers.base import Provider
+    from ..models.inventory import Robot
+    from ..models.state import FleetState
+    from ..providers.base import Provider
 
 
 def service_fields(fleet: Fleet, state: FleetState, robot: Robot, h: dict | None) -> dict:
@@ -46,7 +46,7 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
             common_ip=str(a.common_ip),
             vpn_subnet=str(a.vpn_subnet),
             ros_distro=fleet.inventory.ros.distro,
-            revoked_at=revoked[robot].isoformat() if revoked.get(robot) else None,
+            revoked_at=when.isoformat() if (when := revoked.get(robot)) else None,
             **service_fields(fleet, state, member, None),
         )
         if rec and rec.state is CloneState.STOPPED:
@@ -80,7 +80,7 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
     robots = list(plan)
     if not robots:
         return []
-    from .robot import watchdog
+    from ..robot import watchdog
 
     with ThreadPoolExecutor(max_workers=min(provider.max_parallel, len(robots)) + 1) as pool:
         sims = pool.submit(watchdog.simulated, fleet, provider)

@@ -1,11 +1,12 @@
 """The Docker engine on this host, for a fleet: the client (every request retried on 429/503),
 names and labels, and running commands in ccrp's systemd containers (clones and simulated
-robots). DockerProvider builds the clone lifecycle on it; simulated robots of cloud fleets use it
+robots): the Docker backend's client. DockerProvider builds the clone lifecycle on it; simulated robots of cloud fleets use it
 alone (they run here, whatever cloud their clones are on)."""
 
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from typing import Any
 
 from ...errors import CcrpError
@@ -144,7 +145,7 @@ class DockerHost:
         except PollTimeout as late:
             raise CcrpError(f"systemd did not come up in {self.container_name(robot, role)}: {str(late.last)[:200]}") from None
 
-    def push_files(self, robot: str, files: list, restart: list[str] = (), role: str = "clone") -> None:
+    def push_files(self, robot: str, files: Sequence, restart: Sequence[str] = (), role: str = "clone") -> None:
         """Copy bundle files to their `dest` with their modes; chgrp where a group is named."""
         c = self._running(robot, role)
         by_dir: dict[str, list] = {}

@@ -11,9 +11,9 @@ import ipaddress
 from dataclasses import dataclass
 from functools import cached_property
 
-from .errors import InputError
-from .models.inventory import Inventory
-from .models.names import clone_host
+from ..errors import InputError
+from .inventory import Inventory
+from .names import clone_host
 
 
 @dataclass(frozen=True)
