@@ -27,7 +27,7 @@ import time
 
 import pytest
 
-from ccrp_cli.ops.clones import HEALTH_SCRIPT
+from ccrp_cli.probe import HEALTH_SCRIPT
 from tests.e2e.fleet import (
     CONNECT_TIMEOUT,
     E2EFleet,

@@ -239,7 +239,7 @@ def test_simulated_robot_connects_through_the_vpn_to_its_vm_clone(vm_fleet):
     vm_fleet["timings"]["robot sim: container start to node on the clone"] = result["seconds"]
     # It dials from its port on the NAT network: the top address, outside the DHCP range.
     nat = provider.settings.public_cidr
-    assert result["network"] == f"{provider.public_net} ({nat.broadcast_address - 1})", result
+    assert result["network"] == f"{provider.client.public_net} ({nat.broadcast_address - 1})", result
     assert result["address"].split(":")[0] == str(nat.broadcast_address - 1), result
     assert veths(vm_fleet) == [veth_name(vm_fleet["fleet"].name, "nao1")]
     rows = {r["robot"]: r for r in json.loads(ccrp(home, "status", "-i", path, "--json", timeout=300).stdout)}
