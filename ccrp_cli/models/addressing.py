@@ -78,3 +78,15 @@ def addresses(inv: Inventory, robot: str, index: int) -> CloneAddresses:
         device_vpn_ip=subnet.network_address + 3,
         common_ip=inv.common.cidr.network_address + inv.common.first_host + index - 1,
     )
+
+
+def gateway_ip(inv: Inventory) -> ipaddress.IPv4Address:
+    """The entry gateway's address on the common network: the one just below the first clone's.
+    Like the clones' addresses it is fixed, so a gateway re-created is the same hop for them."""
+    return inv.common.cidr.network_address + inv.common.first_host - 1
+
+
+def entry_port(inv: Inventory, index: int) -> int:
+    """The port a robot dials on its fleet's entry gateway: the VPN port plus the robot's slot. The
+    slot is the robot's for its life and never given to another while it exists, so the port is too."""
+    return inv.vpn.port + index

@@ -11,9 +11,6 @@ from __future__ import annotations
 import os
 import re
 import shutil
-import subprocess
-import sys
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -24,14 +21,13 @@ import yaml
 from cryptography import x509
 
 from ccrp_cli.ops import vpn
-from ccrp_cli.fleet import Fleet, clone_view
 from ccrp_cli.pki.store import RobotCredentials
 from ccrp_cli.render import openvpn
 from ccrp_cli.render.bundles import clone_secrets, edge_bundle, write_bundle
-from ccrp_cli.templates import static
 from ccrp_cli.render.view import CloneView
-
-OPENVPN = "/usr/sbin/openvpn"
+from tests.e2e.vpnlab import (
+    COMPLETED, OPENVPN, Lab, OpenVPNProcess, build_fleet, ping, serve_clone, sh, wait_for,
+)
 LAB = Path(__file__).resolve().parents[2] / "inventories" / "lab.yaml"
 
 pytestmark = [
@@ -48,9 +44,7 @@ NS_CLONE = f"ccrp-e2e-clone-{os.getpid()}"
 NS_ROBOT = f"ccrp-e2e-robot-{os.getpid()}"
 CLONE_OUTER_IP, ROBOT_OUTER_IP, OUTER_PREFIX = "192.168.250.1", "192.168.250.2", 30
 
-START_TIMEOUT = 20.0  # the server or a good client reaching "Initialization Sequence Completed"
 REFUSAL_WINDOW = 15.0  # a refused client must not get a tunnel in this time
-COMPLETED = "Initialization Sequence Completed"
 # When the server refuses a certificate, the client hears nothing back and would wait out its
 # 60 s hand-window before giving up on the attempt. Refused clients get a short one, so that the
 # attempt visibly ends; this changes when a client gives up, never what it accepts.
@@ -60,118 +54,6 @@ ATTEMPT_ENDED = re.compile(r"SIGUSR1\[soft,|SIGTERM\[soft,auth-failure\]|AUTH_FA
 
 
 # -- helpers ---------------------------------------------------------------------------------
-
-
-def sh(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-    result = subprocess.run(args, capture_output=True, text=True)
-    if check and result.returncode != 0:
-        pytest.fail(f"`{' '.join(args)}` failed ({result.returncode}): {result.stderr.strip()}")
-    return result
-
-
-# An ICMP echo from inside a namespace, without depending on iputils-ping being installed.
-ICMP_ECHO = r"""
-import os, socket, struct, sys, time
-
-def checksum(b):
-    s = sum(struct.unpack(f"!{len(b) // 2}H", b))
-    s = (s >> 16) + (s & 0xFFFF)
-    return ~(s + (s >> 16)) & 0xFFFF
-
-target, ident, payload = sys.argv[1], os.getpid() & 0xFFFF, b"ccrp-e2e"
-header = struct.pack("!BBHHH", 8, 0, 0, ident, 1)
-packet = struct.pack("!BBHHH", 8, 0, checksum(header + payload), ident, 1) + payload
-with socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_ICMP) as s:
-    s.settimeout(1.0)
-    s.sendto(packet, (target, 0))
-    deadline = time.monotonic() + 1.0
-    while time.monotonic() < deadline:
-        try:
-            data, (source, _) = s.recvfrom(2048)
-        except TimeoutError:
-            break
-        ihl = (data[0] & 0x0F) * 4
-        kind, _, _, reply_id, _ = struct.unpack("!BBHHH", data[ihl : ihl + 8])
-        if source == target and kind == 0 and reply_id == ident:
-            sys.exit(0)
-sys.exit(1)
-"""
-
-
-def ping(netns: str, ip: object) -> bool:
-    """One ICMP echo from `netns` to `ip`, answered within a second."""
-    return sh("ip", "netns", "exec", netns, sys.executable, "-c", ICMP_ECHO, str(ip), check=False).returncode == 0
-
-
-def wait_for(predicate: Callable[[], object], timeout: float, interval: float = 0.1) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(interval)
-    return bool(predicate())
-
-
-@dataclass
-class OpenVPNProcess:
-    """openvpn running in a namespace, its stdout and stderr in `log`."""
-
-    proc: subprocess.Popen[bytes]
-    log: Path
-
-    @classmethod
-    def start(cls, netns: str, log: Path, *args: str) -> "OpenVPNProcess":
-        with log.open("wb") as out:
-            proc = subprocess.Popen(
-                ["ip", "netns", "exec", netns, OPENVPN, "--suppress-timestamps", *args],
-                stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-            )
-        return cls(proc, log)
-
-    def size(self) -> int:
-        return self.log.stat().st_size
-
-    def text(self, since: int = 0) -> str:
-        return self.log.read_bytes()[since:].decode(errors="replace")
-
-    @property
-    def running(self) -> bool:
-        return self.proc.poll() is None
-
-    def stop(self) -> None:
-        if self.running:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=5)
-
-    def wait_completed(self, timeout: float = START_TIMEOUT) -> None:
-        ok = wait_for(lambda: COMPLETED in self.text() or not self.running, timeout)
-        assert ok and COMPLETED in self.text(), f"openvpn did not come up:\n{self.text()}"
-
-
-@dataclass
-class Lab:
-    """The lab fleet with nao1 and nao2 issued, and a view and the credentials of each."""
-
-    fleet: Fleet
-    views: dict[str, CloneView]
-    creds: dict[str, RobotCredentials]
-
-
-def build_fleet(inventory: Path, home: Path, robots: tuple[str, ...]) -> Lab:
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("CCRP_HOME", str(home))
-        fleet = Fleet.open(inventory)
-        vpn.init(fleet)
-        for robot in robots:
-            vpn.issue(fleet, robot)
-        state = fleet.store.load_state()
-        views = {r: clone_view(fleet, state, r) for r in robots}
-        creds = {r: fleet.pki.credentials(r) for r in robots}
-    return Lab(fleet, views, creds)
 
 
 def write_edge_bundle(out: Path, view: CloneView, creds: RobotCredentials) -> Path:
@@ -231,28 +113,9 @@ class Clone:
 def clone(lab: Lab, namespaces: None, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Clone]:
     """nao1's clone: its VPN directory laid out as on the clone, and openvpn serving from it."""
     view, creds = lab.views["nao1"], lab.creds["nao1"]
-    # Under /tmp and 0755: openvpn re-reads ccd/, crl.pem and runs ccrp-auth as nobody, who
-    # cannot traverse pytest's 0700 tmp_path.
-    vpn_dir = Path(tempfile.mkdtemp(prefix="ccrp-e2e-vpn-", dir="/tmp"))
-    server: OpenVPNProcess | None = None
-    try:
-        vpn_dir.chmod(0o755)
-        write_bundle(vpn_dir / "keys", clone_secrets(view, creds), {"kind": "clone-secrets", "robot": view.name})
-        (vpn_dir / "keys").chmod(0o755)
-        os.chown(vpn_dir / "keys" / "passwd", 0, 65534)  # root:nogroup 0640, as root:openvpn on the clone
-        (vpn_dir / "server.conf").write_text(openvpn.server_conf(view, user="nobody", group="nogroup"))
-        (vpn_dir / "ccd").mkdir(mode=0o755)
-        (vpn_dir / "ccd" / view.name).write_text(openvpn.ccd_entry(view))
-        (vpn_dir / "ccrp-auth").write_text(static("clone/ccrp-auth"))
-        (vpn_dir / "ccrp-auth").chmod(0o755)
-        log = tmp_path_factory.mktemp("clone") / "server.log"
-        server = OpenVPNProcess.start(NS_CLONE, log, "--cd", str(vpn_dir), "--config", "server.conf")
-        server.wait_completed()
+    log = tmp_path_factory.mktemp("clone") / "server.log"
+    with serve_clone(NS_CLONE, view, creds, log) as (vpn_dir, server):
         yield Clone(vpn_dir, server, view)
-    finally:
-        if server is not None:
-            server.stop()
-        shutil.rmtree(vpn_dir, ignore_errors=True)
 
 
 @dataclass
