@@ -207,13 +207,17 @@ class ChannelOpenError(CcrpError):
 
 
 class SshTransport:
-    """One SSH connection to `user@host`, authenticated with the operator key."""
+    """One SSH connection to `user@host`, authenticated with the operator key; with `via`, through
+    that connection (OpenSSH's ProxyJump: a direct-tcpip channel from the jump host to host:port).
+    The jump host's key and this host's are each pinned on their own: the jump host only carries
+    bytes it cannot read."""
 
     def __init__(self, host: str, user: str, key_path: Path, pinned_host_keys: Iterable[str] = (), *,
                  port: int = SSH_PORT, known_hosts: KnownHosts | None = None, host_alias: str | None = None,
                  trust_on_first_use: bool = False, connect_timeout: float = 10.0,
-                 backoff: Backoff = CONNECT_BACKOFF, warn: Callable[[str], None] = _stderr_warning) -> None:
-        self.host, self.user, self.key_path, self.port = host, user, Path(key_path), port
+                 backoff: Backoff = CONNECT_BACKOFF, warn: Callable[[str], None] = _stderr_warning,
+                 via: "SshTransport | None" = None) -> None:
+        self.host, self.user, self.key_path, self.port, self.via = host, user, Path(key_path), port, via
         self.known_hosts, self.alias = known_hosts, host_alias or host
         self.policy = PinnedHostKeyPolicy(host, pinned_host_keys, known_hosts, self.alias, trust_on_first_use, warn)
         self.connect_timeout, self.backoff = connect_timeout, backoff
@@ -223,7 +227,24 @@ class SshTransport:
 
     @property
     def where(self) -> str:
-        return f"{self.user}@{self.host}" + (f":{self.port}" if self.port != SSH_PORT else "")
+        here = f"{self.user}@{self.host}" + (f":{self.port}" if self.port != SSH_PORT else "")
+        return here + (f" via {self.via.where}" if self.via else "")
+
+    def _jump(self):
+        """A channel from the jump host to host:port, which the SSH connection runs in. The target
+        refusing or not answering yet (a clone booting behind the gateway) comes back as the OSError
+        a direct connection would give, so it is retried alike."""
+        import paramiko
+
+        via = self.via.connect()
+        try:
+            return via._client.get_transport().open_channel(
+                "direct-tcpip", (self.host, self.port), ("127.0.0.1", 0), timeout=self.connect_timeout)
+        except paramiko.ChannelException as exc:
+            # RFC 4254's reasons: 2 is "connect failed" (refused, no route), the rest are the jump host's.
+            if exc.code == paramiko.common.OPEN_FAILED_CONNECT_FAILED:
+                raise ConnectionRefusedError(f"{self.via.host} could not reach {self.host}:{self.port}: {exc.text}") from None
+            raise
 
     # -- connection -----------------------------------------------------------------------------
     def _connect_once(self):
@@ -239,7 +260,7 @@ class SshTransport:
             client.connect(
                 self.host, port=self.port, username=self.user, pkey=paramiko.PKey.from_path(self.key_path),
                 timeout=self.connect_timeout, banner_timeout=self.connect_timeout, auth_timeout=self.connect_timeout,
-                allow_agent=False, look_for_keys=False,
+                allow_agent=False, look_for_keys=False, sock=self._jump() if self.via else None,
             )
         except BaseException:
             client.close()

@@ -272,6 +272,37 @@ def test_trust_on_first_use_warns_and_records(vm, operator_key, tmp_path, capsys
         _ssh(vm, operator_key[0], (), known_hosts=known, host_alias="i-tofu").connect()
 
 
+def test_a_clone_is_reached_through_the_gateway_with_both_keys_pinned(vm, fresh_vm, operator_key, tmp_path):
+    """ProxyJump (an entry gateway's fleet): the gateway `vm` carries the SSH connection to the clone
+    `fresh_vm`, which sees it come from the gateway; each host's key is pinned on its own, and a
+    clone whose key is not the pinned one is refused though the gateway is trusted. Nothing listening
+    behind the gateway is retried as a booting guest, and the error names the jump."""
+    known = KnownHosts(tmp_path / "known_hosts")
+    gateway = _ssh(vm, operator_key[0], fingerprints_from_console(vm.console()), known_hosts=known, host_alias="i-gw")
+    try:
+        fresh_vm.wait_sshd()
+        with _ssh(fresh_vm, operator_key[0], fingerprints_from_console(fresh_vm.console()), known_hosts=known,
+                  host_alias="i-clone", via=gateway) as clone:
+            rc, seen = clone.exec(["sh", "-c", 'echo "$SSH_CONNECTION"'])
+            assert rc == 0 and seen.split()[0] == vm.ip, seen  # the clone's sshd saw the gateway's address
+            assert "via" in clone.where and vm.ip in clone.where
+        assert {alias for alias, *_ in known._entries()} == {"i-gw", "i-clone"}
+        # A clone offering another key than the one pinned is refused before authentication.
+        logins = fresh_vm.accepted_logins()
+        stranger = paramiko.Ed25519Key.from_private_key(io.StringIO(_new_private_key()))
+        wrong = {fingerprint(base64.b64decode(stranger.get_base64()))}
+        with pytest.raises(CcrpError, match="not one of the fingerprints pinned"):
+            _ssh(fresh_vm, operator_key[0], wrong, known_hosts=KnownHosts(tmp_path / "kh2"), via=gateway).connect()
+        assert fresh_vm.accepted_logins() == logins
+        # Nothing listening behind the gateway: the jump's "connect failed" is a booting guest's error.
+        from ccrp_cli.retry import Backoff
+        with pytest.raises(CcrpError, match="via"):
+            SshTransport(fresh_vm.ip, cloud.SSH_USER, operator_key[0], port=2222, via=gateway,
+                         backoff=Backoff(attempts=2, base=0.1, cap=0.1)).connect()
+    finally:
+        gateway.close()
+
+
 def _new_private_key() -> str:
     from cryptography.hazmat.primitives import serialization
     from cryptography.hazmat.primitives.asymmetric import ed25519
