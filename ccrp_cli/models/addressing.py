@@ -35,10 +35,11 @@ class CloneAddresses:
 
 
 def capacity(inv: Inventory) -> int:
-    """How many clones the pools can address."""
+    """How many clones the pools can address (and, behind an entry gateway, its ports: entry_port)."""
     vpn_slots = 2 ** (inv.vpn.subnet_prefix - inv.vpn.pool.prefixlen) - 1  # slot 0 is kept free
     common_slots = inv.common.cidr.num_addresses - 1 - inv.common.first_host  # minus broadcast
-    return max(0, min(vpn_slots, common_slots))
+    ports = 65535 - inv.vpn.port if inv.provider.entry == "gateway" else common_slots
+    return max(0, min(vpn_slots, common_slots, ports))
 
 
 def allocate(inv: Inventory, robots: list[str], existing: dict[str, int]) -> dict[str, int]:
@@ -55,8 +56,9 @@ def allocate(inv: Inventory, robots: list[str], existing: dict[str, int]) -> dic
         if slot > limit:
             raise InputError(
                 f"address pools are exhausted: {len(robots)} clones requested, room for {limit} "
-                f"(vpn.pool {inv.vpn.pool} in /{inv.vpn.subnet_prefix} subnets, common.cidr {inv.common.cidr})",
-                hint="widen vpn.pool or common.cidr in the inventory",
+                f"(vpn.pool {inv.vpn.pool} in /{inv.vpn.subnet_prefix} subnets, common.cidr {inv.common.cidr}"
+                + (f", gateway ports from vpn.port {inv.vpn.port} + 1 to 65535" if inv.provider.entry == "gateway" else "") + ")",
+                hint="widen vpn.pool or common.cidr in the inventory" + (", or lower vpn.port" if inv.provider.entry == "gateway" else ""),
             )
         result[name] = slot
         used.add(slot)
@@ -80,10 +82,20 @@ def addresses(inv: Inventory, robot: str, index: int) -> CloneAddresses:
     )
 
 
+# Two fixed hosts below the clones' range, for the instances that are not clones; near the top of the
+# subnet when the low addresses are the ones clouds keep for routers and DHCP (AWS keeps .1-.3, GCP
+# the second-to-last).
+def builder_ip(inv: Inventory) -> ipaddress.IPv4Address:
+    """The `snapshot bake` builder's address on the common network: just below the first clone's."""
+    net, first = inv.common.cidr, inv.common.first_host
+    return net.network_address + first - 1 if first - 1 >= 4 else net.broadcast_address - 2
+
+
 def gateway_ip(inv: Inventory) -> ipaddress.IPv4Address:
-    """The entry gateway's address on the common network: the one just below the first clone's.
-    Like the clones' addresses it is fixed, so a gateway re-created is the same hop for them."""
-    return inv.common.cidr.network_address + inv.common.first_host - 1
+    """The entry gateway's address on the common network, just below the builder's (a bake runs
+    while the fleet's gateway does). Fixed like the clones', so a gateway re-created is the same hop."""
+    net, first = inv.common.cidr, inv.common.first_host
+    return net.network_address + first - 2 if first - 2 >= 4 else net.broadcast_address - 3
 
 
 def entry_port(inv: Inventory, index: int) -> int:

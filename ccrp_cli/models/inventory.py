@@ -335,6 +335,14 @@ class Inventory(Strict):
         return self
 
     @model_validator(mode="after")
+    def _entry_made(self) -> "Inventory":
+        """An entry gateway needs a backend that makes one (its ports: addressing.entry_port)."""
+        if self.provider.entry == "gateway" and not self.provider.gateways:
+            raise ValueError(f"provider.entry: gateway: the {self.provider.kind} backend makes no entry gateway "
+                             "(its robots reach their clones on this host's networks)")
+        return self
+
+    @model_validator(mode="after")
     def _one_distro(self) -> "Inventory":
         """A robot runs its fleet's ROS distro: its clone is built for that one distro, and a ROS 1
         robot cannot reach a ROS 2 clone at all (nor a Humble robot confine its discovery as a

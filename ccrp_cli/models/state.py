@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -41,6 +42,16 @@ class RobotRecord(BaseModel):
         self.software = self.packages = None
 
 
+class GatewayRecord(BaseModel):
+    """The fleet's entry gateway (provider.entry: gateway), once `fleet up` has made it: its address
+    is in every robot's bundle, with the robot's own port (models/addressing.py entry_port)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    provider_id: str
+    public_ip: ipaddress.IPv4Address
+
+
 class FleetState(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -48,3 +59,4 @@ class FleetState(BaseModel):
     fleet: str
     robots: dict[str, RobotRecord] = {}
     snapshot: dict[str, str] | None = None
+    gateway: GatewayRecord | None = None

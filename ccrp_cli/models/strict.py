@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict
 
@@ -22,6 +22,12 @@ class ProviderSettings(Strict):
     # whether it bakes images (Ability.BAKE).
     platform: ClassVar[str] = ""
     bakes: ClassVar[bool] = False
+    # Whether it can give a fleet one entry gateway (Ability.ENTRY_GATEWAY), set by the registry too.
+    gateways: ClassVar[bool] = False
+
+    # How robots reach their clones (docs/architecture.md "Entry gateway"): each clone at a public
+    # address of its own, or every robot at its own port of the fleet's one gateway.
+    entry: Literal["per-clone", "gateway"] = "per-clone"
 
     if TYPE_CHECKING:  # each backend's settings declare it as their Literal (the union's discriminator)
         kind: str

@@ -20,6 +20,7 @@ from ..models.names import clone_host
 from ..models.state import FleetState
 from ..render.files import applied_marker
 from ..probe import files_current, health, kill_session, remote_digests, same
+from . import gateway
 from ..providers.base import (
     CloneSpec,
     CloneState,
@@ -289,7 +290,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         if record.created:
             provider.terminate(robot)  # roll back only what this attempt created
         raise
-    endpoint = record.endpoint or record.public_ip
+    endpoint = gateway.endpoint(fleet, state, robot) if gateway.in_use(fleet) else (record.endpoint or record.public_ip)
     writer.update(
         robot, phase="ready", provider_id=record.provider_id, public_endpoint=endpoint,
         # The snapshot's id (one image may carry several names): a reused clone keeps its own.

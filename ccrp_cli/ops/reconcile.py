@@ -9,6 +9,7 @@ from concurrent.futures import ThreadPoolExecutor, wait
 from typing import TYPE_CHECKING, cast
 
 from ..models.addressing import allocate
+from . import gateway
 from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
 from ..errors import CcrpError, InputError
 from ..fleet import Fleet
@@ -141,6 +142,10 @@ def up(fleet: Fleet, provider: Provider, progress: Progress, only: list[str] | N
     if not quotas_checked:
         check_growth(fleet, provider, targets, progress)
     provider.bootstrap()
+    if gateway.in_use(fleet):  # before the clones: their robots' endpoints are its address
+        gateway.ensure(fleet, provider, state, progress)
+        with writer.lock:
+            fleet.store.save_state(state)
     # Every missing certificate in one write (ensure_clone then finds them): per robot, this
     # costs the same in a fleet of 10 or of 1,000.
     plan = fleet.plan(state)
@@ -299,6 +304,7 @@ def down(fleet: Fleet, provider: Provider, progress: Progress) -> list[str]:
     state = fleet.store.load_state()
     for rec in state.robots.values():
         rec.clear_clone()
+    state.gateway = None  # its address went with it
     fleet.store.save_state(state)
     progress(f"fleet {fleet.name!r} is down: removed {len(removed)} resources, none left")
     return removed

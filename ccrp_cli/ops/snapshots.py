@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Callable, Protocol, cast
 
 from ..errors import CcrpError
 from ..fleet import Fleet
+from ..models.addressing import builder_ip
 from ..providers.base import SnapshotRecord
 from ..services.workloads import NO_SOFTWARE, SnapshotSoftware
 
@@ -65,13 +66,6 @@ def _use(fleet: Fleet, record: SnapshotRecord, bare: bool = False, image: str | 
 # -- clouds: bake a snapshot on a builder instance ----------------------------------------------------
 
 BUILDER = "snapshot-builder"  # its robot label: the hyphen keeps it out of robot names' alphabet
-def _builder_common_ip(inv) -> str:
-    """Just below the clones' range; near the top of the subnet when that would hit the addresses
-    clouds keep for gateways and DHCP (AWS keeps .1-.3, GCP the second-to-last)."""
-    net, first = inv.common.cidr, inv.common.first_host
-    return str(net.network_address + first - 1 if first - 1 >= 4 else net.broadcast_address - 2)
-
-
 def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str | None = None, timeout: float = 1800,
          poll: float = 10) -> SnapshotRecord:
     """Boot a builder instance from a stock Debian 12 cloud image with user-data that installs the
@@ -109,7 +103,7 @@ def bake(fleet: Fleet, provider: Provider, progress: Progress, base_image: str |
     user_data = builder_user_data(inv, token, image_agents(), login_keys=None if software.empty else provider.login_keys())
     info(kind).fit_user_data(user_data)
     spec = CloneSpec(robot=BUILDER, hostname="ccrp-builder", image=base, user_data=user_data,
-                     instance_id=f"{fleet.name}-builder-{token}", common_ip=_builder_common_ip(inv), role="builder")
+                     instance_id=f"{fleet.name}-builder-{token}", common_ip=str(builder_ip(inv)), role="builder")
     provider.bootstrap()
     progress(f"booting the builder from {base}; it installs ROS {inv.ros.distro} and the recipe (10-20 min)")
     try:

@@ -83,6 +83,11 @@ def cloud_init_clean(result_json: str) -> bool:
         return False
 
 
+# The robot label of the fleet's entry gateway (ops/gateway.py), the instance of role "gateway": the
+# hyphen keeps it out of robot names' alphabet. The transport reaches it by this name.
+GATEWAY = "entry-gateway"
+
+
 class CloneSpec(BaseModel):
     """What to create for one robot."""
 
@@ -214,6 +219,9 @@ class Ability(str, Enum):
     ROBOT_ATTACH = "robot sim on the fleet's own network"
     # Its snapshot images live on this host, where they outlive the state that recorded them (Docker).
     HOST_IMAGES = "snapshot images on this host"
+    # One instance holds the fleet's one public address and forwards each robot's port to its clone
+    # (render/gateway.py); the clones have no public address (provider.entry: gateway).
+    ENTRY_GATEWAY = "entry gateway"
 
 
 @dataclass(frozen=True)
@@ -393,6 +401,16 @@ class RobotAttachment:
 
     def __str__(self) -> str:
         return (self.name or self.network) + (f" ({self.address})" if self.address else "")
+
+
+class Gateways(Protocol):
+    """Ability.ENTRY_GATEWAY: the fleet's one gateway instance. run_instance makes it from a spec of
+    role "gateway" (robot GATEWAY, its fixed common address) with the fleet's public address, kept
+    apart from the instance so a gateway made again has the same; clones then get none, and the
+    transport reaches them through the gateway."""
+
+    # The gateway as the cloud sees it (its public_ip the fleet's address); None when there is none.
+    def gateway(self) -> CloneRecord | None: ...
 
 
 class RobotAttach(Protocol):

@@ -18,7 +18,7 @@ from ..errors import CcrpError
 from ..models.inventory import Inventory
 from ..models.layout import LOGIN_USER
 from ..retry import Backoff, ErrorClass, call
-from .base import CloneRecord, autostop_note, wait_cloud_init
+from .base import GATEWAY, CloneRecord, autostop_note, wait_cloud_init
 
 # The login on every cloud clone: the clone's user-data creates it with the operator key
 # (render/cloudinit.py login_user), whatever user the base image has of its own.
@@ -97,11 +97,26 @@ class CloudProvider:
     def known_hosts_path(self) -> Path:
         return self.workdir / "known_hosts"
 
+    def gateway(self) -> CloneRecord | None:  # cloud: with Ability.ENTRY_GATEWAY
+        """The fleet's entry gateway (base.Gateways)."""
+        raise CcrpError(f"the {self.kind} backend makes no entry gateway")
+
+    def _find(self, robot: str) -> CloneRecord | None:
+        return self.gateway() if robot == GATEWAY else self.query().get(robot)
+
+    def behind_gateway(self, rec: CloneRecord) -> bool:
+        """A clone of a fleet with an entry gateway has no public address: SSH reaches its common
+        address through the gateway (ProxyJump). What has one (the gateway, a bake's builder) is dialled."""
+        return not rec.public_ip and self.inv.provider.entry == "gateway" and rec.robot != GATEWAY
+
+    def ssh_address(self, rec: CloneRecord) -> str | None:
+        return rec.common_ip if self.behind_gateway(rec) else rec.public_ip
+
     def _clone(self, robot: str) -> CloneRecord:
-        rec = self.query().get(robot)
+        rec = self._find(robot)
         if rec is None:
             raise CcrpError(f"no {self.kind} instance for robot {robot!r}", hint=f"ccrp clone create --robot {robot}")
-        if not rec.public_ip:
+        if not self.ssh_address(rec):
             raise CcrpError(f"the instance of robot {robot!r} ({rec.provider_id}) has no public IP yet")
         return rec
 
@@ -115,17 +130,17 @@ class CloudProvider:
         give_up = min(deadline, time.monotonic() + TOFU_CONSOLE_WAIT) if self.trust_on_first_use else deadline
 
         def keys_shown() -> tuple[bool, tuple]:
-            rec = self.query().get(robot)
+            rec = self._find(robot)
             pins = fingerprints_from_console(self.console_output(robot) or "") if rec else frozenset()
-            return bool(pins and rec is not None and rec.public_ip), (rec, pins)
+            return bool(pins and rec is not None and self.ssh_address(rec)), (rec, pins)
 
         try:
             return poll(keys_shown, timeout=max(0.0, give_up - time.monotonic()), interval=CONSOLE_POLL)
         except PollTimeout as late:
             rec, _pins = late.last
-        if self.trust_on_first_use and rec is not None and rec.public_ip:
+        if self.trust_on_first_use and rec is not None and self.ssh_address(rec):
             return rec, frozenset()
-        why = ("not found" if rec is None else "no public IP" if not rec.public_ip
+        why = ("not found" if rec is None else "no public IP" if not self.ssh_address(rec)
                else "cloud-init printed no SSH host keys on its console")
         raise CcrpError(
             f"{self.kind} instance of robot {robot!r}: {why} in time",
@@ -147,10 +162,12 @@ class CloudProvider:
 
         timeout *= self.timeout_scale(robot)  # a cloud that emulates the CPU boots its guests slowly
         deadline = time.monotonic() + timeout
-        rec = self.query().get(robot)
-        if rec is not None and rec.public_ip and KnownHosts(self.known_hosts_path).keys(rec.provider_id):
+        rec = self._find(robot)
+        address = self.ssh_address(rec) if rec is not None else None
+        if rec is not None and address and KnownHosts(self.known_hosts_path).keys(rec.provider_id):
             # A server started again: its keys are known, its sshd answers once it has booted.
-            wait_listening(rec.public_ip, SSH_PORT, max(1.0, deadline - time.monotonic()), CONSOLE_POLL)
+            via = self.transport.session(GATEWAY) if self.behind_gateway(rec) else None
+            wait_listening(address, SSH_PORT, max(1.0, deadline - time.monotonic()), CONSOLE_POLL, via=via)
             ssh = self.transport.session(robot, rec)
         else:
             rec, pins = self._wait_for_host_keys(robot, deadline)
@@ -206,7 +223,7 @@ class SshClones:
             lock = self._robot_locks.setdefault(robot, threading.Lock())
         with lock:
             ssh = self._ssh.get(robot)
-            if ssh is not None and ssh.active and (rec is None or (ssh.host, ssh.alias) == (rec.public_ip, rec.provider_id)):
+            if ssh is not None and ssh.active and (rec is None or (ssh.host, ssh.alias) == (p.ssh_address(rec), rec.provider_id)):
                 return ssh
             if ssh is not None:
                 ssh.close()
@@ -215,8 +232,10 @@ class SshClones:
             if pins is None:
                 pins = frozenset() if known.keys(rec.provider_id) else fingerprints_from_console(p.console_output(robot) or "")
             p.operator_public_key()  # creates the key on first use
-            ssh = SshTransport(rec.public_ip, SSH_USER, p.ssh_key_path, pins, known_hosts=known,
-                               host_alias=rec.provider_id, trust_on_first_use=p.trust_on_first_use).connect()
+            # The gateway's session (its own lock), shared by every clone behind it.
+            via = self.session(GATEWAY) if p.behind_gateway(rec) else None
+            ssh = SshTransport(p.ssh_address(rec), SSH_USER, p.ssh_key_path, pins, known_hosts=known,
+                               host_alias=rec.provider_id, trust_on_first_use=p.trust_on_first_use, via=via).connect()
             self._ssh[robot] = ssh
             return ssh
 

@@ -21,6 +21,7 @@ def declare(backend: ProviderInfo) -> None:
     no provider: ProviderSettings.platform and .bakes)."""
     backend.settings.platform = backend.platform  # type: ignore[attr-defined]
     backend.settings.bakes = Ability.BAKE in backend.abilities  # type: ignore[attr-defined]
+    backend.settings.gateways = Ability.ENTRY_GATEWAY in backend.abilities  # type: ignore[attr-defined]
     REGISTRY[backend.kind] = backend
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ..models.addressing import gateway_ip
 from ..templates import render
 from .view import CloneView
 
@@ -92,7 +93,9 @@ def chrony_conf(view: CloneView, side: str) -> str:
 
 
 def firewall_rules(view: CloneView) -> tuple[str, str]:
-    """(iptables-restore, ip6tables-restore) rules of the clone."""
+    """(iptables-restore, ip6tables-restore) rules of the clone. Behind an entry gateway, ccrp's SSH
+    comes from the gateway's common address (render/gateway.py)."""
     ports = rtps_ports(view.addr.index) if view.inv.ros.ros2 else None
-    return (render("clone/firewall.rules.j2", **view.ctx(rtps_ports=ports)),
+    jump = gateway_ip(view.inv) if view.inv.provider.entry == "gateway" else None
+    return (render("clone/firewall.rules.j2", **view.ctx(rtps_ports=ports, gateway_ip=jump)),
             render("clone/firewall6.rules.j2", **view.ctx(rtps_ports=ports)))

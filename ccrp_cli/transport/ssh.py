@@ -181,17 +181,19 @@ def classify_connect(exc: BaseException) -> ErrorClass:
     return ErrorClass.FATAL
 
 
-def wait_listening(host: str, port: int, timeout: float, interval: float = 5.0) -> None:
-    """Until something accepts TCP connections on host:port, for a guest that boots for minutes (a
-    started cloud server under emulation): the SSH connect's own retries cover seconds. An error
-    other than a booting guest's is left to the SSH connect that follows, which names it."""
+def wait_listening(host: str, port: int, timeout: float, interval: float = 5.0, via: "SshTransport | None" = None) -> None:
+    """Until something accepts TCP connections on host:port (from the jump host `via`, when given),
+    for a guest that boots for minutes (a started cloud server under emulation): the SSH connect's
+    own retries cover seconds. An error other than a booting guest's is left to the SSH connect
+    that follows, which names it."""
     import socket
 
     from ..retry import PollTimeout, poll
 
     def accepts() -> tuple[bool, None]:
+        wait = min(10.0, interval * 2)
         try:
-            with socket.create_connection((host, port), timeout=min(10.0, interval * 2)):
+            with (via.open_tcp(host, port, wait) if via else socket.create_connection((host, port), timeout=wait)):
                 return True, None
         except OSError as exc:
             return not _booting(exc), None
@@ -230,20 +232,19 @@ class SshTransport:
         here = f"{self.user}@{self.host}" + (f":{self.port}" if self.port != SSH_PORT else "")
         return here + (f" via {self.via.where}" if self.via else "")
 
-    def _jump(self):
-        """A channel from the jump host to host:port, which the SSH connection runs in. The target
-        refusing or not answering yet (a clone booting behind the gateway) comes back as the OSError
-        a direct connection would give, so it is retried alike."""
+    def open_tcp(self, host: str, port: int, timeout: float):
+        """A channel from this host to host:port (OpenSSH's direct-tcpip, what ProxyJump runs over).
+        The target refusing or not answering yet (a clone booting behind the gateway) comes back as
+        the ConnectionRefusedError a direct connection would give, so it is retried alike."""
         import paramiko
 
-        via = self.via.connect()
         try:
-            return via._client.get_transport().open_channel(
-                "direct-tcpip", (self.host, self.port), ("127.0.0.1", 0), timeout=self.connect_timeout)
+            return self.connect()._client.get_transport().open_channel(
+                "direct-tcpip", (host, port), ("127.0.0.1", 0), timeout=timeout)
         except paramiko.ChannelException as exc:
             # RFC 4254's reasons: 2 is "connect failed" (refused, no route), the rest are the jump host's.
             if exc.code == paramiko.common.OPEN_FAILED_CONNECT_FAILED:
-                raise ConnectionRefusedError(f"{self.via.host} could not reach {self.host}:{self.port}: {exc.text}") from None
+                raise ConnectionRefusedError(f"{self.host} could not reach {host}:{port}: {exc.text}") from None
             raise
 
     # -- connection -----------------------------------------------------------------------------
@@ -260,7 +261,8 @@ class SshTransport:
             client.connect(
                 self.host, port=self.port, username=self.user, pkey=paramiko.PKey.from_path(self.key_path),
                 timeout=self.connect_timeout, banner_timeout=self.connect_timeout, auth_timeout=self.connect_timeout,
-                allow_agent=False, look_for_keys=False, sock=self._jump() if self.via else None,
+                allow_agent=False, look_for_keys=False,
+                sock=self.via.open_tcp(self.host, self.port, self.connect_timeout) if self.via else None,
             )
         except BaseException:
             client.close()
