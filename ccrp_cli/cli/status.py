@@ -34,11 +34,11 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
     output.emit(
         [r.json_dict() for r in rows], as_json,
         # ROS 2 has no master: there the column says whether the clone's ROS 2 graph answered.
-        ["ROBOT", "CLONE", "STATE", "PUBLIC IP", "COMMON IP", "VPN", "GRAPH" if fleet.inventory.ros.ros2 else "MASTER",
+        ["ROBOT", "CLONE", "STATE", "VPN ENDPOINT", "COMMON IP", "VPN", "GRAPH" if fleet.inventory.ros.ros2 else "MASTER",
          "ROBOT NODES", "RELAY PEERS", "WATCHDOG"]
         + (["POWER"] if power else []) + (["API MANAGER"] if api else []) + (["KNOWLEDGE"] if know else [])
         + (["NODES"] if own else []),
-        [(r.robot, r.clone, r.status, r.public_ip, r.common_ip,
+        [(r.robot, r.clone, r.status, r.vpn_endpoint, r.common_ip,
           vpn_cell(r), yes(r.master_reachable),
           nodes_cell(r), relay_peers(r.relay_peers, r.relay_running), watchdog_cell(r.watchdog))
          + ((power_cell(r.power),) if power else ())

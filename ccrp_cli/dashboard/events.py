@@ -26,7 +26,7 @@ SHOWN = 300
 # The fields of a `fleet_status` row the page gets (a whitelist: a field added to `ccrp status`
 # later reaches the page only when it is added here).
 ROW_FIELDS = (
-    "robot", "clone", "phase", "status", "state", "public_ip", "common_ip", "vpn_subnet", "vpn_connected",
+    "robot", "clone", "phase", "status", "state", "public_ip", "vpn_endpoint", "common_ip", "vpn_subnet", "vpn_connected",
     "secrets", "robot_address", "robot_rtt_ms", "master_reachable", "robot_nodes", "stale_nodes", "relay_running",
     "relay_peers", "revoked_at", "autostop_idle_s", "stopped_idle", "watchdog", "power", "nodes",
 )

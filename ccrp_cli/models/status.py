@@ -81,7 +81,8 @@ class StatusRow(BaseModel):
     phase: str  # ccrp's record of it (state.json); `planned` before the first fleet up
     status: str  # the provider's word, with `(idle)` or `(unreachable)` where that explains it
     state: str  # ccrp's word for it, the same on every provider; `absent` when there is none
-    public_ip: str | None = None
+    public_ip: str | None = None  # the clone's own (none behind an entry gateway)
+    vpn_endpoint: str | None = None  # HOST:PORT the robot's bundle dials: its clone, or its port on the gateway
     common_ip: str
     vpn_subnet: str
     vpn_connected: bool = False

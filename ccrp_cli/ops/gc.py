@@ -52,6 +52,8 @@ def find_leaks(state: FleetState, owned: list[OwnedResource], snapshots: list[Sn
             return r.id in images or r.name in images
         if r.role is Role.ROBOT_SIDE:
             return r.robot in state.robots
+        if r.role is Role.GATEWAY:  # its address is in the robots' bundles once the state has it
+            return state.gateway is not None
         return r.robot in live
 
     return [r for r in owned if not known(r)]

@@ -65,12 +65,9 @@ def uses(provider: Housekeeping, creating: Sequence[str]) -> list[Use]:
 
 def fitting(found: list[Use], creating: Sequence[str]) -> int:
     """How many of `creating`, in order, fit every quota."""
-    taken = [0.0] * len(found)
-    for n, robot in enumerate(creating):
-        for k, u in enumerate(found):
-            taken[k] += u.quota.need([robot])
-            if taken[k] > u.quota.free + 1e-9:
-                return n
+    for n in range(len(creating)):
+        if any(u.quota.need(creating[: n + 1]) > u.quota.free + 1e-9 for u in found):
+            return n
     return len(creating)
 
 

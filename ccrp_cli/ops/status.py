@@ -43,6 +43,7 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
             status=rec.status if rec else "absent",
             state=rec.state.value if rec else "absent",
             public_ip=rec.public_ip if rec else None,
+            vpn_endpoint=state.robots[robot].public_endpoint if robot in state.robots else None,
             common_ip=str(a.common_ip),
             vpn_subnet=str(a.vpn_subnet),
             ros_distro=fleet.inventory.ros.distro,

@@ -166,6 +166,7 @@ class Role(str, Enum):
     IMAGE = "image"  # a snapshot image (the fleet's, or a cache no state records)
     ROBOT_SIDE = "robot-side"  # started by hand for a robot (`ccrp robot sim`), not recorded as a clone
     PER_ROBOT = "per-robot"  # what belongs to one robot's clone (its public IP, volumes, routes)
+    GATEWAY = "gateway"  # the fleet's entry gateway: its instance, port and the fleet's public address
 
 
 class OwnedResource(BaseModel):
@@ -181,8 +182,9 @@ class OwnedResource(BaseModel):
 
 def with_roles(found: Iterable[OwnedResource], roles: dict[str, Role]) -> list[OwnedResource]:
     """`found` with each resource's role, from the backend's own table kind -> role (a kind it does
-    not name belongs to a robot)."""
-    return [r.model_copy(update={"role": roles.get(r.kind, Role.PER_ROBOT)}) for r in found]
+    not name belongs to a robot); what carries the gateway's robot label is the gateway's."""
+    return [r.model_copy(update={"role": Role.GATEWAY if r.robot == GATEWAY else roles.get(r.kind, Role.PER_ROBOT)})
+            for r in found]
 
 
 class Quota(BaseModel):
@@ -199,6 +201,9 @@ class Quota(BaseModel):
     # robot's own instance_type, or the public address it holds already from an earlier attempt (0).
     per_robot: dict[str, float] = {}
     hint: str = ""  # where this quota is raised, when the cloud names a place
+    # What the fleet takes once, however many clones it creates: its entry gateway's instance and
+    # public address while it has none (provider.entry: gateway).
+    once: float = 0.0
 
     @property
     def free(self) -> float:
@@ -206,7 +211,8 @@ class Quota(BaseModel):
 
     def need(self, robots: Iterable[str]) -> float:
         """What creating the clones of `robots` takes of this quota."""
-        return float(sum(self.per_robot.get(r, self.per_clone) for r in robots))
+        robots = list(robots)
+        return float(sum(self.per_robot.get(r, self.per_clone) for r in robots)) + (self.once if robots else 0.0)
 
 
 class Ability(str, Enum):

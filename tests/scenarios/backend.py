@@ -127,6 +127,9 @@ class Backend:
     labels: list[str] = field(default_factory=list)
     # The nodes of the inventory's software: (its snapshot carries them; each clone runs them).
     nodes: list[str] = field(default_factory=list)
+    # A fleet with an entry gateway (provider.entry: gateway): deletes the gateway's instance in the
+    # cloud, as an operator or a failure would, and returns its public address.
+    gateway: Callable[[], str] | None = None
 
     def ccrp(self, *args: str, timeout: float = 900) -> subprocess.CompletedProcess:
         if self.runner is not None:

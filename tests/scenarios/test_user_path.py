@@ -128,7 +128,13 @@ def test_status_shows_every_clone_running_with_its_master(run):
     for robot in ROBOTS:
         assert rows[robot]["status"] and rows[robot]["phase"] == "ready", rows[robot]
         assert rows[robot]["master_reachable"] is True, rows[robot]
-        assert rows[robot]["public_ip"], rows[robot]
+        assert rows[robot]["vpn_endpoint"], rows[robot]
+        # Behind an entry gateway a clone has no public address: its robot dials its own port of the gateway's.
+        assert bool(rows[robot]["public_ip"]) is (run.b.gateway is None), rows[robot]
+    if run.b.gateway is not None:
+        hosts = {rows[r]["vpn_endpoint"].rsplit(":", 1)[0] for r in ROBOTS}
+        ports = {rows[r]["vpn_endpoint"].rsplit(":", 1)[1] for r in ROBOTS}
+        assert len(hosts) == 1 and len(ports) == len(ROBOTS), rows
 
 
 def test_clone_exec(run):
@@ -189,11 +195,15 @@ def test_topics_matrix(run):
 
 def test_clone_delete_and_create(run):
     run.needs("up")
+    endpoint = run.status()["nao2"]["vpn_endpoint"]
     run.ccrp("robot", "sim", "--robot", "nao2", "--stop")
     run.ccrp("clone", "delete", "--robot", "nao2")
     assert run.status()["nao2"]["status"] == "absent"
     run.ccrp("clone", "create", "--robot", "nao2")
-    assert run.status()["nao2"]["master_reachable"] is True
+    row = run.status()["nao2"]
+    assert row["master_reachable"] is True, row
+    if run.b.gateway is not None:  # its port on the gateway is the robot's: the bundle it has still holds
+        assert row["vpn_endpoint"] == endpoint, (endpoint, row)
 
 
 def test_idle_clone_stops_itself_and_starts_again(run):
@@ -246,6 +256,7 @@ def test_clone_restart_and_stop(run):
     assert [r["action"] for r in restarted] == ["restarted"], restarted
     row = run.status()["nao1"]
     assert row["master_reachable"] is True and row["public_ip"] == before["public_ip"], (before, row)
+    assert row["vpn_endpoint"] == before["vpn_endpoint"], (before, row)
     if "robot" in run.done:  # its tunnel back, and its node on the new master (the watchdog's new-master hook)
         deadline = time.monotonic() + 60
         while not ((row := run.status()["nao1"])["vpn_connected"] and "/nao1_demo" in row["robot_nodes"]) \
@@ -261,6 +272,25 @@ def test_clone_restart_and_stop(run):
     run.ccrp("clone", "stop", "--robot", "robot4", code=2)  # not in the fleet
     run.ccrp("fleet", "up")
     assert run.status()["nao2"]["master_reachable"] is True
+
+
+def test_the_gateway_made_again_keeps_the_address_and_the_robot_comes_back(run):
+    """provider.entry: gateway: the gateway is deleted in the cloud (an operator, a failure); the
+    robot's tunnel goes with it. `fleet up` makes it again from the state with the same public
+    address and ports, and the robot reconnects by itself with the bundle it has."""
+    if run.b.gateway is None:
+        pytest.skip(f"the {run.b.kind} scenario's fleet has no entry gateway")
+    run.needs("robot")
+    before = run.status()["nao1"]["vpn_endpoint"]
+    address = run.b.gateway()
+    assert before.startswith(f"{address}:"), (before, address)
+    rows = [r["robot"] for r in run.json("fleet", "up")]
+    assert sorted(rows) == ROBOTS
+    deadline = time.monotonic() + 180
+    while not ((row := run.status()["nao1"])["vpn_connected"] and "/nao1_demo" in row["robot_nodes"]) \
+            and time.monotonic() < deadline:
+        time.sleep(5)
+    assert row["vpn_endpoint"] == before and row["vpn_connected"] is True and "/nao1_demo" in row["robot_nodes"], row
 
 
 def test_fleet_scale_up_and_down(run):

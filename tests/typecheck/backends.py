@@ -8,7 +8,7 @@ not left out."""
 from __future__ import annotations
 
 from ccrp_cli.providers.aws.provider import AwsProvider
-from ccrp_cli.providers.base import Bake, HostImages, LocalBuild, Provider, RobotAttach, RobotHost
+from ccrp_cli.providers.base import Bake, Gateways, HostImages, LocalBuild, Provider, RobotAttach, RobotHost
 from ccrp_cli.providers.docker.provider import DockerProvider
 from ccrp_cli.providers.docker.robots import RobotContainers
 from ccrp_cli.providers.gcp.provider import GcpProvider
@@ -26,6 +26,7 @@ def docker(backend: DockerProvider) -> None:
 def openstack(backend: OpenStackProvider) -> None:
     provider: Provider = backend
     bake: Bake = backend
+    gateways: Gateways = backend
 
 
 def gcp(backend: GcpProvider) -> None:

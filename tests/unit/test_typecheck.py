@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 BACKENDS = ROOT / "tests" / "typecheck" / "backends.py"
 # The protocol of providers/base.py each ability adds to Provider.
 ABILITY_PROTOCOLS = {Ability.LOCAL_BUILD: "LocalBuild", Ability.BAKE: "Bake", Ability.ROBOT_ATTACH: "RobotAttach",
-                     Ability.HOST_IMAGES: "HostImages"}
+                     Ability.HOST_IMAGES: "HostImages", Ability.ENTRY_GATEWAY: "Gateways"}
 
 # The mypy runs share its cache (.mypy_cache): on one worker, one after the other.
 pytestmark = pytest.mark.xdist_group("mypy")

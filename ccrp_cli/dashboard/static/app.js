@@ -144,7 +144,7 @@ function renderFleet(data) {
     const tr = el("tr");
     tr.dataset.robot = row.robot;
     const cells = [
-      [row.robot, ""], [row.clone + (row.public_ip ? ` (${row.public_ip})` : ""), ""], stateCell(row),
+      [row.robot, ""], [row.clone + (row.vpn_endpoint || row.public_ip ? ` (${row.vpn_endpoint || row.public_ip})` : ""), ""], stateCell(row),
       vpnCell(row), [row.status === "running" ? (row.master_reachable ? "yes" : "no") : "-",
                      row.status !== "running" ? "off" : row.master_reachable ? "ok" : "bad"],
       nodesCell(row), ownNodesCell(row), relayCell(row), watchdogCell(row), powerCell(row),

@@ -5,6 +5,7 @@ operator key pair. Everything created carries the fleet's Neutron tags."""
 from __future__ import annotations
 
 from ...errors import CcrpError
+from ...models.addressing import capacity
 from .client import OpenStackClient
 
 ROUTER_INTERFACE = "network:router_interface"
@@ -18,6 +19,8 @@ def bootstrap(c: OpenStackClient, public_key: str) -> None:
         if not c.settings.network:  # a named network is the operator's, already routed
             router(c, subnet, ext)
         sg = security_group(c)
+        if c.settings.entry == "gateway":
+            c.remember(gsg=gateway_security_group(c))
         key_pair(c, public_key)
         c.remember(ext=ext, net=(net, subnet), sg=sg)
 
@@ -30,6 +33,14 @@ def fleet_resources(c: OpenStackClient):
     if sg is None:
         raise CcrpError(f"fleet {c.fleet!r} has no security group yet", hint="run `ccrp fleet up`")
     return ext, net, subnet, sg
+
+
+def gateway_group(c: OpenStackClient):
+    """The entry gateway's security group, looked up once."""
+    sg = c.cached("gsg", lambda: next(iter(c.tagged("security_groups", "gateway")), None))
+    if sg is None:
+        raise CcrpError(f"fleet {c.fleet!r} has no gateway security group yet", hint="run `ccrp fleet up`")
+    return sg
 
 
 def external_network(c: OpenStackClient):
@@ -83,18 +94,32 @@ def router_subnets(c: OpenStackClient, r) -> list[str]:
 
 
 def security_group(c: OpenStackClient):
-    """The clones' group: ONLY the VPN port from anywhere, SSH from the operator, and everything
-    from the common network (topic sharing). Stale ingress rules (an old operator CIDR) go."""
-    sg = next(iter(c.tagged("security_groups", "network")), None)
+    """The clones' group: the VPN port from anywhere (from the gateway only, behind an entry
+    gateway: everything from the common network), SSH from the operator, and everything from the
+    common network (topic sharing). Stale ingress rules (an old operator CIDR) go."""
+    vpn = c.inv.vpn
+    wanted = {("tcp", 22, 22, str(c.settings.operator_cidr)), (None, None, None, str(c.inv.common.cidr))}
+    if c.settings.entry != "gateway":
+        wanted.add((vpn.proto, vpn.port, vpn.port, "0.0.0.0/0"))
+    return _group(c, "network", "clones", wanted)
+
+
+def gateway_security_group(c: OpenStackClient):
+    """The entry gateway's group: the robots' ports (render/gateway.py) from anywhere, SSH from the
+    operator; nothing else (its replies and what it forwards are the connections' own)."""
+    vpn = c.inv.vpn
+    wanted = {(vpn.proto, vpn.port + 1, vpn.port + capacity(c.inv), "0.0.0.0/0"),
+              ("tcp", 22, 22, str(c.settings.operator_cidr))}
+    return _group(c, "gateway", "gateway", wanted)
+
+
+def _group(c: OpenStackClient, role: str, name: str, wanted: set):
+    """The fleet's security group of `role`, made if missing, with exactly the ingress rules
+    `wanted` ((protocol, first port, last port, remote prefix))."""
+    sg = next(iter(c.tagged("security_groups", role)), None)
     if sg is None:
         sg = c.create_tagged("security group", c.network.create_security_group, c.network.delete_security_group,
-                             c.tags("network"), name=c.name("clones"), description=f"ccrp fleet {c.fleet}: clones")
-    vpn = c.inv.vpn
-    wanted = {
-        (vpn.proto, vpn.port, vpn.port, "0.0.0.0/0"),
-        ("tcp", 22, 22, str(c.settings.operator_cidr)),
-        (None, None, None, str(c.inv.common.cidr)),
-    }
+                             c.tags(role), name=c.name(name), description=f"ccrp fleet {c.fleet}: {name}")
     have = {}
     for rule in c.listing("security group rules", c.network.security_group_rules, security_group_id=sg.id):
         if rule.direction == "ingress":

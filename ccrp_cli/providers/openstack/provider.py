@@ -14,7 +14,7 @@ from pathlib import Path
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import across_zones
-from ..base import (LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota,
+from ..base import (GATEWAY, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota,
                     SnapshotRecord, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, errors, images, network, owned
@@ -98,6 +98,8 @@ class OpenStackProvider(CloudProvider):
         with c.errors(what):
             try:
                 ext, net, subnet, sg = network.fleet_resources(c)
+                if spec.role == "gateway":
+                    sg = network.gateway_group(c)
                 server = c.server(spec.robot, spec.role)
                 origin = Origin.CREATED
                 if server is not None:
@@ -108,7 +110,9 @@ class OpenStackProvider(CloudProvider):
                     server = across_zones(self._zones(spec.robot), lambda z: self._boot(spec, port, user_data, z, created),
                                           classify=c.classify_error, what=f"server for {spec.robot}",
                                           exhausted=self._build_failed)
-                fip = self._floating_ip(spec, port, ext, created)
+                # Behind an entry gateway a clone has no floating IP: its robot comes through the gateway's.
+                public = spec.role != "clone" or self.settings.entry != "gateway"
+                fip = self._floating_ip(spec, port, ext, created) if public else None
             except BaseException as exc:  # Ctrl-C too: what this attempt made must not linger
                 left = self._rollback(created)
                 if not left or not (isinstance(exc, CcrpError) or errors.is_sdk_error(exc)):
@@ -120,7 +124,8 @@ class OpenStackProvider(CloudProvider):
                 raise err from exc
         word = server.status or "BUILD"
         return CloneRecord(robot=spec.robot, provider_id=server.id, state=CloneState.of(word, STATES), status=word,
-                           public_ip=fip.floating_ip_address, common_ip=port.fixed_ips[0]["ip_address"], origin=origin)
+                           public_ip=fip.floating_ip_address if fip else None, common_ip=port.fixed_ips[0]["ip_address"],
+                           origin=origin)
 
     def _revive(self, server):
         """A reused server must run: start a stopped one; an ERROR one is not ours to replace
@@ -228,6 +233,14 @@ class OpenStackProvider(CloudProvider):
                            state=CloneState.of(server.status, STATES), status=server.status,
                            public_ip=public, common_ip=common)
 
+    def gateway(self) -> CloneRecord | None:
+        """The fleet's entry gateway: the server of role "gateway" (its floating IP is the fleet's
+        address: kept, tagged, when the server goes, and attached again to the next one)."""
+        c = self.client
+        with c.errors("find the entry gateway"):
+            server = c.server(GATEWAY, "gateway")
+            return self._record(server) if server is not None else None
+
     def query(self) -> dict[str, CloneRecord]:
         c = self.client
         with c.errors("list clones"):
@@ -286,15 +299,21 @@ class OpenStackProvider(CloudProvider):
                     for t in f.tags if t.startswith(f"{LABEL_ROBOT}=")}
             flavors = {r: self._flavor(r) for r in robots}
             default = self._flavor(None)
+            # Behind an entry gateway a clone takes no floating IP; the gateway, while there is none,
+            # takes one server of the fleet's flavor and the fleet's one floating IP.
+            gateway = self.settings.entry == "gateway"
+            making = 1.0 if gateway and robots and c.server(GATEWAY, "gateway") is None else 0.0
             rows = [("instances", a.instances, a.instances_used, lambda f: 1.0),
                     ("cores", a.total_cores, a.total_cores_used, lambda f: float(f.vcpus)),
                     ("ram (MB)", a.total_ram, a.total_ram_used, lambda f: float(f.ram))]
             found = [Quota(name=name, scope=scope, limit=limit, used=used, per_clone=size(default),
-                           per_robot={r: size(f) for r, f in flavors.items() if size(f) != size(default)}, hint=hint)
+                           per_robot={r: size(f) for r, f in flavors.items() if size(f) != size(default)}, hint=hint,
+                           once=making * size(default))
                      for name, limit, used, size in rows if limit is not None and limit >= 0]
             if fips.get("limit") is not None and fips["limit"] >= 0:
                 found.append(Quota(name="floating-ips", scope=scope, limit=fips["limit"], used=fips.get("used") or 0,
-                                   per_clone=1, per_robot={r: 0.0 for r in robots if r in held}, hint=hint))
+                                   per_clone=0 if gateway else 1, per_robot={r: 0.0 for r in robots if r in held},
+                                   hint=hint, once=making))
             return found
 
     def _floating_ip_quota(self) -> dict:
