@@ -6,13 +6,14 @@ from __future__ import annotations
 import importlib.util
 import shutil
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 from ..errors import CcrpError
 from ..fleet import Fleet
+from ..providers.base import CloneState
 
 if TYPE_CHECKING:
-    from ..providers.base import HostImages, Provider
+    from ..providers.base import Gateways, HostImages, Provider
 
 OK, FAIL, WARN, SKIP = "ok", "fail", "warn", "skip"
 # Not needed by ccrp itself; handy for checking its work by hand.
@@ -62,6 +63,8 @@ def run(fleet: Fleet) -> list[Check]:
         checks += _credentials(provider) + _quotas(fleet, provider) + [_snapshot(fleet, provider)]
         if Ability.HOST_IMAGES in provider.abilities:
             checks.append(_snapshot_images(provider))
+        if inv.provider.entry == "gateway":
+            checks.append(_gateway(fleet, cast("Gateways", provider)))
     if inv.ros.ros2 and not info(kind).own_kernel:
         checks.append(host_receive_buffer())
     for tool, why in info(kind).host_tools:
@@ -153,6 +156,26 @@ def _snapshot(fleet: Fleet, provider: Provider) -> Check:
     if present:
         return Check("snapshot", OK, recorded)
     return Check("snapshot", FAIL, f"{recorded} is recorded but gone", f"ccrp {_build_command(provider)} -i INVENTORY")
+
+
+def _gateway(fleet: Fleet, provider: Gateways) -> Check:
+    """provider.entry: gateway: the gateway the state records is the one in the cloud, at the same
+    address, and running (the robots' bundles dial that address)."""
+    recorded = fleet.store.load_state().gateway
+    try:
+        found = provider.gateway()
+    except CcrpError as exc:
+        return _failed("entry gateway", exc)
+    if recorded is None:
+        return Check("entry gateway", OK if found is None else WARN, "none yet: `fleet up` makes it" if found is None
+                     else f"{found.provider_id} exists but the state records none", "" if found is None else "ccrp fleet up")
+    if found is None:
+        return Check("entry gateway", FAIL, f"{recorded.provider_id} ({recorded.public_ip}) is gone: robots cannot reach their clones",
+                     "ccrp fleet up (it makes the gateway again with the same address)")
+    if found.public_ip != str(recorded.public_ip) or found.state is not CloneState.RUNNING:
+        return Check("entry gateway", FAIL, f"{found.provider_id} is {found.status} at {found.public_ip or 'no address'} "
+                     f"(robots dial {recorded.public_ip})", "ccrp fleet up")
+    return Check("entry gateway", OK, f"{found.provider_id} at {found.public_ip}")
 
 
 def _snapshot_images(provider: HostImages) -> Check:

@@ -67,3 +67,50 @@ def test_the_gateway_user_data_passes_cloud_init_schema(ccrp_home, tmp_path, inv
     f.write_text(text)
     proc = subprocess.run(["cloud-init", "schema", "--config-file", str(f)], capture_output=True, text=True)
     assert proc.returncode == 0 and "Valid cloud-config" in proc.stdout, proc.stdout + proc.stderr
+
+
+def test_gc_keeps_the_gateway_the_state_records_and_only_that():
+    """`ccrp gc`: the gateway's instance, port and address (role GATEWAY, from its robot label) are the
+    fleet's while the state records a gateway; with none recorded (a `fleet up` that died before
+    saving it, so no robot has its address) they are leaks."""
+    from ccrp_cli.models.state import FleetState, GatewayRecord
+    from ccrp_cli.ops.gc import find_leaks
+    from ccrp_cli.providers.base import GATEWAY, OwnedResource, Role, with_roles
+
+    owned = with_roles([OwnedResource(kind="instance", id="i-gw", robot=GATEWAY),
+                        OwnedResource(kind="floating_ip", id="f-gw", robot=GATEWAY),
+                        OwnedResource(kind="security_group", id="sg-gw")], {"instance": Role.CLONE, "security_group": Role.BOOTSTRAP})
+    assert [r.role for r in owned] == [Role.GATEWAY, Role.GATEWAY, Role.BOOTSTRAP]
+    with_gateway = FleetState(fleet="f", gateway=GatewayRecord(provider_id="i-gw", public_ip="198.51.100.7"))
+    assert find_leaks(with_gateway, owned, []) == []
+    assert [r.id for r in find_leaks(FleetState(fleet="f"), owned, [])] == ["i-gw", "f-gw"]
+
+
+class _Cloud:
+    """What doctor asks of a backend with an entry gateway."""
+
+    def __init__(self, found):
+        self.found = found
+
+    def gateway(self):
+        return self.found
+
+
+def test_doctor_says_whether_the_gateway_the_robots_dial_is_there(ccrp_home):
+    from ccrp_cli.models.state import GatewayRecord
+    from ccrp_cli.ops.doctor import FAIL, OK, WARN, _gateway
+    from ccrp_cli.providers.base import GATEWAY, CloneRecord, CloneState
+    from tests.conftest import LAB
+
+    fleet = Fleet.open(LAB)
+    running = CloneRecord(robot=GATEWAY, provider_id="gw-1", state=CloneState.RUNNING, status="ACTIVE", public_ip="198.51.100.7")
+    assert _gateway(fleet, _Cloud(None)).status == OK  # none yet: fleet up makes it
+    assert _gateway(fleet, _Cloud(running)).status == WARN  # there, but no state records it
+    state = fleet.store.load_state()
+    state.gateway = GatewayRecord(provider_id="gw-1", public_ip="198.51.100.7")
+    fleet.store.save_state(state)
+    assert _gateway(fleet, _Cloud(running)).status == OK
+    gone = _gateway(fleet, _Cloud(None))
+    assert gone.status == FAIL and "is gone" in gone.detail and "fleet up" in gone.hint
+    moved = _gateway(fleet, _Cloud(running.model_copy(update={"public_ip": "198.51.100.8"})))
+    assert moved.status == FAIL and "robots dial 198.51.100.7" in moved.detail

@@ -45,6 +45,9 @@ BAD = {
     "bad-port": (LAB_TEXT.replace("port: 1194", "port: 70000"), "vpn.port"),
     "fkie-engine": (LAB_TEXT.replace("engine: relay", "engine: fkie"), "sharing.engine: fkie needs multimaster_fkie"),
     "unknown-engine": (LAB_TEXT.replace("engine: relay", "engine: zenoh"), "sharing.engine"),
+    "gateway-on-docker": (LAB_TEXT.replace("kind: docker", "kind: docker\n  entry: gateway"),
+                          "provider.entry: gateway: the docker backend makes no entry gateway"),
+    "unknown-entry": (LAB_TEXT.replace("kind: docker", "kind: docker\n  entry: bastion"), "provider.entry"),
 }
 
 

@@ -412,3 +412,65 @@ def test_wait_ready_gives_a_slow_cloud_its_scale_times_longer(h, monkeypatch):
     with pytest.raises(CcrpError, match="stop here"):
         h.provider.wait_ready("robot1", timeout=300)
     assert 1790 < waits[0] <= 1800
+
+
+@pytest.fixture
+def gw(h, tmp_path):
+    """The harness's cloud, with a fleet of provider.entry: gateway bootstrapped on it."""
+    h.provider.teardown()
+    inv = h.provider.inv
+    inv = inv.model_copy(update={"provider": inv.provider.model_copy(update={"entry": "gateway"})})
+    p = h.new_provider(inv, tmp_path / "gw-store")
+    p.bootstrap()
+    return p
+
+
+def gateway_spec(h, p):
+    from ccrp_cli.models.addressing import gateway_ip
+    from ccrp_cli.providers.base import GATEWAY
+
+    return h.spec("robot1", 1).model_copy(update={"robot": GATEWAY, "role": "gateway", "instance_id": "ct-gateway",
+                                                  "common_ip": str(gateway_ip(p.inv)), "vpn_subnet": None})
+
+
+def test_behind_a_gateway_clones_get_no_floating_ip_and_the_gateway_keeps_the_fleets(h, gw):
+    """provider.entry: gateway: the gateway's port is in a group of its own (the robots' ports from
+    anywhere, SSH from the operator), with the fleet's floating IP; clones have none and their group
+    lets the VPN port in from the common network only. The gateway's server deleted (by hand), the
+    next one gets the same floating IP."""
+    from ccrp_cli.models.addressing import capacity
+    from ccrp_cli.providers.base import GATEWAY
+
+    assert gw.gateway() is None
+    clone = gw.run_instance(h.spec("robot1", 1))
+    assert clone.public_ip is None and fips_of(h, "robot1") == []
+    first = gw.run_instance(gateway_spec(h, gw))
+    assert first.public_ip and first.common_ip == gateway_spec(h, gw).common_ip
+    assert gw.gateway() == first.model_copy(update={"origin": None, "robot": GATEWAY})
+    assert gw.query().keys() == {"robot1"}  # the gateway is not a clone
+    groups = {s["name"]: {(r["protocol"], r["port_range_min"], r["port_range_max"], r["remote_ip_prefix"])
+                          for r in s["security_group_rules"] if r["direction"] == "ingress"}
+              for s in h.fake.sgs.values() if f"{LABEL_FLEET}=ct" in s["tags"]}
+    vpn, operator = gw.inv.vpn, str(gw.settings.operator_cidr)
+    assert groups["ccrp-ct-gateway"] == {(vpn.proto, vpn.port + 1, vpn.port + capacity(gw.inv), "0.0.0.0/0"),
+                                         ("tcp", 22, 22, operator)}
+    assert (vpn.proto, vpn.port, vpn.port, "0.0.0.0/0") not in groups["ccrp-ct-clones"]
+    [port] = ports_of(h, GATEWAY)
+    assert port["security_groups"] == [next(s["id"] for s in h.fake.sgs.values() if s["name"] == "ccrp-ct-gateway")]
+    h.fake._delete_server(h.fake.servers[first.provider_id])  # `openstack server delete`: port and floating IP stay
+    assert gw.gateway() is None
+    again = gw.run_instance(gateway_spec(h, gw))
+    assert again.created and again.provider_id != first.provider_id and again.public_ip == first.public_ip
+    assert len(fips_of(h, GATEWAY)) == 1
+    gw.teardown()
+    assert h.owned_ids() == set()
+
+
+def test_behind_a_gateway_the_quotas_count_it_once_and_no_floating_ip_per_clone(h, gw):
+    h.fake.max_fips = 1
+    fips = {q.name: q for q in gw.quotas(["robot1", "robot2", "robot3"])}["floating-ips"]
+    instances = {q.name: q for q in gw.quotas(["robot1"])}["instances"]
+    assert fips.need(["robot1", "robot2", "robot3"]) == 1 and instances.need(["robot1"]) == 2
+    gw.run_instance(gateway_spec(h, gw))
+    fips = {q.name: q for q in gw.quotas(["robot1", "robot2", "robot3"])}["floating-ips"]
+    assert fips.need(["robot1", "robot2", "robot3"]) == 0 and fips.free == 0
