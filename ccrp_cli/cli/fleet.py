@@ -96,8 +96,8 @@ def plan(inventory: options.Inventory, as_json: options.Json = False) -> None:
 
     fleet, provider = options.open_provider(inventory)
     rows = reconcile.plan(fleet, provider)
-    output.emit(rows, as_json, ["ROBOT", "ACTION", "ID", "SOFTWARE"],
-                [(r["robot"], r["action"], r["provider_id"], r.get("software") or "") for r in rows])
+    output.emit(rows, as_json, ["ROBOT", "ACTION", "ID", "VPN ENDPOINT", "SOFTWARE"],
+                [(r["robot"], r["action"], r["provider_id"], r.get("endpoint") or "", r.get("software") or "") for r in rows])
     if not as_json:
         quota_table(provider, [r["robot"] for r in rows if r["action"] == "create"])
 

@@ -291,6 +291,10 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
             provider.terminate(robot)  # roll back only what this attempt created
         raise
     endpoint = gateway.endpoint(fleet, state, robot) if gateway.in_use(fleet) else (record.endpoint or record.public_ip)
+    before = rec.public_endpoint
+    if before and endpoint != before:  # a new address, or the fleet's entry changed: the robot's bundle dials the old
+        progress(f"[{robot}] its robot now dials {endpoint} (was {before}): give it its new bundle, "
+                 f"`ccrp robot bundle {robot}`")
     writer.update(
         robot, phase="ready", provider_id=record.provider_id, public_endpoint=endpoint,
         # The snapshot's id (one image may carry several names): a reused clone keeps its own.

@@ -73,3 +73,13 @@ def ensure(fleet: Fleet, provider: Provider, state: FleetState, progress: Progre
         raise CcrpError(f"the entry gateway {record.provider_id} has no public address")
     state.gateway = GatewayRecord(provider_id=record.provider_id, public_ip=ipaddress.IPv4Address(record.public_ip))
     return record
+
+
+def retire(fleet: Fleet, provider: Provider, state: FleetState, progress: Progress) -> None:
+    """The fleet went back to provider.entry: per-clone: its gateway and the address it held go
+    (each clone gets its own, and its robot a new bundle)."""
+    if state.gateway is None:
+        return
+    progress(f"entry gateway {state.gateway.public_ip}: no longer used (provider.entry: per-clone), deleting it")
+    provider.terminate(GATEWAY)
+    state.gateway = None

@@ -8,7 +8,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor, wait
 from typing import TYPE_CHECKING, cast
 
-from ..models.addressing import allocate
+from ..models.addressing import allocate, entry_port
 from . import gateway
 from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
 from ..errors import CcrpError, InputError
@@ -49,11 +49,27 @@ def plan(fleet: Fleet, provider: Lifecycle) -> list[dict]:
         else:
             action = "configure"
         rows.append({"robot": name, "action": action, "provider_id": rec.provider_id if rec else None,
-                     "software": _software_note(state, name, stale, inventory_software) if rec is not None else None})
+                     "software": _software_note(state, name, stale, inventory_software) if rec is not None else None,
+                     "endpoint": _endpoint_note(fleet, state, name)})
     for name, rec in actual.items():
         if name not in members:
             rows.append({"robot": name, "action": "delete (not in fleet)", "provider_id": rec.provider_id})
     return rows
+
+
+def _endpoint_note(fleet: Fleet, state: FleetState, robot: str) -> str | None:
+    """Where the robot will dial its clone after `fleet up`, said when it is not where its bundle
+    dials now (the fleet's provider.entry changed: the robot needs its new bundle)."""
+    rec = state.robots.get(robot)
+    have = rec.public_endpoint if rec else None
+    if gateway.in_use(fleet):
+        want = gateway.endpoint(fleet, state, robot) or f"the entry gateway's port {entry_port(fleet.inventory, rec.index)}" \
+            if rec else "the entry gateway"
+    elif state.gateway is not None and have is not None and have.startswith(f"{state.gateway.public_ip}:"):
+        want = "its clone's own address"
+    else:
+        return have
+    return want if have in (None, want) else f"{want} (was {have}: new robot bundle)"
 
 
 def _software_note(state: FleetState, robot: str, stale: str | None, inventory_software: str | None = None) -> str | None:
@@ -142,8 +158,8 @@ def up(fleet: Fleet, provider: Provider, progress: Progress, only: list[str] | N
     if not quotas_checked:
         check_growth(fleet, provider, targets, progress)
     provider.bootstrap()
-    if gateway.in_use(fleet):  # before the clones: their robots' endpoints are its address
-        gateway.ensure(fleet, provider, state, progress)
+    if gateway.in_use(fleet) or state.gateway is not None:  # before the clones: their robots' endpoints are its address
+        (gateway.ensure if gateway.in_use(fleet) else gateway.retire)(fleet, provider, state, progress)
         with writer.lock:
             fleet.store.save_state(state)
     # Every missing certificate in one write (ensure_clone then finds them): per robot, this

@@ -114,3 +114,26 @@ def test_doctor_says_whether_the_gateway_the_robots_dial_is_there(ccrp_home):
     assert gone.status == FAIL and "is gone" in gone.detail and "fleet up" in gone.hint
     moved = _gateway(fleet, _Cloud(running.model_copy(update={"public_ip": "198.51.100.8"})))
     assert moved.status == FAIL and "robots dial 198.51.100.7" in moved.detail
+
+
+def test_fleet_plan_says_where_each_robot_will_dial_when_the_entry_changes(ccrp_home):
+    """`fleet plan`'s endpoint: a fleet moving behind a gateway, or back, names the robots whose
+    bundle dials the old place (they need their new one)."""
+    from ccrp_cli.models.state import GatewayRecord
+    from ccrp_cli.ops.reconcile import _endpoint_note
+    from tests.conftest import LAB
+
+    fleet = Fleet.open(LAB)
+    state = fleet.load_allocated()
+    state.robots["nao1"].public_endpoint = "172.30.0.10"
+    assert _endpoint_note(fleet, state, "nao1") == "172.30.0.10"  # per-clone, as it was
+    gw = fleet.inventory.model_copy(update={"provider": fleet.inventory.provider.model_copy(update={"entry": "gateway"})})
+    fleet.inventory = gw
+    port = entry_port(gw, state.robots["nao1"].index)
+    assert _endpoint_note(fleet, state, "nao1") == f"the entry gateway's port {port} (was 172.30.0.10: new robot bundle)"
+    state.gateway = GatewayRecord(provider_id="gw", public_ip="198.51.100.7")
+    assert _endpoint_note(fleet, state, "nao1") == f"198.51.100.7:{port} (was 172.30.0.10: new robot bundle)"
+    state.robots["nao1"].public_endpoint = f"198.51.100.7:{port}"
+    assert _endpoint_note(fleet, state, "nao1") == f"198.51.100.7:{port}"
+    fleet.inventory = gw.model_copy(update={"provider": gw.provider.model_copy(update={"entry": "per-clone"})})
+    assert _endpoint_note(fleet, state, "nao1") == f"its clone's own address (was 198.51.100.7:{port}: new robot bundle)"

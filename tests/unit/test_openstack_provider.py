@@ -474,3 +474,15 @@ def test_behind_a_gateway_the_quotas_count_it_once_and_no_floating_ip_per_clone(
     gw.run_instance(gateway_spec(h, gw))
     fips = {q.name: q for q in gw.quotas(["robot1", "robot2", "robot3"])}["floating-ips"]
     assert fips.need(["robot1", "robot2", "robot3"]) == 0 and fips.free == 0
+
+
+def test_a_clone_kept_when_its_fleet_moves_behind_a_gateway_gives_its_floating_ip_back(h, tmp_path):
+    rec = h.provider.run_instance(h.spec("robot1", 1))
+    assert rec.public_ip and len(fips_of(h, "robot1")) == 1
+    inv = h.provider.inv
+    p = h.new_provider(inv.model_copy(update={"provider": inv.provider.model_copy(update={"entry": "gateway"})}),
+                       h.provider.workdir)  # the same fleet store: the same operator key
+    p.bootstrap()
+    again = p.run_instance(h.spec("robot1", 1))
+    assert again.origin is Origin.REUSED and again.provider_id == rec.provider_id
+    assert again.public_ip is None and fips_of(h, "robot1") == []

@@ -276,7 +276,7 @@ def test_aws_fleet_up_plan_and_scale_refuse_over_elastic_ips(moto_url, ccrp_home
     assert "`fleet up` would refuse, creating nothing: aws quota EC2-VPC Elastic IPs in region us-east-1: " \
            "4 free, this needs 5" in plan.stderr
     assert json.loads(ccrp("fleet", "plan", "-i", str(path), "--json").stdout)[0] == {
-        "robot": "robot1", "action": "create", "provider_id": None, "software": None}
+        "robot": "robot1", "action": "create", "provider_id": None, "software": None, "endpoint": None}
 
     up = ccrp("fleet", "up", "-i", str(path))
     assert up.returncode == 1

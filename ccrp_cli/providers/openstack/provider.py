@@ -110,9 +110,12 @@ class OpenStackProvider(CloudProvider):
                     server = across_zones(self._zones(spec.robot), lambda z: self._boot(spec, port, user_data, z, created),
                                           classify=c.classify_error, what=f"server for {spec.robot}",
                                           exhausted=self._build_failed)
-                # Behind an entry gateway a clone has no floating IP: its robot comes through the gateway's.
+                # Behind an entry gateway a clone has no floating IP (one it had before the fleet's entry
+                # changed is released): its robot comes through the gateway's.
                 public = spec.role != "clone" or self.settings.entry != "gateway"
                 fip = self._floating_ip(spec, port, ext, created) if public else None
+                if not public:
+                    self._release_floating_ips(spec)
             except BaseException as exc:  # Ctrl-C too: what this attempt made must not linger
                 left = self._rollback(created)
                 if not left or not (isinstance(exc, CcrpError) or errors.is_sdk_error(exc)):
@@ -209,6 +212,11 @@ class OpenStackProvider(CloudProvider):
                                  description=f"ccrp fleet {self.fleet}: clone of {robot}")
         created.append(("floating_ip", fip))
         return fip
+
+    def _release_floating_ips(self, spec: CloneSpec) -> None:
+        c = self.client
+        for fip in c.tagged("fips", spec.role, spec.robot):
+            owned.delete(c, OwnedResource(kind="floating_ip", id=fip.id, name=fip.floating_ip_address or "", robot=spec.robot))
 
     def _rollback(self, created: list) -> list[str]:
         """Delete what this attempt created, newest first; what could not go is reported."""
