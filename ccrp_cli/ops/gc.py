@@ -15,7 +15,7 @@ fleet's gc would ever see them again. `collect_images` has the backend sweep the
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, cast
+from typing import TYPE_CHECKING, Any, Callable, cast
 
 from ..errors import CcrpError
 from ..models.state import FleetState
@@ -32,7 +32,7 @@ class GcResult:
     action: str  # leak | orphan | unlabelled (dry run, or not removed) | kept | deleted | failed
     detail: str = ""
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         # The role is gc's own reading; the rows show what the backend calls the resource.
         return {**self.resource.model_dump(exclude={"role"}), "action": self.action, "detail": self.detail}
 

@@ -11,6 +11,7 @@ from ..providers.base import SnapshotRecord
 from ..services.workloads import NO_SOFTWARE, SnapshotSoftware
 
 if TYPE_CHECKING:
+    from ..models.inventory import Inventory
     from ..models.state import FleetState
     from ..providers.base import Bake, CloneRecord, Images, Lifecycle, LocalBuild, Provider, Reaches
 
@@ -65,7 +66,7 @@ def _use(fleet: Fleet, record: SnapshotRecord, bare: bool = False, image: str | 
 # -- clouds: bake a snapshot on a builder instance ----------------------------------------------------
 
 BUILDER = "snapshot-builder"  # its robot label: the hyphen keeps it out of robot names' alphabet
-def _builder_common_ip(inv) -> str:
+def _builder_common_ip(inv: Inventory) -> str:
     """Just below the clones' range; near the top of the subnet when that would hit the addresses
     clouds keep for gateways and DHCP (AWS keeps .1-.3, GCP the second-to-last)."""
     net, first = inv.common.cidr, inv.common.first_host
