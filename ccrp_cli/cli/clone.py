@@ -15,7 +15,7 @@ app = typer.Typer(help="One robot's clone: create, start, stop, restart, delete,
 @app.command()
 def create(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Create the robot's clone from the fleet's snapshot (idempotent: reuses an existing one)."""
-    from ..ops.verbs import clone_create
+    from ..ops.clone import clone_create
 
     fleet, provider = options.open_provider(inventory)
     raise typer.Exit(output.results(clone_create(fleet, provider, robot, output.info), as_json))
@@ -25,7 +25,7 @@ def create(inventory: options.Inventory, robot: options.Robot, as_json: options.
 def start(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Start the robot's stopped clone (stopped by autostop or in the cloud's console): its disk is as it
     was; ccrp pushes its keys again and waits until it serves. A running clone is left as it is."""
-    from ..ops.verbs import clone_start
+    from ..ops.clone import clone_start
 
     fleet, provider = options.open_provider(inventory)
     items = clone_start(fleet, provider, robot, output.info)
@@ -36,7 +36,7 @@ def start(inventory: options.Inventory, robot: options.Robot, as_json: options.J
 def stop(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Stop the robot's clone: it costs no compute while stopped, its disk and keys stay. `ccrp clone
     start` (or the next `fleet up`) starts it again. Stopped already: left as it is."""
-    from ..ops.verbs import clone_stop
+    from ..ops.clone import clone_stop
 
     fleet, provider = options.open_provider(inventory)
     raise typer.Exit(output.results(clone_stop(fleet, provider, robot, output.info), as_json))
@@ -46,7 +46,7 @@ def stop(inventory: options.Inventory, robot: options.Robot, as_json: options.Js
 def restart(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Stop the robot's clone and start it again, then wait until it serves: the cure for a clone
     that no longer answers, since the provider stops it, not the clone itself."""
-    from ..ops.verbs import clone_restart
+    from ..ops.clone import clone_restart
 
     fleet, provider = options.open_provider(inventory)
     raise typer.Exit(output.results(clone_restart(fleet, provider, robot, output.info), as_json))
@@ -55,7 +55,7 @@ def restart(inventory: options.Inventory, robot: options.Robot, as_json: options
 @app.command()
 def delete(inventory: options.Inventory, robot: options.Robot, as_json: options.Json = False) -> None:
     """Delete the robot's clone and its secrets volume (the robot keeps its certificates and addresses)."""
-    from ..ops.verbs import clone_delete
+    from ..ops.clone import clone_delete
 
     fleet, provider = options.open_provider(inventory)
     raise typer.Exit(output.results(clone_delete(fleet, provider, robot, output.info), as_json))

@@ -58,7 +58,7 @@ def validate(inventory: options.Inventory, as_json: options.Json = False) -> Non
 @app.command()
 def up(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Create or reuse every robot's clone, in parallel (idempotent; safe to re-run after a crash)."""
-    from ..ops.verbs import fleet_up
+    from ..ops.fleet import fleet_up
 
     fleet, provider = options.open_provider(inventory)
     raise typer.Exit(output.results(fleet_up(fleet, provider, output.info), as_json))
@@ -71,7 +71,7 @@ def scale(
     as_json: options.Json = False,
 ) -> None:
     """Grow or shrink the fleet to SIZE clones with template robots (inventory robots always stay)."""
-    from ..ops.verbs import fleet_scale
+    from ..ops.fleet import fleet_scale
 
     fleet, provider = options.open_provider(inventory)
     items = fleet_scale(fleet, provider, size, output.info)
@@ -81,7 +81,7 @@ def scale(
 @app.command()
 def down(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Remove every container, network and volume ccrp created for the fleet (PKI and state stay)."""
-    from ..ops.verbs import fleet_down
+    from ..ops.fleet import fleet_down
 
     fleet, provider = options.open_provider(inventory)
     removed = fleet_down(fleet, provider, output.info)

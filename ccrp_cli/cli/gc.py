@@ -21,7 +21,7 @@ def gc(
     Known: recorded clones, their public IPs/volumes/routes, the fleet's network, firewall and key
     pair, and its snapshots. On Docker, also snapshot images of any fleet whose state directory
     is gone (orphans). Run with --dry-run first to see what would go."""
-    from ..ops.verbs import gc
+    from ..ops.gc import gc
 
     fleet, provider = options.open_provider(inventory)
     leaks, images = gc(fleet, provider, dry_run, unlabelled, output.info)

@@ -87,7 +87,7 @@ def teleop(
     """Send one velocity command to the robot through its clone (published on the clone's master,
     as an operator's node there would) and report its latency: clone publish -> robot receipt,
     and the round trip to the robot's acknowledgement on <topic>/ack (docs/dashboard.md)."""
-    from ..ops.verbs import robot_teleop
+    from ..ops.robot import robot_teleop
     from ..robot.evaluation import check_command
     from ..providers import get_provider
 
@@ -133,7 +133,7 @@ def power(
                     "then set CCRP_POWER_RELAY_COMMAND in /etc/ccrp/power.env")
         typer.echo(str(path))
         return
-    from ..ops.verbs import robot_power
+    from ..ops.robot import robot_power
 
     r = robot_power(fleet, robot, action, output.info, timeout)
     state = r["robot_state"] + (f" (device silent for {r['age_s']:.0f} s)" if r["silent"] else "")

@@ -29,7 +29,7 @@ def build(
     from ..providers import Ability
 
     fleet, provider = options.open_provider(inventory, Ability.LOCAL_BUILD, "the golden image is baked in the cloud: `ccrp snapshot bake`")
-    from ..ops.verbs import snapshot_build
+    from ..ops.snapshots import snapshot_build
 
     record = snapshot_build(fleet, provider, output.info, if_missing, bare)
     _show([record], as_json)
@@ -46,7 +46,7 @@ def bake(
     from ..providers import Ability
 
     fleet, provider = options.open_provider(inventory, Ability.BAKE, "the golden image is built on this host: `ccrp snapshot build`")
-    from ..ops.verbs import snapshot_bake
+    from ..ops.snapshots import snapshot_bake
 
     record = snapshot_bake(fleet, provider, output.info, base_image, timeout)
     output.info(f"snapshot {record.name} ({record.id}) recorded: new clones of fleet {fleet.name!r} start from it")
@@ -61,7 +61,7 @@ def create(
     as_json: options.Json = False,
 ) -> None:
     """Capture a configured clone as a snapshot (its secrets volume is not included)."""
-    from ..ops.verbs import snapshot_create
+    from ..ops.snapshots import snapshot_create
 
     fleet, provider = options.open_provider(inventory)
     record = snapshot_create(fleet, provider, robot, use)
@@ -88,7 +88,7 @@ def delete(
     force: Annotated[bool, typer.Option(help="Delete even the snapshot new clones use.")] = False,
 ) -> None:
     """Delete a snapshot."""
-    from ..ops.verbs import snapshot_delete
+    from ..ops.snapshots import snapshot_delete
 
     fleet, provider = options.open_provider(inventory)
     snapshot_delete(fleet, provider, snapshot, force)

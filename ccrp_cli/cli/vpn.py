@@ -64,7 +64,7 @@ def issue_cert(
     """Issue the robot's client certificate and its clone's server certificate.
 
     Also the one way back in for a revoked robot (with a new password and tls-crypt key)."""
-    from ..ops.verbs import vpn_issue
+    from ..ops.vpn import vpn_issue
 
     records = vpn_issue(options.open_fleet(inventory), robot, renew, output.info)
     if not as_json:
@@ -83,7 +83,7 @@ def revoke(
     as_json: options.Json = False,
 ) -> None:
     """Revoke the robot's certificates: its live session ends and every running clone gets the CRL."""
-    from ..ops.verbs import vpn_revoke
+    from ..ops.vpn import vpn_revoke
 
     fleet = options.open_fleet(inventory)
     records = vpn_revoke(fleet, _provider(fleet), robot, output.info, cert.value)

@@ -59,12 +59,15 @@ def results(items: list) -> list[dict]:
 
 def fleet_actions(inventory: Path) -> dict:
     """The page's actions: each opens the fleet as a CLI run does and calls the CLI's own body
-    (ccrp_cli.ops.verbs), which takes the fleet lock; the provider it opened is closed after it (a
+    (ccrp_cli.ops: the code map in docs/architecture.md), which takes the fleet lock; the provider it opened is closed after it (a
     cloud's SSH sessions would pile up in a dashboard left running for days)."""
     from contextlib import contextmanager
 
-    from ..ops import verbs
     from ..fleet import Fleet
+    from ..ops.clone import clone_restart as restart, clone_start as start
+    from ..ops.fleet import fleet_scale as scale
+    from ..ops.robot import robot_power as power
+    from ..ops.vpn import vpn_revoke as revoke
     from ..providers import get_provider
 
     def fresh(what: str, say) -> Fleet:
@@ -84,24 +87,24 @@ def fleet_actions(inventory: Path) -> dict:
 
     def clone_start(args: dict, say) -> list[dict]:
         with opened(f"clone start {args['robot']}", say) as (fleet, provider):
-            return results(verbs.clone_start(fleet, provider, args["robot"], say))
+            return results(start(fleet, provider, args["robot"], say))
 
     def clone_restart(args: dict, say) -> list[dict]:
         with opened(f"clone restart {args['robot']}", say) as (fleet, provider):
-            return results(verbs.clone_restart(fleet, provider, args["robot"], say))
+            return results(restart(fleet, provider, args["robot"], say))
 
     def vpn_revoke(args: dict, say) -> list[dict]:
         with opened(f"vpn revoke {args['robot']}", say) as (fleet, provider):
-            records = verbs.vpn_revoke(fleet, provider, args["robot"], say)
+            records = revoke(fleet, provider, args["robot"], say)
         say(f"revoked {len(records)} certificate(s) of robot {args['robot']!r}; CRL re-issued")
         return [{"cn": r["cn"], "profile": r["profile"], "serial": r["serial"]} for r in records]
 
     def fleet_scale(args: dict, say) -> list[dict]:
         with opened(f"fleet scale {args['size']}", say) as (fleet, provider):
-            return results(verbs.fleet_scale(fleet, provider, args["size"], say))
+            return results(scale(fleet, provider, args["size"], say))
 
     def robot_power(args: dict, say) -> dict:
-        r = verbs.robot_power(fresh(f"robot power {args['state']} {args['robot']}", say), args["robot"], args["state"], say)
+        r = power(fresh(f"robot power {args['state']} {args['robot']}", say), args["robot"], args["state"], say)
         say(f"{r['robot']}: power {r['power']}, robot {r['robot_state']} (device report {r['reported_at']})")
         return r
 
@@ -109,14 +112,14 @@ def fleet_actions(inventory: Path) -> dict:
 
 
 def teleop_sender(fleet, provider: Lifecycle):
-    """The drive keys' body: `ccrp robot teleop` (ccrp_cli.verbs.robot_teleop) on the fleet the
+    """The drive keys' body: `ccrp robot teleop` (ccrp_cli.ops.robot.robot_teleop) on the fleet the
     dashboard opened: a command changes nothing ccrp records, so it needs no fresh state nor the
     fleet lock."""
-    from ..ops import verbs
+    from ..ops.robot import robot_teleop
 
     def send(robot: str, linear: float, angular: float) -> dict:
         # keep: an operator node stays up on the clone between key presses (evaluation.send_command)
-        return verbs.robot_teleop(fleet, provider, robot, linear, angular, keep=True)
+        return robot_teleop(fleet, provider, robot, linear, angular, keep=True)
 
     def close() -> None:
         from ..robot.evaluation import stop_operators

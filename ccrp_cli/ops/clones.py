@@ -10,7 +10,7 @@ import json
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, cast
 
 from ..errors import CcrpError
 from ..fleet import Fleet, clone_view, snapshot_image
@@ -31,6 +31,10 @@ from ..providers.base import (
     Reaches,
     cloud_init_clean,
 )
+
+if TYPE_CHECKING:
+    from ..render.files import BundleFile
+    from ..render.view import CloneView
 
 Progress = Callable[[str], None]
 
@@ -53,7 +57,7 @@ class StateWriter:
         configs then would make every no-op `fleet up` reconfigure sharing twice)."""
         return self.ready_before | {n for n, rec in list(self.state.robots.items()) if rec.phase == "ready"}
 
-    def update(self, robot: str, **fields) -> None:
+    def update(self, robot: str, **fields: object) -> None:
         with self.lock:
             rec = self.state.robots[robot]
             for k, v in fields.items():
@@ -69,7 +73,7 @@ class CloneResult:
     seconds: float = 0.0
     origin: Origin | None = None  # what the provider did to have the clone (ensure_clone)
 
-    def row(self) -> tuple:
+    def row(self) -> tuple[str, str, str, str]:
         return (self.robot, self.action, f"{self.seconds:.1f}s", self.detail)
 
 
@@ -157,17 +161,17 @@ class Probe:
     serving: bool  # VPN server up and the master answering
 
 
-def serving_port(inv) -> str:
+def serving_port(inv: Inventory) -> str:
     """What SERVING_SH checks besides the VPN: the master's port, or `ros2` (no master)."""
     return "ros2" if inv.ros.ros2 else str(inv.ros.master_port)
 
 
-def probe(provider: Reaches, robot: str, master_port: int | str, files: list) -> Probe | None:
+def probe(provider: Reaches, robot: str, master_port: int | str, files: list[BundleFile]) -> Probe | None:
     """What `fleet up` must know of a running clone, in one command: None when the probe could not
     run (the caller then asks the long way)."""
     try:
         rc, out = provider.transport.exec(robot, ["bash", "-c", PROBE_SH, MGMT_SOCKET, str(master_port),
-                                          *(f.dest for f in files)], timeout=20)
+                                          *(cast(str, f.dest) for f in files)], timeout=20)  # pushed files: each has its dest
     except CcrpError:
         return None
     head, sep, rest = out.partition("== result\n")
@@ -189,7 +193,7 @@ def wait_serving(provider: Reaches, robot: str, master_port: int | str, timeout:
         raise CcrpError(f"clone {clone_host(robot)} is not serving after {waited:.0f} s: {detail}")
 
 
-def clone_user_data(view, provider: Housekeeping, bare: bool) -> str:
+def clone_user_data(view: CloneView, provider: Housekeeping, bare: bool) -> str:
     """A cloud clone gets ccrp's login user (render/view.py LOGIN_USER) with the fleet's operator key:
     the SSH transport logs in as it. A Docker clone has no login user; its transport is the Docker API."""
     from ..render import cloudinit

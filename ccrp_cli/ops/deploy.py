@@ -39,18 +39,18 @@ from ..render.files import BundleFile
 from ..services.workloads import (
     INDEX,
     NO_SOFTWARE,
+    DeployInputs,
     SnapshotSoftware,
     Stopped,
     absent_index,
     apply_nodes,
     last_lines,
-    node_files,
     node_health,
     packages_record,
-    snapshot_software,
 )
 
 if TYPE_CHECKING:
+    from ..models.inventory import Inventory
     from ..models.state import FleetState
     from ..providers.base import Provider, Reaches
 
@@ -244,9 +244,9 @@ class Change:
         return "; ".join(parts)
 
 
-def probe(fleet: Fleet, provider: Reaches, state: FleetState, robot: str, new: str) -> Change:
-    """What robot's clone runs (one round trip) against the inventory's software `new`."""
-    files = node_files(fleet.inventory, fleet.robot(state, robot), new)
+def probe(inputs: DeployInputs, provider: Reaches, state: FleetState, robot: str) -> Change:
+    """What robot's clone runs (one round trip) against the inventory's software and nodes."""
+    new, files = inputs.digest, inputs.nodes[robot]
     probed = files or [absent_index()]
     # Files pushed to the clone: each has its dest.
     out = _script(provider, robot, "probe", *(cast(str, f.dest) for f in probed), timeout=30)
@@ -330,7 +330,7 @@ def _package_diff(have: str, want: str) -> str:
 
 # -- the build --------------------------------------------------------------------------------------
 
-def build_install_space(fleet: Fleet, software: SnapshotSoftware, progress: Progress) -> bytes:
+def build_install_space(inv: Inventory, software: SnapshotSoftware, progress: Progress) -> bytes:
     """The tar of the install space (top directory `workspace/`) built from `software` in the
     fleet's clone image, on this host's Docker engine whatever the fleet's backend."""
     from ..providers import build_workspace
@@ -344,7 +344,7 @@ def build_install_space(fleet: Fleet, software: SnapshotSoftware, progress: Prog
             tar.addfile(info)
         return buf.getvalue()
     # In the snapshot's own image (its agents too), so the build finds the snapshot's layers cached.
-    data = build_workspace(fleet.inventory, software, image_agents(), progress)
+    data = build_workspace(inv, software, image_agents(), progress)
     if len(data) > MAX_INSTALL_BYTES:
         raise CcrpError(f"the workspace's install space is {len(data) >> 20} MB, more than deploy pushes "
                         f"({MAX_INSTALL_BYTES >> 20} MB)", hint="build a new snapshot and re-create the clones")
@@ -484,8 +484,8 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
 
     state = fleet.store.load_state()
     names = targets(fleet, state, robot, type_)
-    software = snapshot_software(fleet.inventory, fleet.path)  # read and checked before anything
-    check_packages(state, names, software)
+    inputs = DeployInputs.read(fleet, state, names)  # read and checked before anything
+    check_packages(state, names, inputs.software)
     running = {n for n, rec in provider.query().items() if rec.state is CloneState.RUNNING}
     results: dict[str, CloneResult] = {}
     for name in names:
@@ -498,7 +498,7 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     stop = threading.Event()  # set by _fan_out on Ctrl-C: the pool's threads never see it
 
     def look(name: str) -> CloneResult:
-        changes[name] = probe(fleet, provider, state, name, software.digest)
+        changes[name] = probe(inputs, provider, state, name)
         return CloneResult(name, "probed")
 
     for r in _fan_out(look, live, progress, provider, stop):
@@ -514,13 +514,13 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     # A clone rolled back from a stopped deploy may then need the workspace.
     if any(ch.workspace or ch.unsettled for ch in changes.values()):
         # One build for every clone; a failure leaves every clone as it was.
-        tar_b64 = base64.b64encode(build_install_space(fleet, software, progress)).decode()
+        tar_b64 = base64.b64encode(build_install_space(inputs.inventory, inputs.software, progress)).decode()
     writer = StateWriter(fleet, state)
     todo = [n for n in live if n in changes]
 
     def one(name: str) -> CloneResult:
         return apply(provider, writer, changes[name], tar_b64, progress, stop,
-                     lambda: probe(fleet, provider, state, name, software.digest))
+                     lambda: probe(inputs, provider, state, name))
 
     for r in _fan_out(one, todo, progress, provider, stop):
         results[r.robot] = r

@@ -6,7 +6,7 @@ from __future__ import annotations
 import importlib.util
 import shutil
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from ..errors import CcrpError
 from ..fleet import Fleet
@@ -62,7 +62,7 @@ def run(fleet: Fleet) -> list[Check]:
     if provider is not None:
         checks += _credentials(provider) + _quotas(fleet, provider) + [_snapshot(fleet, provider)]
         if Ability.HOST_IMAGES in provider.abilities:
-            checks.append(_snapshot_images(provider))
+            checks.append(_snapshot_images(cast("HostImages", provider)))
         if inv.provider.entry == "gateway":
             checks.append(_gateway(fleet, cast("Gateways", provider)))
     if inv.ros.ros2 and not info(kind).own_kernel:
@@ -97,7 +97,7 @@ def host_receive_buffer(path: str = RMEM_DEFAULT) -> Check:
                  f"sysctl -w net.core.rmem_default={ROS2_RMEM} net.core.rmem_max={ROS2_RMEM} (every process of this host)")
 
 
-def _provider(fleet: Fleet):
+def _provider(fleet: Fleet) -> tuple[Provider | None, Check]:
     from ..providers import get_provider, info
 
     kind = fleet.inventory.provider.kind
@@ -191,5 +191,5 @@ def _build_command(provider: Provider) -> str:
     return "snapshot build" if Ability.LOCAL_BUILD in provider.abilities else "snapshot bake"
 
 
-def as_dicts(checks: list[Check]) -> list[dict]:
+def as_dicts(checks: list[Check]) -> list[dict[str, Any]]:
     return [asdict(c) for c in checks]

@@ -15,13 +15,14 @@ fleet's gc would ever see them again. `collect_images` has the backend sweep the
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable, cast
 
 from ..errors import CcrpError
 from ..models.state import FleetState
-from ..providers.base import OwnedResource, Role, SnapshotRecord
+from ..providers.base import Ability, OwnedResource, Role, SnapshotRecord
 
 if TYPE_CHECKING:
+    from ..fleet import Fleet
     from ..providers.base import HostImages, Provider
 
 
@@ -31,7 +32,7 @@ class GcResult:
     action: str  # leak | orphan | unlabelled (dry run, or not removed) | kept | deleted | failed
     detail: str = ""
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         # The role is gc's own reading; the rows show what the backend calls the resource.
         return {**self.resource.model_dump(exclude={"role"}), "action": self.action, "detail": self.detail}
 
@@ -87,3 +88,19 @@ def collect_images(provider: HostImages, dry_run: bool, unlabelled: bool = False
     made again (orphans), and those from before the labels (unlabelled), with what became of
     each (the backend's sweep_images says which it may remove)."""
     return [GcResult(o.resource, o.action, o.detail) for o in provider.sweep_images(dry_run, unlabelled, progress)]
+
+
+def gc(fleet: Fleet, provider: Provider, dry_run: bool, unlabelled: bool,
+       say: Callable[[str], None]) -> tuple[list[GcResult], list[GcResult]]:
+    """`ccrp gc`: the fleet's leaked resources, and on a host that keeps the snapshot images
+    (Ability.HOST_IMAGES) the orphan images, deleted unless `dry_run`: (leaks, images)."""
+    if not dry_run and not fleet.store.state_path.exists():
+        # Without state every owned resource looks leaked: a wrong CCRP_HOME would wipe the fleet.
+        raise CcrpError(f"no state for fleet {fleet.name!r} in {fleet.store.root}: everything would count as a leak",
+                        hint="run where the fleet's state lives (CCRP_HOME), `ccrp gc --dry-run` to look, or `ccrp fleet down`")
+    with fleet.store.lock():  # no `fleet up` may create clones while we decide what is a leak
+        leaks = collect(fleet.store.load_state(), provider, dry_run, say, fleet.inventory.snapshots.keep)
+        images: list[GcResult] = []
+        if Ability.HOST_IMAGES in provider.abilities:  # snapshot images live on this host, whatever their state
+            images = collect_images(cast("HostImages", provider), dry_run, unlabelled, say)
+    return leaks, images

@@ -5,7 +5,7 @@ from __future__ import annotations
 import ipaddress
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..errors import InputError, cannot_write, shown
 from ..store import ccrp_home
@@ -93,7 +93,7 @@ def default_fleet() -> str:
 
 
 def write(path: Path, provider: str, robots: list[str], fleet: str, distro: str = DEFAULT_DISTRO,
-          cloud: str = "") -> dict:
+          cloud: str = "") -> dict[str, Any]:
     """Write the first inventory of `provider` (empty: init's default backend) to `path`; with
     `cloud`, the backend's values asked of that cloud (InitSection.discover)."""
     from ..models.names import check_name

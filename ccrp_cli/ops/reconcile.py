@@ -5,8 +5,9 @@ from __future__ import annotations
 import json
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor, wait
-from typing import TYPE_CHECKING, cast
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor, wait
+from typing import TYPE_CHECKING, Any, cast
 
 from ..models.addressing import allocate, entry_port
 from . import gateway
@@ -24,7 +25,7 @@ if TYPE_CHECKING:
     from ..providers.base import Lifecycle, Provider, Reaches
 
 
-def plan(fleet: Fleet, provider: Lifecycle) -> list[dict]:
+def plan(fleet: Fleet, provider: Lifecycle) -> list[dict[str, Any]]:
     """Read-only: what `fleet up` would do for every robot."""
     state = fleet.store.load_state()
     actual = provider.query()
@@ -87,7 +88,7 @@ def _software_note(state: FleetState, robot: str, stale: str | None, inventory_s
     return None
 
 
-def _fan_out(fn, robots: list[str], progress: Progress, provider: Lifecycle,
+def _fan_out(fn: Callable[[str], CloneResult], robots: list[str], progress: Progress, provider: Lifecycle,
              stop: threading.Event | None = None) -> list[CloneResult]:
     """fn(robot) for every robot on a pool bounded by the provider: its max_parallel says how many
     clones it can create at once (CPU-bound local containers vs API-latency-bound clouds).
@@ -138,7 +139,7 @@ def _fan_out(fn, robots: list[str], progress: Progress, provider: Lifecycle,
     return [f.result() for f in futures]
 
 
-def _wait_all(futures) -> None:
+def _wait_all(futures: list[Future[CloneResult]]) -> None:
     """Until every future is done, waking every 0.5 s: Ctrl-C is then seen at once whichever of the
     process's threads the signal reached (the main thread's handler runs at its next wake)."""
     while not all(f.done() for f in futures):

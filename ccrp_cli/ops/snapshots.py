@@ -310,3 +310,68 @@ def delete(fleet: Fleet, provider: Images, snapshot: str, force: bool) -> None:
     if snapshot in (current.get("image"), current.get("id")):
         state.snapshot = None
         fleet.store.save_state(state)
+
+
+def snapshot_build(fleet: Fleet, provider: Provider, say: Progress, if_missing: bool = False,
+                   bare: bool = False) -> SnapshotRecord:
+    """`ccrp snapshot build`: the golden image from the recipe, recorded for new clones. With
+    `if_missing`, the recorded one is kept while its image exists and holds the inventory's
+    software."""
+    from ..services.workloads import stale_snapshot
+
+    with fleet.store.lock():
+        recorded = fleet.store.load_state().snapshot or {}
+        current = recorded.get("image")
+        # Kept only while it holds the inventory's software (a changed workspace needs a new one).
+        if if_missing and current and provider.has_image(current) and bool(recorded.get("bare")) == bare \
+                and stale_snapshot(fleet, fleet.store.load_state()) is None:
+            kept = [s for s in provider.list_snapshots() if s.id == recorded.get("id") or s.name == current]
+            if kept:
+                say(f"snapshot {current} exists; new clones start from it")
+                return kept[0]
+        return _build_retained(fleet, provider, say, bare)
+
+
+def _build_retained(fleet: Fleet, provider: Provider, say: Progress, bare: bool = False) -> SnapshotRecord:
+    """Build the golden image, record it, drop the snapshots retention lets go (under the fleet lock)."""
+    record = build(fleet, provider, say, bare=bare)
+    retain(fleet, provider, say)
+    say(f"snapshot {record.name} recorded: new clones of fleet {fleet.name!r} start from it")
+    return record
+
+
+def ensure_snapshot(fleet: Fleet, provider: Provider, say: Progress, robots: list[str] | None = None) -> None:
+    """A new Docker fleet's golden image is built by the first command that creates a clone, as
+    `ccrp snapshot build` would (the caller holds the fleet lock). A cloud's is baked on purpose
+    (`ccrp snapshot bake`: a builder instance, minutes, billed), so there the clone says so.
+    The clones of `robots` (default: every member) are held against the quotas first: a host
+    without room for them refuses before minutes of building (and a GB of libvirt pool)."""
+    from .quotas import check_growth
+    from ..providers import Ability
+
+    recorded = fleet.store.load_state().snapshot or {}
+    if Ability.LOCAL_BUILD not in provider.abilities or (recorded.get("image") and provider.has_image(recorded["image"])):
+        return
+    check_growth(fleet, provider, [r.name for r in fleet.members(fleet.load_allocated())] if robots is None else robots, say)
+    say(f"fleet {fleet.name!r} has no snapshot yet: building it (as `ccrp snapshot build`)")
+    _build_retained(fleet, provider, say)
+
+
+def snapshot_bake(fleet: Fleet, provider: Provider, say: Progress, base_image: str | None, timeout: float) -> SnapshotRecord:
+    """`ccrp snapshot bake`: a builder instance installs the recipe, is captured, then terminated."""
+    with fleet.store.lock():
+        record = bake(fleet, provider, say, base_image=base_image, timeout=timeout)
+        retain(fleet, provider, say)
+    return record
+
+
+def snapshot_create(fleet: Fleet, provider: Images, robot: str, use: bool) -> SnapshotRecord:
+    """`ccrp snapshot create`: capture a configured clone as a snapshot."""
+    with fleet.store.lock():
+        return create(fleet, provider, robot, use)
+
+
+def snapshot_delete(fleet: Fleet, provider: Images, snapshot: str, force: bool) -> None:
+    """`ccrp snapshot delete`."""
+    with fleet.store.lock():
+        delete(fleet, provider, snapshot, force)

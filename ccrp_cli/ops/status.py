@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..services.registry import SERVICES
 from ..errors import CcrpError
@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from ..providers.base import Provider
 
 
-def service_fields(fleet: Fleet, state: FleetState, robot: Robot, h: dict | None) -> dict:
+def service_fields(fleet: Fleet, state: FleetState, robot: Robot, h: dict[str, Any] | None) -> dict[str, Any]:
     """The fields of robot's row that its clone services give (services/registry.py), from the clone's
     health report (None: the clone was not asked)."""
     return {k: v for service in SERVICES for k, v in service.status(fleet, state, robot, h).items()}

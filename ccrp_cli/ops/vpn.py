@@ -161,3 +161,28 @@ def _record(fleet: Fleet, rec: Any) -> dict[str, Any]:
         "revoked_at": rec.revoked_at.isoformat() if rec.revoked_at else None,
         "path": str(fleet.pki.root / rec.cert_path),
     }
+
+
+def ensure_pki(fleet: Fleet, say: Callable[[str], None]) -> None:
+    """A new fleet's PKI is made by the first command that needs it, as `ccrp vpn init` would
+    (which takes the fleet lock: call this before taking it)."""
+    if fleet.pki.exists():
+        return
+    made = init(fleet)
+    say(f"fleet {fleet.name!r} had no PKI yet: created its CA {made['ca']} (as `ccrp vpn init`)")
+
+
+def vpn_issue(fleet: Fleet, robot: str, renew: bool, say: Callable[[str], None]) -> list[dict[str, Any]]:
+    """`ccrp vpn issue-cert`: the robot's client and its clone's server certificates (the PKI
+    first if the fleet has none); with `renew`, a running clone takes the new set at once."""
+    from ..providers import get_provider
+
+    fleet.robot(fleet.store.load_state(), robot)
+    ensure_pki(fleet, say)
+    return issue(fleet, robot, renew, get_provider(fleet.inventory) if renew else None, say)
+
+
+def vpn_revoke(fleet: Fleet, provider: Provider, robot: str, say: Callable[[str], None],
+               cert: str = "client") -> list[dict[str, Any]]:
+    """`ccrp vpn revoke`: revoke the robot's certificates, end its session, push the CRL."""
+    return revoke(fleet, robot, cert, provider, say)

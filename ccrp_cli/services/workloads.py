@@ -12,6 +12,7 @@ import hashlib
 import json
 import re
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -285,6 +286,25 @@ def node_files(inv: Inventory, robot: Robot, software_digest: str) -> list[Bundl
         index[node.name] = digest
     return files + [BundleFile("workloads.json", json.dumps({"nodes": index, "software": software_digest}) + "\n",
                                0o644, INDEX)]
+
+
+@dataclass(frozen=True)
+class DeployInputs:
+    """What `ccrp deploy` takes from the inventory, read once before anything changes: the software
+    (the workspace's files and packages) with its digest, and per target robot its node units and
+    index at that digest. ops/deploy.py reads the inventory only through it."""
+    inventory: Inventory  # handed on whole to the install space's build (providers.build_workspace)
+    software: SnapshotSoftware
+    digest: str  # software.digest, hashed once (it covers the whole workspace)
+    nodes: Mapping[str, list[BundleFile]]  # robot -> node_files at `digest`
+
+    @classmethod
+    def read(cls, fleet: Fleet, state: FleetState, robots: list[str]) -> DeployInputs:
+        """The inventory's software read and checked (InputError), the node files of `robots`."""
+        inv = fleet.inventory
+        software = snapshot_software(inv, fleet.path)
+        digest = software.digest
+        return cls(inv, software, digest, {r: node_files(inv, fleet.robot(state, r), digest) for r in robots})
 
 
 # Brings the clone's node units in line with the index just pushed ($1: the nodes to keep, then

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from ccrp_cli.ops import verbs
+from ccrp_cli.ops.clone import clone_start
 from ccrp_cli.ops import reconcile
 from ccrp_cli.ops.clones import CloneResult
 from ccrp_cli.errors import InputError
@@ -38,14 +38,14 @@ def test_clone_start_reports_what_the_provider_did(lab, monkeypatch, before, ori
         return [CloneResult(only[0], "reused", "198.51.100.7", 1.0, origin)]
 
     monkeypatch.setattr(reconcile, "up", up)
-    items = verbs.clone_start(lab, Clones(nao1=before), "nao1", say=lambda line: None)
+    items = clone_start(lab, Clones(nao1=before), "nao1", say=lambda line: None)
     assert ups == [["nao1"]] and [(i.robot, i.action) for i in items] == [("nao1", said)]
 
 
 def test_clone_start_refuses_a_robot_without_a_clone_and_creates_nothing(lab, monkeypatch):
     monkeypatch.setattr(reconcile, "up", lambda *a, **k: pytest.fail("fleet up ran"))
     with pytest.raises(InputError, match="no clone to start"):
-        verbs.clone_start(lab, Clones(nao2=CloneState.RUNNING), "nao1", say=lambda line: None)
+        clone_start(lab, Clones(nao2=CloneState.RUNNING), "nao1", say=lambda line: None)
 
 
 def test_a_record_is_created_only_when_the_provider_made_it():

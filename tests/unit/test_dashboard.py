@@ -313,13 +313,13 @@ def test_events_reach_an_open_page_without_a_reload():
 def test_scale_below_the_inventory_changes_nothing(ccrp_home):
     """Bad input from the page or the CLI: one line, before any PKI or snapshot is made (it used to
     build the fleet's snapshot first, and retention then removed an older one)."""
-    from ccrp_cli.ops import verbs
     from ccrp_cli.fleet import Fleet
+    from ccrp_cli.ops.fleet import fleet_scale
     from tests.conftest import LAB
 
     fleet = Fleet.open(LAB)
     with pytest.raises(InputError, match="names 3 robots in its inventory; cannot scale to 1"):
-        verbs.fleet_scale(fleet, None, 1, lambda line: pytest.fail(f"said {line!r}"))
+        fleet_scale(fleet, None, 1, lambda line: pytest.fail(f"said {line!r}"))
     assert not fleet.pki.exists()
 
 

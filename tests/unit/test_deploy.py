@@ -362,8 +362,7 @@ def killed_after_the_swap(fleet: Fleet, clones: Clones, robot: str) -> str:
 
     fleet = Fleet.open(fleet.path)
     state = fleet.store.load_state()
-    software = snapshot_software(fleet.inventory, fleet.path)
-    change = deploy.probe(fleet, clones, state, robot, software.digest)
+    change = deploy.probe(workloads.DeployInputs.read(fleet, state, [robot]), clones, state, robot)
     tar = base64.b64encode(install_tar("v2")).decode()
     clones.exec(robot, ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
     clones.at(robot, f"{deploy.DEPLOY_DIR}/{change.new}.tar.b64").write_text(tar)

@@ -809,12 +809,12 @@ def test_doctor_runs_on_a_libvirt_fleet(tmp_path, ccrp_home, monkeypatch):
 
 def test_a_host_without_room_refuses_before_the_golden_volume_is_built(tmp_path, ccrp_home, monkeypatch):
     """`fleet up`, `clone create` and `fleet scale` of a fleet with no snapshot build one first
-    (verbs.ensure_snapshot: minutes, a GB of pool): the quotas are checked before that build,
+    (snapshots.ensure_snapshot: minutes, a GB of pool): the quotas are checked before that build,
     for the clones the command would create (measured: `fleet up` built the golden volume, 116 s,
     and only then refused)."""
-    from ccrp_cli.ops import verbs
     from ccrp_cli.fleet import Fleet
     from ccrp_cli.ops import quotas, snapshots
+    from ccrp_cli.ops.fleet import fleet_scale
 
     built: list = []
     monkeypatch.setattr(snapshots, "build", lambda *a, **k: built.append(a))
@@ -824,16 +824,16 @@ def test_a_host_without_room_refuses_before_the_golden_volume_is_built(tmp_path,
     (tmp_path / "ccrp.yaml").write_text(yaml.safe_dump(data))
     p.client.conn.doms.pop(1)
     fleet = Fleet.open(tmp_path / "ccrp.yaml")
-    for call, needs in ((lambda: verbs.ensure_snapshot(fleet, p, print), 2),
-                        (lambda: verbs.ensure_snapshot(fleet, p, print, robots=["nao1"]), 2),
-                        (lambda: verbs.fleet_scale(fleet, p, 3, print), 6)):  # nao1, sim1, sim2
+    for call, needs in ((lambda: snapshots.ensure_snapshot(fleet, p, print), 2),
+                        (lambda: snapshots.ensure_snapshot(fleet, p, print, robots=["nao1"]), 2),
+                        (lambda: fleet_scale(fleet, p, 3, print), 6)):  # nao1, sim1, sim2
         with pytest.raises(quotas.QuotaError, match=f"0 free, this needs {needs}$"):
             call()
     assert built == [] and set(fleet.store.load_state().robots) == {"nao1"}
     p.client.conn.doms.clear()  # room again: the build goes ahead
     monkeypatch.setattr(snapshots, "retain", lambda *a: None)
     monkeypatch.setattr(snapshots, "build", lambda *a, **k: built.append(a) or type("R", (), {"name": "g"}))
-    verbs.ensure_snapshot(fleet, p, print)
+    snapshots.ensure_snapshot(fleet, p, print)
     assert len(built) == 1
 
 
