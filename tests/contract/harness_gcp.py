@@ -66,6 +66,11 @@ class FakeOperation(ExtendedOperation):
         return self._extended_operation.http_error_message
 
 
+def quota_exceeded(metric: str, limit: float) -> str:
+    """GCE's text for a request over a regional quota (the limit as GCE prints it: 8.0)."""
+    return f"Quota '{metric}' exceeded.  Limit: {float(limit)} in region {REGION}."
+
+
 def inventory(zones: list[str] | None = None, **provider) -> Inventory:
     return specs.inventory({"kind": "gcp", "project": PROJECT, "region": REGION, "zones": zones or ZONES[:2],
                             "operator_cidr": specs.OPERATOR_CIDR, **provider})
@@ -338,11 +343,10 @@ class FakeProject:
         # Accepted: from here on failures are operation errors, as GCE reports them.
         if self._vcpus() + VCPUS.get(tail(inst.machine_type), 2) > self.cpu_quota:
             return self._operation(link, "insert", req.request_id, 403, "QUOTA_EXCEEDED",
-                                   f"Quota 'CPUS' exceeded.  Limit: {self.cpu_quota} in region {REGION}.")
+                                   quota_exceeded("CPUS", self.cpu_quota))
         if self._in_use_addresses() + len(nic.access_configs) > self.in_use_address_quota:
             return self._operation(link, "insert", req.request_id, 403, "QUOTA_EXCEEDED",
-                                   f"Quota 'IN_USE_ADDRESSES' exceeded.  Limit: {self.in_use_address_quota} in "
-                                   f"region {REGION}.")
+                                   quota_exceeded("IN_USE_ADDRESSES", self.in_use_address_quota))
         if req.zone in self.exhausted:
             return self._operation(link, "insert", req.request_id, 503, "ZONE_RESOURCE_POOL_EXHAUSTED",
                                    f"The zone 'projects/{PROJECT}/zones/{req.zone}' does not have enough resources "
@@ -566,7 +570,7 @@ class FakeProject:
         if want.name not in self.addresses and len(self.addresses) >= self.address_quota:
             return self._operation(self._link(f"regions/{req.region}/addresses/{want.name}"), "insert",
                                    req.request_id, 403, "QUOTA_EXCEEDED",
-                                   f"Quota 'STATIC_ADDRESSES' exceeded.  Limit: {self.address_quota} in region {REGION}.")
+                                   quota_exceeded("STATIC_ADDRESSES", self.address_quota))
 
         def prepare(address):
             address.region = self._link(f"regions/{req.region}")

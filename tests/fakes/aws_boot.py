@@ -21,6 +21,8 @@ the fake is open (mock.patch, undone on close):
   one connects the instance's container to that network at that address; disassociating or
   releasing disconnects it. So ccrp (on the host) reaches an instance's public IP over SSH.
   Unlike EC2, the public address is on an interface of the instance (EC2 NATs it to the private IP).
+  As on EC2, a region holds at most EIP_LIMIT of them: the `vpc-max-elastic-ips` moto reports (AWS's
+  default) but does not enforce; one more is refused 400 AddressLimitExceeded.
 - StopInstances / StartInstances / TerminateInstances: `stopping`/`pending`/`shutting-down` while
   the container stops, starts or is removed, then `stopped`/`running`/`terminated`. An instance
   whose container exited by itself (powered off from inside) is `stopped`, as EC2 does.
@@ -83,6 +85,7 @@ DEBIAN_SSM = "/aws/service/debian/release/bookworm/latest/amd64"
 INTERNET_RANGE = "172.28.0.0/16"
 BYPASS_HEADER = "X-Ccrp-Fake-Bypass"
 CONSOLE_BYTES = 64 * 1024        # EC2 keeps the most recent 64 KiB of an instance's console
+EIP_LIMIT = 5                    # Elastic IPs per region: AWS's default, moto's vpc-max-elastic-ips
 
 # EC2 instance states (name, code)
 PENDING, RUNNING, SHUTTING_DOWN, TERMINATED, STOPPING, STOPPED = (
@@ -450,6 +453,10 @@ class AwsBoot:
                 fake.boot.remove_image(ref)
 
         def allocate_address(backend, domain, address=None, tags=None):
+            from moto.ec2.exceptions import EC2ClientError
+
+            if len(backend.addresses) >= EIP_LIMIT:
+                raise EC2ClientError("AddressLimitExceeded", "The maximum number of addresses has been reached.")
             return orig["allocate_address"](backend, domain, address=address or fake._free_public_ip(), tags=tags)
 
         def associate_address(backend, *args, **kwargs):

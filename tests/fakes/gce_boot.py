@@ -56,12 +56,12 @@ from google.cloud import compute_v1 as c
 from ccrp_cli.providers.gcp.ownership import tail
 from tests.contract.harness_gcp import (
     PROJECT,
-    REGION,
     FakeOperation,
     FakeProject,
     _copy,
     _not_found,
     _request,
+    quota_exceeded,
 )
 
 from .cloudboot import DEBIAN_12
@@ -270,7 +270,7 @@ class BootingProject(FakeProject):
             # GCE's usual answer to an insert over a regional quota: the request itself is refused
             # (no operation, so its requestId is not spent).
             self.quota_refusals -= 1
-            raise exceptions.Forbidden(f"Quota 'CPUS' exceeded.  Limit: {self.cpu_quota} in region {REGION}.",
+            raise exceptions.Forbidden(quota_exceeded("CPUS", self.cpu_quota),
                                        errors=[{"reason": "quotaExceeded", "domain": "usageLimits"}])
         op = super()._instances_insert(req)
         if op.error_code:

@@ -110,7 +110,7 @@ class FakeOpenStack(NeutronApi):
         self.max_instances = 100
         self.max_cores = 200
         self.max_ram = 409_600
-        self.max_fips = 50
+        self.max_fips = 50  # Neutron's default (quota_floatingip), as in a new project
         self.refuse_auth = False  # Keystone refuses the credentials (401), as for a wrong password
         self.fail_fip_for: set[str] = set()  # robots whose next floating IP request fails
         self.fail_next: dict[tuple[str, str], tuple[int, str]] = {}  # (METHOD, "host:/template") -> one error

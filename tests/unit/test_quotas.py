@@ -6,7 +6,10 @@ answer injected where moto has none); every fake counts usage from what exists."
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import re
+import sys
 
 import pytest
 
@@ -350,3 +353,157 @@ def test_aws_without_service_quotas_counts_running_instances(aws_env, tmp_path):
                                          "operator_cidr": specs.OPERATOR_CIDR}), tmp_path / "store")
         got = {q.name: (q.limit, q.used, q.per_clone) for q in p.quotas(["robot1"])}
         assert got == {"EC2-VPC Elastic IPs": (5, 0, 1), "max-instances (running instances)": (20, 0, 1)}
+
+
+# -- the fakes hold their cloud's default address quotas and refuse the one over as the cloud does ----
+
+def quota_rows(plan: str) -> dict[str, list[str]]:
+    """The rows of `fleet plan`'s quota table: quota -> its other columns."""
+    lines = plan.splitlines()
+    table = lines[next(n for n, line in enumerate(lines) if line.startswith("QUOTA ")) + 1:]
+    return {cells[0]: cells[1:] for line in table if len(cells := re.split(r"\s{2,}", line.strip())) > 1}
+
+
+class _NoDocker:
+    """What an AwsBoot asks of its CloudBoot before any instance boots: here no Docker at all (its
+    "internet" a range nothing uses, Elastic IPs only allocated, never attached)."""
+
+    def base_image(self) -> str:
+        from tests.fakes.cloudboot import DEBIAN_12
+
+        return DEBIAN_12
+
+    def claim_network(self, name: str, within: str, prefix: int = 24) -> tuple[str, str]:
+        return name, "172.28.250.0/24"
+
+    def cleanup(self) -> None:
+        pass
+
+
+@pytest.fixture
+def aws_boot(aws_env):
+    """The booting EC2 fake (tests/fakes/aws_boot.py), served for requests that boot nothing."""
+    pytest.importorskip("moto.server")
+    pytest.importorskip("docker")
+    from tests.fakes.aws_boot import AwsBoot
+
+    with AwsBoot(boot=_NoDocker(), progress=lambda _m: None) as fake:
+        yield fake
+
+
+def test_aws_fake_refuses_the_elastic_ip_over_the_regions_default_as_ec2_does(aws_boot):
+    from botocore.exceptions import ClientError
+
+    from ccrp_cli.providers.aws.errors import classify
+    from ccrp_cli.retry import ErrorClass
+    from tests.fakes.aws_boot import EIP_LIMIT
+
+    ec2 = aws_boot.client()
+    attrs = {a["AttributeName"]: a["AttributeValues"] for a in ec2.describe_account_attributes()["AccountAttributes"]}
+    assert EIP_LIMIT == 5 and attrs["vpc-max-elastic-ips"] == [{"AttributeValue": "5"}]  # what it enforces is what it says
+    held = [ec2.allocate_address(Domain="vpc")["AllocationId"] for _ in range(EIP_LIMIT)]
+    with pytest.raises(ClientError) as err:
+        ec2.allocate_address(Domain="vpc")
+    assert err.value.response["ResponseMetadata"]["HTTPStatusCode"] == 400
+    assert err.value.response["Error"] == {"Code": "AddressLimitExceeded",
+                                           "Message": "The maximum number of addresses has been reached."}
+    assert classify(err.value) is ErrorClass.REGION
+    assert len(ec2.describe_addresses()["Addresses"]) == EIP_LIMIT
+    ec2.release_address(AllocationId=held[0])  # one released: one more fits again
+    ec2.allocate_address(Domain="vpc")
+
+
+def test_aws_fleet_plan_of_ten_robots_does_not_fit_the_default_elastic_ips(aws_boot, ccrp, tmp_path, monkeypatch):
+    for key, value in aws_boot.env().items():
+        monkeypatch.setenv(key, value)
+    plan = ccrp("fleet", "plan", "-i", str(write_inventory(tmp_path / "aws.yaml", 10)))
+    assert plan.returncode == 0, plan.stderr
+    assert quota_rows(plan.stdout) == {  # where, limit, used, per clone, this needs, free after
+        "EC2-VPC Elastic IPs": ["region us-east-1", "5", "0", "1", "10", "-5 (short)"],
+        "max-instances (running instances)": ["region us-east-1", "20", "0", "1", "10", "10"]}
+    assert "`fleet up` would refuse, creating nothing: aws quota EC2-VPC Elastic IPs in region us-east-1: " \
+           "5 free, this needs 10 (hint: " in plan.stderr  # the addresses alone are short
+
+
+def test_gce_fake_refuses_the_address_over_each_default_quota_as_gce_does(gcp):
+    from google.api_core import exceptions
+    from google.cloud import compute_v1 as c
+
+    from ccrp_cli.providers.gcp.errors import classify
+    from ccrp_cli.retry import ErrorClass
+    from tests.contract.harness_gcp import PROJECT, PUBLIC_IMAGE, REGION as GCP_REGION, ZONES
+
+    h = gcp()  # a new project's quotas: 8 static addresses, 8 external IPs in use
+    addresses = h.fake.clients.addresses
+    for n in range(8):
+        addresses.insert(project=PROJECT, region=GCP_REGION, address_resource=c.Address(name=f"a{n}")).result()
+    with pytest.raises(exceptions.Forbidden) as err:
+        addresses.insert(project=PROJECT, region=GCP_REGION, address_resource=c.Address(name="a8")).result()
+    assert err.value.code == 403 and classify(err.value) is ErrorClass.REGION
+    assert str(err.value.message) == "Quota 'STATIC_ADDRESSES' exceeded.  Limit: 8.0 in region europe-west2."
+    assert len(h.fake.addresses) == 8
+
+    subnet = next(iter(h.fake.subnetworks.values()))
+    hosts = list(ipaddress.ip_network(subnet.ip_cidr_range).hosts())[10:]
+
+    def insert(n: int):
+        return h.fake.clients.instances.insert(project=PROJECT, zone=ZONES[0], instance_resource=c.Instance(
+            name=f"vm{n}", machine_type=f"zones/{ZONES[0]}/machineTypes/e2-micro",
+            disks=[c.AttachedDisk(boot=True, initialize_params=c.AttachedDiskInitializeParams(source_image=PUBLIC_IMAGE))],
+            network_interfaces=[c.NetworkInterface(subnetwork=subnet.self_link, network_i_p=str(hosts[n]),
+                                                   access_configs=[c.AccessConfig(name="External NAT")])])).result()
+
+    for n in range(8):
+        insert(n)
+    with pytest.raises(exceptions.Forbidden) as err:
+        insert(8)
+    assert err.value.code == 403 and classify(err.value) is ErrorClass.REGION
+    assert str(err.value.message) == "Quota 'IN_USE_ADDRESSES' exceeded.  Limit: 8.0 in region europe-west2."
+    assert len(h.fake.instances) == 8
+    got = {q.name: (q.limit, q.used) for q in h.provider.quotas(["robot1"])}
+    assert got["STATIC_ADDRESSES"] == (8, 8) and got["IN_USE_ADDRESSES"] == (8, 8)
+
+
+def test_gcp_fleet_plan_of_ten_robots_does_not_fit_the_default_addresses(gcp, tmp_path, monkeypatch, capsys):
+    from ccrp_cli import providers
+    from ccrp_cli.cli.main import run
+    from ccrp_cli.providers.gcp.provider import GcpProvider
+    from tests.contract.harness_gcp import PROJECT, REGION as GCP_REGION, ZONES
+
+    h = gcp()
+    path = tmp_path / "gcp.yaml"
+    path.write_text(f"fleet: quotas\nprovider: {{kind: gcp, project: {PROJECT}, region: {GCP_REGION}, "
+                    f"zones: [{ZONES[0]}], operator_cidr: 198.51.100.0/24}}\nrobots:\n"
+                    + "".join(f"  - name: robot{i}\n" for i in range(1, 11)))
+    monkeypatch.setattr(providers, "get_provider",
+                        lambda inv, workdir=None: GcpProvider(inv, tmp_path / "store", clients=h.fake.clients))
+    monkeypatch.setattr(sys, "argv", ["ccrp", "fleet", "plan", "-i", str(path)])
+    with pytest.raises(SystemExit) as done:
+        run()
+    out = capsys.readouterr()
+    assert done.value.code == 0, out.err
+    assert quota_rows(out.out) == {  # where, limit, used, per clone, this needs, free after
+        "CPUS": ["region europe-west2", "24", "0", "2", "20", "4"],
+        "IN_USE_ADDRESSES": ["region europe-west2", "8", "0", "1", "10", "-2 (short)"],
+        "STATIC_ADDRESSES": ["region europe-west2", "8", "0", "1", "10", "-2 (short)"]}
+    assert ("`fleet up` would refuse, creating nothing: gcp quota IN_USE_ADDRESSES in region europe-west2: 8 free, "
+            "this needs 10; gcp quota STATIC_ADDRESSES in region europe-west2: 8 free, this needs 10") in out.err
+
+
+def test_openstack_fake_refuses_the_floating_ip_over_neutrons_default_as_neutron_does(openstack):
+    from openstack.exceptions import ConflictException
+
+    from ccrp_cli.providers.openstack.errors import classify
+    from ccrp_cli.retry import ErrorClass
+
+    h = openstack
+    assert h.fake.max_fips == 50  # Neutron's default quota_floatingip
+    assert {q.name: (q.limit, q.used) for q in h.provider.quotas()}["floating-ips"] == (50, 0)
+    net = h.provider.client.network
+    public = net.find_network("public")
+    for _ in range(50):
+        net.create_ip(floating_network_id=public.id)
+    with pytest.raises(ConflictException) as err:
+        net.create_ip(floating_network_id=public.id)
+    assert err.value.status_code == 409 and "Quota exceeded for resources: ['floatingip']." in str(err.value)
+    assert classify(err.value) is ErrorClass.REGION and len(h.fake.fips) == 50
