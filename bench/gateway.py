@@ -32,44 +32,12 @@ sys.path.insert(0, str(ROOT))
 from ccrp_cli.models.addressing import entry_port, gateway_ip  # noqa: E402
 from ccrp_cli.render import gateway  # noqa: E402
 from ccrp_cli.render.bundles import edge_bundle, write_bundle  # noqa: E402
-from tests.e2e.vpnlab import COMPLETED, OpenVPNProcess, build_fleet, serve_clone, sh, wait_for  # noqa: E402
+from tests.e2e.vpnlab import COMPLETED, PINGS, OpenVPNProcess, build_fleet, serve_clone, sh, wait_for  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 NS = {p: f"ccrp-bench-{p}-{os.getpid()}" for p in ("robot", "gateway", "clone")}
 GATEWAY_PUBLIC, ROBOT_PUBLIC = "198.51.100.1/24", "198.51.100.2/24"
 CLONE_DIRECT, ROBOT_DIRECT = "192.0.2.1/24", "192.0.2.2/24"
-
-# N ICMP echoes, 10 ms apart, from inside a namespace: one RTT (ms) per answered echo, as JSON.
-PINGS = r"""
-import json, os, socket, struct, sys, time
-
-def checksum(b):
-    s = sum(struct.unpack(f"!{len(b) // 2}H", b))
-    s = (s >> 16) + (s & 0xFFFF)
-    return ~(s + (s >> 16)) & 0xFFFF
-
-target, count, ident, rtts = sys.argv[1], int(sys.argv[2]), os.getpid() & 0xFFFF, []
-with socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_ICMP) as s:
-    s.settimeout(1.0)
-    for seq in range(count):
-        header = struct.pack("!BBHHH", 8, 0, 0, ident, seq)
-        packet = struct.pack("!BBHHH", 8, 0, checksum(header + b"ccrp-bench"), ident, seq) + b"ccrp-bench"
-        t0 = time.perf_counter()
-        s.sendto(packet, (target, 0))
-        while True:
-            try:
-                data, (source, _) = s.recvfrom(2048)
-            except TimeoutError:
-                break
-            ihl = (data[0] & 0x0F) * 4
-            kind, _, _, rid, rseq = struct.unpack("!BBHHH", data[ihl:ihl + 8])
-            if source == target and kind == 0 and rid == ident and rseq == seq:
-                rtts.append((time.perf_counter() - t0) * 1000)
-                break
-        time.sleep(0.01)
-print(json.dumps(rtts))
-"""
-
 
 def ns(place: str, *argv: str, check: bool = True):
     return sh("ip", "netns", "exec", NS[place], *argv, check=check)

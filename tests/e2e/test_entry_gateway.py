@@ -23,18 +23,11 @@ import pytest
 from ccrp_cli.models.addressing import entry_port, gateway_ip
 from ccrp_cli.render import gateway
 from ccrp_cli.render.bundles import edge_bundle, write_bundle
-from tests.e2e.vpnlab import COMPLETED, OPENVPN, Lab, OpenVPNProcess, build_fleet, ping, serve_clone, sh, wait_for
+from tests.e2e.vpnlab import COMPLETED, NEEDS, Lab, OpenVPNProcess, build_fleet, ping, serve_clone, sh, wait_for
 
 LAB = Path(__file__).resolve().parents[2] / "inventories" / "lab.yaml"
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.root,
-    pytest.mark.skipif(os.geteuid() != 0, reason="needs root for network namespaces and tun devices"),
-    pytest.mark.skipif(not os.access(OPENVPN, os.X_OK), reason=f"{OPENVPN} is not installed"),
-    pytest.mark.skipif(not os.path.exists("/dev/net/tun"), reason="/dev/net/tun is missing (no tun support)"),
-    pytest.mark.skipif(shutil.which("iptables-restore") is None, reason="iptables is not installed"),
-]
+pytestmark = [*NEEDS, pytest.mark.skipif(shutil.which("iptables-restore") is None, reason="iptables is not installed")]
 
 NS = {place: f"ccrp-e2e-{place}-gw-{os.getpid()}" for place in ("robot", "gateway", "clone")}
 PUBLIC_NET, GATEWAY_PUBLIC, ROBOT_PUBLIC = "198.51.100.0/24", "198.51.100.1", "198.51.100.2"

@@ -26,18 +26,11 @@ from ccrp_cli.render import openvpn
 from ccrp_cli.render.bundles import clone_secrets, edge_bundle, write_bundle
 from ccrp_cli.render.view import CloneView
 from tests.e2e.vpnlab import (
-    COMPLETED, OPENVPN, Lab, OpenVPNProcess, build_fleet, ping, serve_clone, sh, wait_for,
+    COMPLETED, NEEDS, Lab, OpenVPNProcess, build_fleet, ping, serve_clone, sh, wait_for,
 )
 LAB = Path(__file__).resolve().parents[2] / "inventories" / "lab.yaml"
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.root,
-    pytest.mark.skipif(os.geteuid() != 0, reason="needs root for network namespaces and tun devices"),
-    pytest.mark.skipif(not os.access(OPENVPN, os.X_OK), reason=f"{OPENVPN} is not installed"),
-    pytest.mark.skipif(not os.path.exists("/dev/net/tun"), reason="/dev/net/tun is missing (no tun support)"),
-    pytest.mark.skipif(shutil.which("ip") is None, reason="iproute2 (`ip`) is not installed"),
-]
+pytestmark = NEEDS
 
 # Unique per run, so that parallel runs on one host never meet.
 NS_CLONE = f"ccrp-e2e-clone-{os.getpid()}"

@@ -37,37 +37,54 @@ def sh(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
 
 
 # An ICMP echo from inside a namespace, without depending on iputils-ping being installed.
-ICMP_ECHO = r"""
-import os, socket, struct, sys, time
+# COUNT ICMP echoes, 10 ms apart, from inside a namespace (iputils-ping need not be installed): one
+# round trip (ms) per echo answered within a second, as JSON.
+PINGS = r"""
+import json, os, socket, struct, sys, time
 
 def checksum(b):
     s = sum(struct.unpack(f"!{len(b) // 2}H", b))
     s = (s >> 16) + (s & 0xFFFF)
     return ~(s + (s >> 16)) & 0xFFFF
 
-target, ident, payload = sys.argv[1], os.getpid() & 0xFFFF, b"ccrp-e2e"
-header = struct.pack("!BBHHH", 8, 0, 0, ident, 1)
-packet = struct.pack("!BBHHH", 8, 0, checksum(header + payload), ident, 1) + payload
+target, count, ident, rtts = sys.argv[1], int(sys.argv[2]), os.getpid() & 0xFFFF, []
 with socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_ICMP) as s:
     s.settimeout(1.0)
-    s.sendto(packet, (target, 0))
-    deadline = time.monotonic() + 1.0
-    while time.monotonic() < deadline:
-        try:
-            data, (source, _) = s.recvfrom(2048)
-        except TimeoutError:
-            break
-        ihl = (data[0] & 0x0F) * 4
-        kind, _, _, reply_id, _ = struct.unpack("!BBHHH", data[ihl : ihl + 8])
-        if source == target and kind == 0 and reply_id == ident:
-            sys.exit(0)
-sys.exit(1)
+    for seq in range(count):
+        header = struct.pack("!BBHHH", 8, 0, 0, ident, seq)
+        packet = struct.pack("!BBHHH", 8, 0, checksum(header + b"ccrp-bench"), ident, seq) + b"ccrp-bench"
+        t0 = time.perf_counter()
+        s.sendto(packet, (target, 0))
+        while True:
+            try:
+                data, (source, _) = s.recvfrom(2048)
+            except TimeoutError:
+                break
+            ihl = (data[0] & 0x0F) * 4
+            kind, _, _, rid, rseq = struct.unpack("!BBHHH", data[ihl:ihl + 8])
+            if source == target and kind == 0 and rid == ident and rseq == seq:
+                rtts.append((time.perf_counter() - t0) * 1000)
+                break
+        time.sleep(0.01)
+print(json.dumps(rtts))
 """
 
 
 def ping(netns: str, ip: object) -> bool:
     """One ICMP echo from `netns` to `ip`, answered within a second."""
-    return sh("ip", "netns", "exec", netns, sys.executable, "-c", ICMP_ECHO, str(ip), check=False).returncode == 0
+    out = sh("ip", "netns", "exec", netns, sys.executable, "-c", PINGS, str(ip), "1", check=False).stdout
+    return out.strip() not in ("", "[]")
+
+
+# What a module of these tests needs of this machine.
+NEEDS = [
+    pytest.mark.slow,
+    pytest.mark.root,
+    pytest.mark.skipif(os.geteuid() != 0, reason="needs root for network namespaces and tun devices"),
+    pytest.mark.skipif(not os.access(OPENVPN, os.X_OK), reason=f"{OPENVPN} is not installed"),
+    pytest.mark.skipif(not os.path.exists("/dev/net/tun"), reason="/dev/net/tun is missing (no tun support)"),
+    pytest.mark.skipif(shutil.which("ip") is None, reason="iproute2 (`ip`) is not installed"),
+]
 
 
 def wait_for(predicate: Callable[[], object], timeout: float, interval: float = 0.1) -> bool:
