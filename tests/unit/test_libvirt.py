@@ -905,3 +905,13 @@ def test_the_host_sets_a_vm_clones_clock_through_its_guest_agent(tmp_path, monke
     mute.calls = -10**9
     monkeypatch.setattr(p.client, "domain", lambda robot: (mute, None))
     assert p.sync_clock("nao1", timeout=0) is None and mute.calls == -10**9 + 1 and mute.set == []
+
+
+def test_libvirts_passing_refusals_are_retried_and_its_real_answers_are_not():
+    from ccrp_cli.providers.libvirt.client import transient
+
+    cgroup = ("Unable to read from '/var/lib/docker/overlay2/45bd/merged/sys/fs/cgroup/unified/machine/"
+              "qemu-84-ccrp-ct-cri-robot2.libvirt-qemu/cgroup.controllers': No such file or directory")
+    assert transient(cgroup) and transient("cannot refresh pool: asynchronous jobs running") and transient("x", rpc=True)
+    assert not transient("Unable to read from '/dev/sda': Permission denied")
+    assert not transient("Requested operation is not valid: domain is already running")

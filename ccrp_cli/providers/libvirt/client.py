@@ -29,6 +29,15 @@ def _sdk():
     return libvirt
 
 
+def transient(message: str, rpc: bool = False) -> bool:
+    """libvirt's answers worth another try: a dropped RPC connection; a pool refreshed while a volume
+    is written ("asynchronous jobs running"); a domain started while the cgroup of its previous run
+    is still being removed ("Unable to read from '.../cgroup.controllers'", met in CI when a clone
+    stopped and was started at once under load). Anything else is libvirt's real answer."""
+    return rpc or "asynchronous jobs running" in message or (
+        message.startswith("Unable to read from") and "/cgroup" in message)
+
+
 class LibvirtClient:
     backoff = Backoff()
 
@@ -52,12 +61,9 @@ class LibvirtClient:
         return " ".join(str(text or exc).split())[:300]
 
     def classify_error(self, exc: BaseException) -> ErrorClass:
-        # A pool refreshed while a volume is being written ("asynchronous jobs running") and a
-        # dropped RPC connection are worth another try; anything else is libvirt's real answer.
         if isinstance(exc, self.libvirt.libvirtError):
-            text = self.message(exc)
-            if "asynchronous jobs running" in text or exc.get_error_code() == self.libvirt.VIR_ERR_RPC:
-                return ErrorClass.RETRYABLE
+            rpc = exc.get_error_code() == self.libvirt.VIR_ERR_RPC
+            return ErrorClass.RETRYABLE if transient(self.message(exc), rpc) else ErrorClass.FATAL
         return ErrorClass.FATAL
 
     def api(self, what: str, fn, *args, **kwargs):
