@@ -912,6 +912,9 @@ def test_libvirts_passing_refusals_are_retried_and_its_real_answers_are_not():
 
     cgroup = ("Unable to read from '/var/lib/docker/overlay2/45bd/merged/sys/fs/cgroup/unified/machine/"
               "qemu-84-ccrp-ct-cri-robot2.libvirt-qemu/cgroup.controllers': No such file or directory")
-    assert transient(cgroup) and transient("cannot refresh pool: asynchronous jobs running") and transient("x", rpc=True)
+    tasks = ("Unable to write to '/var/lib/docker/overlay2/a0c4/merged/sys/fs/cgroup/cpu/machine/"
+             "qemu-125-ccrp-ct-cri-robot5.libvirt-qemu/tasks': No such file or directory")
+    assert transient(cgroup) and transient(tasks) and transient("x", rpc=True)
+    assert transient("cannot refresh pool: asynchronous jobs running")
     assert not transient("Unable to read from '/dev/sda': Permission denied")
     assert not transient("Requested operation is not valid: domain is already running")

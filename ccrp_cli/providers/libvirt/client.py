@@ -31,11 +31,13 @@ def _sdk():
 
 def transient(message: str, rpc: bool = False) -> bool:
     """libvirt's answers worth another try: a dropped RPC connection; a pool refreshed while a volume
-    is written ("asynchronous jobs running"); a domain started while the cgroup of its previous run
-    is still being removed ("Unable to read from '.../cgroup.controllers'", met in CI when a clone
-    stopped and was started at once under load). Anything else is libvirt's real answer."""
+    is written ("asynchronous jobs running"); a domain start that failed on a cgroup file gone
+    ("Unable to read from / write to '.../sys/fs/cgroup/...'"). The last was met in CI: where Docker
+    containers with systemd run beside libvirtd, the host's mount table also lists their cgroup mounts,
+    libvirtd may pick one of those for a new domain, and it vanishes with its container. The next
+    start looks again. Anything else is libvirt's real answer."""
     return rpc or "asynchronous jobs running" in message or (
-        message.startswith("Unable to read from") and "/cgroup" in message)
+        message.startswith(("Unable to read from", "Unable to write to")) and "/sys/fs/cgroup/" in message)
 
 
 class LibvirtClient:
