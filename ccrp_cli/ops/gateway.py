@@ -16,7 +16,7 @@ from ..fleet import Fleet, snapshot_image
 from ..models.addressing import entry_port, gateway_ip
 from ..models.state import FleetState, GatewayRecord
 from ..probe import files_current
-from ..providers.base import GATEWAY, CloneSpec, Origin
+from ..providers.base import GATEWAY, GATEWAY_ROLE, CloneSpec, Origin
 from ..render import gateway as render
 from ..render.files import BundleFile
 
@@ -24,7 +24,6 @@ if TYPE_CHECKING:
     from ..providers.base import CloneRecord, Provider
 
 Progress = Callable[[str], None]
-ROLE = "gateway"
 
 
 def in_use(fleet: Fleet) -> bool:
@@ -55,7 +54,7 @@ def ensure(fleet: Fleet, provider: Provider, state: FleetState, progress: Progre
     spec = CloneSpec(
         robot=GATEWAY, hostname=f"ccrp-{fleet.name}-gateway", image=snapshot_image(state),
         user_data=render.user_data(inv, entries, operator, provider.login_keys() or []),
-        instance_id=f"{fleet.name}-gateway", common_ip=str(gateway_ip(inv)), role=ROLE,
+        instance_id=f"{fleet.name}-gateway", common_ip=str(gateway_ip(inv)), role=GATEWAY_ROLE,
     )
     record = provider.run_instance(spec)
     if record.origin is not Origin.REUSED:

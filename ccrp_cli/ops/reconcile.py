@@ -64,8 +64,8 @@ def _endpoint_note(fleet: Fleet, state: FleetState, robot: str) -> str | None:
     rec = state.robots.get(robot)
     have = rec.public_endpoint if rec else None
     if gateway.in_use(fleet):
-        want = gateway.endpoint(fleet, state, robot) or f"the entry gateway's port {entry_port(fleet.inventory, rec.index)}" \
-            if rec else "the entry gateway"
+        port = f"the entry gateway's port {entry_port(fleet.inventory, rec.index)}" if rec else "the entry gateway"
+        want = gateway.endpoint(fleet, state, robot) or port
     elif state.gateway is not None and have is not None and have.startswith(f"{state.gateway.public_ip}:"):
         want = "its clone's own address"
     else:

@@ -86,6 +86,7 @@ def cloud_init_clean(result_json: str) -> bool:
 # The robot label of the fleet's entry gateway (ops/gateway.py), the instance of role "gateway": the
 # hyphen keeps it out of robot names' alphabet. The transport reaches it by this name.
 GATEWAY = "entry-gateway"
+GATEWAY_ROLE = "gateway"
 
 
 class CloneSpec(BaseModel):

@@ -14,7 +14,7 @@ from pathlib import Path
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import across_zones
-from ..base import (GATEWAY, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota,
+from ..base import (GATEWAY, GATEWAY_ROLE, LABEL_ROBOT, LABEL_ROLE, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota,
                     SnapshotRecord, owner_labels)
 from ..cloud import CloudProvider
 from . import INFO, errors, images, network, owned
@@ -98,7 +98,7 @@ class OpenStackProvider(CloudProvider):
         with c.errors(what):
             try:
                 ext, net, subnet, sg = network.fleet_resources(c)
-                if spec.role == "gateway":
+                if spec.role == GATEWAY_ROLE:
                     sg = network.gateway_group(c)
                 server = c.server(spec.robot, spec.role)
                 origin = Origin.CREATED
@@ -114,7 +114,7 @@ class OpenStackProvider(CloudProvider):
                 # changed is released): its robot comes through the gateway's.
                 public = spec.role != "clone" or self.settings.entry != "gateway"
                 fip = self._floating_ip(spec, port, ext, created) if public else None
-                if not public:
+                if not public and origin is not Origin.CREATED:
                     self._release_floating_ips(spec)
             except BaseException as exc:  # Ctrl-C too: what this attempt made must not linger
                 left = self._rollback(created)
@@ -246,7 +246,7 @@ class OpenStackProvider(CloudProvider):
         address: kept, tagged, when the server goes, and attached again to the next one)."""
         c = self.client
         with c.errors("find the entry gateway"):
-            server = c.server(GATEWAY, "gateway")
+            server = c.server(GATEWAY, GATEWAY_ROLE)
             return self._record(server) if server is not None else None
 
     def query(self) -> dict[str, CloneRecord]:
@@ -310,7 +310,7 @@ class OpenStackProvider(CloudProvider):
             # Behind an entry gateway a clone takes no floating IP; the gateway, while there is none,
             # takes one server of the fleet's flavor and the fleet's one floating IP.
             gateway = self.settings.entry == "gateway"
-            making = 1.0 if gateway and robots and c.server(GATEWAY, "gateway") is None else 0.0
+            making = 1.0 if gateway and robots and c.server(GATEWAY, GATEWAY_ROLE) is None else 0.0
             rows = [("instances", a.instances, a.instances_used, lambda f: 1.0),
                     ("cores", a.total_cores, a.total_cores_used, lambda f: float(f.vcpus)),
                     ("ram (MB)", a.total_ram, a.total_ram_used, lambda f: float(f.ram))]
