@@ -215,7 +215,9 @@ def test_two_vm_clones_serve(vm_fleet):
 
     # Each clone's clock is the host's (fleet up set it through the guest agent; the emulated RTC
     # alone starts it up to a second late): the guest's own clock, read through the agent, against
-    # the host's before and after the call.
+    # the host's before and after the call. Bound: a quarter second. Fleet up leaves it within 5 ms,
+    # but an emulated (TCG) guest loses timer ticks while the host is loaded: 58 ms behind a few
+    # minutes later was met in CI, where the suite runs 3 workers on 2 cores.
     for robot in ("nao1", "nao2"):
         dom = provider.client.conn.lookupByName(provider.client.domain_name(robot))
         before = time.time()
@@ -223,7 +225,7 @@ def test_two_vm_clones_serve(vm_fleet):
         after = time.time()
         offset = guest["seconds"] + guest["nseconds"] / 1e9 - (before + after) / 2
         vm_fleet["timings"][f"{robot}: clock offset from the host (ms)"] = offset * 1000
-        assert abs(offset) < 0.05 + (after - before) / 2, (robot, offset, after - before)
+        assert abs(offset) < 0.25 + (after - before) / 2, (robot, offset, after - before)
 
 
 def test_simulated_robot_connects_through_the_vpn_to_its_vm_clone(vm_fleet):
