@@ -1,8 +1,11 @@
-"""What the three clouds (openstack, gcp, aws) share: the operator SSH key, host-key pinning
-from the console output, secrets pushed over SSH, and calls wrapped by retry.call.
+"""What the backends whose clones are reached over SSH (openstack, gcp, aws, libvirt) share: the
+operator SSH key, host-key pinning from the console output, secrets pushed over SSH, calls wrapped
+by retry.call, and the provider methods that only hand the backend's client to its images.py and
+owned.py.
 
-A cloud provider subclasses CloudProvider and implements the primitives marked `cloud:`;
-its transport (SshClones: exec, push_files) and wait_ready then work the same way on every cloud.
+A backend's provider subclasses CloudProvider, names its images and owned modules (BackendImages,
+BackendOwned) and implements the primitives marked `cloud:`; its transport (SshClones: exec,
+push_files) and wait_ready then work the same way on every backend.
 """
 
 from __future__ import annotations
@@ -13,12 +16,13 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any, Protocol
 
 from ..errors import CcrpError
 from ..models.inventory import Inventory
 from ..models.layout import LOGIN_USER
 from ..retry import Backoff, ErrorClass, call
-from .base import GATEWAY, CloneRecord, autostop_note, wait_cloud_init
+from .base import GATEWAY, CloneRecord, OwnedResource, SnapshotRecord, autostop_note, wait_cloud_init
 
 # The login on every cloud clone: the clone's user-data creates it with the operator key
 # (render/cloudinit.py login_user), whatever user the base image has of its own.
@@ -29,8 +33,49 @@ CONSOLE_POLL = 5.0  # seconds between console reads while an instance boots
 TOFU_CONSOLE_WAIT = 180.0  # with TOFU allowed, how long the console gets to show the keys first
 
 
+class BackendImages(Protocol):
+    """A backend's images.py: its snapshots, as functions of its client."""
+
+    def create_snapshot(self, c: Any, robot: str, name: str) -> SnapshotRecord: ...
+    def list_snapshots(self, c: Any) -> list[SnapshotRecord]: ...
+    def delete_snapshot(self, c: Any, snapshot_id: str) -> None: ...
+    def has_image(self, c: Any, image: str) -> bool: ...
+
+
+class BackendOwned(Protocol):
+    """A backend's owned.py: everything of the fleet in the backend, as functions of its client."""
+
+    def list_owned(self, c: Any) -> list[OwnedResource]: ...
+    def delete_owned(self, c: Any, resource: OwnedResource) -> None: ...
+    def teardown(self, c: Any) -> list[str]: ...
+    def leftovers(self, c: Any) -> list[str]: ...
+
+
+def operator_public_key(workdir: Path, fleet: str) -> str:
+    """The fleet's operator key, created on first use (0600 in the fleet store; only the public half
+    leaves): "ssh-ed25519 AAAA... ccrp-<fleet>"."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ed25519
+
+    from ..store import atomic_write, ensure_dir
+
+    key_path = workdir / "ssh" / "id_ed25519"
+    if not key_path.exists():
+        ensure_dir(key_path.parent)
+        key = ed25519.Ed25519PrivateKey.generate()
+        atomic_write(key_path, key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption()))
+    key = serialization.load_ssh_private_key(key_path.read_bytes(), password=None)
+    pub = key.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH)
+    return f"{pub.decode()} ccrp-{fleet}"
+
+
 class CloudProvider:
     kind = "cloud"
+    # The backend's client (connection, retries, error translation) and the modules taking it.
+    client: Any
+    images: BackendImages
+    owned: BackendOwned
     backoff = Backoff()
     # `fleet up` creates this many clones at once: cloud calls wait on the API, not on this host's
     # CPU, so a wide pool keeps 100 clones near one clone's time (bench/provision_clouds.py).
@@ -48,27 +93,38 @@ class CloudProvider:
         return self.workdir / "ssh" / "id_ed25519"
 
     def operator_public_key(self) -> str:
-        """The fleet's operator key, created on first use: "ssh-ed25519 AAAA... ccrp-<fleet>"."""
-        from cryptography.hazmat.primitives import serialization
-        from cryptography.hazmat.primitives.asymmetric import ed25519
-
-        from ..store import atomic_write, ensure_dir
-
-        key_path = self.ssh_key_path
-        if not key_path.exists():
-            ensure_dir(key_path.parent)
-            key = ed25519.Ed25519PrivateKey.generate()
-            atomic_write(key_path, key.private_bytes(
-                serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption()))
-        key = serialization.load_ssh_private_key(key_path.read_bytes(), password=None)
-        pub = key.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH)
-        return f"{pub.decode()} ccrp-{self.fleet}"
+        return operator_public_key(self.workdir, self.fleet)
 
     def login_keys(self) -> list[str]:
         return [self.operator_public_key()]
 
     def resolve_image(self, image: str) -> str:
         return image  # clouds that name images indirectly override this
+
+    # -- snapshots (the backend's images.py) and everything owned (its owned.py) ----------------
+    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
+        return self.images.create_snapshot(self.client, robot, name)
+
+    def list_snapshots(self) -> list[SnapshotRecord]:
+        return self.images.list_snapshots(self.client)
+
+    def delete_snapshot(self, snapshot_id: str) -> None:
+        self.images.delete_snapshot(self.client, snapshot_id)
+
+    def has_image(self, image: str) -> bool:
+        return self.images.has_image(self.client, image)
+
+    def list_owned(self) -> list[OwnedResource]:
+        return self.owned.list_owned(self.client)
+
+    def delete_owned(self, resource: OwnedResource) -> None:
+        self.owned.delete_owned(self.client, resource)
+
+    def teardown(self) -> list[str]:
+        return self.owned.teardown(self.client)
+
+    def leftovers(self) -> list[str]:
+        return self.owned.leftovers(self.client)
 
     # -- retries (one place) -----------------------------------------------------------------
     def classify_error(self, exc: BaseException) -> ErrorClass:  # cloud: per SDK

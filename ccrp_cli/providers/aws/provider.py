@@ -47,6 +47,7 @@ STATES = {"pending": CloneState.PENDING, "running": CloneState.RUNNING, "stoppin
 class AwsProvider(CloudProvider):
     kind = "aws"
     abilities = INFO.abilities
+    images, owned = images, owned  # snapshots and owned resources: CloudProvider hands them the client
 
     def __init__(self, inv: Inventory, workdir: Path) -> None:
         super().__init__(inv, workdir)
@@ -70,33 +71,8 @@ class AwsProvider(CloudProvider):
         network.ensure(self.client, self.operator_public_key())
 
     # -- snapshots (images.py) ---------------------------------------------------------------------
-    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        return images.create_snapshot(self.client, robot, name)
-
-    def list_snapshots(self) -> list[SnapshotRecord]:
-        return images.list_snapshots(self.client)
-
-    def delete_snapshot(self, snapshot_id: str) -> None:
-        images.delete_snapshot(self.client, snapshot_id)
-
     def resolve_image(self, image: str) -> str:
         return images.resolve_image(self.client, image)
-
-    def has_image(self, image: str) -> bool:
-        return images.has_image(self.client, image)
-
-    # -- everything owned (owned.py) ---------------------------------------------------------------
-    def list_owned(self) -> list[OwnedResource]:
-        return owned.list_owned(self.client)
-
-    def delete_owned(self, resource: OwnedResource) -> None:
-        owned.delete_owned(self.client, resource)
-
-    def teardown(self) -> list[str]:
-        return owned.teardown(self.client)
-
-    def leftovers(self) -> list[str]:
-        return owned.leftovers(self.client)
 
     # -- instances -----------------------------------------------------------------------------
 

@@ -55,6 +55,7 @@ STATES = {"PROVISIONING": CloneState.PENDING, "STAGING": CloneState.PENDING, "RE
 class GcpProvider(CloudProvider):
     kind = "gcp"
     abilities = INFO.abilities
+    images, owned = images, owned  # snapshots and owned resources: CloudProvider hands them the client
 
     def __init__(self, inv: Inventory, workdir: Path, clients: Clients | None = None) -> None:
         super().__init__(inv, workdir)
@@ -65,32 +66,6 @@ class GcpProvider(CloudProvider):
     # -- the fleet's network (network.py) ---------------------------------------------------------
     def bootstrap(self) -> None:
         network.bootstrap(self.client)
-
-    # -- snapshots (images.py) ---------------------------------------------------------------------
-    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        return images.create_snapshot(self.client, robot, name)
-
-    def list_snapshots(self) -> list[SnapshotRecord]:
-        return images.list_snapshots(self.client)
-
-    def delete_snapshot(self, snapshot_id: str) -> None:
-        images.delete_snapshot(self.client, snapshot_id)
-
-    def has_image(self, image: str) -> bool:
-        return images.has_image(self.client, image)
-
-    # -- everything owned (owned.py) ---------------------------------------------------------------
-    def list_owned(self) -> list[OwnedResource]:
-        return owned.list_owned(self.client)
-
-    def delete_owned(self, resource: OwnedResource) -> None:
-        owned.delete_owned(self.client, resource)
-
-    def teardown(self) -> list[str]:
-        return owned.teardown(self.client)
-
-    def leftovers(self) -> list[str]:
-        return owned.leftovers(self.client)
 
     # -- instances --------------------------------------------------------------------------
     def _zones(self, robot: str) -> list[str]:

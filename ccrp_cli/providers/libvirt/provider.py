@@ -59,6 +59,7 @@ def _listening(host: str, port: int = 22) -> bool:
 class LibvirtProvider(CloudProvider):
     kind = "libvirt"
     abilities = INFO.abilities
+    images, owned = images, owned  # snapshots and owned resources: CloudProvider hands them the client
     # VMs boot on the libvirt host's CPUs (emulated ones, under TCG): a few at a time.
     max_parallel = 4
     boot_timeout = 900
@@ -98,31 +99,6 @@ class LibvirtProvider(CloudProvider):
 
     def import_golden(self, qcow2: Path, kernel: Path, initrd: Path, virtual_size: int, robot: str | None = None) -> SnapshotRecord:
         return images.import_golden(self.client, qcow2, kernel, initrd, virtual_size, robot)
-
-    def list_snapshots(self) -> list[SnapshotRecord]:
-        return images.list_snapshots(self.client)
-
-    def delete_snapshot(self, snapshot_id: str) -> None:
-        images.delete_snapshot(self.client, snapshot_id)
-
-    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        return images.create_snapshot(self.client, robot, name)
-
-    def has_image(self, image: str) -> bool:
-        return images.has_image(self.client, image)
-
-    # -- everything owned (owned.py) ---------------------------------------------------------------
-    def list_owned(self) -> list[OwnedResource]:
-        return owned.list_owned(self.client)
-
-    def delete_owned(self, resource: OwnedResource) -> None:
-        owned.delete_owned(self.client, resource)
-
-    def teardown(self) -> list[str]:
-        return owned.teardown(self.client)
-
-    def leftovers(self) -> list[str]:
-        return owned.leftovers(self.client)
 
     # -- acceleration ---------------------------------------------------------------------------
     @property

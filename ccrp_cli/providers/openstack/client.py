@@ -14,6 +14,7 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...retry import Backoff, call
 from ..base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, owner_labels
+from ..cloud import operator_public_key
 from . import errors
 from .settings import OpenStackSettings
 
@@ -44,6 +45,10 @@ class OpenStackClient:
         self.conn = _connect(self.settings.cloud)
         self._lock = threading.Lock()
         self._cache: dict[str, object] = {}  # shared lookups (network, flavor...) for parallel clones
+
+    def operator_key(self) -> str:
+        """The fleet's operator public key: the key pair ccrp made holds it (what tells it is ours)."""
+        return operator_public_key(self.workdir, self.fleet)
 
     # -- retries and errors ----------------------------------------------------------------------
     def classify_error(self, exc: BaseException):

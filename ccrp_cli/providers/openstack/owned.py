@@ -23,7 +23,7 @@ NEUTRON = {  # OwnedResource.kind -> Neutron collection (openstack.network proxy
 }
 
 
-def list_owned(c: OpenStackClient, public_key: str) -> list[OwnedResource]:
+def list_owned(c: OpenStackClient) -> list[OwnedResource]:
     """Everything carrying the fleet's labels, in deletion order."""
     with c.errors("list owned resources"):
         found = [OwnedResource(kind="instance", id=s.id, name=s.name, robot=s.metadata.get(LABEL_ROBOT))
@@ -34,14 +34,14 @@ def list_owned(c: OpenStackClient, public_key: str) -> list[OwnedResource]:
                 name = res.name if kind != "floating_ip" else res.floating_ip_address
                 found.append(OwnedResource(kind=kind, id=res.id, name=name or "", robot=robot))
         kp = c.find("key pair", c.compute.find_keypair, c.name())
-        if kp is not None and network.same_key(kp.public_key, public_key):
+        if kp is not None and network.same_key(kp.public_key, c.operator_key()):
             found.append(OwnedResource(kind="key_pair", id=kp.name, name=kp.name))
         found += [OwnedResource(kind="image", id=i.id, name=i.name or "", robot=i.properties.get(LABEL_ROBOT))
                   for i in images.owned_images(c)]
         return with_roles(sorted(found, key=lambda r: ORDER.index(r.kind)), ROLES)
 
 
-def delete_owned(c: OpenStackClient, public_key: str, resource: OwnedResource) -> None:
+def delete_owned(c: OpenStackClient, resource: OwnedResource) -> None:
     """Delete one resource after checking, on the cloud, that it is this fleet's."""
     with c.errors(f"delete {resource.kind} {resource.id}"):
         if resource.kind == "instance":
@@ -53,7 +53,7 @@ def delete_owned(c: OpenStackClient, public_key: str, resource: OwnedResource) -
             owned = c.is_owned(labels)
         elif resource.kind == "key_pair":
             kp = c.find("key pair", c.compute.find_keypair, resource.id)
-            owned = kp is not None and resource.id == c.name() and network.same_key(kp.public_key, public_key)
+            owned = kp is not None and resource.id == c.name() and network.same_key(kp.public_key, c.operator_key())
         elif resource.kind == "image":
             return images.delete_snapshot(c, resource.id)
         else:
@@ -81,10 +81,10 @@ def delete(c: OpenStackClient, resource: OwnedResource, wait: bool = True) -> No
     c.api(f"delete {kind}", remove, resource.id, ignore_missing=True)
 
 
-def teardown(c: OpenStackClient, public_key: str) -> list[str]:
+def teardown(c: OpenStackClient) -> list[str]:
     """Every owned resource but the snapshots (they outlive the fleet's clones), servers first."""
     with c.errors(f"teardown of fleet {c.fleet}"):
-        doomed = [r for r in list_owned(c, public_key) if r.kind != "image"]
+        doomed = [r for r in list_owned(c) if r.kind != "image"]
         servers = [r for r in doomed if r.kind == "instance"]
         for r in servers:  # all deletions first, then one wait each: servers go in parallel
             delete(c, r, wait=False)
@@ -97,6 +97,6 @@ def teardown(c: OpenStackClient, public_key: str) -> list[str]:
         return [f"{r.kind} {r.name or r.id}" for r in doomed]
 
 
-def leftovers(c: OpenStackClient, public_key: str) -> list[str]:
+def leftovers(c: OpenStackClient) -> list[str]:
     """What `fleet down` should have removed and did not (snapshots stay on purpose)."""
-    return [f"{r.kind} {r.name or r.id}" for r in list_owned(c, public_key) if r.kind != "image"]
+    return [f"{r.kind} {r.name or r.id}" for r in list_owned(c) if r.kind != "image"]

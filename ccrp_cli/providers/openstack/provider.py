@@ -32,6 +32,7 @@ STATES = {"BUILD": CloneState.PENDING, "REBUILD": CloneState.PENDING, "REBOOT": 
 class OpenStackProvider(CloudProvider):
     kind = "openstack"
     abilities = INFO.abilities
+    images, owned = images, owned  # snapshots and owned resources: CloudProvider hands them the client
 
     def __init__(self, inv: Inventory, workdir: Path) -> None:
         super().__init__(inv, workdir)
@@ -60,32 +61,6 @@ class OpenStackProvider(CloudProvider):
     # -- the fleet's network (network.py) ---------------------------------------------------------
     def bootstrap(self) -> None:
         network.bootstrap(self.client, self.operator_public_key())
-
-    # -- snapshots (images.py) ---------------------------------------------------------------------
-    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        return images.create_snapshot(self.client, robot, name)
-
-    def list_snapshots(self) -> list[SnapshotRecord]:
-        return images.list_snapshots(self.client)
-
-    def delete_snapshot(self, snapshot_id: str) -> None:
-        images.delete_snapshot(self.client, snapshot_id)
-
-    def has_image(self, image: str) -> bool:
-        return images.has_image(self.client, image)
-
-    # -- everything owned (owned.py) ---------------------------------------------------------------
-    def list_owned(self) -> list[OwnedResource]:
-        return owned.list_owned(self.client, self.operator_public_key())
-
-    def delete_owned(self, resource: OwnedResource) -> None:
-        owned.delete_owned(self.client, self.operator_public_key(), resource)
-
-    def teardown(self) -> list[str]:
-        return owned.teardown(self.client, self.operator_public_key())
-
-    def leftovers(self) -> list[str]:
-        return owned.leftovers(self.client, self.operator_public_key())
 
     # -- clones ---------------------------------------------------------------------------------
     def run_instance(self, spec: CloneSpec) -> CloneRecord:
