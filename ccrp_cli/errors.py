@@ -5,6 +5,8 @@ failure() is the one translation of any exception into that, for the CLI (cli/ma
 from __future__ import annotations
 
 import re
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 # Exit codes (README: Commands).
 OK = 0
@@ -59,6 +61,21 @@ def failure(exc: BaseException) -> CcrpError:
     if isinstance(exc, KeyboardInterrupt):
         return Interrupted()
     return CcrpError(f"{type(exc).__name__}: {exc}")
+
+
+@contextmanager
+def translated(what: str, to_ccrp: Callable[[str, Exception], CcrpError | None]) -> Iterator[None]:
+    """A backend's SDK failures leave it as one-line CcrpErrors (cause kept): `to_ccrp` makes one of
+    an error of its SDK, and gives None for any other exception, which goes on as it is (a bug)."""
+    try:
+        yield
+    except CcrpError:
+        raise
+    except Exception as exc:
+        error = to_ccrp(what, exc)
+        if error is None:
+            raise
+        raise error from exc
 
 
 def one_line(exc: BaseException, limit: int | None = None) -> str:

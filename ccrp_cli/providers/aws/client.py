@@ -7,7 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import cast
 
-from ...errors import CcrpError
+from ...errors import CcrpError, translated
 from ...models.inventory import Inventory
 from ...retry import Backoff, call
 from . import tags
@@ -63,10 +63,9 @@ class AwsClient:
         one-line CcrpErrors (cause kept)."""
         from botocore.exceptions import BotoCoreError, ClientError
 
-        try:
+        sdk = (BotoCoreError, ClientError)
+        with translated(what, lambda w, exc: as_ccrp(w, exc) if isinstance(exc, sdk) else None):
             return call(fn, *args, classify=self.classify_error, what=what, backoff=self.backoff, **kwargs)
-        except (BotoCoreError, ClientError) as exc:
-            raise as_ccrp(what, exc) from exc
 
     def wait(self, waiter: str, ids: list[str]) -> None:
         w = self.ec2.get_waiter(waiter)

@@ -9,12 +9,11 @@ from __future__ import annotations
 import builtins
 import logging
 import threading
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
 
-from ...errors import CcrpError
+from ...errors import CcrpError, translated
 from ...models.inventory import Inventory
 from ...retry import Backoff, ErrorClass, call
 from ..base import LABEL_ROBOT
@@ -159,15 +158,10 @@ class GcpClient:
                 except self.NotFound:
                     pass
 
-    @contextmanager
     def errors(self, what: str):
-        """SDK failures leave the provider as one-line CcrpErrors with a hint."""
-        try:
-            yield
-        except CcrpError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - every SDK error class
-            raise as_ccrp_error(what, exc, self.region) from exc
+        """SDK failures leave the provider as one-line CcrpErrors with a hint (any exception: the
+        client libraries raise many classes of their own)."""
+        return translated(what, lambda w, exc: as_ccrp_error(w, exc, self.region))
 
     # -- the fleet's instances ---------------------------------------------------------------------
     def instances(self, role: str | None = None, robot: str | None = None) -> builtins.list[tuple[str, Any]]:  # `list` here is the method

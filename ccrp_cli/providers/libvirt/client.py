@@ -7,10 +7,9 @@ starts with `ccrp-<fleet>-`; domains carry the fleet's labels in their metadata 
 from __future__ import annotations
 
 import os
-from contextlib import contextmanager
 from pathlib import Path
 
-from ...errors import CcrpError
+from ...errors import CcrpError, translated
 from ...models.inventory import Inventory
 from ...retry import Backoff, ErrorClass, call
 from ..base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE
@@ -76,12 +75,8 @@ class LibvirtClient:
         return isinstance(exc, self.libvirt.libvirtError) and exc.get_error_code() in {
             getattr(self.libvirt, c) for c in codes}
 
-    @contextmanager
     def errors(self, what: str):
-        try:
-            yield
-        except self.libvirt.libvirtError as exc:
-            raise CcrpError(f"{what}: {self.message(exc)}") from exc
+        return translated(what, lambda w, exc: CcrpError(f"{w}: {self.message(exc)}") if isinstance(exc, self.libvirt.libvirtError) else None)
 
     # -- names ---------------------------------------------------------------------------------
     def name(self, *parts: str) -> str:

@@ -7,10 +7,9 @@ servers, find)."""
 from __future__ import annotations
 
 import threading
-from contextlib import contextmanager
 from pathlib import Path
 
-from ...errors import CcrpError
+from ...errors import CcrpError, translated
 from ...models.inventory import Inventory
 from ...retry import Backoff, call
 from ..base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, owner_labels
@@ -58,17 +57,9 @@ class OpenStackClient:
         """Every SDK call goes through here: retried on throttling / 5xx, classified otherwise."""
         return call(fn, *args, classify=self.classify_error, what=what, backoff=self.backoff, **kwargs)
 
-    @contextmanager
     def errors(self, what: str):
         """SDK failures leave a public method as one-line CcrpErrors with a hint."""
-        try:
-            yield
-        except CcrpError:
-            raise
-        except Exception as exc:
-            if not errors.is_sdk_error(exc):
-                raise
-            raise errors.to_ccrp(what, self.settings.cloud, exc) from exc
+        return translated(what, lambda w, exc: errors.to_ccrp(w, self.settings.cloud, exc) if errors.is_sdk_error(exc) else None)
 
     # -- services: the first use discovers versions over HTTP, so it is an API call too ---------
     @property
