@@ -6,9 +6,12 @@ from status fields, CNs and dates, never a secret.
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .models.status import StatusRow
+
+if TYPE_CHECKING:
+    from .fleet import Fleet
 
 # A certificate or the CRL this close to its end is an alert (as `ccrp vpn list` warns of the CRL);
 # under ERROR_DAYS it is an error.
@@ -137,7 +140,7 @@ def pki_alerts(pki, robots: list[str], now: dt.datetime | None = None) -> list[d
 LEVELS = {"error": 0, "warning": 1, "info": 2}
 
 
-def fleet_alerts(fleet, rows: list[StatusRow]) -> list[dict]:
+def fleet_alerts(fleet: Fleet, rows: list[StatusRow]) -> list[dict]:
     """Every alert of the fleet, from its status rows and its PKI, most serious first."""
     alerts = [a for row in rows for a in row_alerts(row)]
     alerts += pki_alerts(fleet.pki, [r.robot for r in rows])

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import enum
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from . import options, output
+
+if TYPE_CHECKING:
+    from ..fleet import Fleet
+    from ..providers.base import Provider
 
 app = typer.Typer(help="Fleet PKI: CA, robot and clone certificates, revocation.", no_args_is_help=True, rich_markup_mode=None)
 
@@ -25,7 +29,7 @@ class CertKind(str, enum.Enum):
     all = "all"
 
 
-def _provider(fleet):
+def _provider(fleet: Fleet) -> Provider:
     from ..providers import get_provider
 
     return get_provider(fleet.inventory)

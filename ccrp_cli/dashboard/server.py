@@ -15,6 +15,7 @@ from .auth import Auth, allowed_hosts, check_token, new_token
 from .events import Broker, Monitor, pki_alerts
 
 if TYPE_CHECKING:
+    from ..fleet import Fleet
     from ..providers.base import Lifecycle
 
 log = logging.getLogger("ccrp.dashboard")
@@ -111,7 +112,7 @@ def fleet_actions(inventory: Path) -> dict:
     return {"clone-start": clone_start, "clone-restart": clone_restart, "vpn-revoke": vpn_revoke, "fleet-scale": fleet_scale, "robot-power": robot_power}
 
 
-def teleop_sender(fleet, provider: Lifecycle):
+def teleop_sender(fleet: Fleet, provider: Lifecycle):
     """The drive keys' body: `ccrp robot teleop` (ccrp_cli.ops.robot.robot_teleop) on the fleet the
     dashboard opened: a command changes nothing ccrp records, so it needs no fresh state nor the
     fleet lock."""
@@ -129,7 +130,7 @@ def teleop_sender(fleet, provider: Lifecycle):
     return send, close
 
 
-def camera_functions(fleet, provider: Lifecycle):
+def camera_functions(fleet: Fleet, provider: Lifecycle):
     """The camera view's bodies on the fleet the dashboard opened, as the drive keys' are (they
     change nothing ccrp records): (read, start). `read` is `ccrp robot camera`'s
     (ccrp_cli.robot.camera.latest_frame) without its start of the agent: the page's GET starts nothing on

@@ -22,6 +22,7 @@ from ..errors import CcrpError, InputError, shown
 from ..services.camera import AGENT, CAMERA_IDLE_S, SOCKET, UNIT, UNIT_OPTIONS, agent_file
 
 if TYPE_CHECKING:
+    from ..fleet import Fleet
     from ..providers.base import Lifecycle, Reaches
 
 DEFAULT_TOPIC = "/camera/image_raw"
@@ -80,13 +81,13 @@ def check_topic(topic: str) -> None:
         raise InputError(f"--topic {shown(topic)} is not a ROS topic name", hint=f"e.g. --topic {DEFAULT_TOPIC}")
 
 
-def _check_robot(fleet, provider: Lifecycle, robot: str) -> None:
+def _check_robot(fleet: Fleet, provider: Lifecycle, robot: str) -> None:
     fleet.robot(fleet.store.load_state(), robot)  # a robot of this fleet, or exit 2
     if robot not in provider.query():
         raise NoFrame(f"robot {robot!r} has no clone", "no-clone", hint=f"ccrp clone create -i INVENTORY --robot {robot}")
 
 
-def latest_frame(fleet, provider: Lifecycle, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0,
+def latest_frame(fleet: Fleet, provider: Lifecycle, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0,
                  start: bool = True) -> Frame:
     """One frame of `topic` as the robot's clone sees it. No fleet lock: it changes nothing ccrp
     records, and the dashboard polls it. Without `start` (the dashboard's GET) a clone whose agent
@@ -125,7 +126,7 @@ def latest_frame(fleet, provider: Lifecycle, robot: str, topic: str = DEFAULT_TO
     return frame
 
 
-def start_camera(fleet, provider: Lifecycle, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0) -> dict:
+def start_camera(fleet: Fleet, provider: Lifecycle, robot: str, topic: str = DEFAULT_TOPIC, timeout: float = 3.0) -> dict:
     """The dashboard's Camera button (a POST): the camera agent on the robot's clone, started unless
     one serves, and asked until it does. {"robot", "agent": "running" | "started"}."""
     check_topic(topic)

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 from ..models.status import Power, StatusRow, Watchdog
 
 if TYPE_CHECKING:
+    from ..fleet import Fleet
     from ..providers.base import Provider
 
 log = logging.getLogger("ccrp.watchdog")
@@ -60,7 +61,7 @@ def parse(out: str) -> Watchdog:
                     motors=motors[0] if motors else "enabled")  # the hook has never run: as the robot started
 
 
-def simulated(fleet, provider: Provider) -> dict[str, Watchdog]:
+def simulated(fleet: Fleet, provider: Provider) -> dict[str, Watchdog]:
     """robot -> its watchdog's state, for the fleet's simulated robots running on this host."""
     from .simulated import Sims
 
