@@ -16,13 +16,16 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 from ..errors import CcrpError
 from ..models.inventory import Inventory
 from ..models.layout import LOGIN_USER
 from ..retry import Backoff, ErrorClass, call
 from .base import GATEWAY, CloneRecord, OwnedResource, SnapshotRecord, autostop_note, wait_cloud_init
+
+if TYPE_CHECKING:
+    from ..transport.ssh import SshTransport
 
 # The login on every cloud clone: the clone's user-data creates it with the operator key
 # (render/cloudinit.py login_user), whatever user the base image has of its own.
@@ -65,8 +68,8 @@ def operator_public_key(workdir: Path, fleet: str) -> str:
         key = ed25519.Ed25519PrivateKey.generate()
         atomic_write(key_path, key.private_bytes(
             serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption()))
-    key = serialization.load_ssh_private_key(key_path.read_bytes(), password=None)
-    pub = key.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH)
+    loaded = serialization.load_ssh_private_key(key_path.read_bytes(), password=None)
+    pub = loaded.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH)
     return f"{pub.decode()} ccrp-{fleet}"
 
 
@@ -137,6 +140,9 @@ class CloudProvider:
     # -- cloud primitives: each cloud implements the rest of base.Provider (bootstrap,
     # run_instance, query, terminate, snapshots, teardown, list_owned/delete_owned) and this one,
     # which the shared SSH code below needs.
+    def query(self) -> dict[str, CloneRecord]:  # cloud: base.Provider's
+        raise NotImplementedError
+
     def console_output(self, robot: str) -> str:
         """The instance's serial console text (cloud-init prints the SSH host keys there)."""
         raise NotImplementedError
@@ -185,15 +191,18 @@ class CloudProvider:
 
         give_up = min(deadline, time.monotonic() + TOFU_CONSOLE_WAIT) if self.trust_on_first_use else deadline
 
-        def keys_shown() -> tuple[bool, tuple]:
+        def keys_shown() -> tuple[bool, tuple[CloneRecord | None, frozenset[str]]]:
             rec = self._find(robot)
             pins = fingerprints_from_console(self.console_output(robot) or "") if rec else frozenset()
             return bool(pins and rec is not None and self.ssh_address(rec)), (rec, pins)
 
+        rec: CloneRecord | None
         try:
-            return poll(keys_shown, timeout=max(0.0, give_up - time.monotonic()), interval=CONSOLE_POLL)
+            rec, pins = poll(keys_shown, timeout=max(0.0, give_up - time.monotonic()), interval=CONSOLE_POLL)
+            if rec is not None:  # always, once keys_shown is done
+                return rec, pins
         except PollTimeout as late:
-            rec, _pins = late.last
+            rec = cast("tuple[CloneRecord | None, frozenset[str]]", late.last)[0]  # keys_shown's last answer
         if self.trust_on_first_use and rec is not None and self.ssh_address(rec):
             return rec, frozenset()
         why = ("not found" if rec is None else "no public IP" if not self.ssh_address(rec)
@@ -265,7 +274,7 @@ class SshClones:
     def __init__(self, provider: CloudProvider) -> None:
         # The provider finds the instance (query), its console (the keys to pin) and the operator key.
         self.provider = provider
-        self._ssh: dict[str, object] = {}  # robot -> live SshTransport
+        self._ssh: dict[str, SshTransport] = {}  # robot -> live session
         self._lock = threading.Lock()
         self._robot_locks: dict[str, threading.Lock] = {}
 
@@ -290,7 +299,10 @@ class SshClones:
             p.operator_public_key()  # creates the key on first use
             # The gateway's session (its own lock), shared by every clone behind it.
             via = self.session(GATEWAY) if p.behind_gateway(rec) else None
-            ssh = SshTransport(p.ssh_address(rec), SSH_USER, p.ssh_key_path, pins, known_hosts=known,
+            address = p.ssh_address(rec)
+            if address is None:
+                raise CcrpError(f"the instance of robot {robot!r} ({rec.provider_id}) has no address to reach yet")
+            ssh = SshTransport(address, SSH_USER, p.ssh_key_path, pins, known_hosts=known,
                                host_alias=rec.provider_id, trust_on_first_use=p.trust_on_first_use, via=via).connect()
             self._ssh[robot] = ssh
             return ssh

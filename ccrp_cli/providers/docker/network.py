@@ -3,19 +3,22 @@ and <fleet>-common (internal: the clones' common network), created or reused by 
 
 from __future__ import annotations
 
+from typing import cast
+
 from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ..base import LABEL_FLEET, owner_labels
 from .client import DockerHost
+from .settings import DockerSettings
 
 
 def bootstrap(c: DockerHost, inv: Inventory) -> None:
     """Create (or reuse) the fleet's public and common networks."""
     from docker.types import IPAMConfig, IPAMPool
 
-    provider = inv.provider
+    provider = cast(DockerSettings, inv.provider)  # the fleet's backend is this one
     for name, cidr, internal in (
-        (c.public_net, provider.public_cidr, False),  # type: ignore[union-attr]
+        (c.public_net, provider.public_cidr, False),
         (c.common_net, inv.common.cidr, True),
     ):
         existing = c.client.networks.list(names=[name])

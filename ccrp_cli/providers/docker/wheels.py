@@ -14,6 +14,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 from ...errors import CcrpError
@@ -29,7 +30,7 @@ def cache_dir() -> Path:
     return Path(root) / "wheels" / f"cp{WHEEL_PYTHON.replace('.', '')}"
 
 
-def fetch(requirements: list[str], platforms: tuple[str, ...], source: list[str] = ()) -> dict[str, bytes]:
+def fetch(requirements: list[str], platforms: tuple[str, ...], source: Sequence[str] = ()) -> dict[str, bytes]:
     """`wheels/<file>` -> content: the wheels of `requirements` and of all they require, for
     WHEEL_PYTHON on `platforms`, and `source` packages (PyPI has them as sources only) built into
     wheels here. Files come from the cache when there."""
@@ -67,7 +68,7 @@ def _keep(wheel: Path, cache: Path) -> None:
             os.unlink(part)
 
 
-def _pip(args: list[str], what: list[str], check: bool = True) -> bool:
+def _pip(args: list[str], what: Sequence[str], check: bool = True) -> bool:
     proc = subprocess.run([sys.executable, "-m", "pip", *args], capture_output=True, text=True)
     if proc.returncode != 0 and check:
         last = ([ln for ln in proc.stderr.splitlines() if not ln.startswith("WARNING")] or ["?"])[-1]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ...errors import CcrpError, translated
 from ...models.inventory import Inventory
@@ -15,6 +16,9 @@ from ...retry import Backoff, ErrorClass, call
 from ..base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE
 from . import xmldefs
 from .settings import LOCAL_URIS, URI_PARAMS_ENV, LibvirtSettings, connect_uri
+
+if TYPE_CHECKING:
+    from ..docker.client import DockerHost
 
 
 def _sdk():
@@ -219,7 +223,7 @@ class LibvirtClient:
         found = self.domains(robot, "clone")
         return found[0] if found else (None, None)
 
-    _docker = None  # this host's Docker engine, once asked (False: none, or the libvirt host is elsewhere)
+    _docker: DockerHost | bool | None = None  # this host's Docker engine, once asked (False: none, or the libvirt host is elsewhere)
 
     def docker_host(self):
         """This host's Docker engine when simulated robots of the fleet can be on it (a local URI):

@@ -210,16 +210,18 @@ def _export(container, tar: str, root: Path) -> None:
     """`docker export` streamed into tar (owners, modes, xattrs such as file capabilities kept)."""
     proc = subprocess.Popen([tar, "--numeric-owner", "--xattrs", "--xattrs-include=*", "-xpf", "-", "-C", str(root)],
                             stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+    stdin, stderr = proc.stdin, proc.stderr
+    assert stdin is not None and stderr is not None  # both piped above
     err: list[bytes] = []
-    reader = threading.Thread(target=lambda: err.append(proc.stderr.read()), daemon=True)
+    reader = threading.Thread(target=lambda: err.append(stderr.read()), daemon=True)
     reader.start()
     try:
         for chunk in container.export():
-            proc.stdin.write(chunk)
+            stdin.write(chunk)
     except BrokenPipeError:
         pass
     finally:
-        proc.stdin.close()
+        stdin.close()
         rc = proc.wait()
         reader.join()
     if rc != 0:

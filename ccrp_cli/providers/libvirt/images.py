@@ -30,7 +30,7 @@ def golden(c: LibvirtClient, image: str) -> tuple[str, str, str]:
     if not image.endswith(".qcow2") or any(v is None for v in vols):
         raise CcrpError(f"golden volume {image} (with its .vmlinuz and .initrd) is not in storage pool {c.settings.pool}",
                         hint="import the fleet's snapshot (docs/libvirt.md)")
-    return tuple(v.path() for v in vols)  # type: ignore[return-value]
+    return tuple(v.path() for v in vols)
 
 
 def has_image(c: LibvirtClient, image: str) -> bool:
@@ -140,6 +140,8 @@ def create_snapshot(c: LibvirtClient, robot: str, name: str) -> SnapshotRecord:
         target = f"{c.name('golden', robot, stamp())}.qcow2"
         stem = target.removesuffix(".qcow2")
         os_ = ET.fromstring(dom.XMLDesc(0)).find("os")
+        if os_ is None:  # every domain ccrp defines boots a kernel (xmldefs.domain)
+            raise CcrpError(f"the domain of robot {robot!r} names no kernel to copy")
         sources = [(pool.storageVolLookupByName(c.clone_volumes(robot)["disk"]), target, "qcow2")]
         sources += [(c.conn.storageVolLookupByPath(os_.findtext(tag)), f"{stem}.{ext}", "raw")
                     for tag, ext in (("kernel", "vmlinuz"), ("initrd", "initrd"))]

@@ -86,7 +86,7 @@ def dhcp_host(mac: str, ip: str, name: str | None = None) -> str:
     """A reservation on the NAT network: the clone's public address is fixed, as a floating IP is,
     across reboots and re-creations (a new machine-id would otherwise get a new lease). No name to
     delete one: libvirt refuses an empty name."""
-    return dump(ET.Element("host", mac=mac, ip=ip, **({"name": name} if name else {})))
+    return dump(ET.Element("host", {"mac": mac, "ip": ip, **({"name": name} if name else {})}))
 
 
 def dhcp_hosts(xml: str) -> dict[str, str]:
@@ -230,9 +230,10 @@ def domain_info(xml: str) -> DomainInfo:
     macs = {}
     for iface in dom.findall("devices/interface"):
         src, mac = iface.find("source"), iface.find("mac")
-        if src is not None and mac is not None and src.get("network"):
-            macs[src.get("network")] = mac.get("address", "").lower()
-    vols = tuple(s.get("volume") for s in dom.findall("devices/disk/source") if s.get("volume"))
+        network = src.get("network") if src is not None else None
+        if network and mac is not None:
+            macs[network] = mac.get("address", "").lower()
+    vols = tuple(s.get("volume", "") for s in dom.findall("devices/disk/source") if s.get("volume"))
     mem = dom.find("memory")
     scale = {"KiB": 1 / 1024, "MiB": 1, "GiB": 1024}.get(mem.get("unit", "KiB"), 1 / 1024) if mem is not None else 0
     return DomainInfo(name=dom.findtext("name") or "", labels=labels,
