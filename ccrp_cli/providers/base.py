@@ -6,7 +6,7 @@ import gzip
 import json
 from dataclasses import dataclass
 from enum import Enum
-from typing import TYPE_CHECKING, Callable, Iterable, Literal, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Literal, Protocol, Sequence
 
 from pydantic import BaseModel
 
@@ -530,3 +530,57 @@ class Bake(Protocol):
     # Open the transport to the builder from the record run_instance returned (its host keys
     # pinned from its console, as a clone's); transport.exec and push_files then reach it.
     def connect(self, robot: str, rec: CloneRecord, timeout: float = 300) -> None: ...
+
+
+class BackendImages(Protocol):
+    """A backend's images.py: its snapshots, as functions of its client."""
+
+    def create_snapshot(self, c: Any, robot: str, name: str) -> SnapshotRecord: ...
+    def list_snapshots(self, c: Any) -> list[SnapshotRecord]: ...
+    def delete_snapshot(self, c: Any, snapshot_id: str) -> None: ...
+    def has_image(self, c: Any, image: str) -> bool: ...
+
+
+class BackendOwned(Protocol):
+    """A backend's owned.py: everything of the fleet in the backend, as functions of its client."""
+
+    def list_owned(self, c: Any) -> list[OwnedResource]: ...
+    def delete_owned(self, c: Any, resource: OwnedResource) -> None: ...
+    def teardown(self, c: Any) -> list[str]: ...
+    def leftovers(self, c: Any) -> list[str]: ...
+
+
+class Composed:
+    """A provider in the backends' one shape (docs/architecture.md, "The shape of a backend"): its
+    client, and the modules taking it. The snapshot and owned-resource calls of Provider hand the
+    client to the backend's images.py and owned.py, which a provider names in one line
+    (`images, owned = images, owned`); mypy checks those modules against BackendImages and
+    BackendOwned."""
+
+    client: Any
+    images: BackendImages
+    owned: BackendOwned
+
+    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
+        return self.images.create_snapshot(self.client, robot, name)
+
+    def list_snapshots(self) -> list[SnapshotRecord]:
+        return self.images.list_snapshots(self.client)
+
+    def delete_snapshot(self, snapshot_id: str) -> None:
+        self.images.delete_snapshot(self.client, snapshot_id)
+
+    def has_image(self, image: str) -> bool:
+        return self.images.has_image(self.client, image)
+
+    def list_owned(self) -> list[OwnedResource]:
+        return self.owned.list_owned(self.client)
+
+    def delete_owned(self, resource: OwnedResource) -> None:
+        self.owned.delete_owned(self.client, resource)
+
+    def teardown(self) -> list[str]:
+        return self.owned.teardown(self.client)
+
+    def leftovers(self) -> list[str]:
+        return self.owned.leftovers(self.client)

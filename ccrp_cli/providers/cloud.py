@@ -1,10 +1,9 @@
 """What the backends whose clones are reached over SSH (openstack, gcp, aws, libvirt) share: the
-operator SSH key, host-key pinning from the console output, secrets pushed over SSH, calls wrapped
-by retry.call, and the provider methods that only hand the backend's client to its images.py and
-owned.py.
+operator SSH key, host-key pinning from the console output, secrets pushed over SSH, and calls
+wrapped by retry.call.
 
-A backend's provider subclasses CloudProvider, names its images and owned modules (BackendImages,
-BackendOwned) and implements the primitives marked `cloud:`; its transport (SshClones: exec,
+A backend's provider subclasses CloudProvider (a base.Composed: it names its images and owned
+modules) and implements the primitives marked `cloud:`; its transport (SshClones: exec,
 push_files) and wait_ready then work the same way on every backend.
 """
 
@@ -16,13 +15,13 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, cast
+from typing import TYPE_CHECKING, cast
 
 from ..errors import CcrpError
 from ..models.inventory import Inventory
 from ..models.layout import LOGIN_USER
 from ..retry import Backoff, ErrorClass, call
-from .base import GATEWAY, CloneRecord, OwnedResource, SnapshotRecord, autostop_note, wait_cloud_init
+from .base import GATEWAY, CloneRecord, Composed, autostop_note, wait_cloud_init
 
 if TYPE_CHECKING:
     from ..transport.ssh import SshTransport
@@ -34,24 +33,6 @@ SSH_USER = LOGIN_USER
 TOFU_ENV = "CCRP_SSH_TOFU"
 CONSOLE_POLL = 5.0  # seconds between console reads while an instance boots
 TOFU_CONSOLE_WAIT = 180.0  # with TOFU allowed, how long the console gets to show the keys first
-
-
-class BackendImages(Protocol):
-    """A backend's images.py: its snapshots, as functions of its client."""
-
-    def create_snapshot(self, c: Any, robot: str, name: str) -> SnapshotRecord: ...
-    def list_snapshots(self, c: Any) -> list[SnapshotRecord]: ...
-    def delete_snapshot(self, c: Any, snapshot_id: str) -> None: ...
-    def has_image(self, c: Any, image: str) -> bool: ...
-
-
-class BackendOwned(Protocol):
-    """A backend's owned.py: everything of the fleet in the backend, as functions of its client."""
-
-    def list_owned(self, c: Any) -> list[OwnedResource]: ...
-    def delete_owned(self, c: Any, resource: OwnedResource) -> None: ...
-    def teardown(self, c: Any) -> list[str]: ...
-    def leftovers(self, c: Any) -> list[str]: ...
 
 
 def operator_public_key(workdir: Path, fleet: str) -> str:
@@ -73,12 +54,8 @@ def operator_public_key(workdir: Path, fleet: str) -> str:
     return f"{pub.decode()} ccrp-{fleet}"
 
 
-class CloudProvider:
+class CloudProvider(Composed):
     kind = "cloud"
-    # The backend's client (connection, retries, error translation) and the modules taking it.
-    client: Any
-    images: BackendImages
-    owned: BackendOwned
     backoff = Backoff()
     # `fleet up` creates this many clones at once: cloud calls wait on the API, not on this host's
     # CPU, so a wide pool keeps 100 clones near one clone's time (bench/provision_clouds.py).
@@ -103,31 +80,6 @@ class CloudProvider:
 
     def resolve_image(self, image: str) -> str:
         return image  # clouds that name images indirectly override this
-
-    # -- snapshots (the backend's images.py) and everything owned (its owned.py) ----------------
-    def create_snapshot(self, robot: str, name: str) -> SnapshotRecord:
-        return self.images.create_snapshot(self.client, robot, name)
-
-    def list_snapshots(self) -> list[SnapshotRecord]:
-        return self.images.list_snapshots(self.client)
-
-    def delete_snapshot(self, snapshot_id: str) -> None:
-        self.images.delete_snapshot(self.client, snapshot_id)
-
-    def has_image(self, image: str) -> bool:
-        return self.images.has_image(self.client, image)
-
-    def list_owned(self) -> list[OwnedResource]:
-        return self.owned.list_owned(self.client)
-
-    def delete_owned(self, resource: OwnedResource) -> None:
-        self.owned.delete_owned(self.client, resource)
-
-    def teardown(self) -> list[str]:
-        return self.owned.teardown(self.client)
-
-    def leftovers(self) -> list[str]:
-        return self.owned.leftovers(self.client)
 
     # -- retries (one place) -----------------------------------------------------------------
     def classify_error(self, exc: BaseException) -> ErrorClass:  # cloud: per SDK

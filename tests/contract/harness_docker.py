@@ -44,14 +44,14 @@ class DockerHarness(Knobs):
     kind = "docker"
 
     def __init__(self, provider) -> None:
-        self.provider, self.client = provider, provider.client
+        self.provider, self.client = provider, provider.client.engine
         self.calls: Counter = Counter()
         self._lock = threading.Lock()
         self._fraction, self._delay, self._n = 0.0, 0.0, 0
         self._fail_robots: set[str] = set()
         self._doomed: set[str] = set()
         self.foreign: list[str] = []
-        adapter = provider.client.api.get_adapter("http+docker://")
+        adapter = provider.client.engine.api.get_adapter("http+docker://")
         self._send = adapter.send
         adapter.send = self._intercept
 

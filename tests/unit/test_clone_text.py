@@ -239,8 +239,8 @@ def test_an_engine_exec_stops_reading_a_container_that_floods_it():
     api = SimpleNamespace(exec_create=lambda cid, argv: {"Id": "e1"}, exec_start=lambda run, stream: flood,
                           exec_inspect=lambda run: {"Running": False, "ExitCode": 0})
     host = DockerHost.__new__(DockerHost)  # no engine: the client is a fake
-    host.fleet, host._NotFound = "lab", LookupError
-    host.client = SimpleNamespace(api=api, containers=SimpleNamespace(get=lambda name: container))
+    host.fleet, host.NotFound = "lab", LookupError
+    host.engine = SimpleNamespace(api=api, containers=SimpleNamespace(get=lambda name: container))
     with pytest.raises(CcrpError, match=r"wrote over 96 MiB"):
         host.exec("nao1", ["cat", "/dev/zero"])
     assert flood.closed and EXEC_OUTPUT_MAX < flood.sent <= EXEC_OUTPUT_MAX + (1 << 16)

@@ -128,7 +128,7 @@ def host(tmp_path, monkeypatch):
     for tag in ("ccrp/base:bookworm", "ccrp/base-bare:noetic", "ccrp/robot-sim:noetic", "ccrp-test/snapshot-cache:noetic",
                 "ccrp-fake/debian-12-rootfs:latest", "ccrp/lab:1", "ccrp/lab-clone-x:1", "ccrp/Lab-clone:1"):
         engine.add([tag], SNAPSHOT | {"ccrp-fleet": "lab"})
-    provider = HostImagesOnly(client=client(engine), fleet="lab", state_dir=mine)
+    provider = HostImagesOnly(client=offline_host("lab", engine, mine), fleet="lab")
     return engine, provider, ids
 
 
@@ -207,12 +207,21 @@ def test_doctor_reports_the_disk_of_this_states_images_and_the_orphans(host):
 
 # -- the labels, where images are made ----------------------------------------------------------------
 
+def offline_host(fleet: str, engine, state: Path):
+    """DockerHost on the fake engine (no connection made)."""
+    from ccrp_cli.providers.docker.client import DockerHost
+
+    host = DockerHost.__new__(DockerHost)
+    host.fleet, host.engine, host.state_dir = fleet, client(engine), state
+    return host
+
+
 def _provider(inv, engine):
     from ccrp_cli.providers.docker.provider import DockerProvider
 
     class Offline(DockerProvider):
-        def __init__(self, inv):  # no engine: the client is the fake
-            self.fleet, self.inv, self.client, self.state_dir = inv.fleet, inv, client(engine), FleetStore(inv.fleet).root
+        def __init__(self, inv):  # no engine: the client's is the fake
+            self.fleet, self.inv, self.client = inv.fleet, inv, offline_host(inv.fleet, engine, FleetStore(inv.fleet).root)
 
     return Offline(inv)
 
@@ -241,7 +250,7 @@ def test_build_and_create_label_the_image_with_this_state(ccrp_home, monkeypatch
     committed = {}
     container = SimpleNamespace(commit=lambda **kw: committed.update(kw) or SimpleNamespace(
         id="sha256:" + "c" * 64, tags=[f"{kw['repository']}:{kw['tag']}"], labels=kw["conf"]["Labels"], attrs={}))
-    monkeypatch.setattr(type(provider), "_running", lambda self, robot, role="clone": container)
+    monkeypatch.setattr(provider.client, "running_container", lambda robot, role="clone": container)
     provider.create_snapshot("nao1", "ccrp/lab-clone:nao1-1")
     labels = committed["conf"]["Labels"]
     assert (labels["ccrp-robot"], labels["ccrp-role"], labels[si.LABEL_STATE_ID]) == ("nao1", "snapshot", state_id)

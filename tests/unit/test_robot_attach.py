@@ -124,6 +124,7 @@ def test_a_cloud_fleets_robot_dials_from_a_network_of_this_host(lab, monkeypatch
 
 
 def test_docker_and_libvirt_answer_the_same_call(tmp_path, monkeypatch):
+    from ccrp_cli.providers.docker.client import DockerHost
     from ccrp_cli.providers.docker.provider import DockerProvider
     from ccrp_cli.providers.libvirt import network, xmldefs
 
@@ -131,7 +132,8 @@ def test_docker_and_libvirt_answer_the_same_call(tmp_path, monkeypatch):
 
     class Offline(DockerProvider):
         def __init__(self):  # no engine: attach_robot asks none
-            self.fleet = "lab"
+            self.client = DockerHost.__new__(DockerHost)
+            self.fleet = self.client.fleet = "lab"
 
     seat = Offline().attach_robot("nao1", 1)
     assert (seat.network, seat.clone_image, seat.attach, str(seat)) == ("lab-public", True, None, "lab-public")

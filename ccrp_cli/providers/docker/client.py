@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from ...errors import CcrpError
 from ...retry import Backoff, ErrorClass, call
+from ...store import FleetStore
 from ...transport import EXEC_OUTPUT_MAX, too_much
 from ..base import LABEL_FLEET, LABEL_ROBOT, LABEL_ROLE
 from .archive import tar_files
@@ -45,18 +47,21 @@ def _classify(exc: BaseException) -> ErrorClass:
 class DockerHost:
     backoff = Backoff()
 
-    def __init__(self, fleet: str) -> None:
+    def __init__(self, fleet: str, state_dir: Path | None = None) -> None:
         self.fleet = fleet
-        self.client = _client()
+        # The fleet's state directory (the store's root): its id labels the snapshot images, so
+        # `ccrp gc` can tell whose they are.
+        self.state_dir = state_dir or FleetStore(fleet).root
+        self.engine = _client()  # docker-py's DockerClient
         from docker.errors import APIError, NotFound
 
-        self._NotFound, self._APIError = NotFound, APIError
+        self.NotFound, self.APIError = NotFound, APIError
         self._retry_busy()
 
     def _retry_busy(self) -> None:
         """Every Docker API request goes through retry.call: 429/503 answers are retried like a
         cloud's throttling. Other errors (404, 409, 500) are real answers and pass through."""
-        api, send = self.client.api, self.client.api.send
+        api, send = self.engine.api, self.engine.api.send
 
         def once(request, **kwargs):
             response = send(request, **kwargs)
@@ -84,22 +89,22 @@ class DockerHost:
     def volume_name(self, robot: str) -> str:
         return f"ccrp-{self.fleet}-cri-{robot}-vpn"
 
-    def _filters(self, role: str, robot: str | None = None) -> dict[str, Any]:
+    def filters(self, role: str, robot: str | None = None) -> dict[str, Any]:
         labels = [f"{LABEL_FLEET}={self.fleet}", f"{LABEL_ROLE}={role}"]
         if robot:
             labels.append(f"{LABEL_ROBOT}={robot}")
         return {"label": labels}
-    def _container(self, robot: str, role: str = "clone"):
-        found = self.client.containers.list(all=True, ignore_removed=True, filters=self._filters(role, robot))
+    def container(self, robot: str, role: str = "clone"):
+        found = self.engine.containers.list(all=True, ignore_removed=True, filters=self.filters(role, robot))
         return found[0] if found else None
 
     # -- transport ----------------------------------------------------------------------------
-    def _running(self, robot: str, role: str = "clone"):
+    def running_container(self, robot: str, role: str = "clone"):
         # By name, one request (a label query lists, then inspects): every command in a clone
         # asks first. The labels still decide whether the container is ours.
         try:
-            c = self.client.containers.get(self.container_name(robot, role))
-        except self._NotFound:
+            c = self.engine.containers.get(self.container_name(robot, role))
+        except self.NotFound:
             c = None
         if c is not None and (c.labels.get(LABEL_FLEET), c.labels.get(LABEL_ROLE), c.labels.get(LABEL_ROBOT)) != (self.fleet, role, robot):
             c = None
@@ -109,8 +114,8 @@ class DockerHost:
         return c
 
     def exec(self, robot: str, argv: list[str], timeout: float = 60, role: str = "clone") -> tuple[int, str]:
-        c = self._running(robot, role)
-        api, where = self.client.api, f"the {role} container of robot {robot!r}"
+        c = self.running_container(robot, role)
+        api, where = self.engine.api, f"the {role} container of robot {robot!r}"
         # exec_run would read the whole output, however much: stream it and stop at the cap (the
         # command's `timeout` then ends it in the container).
         run = api.exec_create(c.id, ["timeout", str(int(timeout)), *argv])["Id"]
@@ -147,7 +152,7 @@ class DockerHost:
 
     def push_files(self, robot: str, files: Sequence, restart: Sequence[str] = (), role: str = "clone") -> None:
         """Copy bundle files to their `dest` with their modes; chgrp where a group is named."""
-        c = self._running(robot, role)
+        c = self.running_container(robot, role)
         by_dir: dict[str, list] = {}
         for f in files:
             directory, _, name = f.dest.rpartition("/")

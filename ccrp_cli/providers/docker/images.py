@@ -197,12 +197,12 @@ def build_snapshot_image(client, repo: str, fleet: str, distro: str, base: str, 
 
 
 # -- the fleet's snapshots: images of this engine ------------------------------------------------------
-def snapshot_labels(c: DockerHost, state_dir: Path, robot: str | None = None) -> dict[str, str]:
+def snapshot_labels(c: DockerHost, robot: str | None = None) -> dict[str, str]:
     """Owner labels of a snapshot image, with the state it belongs to (`ccrp gc` finds the
     images of deleted state directories by them)."""
     from .snapshot_images import state_labels
 
-    return owner_labels(c.fleet, "snapshot", robot) | state_labels(state_dir, ensure_state_id(state_dir))
+    return owner_labels(c.fleet, "snapshot", robot) | state_labels(c.state_dir, ensure_state_id(c.state_dir))
 
 
 def snapshot_record(image) -> SnapshotRecord:
@@ -215,56 +215,56 @@ def snapshot_record(image) -> SnapshotRecord:
     )
 
 
-def create_snapshot(c: DockerHost, state_dir: Path, robot: str, name: str) -> SnapshotRecord:
-    container = c._running(robot)
+def create_snapshot(c: DockerHost, robot: str, name: str) -> SnapshotRecord:
+    container = c.running_container(robot)
     # The secrets volume is not part of a commit: the snapshot carries no key.
     repo, _, tag = name.rpartition(":")
     # Labels through the config, not a LABEL line: the state directory's path is taken as it
     # is (spaces, quotes, `$`), and these win over the clone's own labels the image inherits.
-    image = container.commit(repository=repo, tag=tag, conf={"Labels": snapshot_labels(c, state_dir, robot)})
+    image = container.commit(repository=repo, tag=tag, conf={"Labels": snapshot_labels(c, robot)})
     return snapshot_record(image)
 
 
-def build_snapshot(c: DockerHost, state_dir: Path, repo: str, distro: str, base_image: str, plat, agents: tuple[str, ...],
+def build_snapshot(c: DockerHost, repo: str, distro: str, base_image: str, plat, agents: tuple[str, ...],
                    software, digest: str, bare: bool, progress) -> SnapshotRecord:
     """Ability.LOCAL_BUILD: the clone image built on this engine (build_snapshot_image)."""
-    tag = build_snapshot_image(c.client, repo, c.fleet, distro, base_image, plat, agents, software, bare,
-                               snapshot_labels(c, state_dir) | {"ccrp-software": digest}, progress)
-    return snapshot_record(c.client.images.get(tag))
+    tag = build_snapshot_image(c.engine, repo, c.fleet, distro, base_image, plat, agents, software, bare,
+                               snapshot_labels(c) | {"ccrp-software": digest}, progress)
+    return snapshot_record(c.engine.images.get(tag))
 
 
-def list_snapshots(c: DockerHost, state_dir: Path) -> list[SnapshotRecord]:
+def list_snapshots(c: DockerHost) -> list[SnapshotRecord]:
     """This state's snapshots, and the fleet's from before images were labelled with their
     state: a fleet of the same name in another CCRP_HOME has its own (retention and gc of
     this one must not touch them)."""
     from .snapshot_images import LABEL_STATE_ID
 
-    mine = read_state_id(state_dir)
-    found = [i for i in c.client.images.list(filters=c._filters("snapshot"))
+    mine = read_state_id(c.state_dir)
+    found = [i for i in c.engine.images.list(filters=c.filters("snapshot"))
              if i.labels.get(LABEL_STATE_ID) in (None, mine)]
     return sorted((snapshot_record(i) for i in found), key=lambda s: s.created)
 
 
 def delete_snapshot(c: DockerHost, snapshot_id: str) -> None:
     try:
-        image = c.client.images.get(snapshot_id)
-    except c._NotFound:
+        image = c.engine.images.get(snapshot_id)
+    except c.NotFound:
         raise CcrpError(f"snapshot {snapshot_id} not found", hint="ccrp snapshot list") from None
     if image.labels.get(LABEL_FLEET) != c.fleet:
         raise CcrpError(f"image {snapshot_id} is not a snapshot of fleet {c.fleet!r}")
-    c.client.images.remove(image.id, force=True)
+    c.engine.images.remove(image.id, force=True)
 
 
 def has_image(c: DockerHost, image: str) -> bool:
     try:
-        c.client.images.get(image)
+        c.engine.images.get(image)
         return True
-    except c._NotFound:
+    except c.NotFound:
         return False
 
 
 def ensure_image(c: DockerHost, image: str) -> None:
     try:
-        c.client.images.get(image)
-    except c._NotFound:
+        c.engine.images.get(image)
+    except c.NotFound:
         raise CcrpError(f"snapshot image {image} not found", hint="run `ccrp snapshot build -i INVENTORY`") from None

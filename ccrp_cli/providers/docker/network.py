@@ -21,18 +21,18 @@ def bootstrap(c: DockerHost, inv: Inventory) -> None:
         (c.public_net, provider.public_cidr, False),
         (c.common_net, inv.common.cidr, True),
     ):
-        existing = c.client.networks.list(names=[name])
+        existing = c.engine.networks.list(names=[name])
         existing = [n for n in existing if n.name == name]
         if existing:
             if existing[0].attrs.get("Labels", {}).get(LABEL_FLEET) != c.fleet:
                 raise CcrpError(f"Docker network {name} exists and is not ccrp's", hint="remove or rename it")
             continue
         try:
-            c.client.networks.create(
+            c.engine.networks.create(
                 name, driver="bridge", internal=internal, labels=owner_labels(c.fleet, "network"),
                 ipam=IPAMConfig(pool_configs=[IPAMPool(subnet=str(cidr))]),
             )
-        except c._APIError as exc:
+        except c.APIError as exc:
             raise CcrpError(
                 f"cannot create Docker network {name} ({cidr}): {exc.explanation}",
                 hint="another network uses that subnet: change provider.public_cidr or common.cidr",

@@ -29,18 +29,18 @@ def sim_image(host: DockerHost, distro: str, progress=lambda msg: None) -> str:
     # Its Dockerfile is a clone image's (images.dockerfile): a ROS 2 distro's has the ROS 2 venv.
     tag = SIM_IMAGE.format(distro=distro)
     try:
-        host.client.images.get(tag)
+        host.engine.images.get(tag)
         return tag
-    except host._NotFound:
+    except host.NotFound:
         pass
     plat = platform(distro, INFO.platform)
     try:
-        host.client.images.get(images.DEFAULT_BASE)
-    except host._NotFound:
-        images.build_base_image(host.client, images.DEFAULT_BASE, sorted(set(images.BASE_PACKAGES + plat.packages)), progress)
+        host.engine.images.get(images.DEFAULT_BASE)
+    except host.NotFound:
+        images.build_base_image(host.engine, images.DEFAULT_BASE, sorted(set(images.BASE_PACKAGES + plat.packages)), progress)
     progress(f"building the simulated robots' image {tag} (once)")
     # No agents of the clones': a robot runs none (its own come with its bundle).
-    images.build_clone_image(host.client, tag, images.dockerfile("robot-sim", distro, images.DEFAULT_BASE, plat, agents=()),
+    images.build_clone_image(host.engine, tag, images.dockerfile("robot-sim", distro, images.DEFAULT_BASE, plat, agents=()),
                              {"ccrp-managed": "true", "ccrp-role": "robot-image"}, progress,
                              images.build_context(plat, progress, distro, agents=()))
     return tag
@@ -58,7 +58,7 @@ def _create(provider: DockerHost, robot: str, role: str, image: str, network: st
     with `bundle` in BUNDLE_DIR and `extra` files, booted and its bundle's install.sh run.
     `attach(pid)`, if given, wires the network of a container on network `none` as soon as it
     runs (a libvirt fleet's robot port), before its VPN first dials."""
-    c = provider.client.containers.create(
+    c = provider.engine.containers.create(
         image,
         name=provider.container_name(robot, role=role),
         labels=owner_labels(provider.fleet, role, robot),
@@ -125,7 +125,7 @@ def start_device(provider: DockerHost, robot: str, bundle: Sequence) -> str:
     """(Re)create the simulated robot's power device: a container of its own beside the robot (same
     image and network), sharing only the robot's power line (POWER_DIR), with the device bundle
     installed as on a real device. It reads the robot's state from the supply's file."""
-    robot_c = provider._running(robot, role="robot-sim")
+    robot_c = provider.running_container(robot, role="robot-sim")
     stop_device(provider, robot)
     network = next(iter(robot_c.attrs["NetworkSettings"]["Networks"]))
     robot_state = f"CCRP_POWER_ROBOT_COMMAND=cat {POWER_DIR}/robot\n".encode()
@@ -136,7 +136,7 @@ def start_device(provider: DockerHost, robot: str, bundle: Sequence) -> str:
 
 
 def stop_device(provider: DockerHost, robot: str) -> bool:
-    c = provider._container(robot, role="power-sim")
+    c = provider.container(robot, role="power-sim")
     if c is None:
         return False
     c.remove(force=True, v=True)
@@ -145,7 +145,7 @@ def stop_device(provider: DockerHost, robot: str) -> bool:
 
 def stop(provider: DockerHost, robot: str) -> bool:
     stop_device(provider, robot)  # first: it holds the robot's power line volume
-    c = provider._container(robot, role="robot-sim")
+    c = provider.container(robot, role="robot-sim")
     if c is None:
         return False
     # Shut down as a robot is switched off: its OpenVPN tells the clone it leaves (explicit-exit-
@@ -159,11 +159,11 @@ class RobotContainers(DockerHost):
     """A fleet's simulated robots and power devices on this host's engine (base.RobotHost)."""
 
     def running(self, robot: str) -> bool:
-        c = self._container(robot, role="robot-sim")
+        c = self.container(robot, role="robot-sim")
         return c is not None and c.status == "running"
 
     def names(self, running: bool = False) -> list[str]:
-        found = self.client.containers.list(all=not running, ignore_removed=True, filters=self._filters("robot-sim"))
+        found = self.engine.containers.list(all=not running, ignore_removed=True, filters=self.filters("robot-sim"))
         return sorted(c.labels.get(LABEL_ROBOT, "") for c in found)
 
     def exec(self, robot: str, argv: list[str], timeout: float = 60, role: str = "robot-sim") -> tuple[int, str]:
@@ -186,4 +186,4 @@ class RobotContainers(DockerHost):
         return start_device(self, robot, bundle)
 
     def close(self) -> None:
-        self.client.close()
+        self.engine.close()

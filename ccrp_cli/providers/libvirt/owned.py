@@ -28,7 +28,7 @@ def sims(c: LibvirtClient) -> list:
     host = c.docker_host()
     if host is None:
         return []
-    return [s for s in host.client.containers.list(all=True, ignore_removed=True,
+    return [s for s in host.engine.containers.list(all=True, ignore_removed=True,
                                                    filters={"label": [f"{LABEL_FLEET}={c.fleet}"]})
             if s.labels.get(LABEL_ROLE) in ("robot-sim", "power-sim")]
 
