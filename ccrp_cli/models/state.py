@@ -50,6 +50,9 @@ class GatewayRecord(BaseModel):
 
     provider_id: str
     public_ip: ipaddress.IPv4Address
+    # The snapshot it was made from (snapshot retention keeps it); None when a gateway made by an
+    # earlier ccrp was found, which keeps every snapshot until it is made again.
+    image: str | None = None
 
 
 class FleetState(BaseModel):

@@ -70,7 +70,11 @@ def ensure(fleet: Fleet, provider: Provider, state: FleetState, progress: Progre
         progress(f"entry gateway {record.public_ip}: {len(entries)} robots' ports forwarded")
     if not record.public_ip:
         raise CcrpError(f"the entry gateway {record.provider_id} has no public address")
-    state.gateway = GatewayRecord(provider_id=record.provider_id, public_ip=ipaddress.IPv4Address(record.public_ip))
+    # Made now: from this spec's image; found: from the one recorded when it was made, if it is the same.
+    before = state.gateway if state.gateway and state.gateway.provider_id == record.provider_id else None
+    image = spec.image if record.origin is Origin.CREATED else before.image if before else None
+    state.gateway = GatewayRecord(provider_id=record.provider_id, public_ip=ipaddress.IPv4Address(record.public_ip),
+                                  image=image)
     return record
 
 

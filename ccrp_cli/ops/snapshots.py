@@ -247,8 +247,8 @@ def _terminate_builder(provider: Lifecycle, progress: Progress, failing: bool) -
 
 def in_use(state: FleetState) -> dict[str, list[str]] | None:
     """Snapshot (name or id) -> who uses it: "new clones" for the recorded one, and the robots
-    whose clone was created from it. None when a clone's snapshot is not known (a clone created
-    before ccrp recorded it): then nothing may be deleted."""
+    whose clone was created from it, and the entry gateway's. None when a clone's or the gateway's
+    snapshot is not known (made before ccrp recorded it): then nothing may be deleted."""
     used: dict[str, list[str]] = {}
     recorded = state.snapshot or {}
     for key in ("image", "id"):
@@ -259,6 +259,10 @@ def in_use(state: FleetState) -> dict[str, list[str]] | None:
             if not rec.image:
                 return None
             used.setdefault(rec.image, []).append(robot)
+    if state.gateway is not None:
+        if not state.gateway.image:
+            return None
+        used.setdefault(state.gateway.image, []).append("entry gateway")
     return used
 
 

@@ -4,7 +4,7 @@ clones get, stay; `gc` removes the rest too."""
 from __future__ import annotations
 
 from ccrp_cli.ops.gc import collect
-from ccrp_cli.models.state import FleetState, RobotRecord
+from ccrp_cli.models.state import FleetState, GatewayRecord, RobotRecord
 from ccrp_cli.providers.base import OwnedResource, Role, SnapshotRecord
 from ccrp_cli.ops.snapshots import in_use, surplus, users
 
@@ -47,6 +47,16 @@ def test_keeps_the_newest_and_what_clones_run_from():
 def test_a_clone_of_unknown_snapshot_keeps_everything():
     snaps = [snap(n) for n in range(1, 6)]
     s = state(5, {"nao1": None, "nao2": 5})
+    assert in_use(s) is None and surplus(s, snaps, keep=1) == []
+
+
+def test_the_entry_gateways_snapshot_is_kept_and_one_of_unknown_snapshot_keeps_everything():
+    snaps = [snap(n) for n in range(1, 6)]
+    s = state(5, {"nao1": 5})
+    s.gateway = GatewayRecord(provider_id="gw-1", public_ip="203.0.113.9", image="sha2")
+    assert [r.id for r in surplus(s, snaps, keep=1)] == ["sha4", "sha3", "sha1"]
+    assert users(snaps[1], in_use(s)) == ["entry gateway"]
+    s.gateway = GatewayRecord(provider_id="gw-1", public_ip="203.0.113.9")  # found, not made by this ccrp
     assert in_use(s) is None and surplus(s, snaps, keep=1) == []
 
 
