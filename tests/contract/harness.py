@@ -60,6 +60,14 @@ class Harness(Protocol):
     def delay(self, seconds: float) -> None:
         """From now on, every API call takes this much longer (benchmarks: 200 ms per call)."""
 
+    def kill(self, provider_id: str) -> None:
+        """Delete the instance in the fake as an operator or a failure does, around ccrp (what it
+        holds apart from the instance stays). Backends with Ability.ENTRY_GATEWAY."""
+
+    def new_provider(self, inv, workdir):
+        """A provider of another inventory (the harness's, changed) on the same fake. Backends with
+        Ability.ENTRY_GATEWAY."""
+
     def instance_roles(self, robot: str) -> list[str]:
         """The ccrp-role label of each instance the fake holds for robot, read from the fake."""
 

@@ -104,6 +104,9 @@ class OpenStackHarness:
         tags = [f"{LABEL_MANAGED}=true", f"{LABEL_FLEET}={FLEET}", f"{LABEL_ROLE}=clone", f"{LABEL_ROBOT}=ghost"]
         return self.fake._create_fips({"floating_network_id": ext["id"], "tags": tags})["id"]
 
+    def kill(self, provider_id: str) -> None:
+        self.fake._delete_server(self.fake.servers[provider_id])
+
     def exists(self, resource_id: str) -> bool:
         f = self.fake
         stores = (f.servers, f.networks, f.subnets, f.routers, f.ports, f.fips, f.sgs, f.images, f.keypairs)

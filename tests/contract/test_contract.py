@@ -178,6 +178,40 @@ def test_throttling_storm_creates_every_clone_once(harness):
     assert sum(harness.api_calls().values()) >= 3 * len(ROBOTS)
 
 
+def test_an_entry_gateway_holds_the_fleets_one_public_address(harness, tmp_path):
+    """Ability.ENTRY_GATEWAY: behind the gateway clones hold no public address; the gateway is not a
+    clone; made again after its instance was deleted around ccrp, it has the same address; retired
+    (terminate: the fleet went back to per-clone), its address goes with it; teardown leaves nothing."""
+    from ccrp_cli.models.addressing import gateway_ip
+    from ccrp_cli.providers.base import GATEWAY, GATEWAY_ROLE
+
+    if Ability.ENTRY_GATEWAY not in harness.provider.abilities:
+        pytest.skip(f"{harness.kind} makes no entry gateway")
+    harness.provider.teardown()
+    inv = harness.provider.inv
+    gw = harness.new_provider(inv.model_copy(update={"provider": inv.provider.model_copy(update={"entry": "gateway"})}),
+                              tmp_path / "gateway-store")
+    gw.bootstrap()
+    assert gw.gateway() is None
+    spec = harness.spec("robot1", 1).model_copy(update={
+        "robot": GATEWAY, "role": GATEWAY_ROLE, "instance_id": f"{FLEET}-gateway", "common_ip": str(gateway_ip(gw.inv)),
+        "vpn_subnet": None})
+    first = gw.run_instance(spec)
+    assert first.origin is Origin.CREATED and first.public_ip and first.common_ip == str(gateway_ip(gw.inv))
+    clones = [gw.run_instance(harness.spec(robot, i)) for i, robot in enumerate(ROBOTS[:2], start=1)]
+    assert [c.public_ip for c in clones] == [None, None]
+    assert gw.query().keys() == {"robot1", "robot2"}  # the gateway is not a clone
+    assert gw.gateway().provider_id == first.provider_id
+    harness.kill(first.provider_id)
+    assert gw.gateway() is None
+    again = gw.run_instance(spec)
+    assert again.public_ip == first.public_ip and again.provider_id != first.provider_id
+    assert gw.terminate(GATEWAY) is True
+    assert gw.gateway() is None and all(first.public_ip not in (r.id, r.name) for r in gw.list_owned())
+    gw.teardown()
+    assert harness.owned_ids() == set() and gw.leftovers() == []
+
+
 # -- contract v2: typed states, the calls every caller makes, declared abilities ------------------
 
 
