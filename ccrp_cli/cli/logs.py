@@ -3,6 +3,7 @@ by time across robots and nodes, each line labelled robot/node as `docker compos
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from typing import Annotated
@@ -42,6 +43,8 @@ def logs(
     try:
         code = run.run(show, time.sleep)
     except KeyboardInterrupt:  # the way to end --follow: not an interruption of anything
+        if not follow:
+            raise
         code = 0
     raise typer.Exit(code)
 
@@ -64,8 +67,6 @@ class Lines:
 
         self.width = max(len(f"{r.robot}/{node_of(u)}") for r in readers for u in r.units)
         self.colours: dict[str, str] = {}
-        import os
-
         self.tty = sys.stdout.isatty() and not os.environ.get("NO_COLOR")
 
     def show(self, records: list[dict]) -> None:
