@@ -4,12 +4,12 @@ robot/node; with --follow one reader per clone, each from its own journal cursor
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from ..errors import InputError, one_line
+from ..errors import CcrpError, InputError, one_line
 from ..services.workloads import UNIT_PREFIX, log_units, read_journal
 
 if TYPE_CHECKING:
@@ -111,7 +111,8 @@ def poll(provider: Reaches, reader: Reader) -> tuple[list[dict], bool]:
 
 @dataclass
 class Logs:
-    """`ccrp logs` on the selected clones: read(), then rounds() while following."""
+    """`ccrp logs` on the selected clones: a first read of each, then (following) rounds of polls,
+    every clone in parallel in each round."""
 
     provider: Reaches
     readers: list[Reader]
@@ -127,7 +128,7 @@ class Logs:
                 got = poll(self.provider, reader)
             else:
                 got = first_read(self.provider, reader, self.lines, self.since_s, self.following), False
-        except Exception as exc:  # noqa: BLE001 - a stopped or unreachable clone, however its backend says so
+        except (CcrpError, OSError) as exc:  # a stopped or unreachable clone (an engine's or a socket's error)
             if not reader.down:
                 reader.down = True
                 self.warn(f"cannot read robot {reader.robot!r}'s clone: {one_line(exc, 300)}"
