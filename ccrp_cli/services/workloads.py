@@ -471,10 +471,6 @@ def log_units(inv: Inventory, robot: Robot, name: str | None) -> list[str]:
                      hint=f"nodes: {', '.join(nodes) or 'none'}; ccrp units: {', '.join(CCRP_UNITS)}")
 
 
-# Lines `ccrp logs --follow` reads per poll at most (it reads on at once after a full page).
-FOLLOW_PAGE = 500
-
-
 def read_journal(provider: Reaches, robot: str, units: list[str], lines: int, since_s: int | None = None,
                  cursor: str | None = None) -> tuple[list[dict], str | None]:
     """Journal entries of `units` on robot's clone (the last `lines`, or the first `lines` after
@@ -514,7 +510,7 @@ def read_journal(provider: Reaches, robot: str, units: list[str], lines: int, si
         # sets). UNIT is any sender's to write, so a node could label its lines as another unit's: it
         # counts only from systemd itself (_PID 1: the unit started, failed, is restarting).
         unit = (e.get("UNIT") if e.get("_PID") == "1" else None) or e.get("_SYSTEMD_UNIT")
-        entries.append({"time": _iso(micros), "unit": unit if isinstance(unit, str) else "",
+        entries.append({"time": _iso(micros), "unit": unit if isinstance(unit, str) else "", "cursor": e.get("__CURSOR"),
                         "ident": e.get("SYSLOG_IDENTIFIER") or "", "message": message if isinstance(message, str) else ""})
     return entries, cursor
 
@@ -523,6 +519,8 @@ def _iso(micros: Any) -> str:  # journald's __REALTIME_TIMESTAMP, whatever the c
     import datetime as dt
 
     try:
-        return dt.datetime.fromtimestamp(int(micros) / 1e6, dt.timezone.utc).isoformat(timespec="milliseconds")
+        # Exact to the microsecond (a float of seconds is not), since `ccrp logs` merges clones by it.
+        epoch = dt.datetime(1970, 1, 1, tzinfo=dt.timezone.utc)
+        return (epoch + dt.timedelta(microseconds=int(micros))).isoformat(timespec="microseconds")
     except (TypeError, ValueError, OverflowError):
         return ""

@@ -434,7 +434,7 @@ def test_the_robots_own_node_on_its_clone_answers_its_scan_with_a_map(fleet: E2E
     row = fleet.status()["nao1"]
     assert [(n["name"], n["state"], n["restarts"]) for n in row["nodes"]] == [("mapper", "active", 0)], row["nodes"]
     logs = fleet.inv("logs", "--robot", "nao1", "mapper", "-n", "20", check=True).stdout
-    assert "ccrp-run-mapper: " in logs and "ccrp_offload 1.0 started" in logs, logs
+    assert "nao1/mapper | " in logs and "ccrp_offload 1.0 started" in logs, logs
     robot = fleet.container("robot-sim", "nao1")
     # The robot's side needs nav_msgs too (a robot brings its own ROS 2): the wheels the snapshot
     # build fetched, from this host's cache, installed with no index.
@@ -477,6 +477,49 @@ def test_a_clone_made_again_from_the_snapshot_runs_the_same_software(fleet: E2EF
                     "digest": row[0]["digest"]}]
     assert "ccrp_offload 1.0 started" in fleet.inv("logs", "--robot", "nao2", "mapper", check=True).stdout
     assert all(r["software"] is None for r in fleet.json("fleet", "plan"))
+
+
+def test_logs_of_every_clone_come_merged_by_time_and_follow_a_new_line(fleet: E2EFleet, up) -> None:
+    """`ccrp logs --all`: both clones' mapper lines in one stream ordered by the journal's time, each
+    labelled robot/node; `-f --since 2s` (which matches nothing: mapper logs once, at its start)
+    prints no history, then the lines nao2's mapper writes when it restarts."""
+    _jazzy_only(fleet)
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    records = [json.loads(x) for x in fleet.inv("logs", "--all", "--json", "-n", "50", check=True).stdout.splitlines()]
+    assert {(r["robot"], r["node"]) for r in records} == {("nao1", "mapper"), ("nao2", "mapper")}, records
+    assert [r["time"] for r in records] == sorted(r["time"] for r in records), records
+    for robot in ("nao1", "nao2"):
+        assert any(r["robot"] == robot and "ccrp_offload 1.0 started" in r["message"] for r in records), records
+    text = fleet.inv("logs", "--all", "mapper", "-n", "1", check=True).stdout.splitlines()
+    assert sorted(line.split(" | ")[0] for line in text) == ["nao1/mapper", "nao2/mapper"], text
+
+    time.sleep(2.5)  # mapper has written nothing since: --since 2s matches nothing
+    proc = subprocess.Popen([sys.executable, "-m", "ccrp_cli", "logs", "-i", str(fleet.inventory), "--all", "-f", "--since", "2s"],
+                            cwd=ROOT, env=fleet.env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
+    reader.start()
+    try:
+        time.sleep(4)  # its first read and a few polls: nothing to print
+        assert lines == [], lines
+        rc, out = exec_in(fleet.container("clone", "nao2"), ["systemctl", "restart", "ccrp-run-mapper.service"])
+        assert rc == 0, out
+        wait_for("nao2's new start line in `ccrp logs -f`",
+                 lambda: (any(x.startswith("nao2/mapper | ") and x.rstrip().endswith("ccrp_offload 1.0 started") for x in lines), lines),
+                 timeout=30)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            _, err = proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, err = proc.communicate()
+    assert proc.returncode == 0 and "Traceback" not in err, (proc.returncode, err)
+    assert all(x.startswith("nao2/mapper | ") for x in lines), lines  # nao1 wrote nothing new, nothing old came
 
 
 def test_a_node_dropped_from_the_inventory_leaves_the_clones(fleet: E2EFleet, up) -> None:

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import pytest
 
 from ccrp_cli.errors import CcrpError, printable
-from ccrp_cli.services import workloads
+from ccrp_cli.ops import logs as ops_logs
 from ccrp_cli.services.workloads import read_journal
 from ccrp_cli.transport import EXEC_OUTPUT_MAX
 from tests.conftest import LAB
@@ -67,9 +67,10 @@ def test_logs_print_a_nodes_escape_sequences_escaped_and_json_exact(tmp_path, mo
     assert code == 0, err
     lines = out.splitlines()
     assert len(lines) == 3 and not RAW.search(out), out  # one line per entry, nothing a terminal acts on
-    assert lines[0].endswith("ccrp-relay: hi\\x1b]52;c;cm0gLXJmIH4K\\x07 \\x1b[2J\\x9b31m\\x7f\\nccrp: deployed\\rX\ttab")
-    assert lines[1].endswith("ccrp-relay: bytes \\x1b[2J \ufffd \ufffd")  # not UTF-8: journald's list of bytes
-    assert lines[2].endswith("ccrp-relay: fine")
+    assert all(x.startswith("nao1/relay | 2023-11-14T22:13:20.00") for x in lines), lines
+    assert lines[0].endswith(" hi\\x1b]52;c;cm0gLXJmIH4K\\x07 \\x1b[2J\\x9b31m\\x7f\\nccrp: deployed\\rX\ttab")
+    assert lines[1].endswith(" bytes \\x1b[2J \ufffd \ufffd")  # not UTF-8: journald's list of bytes
+    assert lines[2].endswith(" fine")
     # --json: the exact text, JSON-escaped (no raw control character either).
     code, out, err = run_ccrp_inprocess("logs", "-i", str(LAB), "--robot", "nao1", "relay", "--json", home=tmp_path / "home")
     assert code == 0 and not RAW.search(out), err
@@ -99,15 +100,17 @@ def test_logs_follow_reads_bounded_pages(tmp_path, monkeypatch):
     monkeypatch.setattr(logs.time, "sleep", sleeps.append)
     code, out, err = run_ccrp_inprocess("logs", "-i", str(LAB), "--robot", "nao1", "relay", "-f", "-n", "20",
                                         home=tmp_path / "home")
-    assert code == 0 and len(clone.argvs) == 4 and len(sleeps) == 3, err
-    assert clone.argvs[0][-2:] == ["--lines", "20"]
-    for argv in clone.argvs[1:]:  # each poll: at most FOLLOW_PAGE entries after the last cursor
-        assert argv[-4:] == ["--after-cursor", "c2", "--lines", str(workloads.FOLLOW_PAGE)], argv
+    assert code == 0 and len(clone.argvs) == 4 and len(sleeps) == 2, err
+    assert clone.argvs[0][-2:] == ["--lines", "1"]  # the journal's tail: where the polls read on from
+    assert clone.argvs[1][-2:] == ["--lines", "20"]
+    assert out.count("line 1") == 1, out  # the first poll sees what the first read showed: shown once
+    for argv in clone.argvs[2:]:  # each poll: at most FOLLOW_PAGE entries after the last cursor
+        assert argv[-4:] == ["--after-cursor", "c2", "--lines", str(ops_logs.FOLLOW_PAGE)], argv
     # A full page: more is waiting, read at once (a node that floods costs lag, not memory).
     clone.argvs.clear(), sleeps.clear()
-    monkeypatch.setattr(workloads, "FOLLOW_PAGE", 3)
+    monkeypatch.setattr(ops_logs, "FOLLOW_PAGE", 3)
     run_ccrp_inprocess("logs", "-i", str(LAB), "--robot", "nao1", "relay", "-f", home=tmp_path / "home")
-    assert len(clone.argvs) == 4 and len(sleeps) == 1 and clone.argvs[1][-1] == "3", clone.argvs
+    assert len(clone.argvs) == 4 and len(sleeps) == 1 and clone.argvs[2][-1] == "3", clone.argvs
 
 
 class EvilJournal(DeployClones):
