@@ -72,8 +72,10 @@ def quota_exceeded(metric: str, limit: float) -> str:
 
 
 def inventory(zones: list[str] | None = None, **provider) -> Inventory:
+    """A GCP inventory; per clone unless `entry` says otherwise (the contract proves a clone's own
+    public address; the gateway's layout has its tests in tests/unit/test_gcp_provider.py)."""
     return specs.inventory({"kind": "gcp", "project": PROJECT, "region": REGION, "zones": zones or ZONES[:2],
-                            "operator_cidr": specs.OPERATOR_CIDR, **provider})
+                            "operator_cidr": specs.OPERATOR_CIDR, "entry": "per-clone", **provider})
 
 
 def _copy(message):
