@@ -6,7 +6,8 @@ and answer with the SDK's own types: compute_v1 messages, ExtendedOperation futu
 GCE's http_error_* fields on failure), and the SDK's pagers (lists come in pages of PAGE items).
 The fake enforces what GCE enforces and ccrp relies on: unique names per zone, request-id
 replay, IPs inside the subnetwork, label syntax, the 256 KiB metadata value limit, no delete of
-a network still in use, a regional CPU quota, zones that can run out of capacity. External IPs
+a network still in use, a regional CPU quota, zones that can run out of capacity, routes' fields
+(a CIDR destination, a priority of 0-65535, valid tags, a next-hop instance that exists and forwards). External IPs
 are GCE's: an access config without natIP gets an ephemeral IP, released when the instance stops
 and replaced by another at its next start; one with natIP must name a RESERVED address of the
 region, which then is IN_USE by the instance and keeps its IP across stop/start; an address in
@@ -611,6 +612,17 @@ class FakeProject:
         if robot in self.fail_route_for:
             self.fail_route_for.discard(robot)
             raise exceptions.BadRequest(f"Invalid value for field 'resource.destRange': '{route.dest_range}'.",
+                                        errors=[{"reason": "invalid"}])
+        try:
+            ipaddress.IPv4Network(route.dest_range)
+        except ValueError:
+            raise exceptions.BadRequest(f"Invalid value for field 'resource.destRange': '{route.dest_range}'.",
+                                        errors=[{"reason": "invalid"}]) from None
+        if not 0 <= route.priority <= 65535:
+            raise exceptions.BadRequest(f"Invalid value for field 'resource.priority': '{route.priority}'.",
+                                        errors=[{"reason": "invalid"}])
+        if any(not NAME.match(tag) for tag in route.tags):
+            raise exceptions.BadRequest(f"Invalid value for field 'resource.tags': {list(route.tags)}.",
                                         errors=[{"reason": "invalid"}])
         zone, name = route.next_hop_instance.split("/zones/")[-1].split("/instances/")
         hop = self._instance(zone, name)
