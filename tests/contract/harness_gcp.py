@@ -709,8 +709,13 @@ class GcpHarness:
     def __init__(self, tmp_path: Path, fake: FakeProject | None = None, inv: Inventory | None = None) -> None:
         self.fake = fake or FakeProject()
         self.inv = inv or inventory()
-        self.provider = GcpProvider(self.inv, tmp_path / "store", clients=self.fake.clients)
-        self.provider.client.backoff = specs.FAST
+        self.provider = self.new_provider(self.inv, tmp_path / "store")
+
+    def new_provider(self, inv: Inventory, workdir: Path) -> GcpProvider:
+        """A GcpProvider (a fresh process, as far as ccrp knows) on this fake project."""
+        provider = GcpProvider(inv, workdir, clients=self.fake.clients)
+        provider.client.backoff = specs.FAST
+        return provider
 
     def spec(self, robot: str, index: int) -> CloneSpec:
         return specs.clone_spec(self.inv, robot, index, PUBLIC_IMAGE)
