@@ -421,6 +421,7 @@ class GcpProvider(CloudProvider):
                 return float(self._vcpus(machine_type)) if cpu_metric(machine_type) == metric else 0.0
 
             found = []
+            each: dict[str, float]
             for q in region.quotas:
                 if q.metric == "INSTANCES":
                     per, each, once = 1.0, {}, making
