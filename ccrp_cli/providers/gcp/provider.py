@@ -284,9 +284,14 @@ class GcpProvider(CloudProvider):
             c.mutate(f"remove the external IP of {inst.name}", c.clients.instances.delete_access_config,
                      project=c.project, zone=zone, instance=inst.name, network_interface=nic.name or "nic0",
                      access_config=nic.access_configs[0].name)
+        self._release_addresses(spec.robot)
+
+    def _release_addresses(self, robot: str) -> None:
+        """Release the robot's reserved addresses (once no instance uses them: GCE refuses before)."""
+        c = self.client
         c.wait_all([(f"release address {a.name}", c.delete(f"address {a.name}", c.clients.addresses.delete,
                                                            project=c.project, region=c.region, address=a.name))
-                    for a in self._addresses(spec.robot)])
+                    for a in self._addresses(robot)])
 
     def _addresses(self, robot: str | None = None) -> list:
         """The fleet's reserved addresses in the region (of one robot)."""
@@ -378,10 +383,7 @@ class GcpProvider(CloudProvider):
                 ops.append(("delete instance", c.delete("instance", c.clients.instances.delete,
                                                             project=c.project, zone=zone, instance=inst.name)))
             c.wait_all(ops)
-            # After the instance: GCE refuses to release an address still in use.
-            c.wait_all([(f"release address {a.name}", c.delete(
-                f"address {a.name}", c.clients.addresses.delete, project=c.project, region=c.region,
-                address=a.name)) for a in self._addresses(robot)])
+            self._release_addresses(robot)  # after the instance: GCE refuses to release an address in use
             return found is not None
 
     def console_output(self, robot: str) -> str:
