@@ -325,7 +325,8 @@ class GcpProvider(CloudProvider):
         if have is not None:
             if not c.names.owns_unlabelled(have.name, have.description):
                 raise CcrpError(f"route {name} exists but is not ccrp's", hint="rename or remove it")
-            if (have.dest_range, list(have.tags)) == (dest, tags) and same_resource(have.next_hop_instance, inst.self_link):
+            same = (have.dest_range, list(have.tags)) == (dest, tags)
+            if same and same_resource(have.next_hop_instance, inst.self_link):
                 return False
             # Left by an earlier clone of this robot (other zone / subnet) or gateway: replace it.
             c.wait_all([("delete route", c.delete("route", c.clients.routes.delete, project=c.project,
