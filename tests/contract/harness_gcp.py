@@ -6,7 +6,8 @@ and answer with the SDK's own types: compute_v1 messages, ExtendedOperation futu
 GCE's http_error_* fields on failure), and the SDK's pagers (lists come in pages of PAGE items).
 The fake enforces what GCE enforces and ccrp relies on: unique names per zone, request-id
 replay, IPs inside the subnetwork, label syntax, the 256 KiB metadata value limit, no delete of
-a network still in use, a regional CPU quota, zones that can run out of capacity. External IPs
+a network still in use, a regional CPU quota, zones that can run out of capacity, routes' fields
+(a CIDR destination, a priority of 0-65535, valid tags, a next-hop instance that exists and forwards). External IPs
 are GCE's: an access config without natIP gets an ephemeral IP, released when the instance stops
 and replaced by another at its next start; one with natIP must name a RESERVED address of the
 region, which then is IN_USE by the instance and keeps its IP across stop/start; an address in
@@ -72,8 +73,10 @@ def quota_exceeded(metric: str, limit: float) -> str:
 
 
 def inventory(zones: list[str] | None = None, **provider) -> Inventory:
+    """A GCP inventory; per clone unless `entry` says otherwise (the contract proves a clone's own
+    public address; the gateway's layout has its tests in tests/unit/test_gcp_provider.py)."""
     return specs.inventory({"kind": "gcp", "project": PROJECT, "region": REGION, "zones": zones or ZONES[:2],
-                            "operator_cidr": specs.OPERATOR_CIDR, **provider})
+                            "operator_cidr": specs.OPERATOR_CIDR, "entry": "per-clone", **provider})
 
 
 def _copy(message):
@@ -610,6 +613,17 @@ class FakeProject:
             self.fail_route_for.discard(robot)
             raise exceptions.BadRequest(f"Invalid value for field 'resource.destRange': '{route.dest_range}'.",
                                         errors=[{"reason": "invalid"}])
+        try:
+            ipaddress.IPv4Network(route.dest_range)
+        except ValueError:
+            raise exceptions.BadRequest(f"Invalid value for field 'resource.destRange': '{route.dest_range}'.",
+                                        errors=[{"reason": "invalid"}]) from None
+        if not 0 <= route.priority <= 65535:
+            raise exceptions.BadRequest(f"Invalid value for field 'resource.priority': '{route.priority}'.",
+                                        errors=[{"reason": "invalid"}])
+        if any(not NAME.match(tag) for tag in route.tags):
+            raise exceptions.BadRequest(f"Invalid value for field 'resource.tags': {list(route.tags)}.",
+                                        errors=[{"reason": "invalid"}])
         zone, name = route.next_hop_instance.split("/zones/")[-1].split("/instances/")
         hop = self._instance(zone, name)
         if not hop.can_ip_forward:
@@ -695,8 +709,13 @@ class GcpHarness:
     def __init__(self, tmp_path: Path, fake: FakeProject | None = None, inv: Inventory | None = None) -> None:
         self.fake = fake or FakeProject()
         self.inv = inv or inventory()
-        self.provider = GcpProvider(self.inv, tmp_path / "store", clients=self.fake.clients)
-        self.provider.client.backoff = specs.FAST
+        self.provider = self.new_provider(self.inv, tmp_path / "store")
+
+    def new_provider(self, inv: Inventory, workdir: Path) -> GcpProvider:
+        """A GcpProvider (a fresh process, as far as ccrp knows) on this fake project."""
+        provider = GcpProvider(inv, workdir, clients=self.fake.clients)
+        provider.client.backoff = specs.FAST
+        return provider
 
     def spec(self, robot: str, index: int) -> CloneSpec:
         return specs.clone_spec(self.inv, robot, index, PUBLIC_IMAGE)

@@ -35,7 +35,11 @@ host keys' fingerprints included). images.insert from an instance's boot disk is
 
 Not enforced when booting: firewall rules (every port of a container is open to this host and to
 its networks' peers), routes (the robots' VPN subnets are not routed to the next-hop instance by
-Docker), network tags, service accounts, machine types beyond the CPU quota.
+Docker, nor is an entry gateway's route 0.0.0.0/0 the clones' way out: a clone without an access
+config reaches out through its subnetwork's Docker network, as this host routes it), network tags,
+service accounts, machine types beyond the CPU quota. An entry gateway (provider.entry: gateway)
+is an instance like any other: its access config's address is on its internet interface, where
+the robots dial it, and its own rules forward their ports to the clones on the subnetwork.
 
 Faults for scenarios: `quota_once(n)` refuses the next n instance inserts with HTTP 403 quotaExceeded
 (Quota 'CPUS' exceeded: GCE's usual answer, no operation), and the harness's `exhausted` zones

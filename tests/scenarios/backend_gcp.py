@@ -7,8 +7,13 @@ The fake's clients are autospecced mocks in this process, so `ccrp` runs here to
 (scenarios/inprocess.py: the console entry point with the user's argv, stdout and stderr apart);
 the GCP provider's client factory (Clients.connect, what Application Default Credentials would
 feed) answers the fake's clients. Everything else is the real path: inventory file, CCRP_HOME,
-the provider's retries and waits, SSH to the instances' external IPs with host keys pinned from
-their serial console.
+the provider's retries and waits, SSH to the instances with host keys pinned from their serial
+console.
+
+The fleet is behind its entry gateway (provider.entry: gateway, GCP's default) in a project of one
+reserved address and one external IP in use, fewer than its robots: the gateway holds them, the
+clones none (SSH reaches them through the gateway). The Debian-12 snapshot's builder takes that
+address while it bakes and gives it back.
 
 Faults (each a context manager): "quota" refuses the next instance insert (HTTP 403 quotaExceeded,
 Quota 'CPUS' exceeded), "zone"
@@ -41,11 +46,25 @@ def provider_block(project: str, region: str, zones: list[str], operator_cidr: s
 
 def owned(fake, fleet: str) -> list[str]:
     """What the fake holds carrying the fleet's marks ("kind id"), snapshot images left out: labels on
-    instances, the ownership line on networks, subnetworks, firewall rules, routes and the clones'
-    reserved external addresses."""
+    instances (the clones, the entry gateway), the ownership line on networks, subnetworks, firewall
+    rules (the gateway's too), routes (the robots' VPN subnets, the clones' way out through the
+    gateway) and reserved external addresses (the gateway's)."""
     with fake.lock:
         return sorted(f"{kind} {rid}" for kind, rid, marks in fake.marks()
                       if kind != "image" and marks.get(LABEL_MANAGED) == "true" and marks.get(LABEL_FLEET) == fleet)
+
+
+def _delete_gateway(fake, fleet: str) -> str:
+    """What an operator's `gcloud compute instances delete` of the fleet's gateway does, through the
+    fake's API (its reserved address and route stay); its address, for the test to compare."""
+    from tests.contract.harness_gcp import PROJECT
+
+    with fake.lock:
+        [(zone, name)] = [key for key, inst in fake.instances.items() if inst.labels.get(LABEL_FLEET) == fleet
+                          and inst.labels.get("ccrp-role") == "gateway"]
+        address = fake.instances[(zone, name)].network_interfaces[0].access_configs[0].nat_i_p
+    fake.clients.instances.delete(project=PROJECT, zone=zone, instance=name).result(timeout=120)
+    return address
 
 
 @contextmanager
@@ -63,6 +82,8 @@ def open_backend(tmp_path: Path, fleet: str, echo: bool = False):
     boot = CloudBoot(progress=lambda m: print(m, flush=True))
     try:
         fake = BootingProject(boot)
+        with fake.lock:  # fewer addresses than robots: only the gateway's fits
+            fake.address_quota = fake.in_use_address_quota = 1
         common = fake.reserve_subnet(COMMON_RANGE)
         inventory = tmp_path / f"{fleet}.yaml"
         # SSH is allowed from the operator's CIDR: this host reaches the instances from its address on
@@ -108,7 +129,7 @@ def open_backend(tmp_path: Path, fleet: str, echo: bool = False):
         backend = Backend(kind="gcp", inventory=inventory, home=home, owned=lambda: owned(fake, fleet),
                           faults={"quota": quota, "zone": zone, "storm": storm}, runner=runner,
                           sim_network=fake.internet_net,  # simulated robots dial public IPs from there
-                          labels=[f"ccrp-fake={boot.run}"])
+                          labels=[f"ccrp-fake={boot.run}"], gateway=lambda: _delete_gateway(fake, fleet))
         backend.fake = fake  # type: ignore[attr-defined] - for tests that look inside
         try:
             yield backend

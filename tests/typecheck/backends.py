@@ -32,6 +32,7 @@ def openstack(backend: OpenStackProvider) -> None:
 def gcp(backend: GcpProvider) -> None:
     provider: Provider = backend
     bake: Bake = backend
+    gateways: Gateways = backend
 
 
 def aws(backend: AwsProvider) -> None:

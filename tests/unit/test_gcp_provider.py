@@ -16,6 +16,7 @@ from ccrp_cli.errors import CcrpError  # noqa: E402
 from ccrp_cli.providers.base import CloneSpec, Origin  # noqa: E402
 from ccrp_cli.providers.gcp.errors import classify  # noqa: E402
 from ccrp_cli.retry import ErrorClass  # noqa: E402
+from ccrp_cli.providers.gcp.ownership import tail  # noqa: E402
 from tests.contract.harness_gcp import PUBLIC_IMAGE, ZONES, FakeProject, GcpHarness, inventory  # noqa: E402
 
 
@@ -495,3 +496,141 @@ def test_address_insert_whose_reply_was_lost_is_used_and_rolled_back_as_this_att
     h.fake.exhausted.clear()
     record = h.provider.run_instance(spec("robot1", 1, instance_id="ct-robot1-2"))  # not the failed requestIds
     assert record.public_ip == h.fake.addresses["ccrp-ct-cri-robot1"].address
+
+
+# -- the entry gateway (provider.entry: gateway, GCP's default) -----------------------------------
+def gateway_harness(tmp_path, fake: FakeProject | None = None) -> GcpHarness:
+    h = GcpHarness(tmp_path, fake, inventory(entry="gateway"))
+    h.provider.bootstrap()
+    return h
+
+
+def gateway_spec(h: GcpHarness) -> CloneSpec:
+    from ccrp_cli.models.addressing import gateway_ip
+    from ccrp_cli.providers.base import GATEWAY
+
+    return spec(GATEWAY, 0, role="gateway", instance_id="ct-gateway", common_ip=str(gateway_ip(h.inv)),
+                vpn_subnet=None)
+
+
+def test_gcp_fleets_are_behind_a_gateway_unless_the_inventory_says_per_clone():
+    from tests.contract import specs
+
+    settings = {"kind": "gcp", "project": "p", "region": "europe-west2", "zones": ["europe-west2-a"],
+                "operator_cidr": specs.OPERATOR_CIDR}
+    assert specs.inventory(settings).provider.entry == "gateway"
+    assert specs.inventory(settings | {"entry": "per-clone"}).provider.entry == "per-clone"
+
+
+def test_behind_a_gateway_clones_have_no_external_ip_and_the_gateway_the_fleets_one(tmp_path):
+    """The gateway: its own tag and firewall rules (the robots' ports from anywhere, SSH from the
+    operator), the fleet's one reserved address, and the clones' way out (a route 0.0.0.0/0 for the
+    clones' tag through it, above GCE's default route). Clones: no access config, no address, the
+    VPN port and SSH from the common network only. The gateway deleted by hand, the next one gets
+    the same address and the route follows it."""
+    from ccrp_cli.models.addressing import capacity
+    from ccrp_cli.providers.base import GATEWAY
+
+    h = gateway_harness(tmp_path)
+    vpn, common = h.inv.vpn, str(h.inv.common.cidr)
+    shape = {r.name: ([(a.I_p_protocol, list(a.ports)) for a in r.allowed], list(r.source_ranges), list(r.target_tags))
+             for r in h.fake.firewalls.values()}
+    assert shape == {
+        "ccrp-ct-vpn": ([("udp", ["1194"])], [common], ["ccrp-ct"]),
+        "ccrp-ct-ssh": ([("tcp", ["22"])], [common], ["ccrp-ct"]),
+        "ccrp-ct-common": ([("all", [])], [common], ["ccrp-ct", "ccrp-ct-gateway"]),
+        "ccrp-ct-gateway-robots": ([("udp", [f"{vpn.port + 1}-{vpn.port + capacity(h.inv)}"])], ["0.0.0.0/0"],
+                                   ["ccrp-ct-gateway"]),
+        "ccrp-ct-gateway-ssh": ([("tcp", ["22"])], ["198.51.100.0/24"], ["ccrp-ct-gateway"]),
+    }
+    assert h.public_ingress() == {("udp", p, "0.0.0.0/0") for p in range(vpn.port + 1, vpn.port + capacity(h.inv) + 1)} \
+        | {("tcp", 22, "198.51.100.0/24")}  # the robots' ports and the operator's SSH, on the gateway only
+    clone = h.provider.run_instance(spec("robot1", 1))
+    inst = h._clone("robot1")
+    assert clone.public_ip is None and list(inst.network_interfaces[0].access_configs) == []
+    assert list(inst.tags.items) == ["ccrp-ct"] and h.fake.addresses == {}
+    assert h.provider.gateway() is None
+    first = h.provider.run_instance(gateway_spec(h))
+    gw = h._clone(GATEWAY)
+    assert first.public_ip and first.common_ip == gateway_spec(h).common_ip
+    assert gw.can_ip_forward and list(gw.tags.items) == ["ccrp-ct-gateway"] and gw.labels["ccrp-role"] == "gateway"
+    assert [a.address for a in h.fake.addresses.values()] == [first.public_ip]
+    assert h.provider.gateway() == first.model_copy(update={"origin": None})
+    assert h.provider.query().keys() == {"robot1"}  # the gateway is not a clone
+    route = h.fake.routes["ccrp-ct-egress"]
+    assert (route.dest_range, route.priority, list(route.tags), route.next_hop_instance) == \
+        ("0.0.0.0/0", 900, ["ccrp-ct"], gw.self_link)
+    h.fake.clients.instances.delete(project="p", zone=tail(gw.zone), instance=gw.name)  # by hand: address, route stay
+    assert h.provider.gateway() is None and len(h.fake.addresses) == 1
+    again = h.provider.run_instance(gateway_spec(h))
+    assert again.created and again.provider_id != first.provider_id and again.public_ip == first.public_ip
+    assert h.fake.routes["ccrp-ct-egress"].next_hop_instance == h._clone(GATEWAY).self_link  # re-pointed
+    assert len(h.fake.addresses) == 1
+    h.provider.teardown()
+    assert h.owned_ids() == set()
+
+
+def test_the_gateways_resources_are_its_role_for_gc_and_go_with_it(tmp_path):
+    """What the gateway holds (its instance, the fleet's address, its route and firewall rules) is
+    Role.GATEWAY, which gc keeps while the state records the gateway; terminate (a fleet back to
+    per clone) deletes the instance, its route and the address."""
+    from ccrp_cli.providers.base import GATEWAY, Role
+
+    h = gateway_harness(tmp_path)
+    h.provider.run_instance(spec("robot1", 1))
+    h.provider.run_instance(gateway_spec(h))
+    roles = {(r.kind, r.name): r.role for r in h.provider.list_owned()}
+    assert {k for k, role in roles.items() if role is Role.GATEWAY} == {
+        ("instance", "ccrp-ct-gateway-entry-gateway"), ("address", "ccrp-ct-gateway-entry-gateway"),
+        ("route", "ccrp-ct-egress"), ("firewall", "ccrp-ct-gateway-robots"), ("firewall", "ccrp-ct-gateway-ssh")}
+    assert roles[("instance", "ccrp-ct-cri-robot1")] is Role.CLONE
+    assert h.provider.terminate(GATEWAY) is True
+    assert h.fake.addresses == {} and "ccrp-ct-egress" not in h.fake.routes and h._clone(GATEWAY) is None
+
+
+def test_behind_a_gateway_the_quotas_count_it_once_and_no_address_per_clone(tmp_path):
+    """A new project's 8 addresses: a fleet of any size needs one (the gateway's), held once; its
+    vCPUs are counted beside the clones'."""
+    h = gateway_harness(tmp_path)
+    robots = [f"robot{i}" for i in range(1, 101)]
+    need = {q.name: q.need(robots) for q in h.provider.quotas(robots)}
+    assert need == {"CPUS": 2 * 101, "IN_USE_ADDRESSES": 1, "STATIC_ADDRESSES": 1}
+    h.provider.run_instance(gateway_spec(h))
+    need = {q.name: q.need(robots) for q in h.provider.quotas(robots)}
+    assert need == {"CPUS": 2 * 100, "IN_USE_ADDRESSES": 0, "STATIC_ADDRESSES": 0}
+
+
+def test_a_gateway_made_again_needs_no_new_address(tmp_path):
+    h = gateway_harness(tmp_path, FakeProject(address_quota=1, in_use_address_quota=1))
+    h.provider.run_instance(gateway_spec(h))
+    gw = next(i for i in h.fake.instances.values() if i.labels["ccrp-role"] == "gateway")
+    h.fake.clients.instances.delete(project="p", zone=tail(gw.zone), instance=gw.name)
+    need = {q.name: q.need(["robot1"]) for q in h.provider.quotas(["robot1"])}
+    assert need["STATIC_ADDRESSES"] == 0 and need["IN_USE_ADDRESSES"] == 1  # reserved already; held by no instance
+    assert h.provider.run_instance(gateway_spec(h)).public_ip
+
+
+def test_a_clone_kept_when_its_fleet_moves_behind_a_gateway_gives_its_address_back(tmp_path):
+    fake = FakeProject()
+    per_clone = GcpHarness(tmp_path, fake)
+    rec = per_clone.provider.run_instance(spec("robot1", 1))
+    assert rec.public_ip and set(fake.addresses) == {"ccrp-ct-cri-robot1"}
+    h = gateway_harness(tmp_path, fake)
+    again = h.provider.run_instance(spec("robot1", 1))
+    assert again.origin is Origin.REUSED and again.provider_id == rec.provider_id
+    assert again.public_ip is None and fake.addresses == {}
+    assert list(h._clone("robot1").network_interfaces[0].access_configs) == []
+
+
+def test_the_fakes_route_insert_checks_its_fields_as_gce_does(tmp_path):
+    from google.cloud import compute_v1 as c
+
+    h = gateway_harness(tmp_path)
+    h.provider.run_instance(gateway_spec(h))
+    hop = h.fake.routes["ccrp-ct-egress"]
+    for bad in (dict(dest_range="0.0.0.0/33"), dict(priority=70000), dict(tags=["Not A Tag"])):
+        route = c.Route(**(dict(name="ccrp-ct-x", network=hop.network, dest_range="0.0.0.0/0", priority=900,
+                                next_hop_instance=hop.next_hop_instance) | bad))
+        with pytest.raises(exceptions.BadRequest):
+            h.fake.clients.routes.insert(project="p", route_resource=route)
+    assert set(h.fake.routes) == {"ccrp-ct-egress"}

@@ -142,7 +142,7 @@ def test_gcp_scale_refuses_before_recording_new_robots(gcp):
     from tests.contract.harness_gcp import PROJECT, REGION as GCP_REGION, ZONES
 
     inv = specs.inventory({"kind": "gcp", "project": PROJECT, "region": GCP_REGION, "zones": ZONES[:2],
-                           "operator_cidr": specs.OPERATOR_CIDR}, template={"prefix": "extra"})
+                           "operator_cidr": specs.OPERATOR_CIDR, "entry": "per-clone"}, template={"prefix": "extra"})
     h = gcp(inv=inv, cpu_quota=16, address_quota=20, in_use_address_quota=20)  # 8 clones of 2 vCPUs
     fleet, before = fleet_of(inv), h.owned_ids()
     with pytest.raises(quotas.QuotaError) as err:
@@ -158,7 +158,7 @@ def test_gcp_scale_that_fits_records_and_creates_the_new_robots(gcp, created):
     from tests.contract.harness_gcp import PROJECT, REGION as GCP_REGION, ZONES
 
     inv = specs.inventory({"kind": "gcp", "project": PROJECT, "region": GCP_REGION, "zones": ZONES[:2],
-                           "operator_cidr": specs.OPERATOR_CIDR}, template={"prefix": "extra"})
+                           "operator_cidr": specs.OPERATOR_CIDR, "entry": "per-clone"}, template={"prefix": "extra"})
     h = gcp(inv=inv, cpu_quota=16, address_quota=20, in_use_address_quota=20)
     fleet = fleet_of(inv)
     vpn.init(fleet)
@@ -464,7 +464,9 @@ def test_gce_fake_refuses_the_address_over_each_default_quota_as_gce_does(gcp):
     assert got["STATIC_ADDRESSES"] == (8, 8) and got["IN_USE_ADDRESSES"] == (8, 8)
 
 
-def test_gcp_fleet_plan_of_ten_robots_does_not_fit_the_default_addresses(gcp, tmp_path, monkeypatch, capsys):
+def gcp_fleet_plan(gcp, tmp_path, monkeypatch, capsys, robots: int, entry: str = ""):
+    """`ccrp fleet plan` of `robots` robots on a new project's quotas (the GCE fake's defaults):
+    (exit code, stdout, stderr)."""
     from ccrp_cli import providers
     from ccrp_cli.cli.main import run
     from ccrp_cli.providers.gcp.provider import GcpProvider
@@ -473,21 +475,43 @@ def test_gcp_fleet_plan_of_ten_robots_does_not_fit_the_default_addresses(gcp, tm
     h = gcp()
     path = tmp_path / "gcp.yaml"
     path.write_text(f"fleet: quotas\nprovider: {{kind: gcp, project: {PROJECT}, region: {GCP_REGION}, "
-                    f"zones: [{ZONES[0]}], operator_cidr: 198.51.100.0/24}}\nrobots:\n"
-                    + "".join(f"  - name: robot{i}\n" for i in range(1, 11)))
+                    f"zones: [{ZONES[0]}], operator_cidr: 198.51.100.0/24{', entry: ' + entry if entry else ''}}}\n"
+                    "common: {cidr: 10.90.0.0/16}\nrobots:\n" + "".join(f"  - name: robot{i}\n" for i in range(1, robots + 1)))
     monkeypatch.setattr(providers, "get_provider",
                         lambda inv, workdir=None: GcpProvider(inv, tmp_path / "store", clients=h.fake.clients))
     monkeypatch.setattr(sys, "argv", ["ccrp", "fleet", "plan", "-i", str(path)])
     with pytest.raises(SystemExit) as done:
         run()
     out = capsys.readouterr()
-    assert done.value.code == 0, out.err
-    assert quota_rows(out.out) == {  # where, limit, used, per clone, this needs, free after
+    return done.value.code, out.out, out.err
+
+
+def test_gcp_fleet_plan_of_ten_robots_per_clone_does_not_fit_the_default_addresses(gcp, tmp_path, monkeypatch, capsys):
+    code, out, err = gcp_fleet_plan(gcp, tmp_path, monkeypatch, capsys, 10, entry="per-clone")
+    assert code == 0, err
+    assert quota_rows(out) == {  # where, limit, used, per clone, this needs, free after
         "CPUS": ["region europe-west2", "24", "0", "2", "20", "4"],
         "IN_USE_ADDRESSES": ["region europe-west2", "8", "0", "1", "10", "-2 (short)"],
         "STATIC_ADDRESSES": ["region europe-west2", "8", "0", "1", "10", "-2 (short)"]}
     assert ("`fleet up` would refuse, creating nothing: gcp quota IN_USE_ADDRESSES in region europe-west2: 8 free, "
-            "this needs 10; gcp quota STATIC_ADDRESSES in region europe-west2: 8 free, this needs 10") in out.err
+            "this needs 10; gcp quota STATIC_ADDRESSES in region europe-west2: 8 free, this needs 10") in err
+
+
+@pytest.mark.parametrize("robots", [10, 50, 100])
+def test_gcp_fleet_plan_behind_the_default_gateway_needs_one_address_whatever_the_size(
+        gcp, tmp_path, monkeypatch, capsys, robots):
+    """provider.entry: gateway, GCP's default: the fleet's one reserved address and one IP in use
+    (the gateway's), however many clones; instances and vCPUs stay exact, the gateway counted."""
+    code, out, err = gcp_fleet_plan(gcp, tmp_path, monkeypatch, capsys, robots)
+    assert code == 0, err
+    rows = quota_rows(out)
+    assert rows["IN_USE_ADDRESSES"] == ["region europe-west2", "8", "0", "0", "1", "7"]
+    assert rows["STATIC_ADDRESSES"] == ["region europe-west2", "8", "0", "0", "1", "7"]
+    cpus = 2 * (robots + 1)  # e2-medium: 2 vCPUs each, the gateway's too
+    assert rows["CPUS"] == ["region europe-west2", "24", "0", "2", str(cpus),
+                            str(24 - cpus) + (" (short)" if cpus > 24 else "")]
+    assert "ADDRESSES" not in "".join(line for line in err.splitlines() if "would refuse" in line)
+    assert ("`fleet up` would refuse" in err) is (cpus > 24)  # the CPUs alone, past 11 robots
 
 
 def test_openstack_fake_refuses_the_floating_ip_over_neutrons_default_as_neutron_does(openstack):

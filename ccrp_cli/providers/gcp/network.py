@@ -7,6 +7,8 @@ from __future__ import annotations
 import ipaddress
 
 from ...errors import CcrpError
+from ...models.addressing import capacity
+from ..base import GATEWAY
 from .client import GcpClient
 from .ownership import tail
 
@@ -60,22 +62,31 @@ def ensure_subnetwork(c: GcpClient, network) -> str:
 
 
 def firewall_rules(c: GcpClient, network_link: str) -> list:
-    """Ingress to the fleet's instances (network tag ccrp-<fleet>): the VPN port from anywhere,
-    SSH from the operator's CIDR, anything from the common network. Nothing else: GCE denies
-    other ingress by default, so the ROS master port is never public."""
-    vpn, fw = c.inv.vpn, c.compute
+    """Ingress to the fleet's clones (network tag ccrp-<fleet>): the VPN port from anywhere, SSH
+    from the operator's CIDR, anything from the common network. Behind an entry gateway (tag
+    ccrp-<fleet>-gateway) the clones' VPN port and SSH are the common network's only (the gateway
+    forwards both), and the gateway admits the robots' ports (render/gateway.py) from anywhere, SSH
+    from the operator and anything from the clones (their way out). Nothing else: GCE denies other
+    ingress by default, so the ROS master port is never public."""
+    vpn, fw, operator, common = c.inv.vpn, c.compute, str(c.settings.operator_cidr), str(c.inv.common.cidr)  # type: ignore[union-attr]
+    gateway = c.settings.entry == "gateway"
 
-    def rule(purpose: str, protocol: str, ports: list[str], source: str):
+    def rule(purpose: str, protocol: str, ports: list[str], source: str, tags: list[str] | None = None, robot=None):
         return fw.Firewall(
             name=c.names.firewall(purpose), network=network_link, direction="INGRESS", priority=1000,
             allowed=[fw.Allowed(I_p_protocol=protocol, ports=ports)], source_ranges=[source],
-            target_tags=[c.names.tag], description=c.names.describe("network"))
+            target_tags=tags or [c.names.tag], description=c.names.describe("network", robot))
 
-    return [
-        rule("vpn", vpn.proto, [str(vpn.port)], "0.0.0.0/0"),
-        rule("ssh", "tcp", ["22"], str(c.settings.operator_cidr)),  # type: ignore[union-attr]
-        rule("common", "all", [], str(c.inv.common.cidr)),
+    rules = [
+        rule("vpn", vpn.proto, [str(vpn.port)], common if gateway else "0.0.0.0/0"),
+        rule("ssh", "tcp", ["22"], common if gateway else operator),
+        rule("common", "all", [], common, [c.names.tag, c.names.gateway_tag] if gateway else None),
     ]
+    if gateway:
+        rules += [rule("gateway-robots", vpn.proto, [f"{vpn.port + 1}-{vpn.port + capacity(c.inv)}"], "0.0.0.0/0",
+                       [c.names.gateway_tag], GATEWAY),
+                  rule("gateway-ssh", "tcp", ["22"], operator, [c.names.gateway_tag], GATEWAY)]
+    return rules
 
 
 def rule_shape(rule) -> tuple:

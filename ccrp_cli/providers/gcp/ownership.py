@@ -14,7 +14,7 @@ import hashlib
 import re
 import uuid
 
-from ..base import LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, owner_labels
+from ..base import GATEWAY, LABEL_FLEET, LABEL_MANAGED, LABEL_ROBOT, LABEL_ROLE, owner_labels
 
 MAX_NAME = 63  # GCE names: [a-z]([-a-z0-9]{0,61}[a-z0-9])?
 _INVALID = re.compile(r"[^a-z0-9-]+")
@@ -57,7 +57,8 @@ class Names:
     def __init__(self, fleet: str) -> None:
         self.fleet = fleet
         self.prefix = f"ccrp-{fleet}-"
-        self.tag = f"ccrp-{fleet}"  # network tag the firewall rules target
+        self.tag = f"ccrp-{fleet}"  # network tag of the clones: their firewall rules and routes target it
+        self.gateway_tag = f"{self.prefix}gateway"  # the entry gateway's (and a builder's beside it)
         self.network = f"{self.prefix}net"
         self.subnetwork = f"{self.prefix}common"
 
@@ -69,7 +70,9 @@ class Names:
         return self.instance(robot, role)
 
     def route(self, robot: str) -> str:
-        return gce_name(f"{self.prefix}vpn-{robot}")
+        """A clone's route carries its robot's VPN subnet to it; the entry gateway's carries the
+        clones' way out to the internet through it."""
+        return gce_name(f"{self.prefix}egress" if robot == GATEWAY else f"{self.prefix}vpn-{robot}")
 
     def firewall(self, purpose: str) -> str:
         return gce_name(f"{self.prefix}{purpose}")

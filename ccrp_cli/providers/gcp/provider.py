@@ -1,7 +1,10 @@
-"""GCE clones: one VM per robot on the fleet's VPC subnetwork (the common network), reachable
-from the internet only on the VPN port (and SSH from the operator's CIDR) at a reserved regional
-external address of its own (kept across stop/start: the robot's bundle dials it), forwarding its
-robot's VPN subnet through a route whose next hop is the instance.
+"""GCE clones: one VM per robot on the fleet's VPC subnetwork (the common network), forwarding its
+robot's VPN subnet through a route whose next hop is the instance. Behind the fleet's entry gateway
+(provider.entry: gateway, the default) a clone has no external address: the gateway, a VM of role
+"gateway", holds the fleet's one reserved regional address, forwards each robot's port to its clone
+and is the clones' way out (a route 0.0.0.0/0 to it for the clones' network tag). Per clone, each
+clone is reachable from the internet only on the VPN port (and SSH from the operator's CIDR) at a
+reserved external address of its own (kept across stop/start: the robot's bundle dials it).
 
 Every SDK call goes through the client (client.py: retry.call, the SDK's own retry switched off),
 every mutation waits for its ExtendedOperation, and every SDK failure leaves as a one-line CcrpError.
@@ -19,7 +22,7 @@ from ...errors import CcrpError
 from ...models.inventory import Inventory
 from ...templates import static
 from ...retry import across_zones
-from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota, SnapshotRecord, owner_labels
+from ..base import GATEWAY, GATEWAY_ROLE, LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota, SnapshotRecord, owner_labels
 from ..cloud import SSH_USER, CloudProvider
 from . import INFO, images, network, owned
 from .client import Clients, GcpClient
@@ -38,6 +41,9 @@ STOCK_IMAGES = "projects/debian-cloud/"
 # Machine families whose vCPUs count against the regional CPUS quota; every other family has a
 # quota of its own (N2_CPUS, C3_CPUS...).
 CPUS_FAMILIES = ("e2", "n1", "f1", "g1", "custom")
+# The entry gateway's route for the clones' way out: above GCE's default internet route (1000),
+# which the gateway itself (not tagged as a clone) keeps.
+EGRESS_PRIORITY = 900
 
 
 def cpu_metric(machine_type: str) -> str:
@@ -86,6 +92,18 @@ class GcpProvider(CloudProvider):
             return {"source_machine_image": image}
         return {"source_image": image if "/" in image else f"projects/{c.project}/global/images/{image}"}
 
+    def _public(self, spec: CloneSpec) -> bool:
+        """Whether the instance has an external address: a clone behind an entry gateway has none
+        (its robot comes through the gateway's)."""
+        return spec.role != "clone" or self.settings.entry != "gateway"
+
+    def _tag(self, spec: CloneSpec) -> str:
+        """Its network tag: the clones' (their firewall rules, routes); behind an entry gateway what
+        has an external address (the gateway, a bake's builder) the gateway's, so the clones' way out
+        through the gateway is not its way and SSH reaches it from the operator."""
+        names = self.client.names
+        return names.gateway_tag if self.settings.entry == "gateway" and spec.role != "clone" else names.tag
+
     def instance_resource(self, spec: CloneSpec, zone: str, user_data: str, nat_ip: str = ""):
         c = self.client
         gce = c.compute
@@ -109,12 +127,12 @@ class GcpProvider(CloudProvider):
             name=c.names.instance(spec.robot, spec.role),
             machine_type=f"zones/{zone}/machineTypes/{self._machine_type(spec.robot)}",
             labels=labels,
-            tags=gce.Tags(items=[c.names.tag]),
-            can_ip_forward=True,  # the clone routes its robot's VPN subnet
+            tags=gce.Tags(items=[self._tag(spec)]),
+            can_ip_forward=True,  # the clone routes its robot's VPN subnet, the gateway the clones' way out
             metadata=gce.Metadata(items=[gce.Items(key=k, value=v) for k, v in metadata.items()]),
             network_interfaces=[gce.NetworkInterface(
                 subnetwork=network.subnetwork(c), network_i_p=spec.common_ip,
-                access_configs=[self._access_config(nat_ip)])],
+                access_configs=[self._access_config(nat_ip)] if self._public(spec) else [])],
             disks=disks,
             # No service account: nothing on a clone needs the GCP API.
         )
@@ -126,8 +144,9 @@ class GcpProvider(CloudProvider):
         return c.compute.AccessConfig(name="public", type_="ONE_TO_ONE_NAT", nat_i_p=nat_ip or None)
 
     def run_instance(self, spec: CloneSpec) -> CloneRecord:
-        """Create (or reuse) the robot's clone, its reserved external address and its VPN route;
-        on failure, delete what this attempt created."""
+        """Create (or reuse) the robot's clone, its reserved external address (none behind an entry
+        gateway) and its VPN route, or the entry gateway (role "gateway"), the fleet's address and
+        the clones' way out; on failure, delete what this attempt created."""
         c = self.client
         payload, _ = INFO.fit_user_data(spec.user_data)  # before any API call
         name = c.names.instance(spec.robot, spec.role)
@@ -135,7 +154,7 @@ class GcpProvider(CloudProvider):
             found = c.find(spec.robot, spec.role)
             if found is not None:
                 return self._complete(spec, found[0], found[1].name, created=False)
-            address, reserved = self._ensure_address(spec)
+            address, reserved = self._ensure_address(spec) if self._public(spec) else ("", False)
             try:
                 zone, inst = across_zones(self._zones(spec.robot),
                                           lambda z: self._create_instance(spec, z, payload.decode(), address),
@@ -187,7 +206,10 @@ class GcpProvider(CloudProvider):
                 origin = Origin.RESUMED
                 inst = c.call("get instance", c.clients.instances.get, project=c.project, zone=zone,
                                   instance=name)
-            if not address:  # a reused clone: make sure it answers at its reserved address
+            if not self._public(spec):
+                if not created:  # kept from per-clone days: its robot comes through the gateway now
+                    self._give_back_address(spec, zone, inst)
+            elif not address:  # a reused clone: make sure it answers at its reserved address
                 self._keep_address(spec, zone, inst)
             route_created = self._ensure_route(spec, inst)
             inst = c.call("get instance", c.clients.instances.get, project=c.project, zone=zone, instance=name)
@@ -253,6 +275,24 @@ class GcpProvider(CloudProvider):
         c.mutate(f"attach address {address} to {inst.name}", c.clients.instances.add_access_config,
                      access_config_resource=self._access_config(address), **where)
 
+    def _give_back_address(self, spec: CloneSpec, zone: str, inst) -> None:
+        """A clone behind an entry gateway has no external IP: one it holds goes, and its reserved
+        address is released (the gateway's is the fleet's one)."""
+        c = self.client
+        nic = inst.network_interfaces[0]
+        if nic.access_configs:
+            c.mutate(f"remove the external IP of {inst.name}", c.clients.instances.delete_access_config,
+                     project=c.project, zone=zone, instance=inst.name, network_interface=nic.name or "nic0",
+                     access_config=nic.access_configs[0].name)
+        self._release_addresses(spec.robot)
+
+    def _release_addresses(self, robot: str) -> None:
+        """Release the robot's reserved addresses (once no instance uses them: GCE refuses before)."""
+        c = self.client
+        c.wait_all([(f"release address {a.name}", c.delete(f"address {a.name}", c.clients.addresses.delete,
+                                                           project=c.project, region=c.region, address=a.name))
+                    for a in self._addresses(robot)])
+
     def _addresses(self, robot: str | None = None) -> list:
         """The fleet's reserved addresses in the region (of one robot)."""
         c = self.client
@@ -272,23 +312,28 @@ class GcpProvider(CloudProvider):
             log.warning("rollback of clone %s: address %s not released (%s); `ccrp gc` will find it", robot, name, exc)
 
     def _ensure_route(self, spec: CloneSpec, inst) -> bool:
-        """Route the robot's VPN subnet to its clone; True when this call created the route."""
+        """Route the robot's VPN subnet to its clone, or (the entry gateway) the clones' way out to
+        the internet through the gateway: GCE gives an instance without an external IP none, and a
+        gateway made again is another next hop. True when this call created the route."""
         c = self.client
-        if not spec.vpn_subnet:
+        gateway = spec.role == GATEWAY_ROLE
+        dest, priority, tags = ("0.0.0.0/0", EGRESS_PRIORITY, [c.names.tag]) if gateway else (spec.vpn_subnet, 1000, [])
+        if not dest:
             return False
         name = c.names.route(spec.robot)
         have = c.get("route", c.clients.routes.get, project=c.project, route=name)
         if have is not None:
             if not c.names.owns_unlabelled(have.name, have.description):
                 raise CcrpError(f"route {name} exists but is not ccrp's", hint="rename or remove it")
-            if have.dest_range == spec.vpn_subnet and same_resource(have.next_hop_instance, inst.self_link):
+            same = (have.dest_range, list(have.tags)) == (dest, tags)
+            if same and same_resource(have.next_hop_instance, inst.self_link):
                 return False
-            # Left by an earlier clone of this robot (other zone / subnet): replace it.
+            # Left by an earlier clone of this robot (other zone / subnet) or gateway: replace it.
             c.wait_all([("delete route", c.delete("route", c.clients.routes.delete, project=c.project,
                                                            route=name))])
         route = c.compute.Route(
-            name=name, network=inst.network_interfaces[0].network, dest_range=spec.vpn_subnet,
-            next_hop_instance=inst.self_link, priority=1000, description=c.names.describe("route", spec.robot))
+            name=name, network=inst.network_interfaces[0].network, dest_range=dest, tags=tags,
+            next_hop_instance=inst.self_link, priority=priority, description=c.names.describe("route", spec.robot))
         return c.insert(f"route {name}", c.clients.routes.insert, project=c.project, route_resource=route)
 
     def _record(self, robot: str, inst, origin: Origin | None = None) -> CloneRecord:
@@ -297,6 +342,14 @@ class GcpProvider(CloudProvider):
         return CloneRecord(robot=robot, provider_id=str(inst.id), state=CloneState.of(inst.status, STATES),
                            status=inst.status, public_ip=public or None,
                            common_ip=(nic.network_i_p if nic else "") or None, origin=origin)
+
+    def gateway(self) -> CloneRecord | None:
+        """The fleet's entry gateway: the instance of role "gateway" (its reserved address, the
+        fleet's, stays when the instance goes and is given to the next one)."""
+        c = self.client
+        with c.errors("find the entry gateway"):
+            found = c.find(GATEWAY, GATEWAY_ROLE)
+            return self._record(GATEWAY, found[1]) if found is not None else None
 
     def query(self) -> dict[str, CloneRecord]:
         c = self.client
@@ -331,10 +384,7 @@ class GcpProvider(CloudProvider):
                 ops.append(("delete instance", c.delete("instance", c.clients.instances.delete,
                                                             project=c.project, zone=zone, instance=inst.name)))
             c.wait_all(ops)
-            # After the instance: GCE refuses to release an address still in use.
-            c.wait_all([(f"release address {a.name}", c.delete(
-                f"address {a.name}", c.clients.addresses.delete, project=c.project, region=c.region,
-                address=a.name)) for a in self._addresses(robot)])
+            self._release_addresses(robot)  # after the instance: GCE refuses to release an address in use
             return found is not None
 
     def console_output(self, robot: str) -> str:
@@ -357,33 +407,43 @@ class GcpProvider(CloudProvider):
         """The region's quotas a clone draws on (regions.get: GCE's own limit and usage), with
         what the clones of `robots` take: an instance, its machine type's vCPUs (CPUS, or the
         family's own quota: N2_CPUS...), an external IP in use and a reserved one (none for a
-        robot whose address is reserved already)."""
+        robot whose address is reserved already). Behind an entry gateway a clone takes no address;
+        the gateway, while there is none, takes one instance of the fleet's machine type, one IP in
+        use and (while the fleet's is not reserved) one reserved address, however many clones."""
         c = self.client
         with c.errors(f"quotas of {c.region}"):
             region = c.call("get region", c.clients.regions.get, project=c.project, region=c.region)
             reserved = {a.name for a in self._addresses()} if robots else set()
             machine = {r: self._machine_type(r) for r in robots}
             default = self.settings.machine_type
+            gateway = self.settings.entry == "gateway"
+            making = 1.0 if gateway and robots and c.find(GATEWAY, GATEWAY_ROLE) is None else 0.0
+            address = 0.0 if c.names.address(GATEWAY, GATEWAY_ROLE) in reserved else making
 
             def cpus(machine_type: str, metric: str) -> float:
                 return float(self._vcpus(machine_type)) if cpu_metric(machine_type) == metric else 0.0
 
             found = []
+            each: dict[str, float]
             for q in region.quotas:
-                if q.metric in ("INSTANCES", "IN_USE_ADDRESSES"):
-                    per, each = 1.0, {}
+                if q.metric == "INSTANCES":
+                    per, each, once = 1.0, {}, making
+                elif q.metric == "IN_USE_ADDRESSES":
+                    per, each, once = (0.0 if gateway else 1.0), {}, making
                 elif q.metric == "STATIC_ADDRESSES":
-                    per, each = 1.0, {r: 0.0 for r in robots if c.names.address(r) in reserved}
+                    per, once = (0.0 if gateway else 1.0), address
+                    each = {} if gateway else {r: 0.0 for r in robots if c.names.address(r) in reserved}
                 elif q.metric.endswith("CPUS") and q.metric != "CPUS_ALL_REGIONS":
                     per = cpus(default, q.metric)
                     each = {r: n for r, m in machine.items() if (n := cpus(m, q.metric)) != per}
+                    once = making * per
                     if not per and not each:
                         continue  # another family's CPUs: none of these clones draws on it
                 else:
                     continue
                 found.append(Quota(
                     name=q.metric, scope=f"region {c.region}", limit=q.limit, used=q.usage, per_clone=per,
-                    per_robot=each,
+                    per_robot=each, once=once,
                     hint=f"request more in the console: IAM & Admin > Quotas, {q.metric} in {c.region}"))
             return found
 

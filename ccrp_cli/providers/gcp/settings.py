@@ -17,6 +17,8 @@ class GcpSettings(ProviderSettings):
     machine_type: CloudName = "e2-medium"
     network: CloudName | None = None
     operator_cidr: ipaddress.IPv4Network
+    # A new project has 8 external addresses per region: one per fleet by default (docs/gcp.md).
+    entry: Literal["per-clone", "gateway"] = "gateway"
 
     def place(self) -> str:
         return self.region
