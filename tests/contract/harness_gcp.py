@@ -720,6 +720,11 @@ class GcpHarness:
     def spec(self, robot: str, index: int) -> CloneSpec:
         return specs.clone_spec(self.inv, robot, index, PUBLIC_IMAGE)
 
+    def kill(self, provider_id: str) -> None:
+        with self.fake.lock:  # as instances.delete does: the routes and reserved addresses stay
+            [key] = [k for k, i in self.fake.instances.items() if str(i.id) == provider_id]
+            del self.fake.instances[key]
+
     def fail_create_after_instance(self, robot: str) -> None:
         self.fake.fail_route_for.add(robot)  # the instance is up, its VPN route is refused
 
