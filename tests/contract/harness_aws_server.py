@@ -146,7 +146,9 @@ def make_harness(tmp_path, threaded: bool = True):
     from ccrp_cli.providers.aws.provider import AwsProvider
 
     inv = inventory({"kind": "aws", "region": REGION, "zones": ["us-east-1a", "us-east-1b"],
-                     "instance_type": "t3.medium", "operator_cidr": OPERATOR_CIDR})
+                     "instance_type": "t3.medium", "operator_cidr": OPERATOR_CIDR,
+                     # the contract proves clones at their own addresses; the gateway: test_aws_provider.py
+                     "entry": "per-clone"})
     server = MotoServer(Path(tmp_path) / "moto-server.log", threaded=threaded)
     try:
         server.wait_ready()

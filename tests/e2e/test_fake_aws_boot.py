@@ -57,10 +57,11 @@ def test_fake_instances_boot_stop_start_capture_and_faults(tmp_path):
         subnet = ec2.create_subnet(VpcId=vpc, CidrBlock=str(cidr), AvailabilityZone="us-east-1b")["Subnet"]["SubnetId"]
         wait = {"Delay": 1, "MaxAttempts": 120}
 
-        def launch(image: str, host: int, user_data: bytes = b"") -> str:
-            iid = ec2.run_instances(ImageId=image, MinCount=1, MaxCount=1, UserData=user_data, NetworkInterfaces=[
-                {"DeviceIndex": 0, "SubnetId": subnet, "PrivateIpAddress": str(cidr[host]),
-                 "AssociatePublicIpAddress": False}])["Instances"][0]["InstanceId"]
+        def launch(image: str, host: int, user_data: bytes = b"", leg: str | None = None) -> str:
+            first = {"DeviceIndex": 0, "SubnetId": subnet, "PrivateIpAddress": str(cidr[host])}
+            legs = [first, {"DeviceIndex": 1, "SubnetId": leg}] if leg else [first | {"AssociatePublicIpAddress": False}]
+            iid = ec2.run_instances(ImageId=image, MinCount=1, MaxCount=1, UserData=user_data,
+                                    NetworkInterfaces=legs)["Instances"][0]["InstanceId"]
             ec2.get_waiter("instance_running").wait(InstanceIds=[iid], WaiterConfig=wait)
             return iid
 
@@ -89,8 +90,15 @@ def test_fake_instances_boot_stop_start_capture_and_faults(tmp_path):
         ec2.start_instances(InstanceIds=[iid])
         ec2.get_waiter("instance_running").wait(InstanceIds=[iid], WaiterConfig=wait)
         assert fake.boot.state(iid) == "running"
-        second = launch(ami, 21)
+        # Two interfaces (an entry gateway's), in two subnets: the container has a leg on each one's network.
+        other = yaml.safe_load(backend.inventory.read_text())["provider"]["gateway_cidr"]
+        ec2.associate_vpc_cidr_block(VpcId=vpc, CidrBlock=other)
+        leg = ec2.create_subnet(VpcId=vpc, CidrBlock=other, AvailabilityZone="us-east-1b")["Subnet"]["SubnetId"]
+        second = launch(ami, 21, leg=leg)
         assert fake.boot.client.containers.get(fake.boot.containers[second].id).image.tags[0] == fake.disks[ami]
+        nics = ec2.describe_instances(InstanceIds=[second])["Reservations"][0]["Instances"][0]["NetworkInterfaces"]
+        assert sorted(fake.boot.attachments(second).values()) == sorted(n["PrivateIpAddress"] for n in nics)
+        assert len(nics) == 2 and str(cidr[21]) in fake.boot.attachments(second).values()
         console_until(second, "END SSH HOST KEY FINGERPRINTS")
 
         with pytest.raises(ClientError) as unknown:

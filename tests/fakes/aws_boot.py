@@ -10,8 +10,9 @@ the fake is open (mock.patch, undone on close):
 
 - RunInstances: the AMI must have a disk in the fake (the Debian 12 AMI, or an AMI CreateImage
   made here), else InvalidAMIID.NotFound. The instance is `pending` until its container runs,
-  then `running`. The container is on the Docker network of the instance's subnet (the subnet's
-  CIDR; its .1 is the host, as a VPC router's address) with the instance's private IP; the NoCloud
+  then `running`. The container has one interface per network interface of the instance (an
+  entry gateway has two): on the Docker network of its subnet (the subnet's CIDR; its .1 is the
+  host, as a VPC router's address) at its private IP; the NoCloud
   seed holds the user-data as sent (cloud-init takes gzip there too: ccrp gzips large
   user-data), instance-id = the instance id, local-hostname ip-a-b-c-d as EC2 names it, and the
   key pair's public key. A boot that fails leaves the instance `terminated` with
@@ -22,7 +23,8 @@ the fake is open (mock.patch, undone on close):
   releasing disconnects it. So ccrp (on the host) reaches an instance's public IP over SSH.
   Unlike EC2, the public address is on an interface of the instance (EC2 NATs it to the private IP).
   As on EC2, a region holds at most EIP_LIMIT of them: the `vpc-max-elastic-ips` moto reports (AWS's
-  default) but does not enforce; one more is refused 400 AddressLimitExceeded.
+  default) but does not enforce; one more is refused 400 AddressLimitExceeded. A test may lower the
+  fake's `max_eips` (an account whose addresses others hold; moto still reports 5).
 - StopInstances / StartInstances / TerminateInstances: `stopping`/`pending`/`shutting-down` while
   the container stops, starts or is removed, then `stopped`/`running`/`terminated`. An instance
   whose container exited by itself (powered off from inside) is `stopped`, as EC2 does.
@@ -45,7 +47,9 @@ subnet of that zone 500 InsufficientInstanceCapacity and CreateSubnet in that zo
 The same layer lets one request at a time into moto (its backends are not thread-safe).
 
 Not modelled: security groups and routes (every container port is open to the host and its
-networks; VPN subnets are not routed between containers by the route table), the metadata service
+networks; VPN subnets are not routed between containers by the route table; a container's way
+out is Docker's, not its subnet's default route: a clone behind an entry gateway reaches the
+internet without it, which on EC2 it could not), the metadata service
 (the NoCloud seed stands for it), ClientToken idempotency (moto's own limit), instance types
 (every container gets the host's CPUs).
 
@@ -139,6 +143,7 @@ class AwsBoot:
         self._throttle, self._n = 0.0, 0
         self._refused_robots: dict[str, str] = {}
         self._full_zones: set[str] = set()
+        self.max_eips = EIP_LIMIT                # Elastic IPs the region holds at most
         self._empty_config: str | None = None   # AWS_CONFIG_FILE of the ccrp processes (env())
         self._patches: list = []
         self._server = None
@@ -455,7 +460,7 @@ class AwsBoot:
         def allocate_address(backend, domain, address=None, tags=None):
             from moto.ec2.exceptions import EC2ClientError
 
-            if len(backend.addresses) >= EIP_LIMIT:
+            if len(backend.addresses) >= fake.max_eips:
                 raise EC2ClientError("AddressLimitExceeded", "The maximum number of addresses has been reached.")
             return orig["allocate_address"](backend, domain, address=address or fake._free_public_ip(), tags=tags)
 
@@ -534,15 +539,14 @@ class AwsBoot:
             if instance.state != "pending":
                 return  # terminated or stopped before it could boot
             ip = instance.private_ip
-            subnet = self.ec2.get_subnet(instance.subnet_id)
-            net = self._network_for(subnet.id, subnet.cidr_block)
+            legs = self._legs(instance)
             user_data = base64.b64decode(instance.user_data.as_bytes()) if instance.user_data else b""
             key = self.ec2.key_pairs.get(instance.key_name) if instance.key_name else None
             keys = [key.material_public.decode() if isinstance(key.material_public, bytes) else key.material_public] \
                 if key is not None and key.material_public else []
             image = self.disks[image_id]
         t0 = time.monotonic()
-        self.boot.boot(instance.id, "ip-" + ip.replace(".", "-"), image, user_data, [(net, ip)], keys)
+        self.boot.boot(instance.id, "ip-" + ip.replace(".", "-"), image, user_data, list(legs.items()), keys)
         with self.lock:
             self._instances[instance.id] = instance
             if instance.state == "pending":
@@ -599,6 +603,11 @@ class AwsBoot:
             self._subnet_nets[subnet_id] = self._cidr_nets.get(cidr) or self.boot.ensure_network(f"{subnet_id}", cidr)
         return self._subnet_nets[subnet_id]
 
+    def _legs(self, instance) -> dict[str, str]:
+        """Docker network -> private IP of each of the instance's network interfaces, the primary first."""
+        return {self._network_for(nic.subnet.id, nic.subnet.cidr_block): nic.private_ip_address
+                for _, nic in sorted(instance.nics.items())}
+
     def _remove_network(self, net: str) -> None:
         with contextlib.suppress(Exception):  # still in use: the run's cleanup removes it
             self.boot.networks[net].remove()
@@ -624,8 +633,7 @@ class AwsBoot:
             for iid, instance in list(self._instances.items()):
                 if not self.boot.has(iid):
                     continue
-                subnet = self.ec2.get_subnet(instance.subnet_id)
-                wanted = {self._network_for(subnet.id, subnet.cidr_block): instance.private_ip}
+                wanted = self._legs(instance)
                 if instance.public_ip:
                     wanted[self.internet_network] = instance.public_ip
                 have = self.boot.attachments(iid)

@@ -5,13 +5,17 @@ The inventory names no profile and no image: ccrp takes boto3's default chain (t
 credentials of `env`) and, for `snapshot bake`, the Debian 12 AMI the public SSM parameter names
 (the fake publishes it). The common network is a /24 the fake claims on this machine's Docker (so
 it overlaps nothing), the operator CIDR is the fake's "internet" (the host's side of it is where
-ccrp's SSH comes from); simulated robots sit on that internet (`sim_network`) and dial the
-clones' Elastic IPs there.
+ccrp's SSH comes from); simulated robots sit on that internet (`sim_network`).
+
+The fleet has AWS's default entry, its gateway (provider.entry: gateway), and the region one
+Elastic IP (the fake's max_eips), fewer than its clones: the gateway holds it, with its public
+subnet (provider.gateway_cidr, a /28 the fake claims too) and the robots dial their ports on it;
+the clones have none. The Debian-12 snapshot's builder holds that address while it bakes.
 
 `owned()` lists what moto holds tagged ccrp-fleet=<fleet> that `fleet down` must remove:
-instances not terminated, Elastic IPs, volumes, security groups, key pairs, route tables,
-subnets, internet gateways, VPCs. AMIs and their EBS snapshots are not listed: they are the
-fleet's snapshots, which outlive `fleet down` (`ccrp snapshot delete` removes them).
+instances not terminated, Elastic IPs, volumes, network interfaces, security groups, key pairs,
+route tables, subnets, internet gateways, VPCs. AMIs and their EBS snapshots are not listed: they
+are the fleet's snapshots, which outlive `fleet down` (`ccrp snapshot delete` removes them).
 
 Faults (each a context manager factory):
 - "quota": the account at its instance limit: every RunInstances (or one robot's, if given)
@@ -35,7 +39,7 @@ from .backend import Backend, inventory_text
 
 REGION = "us-east-1"
 ZONES = ["us-east-1a", "us-east-1b"]
-COMMON_WITHIN = "10.210.0.0/16"  # the common /24 is the first free one here
+COMMON_WITHIN = "10.210.0.0/16"  # the common /24 is the first free one here, the gateway's /28 next
 VPN_POOL = "10.215.0.0/16"
 INSTANCE_TYPE = "t3.medium"
 LIVE = ["pending", "running", "shutting-down", "stopping", "stopped"]
@@ -46,6 +50,7 @@ KINDS = {
                  {"Filters": [{"Name": "instance-state-name", "Values": LIVE}]}),
     "elastic_ip": ("describe_addresses", "Addresses", "AllocationId", {}),
     "volume": ("describe_volumes", "Volumes", "VolumeId", {}),
+    "network_interface": ("describe_network_interfaces", "NetworkInterfaces", "NetworkInterfaceId", {}),
     "security_group": ("describe_security_groups", "SecurityGroups", "GroupId", {}),
     "key_pair": ("describe_key_pairs", "KeyPairs", "KeyName", {}),
     "route_table": ("describe_route_tables", "RouteTables", "RouteTableId", {}),
@@ -90,8 +95,11 @@ def open_backend(tmp_path: Path, fleet: str):
 
 def _backend(tmp_path: Path, fleet: str, home: Path, fake: AwsBoot) -> AwsBackend:
     common = fake.claim_subnet_cidr(COMMON_WITHIN)
+    gateway_cidr = fake.claim_subnet_cidr(COMMON_WITHIN, prefix=28)
+    fake.max_eips = 1
     provider = (f"  kind: aws\n  region: {REGION}\n  instance_type: {INSTANCE_TYPE}\n"
-                f"  zones: [{', '.join(ZONES)}]\n  operator_cidr: {fake.internet_cidr}\n")
+                f"  zones: [{', '.join(ZONES)}]\n  operator_cidr: {fake.internet_cidr}\n"
+                f"  gateway_cidr: {gateway_cidr}\n")
     inventory = tmp_path / f"{fleet}.yaml"
     inventory.write_text(inventory_text(fleet, provider, common, VPN_POOL))
     faults = {
@@ -101,4 +109,18 @@ def _backend(tmp_path: Path, fleet: str, home: Path, fake: AwsBoot) -> AwsBacken
     }
     return AwsBackend(kind="aws", inventory=inventory, home=home, env=fake.env(),
                       owned=lambda: owned_by_fleet(fake, fleet), faults=faults,
-                      sim_network=fake.internet_network, fake=fake, labels=[f"ccrp-fake={fake.boot.run}"])
+                      sim_network=fake.internet_network, fake=fake, labels=[f"ccrp-fake={fake.boot.run}"],
+                      gateway=lambda: _delete_gateway(fake, fleet))
+
+
+def _delete_gateway(fake: AwsBoot, fleet: str) -> str:
+    """What an operator's `aws ec2 terminate-instances` of the fleet's gateway does; its address
+    (the Elastic IP, which stays), for the test to compare."""
+    ec2 = fake.client()
+    [gateway] = [i for r in ec2.describe_instances(Filters=[
+        {"Name": "tag:ccrp-fleet", "Values": [fleet]}, {"Name": "tag:ccrp-role", "Values": ["gateway"]},
+        {"Name": "instance-state-name", "Values": ["pending", "running", "stopping", "stopped"]}])["Reservations"]
+        for i in r["Instances"]]
+    ec2.terminate_instances(InstanceIds=[gateway["InstanceId"]])
+    ec2.get_waiter("instance_terminated").wait(InstanceIds=[gateway["InstanceId"]], WaiterConfig={"Delay": 1, "MaxAttempts": 120})
+    return gateway["PublicIpAddress"]

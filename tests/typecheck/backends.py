@@ -38,6 +38,7 @@ def gcp(backend: GcpProvider) -> None:
 def aws(backend: AwsProvider) -> None:
     provider: Provider = backend
     bake: Bake = backend
+    gateways: Gateways = backend
 
 
 def libvirt(backend: LibvirtProvider) -> None:

@@ -1,6 +1,7 @@
 """What the AWS provider does beyond the shared contract: error classes, the security group
 converging to exactly the public rules, an existing VPC left alone, gzip of large user-data,
-zone fallback for the common subnet."""
+zone fallback for the common subnet; both layouts: clones at their own Elastic IPs (entry:
+per-clone) and behind the fleet's entry gateway (AWS's default)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from tests.contract.specs import FAST, clone_spec, inventory
 from .aws_fakes import REGION, inject_error
 
 PROVIDER = {"kind": "aws", "region": REGION, "zones": ["us-east-1a", "us-east-1b"], "operator_cidr": "198.51.100.0/24"}
+PER_CLONE = {"entry": "per-clone"}
 
 
 @pytest.fixture
@@ -77,7 +79,7 @@ def test_unsupported_zone_is_a_zone_error():
 
 
 def test_bootstrap_converges_security_group_and_is_idempotent(mocked, tmp_path):
-    p = make(tmp_path)
+    p = make(tmp_path, **PER_CLONE)
     net = p.network
     # Someone opens the ROS master to the world by hand: the next bootstrap closes it.
     p.client.ec2.authorize_security_group_ingress(GroupId=net.security_group_id, IpPermissions=[
@@ -154,7 +156,7 @@ def test_throttling_gives_up_with_one_line(mocked, tmp_path):
 
 
 def test_clone_route_and_source_dest_check(mocked, tmp_path):
-    p = make(tmp_path)
+    p = make(tmp_path, **PER_CLONE)
     rec = p.run_instance(clone_spec(p.inv, "robot2", 2, image(p)))
     rt = p.client.ec2.describe_route_tables(RouteTableIds=[p.network.route_table_id])["RouteTables"][0]
     assert {"10.80.2.0/24": rec.provider_id} == {r["DestinationCidrBlock"]: r["InstanceId"] for r in rt["Routes"] if r.get("InstanceId")}
@@ -205,3 +207,114 @@ def test_debians_ssm_parameter_resolves_to_the_ami_it_names(mocked, tmp_path):
     with pytest.raises(CcrpError, match=r"^AWS get SSM parameter /aws/service/debian/release/trixie/latest/amd64: .*not found") as err:
         p.resolve_image("/aws/service/debian/release/trixie/latest/amd64")
     assert "\n" not in err.value.one_line()
+
+
+# -- the entry gateway (provider.entry: gateway, AWS's default) -------------------------------------
+
+def gateway_spec(p, img: str):
+    from ccrp_cli.models.addressing import gateway_ip
+    from ccrp_cli.providers.base import GATEWAY, GATEWAY_ROLE
+
+    return clone_spec(p.inv, "robot1", 1, img).model_copy(update={
+        "robot": GATEWAY, "role": GATEWAY_ROLE, "hostname": "ccrp-ct-gateway", "instance_id": "ct-gateway",
+        "common_ip": str(gateway_ip(p.inv)), "vpn_subnet": None})
+
+
+def default_route(p, rt_id: str) -> dict:
+    rt = p.client.ec2.describe_route_tables(RouteTableIds=[rt_id])["RouteTables"][0]
+    return next(r for r in rt["Routes"] if r.get("DestinationCidrBlock") == "0.0.0.0/0")
+
+
+def test_the_gateway_holds_the_fleets_one_address_on_a_public_leg_and_is_the_clones_way_out(mocked, tmp_path):
+    """Its first interface in its own public subnet (routed to the internet gateway) with its own
+    group (the robots' ports, SSH from the operator) and the fleet's Elastic IP; its second at
+    gateway_ip in the clones' subnet, whose default route leads to it; source/dest check off on
+    both. Clones: no address, a group open only to the common network. Made again, the gateway
+    has the same address and the clones' route follows its new interface."""
+    from ccrp_cli.models.addressing import capacity
+    from ccrp_cli.providers.aws import network
+
+    p = make(tmp_path)
+    ec2, net, img = p.client.ec2, p.network, image(p)
+    assert net.gateway_subnet_id and net.gateway_group_id
+    gw_subnet = ec2.describe_subnets(SubnetIds=[net.gateway_subnet_id])["Subnets"][0]
+    assert gw_subnet["CidrBlock"] == "100.64.0.0/28" and gw_subnet["AvailabilityZone"] == net.zone
+    igw = ec2.describe_internet_gateways(Filters=[{"Name": "attachment.vpc-id", "Values": [net.vpc_id]}])["InternetGateways"][0]
+    public_rt = ec2.describe_route_tables(Filters=[{"Name": "association.subnet-id", "Values": [net.gateway_subnet_id]}])["RouteTables"][0]
+    assert default_route(p, public_rt["RouteTableId"])["GatewayId"] == igw["InternetGatewayId"]
+    groups = {g["GroupId"]: network.ingress_rules(g) for g in ec2.describe_security_groups(
+        GroupIds=[net.security_group_id, net.gateway_group_id])["SecurityGroups"]}
+    assert groups[net.gateway_group_id] == {("udp", 1195, 1194 + capacity(p.inv), "0.0.0.0/0"),
+                                            ("tcp", 22, 22, "198.51.100.0/24")}
+    assert groups[net.security_group_id] == {("-1", -1, -1, "10.90.0.0/24")}
+
+    gw = p.run_instance(gateway_spec(p, img))
+    assert p.gateway() is not None and p.gateway().provider_id == gw.provider_id
+    assert gw.public_ip and gw.common_ip == "10.90.0.8" and p.ssh_address(gw) == gw.public_ip
+    inst = ec2.describe_instances(InstanceIds=[gw.provider_id])["Reservations"][0]["Instances"][0]
+    assert inst["InstanceType"] == "t3.micro"
+    legs = {n["Attachment"]["DeviceIndex"]: n for n in inst["NetworkInterfaces"]}
+    assert legs[0]["SubnetId"] == net.gateway_subnet_id and [g["GroupId"] for g in legs[0]["Groups"]] == [net.gateway_group_id]
+    assert legs[1]["SubnetId"] == net.subnet_id and legs[1]["PrivateIpAddress"] == "10.90.0.8"
+    for leg in legs.values():
+        attr = ec2.describe_network_interface_attribute(NetworkInterfaceId=leg["NetworkInterfaceId"], Attribute="sourceDestCheck")
+        assert attr["SourceDestCheck"]["Value"] is False
+    [eip] = ec2.describe_addresses()["Addresses"]
+    assert eip["PublicIp"] == gw.public_ip and eip["NetworkInterfaceId"] == legs[0]["NetworkInterfaceId"]
+    assert default_route(p, net.route_table_id)["NetworkInterfaceId"] == legs[1]["NetworkInterfaceId"]
+
+    clone = p.run_instance(clone_spec(p.inv, "robot2", 2, img))
+    assert clone.public_ip is None and clone.common_ip == "10.90.0.11" and p.behind_gateway(clone)
+    assert len(ec2.describe_addresses()["Addresses"]) == 1
+
+    ec2.terminate_instances(InstanceIds=[gw.provider_id])  # an operator, a failure
+    assert p.gateway() is None
+    again = p.run_instance(gateway_spec(p, img))
+    assert again.provider_id != gw.provider_id and again.public_ip == gw.public_ip
+    inst = ec2.describe_instances(InstanceIds=[again.provider_id])["Reservations"][0]["Instances"][0]
+    leg = next(n for n in inst["NetworkInterfaces"] if n["Attachment"]["DeviceIndex"] == 1)
+    assert default_route(p, net.route_table_id)["NetworkInterfaceId"] == leg["NetworkInterfaceId"]
+
+
+def test_a_kept_clone_behind_a_new_gateway_gives_its_elastic_ip_back(mocked, tmp_path):
+    p = make(tmp_path, **PER_CLONE)
+    img = image(p)
+    rec = p.run_instance(clone_spec(p.inv, "robot1", 1, img))
+    assert rec.public_ip and len(p.client.ec2.describe_addresses()["Addresses"]) == 1
+    gw = make(tmp_path)  # the same fleet, now behind a gateway (AWS's default)
+    again = gw.run_instance(clone_spec(gw.inv, "robot1", 1, img))
+    assert again.provider_id == rec.provider_id and again.public_ip is None
+    assert gw.client.ec2.describe_addresses()["Addresses"] == []
+    # and back: per-clone again, the clones' default route is the internet gateway's again
+    gw.run_instance(gateway_spec(gw, img))
+    back = make(tmp_path, **PER_CLONE)
+    assert default_route(back, back.network.route_table_id).get("GatewayId", "").startswith("igw-")
+
+
+def test_the_gateway_is_gateway_to_gc_and_fleet_down_leaves_nothing(mocked, tmp_path):
+    from ccrp_cli.providers.aws import owned
+    from ccrp_cli.providers.base import GATEWAY, Role
+
+    p = make(tmp_path)
+    img = image(p)
+    p.run_instance(gateway_spec(p, img))
+    p.run_instance(clone_spec(p.inv, "robot2", 2, img))
+    found = owned.list_owned(p.client)
+    gateway = {r.kind for r in found if r.role is Role.GATEWAY}
+    # (EC2 tags its interfaces from RunInstances' TagSpecifications too; moto does not)
+    assert {"instance", "elastic_ip"} <= gateway <= {"instance", "elastic_ip", "volume", "network_interface"}, found
+    assert all(r.robot == GATEWAY for r in found if r.role is Role.GATEWAY)
+    assert {r.kind for r in found if r.role is Role.BOOTSTRAP} >= {"subnet", "route_table", "security_group"}
+    assert len([r for r in found if r.kind == "subnet"]) == 2
+    p.teardown()
+    assert owned.leftovers(p.client) == []
+
+
+def test_a_bakes_builder_behind_a_gateway_is_in_the_public_subnet_with_its_own_address(mocked, tmp_path):
+    """It is reached and gets its packages whether the fleet's gateway runs or not."""
+    p = make(tmp_path)
+    spec = clone_spec(p.inv, "robot1", 1, image(p)).model_copy(update={
+        "robot": "snapshot-builder", "role": "builder", "vpn_subnet": None})
+    rec = p.run_instance(spec)
+    inst = p.client.ec2.describe_instances(InstanceIds=[rec.provider_id])["Reservations"][0]["Instances"][0]
+    assert rec.public_ip and inst["SubnetId"] == p.network.gateway_subnet_id

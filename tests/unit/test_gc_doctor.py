@@ -12,9 +12,11 @@ from ccrp_cli.providers.base import CloneSpec, OwnedResource, Role, SnapshotReco
 
 from .aws_fakes import REGION
 
+# Clones each at an Elastic IP of their own (entry: per-clone): what gc and doctor count here. Behind
+# AWS's default entry gateway: test_aws_provider.py, test_quotas.py.
 INVENTORY = """\
 fleet: gcaws
-provider: {{kind: aws, region: {region}, zones: [us-east-1a], operator_cidr: 198.51.100.0/24}}
+provider: {{kind: aws, region: {region}, zones: [us-east-1a], operator_cidr: 198.51.100.0/24, entry: per-clone}}
 robots:
 {robots}
 """

@@ -245,15 +245,16 @@ def test_openstack_happy_path_passes_the_gate(openstack, created):
 
 INVENTORY = """\
 fleet: {fleet}
-provider: {{kind: aws, region: {region}, zones: [us-east-1a], operator_cidr: 198.51.100.0/24}}
+provider: {{kind: aws, region: {region}, zones: [us-east-1a], operator_cidr: 198.51.100.0/24, entry: {entry}}}
 robots:
 {robots}
 template: {{prefix: extra}}
 """
 
 
-def write_inventory(path, robots: int, fleet: str = "quotas"):
-    path.write_text(INVENTORY.format(fleet=fleet, region=REGION,
+def write_inventory(path, robots: int, fleet: str = "quotas", entry: str = "per-clone"):
+    """A fleet whose clones each hold an Elastic IP (entry: per-clone), or behind AWS's default entry gateway."""
+    path.write_text(INVENTORY.format(fleet=fleet, region=REGION, entry=entry,
                                      robots="\n".join(f"  - name: robot{i}" for i in range(1, robots + 1))))
     return path
 
@@ -334,12 +335,13 @@ def test_aws_vcpu_quota_counts_running_standard_instances_and_each_robots_type(a
         got = {q.name: q for q in p.quotas(["robot1", "robot2", "robot3"])}
         vcpus = got["Running On-Demand Standard instances (vCPUs)"]
         assert (vcpus.limit, vcpus.used, vcpus.per_clone, vcpus.per_robot) == (12, 2, 2, {"robot2": 4})
+        assert vcpus.once == 2  # the entry gateway (AWS's default), a t3.micro, while the fleet has none
         assert "max-instances (running instances)" not in got
         fleet = fleet_of(inv)
         line = refused_line(fleet, p)
         assert "aws quota Running On-Demand Standard instances (vCPUs) in region us-east-1: 10 free, " \
-               "this needs 12" in line and "L-1216C47A" in line
-        assert "create at most 4 of the 5 new clones" in line  # 2 + 4 + 2 + 2 of the 10
+               "this needs 14" in line and "L-1216C47A" in line
+        assert "create at most 3 of the 5 new clones" in line  # the gateway's 2 + 2 + 4 + 2 of the 10
         assert len(p.client.ec2.describe_instances()["Reservations"]) == 2
 
 
@@ -351,8 +353,9 @@ def test_aws_without_service_quotas_counts_running_instances(aws_env, tmp_path):
     with mock_aws():
         p = AwsProvider(specs.inventory({"kind": "aws", "region": REGION, "zones": ["us-east-1a"],
                                          "operator_cidr": specs.OPERATOR_CIDR}), tmp_path / "store")
-        got = {q.name: (q.limit, q.used, q.per_clone) for q in p.quotas(["robot1"])}
-        assert got == {"EC2-VPC Elastic IPs": (5, 0, 1), "max-instances (running instances)": (20, 0, 1)}
+        got = {q.name: (q.limit, q.used, q.per_clone, q.once) for q in p.quotas(["robot1"])}
+        # behind the entry gateway (AWS's default): its instance and the fleet's one address, once
+        assert got == {"EC2-VPC Elastic IPs": (5, 0, 0, 1), "max-instances (running instances)": (20, 0, 1, 1)}
 
 
 # -- the fakes hold their cloud's default address quotas and refuse the one over as the cloud does ----
@@ -423,6 +426,27 @@ def test_aws_fleet_plan_of_ten_robots_does_not_fit_the_default_elastic_ips(aws_b
         "max-instances (running instances)": ["region us-east-1", "20", "0", "1", "10", "10"]}
     assert "`fleet up` would refuse, creating nothing: aws quota EC2-VPC Elastic IPs in region us-east-1: " \
            "5 free, this needs 10 (hint: " in plan.stderr  # the addresses alone are short
+
+
+@pytest.mark.parametrize("robots", [10, 50, 100])
+def test_aws_fleet_plan_behind_the_default_gateway_needs_one_elastic_ip_whatever_its_size(
+        aws_boot, ccrp, tmp_path, monkeypatch, robots):
+    """AWS's default entry (gateway): the fleet's one Elastic IP on its gateway, none per clone, on
+    the default-quota account the fake holds (5 Elastic IPs, 20 instances); the instances stay
+    exact, the gateway counted."""
+    for key, value in aws_boot.env().items():
+        monkeypatch.setenv(key, value)
+    plan = ccrp("fleet", "plan", "-i", str(write_inventory(tmp_path / "aws.yaml", robots, entry="gateway")))
+    assert plan.returncode == 0, plan.stderr
+    rows = quota_rows(plan.stdout)  # where, limit, used, per clone, this needs, free after
+    assert rows["EC2-VPC Elastic IPs"] == ["region us-east-1", "5", "0", "0", "1", "4"]
+    after = 20 - robots - 1
+    assert rows["max-instances (running instances)"] == \
+        ["region us-east-1", "20", "0", "1", str(robots + 1), str(after) if after >= 0 else f"{after} (short)"]
+    assert "Elastic IPs" not in plan.stderr
+    refused = "`fleet up` would refuse, creating nothing: aws quota max-instances (running instances) in region " \
+              f"us-east-1: 20 free, this needs {robots + 1}"
+    assert (refused in plan.stderr) is (robots + 1 > 20), plan.stderr
 
 
 def test_gce_fake_refuses_the_address_over_each_default_quota_as_gce_does(gcp):

@@ -24,6 +24,7 @@ KINDS: dict[str, tuple[str, str, str, str, dict]] = {
     "volume": ("describe_volumes", "Volumes", "volume-id", "VolumeId", {}),
     "image": ("describe_images", "Images", "image-id", "ImageId", {"Owners": ["self"]}),
     "snapshot": ("describe_snapshots", "Snapshots", "snapshot-id", "SnapshotId", {"OwnerIds": ["self"]}),
+    "network_interface": ("describe_network_interfaces", "NetworkInterfaces", "network-interface-id", "NetworkInterfaceId", {}),
     "security_group": ("describe_security_groups", "SecurityGroups", "group-id", "GroupId", {}),
     "key_pair": ("describe_key_pairs", "KeyPairs", "key-pair-id", "KeyPairId", {}),
     "route_table": ("describe_route_tables", "RouteTables", "route-table-id", "RouteTableId", {}),

@@ -10,9 +10,12 @@ from .client import KINDS, AwsClient
 
 # Teardown order: what depends on something is removed before it. Snapshots outlive the fleet
 # (as on Docker): `ccrp snapshot delete` removes them.
-TEARDOWN = ["instance", "elastic_ip", "volume", "security_group", "key_pair", "route_table", "subnet",
+TEARDOWN = ["instance", "elastic_ip", "volume", "network_interface", "security_group", "key_pair", "route_table", "subnet",
             "internet_gateway", "vpc"]
-# What each kind is to the fleet (`ccrp gc`); Elastic IPs, volumes and EBS snapshots belong to a robot.
+# What each kind is to the fleet (`ccrp gc`); Elastic IPs, volumes, interfaces and EBS snapshots
+# belong to a robot. The entry gateway's instance, interfaces and Elastic IP carry its robot label
+# (base.GATEWAY: Role.GATEWAY, kept while the state records the gateway); its subnet, route table
+# and security group are made by bootstrap, as the clones' are.
 ROLES = {"instance": Role.CLONE, "image": Role.IMAGE, "security_group": Role.BOOTSTRAP, "key_pair": Role.BOOTSTRAP,
          "route_table": Role.BOOTSTRAP, "subnet": Role.BOOTSTRAP, "internet_gateway": Role.BOOTSTRAP,
          "vpc": Role.BOOTSTRAP}
@@ -73,7 +76,8 @@ def delete(c: AwsClient, kind: str, rid: str) -> bool:
     else:
         op, arg = {"volume": ("delete_volume", "VolumeId"), "snapshot": ("delete_snapshot", "SnapshotId"),
                    "security_group": ("delete_security_group", "GroupId"), "key_pair": ("delete_key_pair", "KeyName"),
-                   "subnet": ("delete_subnet", "SubnetId"), "vpc": ("delete_vpc", "VpcId")}[kind]
+                   "subnet": ("delete_subnet", "SubnetId"), "vpc": ("delete_vpc", "VpcId"),
+                   "network_interface": ("delete_network_interface", "NetworkInterfaceId")}[kind]
         c.api(op.replace("_", " "), getattr(ec2, op), **{arg: item["KeyName"] if kind == "key_pair" else rid})
     return True
 

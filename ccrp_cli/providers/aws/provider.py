@@ -1,6 +1,9 @@
 """AWS provider: a clone is an EC2 instance in the fleet's common subnet with a fixed private IP
-(its common-network address), an Elastic IP (public network), source/dest check off and a route
-for its robot's VPN subnet, so clones reach each other's robots through each other.
+(its common-network address), source/dest check off and a route for its robot's VPN subnet, so
+clones reach each other's robots through each other. In a per-clone fleet each clone holds an
+Elastic IP; behind an entry gateway (the default) only the gateway does: an instance with an
+interface in its public subnet (the Elastic IP's) and one at gateway_ip in the clones' subnet, whose
+default route leads to that interface (network.py says why).
 
 Every call goes through the client's api (client.py, retry.py); botocore's own retries are switched
 off so that backoff lives in one place. This class is the instances' lifecycle; it composes the
@@ -21,7 +24,8 @@ from typing import Any
 
 from ...errors import CcrpError
 from ...models.inventory import Inventory
-from ..base import LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota, SnapshotRecord
+from ..base import (GATEWAY, GATEWAY_ROLE, LABEL_ROBOT, CloneRecord, CloneSpec, CloneState, Origin, OwnedResource, Quota,
+                    SnapshotRecord)
 from ..cloud import CloudProvider
 from . import INFO, images, network, owned, tags
 from .client import LIVE, AwsClient
@@ -59,11 +63,18 @@ class AwsProvider(CloudProvider):
     def network(self) -> Network:
         return network.current(self.client)
 
+    @property
+    def behind(self) -> bool:
+        """Whether the fleet's robots come in through its entry gateway (provider.entry: gateway)."""
+        return self.settings.entry == "gateway"
+
     def _record(self, inst: dict, origin: Origin | None = None, public_ip: str | None = None) -> CloneRecord:
+        # The gateway's common address is its second interface's (its first is in its public subnet).
+        legs = {n.get("Attachment", {}).get("DeviceIndex"): n.get("PrivateIpAddress") for n in inst.get("NetworkInterfaces", [])}
         return CloneRecord(
             robot=tags.as_dict(inst).get(LABEL_ROBOT, ""), provider_id=inst["InstanceId"],
             state=CloneState.of(inst["State"]["Name"], STATES), status=inst["State"]["Name"], public_ip=public_ip or inst.get("PublicIpAddress"),
-            common_ip=inst.get("PrivateIpAddress"), origin=origin,
+            common_ip=legs.get(1) or inst.get("PrivateIpAddress"), origin=origin,
         )
 
     # -- the fleet's network (network.py) ---------------------------------------------------------
@@ -105,10 +116,7 @@ class AwsProvider(CloudProvider):
             inst = c.api(
                 f"launch clone {spec.hostname}", c.ec2.run_instances,
                 ImageId=spec.image, InstanceType=instance_type, MinCount=1, MaxCount=1, ClientToken=token,
-                KeyName=net.key_name, UserData=user_data,
-                NetworkInterfaces=[{"DeviceIndex": 0, "SubnetId": net.subnet_id, "Groups": [net.security_group_id],
-                                    "PrivateIpAddress": spec.common_ip, "AssociatePublicIpAddress": False,
-                                    "DeleteOnTermination": True}],
+                KeyName=net.key_name, UserData=user_data, NetworkInterfaces=self._interfaces(spec, net),
                 # IMDSv2 only: the metadata service (user-data) needs a session token.
                 MetadataOptions={"HttpTokens": "required", "HttpEndpoint": "enabled"},
                 # A clone's own poweroff (autostop) stops it; AWS's default, said so it stays that way.
@@ -121,26 +129,63 @@ class AwsProvider(CloudProvider):
             generation += 1
         raise CcrpError(f"clone {spec.hostname}: AWS keeps returning terminated instances for its client token")
 
+    def _interfaces(self, spec: CloneSpec, net: Network) -> list[dict]:
+        """A clone's one interface in the common subnet at its address. Behind an entry gateway, the
+        gateway's first interface is in its public subnet (where its Elastic IP is routed to the
+        internet gateway), its second at gateway_ip in the clones' subnet (their way in and out); a
+        bake's builder has only the public one, so it is reached whether the gateway runs or not."""
+        common = {"SubnetId": net.subnet_id, "Groups": [net.security_group_id], "PrivateIpAddress": spec.common_ip,
+                  "DeleteOnTermination": True}
+        if not self.behind or spec.role == "clone":
+            return [{"DeviceIndex": 0, "AssociatePublicIpAddress": False, **common}]
+        if not (net.gateway_subnet_id and net.gateway_group_id):
+            raise CcrpError(f"fleet {self.fleet!r} has no entry gateway subnet yet", hint="run `ccrp fleet up` (bootstrap)")
+        public = {"DeviceIndex": 0, "SubnetId": net.gateway_subnet_id, "Groups": [net.gateway_group_id],
+                  "DeleteOnTermination": True}
+        if spec.role == GATEWAY_ROLE:  # EC2 takes no AssociatePublicIpAddress with two interfaces
+            return [public, {"DeviceIndex": 1, **common}]
+        return [public | {"AssociatePublicIpAddress": False}]
+
     def _complete(self, inst: dict, spec: CloneSpec, net: Network, origin: Origin) -> CloneRecord:
         c = self.client
         iid = inst["InstanceId"]
+        legs = sorted(inst.get("NetworkInterfaces", []), key=lambda n: n.get("Attachment", {}).get("DeviceIndex", 0))
         new_eip: dict | None = None
+        eip: dict | None = None
+        # Behind an entry gateway a clone has no public address: its robot comes through the gateway's.
+        public = spec.role != "clone" or not self.behind
         step = "disable source/dest check"
         try:
-            # The clone forwards its robot's VPN subnet: AWS drops such packets unless this is off.
-            c.api(step, c.ec2.modify_instance_attribute, InstanceId=iid, SourceDestCheck={"Value": False})
+            # The clone forwards its robot's VPN subnet, the gateway the clones' packets out: AWS
+            # drops such packets unless this is off (per interface: EC2 refuses the instance's
+            # attribute on an instance with two).
+            if len(legs) > 1:
+                for leg in legs:
+                    c.api(step, c.ec2.modify_network_interface_attribute, NetworkInterfaceId=leg["NetworkInterfaceId"],
+                          SourceDestCheck={"Value": False})
+            else:
+                c.api(step, c.ec2.modify_instance_attribute, InstanceId=iid, SourceDestCheck={"Value": False})
             if spec.vpn_subnet:
                 step = f"route {spec.vpn_subnet} to the clone"
-                self._route(net, spec.vpn_subnet, iid)
+                self._route(net, spec.vpn_subnet, InstanceId=iid)
+            if spec.role == GATEWAY_ROLE:  # the clones' way out: a gateway made again is a new interface
+                step = "route the clones' subnet out through the gateway"
+                self._route(net, "0.0.0.0/0", NetworkInterfaceId=legs[-1]["NetworkInterfaceId"])
             step = "wait until running"
             c.wait("instance_running", [iid])  # an Elastic IP attaches only to a running instance
-            step = "allocate the Elastic IP"
-            eip, made = self._eip(spec.robot, spec.role)
-            new_eip = eip if made else None
-            if eip.get("InstanceId") != iid:
-                step = "associate the Elastic IP"
-                c.api(step, c.ec2.associate_address, AllocationId=eip["AllocationId"], InstanceId=iid,
-                         AllowReassociation=True)
+            if public:
+                step = "allocate the Elastic IP"
+                eip, made = self._eip(spec.robot, spec.role)
+                new_eip = eip if made else None
+                if eip.get("InstanceId") != iid:
+                    step = "associate the Elastic IP"
+                    # EC2 wants the interface named on an instance with two (the first: the public one).
+                    to = {"NetworkInterfaceId": legs[0]["NetworkInterfaceId"]} if len(legs) > 1 else {"InstanceId": iid}
+                    c.api(step, c.ec2.associate_address, AllocationId=eip["AllocationId"], AllowReassociation=True, **to)
+            elif origin is not Origin.CREATED:  # kept from per-clone days: its address goes back
+                step = "release the clone's Elastic IP"
+                for held in c.describe("elastic_ip", tags.filters(self.fleet, spec.role, spec.robot)):
+                    c.release(held)
         except Exception as exc:
             undone = self._roll_back(iid if origin is Origin.CREATED else None, new_eip)
             raise CcrpError(
@@ -148,7 +193,8 @@ class AwsProvider(CloudProvider):
                 f"rolled back {', '.join(undone) or 'nothing'}",
                 hint=getattr(exc, "hint", None),
             ) from exc
-        return self._record(inst, origin=origin, public_ip=eip["PublicIp"])
+        record = self._record(inst, origin=origin, public_ip=eip["PublicIp"] if eip else None)
+        return record if public else record.model_copy(update={"public_ip": None})
 
     def _roll_back(self, instance_id: str | None, eip: dict | None) -> list[str]:
         """Remove what the failed attempt created; keep going on errors (best effort, reported)."""
@@ -167,16 +213,17 @@ class AwsProvider(CloudProvider):
                 undone.append(f"NOT {what} ({exc.message})")
         return undone
 
-    def _route(self, net: Network, cidr: str, instance_id: str) -> None:
+    def _route(self, net: Network, cidr: str, **target: str) -> None:
+        """`cidr` in the clones' route table leads to `target` (InstanceId= or NetworkInterfaceId=)."""
         c = self.client
         rt = c.api("describe route table", c.ec2.describe_route_tables, RouteTableIds=[net.route_table_id])["RouteTables"][0]
         current = next((r for r in rt["Routes"] if r.get("DestinationCidrBlock") == cidr), None)
         if current is None:
             c.api("create route", c.ec2.create_route, RouteTableId=net.route_table_id,
-                     DestinationCidrBlock=cidr, InstanceId=instance_id)
-        elif current.get("InstanceId") != instance_id:  # left by an earlier clone of this robot
+                     DestinationCidrBlock=cidr, **target)
+        elif any(current.get(k) != v for k, v in target.items()):  # left by an earlier instance of this robot
             c.api("replace route", c.ec2.replace_route, RouteTableId=net.route_table_id,
-                     DestinationCidrBlock=cidr, InstanceId=instance_id)
+                     DestinationCidrBlock=cidr, **target)
 
     def _eip(self, robot: str, role: str) -> tuple[dict, bool]:
         """The robot's Elastic IP (kept across re-runs), allocated when missing."""
@@ -191,6 +238,12 @@ class AwsProvider(CloudProvider):
     def query(self) -> dict[str, CloneRecord]:
         c = self.client
         return {r.robot: r for r in map(self._record, c.instances())}
+
+    def gateway(self) -> CloneRecord | None:
+        """The fleet's entry gateway: the instance of role "gateway" (its Elastic IP, tagged apart
+        from it, is kept when it goes and associated again with the next one)."""
+        found = self.client.instances(GATEWAY, GATEWAY_ROLE)
+        return self._record(found[0]) if found else None
 
     def stop_instance(self, robot: str) -> bool:
         c = self.client
@@ -247,18 +300,25 @@ class AwsProvider(CloudProvider):
         attrs = c.api("describe account attributes", c.ec2.describe_account_attributes)["AccountAttributes"]
         values = {a["AttributeName"]: a["AttributeValues"][0]["AttributeValue"] for a in attrs if a.get("AttributeValues")}
         found: list[Quota] = []
+        # Behind an entry gateway a clone takes no Elastic IP; the fleet takes one for its gateway
+        # while it holds none (it is kept while the gateway is made again), and an instance of the
+        # gateway's type while there is none.
+        instance = 1.0 if self.behind and robots and self.gateway() is None else 0.0
         if values.get("vpc-max-elastic-ips", "").isdigit():
             eips = c.api("describe Elastic IPs", c.ec2.describe_addresses)["Addresses"]
             held = {tags.as_dict(a).get(LABEL_ROBOT) for a in eips if tags.owned_by(a, self.fleet)}
+            address = 1.0 if self.behind and robots and GATEWAY not in held else 0.0
             found.append(Quota(name="EC2-VPC Elastic IPs", scope=where, limit=float(values["vpc-max-elastic-ips"]),
-                               used=len(eips), per_clone=1, per_robot={r: 0.0 for r in robots if r in held},
+                               used=len(eips), per_clone=0 if self.behind else 1,
+                               per_robot={r: 0.0 for r in robots if r in held}, once=address,
                                hint="raise EC2-VPC Elastic IPs (L-0263D0A3) in the Service Quotas console"))
         running = self._running_on_demand()
         types = {r: self._instance_type(r) for r in robots}
+        gateway_type = self._instance_type(GATEWAY)
         vcpus = self._vcpu_quota()
         if vcpus is not None:
             sizes = self._type_vcpus({i["InstanceType"] for i in running} | set(types.values())
-                                     | {self.settings.instance_type})
+                                     | {self.settings.instance_type, gateway_type})
 
             def standard(instance_type: str) -> float:
                 return float(sizes[instance_type]) if is_standard(instance_type) else 0.0
@@ -268,13 +328,15 @@ class AwsProvider(CloudProvider):
                 name="Running On-Demand Standard instances (vCPUs)", scope=where, limit=vcpus,
                 used=sum(standard(i["InstanceType"]) for i in running), per_clone=per,
                 per_robot={r: n for r, t in types.items() if (n := standard(t)) != per},
-                hint="raise Running On-Demand Standard instances (L-1216C47A) in the Service Quotas console"))
+                once=instance * standard(gateway_type), hint="raise Running On-Demand Standard instances (L-1216C47A) in the Service Quotas console"))
         elif values.get("max-instances", "").isdigit():
             found.append(Quota(name="max-instances (running instances)", scope=where,
-                               limit=float(values["max-instances"]), used=len(running), per_clone=1))
+                               limit=float(values["max-instances"]), used=len(running), per_clone=1, once=instance))
         return found
 
     def _instance_type(self, robot: str) -> str:
+        if robot == GATEWAY:
+            return self.settings.gateway_instance_type
         override = self.inv.robot(robot)
         return (override.instance_type if override and override.instance_type else self.settings.instance_type)
 
