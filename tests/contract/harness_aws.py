@@ -46,11 +46,26 @@ class AwsHarness(Knobs):
         # on EC2. Held from before-call to after-call(-error) by the thread that took it.
         self._moto = threading.Lock()
         self._holding = threading.local()
+        self._hook(provider)
+
+    def _hook(self, provider) -> None:
         events = provider.client.ec2.meta.events
         events.register("before-call.ec2", self._before_call)
         events.register("after-call.ec2", self._release)
         events.register("after-call-error.ec2", self._release)
         events.register("after-call.ec2.RunInstances", self._after_run)
+
+    def new_provider(self, inv, workdir):
+        """An AwsProvider of another inventory on the same fake, with the same hooks."""
+        from ccrp_cli.providers.aws.provider import AwsProvider
+
+        provider = AwsProvider(inv, workdir)
+        provider.client.backoff = FAST
+        self._hook(provider)
+        return provider
+
+    def kill(self, provider_id: str) -> None:
+        self.raw.terminate_instances(InstanceIds=[provider_id])  # its Elastic IP stays allocated, as on EC2
 
     # -- fault injection -------------------------------------------------------------------------
     def _error(self, status: int, code: str, message: str):
