@@ -28,7 +28,7 @@ CATKIN_XML = """<?xml version="1.0"?>
 <package format="2"><name>mapper</name><version>1.0.0</version><description>x</description>
 <maintainer email="a@b.c">a</maintainer><license>MIT</license><buildtool_depend>catkin</buildtool_depend></package>
 """
-MOVED = re.compile(r"(/etc/systemd/system|/etc/ccrp|/opt/ccrp|/var/lib/ccrp)")
+MOVED = re.compile(r"(/etc/systemd/system|/etc/ccrp|/opt/ccrp|/var/lib/ccrp|/etc/openvpn)")
 MAPPER = "/etc/systemd/system/ccrp-run-mapper.service"
 
 
