@@ -90,7 +90,7 @@ RESERVED_ENV = {
 }
 _ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,127}")
 # A credential's name is a file name in $CREDENTIALS_DIRECTORY (and on the clone).
-_SECRET_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]{0,63}")
+SecretName = Annotated[str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_.-]{0,63}$")]
 
 
 def _env_name(name: str) -> str:
@@ -111,13 +111,6 @@ def _env_value(value: object) -> object:
     if _CONTROL.search(text) or len(text) > 4096:
         raise ValueError(f"env value {shown(text)} is not one line of at most 4096 characters without control characters")
     return text
-
-
-def _secret_name(name: str) -> str:
-    if not _SECRET_NAME.fullmatch(name):
-        raise ValueError(f"secret name {shown(name)} is not a credential name (letters, digits, _ . -, "
-                         "not a digit first)")
-    return name
 
 
 EnvName = Annotated[str, AfterValidator(_env_name)]
@@ -165,8 +158,7 @@ class RunNode(Strict):
     env: Env = {}
     # Credentials: NAME -> a file on the operator's side, relative to the inventory. The node reads
     # it as $CREDENTIALS_DIRECTORY/NAME (systemd's LoadCredential=), and nowhere else has it.
-    secrets: Annotated[dict[Annotated[str, AfterValidator(_secret_name)],
-                            Annotated[str, AfterValidator(_secret_file)]], Field(max_length=16)] = {}
+    secrets: Annotated[dict[SecretName, Annotated[str, AfterValidator(_secret_file)]], Field(max_length=16)] = {}
 
     @field_validator("cpu", mode="before")
     @classmethod

@@ -120,8 +120,8 @@ def test_software_merges_fleet_then_type_then_robot():
     ({"run": [{"name": "m", "command": ["a"], "secrets": {"TOKEN": "/etc/shadow"}}]}, "relative"),
     ({"run": [{"name": "m", "command": ["a"], "secrets": {"TOKEN": "../../.ssh/id_ed25519"}}]}, "relative"),
     ({"run": [{"name": "m", "command": ["a"], "secrets": {"TOKEN": "a\nb"}}]}, "not a secret file"),
-    ({"run": [{"name": "m", "command": ["a"], "secrets": {"../x": "t"}}]}, "not a credential name"),
-    ({"run": [{"name": "m", "command": ["a"], "secrets": {"a b": "t"}}]}, "not a credential name"),
+    ({"run": [{"name": "m", "command": ["a"], "secrets": {"../x": "t"}}]}, "secrets.../x"),
+    ({"run": [{"name": "m", "command": ["a"], "secrets": {"a b": "t"}}]}, "'a b' does not match"),
     ({"secrets": {"TOKEN": "t"}}, "secrets"),  # a node's only
 ])
 def test_bad_software_is_one_line_naming_the_field(software, words):
