@@ -195,7 +195,7 @@ def test_a_node_that_exits_at_once_is_rolled_back(fleet: E2EFleet, up: str) -> N
 
 # A node that prints its setting and its secret (read from $CREDENTIALS_DIRECTORY), then stays up.
 SETTINGS_NODE = ("import os, time; secret = open(os.path.join(os.environ['CREDENTIALS_DIRECTORY'], 'API_TOKEN')).read(); "
-                 "print('mode=' + os.environ['CCRP_E2E_MODE'], 'token=' + secret.strip(), flush=True); time.sleep(1e9)")
+                 "print('mode=' + os.environ['E2E_MODE'], 'token=' + secret.strip(), flush=True); time.sleep(1e9)")
 
 
 def test_a_nodes_env_and_secret_reach_it_and_the_secret_nowhere_else(fleet: E2EFleet, up: str) -> None:
@@ -211,7 +211,7 @@ def test_a_nodes_env_and_secret_reach_it_and_the_secret_nowhere_else(fleet: E2EF
     token.write_text(value + "\n")
     inventory = fleet.inventory.read_text()
     data = yaml.safe_load(inventory)
-    data["software"]["env"] = {"CCRP_E2E_MODE": "fast 100% \"quoted\" $HOME"}
+    data["software"]["env"] = {"E2E_MODE": "fast 100% \"quoted\" $HOME"}
     data["software"]["run"].append({"name": "settings", "command": ["python3", "-c", SETTINGS_NODE],
                                     "secrets": {"API_TOKEN": "keys/api-token"}})
     clone = fleet.container("clone", "nao1")
