@@ -38,6 +38,9 @@ INDEX = "/etc/ccrp/workloads.json"  # the nodes ccrp put on this clone, with the
 # In the directory of the clone's keys, never on its root disk: a tmpfs on the clouds, the clone's
 # own volume on Docker, so no snapshot captures them (models/layout.py SECRETS_DIR).
 CREDENTIALS = f"{SECRETS_DIR}/nodes"
+# Required by the node units with secrets: their credentials reach them only where /run propagates
+# mounts, which a container's does not until this unit says so (templates/systemd/).
+CREDENTIALS_UNIT = "ccrp-node-credentials.service"
 MAX_SECRET_BYTES = 64 << 10
 MAX_CLONE_SECRET_BYTES = 1 << 20  # that tmpfs holds 4 MB, the VPN's keys too
 ROS_RUN = "/usr/local/lib/ccrp/ros-run"
@@ -290,8 +293,9 @@ def node_unit(node: RunNode, digest: str, env: Mapping[str, str] | None = None) 
     # Names and paths are the models' (letters, digits, _ . -): nothing to quote.
     settings = [systemd_env(k, v) for k, v in (env if env is not None else node.env).items()]
     settings += [f"LoadCredential={name}:{credential_path(node.name, name)}" for name in node.secrets]
+    requires = f"Requires={CREDENTIALS_UNIT}\nAfter={CREDENTIALS_UNIT}" if node.secrets else ""
     return static("systemd/ccrp-run.service").format(
-        name=node.name, exec=" ".join([ROS_RUN, *(systemd_word(w) for w in node.command)]), restart=node.restart,
+        name=node.name, requires=requires, exec=" ".join([ROS_RUN, *(systemd_word(w) for w in node.command)]), restart=node.restart,
         settings="\n".join(settings), limits="\n".join(limits), digest=digest)
 
 
@@ -349,7 +353,12 @@ def node_files(inv: Inventory, robot: Robot, software_digest: str, inv_path: Pat
         units.append(BundleFile(unit_name(node.name), node_unit(node, digest, env), 0o644,
                                 f"{UNIT_DIR}/{unit_name(node.name)}"))
         index[node.name] = digest
-    return [*units, *secret_files(inv_path, robot.name, software.run),
+    secrets = secret_files(inv_path, robot.name, software.run)
+    if secrets:
+        from ..templates import static
+
+        units.append(BundleFile(CREDENTIALS_UNIT, static(f"systemd/{CREDENTIALS_UNIT}"), 0o644, f"{UNIT_DIR}/{CREDENTIALS_UNIT}"))
+    return [*units, *secrets,
             BundleFile("workloads.json", json.dumps({"nodes": index, "software": software_digest}) + "\n", 0o644, INDEX)]
 
 
@@ -429,7 +438,7 @@ def apply_nodes(provider: Reaches, robot: str, files: list[BundleFile], have: di
     if not changed:
         return []
     index = json.loads(files[-1].content)["nodes"]
-    restart = list(dict.fromkeys(node_of(f) for f in changed if f.dest != INDEX))
+    restart = list(dict.fromkeys(node_of(f) for f in changed if f.dest != INDEX and f.name != CREDENTIALS_UNIT))
     secrets = [f for f in files if is_secret(f)]
     if any(is_secret(f) for f in changed):  # root's (exec runs as root), 0700; the tmpfs is empty after a reboot
         dirs = [CREDENTIALS, *dict.fromkeys(f"{CREDENTIALS}/{node_of(f)}" for f in secrets)]

@@ -165,6 +165,10 @@ def test_env_and_secrets_reach_the_unit_quoted_for_systemd(tmp_path):
     assert 'Environment="A=x \\"q\\" \\\\ $HOME %%n ünï"' in unit and 'Environment="EMPTY="' in unit
     path = "/etc/openvpn/server/ccrp/keys/nodes/mapper/API_TOKEN"
     assert f"LoadCredential=API_TOKEN:{path}" in unit.splitlines()
+    # Its credentials reach it only where /run propagates mounts (a container's does not by itself).
+    assert "Requires=ccrp-node-credentials.service" in unit.splitlines()
+    [shared] = [f for f in files if f.name == "ccrp-node-credentials.service"]
+    assert "ExecStart=/bin/mount --make-rshared /run" in shared.content.splitlines()
     [secret] = [f for f in files if f.dest == path]
     assert secret.content == "s3cr3t-value\n" and secret.mode == 0o600 and secret.group == "root"
     assert files[-1].dest == INDEX  # the index stays last
@@ -230,6 +234,8 @@ def test_a_secret_changed_restarts_its_node_and_one_dropped_leaves_the_clone(tmp
             return 0, ""
 
     files = node_files(inv, inv.robots[0], "s1", inv_path)
+    assert "Requires=" not in files[1].content  # b has no secret
+    assert apply_nodes(Clone(), "nao1", files, {}) == ["a", "b"]  # the credentials unit is no node
     have = {f.dest: hashlib.sha256(f.content.encode()).hexdigest() for f in files}
     secret = "/etc/openvpn/server/ccrp/keys/nodes/a/TOKEN"
     (tmp_path / "token").write_text("two")
