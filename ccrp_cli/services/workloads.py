@@ -333,9 +333,14 @@ def secret_files(inv_path: Path | None, robot: str, nodes: list[RunNode]) -> lis
 
 def check_secrets(fleet: Fleet, state: FleetState, robots: list[str]) -> None:
     """Every secret the nodes of `robots` name is there and readable (InputError): said before
-    anything changes, not on the one clone that gets it."""
+    anything changes, not on the one clone that gets it. A robot `fleet scale` is about to add (not
+    in state yet) has the template's software."""
+    known = {r.name: r for r in fleet.members(state)}
+    template = fleet.inventory.template
     for name in robots:
-        secret_files(fleet.path, name, fleet.inventory.software_of(fleet.robot(state, name)).run)
+        robot = known.get(name) or (Robot(name=name, type=template.type, software=template.software) if template else None)
+        if robot is not None:
+            secret_files(fleet.path, name, fleet.inventory.software_of(robot).run)
 
 
 def node_files(inv: Inventory, robot: Robot, software_digest: str, inv_path: Path | None = None) -> list[BundleFile]:
