@@ -4,6 +4,7 @@ into one-line CcrpErrors, and the tagged lookups the other modules of the backen
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import cast
 
@@ -34,6 +35,21 @@ KINDS: dict[str, tuple[str, str, str, str, dict]] = {
 }
 
 
+@dataclass
+class Network:
+    """The fleet's network as bootstrap made or found it (network.py), kept by the client."""
+
+    vpc_id: str
+    subnet_id: str
+    zone: str
+    route_table_id: str
+    security_group_id: str
+    key_name: str
+    # Behind an entry gateway: its public subnet and security group (None in a per-clone fleet).
+    gateway_subnet_id: str | None = None
+    gateway_group_id: str | None = None
+
+
 class AwsClient:
     backoff = Backoff()
 
@@ -53,7 +69,7 @@ class AwsClient:
         # retry.call is the one place for retries: botocore's own are off.
         self.config = config = Config(retries={"total_max_attempts": 1}, connect_timeout=10, read_timeout=60)
         self.ec2 = self.session.client("ec2", config=config)
-        self.net = None  # the fleet's network (network.Network), once bootstrapped or found
+        self.net: Network | None = None  # the fleet's network, once bootstrapped or found
 
     # -- errors and retries ----------------------------------------------------------------------
     def classify_error(self, exc: BaseException):

@@ -18,29 +18,15 @@ from __future__ import annotations
 
 import ipaddress
 import time
-from dataclasses import dataclass
 
 from ...errors import CcrpError
 from ...models.addressing import capacity
 from ...retry import across_zones
 from ..base import GATEWAY_ROLE
 from . import tags
-from .client import AwsClient
+from .client import AwsClient, Network
 
 ROLE = "network"
-
-
-@dataclass
-class Network:
-    vpc_id: str
-    subnet_id: str
-    zone: str
-    route_table_id: str
-    security_group_id: str
-    key_name: str
-    # Behind an entry gateway: its public subnet and security group (None in a per-clone fleet).
-    gateway_subnet_id: str | None = None
-    gateway_group_id: str | None = None
 
 
 def _one(items: list[dict]) -> dict | None:

@@ -28,9 +28,8 @@ from ..base import (GATEWAY, GATEWAY_ROLE, LABEL_ROBOT, CloneRecord, CloneSpec, 
                     SnapshotRecord)
 from ..cloud import CloudProvider
 from . import INFO, images, network, owned, tags
-from .client import LIVE, AwsClient
+from .client import LIVE, AwsClient, Network
 from .errors import error_code
-from .network import Network
 
 GONE = ["shutting-down", "terminated"]
 # Instance families counted by "Running On-Demand Standard (A, C, D, H, I, M, R, T, Z) instances"

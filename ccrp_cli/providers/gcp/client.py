@@ -150,7 +150,7 @@ class GcpClient:
         except self.NotFound:
             return None
 
-    def wait_all(self, ops: list[tuple[str, object]]) -> None:
+    def wait_all(self, ops: builtins.list[tuple[str, object]]) -> None:  # `list` here is the method
         for what, op in ops:
             if op is not None:
                 try:

@@ -24,7 +24,7 @@ def bootstrap(c: GcpClient) -> None:
 
 
 def ensure_network(c: GcpClient):
-    named = c.settings.network  # type: ignore[union-attr]
+    named = c.settings.network
     name = named or c.names.network
     network = c.get("network", c.clients.networks.get, project=c.project, network=name)
     if network is None and named:
@@ -46,7 +46,7 @@ def ensure_subnetwork(c: GcpClient, network) -> str:
     cidr = c.inv.common.cidr
     subnets = c.list("subnetworks", c.clients.subnetworks.list, project=c.project, region=c.region)
     for subnet in subnets:
-        if tail(subnet.network) == network.name and cidr.subnet_of(ipaddress.ip_network(subnet.ip_cidr_range)):
+        if tail(subnet.network) == network.name and cidr.subnet_of(ipaddress.IPv4Network(subnet.ip_cidr_range)):
             return subnet.self_link
     name = c.names.subnetwork
     c.insert(f"subnetwork {name}", c.clients.subnetworks.insert, project=c.project, region=c.region,
@@ -68,7 +68,7 @@ def firewall_rules(c: GcpClient, network_link: str) -> list:
     forwards both), and the gateway admits the robots' ports (render/gateway.py) from anywhere, SSH
     from the operator and anything from the clones (their way out). Nothing else: GCE denies other
     ingress by default, so the ROS master port is never public."""
-    vpn, fw, operator, common = c.inv.vpn, c.compute, str(c.settings.operator_cidr), str(c.inv.common.cidr)  # type: ignore[union-attr]
+    vpn, fw, operator, common = c.inv.vpn, c.compute, str(c.settings.operator_cidr), str(c.inv.common.cidr)
     gateway = c.settings.entry == "gateway"
 
     def rule(purpose: str, protocol: str, ports: list[str], source: str, tags: list[str] | None = None, robot=None):

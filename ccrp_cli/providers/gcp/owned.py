@@ -3,6 +3,8 @@ firewalls, subnetworks and networks marked in their description), deleting it, a
 
 from __future__ import annotations
 
+from typing import Any
+
 from ...errors import CcrpError
 from ..base import LABEL_ROBOT, OwnedResource, Role, with_roles
 from . import images
@@ -27,7 +29,7 @@ def marked(c: GcpClient) -> list[tuple[OwnedResource, str | None]]:
     for image in images.owned_images(c):
         owned.append((OwnedResource(kind="image", id=str(image.id), name=image.name,
                                     robot=dict(image.labels).get(LABEL_ROBOT)), None))
-    unlabelled = (
+    unlabelled: tuple[tuple[str, Any, dict[str, str]], ...] = (
         ("route", c.clients.routes.list, {}),
         ("address", c.clients.addresses.list, {"region": c.region}),
         ("firewall", c.clients.firewalls.list, {}),
@@ -48,7 +50,7 @@ def list_owned(c: GcpClient) -> list[OwnedResource]:
 
 
 def start_delete(c: GcpClient, res: OwnedResource, zone: str | None):
-    where = {
+    where: dict[str, tuple[Any, dict[str, str | None]]] = {
         "route": (c.clients.routes.delete, {"route": res.name}),
         "instance": (c.clients.instances.delete, {"zone": zone, "instance": res.name}),
         "address": (c.clients.addresses.delete, {"region": c.region, "address": res.name}),
