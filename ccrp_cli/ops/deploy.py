@@ -44,8 +44,6 @@ from ..services.workloads import (
     Stopped,
     absent_index,
     apply_nodes,
-    is_secret,
-    node_of,
     last_lines,
     node_health,
     packages_record,
@@ -209,8 +207,6 @@ class Change:
     start: list[str] = field(default_factory=list)
     restart: list[str] = field(default_factory=list)
     stop: list[str] = field(default_factory=list)
-    # The secrets (<node>/<NAME>, never a value) the clone lacks or holds with other content.
-    secrets: list[str] = field(default_factory=list)
     # A deploy stopped before its check left the clone so (DEPLOY_SH's D/pending: nodes, swapping,
     # swapped), "" when none did; `running` are the nodes its index names.
     pending: str = ""
@@ -245,8 +241,6 @@ class Change:
         for word, names in (("start", self.start), ("restart", self.restart), ("stop", self.stop)):
             if names:
                 parts.append(f"{word} {', '.join(names)}")
-        if self.secrets:
-            parts.append(f"secret{'s' * (len(self.secrets) > 1)} {', '.join(self.secrets)} changed")
         return "; ".join(parts)
 
 
@@ -272,14 +266,10 @@ def probe(inputs: DeployInputs, provider: Reaches, state: FleetState, robot: str
     old = (current.strip() or (index.get("software") if isinstance(index, dict) else None)
            or rec.software or (state.snapshot or {}).get("software", NO_SOFTWARE))
     new_nodes = json.loads(files[-1].content)["nodes"] if files else {}
-    # A changed secret restarts its node: its content is in no digest of the index, only in its
-    # file's, which the probe compared.
-    secrets = [f for f in files if is_secret(f) and not same(have, [f])]
-    resecret = {node_of(f) for f in secrets}
     return Change(robot, str(old), new, files, have,
                   start=[n for n in new_nodes if n not in old_nodes],
-                  restart=[n for n in new_nodes if n in old_nodes and (old_nodes[n] != new_nodes[n] or n in resecret)],
-                  stop=[n for n in old_nodes if n not in new_nodes], secrets=[f.name for f in secrets],
+                  restart=[n for n in new_nodes if n in old_nodes and old_nodes[n] != new_nodes[n]],
+                  stop=[n for n in old_nodes if n not in new_nodes],
                   pending=pending.strip(), running=[n for n in old_nodes if isinstance(n, str) and NODE.fullmatch(n)])
 
 

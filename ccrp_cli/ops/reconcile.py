@@ -18,7 +18,7 @@ from ..models.state import RobotRecord
 from ..providers.base import CloneState
 from .quotas import check_growth
 from ..retry import PollTimeout, poll
-from ..services.workloads import NO_SOFTWARE, check_secrets, check_snapshot, snapshot_software, stale_snapshot
+from ..services.workloads import NO_SOFTWARE, check_snapshot, snapshot_software, stale_snapshot
 
 if TYPE_CHECKING:
     from ..models.state import FleetState
@@ -37,7 +37,6 @@ def plan(fleet: Fleet, provider: Lifecycle) -> list[dict[str, Any]]:
     # runs it, whatever its snapshot holds.
     inventory_software = snapshot_software(fleet.inventory, fleet.path).digest
     stale = stale_snapshot(fleet, state, inventory_software)
-    check_secrets(fleet, state, members)
     for name in members:
         rec = actual.get(name)
         if name in revoked:
@@ -181,7 +180,6 @@ def _check_software(fleet: Fleet, state: FleetState, provider: Lifecycle, target
     it holds other software, or one that runs other software. A clone `ccrp deploy` brought to the
     inventory's software is started or reused as it is: after a deploy, `clone start` and `fleet up`
     were refused for the snapshot's older version (met on a real OpenStack, docs/openstack.md)."""
-    check_secrets(fleet, state, targets)
     want = snapshot_software(fleet.inventory, fleet.path).digest
     if stale_snapshot(fleet, state, want) is None:
         return

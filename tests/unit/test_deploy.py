@@ -28,7 +28,7 @@ CATKIN_XML = """<?xml version="1.0"?>
 <package format="2"><name>mapper</name><version>1.0.0</version><description>x</description>
 <maintainer email="a@b.c">a</maintainer><license>MIT</license><buildtool_depend>catkin</buildtool_depend></package>
 """
-MOVED = re.compile(r"(/etc/systemd/system|/etc/ccrp|/opt/ccrp|/var/lib/ccrp|/etc/openvpn)")
+MOVED = re.compile(r"(/etc/systemd/system|/etc/ccrp|/opt/ccrp|/var/lib/ccrp)")
 MAPPER = "/etc/systemd/system/ccrp-run-mapper.service"
 
 
@@ -264,40 +264,6 @@ def test_dry_run_says_what_would_change_and_changes_nothing(fleet, built, tmp_pa
     assert {r: clones.at(r, MAPPER).read_text() for r in clones.robots} == before
     assert all(clones.calls(r) == [] for r in clones.robots)
     assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == old
-
-
-def test_a_secret_reaches_its_node_by_name_only_and_a_changed_one_restarts_it(fleet, built, tmp_path, ccrp_home):
-    """A node's secret: pushed root-only, named (never shown) in dry-run and results, its node
-    restarted when it changes, deleted when dropped; its value in no line, result or state."""
-    fleet, clones, _ = fleet
-    value = "tok-6f1d2c9a"
-    (tmp_path / "token").write_text(value)
-    node = {"name": "mapper", "command": ["mapper"], "env": {"MODE": "fast"}, "secrets": {"API_TOKEN": "token"}}
-    write_inventory(tmp_path, run=[node])
-    secret = "/etc/openvpn/server/ccrp/keys/nodes/mapper/API_TOKEN"
-    lines: list[str] = []
-    [dry] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1", dry_run=True)
-    assert dry.action == "would deploy" and dry.detail.endswith("restart mapper; secret mapper/API_TOKEN changed"), dry
-    [result] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1")
-    assert result.action == "deployed" and "secret mapper/API_TOKEN changed" in result.detail, result
-    assert clones.at("nao1", secret).read_text() == value and ("nao1", secret, 0o600) in clones.pushes
-    unit = clones.at("nao1", MAPPER).read_text()
-    assert f"LoadCredential=API_TOKEN:{secret}" in unit and 'Environment="MODE=fast"' in unit
-    (tmp_path / "token").write_text(value + "-rotated")
-    calls = len(clones.calls("nao1"))
-    [rotated] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1")
-    assert rotated.detail.endswith("restart mapper; secret mapper/API_TOKEN changed"), rotated
-    assert "restart ccrp-run-mapper.service" in clones.calls("nao1")[calls:]
-    assert clones.at("nao1", secret).read_text() == value + "-rotated"
-    [again] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1")
-    assert again.action == "current", again
-    write_inventory(tmp_path, run=[{k: v for k, v in node.items() if k != "secrets"}])
-    [dropped] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1")
-    assert dropped.action == "deployed" and not clones.at("nao1", secret).exists(), dropped
-    kept = [p for p in ccrp_home.rglob("*") if p.is_file()]
-    assert "state.json" in {p.name for p in kept}
-    shown = [*lines, *(r.detail for r in (dry, result, rotated, again, dropped)), *(p.read_text(errors="replace") for p in kept)]
-    assert lines and not [text for text in shown if value in text]
 
 
 def swapped_clone(tmp_path, systemctl: str | None = None) -> Clones:
