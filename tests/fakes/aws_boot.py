@@ -65,6 +65,7 @@ import contextlib
 import io
 import ipaddress
 import os
+import random
 import re
 import socket
 import sys
@@ -390,7 +391,9 @@ class AwsBoot:
     # -- hooks on moto's EC2 backend ------------------------------------------------------------------
     def _install_hooks(self) -> None:
         from moto.ec2.models import EC2Backend
+        from moto.ec2.models import elastic_network_interfaces as eni_models
         from moto.ec2.responses.general import General
+        from moto.ec2.utils import random_private_ip
 
         fake = self
         orig = {name: getattr(EC2Backend, name) for name in (
@@ -498,8 +501,21 @@ class AwsBoot:
                  "deregister_image": deregister_image, "allocate_address": allocate_address,
                  "associate_address": associate_address, "disassociate_address": disassociate_address,
                  "delete_subnet": delete_subnet, "describe_instances": describe_instances}
+        def private_ip(cidr: str | None = None, ipv6: bool = False) -> str:
+            """An interface's address when RunInstances names none, as EC2 gives it: never the
+            subnet's first four or its last (moto draws any of the block at random, and the .1 is this
+            host's, the Docker network's gateway: a container there failed "Address already in use"),
+            nor one another interface holds."""
+            if ipv6 or not cidr:
+                return random_private_ip(cidr, ipv6)
+            net = ipaddress.IPv4Network(cidr)
+            taken = {e.private_ip_address for e in fake.ec2.enis.values()}
+            free = [str(ip) for ip in list(net)[4:-1] if str(ip) not in taken]
+            return random.choice(free) if free else random_private_ip(cidr)
+
         patches = [mock.patch.object(EC2Backend, name, fn) for name, fn in hooks.items()]
         patches.append(mock.patch.object(General, "get_console_output", get_console_output))
+        patches.append(mock.patch.object(eni_models, "random_private_ip", private_ip))
         for patch in patches:
             patch.start()
             self._patches.append(patch)
