@@ -162,6 +162,7 @@ def make_harness(tmp_path):
     provider = DockerProvider(inv, tmp_path / "store")  # its state id labels the snapshots it takes
     provider.backoff = FAST
     harness = None
+    provider.teardown()  # what a killed run left of fleet "ct" on this engine (create would reuse it)
     try:
         provider.bootstrap()
         harness = DockerHarness(provider)

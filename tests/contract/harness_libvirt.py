@@ -208,6 +208,9 @@ def make_harness(tmp_path):
     provider = LibvirtProvider(inv, tmp_path / "store")
     provider.client.backoff = FAST
     harness = None
+    # What a killed run left of fleet "ct" on this host: a stopped domain of robot1 made `create`
+    # resume it (CI: test_create_is_idempotent saw RESUMED).
+    provider.teardown()
     try:
         provider.bootstrap()
         harness = LibvirtHarness(provider, raw)
