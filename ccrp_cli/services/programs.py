@@ -85,7 +85,7 @@ def check(inv: Inventory, apt: list[str], workspace: list[tuple[str, bytes]]) ->
             raise InputError(f"{where}: {shown(program)}: {plat.refused[program]}")
         if package is not None:
             raise InputError(f"{where}: {shown(program)} is not on the clone: Debian's package {package} has it",
-                             hint=f"add {package} to software.apt (then ccrp snapshot build)")
+                             hint=f"add {package} to software.apt, then ccrp snapshot build")
         if program not in has:  # a package named as its program (htop) is taken for it
             warnings.append(f"{where}: {shown(program)} is no program ccrp knows on the clone (ROS {inv.ros.distro}, "
                             f"{inv.clone_platform}): unless a package of software.apt or pip installs it, the node "

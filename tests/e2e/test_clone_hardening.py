@@ -17,6 +17,9 @@ at the end of the module whatever happens (`ccrp fleet down`, then everything wi
   4. The clone restarted: its robot comes back by itself.
   5. The clone stopped: the robot is "brainless" within seconds (its watchdog runs the fallback
      hooks: the simulated robot's stand-in motors stop), and `ccrp clone start` brings it back.
+  6. ROS habits (docs/workloads.md): a catkin workspace's node started as `[rosrun, pkg, script]`
+     and another as `[roslaunch, pkg, file.launch]` both publish on the clone, through its one
+     master, with nothing added to `apt`.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from pathlib import Path
 
 import pytest
 
@@ -67,13 +71,47 @@ print(json.dumps(out))
 """
 
 
+# A Python catkin package run the two ways a ROS 1 user starts a node: each instance publishes its
+# own name on HABITS_TOPIC.
+HABITS_TOPIC = "/e2e/habits"
+HABITS_PACKAGE = {
+    "package.xml": '<?xml version="1.0"?>\n<package format="2"><name>ccrp_e2e_habits</name><version>1.0.0</version>'
+                   '<description>e2e</description><maintainer email="e2e@example.org">e2e</maintainer>'
+                   '<license>MIT</license><buildtool_depend>catkin</buildtool_depend>'
+                   '<exec_depend>rospy</exec_depend></package>\n',
+    "CMakeLists.txt": "cmake_minimum_required(VERSION 3.0.2)\nproject(ccrp_e2e_habits)\nfind_package(catkin REQUIRED)\n"
+                      "catkin_package()\ncatkin_install_python(PROGRAMS scripts/talk.py DESTINATION "
+                      "${CATKIN_PACKAGE_BIN_DESTINATION})\ninstall(DIRECTORY launch DESTINATION "
+                      "${CATKIN_PACKAGE_SHARE_DESTINATION})\n",
+    "scripts/talk.py": "#!/usr/bin/env python3\nimport rospy\nfrom std_msgs.msg import String\n"
+                       "rospy.init_node('talk')\n"
+                       f"pub = rospy.Publisher('{HABITS_TOPIC}', String, queue_size=1)\n"
+                       "rate = rospy.Rate(5)\nwhile not rospy.is_shutdown():\n"
+                       "    pub.publish(String(rospy.get_name()))\n    rate.sleep()\n",
+    "launch/talk.launch": '<launch><node pkg="ccrp_e2e_habits" type="talk.py" name="launched" /></launch>\n',
+}
+HABITS_RUN = [{"name": "rosrun", "command": ["rosrun", "ccrp_e2e_habits", "talk.py"]},
+              {"name": "roslaunch", "command": ["roslaunch", "ccrp_e2e_habits", "talk.launch"]}]
+
+
+def _habits_workspace(tmp_path_factory) -> Path:
+    ws = tmp_path_factory.mktemp("habits") / "ws"
+    for rel, text in HABITS_PACKAGE.items():
+        path = ws / "src" / "ccrp_e2e_habits" / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    (ws / "src" / "ccrp_e2e_habits" / "scripts" / "talk.py").chmod(0o755)
+    return ws
+
+
 @pytest.fixture(scope="module")
 def fleet(request, tmp_path_factory) -> E2EFleet:
     def one_robot(data: dict) -> None:
         data.update(robots=[{"name": ROBOT, "type": "nao", "exports": ["/faces"]}])
         data.pop("template", None)
+        data["software"] = {"workspace": "ws", "run": HABITS_RUN}
 
-    f = start_fleet(request, tmp_path_factory, "e2h", one_robot)
+    f = start_fleet(request, tmp_path_factory, "e2h", one_robot, copy={"ws": _habits_workspace(tmp_path_factory)})
     proc = f.inv("fleet", "up", "--json")
     assert proc.returncode == 0, f"fleet up exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr[-3000:]}"
     t0 = time.monotonic()
@@ -390,3 +428,25 @@ def test_robot_without_its_clone_falls_back_and_comes_back(fleet: E2EFleet, clon
     wait_for(f"{ROBOT} connected again", tunnel_up(fleet, robot), 30)
     wait_for(f"/{ROBOT}_demo on the new master", lambda: (f"/{ROBOT}_demo" in (r := fleet.status()[ROBOT])["robot_nodes"], r), 30)
 
+
+
+# -- 6. ROS habits ---------------------------------------------------------------------------------------
+
+def test_rosrun_and_roslaunch_nodes_publish_through_the_clones_master(fleet: E2EFleet, clone):
+    """Issue 43: `[rosrun, pkg, script]` and `[roslaunch, pkg, file.launch]` run as the workspace's
+    nodes (rosbash is in the Noetic image; ros-run gives them the workspace's package path), and
+    roslaunch used the master the clone runs (ros.env's ROS_MASTER_URI) instead of starting one."""
+    echo = ("set -a; . /etc/ccrp/ros.env; set +a; "
+            f"exec /usr/local/lib/ccrp/ros-run timeout 20 rostopic echo -n 20 -p {HABITS_TOPIC}")
+
+    def heard() -> tuple[bool, str]:
+        rc, out = exec_in(clone, ["sh", "-c", echo], timeout=40)
+        return "/talk" in out and "/launched" in out, out[-1500:]
+    wait_for("both nodes publishing on the clone", heard, timeout=90)
+    for unit in ("ccrp-run-rosrun.service", "ccrp-run-roslaunch.service"):
+        assert exec_in(clone, ["systemctl", "is-active", unit])[1].strip() == "active", unit
+    # One master on the clone, ccrp-rosmaster's: the launch found it and started none as ros.
+    masters = sh(clone, "pgrep -f -u ccrp-rosmaster bin/rosmaster; pgrep -f -u ros bin/rosmaster || true")
+    assert len(masters.split()) == 1, masters
+    journal = sh(clone, "journalctl -u ccrp-run-roslaunch --no-pager -o cat")
+    assert "auto-starting new master" not in journal, journal[-2000:]
