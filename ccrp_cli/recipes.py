@@ -31,6 +31,12 @@ class Platform(BaseModel):
     ros_installed: bool = False
     # Clouds only: a platform ccrp does not build a Docker image of (it bakes from the user's image).
     clouds_only: bool = False
+    # The programs a node's command may name bare -> the Debian package that has it; what the image
+    # has of them beyond `packages` (their dependencies, Debian's essential packages); and programs
+    # refused by name -> what to write instead (services/programs.py, docs/workloads.md).
+    programs: dict[str, str] = {}
+    implied: list[str] = []
+    refused: dict[str, str] = {}
 
 
 class RosdepEntry(BaseModel):

@@ -17,8 +17,16 @@ app = typer.Typer(help="Whole-fleet operations.", no_args_is_help=True, rich_mar
 @app.command()
 def validate(inventory: options.Inventory, as_json: options.Json = False) -> None:
     """Check an inventory and show the fleet's address plan. Changes nothing."""
+    from ..services import programs
+    from ..services.workloads import snapshot_software
+
     fleet = options.open_fleet(inventory)
     inv = fleet.inventory
+    # The software read and checked as `snapshot build` reads it (a node's program the clone lacks
+    # is refused), and a warning per program ccrp cannot tell is there.
+    software = snapshot_software(inv, fleet.path)
+    for line in programs.check(inv, software.apt, software.workspace):
+        output.warn(line)
     state = fleet.store.load_state()
     plan = fleet.plan(state)
     robots = {r.name: r for r in fleet.members(state)}

@@ -28,14 +28,14 @@ if TYPE_CHECKING:
 def plan(fleet: Fleet, provider: Lifecycle) -> list[dict[str, Any]]:
     """Read-only: what `fleet up` would do for every robot."""
     state = fleet.store.load_state()
+    # The workspace read, checked (before the provider is asked) and hashed once. A clone `ccrp
+    # deploy` brought to the inventory's software runs it, whatever its snapshot holds.
+    inventory_software = snapshot_software(fleet.inventory, fleet.path).digest
     actual = provider.query()
     members = [r.name for r in fleet.members(state)]
     rows = []
     index = fleet.pki.load_index() if fleet.pki.exists() else None
     revoked = {name for name in members if index and fleet.pki.revoked_since(name, index)}
-    # The workspace read and hashed once. A clone `ccrp deploy` brought to the inventory's software
-    # runs it, whatever its snapshot holds.
-    inventory_software = snapshot_software(fleet.inventory, fleet.path).digest
     stale = stale_snapshot(fleet, state, inventory_software)
     for name in members:
         rec = actual.get(name)

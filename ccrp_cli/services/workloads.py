@@ -21,6 +21,7 @@ from ..errors import CcrpError, InputError, shown
 from ..models.inventory import Inventory, Robot
 from ..models.software import RunNode, Software
 from ..render.files import BundleFile
+from . import programs
 from .base import CloneService, ServiceContext
 
 if TYPE_CHECKING:
@@ -227,6 +228,7 @@ def snapshot_software(inv: Inventory, inv_path: Path | None) -> SnapshotSoftware
         out.workspace = workspace_files(root)
         out.packages = scan_packages(root, out.workspace)
         out.resolved = resolve(inv.ros.distro, out.packages)
+    programs.check(inv, out.apt, out.workspace)  # a node whose program the clone lacks: refused here
     return out
 
 

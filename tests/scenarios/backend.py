@@ -56,7 +56,8 @@ template:
 
 # The robot's own software (docs/workloads.md) in small, for a backend whose scenario builds it into
 # its snapshot: a catkin package holding one rospy node, which prints a line and publishes /hello
-# every 2 s. Its unit is ccrp-run-hello on every clone.
+# every 2 s, started the two ways a ROS 1 user starts a node (ROS habits): `rosrun` (unit
+# ccrp-run-hello) and `roslaunch` of a launch file naming it /launched (unit ccrp-run-launched).
 HELLO_NODE = """#!/usr/bin/env python3
 import rospy
 from std_msgs.msg import String
@@ -87,14 +88,18 @@ project(ccrp_hello)
 find_package(catkin REQUIRED)
 catkin_package()
 catkin_install_python(PROGRAMS scripts/hello DESTINATION ${CATKIN_PACKAGE_BIN_DESTINATION})
+install(DIRECTORY launch DESTINATION ${CATKIN_PACKAGE_SHARE_DESTINATION})
 """,
     "src/ccrp_hello/scripts/hello": HELLO_NODE,
+    "src/ccrp_hello/launch/hello.launch": '<launch><node pkg="ccrp_hello" type="hello" name="launched" output="screen"/></launch>\n',
 }
 HELLO_SOFTWARE = """software:
   workspace: ws
   run:
     - name: hello
-      command: [/opt/ccrp/workspace/lib/ccrp_hello/hello]
+      command: [rosrun, ccrp_hello, hello]
+    - name: launched
+      command: [roslaunch, ccrp_hello, hello.launch]
 """
 
 

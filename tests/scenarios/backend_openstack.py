@@ -39,7 +39,7 @@ def open_backend(tmp_path: Path, fleet: str, distro: str = "noetic"):
             yield Backend(kind="openstack", inventory=inv, home=tmp_path / "home",
                           env={"OS_CLIENT_CONFIG_FILE": str(clouds)}, owned=lambda: _owned(fake, fleet),
                           faults=_faults(fake), sim_network=fake.fip_network, labels=[f"ccrp-fake={boot.run}"],
-                          nodes=["hello"] if software else [],
+                          nodes=["hello", "launched"] if software else [],
                           gateway=lambda: _delete_gateway(clouds, fleet))
 
 

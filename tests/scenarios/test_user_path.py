@@ -100,15 +100,19 @@ def test_the_snapshots_software_runs_on_every_clone(run):
     if not run.b.nodes:
         pytest.skip(f"the {run.b.kind} scenario's inventory has no software:")
     run.needs("up")
-    deadline, said = time.monotonic() + 60, []
-    while not any("from the snapshot's workspace" in m for m in said) and time.monotonic() < deadline:
-        time.sleep(2)
-        said = [json.loads(line)["message"] for line in run.ccrp("logs", "--robot", "nao2", "hello", "--json").stdout.splitlines()]
-    assert any("from the snapshot's workspace" in m for m in said), said
+    for name in run.b.nodes:  # `rosrun` and `roslaunch` (ROS habits): nothing added to apt for them
+        deadline, said = time.monotonic() + 60, []
+        while not any("from the snapshot's workspace" in m for m in said) and time.monotonic() < deadline:
+            time.sleep(2)
+            said = [json.loads(line)["message"] for line in run.ccrp("logs", "--robot", "nao2", name, "--json").stdout.splitlines()]
+        assert any("from the snapshot's workspace" in m for m in said), (name, said)
+        # A launch uses the clone's master (ros-run's `roslaunch --wait`), starting none of its own.
+        assert not any("auto-starting new master" in m for m in said), (name, said)
     # The install space came with the snapshot; the sources and build tree the builder used did not.
+    units = " ".join(f"ccrp-run-{name}" for name in run.b.nodes)
     run.ccrp("clone", "exec", "--robot", "nao1", "--", "sh", "-c",
              "test -x /opt/ccrp/workspace/lib/ccrp_hello/hello && ! test -e /var/lib/ccrp/bake "
-             "&& systemctl is-active ccrp-run-hello")
+             f"&& systemctl is-active {units}")
     node = run.b.inventory.parent / "ws" / "src" / "ccrp_hello" / "scripts" / "hello"
     original = node.read_text()
     node.write_text(original + "# changed\n")

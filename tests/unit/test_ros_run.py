@@ -83,3 +83,26 @@ def test_a_node_gets_the_distro_then_the_workspace(tmp_path):
     assert who == "workspace" and ament == str(ws) and ld_path == str(ws / "lib"), out
     assert pythonpath.split(":") == [str(ws / "lib" / "python3" / "site-packages"), str(tmp_path / "opt" / "ros" / "fake" / "site")]
     assert (tmp_path / "sourced").exists() and (tmp_path / "imported").read_text() == "jsonzenoh"
+
+
+def test_a_nodes_roslaunch_waits_for_the_clones_master(tmp_path):
+    """ROS 1 habits (docs/workloads.md): `command: [roslaunch, pkg, x.launch]` uses the master the
+    clone runs (ccrp-rosmaster, at ros.env's ROS_MASTER_URI), never one of its own, even when that
+    one does not answer yet: ros-run adds --wait, for a node only. Other programs keep their words."""
+    script, env = _clone(tmp_path)
+    tools = tmp_path / "tools"
+    tools.mkdir()
+    for name in ("roslaunch", "rosrun"):
+        (tools / name).write_text(f'#!/bin/sh\necho {name} "$ROS_MASTER_URI" "$@"\n')
+        (tools / name).chmod(0o755)
+    ws_setup = tmp_path / "opt" / "ccrp" / "workspace" / "setup.sh"
+    ws_setup.write_text(f"export PATH={tools}:$PATH\n")  # the programs are the workspace's PATH's here
+    env = {**env, "CCRP_WORKSPACE": "1", "ROS_MASTER_URI": "http://10.0.0.1:11311"}
+
+    def run(*argv: str, **extra: str) -> str:
+        return subprocess.run([str(script), *argv], env={**env, **extra}, capture_output=True, text=True,
+                              check=True).stdout.strip()
+
+    assert run("roslaunch", "my_pkg", "my file.launch") == "roslaunch http://10.0.0.1:11311 --wait my_pkg my file.launch"
+    assert run("rosrun", "my_pkg", "node.py", "--wait") == "rosrun http://10.0.0.1:11311 my_pkg node.py --wait"
+    assert run(f"{tools}/roslaunch", "my_pkg", "x.launch") == "roslaunch http://10.0.0.1:11311 my_pkg x.launch"
