@@ -17,6 +17,12 @@ floating IP, security group, router, network, key pair or image of the fleet. Ev
 the end even on failure. Timings are printed, and written as JSON to $CCRP_OPENSTACK_TIMINGS when set
 (bench/openstack_real.py reads them).
 
+CCRP_OPENSTACK_ENTRY=gateway (`make e2e-openstack-real-gateway`) runs the same path with the fleet behind
+an entry gateway (provider.entry: gateway) and the project's floating-IP quota lowered to 1, fewer than
+its robots: the gateway holds the one floating IP, the clones none, each robot dials its own port of the
+gateway's; and the gateway deleted with `openstack server delete` is made again by `fleet up` with the
+same address and ports, the robot coming back with the bundle it has.
+
 CCRP_OPENSTACK_CLOUD names another clouds.yaml entry; CCRP_OPENSTACK_KEEP=1 keeps the fleet at the
 end and CCRP_OPENSTACK_REUSE=<its directory> runs the tests again on it (no second bake); CCRP_OPENSTACK_TIMEOUT_SCALE (6 here) stretches
 the provider's waits for the emulated CPU."""
@@ -30,6 +36,7 @@ import shutil
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -40,6 +47,9 @@ from tests.e2e.fleet import wait_for
 ROOT = Path(__file__).resolve().parents[2]
 CLOUD = os.environ.get("CCRP_OPENSTACK_CLOUD", "ccrp-aio")
 SCALE = os.environ.get("CCRP_OPENSTACK_TIMEOUT_SCALE", "6")
+GATEWAY = os.environ.get("CCRP_OPENSTACK_ENTRY", "per-clone") == "gateway"
+# The cloud's admin (scripts/openstack.sh writes it to clouds.yaml): lowers the project's floating-IP quota.
+ADMIN = os.environ.get("CCRP_OPENSTACK_ADMIN_CLOUD", "ccrp-aio-admin")
 OFFLOAD = ROOT / "examples" / "offload"
 PACKAGE_INIT = Path("ros2/ws/src/ccrp_offload/ccrp_offload/__init__.py")
 # A bake from plain Debian under TCG takes 20-30 minutes: the suite's 20-minute limit per test is not this one's.
@@ -63,8 +73,10 @@ if SKIP:
     pytest.skip(SKIP, allow_module_level=True)
 
 
-def openstack(*args: str) -> list | dict:
-    proc = subprocess.run(["openstack", *args, "-f", "json"], env={**os.environ, "OS_CLOUD": CLOUD},
+def openstack(*args: str, cloud: str = CLOUD, listing: bool = True) -> list | dict:
+    """`openstack ARGS` as JSON (`listing`), or a command that prints nothing (`quota set`)."""
+    fmt = ("-f", "json") if listing else ()
+    proc = subprocess.run(["openstack", *args, *fmt], env={**os.environ, "OS_CLOUD": cloud},
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"openstack {' '.join(args)}: {proc.stderr[-500:]}"
     return json.loads(proc.stdout or "[]")
@@ -93,6 +105,12 @@ class Fleet:
 
     def status(self) -> dict[str, dict]:
         return {r["robot"]: r for r in json.loads(self.ok("status", "--json", timeout=600))}
+
+    def gateway_name(self) -> str:
+        return f"ccrp-{self.name}-gateway-entry-gateway"
+
+    def clone_names(self) -> list[str]:
+        return [f"ccrp-{self.name}-cri-r1", f"ccrp-{self.name}-cri-r2"]
 
     def servers(self) -> dict[str, dict]:
         """The fleet's servers, by name, as the project's `openstack server list` shows them."""
@@ -148,8 +166,27 @@ def fleet(tmp_path_factory):
     robots["r2"]["imports"] = {"r1": ["/chatter"]}
     example = yaml.safe_load((OFFLOAD / "ros2.yaml").read_text())
     inv["software"] = example["software"]
+    if GATEWAY:
+        inv["provider"]["entry"] = "gateway"
     (f.dir / "ccrp.yaml").write_text(yaml.safe_dump(inv, sort_keys=False))
-    yield from _torn_down(f)
+    with _floating_ip_quota(1 if GATEWAY else None):
+        yield from _torn_down(f)
+
+
+@contextmanager
+def _floating_ip_quota(limit: int | None):
+    """The ccrp project's floating-IP quota at `limit` for the run (None: as it is), then as it was."""
+    if limit is None:
+        yield
+        return
+    project = openstack("token", "issue")["project_id"]
+    before = openstack("quota", "show", project, cloud=ADMIN)
+    was = before.get("floating-ips", before.get("floating_ips"))
+    openstack("quota", "set", "--floating-ips", str(limit), project, cloud=ADMIN, listing=False)
+    try:
+        yield
+    finally:
+        openstack("quota", "set", "--floating-ips", str(was), project, cloud=ADMIN, listing=False)
 
 
 def _torn_down(f: Fleet):
@@ -195,15 +232,33 @@ def test_fleet_up_makes_two_clones_with_floating_ips(fleet: Fleet) -> None:
     rows = json.loads(fleet.ok("fleet", "up", "--json", timeout=3600, timed="fleet up (2 clones)"))
     assert rows, rows
     servers = fleet.servers()
-    assert sorted(servers) == [f"ccrp-{fleet.name}-cri-r1", f"ccrp-{fleet.name}-cri-r2"], servers
+    assert sorted(servers) == sorted(fleet.clone_names() + ([fleet.gateway_name()] if GATEWAY else [])), servers
     assert all(s["Status"] == "ACTIVE" for s in servers.values()), servers
     status = fleet.status()
     for robot in ("r1", "r2"):
         row = status[robot]
         assert row["phase"] == "ready" and row["state"] == "running" and row["secrets"] is True, row
-        assert row["public_ip"].startswith("198.51.100."), row  # the floating IP, on the external network
-        assert row["public_ip"] in servers[f"ccrp-{fleet.name}-cri-{robot}"]["Networks"].__str__(), servers
+        networks = str(servers[f"ccrp-{fleet.name}-cri-{robot}"]["Networks"])
+        if GATEWAY:  # no floating IP: the robot's endpoint is its own port of the gateway's
+            assert not row["public_ip"] and "198.51.100." not in networks, (row, networks)
+        else:
+            assert row["public_ip"].startswith("198.51.100."), row  # the floating IP, on the external network
+            assert row["public_ip"] in networks, servers
+    if GATEWAY:
+        address = _gateway_address(fleet)
+        hosts, ports = zip(*(status[r]["vpn_endpoint"].rsplit(":", 1) for r in ("r1", "r2")))
+        assert set(hosts) == {address} and len(set(ports)) == 2, status
+        # The project's one floating IP (its quota lowered to 1) is the gateway's.
+        assert [ip["Floating IP Address"] for ip in openstack("floating ip", "list")] == [address]
     fleet.timings["clone ready (s), from fleet up"] = {r.get("robot"): r.get("seconds") for r in rows if isinstance(r, dict)}
+
+
+def _gateway_address(fleet: Fleet) -> str:
+    """The gateway's floating IP, as the cloud lists it."""
+    networks = str(fleet.servers()[fleet.gateway_name()]["Networks"])
+    [address] = [ip["Floating IP Address"] for ip in openstack("floating ip", "list")
+                 if ip["Floating IP Address"] in networks]
+    return address
 
 
 def test_the_robot_connects_to_its_clone_through_the_floating_ip(fleet: Fleet) -> None:
@@ -212,7 +267,10 @@ def test_the_robot_connects_to_its_clone_through_the_floating_ip(fleet: Fleet) -
     assert result["nodes"] == ["/r1_demo"], result
     row = fleet.status()["r1"]
     assert row["vpn_connected"] is True and "/r1_demo" in row["robot_nodes"], row
-    assert row["robot_address"].startswith("198.51.100.1:"), row  # this host, through the floating IP
+    if GATEWAY:  # the gateway's own address: it forwards the robot's packets as its own (SNAT)
+        assert row["robot_address"].startswith("10."), row
+    else:
+        assert row["robot_address"].startswith("198.51.100.1:"), row  # this host, through the floating IP
 
 
 def test_a_topic_r1_exports_reaches_r2s_clone_over_the_common_network(fleet: Fleet) -> None:
@@ -243,17 +301,36 @@ def test_deploy_brings_a_new_version_to_the_running_clones(fleet: Fleet) -> None
     assert [r["action"] for r in json.loads(fleet.ok("deploy", "--json", timeout=1200))] == ["current", "current"]
 
 
+def test_the_gateway_made_again_keeps_the_address_and_the_robot_comes_back(fleet: Fleet) -> None:
+    """The gateway deleted in the cloud (an operator's `openstack server delete`): `fleet up` makes it
+    again from the state, with the same floating IP and ports, and r1 reconnects with the bundle it has."""
+    if not GATEWAY:
+        pytest.skip("the fleet has no entry gateway (CCRP_OPENSTACK_ENTRY=gateway)")
+    before = fleet.status()["r1"]["vpn_endpoint"]
+    address = _gateway_address(fleet)
+    old = fleet.servers()[fleet.gateway_name()]["ID"]
+    openstack("server", "delete", "--wait", old, listing=False)
+    rows = json.loads(fleet.ok("fleet", "up", "--json", timeout=3600, timed="fleet up (gateway made again)"))
+    assert sorted(r["robot"] for r in rows) == ["r1", "r2"], rows
+    assert fleet.servers()[fleet.gateway_name()]["ID"] != old and _gateway_address(fleet) == address
+    t0 = time.monotonic()
+    wait_for("r1 back through the new gateway",
+             lambda: ((row := fleet.status()["r1"])["vpn_connected"] is True and "/r1_demo" in row["robot_nodes"]
+                      and row["vpn_endpoint"] == before, row), timeout=900, interval=10)
+    fleet.timings["robot back after the gateway was made again (s)"] = round(time.monotonic() - t0, 1)
+
+
 def test_clone_stop_and_start_keep_the_server_and_its_floating_ip(fleet: Fleet) -> None:
     name = f"ccrp-{fleet.name}-cri-r2"
     before = fleet.servers()[name]
-    ip = fleet.status()["r2"]["public_ip"]
+    ip = fleet.status()["r2"]["public_ip"] or fleet.status()["r2"]["vpn_endpoint"]
     fleet.ok("clone", "stop", "--robot", "r2", timeout=1800, timed="clone stop (r2)")
     assert fleet.servers()[name]["Status"] == "SHUTOFF"
     fleet.ok("clone", "start", "--robot", "r2", timeout=3600, timed="clone start (r2), to serving")
     server = fleet.servers()[name]
     assert server["ID"] == before["ID"] and server["Status"] == "ACTIVE", server
     row = fleet.status()["r2"]
-    assert row["public_ip"] == ip and row["phase"] == "ready" and row["state"] == "running", row
+    assert (row["public_ip"] or row["vpn_endpoint"]) == ip and row["phase"] == "ready" and row["state"] == "running", row
     # The restarted clone runs the deployed version, and r1's topic reaches it again.
     wait_for("mapper 1.1 on r2's restarted clone", lambda: _started(fleet, "r2", "1.1"), timeout=600, interval=5)
     out = fleet.ok("clone", "exec", "--robot", "r2", "--", "ccrp-topic", "echo", "/r1/chatter", "-n", "1", "-t", "300",
