@@ -15,6 +15,11 @@ def deploy(
     type_: Annotated[str | None, typer.Option("--type", help="Only the clones of robots of this type.")] = None,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="Say what would change on each clone; build and "
                                                             "push nothing.")] = False,
+    canary: Annotated[int, typer.Option("--canary", min=0, metavar="N",
+                                        help="Deploy to N clones first; if one of them fails, change no other.")] = 0,
+    max_parallel: Annotated[int | None, typer.Option("--max-parallel", min=1, metavar="K",
+                                                     help="Change at most K clones at once (default: the "
+                                                          "backend's limit).")] = None,
     as_json: options.Json = False,
 ) -> None:
     """Put the inventory's workspace and `run` nodes on the running clones without re-creating them:
@@ -31,5 +36,5 @@ def deploy(
         items = core.deploy(fleet, provider, output.info, robot, type_, dry_run=True)
     else:
         with fleet.store.lock():
-            items = core.deploy(fleet, provider, output.info, robot, type_)
+            items = core.deploy(fleet, provider, output.info, robot, type_, canary=canary, max_parallel=max_parallel)
     raise typer.Exit(output.results(items, as_json))

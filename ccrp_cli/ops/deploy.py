@@ -44,8 +44,11 @@ from ..services.workloads import (
     Stopped,
     absent_index,
     apply_nodes,
+    is_secret,
+    node_of,
     last_lines,
     node_health,
+    ready_specs,
     packages_record,
 )
 
@@ -207,6 +210,8 @@ class Change:
     start: list[str] = field(default_factory=list)
     restart: list[str] = field(default_factory=list)
     stop: list[str] = field(default_factory=list)
+    # The secrets (<node>/<NAME>, never a value) the clone lacks or holds with other content.
+    secrets: list[str] = field(default_factory=list)
     # A deploy stopped before its check left the clone so (DEPLOY_SH's D/pending: nodes, swapping,
     # swapped), "" when none did; `running` are the nodes its index names.
     pending: str = ""
@@ -241,6 +246,8 @@ class Change:
         for word, names in (("start", self.start), ("restart", self.restart), ("stop", self.stop)):
             if names:
                 parts.append(f"{word} {', '.join(names)}")
+        if self.secrets:
+            parts.append(f"secret{'s' * (len(self.secrets) > 1)} {', '.join(self.secrets)} changed")
         return "; ".join(parts)
 
 
@@ -266,10 +273,14 @@ def probe(inputs: DeployInputs, provider: Reaches, state: FleetState, robot: str
     old = (current.strip() or (index.get("software") if isinstance(index, dict) else None)
            or rec.software or (state.snapshot or {}).get("software", NO_SOFTWARE))
     new_nodes = json.loads(files[-1].content)["nodes"] if files else {}
+    # A changed secret restarts its node: its content is in no digest of the index, only in its
+    # file's, which the probe compared.
+    secrets = [f for f in files if is_secret(f) and not same(have, [f])]
+    resecret = {node_of(f) for f in secrets}
     return Change(robot, str(old), new, files, have,
                   start=[n for n in new_nodes if n not in old_nodes],
-                  restart=[n for n in new_nodes if n in old_nodes and old_nodes[n] != new_nodes[n]],
-                  stop=[n for n in old_nodes if n not in new_nodes],
+                  restart=[n for n in new_nodes if n in old_nodes and (old_nodes[n] != new_nodes[n] or n in resecret)],
+                  stop=[n for n in old_nodes if n not in new_nodes], secrets=[f.name for f in secrets],
                   pending=pending.strip(), running=[n for n in old_nodes if isinstance(n, str) and NODE.fullmatch(n)])
 
 
@@ -378,7 +389,7 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
     elif change.pending:
         # The inventory's software, left unchecked: the check the stopped deploy did not make.
         try:
-            failing = node_health(provider, robot, change.running, stop)
+            failing = node_health(provider, robot, change.running, stop, ready_specs(change.files))
         except Stopped:
             return _result(progress, robot, "interrupted", f"{STOPPED_BEFORE}, left for the next deploy to check", took())
         if failing is not None:
@@ -416,7 +427,7 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
         _check(stop)
         # A changed workspace changes every node's digest (it is one of their inputs): all restart.
         restarted = apply_nodes(provider, robot, change.files, change.have)
-        failing = node_health(provider, robot, restarted, stop)
+        failing = node_health(provider, robot, restarted, stop, ready_specs(change.files))
     except BaseException as exc:
         if changed:
             back = _rollback(provider, robot, restarted or change.start + change.restart)[1]
@@ -476,10 +487,11 @@ def _quietly(fn: Callable[[], object]) -> None:
 # -- the command --------------------------------------------------------------------------------------
 
 def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | None = None, type_: str | None = None,
-           dry_run: bool = False) -> list[CloneResult]:
-    """`ccrp deploy`: the caller holds the fleet lock unless dry_run. Ctrl-C: no further clone is
-    started, those being changed go back as they were, each robot's line says which (then the
-    interruption goes on)."""
+           dry_run: bool = False, canary: int = 0, max_parallel: int | None = None) -> list[CloneResult]:
+    """`ccrp deploy`: the caller holds the fleet lock unless dry_run. `canary` clones first (in
+    the fleet's order): when one of them fails, no other is changed. `max_parallel`: at most that
+    many clones changed at once. Ctrl-C: no further clone is started, those being changed go back
+    as they were, each robot's line says which (then the interruption goes on)."""
     from .reconcile import _fan_out
 
     state = fleet.store.load_state()
@@ -522,6 +534,18 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
         return apply(provider, writer, changes[name], tar_b64, progress, stop,
                      lambda: probe(inputs, provider, state, name))
 
-    for r in _fan_out(one, todo, progress, provider, stop):
+    # The canaries are the first clones with something to change: a clone already current proves nothing.
+    changing = [n for n in todo if not (changes[n].current and not changes[n].pending)]
+    first = changing[:canary] if canary else []
+    rest = [n for n in todo if n not in first]
+    for r in _fan_out(one, first, progress, provider, stop, max_parallel):
+        results[r.robot] = r
+    if failed := [n for n in first if results[n].action != "deployed"]:
+        why = f"canary {', '.join(failed)} did not deploy: no other clone changed"
+        progress(f"{why} (ccrp deploy again once it is fixed)")
+        for name in [n for n in rest if n in changing]:
+            results[name] = CloneResult(name, "not started", why)
+        rest = [n for n in rest if n not in changing]  # the clones already current say so
+    for r in _fan_out(one, rest, progress, provider, stop, max_parallel):
         results[r.robot] = r
     return [results[n] for n in names]

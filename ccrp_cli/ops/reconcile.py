@@ -18,7 +18,7 @@ from ..models.state import RobotRecord
 from ..providers.base import CloneState
 from .quotas import check_growth
 from ..retry import PollTimeout, poll
-from ..services.workloads import NO_SOFTWARE, check_snapshot, snapshot_software, stale_snapshot
+from ..services.workloads import NO_SOFTWARE, check_secrets, check_snapshot, snapshot_software, stale_snapshot
 
 if TYPE_CHECKING:
     from ..models.state import FleetState
@@ -37,6 +37,7 @@ def plan(fleet: Fleet, provider: Lifecycle) -> list[dict[str, Any]]:
     index = fleet.pki.load_index() if fleet.pki.exists() else None
     revoked = {name for name in members if index and fleet.pki.revoked_since(name, index)}
     stale = stale_snapshot(fleet, state, inventory_software)
+    check_secrets(fleet, state, members)
     for name in members:
         rec = actual.get(name)
         if name in revoked:
@@ -89,9 +90,10 @@ def _software_note(state: FleetState, robot: str, stale: str | None, inventory_s
 
 
 def _fan_out(fn: Callable[[str], CloneResult], robots: list[str], progress: Progress, provider: Lifecycle,
-             stop: threading.Event | None = None) -> list[CloneResult]:
+             stop: threading.Event | None = None, at_most: int | None = None) -> list[CloneResult]:
     """fn(robot) for every robot on a pool bounded by the provider: its max_parallel says how many
-    clones it can create at once (CPU-bound local containers vs API-latency-bound clouds).
+    clones it can create at once (CPU-bound local containers vs API-latency-bound clouds), and
+    `at_most`, when given, bounds it further (`deploy --max-parallel`).
 
     Ctrl-C reaches the main thread only, which waits here: then no robot not yet started starts,
     `stop` is set for the running ones (ccrp deploy's put their clones back; others finish what
@@ -113,7 +115,7 @@ def _fan_out(fn: Callable[[str], CloneResult], robots: list[str], progress: Prog
 
     if not robots:
         return []
-    pool = ThreadPoolExecutor(max_workers=min(provider.max_parallel, len(robots)))
+    pool = ThreadPoolExecutor(max_workers=min(provider.max_parallel, at_most or len(robots), len(robots)))
     futures = [pool.submit(run, robot) for robot in robots]
     try:
         _wait_all(futures)
@@ -180,6 +182,7 @@ def _check_software(fleet: Fleet, state: FleetState, provider: Lifecycle, target
     it holds other software, or one that runs other software. A clone `ccrp deploy` brought to the
     inventory's software is started or reused as it is: after a deploy, `clone start` and `fleet up`
     were refused for the snapshot's older version (met on a real OpenStack, docs/openstack.md)."""
+    check_secrets(fleet, state, targets)
     want = snapshot_software(fleet.inventory, fleet.path).digest
     if stale_snapshot(fleet, state, want) is None:
         return

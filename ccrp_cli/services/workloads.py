@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 import time
 from collections.abc import Mapping
@@ -19,7 +20,8 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import CcrpError, InputError, shown
 from ..models.inventory import Inventory, Robot
-from ..models.software import RunNode, Software
+from ..models.layout import SECRETS_DIR
+from ..models.software import Ready, RunNode, Software
 from ..render.files import BundleFile
 from . import programs
 from .base import CloneService, ServiceContext
@@ -34,6 +36,20 @@ if TYPE_CHECKING:
 UNIT_DIR = "/etc/systemd/system"
 UNIT_PREFIX = "ccrp-run-"
 INDEX = "/etc/ccrp/workloads.json"  # the nodes ccrp put on this clone, with their digests
+# A node's secrets, CREDENTIALS/<node>/<NAME> (root, 0600), handed to it by systemd's LoadCredential=.
+# In the directory of the clone's keys, never on its root disk: a tmpfs on the clouds, the clone's
+# own volume on Docker, so no snapshot captures them (models/layout.py SECRETS_DIR).
+CREDENTIALS = f"{SECRETS_DIR}/nodes"
+# Required by the node units with secrets, an instance per node: its credentials directory made a
+# mount of its own in the clone's namespace before the node starts, which systemd then fills in place
+# and hands to the node. A new one systemd 252 fills in a namespace of its own and moves to
+# /run/credentials/<unit>, which reaches the node only where /run propagates mounts: on a VM, not in
+# a Docker clone, whose /run is a private tmpfs (making it shared made Docker's archive calls on the
+# container hang). From inside the node's own namespace (ProtectSystem=, PrivateTmp=) no ExecStartPre
+# could mount it: hence a unit of its own, run again at each start of the node (templates/systemd/).
+CREDENTIALS_UNIT = "ccrp-credentials@.service"
+MAX_SECRET_BYTES = 64 << 10
+MAX_CLONE_SECRET_BYTES = 1 << 20  # that tmpfs holds 4 MB, the VPN's keys too
 ROS_RUN = "/usr/local/lib/ccrp/ros-run"
 NO_SOFTWARE = "none"  # the digest of a snapshot (or inventory) without software of the user's
 
@@ -262,7 +278,19 @@ def systemd_word(word: str) -> str:
     return f'"{escaped}"'
 
 
-def node_unit(node: RunNode, digest: str) -> str:
+def systemd_env(name: str, value: str) -> str:
+    """One Environment= assignment, double-quoted for systemd: it expands specifiers (`%`) and C
+    escapes there, never `$` (nor a shell: there is none)."""
+    escaped = value.replace("\\", "\\\\").replace('"', '\\"').replace("%", "%%")
+    return f'Environment="{name}={escaped}"'
+
+
+def credential_path(node: str, name: str) -> str:
+    return f"{CREDENTIALS}/{node}/{name}"
+
+
+def node_unit(node: RunNode, digest: str, env: Mapping[str, str] | None = None) -> str:
+    """The unit of `node`; `env`: its environment, its software level's with its own over it."""
     from ..templates import static  # here: `ccrp status` reads the nodes' service and renders no unit
 
     limits = []
@@ -270,24 +298,94 @@ def node_unit(node: RunNode, digest: str) -> str:
         limits.append(f"CPUQuota={round(node.cpu * 100)}%")
     if node.memory is not None:
         limits.append(f"MemoryMax={node.memory}")  # bytes
+    # Names and paths are the models' (letters, digits, _ . -): nothing to quote.
+    settings = [systemd_env(k, v) for k, v in (env if env is not None else node.env).items()]
+    settings += [f"LoadCredential={name}:{credential_path(node.name, name)}" for name in node.secrets]
+    mount = CREDENTIALS_UNIT.replace("@", "@%n")
+    requires = f"Requires={mount}\nAfter={mount}" if node.secrets else ""
     return static("systemd/ccrp-run.service").format(
-        name=node.name, exec=" ".join([ROS_RUN, *(systemd_word(w) for w in node.command)]), restart=node.restart,
-        limits="\n".join(limits), digest=digest)
+        name=node.name, requires=requires, exec=" ".join([ROS_RUN, *(systemd_word(w) for w in node.command)]), restart=node.restart,
+        settings="\n".join(settings), limits="\n".join(limits), digest=digest)
 
 
-def node_files(inv: Inventory, robot: Robot, software_digest: str) -> list[BundleFile]:
-    """The units of robot's `run` nodes and the index of them (INDEX), whose digest per node says
-    which to restart."""
-    nodes = inv.software_of(robot).run
-    if not nodes:
-        return []
-    files, index = [], {}
+def secret_files(inv_path: Path | None, robot: str, nodes: list[RunNode]) -> list[BundleFile]:
+    """The secrets of `nodes` read from the operator's side (files relative to the inventory), as
+    the root-only files their units load. Refused in one line (InputError) when one is missing,
+    unreadable, not text, too big, or leads out of the inventory's directory; a value is never
+    shown."""
+    base = (inv_path.parent if inv_path is not None else Path.cwd()).resolve()
+    files, total = [], 0
     for node in nodes:
-        digest = hashlib.sha256(json.dumps([node.model_dump(), software_digest]).encode()).hexdigest()[:16]
-        files.append(BundleFile(unit_name(node.name), node_unit(node, digest), 0o644, f"{UNIT_DIR}/{unit_name(node.name)}"))
+        for name, rel in node.secrets.items():
+            where = f"robot {robot!r}'s node {node.name} secret {name} ({shown(rel)})"
+            path = (base / rel).resolve()
+            if not path.is_relative_to(base):  # a link to elsewhere (`token -> ~/.ssh/id_ed25519`)
+                raise InputError(f"{where} leads out of the inventory's directory",
+                                 hint="keep the secret's file itself in the inventory's directory")
+            try:
+                data = path.read_bytes() if path.is_file() else None
+            except OSError as exc:
+                raise InputError(f"{where} is not readable: {exc.strerror}") from None
+            if data is None:
+                raise InputError(f"{where}: no such file", hint="give a file relative to the inventory's directory")
+            total += len(data)
+            if len(data) > MAX_SECRET_BYTES or total > MAX_CLONE_SECRET_BYTES:
+                raise InputError(f"{where}: a secret holds at most {MAX_SECRET_BYTES >> 10} KiB, a clone's "
+                                 f"{MAX_CLONE_SECRET_BYTES >> 20} MiB in all")
+            try:
+                text = data.decode()
+            except UnicodeDecodeError:
+                raise InputError(f"{where} is not text (UTF-8)", hint="give a binary secret base64-encoded") from None
+            files.append(BundleFile(f"{node.name}/{name}", text, 0o600, credential_path(node.name, name)))
+    return files
+
+
+def check_secrets(fleet: Fleet, state: FleetState, robots: list[str]) -> None:
+    """Every secret the nodes of `robots` name is there and readable (InputError): said before
+    anything changes, not on the one clone that gets it. A robot `fleet scale` is about to add (not
+    in state yet) has the template's software."""
+    known = {r.name: r for r in fleet.members(state)}
+    template = fleet.inventory.template
+    for name in robots:
+        robot = known.get(name) or (Robot(name=name, type=template.type, software=template.software) if template else None)
+        if robot is not None:
+            secret_files(fleet.path, name, fleet.inventory.software_of(robot).run)
+
+
+def node_files(inv: Inventory, robot: Robot, software_digest: str, inv_path: Path | None = None) -> list[BundleFile]:
+    """The units of robot's `run` nodes, their secrets (read from the operator's side, relative to
+    `inv_path`'s directory) and the index of the nodes (INDEX, last), whose digest per node says
+    which to restart. A secret's content is not in the digest (the index is anyone's to read on the
+    clone): a changed one shows as its file's digest, which the clone's probe compares."""
+    software = inv.software_of(robot)
+    if not software.run:
+        return []
+    units, index = [], {}
+    for node in software.run:
+        env = {**software.env, **node.env}
+        # Readiness is ccrp's check, not the unit's: changing it restarts nothing.
+        digest = hashlib.sha256(json.dumps([node.model_dump(exclude={"ready"}), env, software_digest]).encode()).hexdigest()[:16]
+        units.append(BundleFile(unit_name(node.name), node_unit(node, digest, env), 0o644,
+                                f"{UNIT_DIR}/{unit_name(node.name)}"))
         index[node.name] = digest
-    return files + [BundleFile("workloads.json", json.dumps({"nodes": index, "software": software_digest}) + "\n",
-                               0o644, INDEX)]
+    content = {"nodes": index, "software": software_digest}
+    if ready := {n.name: n.ready.model_dump(exclude_none=True) for n in software.run if n.ready}:
+        content["ready"] = ready  # what fleet up and deploy check (readiness); absent when no node has one
+    secrets = secret_files(inv_path, robot.name, software.run)
+    if secrets:
+        from ..templates import static
+
+        units.append(BundleFile(CREDENTIALS_UNIT, static(f"systemd/{CREDENTIALS_UNIT}"), 0o644, f"{UNIT_DIR}/{CREDENTIALS_UNIT}"))
+    return [*units, *secrets, BundleFile("workloads.json", json.dumps(content) + "\n", 0o644, INDEX)]
+
+
+def is_secret(f: BundleFile) -> bool:
+    return bool(f.dest and f.dest.startswith(f"{CREDENTIALS}/"))
+
+
+def node_of(f: BundleFile) -> str:
+    """The node a unit or secret file of node_files is for."""
+    return f.name.split("/")[0] if is_secret(f) else f.name.removeprefix(UNIT_PREFIX).removesuffix(".service")
 
 
 @dataclass(frozen=True)
@@ -306,14 +404,22 @@ class DeployInputs:
         inv = fleet.inventory
         software = snapshot_software(inv, fleet.path)
         digest = software.digest
-        return cls(inv, software, digest, {r: node_files(inv, fleet.robot(state, r), digest) for r in robots})
+        return cls(inv, software, digest, {r: node_files(inv, fleet.robot(state, r), digest, fleet.path) for r in robots})
 
 
-# Brings the clone's node units in line with the index just pushed ($1: the nodes to keep, then
-# the nodes to restart). Names are NodeNames ([a-z][a-z0-9-]*): word splitting them is safe.
-# A node that ended badly when stopped stays listed as failed: reset-failed forgets it.
+# Brings the clone's node units in line with the index just pushed ($1: the nodes to keep, $2 the
+# secrets to keep as <node>/<NAME>, then the nodes to restart). Names are NodeNames
+# ([a-z][a-z0-9-]*) and credential names ([A-Za-z_][A-Za-z0-9_.-]*): word splitting them is safe.
+# A node that ended badly when stopped stays listed as failed: reset-failed forgets it. A secret
+# no longer named is deleted, with its node's directory once empty.
 APPLY_SH = r"""
-keep="$1"; shift; gone=""
+keep="$1"; creds="$2"; shift 2; gone=""
+C=""" + CREDENTIALS + r"""
+for f in "$C"/*/*; do
+  [ -e "$f" ] || continue
+  case " $creds " in *" ${f#"$C"/} "*) ;; *) rm -f "$f";; esac
+done
+for d in "$C"/*; do [ -d "$d" ] && rmdir "$d" 2>/dev/null; done
 for f in /etc/systemd/system/ccrp-run-*.service; do
   [ -e "$f" ] || continue
   n=${f##*/ccrp-run-}; n=${n%.service}
@@ -340,7 +446,8 @@ def apply_nodes(provider: Reaches, robot: str, files: list[BundleFile], have: di
 
     if not files:
         if INDEX in have:  # it ran nodes before: none now
-            rc, out = provider.transport.exec(robot, ["sh", "-c", APPLY_SH + f'rm -f "{INDEX}"\n', "ccrp-nodes", ""], timeout=120)
+            rc, out = provider.transport.exec(robot, ["sh", "-c", APPLY_SH + f'rm -f "{INDEX}"\n', "ccrp-nodes", "", ""],
+                                              timeout=120)
             if rc != 0:
                 raise CcrpError(f"cannot remove the nodes of robot {robot!r}'s clone: {out.strip()[-300:]}")
         return []
@@ -348,9 +455,17 @@ def apply_nodes(provider: Reaches, robot: str, files: list[BundleFile], have: di
     if not changed:
         return []
     index = json.loads(files[-1].content)["nodes"]
-    restart = [f.name.removeprefix(UNIT_PREFIX).removesuffix(".service") for f in changed if f.dest != INDEX]
+    restart = list(dict.fromkeys(node_of(f) for f in changed if f.dest != INDEX and f.name != CREDENTIALS_UNIT))
+    secrets = [f for f in files if is_secret(f)]
+    if any(is_secret(f) for f in changed):  # root's (exec runs as root), 0700; the tmpfs is empty after a reboot
+        dirs = [CREDENTIALS, *dict.fromkeys(f"{CREDENTIALS}/{node_of(f)}" for f in secrets)]
+        rc, out = provider.transport.exec(robot, ["install", "-d", "-m", "0700", *dirs],
+                                          timeout=30)
+        if rc != 0:
+            raise CcrpError(f"cannot prepare {CREDENTIALS} on robot {robot!r}'s clone: {out.strip()[-300:]}")
     provider.transport.push_files(robot, changed, restart=[])
-    rc, out = provider.transport.exec(robot, ["sh", "-c", APPLY_SH, "ccrp-nodes", " ".join(index), *restart], timeout=120)
+    rc, out = provider.transport.exec(robot, ["sh", "-c", APPLY_SH, "ccrp-nodes", " ".join(index),
+                                              " ".join(f.name for f in secrets), *restart], timeout=120)
     if rc != 0:
         raise CcrpError(f"cannot start the nodes of robot {robot!r}'s clone: {out.strip()[-300:]}")
     return restart
@@ -364,16 +479,28 @@ HEALTH_INTERVAL = 0.5
 JOURNAL_LINES = 5  # of a failing node's log, in its robot's result
 
 
-def node_health(provider: Reaches, robot: str, nodes: list[str], stop: threading.Event | None = None) -> tuple[str, str] | None:
+def ready_specs(files: list[BundleFile]) -> dict[str, Ready]:
+    """The readiness of the nodes a clone's index names (node_files: the index is the last file)."""
+    if not files:
+        return {}
+    ready = json.loads(files[-1].content).get("ready") or {}
+    return {name: Ready.model_validate(spec) for name, spec in ready.items()}
+
+
+def node_health(provider: Reaches, robot: str, nodes: list[str], stop: threading.Event | None = None,
+                ready: Mapping[str, Ready] | None = None) -> tuple[str, str] | None:
     """(unit, why) of the first of `nodes` that is not active, or is restarted by systemd, during
-    HEALTH_SECONDS: one window for them all, one `systemctl show` each HEALTH_INTERVAL. None when
-    all stayed up (at once when there are none). `stop` (a threading.Event): once set, the check
-    raises Stopped, so an interrupted command does not wait it out."""
+    HEALTH_SECONDS: one window for them all, one `systemctl show` each HEALTH_INTERVAL; then of the
+    first of them with a `ready` check (theirs in `ready`) that does not pass within its time from
+    the start of this check. None when all stayed up and are ready (at once when there are none).
+    `stop` (a threading.Event): once set, the check raises Stopped, so an interrupted command does
+    not wait it out."""
     units = [unit_name(n) for n in nodes]
     if not units:
         return None
     first: dict[str, int] = {}
-    end = time.monotonic() + HEALTH_SECONDS
+    start = time.monotonic()
+    end = start + HEALTH_SECONDS
     while True:
         if stop is not None and stop.is_set():
             raise Stopped()
@@ -393,8 +520,49 @@ def node_health(provider: Reaches, robot: str, nodes: list[str], stop: threading
             if restarts > first.setdefault(unit, restarts):
                 return unit, f"restarted {restarts - first[unit]} time(s)"
         if time.monotonic() >= end:
-            return None
+            break
         time.sleep(HEALTH_INTERVAL)
+    for node in nodes:  # one after the other: each one's time runs from `start`, as they all started then
+        if ready and node in ready and (why := not_ready(provider, robot, ready[node], start, stop)):
+            return unit_name(node), why
+    return None
+
+
+# A `ready` check runs as the node's user, in the clone's ROS environment and the workspace's, as the
+# node does (its unit's EnvironmentFile and ros-run). A constant script: the command comes as its arguments.
+AS_NODE = ["runuser", "-u", "ros", "--", "/bin/sh", "-c",
+           'set -a; . /etc/ccrp/ros.env; set +a; HOME=/var/lib/ros CCRP_WORKSPACE=1 exec "$0" "$@"', ROS_RUN]
+READY_TRY_MAX = 15.0  # seconds one try of a check may take (one topic echo, one command)
+READY_INTERVAL = 1.0  # between two tries of a command
+NOT_READY = "was not ready within"
+
+
+def not_ready(provider: Reaches, robot: str, spec: Ready, since: float, stop: threading.Event | None = None) -> str | None:
+    """None once `spec` passes on robot's clone (a message on its topic, its command exiting 0),
+    tried again until `spec.within` seconds after `since` (a time.monotonic()); else why not."""
+    deadline = since + spec.within
+    while True:
+        if stop is not None and stop.is_set():
+            raise Stopped()
+        wait = max(1, math.ceil(min(deadline - time.monotonic(), READY_TRY_MAX)))
+        if spec.topic is not None:
+            # Heard as another node of the clone would hear it: the node's user, its environment and
+            # workspace (its message types). As root, Fast DDS's shared memory between two users
+            # dropped every message of a node. echo waits for the message itself.
+            argv = ["timeout", str(wait + 5), *AS_NODE, "ccrp-topic", "echo", spec.topic, "-n", "1", "-t", str(wait)]
+        else:
+            assert spec.command is not None
+            argv = ["timeout", str(wait), *AS_NODE, *spec.command]
+        rc, out = provider.transport.exec(robot, argv, timeout=wait + 30)
+        if rc == 0:
+            return None
+        if time.monotonic() >= deadline:
+            if spec.topic is not None:
+                return f"{NOT_READY} {spec.within} s: no message on {spec.topic}"
+            return (f"{NOT_READY} {spec.within} s: its ready command {shown(' '.join(spec.command or []))} "
+                    f"exited {rc}: {shown(out.strip()[-200:]) or '(no output)'}")
+        if spec.command is not None:
+            time.sleep(READY_INTERVAL)
 
 
 class Stopped(Exception):
@@ -418,12 +586,13 @@ def started_nodes_failing(provider: Reaches, robot: str, files: list[BundleFile]
     the robot, the node and its last journal lines."""
     nodes = list(json.loads(files[-1].content)["nodes"]) if files else []
     checked = nodes if booted else [n for n in nodes if n in started]
-    failing = node_health(provider, robot, checked)
+    failing = node_health(provider, robot, checked, ready=ready_specs(files))
     if failing is None:
         return None
     unit, why = failing
     node = unit.removeprefix(UNIT_PREFIX).removesuffix(".service")
-    return (f"robot {robot!r}'s node {node} ({unit}) {why}: it does not stay up "
+    verdict = "it is not ready" if why.startswith(NOT_READY) else "it does not stay up"
+    return (f"robot {robot!r}'s node {node} ({unit}) {why}: {verdict} "
             f"(ccrp logs --robot {robot} {node}); its last lines: {last_lines(provider, robot, unit)}")
 
 
@@ -433,8 +602,11 @@ class Nodes(CloneService):
 
     name = "nodes"
 
+    def check(self, fleet: Fleet, robot: Robot) -> None:
+        secret_files(fleet.path, robot.name, fleet.inventory.software_of(robot).run)  # each one there and readable
+
     def files(self, ctx: ServiceContext) -> list[BundleFile]:
-        return node_files(ctx.fleet.inventory, ctx.robot, ctx.software or NO_SOFTWARE)
+        return node_files(ctx.fleet.inventory, ctx.robot, ctx.software or NO_SOFTWARE, ctx.fleet.path)
 
     def absent(self) -> list[BundleFile]:
         return [absent_index()]

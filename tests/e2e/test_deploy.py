@@ -193,6 +193,120 @@ def test_a_node_that_exits_at_once_is_rolled_back(fleet: E2EFleet, up: str) -> N
     assert fleet.json("deploy", "--dry-run")[0]["action"] == "current"
 
 
+# Readiness: a node publishing on its topic itself (the clone's ccrp-topic), a node whose `ready` command
+# passes only as the node's user in the node's environment, and a node waiting for a topic nobody publishes.
+BEACON = {"name": "beacon", "command": ["ccrp-topic", "pub", "/e2e/beacon", "std_msgs/String", "up", "--rate", "2"],
+          "ready": {"topic": "/e2e/beacon", "within": 60}}
+AS_NODE_CHECK = ("import os, sys; sys.exit(0 if os.getuid() != 0 and os.environ.get('CCRP_WORKSPACE') == '1' "
+                 "and os.environ.get('ROS_DISTRO') else 4)")
+WORKER = {"name": "worker", "command": ["sleep", "infinity"], "ready": {"command": ["python3", "-c", AS_NODE_CHECK]}}
+SILENT = {"name": "silent", "command": ["sleep", "infinity"], "ready": {"topic": "/e2e/nobody", "within": 5}}
+
+
+def test_nodes_must_be_ready_and_one_that_is_not_rolls_the_clone_back(fleet: E2EFleet, up: str) -> None:
+    """A node's `ready` (docs/workloads.md, Readiness): deploy waits for the beacon's first message
+    and the worker's check; a node whose topic stays silent fails the deploy in one line naming it,
+    and the clone goes back to the nodes it ran."""
+    inventory = fleet.inventory.read_text()
+    data = yaml.safe_load(inventory)
+    try:
+        data["software"]["run"] += [BEACON, WORKER]
+        fleet.inventory.write_text(yaml.safe_dump(data, sort_keys=False))
+        [row] = fleet.json("deploy")
+        assert row["action"] == "deployed" and "start beacon, worker" in row["detail"], row
+        data["software"]["run"].append(SILENT)
+        fleet.inventory.write_text(yaml.safe_dump(data, sort_keys=False))
+        proc = fleet.inv("deploy", "--json")
+        assert proc.returncode == 1, (proc.returncode, proc.stdout, proc.stderr[-2000:])
+        [row] = json.loads(proc.stdout)
+        assert row["action"] == "failed" and "ccrp-run-silent.service was not ready within 5 s: no message on /e2e/nobody" \
+            in row["detail"] and "rolled back" in row["detail"], row
+        clone = fleet.container("clone", "nao1")
+        assert exec_in(clone, ["test", "-e", "/etc/systemd/system/ccrp-run-silent.service"])[0] == 1
+        assert exec_in(clone, ["systemctl", "is-active", "ccrp-run-beacon.service"])[1].strip() == "active"
+    finally:
+        fleet.inventory.write_text(inventory)
+    [row] = fleet.json("deploy")  # back to the example's nodes alone
+    assert "stop beacon, worker" in row["detail"], row
+
+
+# A node that prints its setting and its secret (read from $CREDENTIALS_DIRECTORY), then stays up.
+SETTINGS_NODE = ("import os, time; secret = open(os.path.join(os.environ['CREDENTIALS_DIRECTORY'], 'API_TOKEN')).read(); "
+                 "print('mode=' + os.environ['E2E_MODE'], 'token=' + secret.strip(), flush=True); time.sleep(1e9)")
+
+
+def test_a_nodes_env_and_secret_reach_it_and_the_secret_nowhere_else(fleet: E2EFleet, up: str) -> None:
+    """software.env and a node's secrets (docs/workloads.md, Settings and secrets): the node prints
+    both; the secret's value is in no user-data, state, ccrp output, `docker inspect`, unit or
+    command line. A secret changed on the operator's side restarts the node with the new value; a
+    node dropped takes its secret off the clone."""
+    import secrets as random
+
+    value = f"ccrp-e2e-{random.token_hex(12)}"
+    token = fleet.inventory.parent / "keys" / "api-token"
+    token.parent.mkdir(exist_ok=True)
+    token.write_text(value + "\n")
+    inventory = fleet.inventory.read_text()
+    data = yaml.safe_load(inventory)
+    data["software"]["env"] = {"E2E_MODE": "fast 100% \"quoted\" $HOME"}
+    data["software"]["run"].append({"name": "settings", "command": ["python3", "-c", SETTINGS_NODE],
+                                    "secrets": {"API_TOKEN": "keys/api-token"}})
+    clone = fleet.container("clone", "nao1")
+    unit = "ccrp-run-settings.service"
+    path = "/etc/openvpn/server/ccrp/keys/nodes/settings/API_TOKEN"
+    fleet.inventory.write_text(yaml.safe_dump(data, sort_keys=False))
+    try:
+        dry = fleet.inv("deploy", "--dry-run", "--json")
+        assert "secret settings/API_TOKEN changed" in dry.stdout, dry.stdout + dry.stderr[-2000:]
+        proc = fleet.inv("deploy", "--json")
+        assert proc.returncode == 0, f"deploy exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr[-3000:]}"
+        [row] = json.loads(proc.stdout)
+        assert row["action"] == "deployed" and "start settings" in row["detail"], row
+
+        def printed(text: str) -> tuple[bool, str]:
+            logs = fleet.inv("logs", "--robot", "nao1", "settings", "--lines", "50")
+            return f'mode=fast 100% "quoted" $HOME token={text}' in logs.stdout, logs.stdout[-1500:] + logs.stderr[-500:]
+
+        wait_for("the settings node printing its env and secret", lambda: printed(value), timeout=60)
+        assert exec_in(clone, ["stat", "-c", "%U %a", path])[1].strip() == "root 600"
+        # Nowhere else: what the clone booted from and what a new clone would get, ccrp's state and
+        # output, the container as Docker shows it, the unit, every process's command line.
+        # Read whole at once: Docker holds the container while it streams an archive, so an exec
+        # before the stream is drained waits for it, and the stream waits for the reader (a deadlock).
+        cloud = b"".join(clone.get_archive("/var/lib/cloud")[0])
+        user_data = fleet.inv("render", "cloud-init", "--robot", "nao1")
+        assert user_data.returncode == 0, user_data.stderr[-2000:]
+        state = [p.read_bytes() for p in fleet.home.rglob("*") if p.is_file()]
+        cat = exec_in(clone, ["systemctl", "cat", unit])[1]
+        assert "LoadCredential=API_TOKEN:" in cat and "Environment=" in cat, cat
+        pid = exec_in(clone, ["systemctl", "show", "--property", "MainPID", "--value", unit])[1].strip()
+        assert pid.isdigit() and pid != "0", pid
+        own = exec_in(clone, ["cat", f"/proc/{pid}/cmdline"])[1]
+        assert "CREDENTIALS_DIRECTORY" in own, own  # the node's own command line, read
+        every = exec_in(clone, ["sh", "-c", 'for f in /proc/[0-9]*/cmdline; do tr "\\0" " " < "$f"; echo; done'])[1]
+        places = {
+            "the clone's /var/lib/cloud": cloud.decode(errors="replace"),
+            "ccrp render cloud-init": user_data.stdout + user_data.stderr,
+            "ccrp's home (state)": b"".join(state).decode(errors="replace"),
+            "deploy's output": dry.stdout + dry.stderr + proc.stdout + proc.stderr,
+            "docker inspect": json.dumps(fleet.client.api.inspect_container(clone.id)),
+            "systemctl cat": cat,
+            "the node's command line": own,
+            "the clone's command lines": every,
+        }
+        assert not [where for where, text in places.items() if value in text]
+        # Changed on the operator's side: deploy restarts the node, which reads the new one.
+        token.write_text(value + "-rotated\n")
+        rotated = fleet.json("deploy")
+        assert "restart settings; secret settings/API_TOKEN changed" in rotated[0]["detail"], rotated
+        wait_for("the settings node printing the rotated secret", lambda: printed(value + "-rotated"), timeout=60)
+    finally:
+        fleet.inventory.write_text(inventory)
+    dropped = fleet.json("deploy")
+    assert "stop settings" in dropped[0]["detail"], dropped
+    assert exec_in(clone, ["test", "-e", path])[0] == 1 and exec_in(clone, ["test", "-e", f"/etc/systemd/system/{unit}"])[0] == 1
+
+
 def test_a_node_whose_program_is_missing_fails_fleet_up(fleet: E2EFleet, up: str) -> None:
     """Issue 39, part 7: fleet up with a node whose program is missing (exit 127, started again
     every 3 s, `activating` in between) exits 1 naming robot, node and its last lines, where it

@@ -9,7 +9,10 @@ import io
 import json
 import re
 import subprocess
+import shutil
 import tarfile
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -28,7 +31,7 @@ CATKIN_XML = """<?xml version="1.0"?>
 <package format="2"><name>mapper</name><version>1.0.0</version><description>x</description>
 <maintainer email="a@b.c">a</maintainer><license>MIT</license><buildtool_depend>catkin</buildtool_depend></package>
 """
-MOVED = re.compile(r"(/etc/systemd/system|/etc/ccrp|/opt/ccrp|/var/lib/ccrp)")
+MOVED = re.compile(r"(/etc/systemd/system|/etc/ccrp|/opt/ccrp|/var/lib/ccrp|/etc/openvpn)")
 MAPPER = "/etc/systemd/system/ccrp-run-mapper.service"
 
 
@@ -264,6 +267,40 @@ def test_dry_run_says_what_would_change_and_changes_nothing(fleet, built, tmp_pa
     assert {r: clones.at(r, MAPPER).read_text() for r in clones.robots} == before
     assert all(clones.calls(r) == [] for r in clones.robots)
     assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == old
+
+
+def test_a_secret_reaches_its_node_by_name_only_and_a_changed_one_restarts_it(fleet, built, tmp_path, ccrp_home):
+    """A node's secret: pushed root-only, named (never shown) in dry-run and results, its node
+    restarted when it changes, deleted when dropped; its value in no line, result or state."""
+    fleet, clones, _ = fleet
+    value = "tok-6f1d2c9a"
+    (tmp_path / "token").write_text(value)
+    node = {"name": "mapper", "command": ["mapper"], "env": {"MODE": "fast"}, "secrets": {"API_TOKEN": "token"}}
+    write_inventory(tmp_path, run=[node])
+    secret = "/etc/openvpn/server/ccrp/keys/nodes/mapper/API_TOKEN"
+    lines: list[str] = []
+    [dry] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1", dry_run=True)
+    assert dry.action == "would deploy" and dry.detail.endswith("restart mapper; secret mapper/API_TOKEN changed"), dry
+    [result] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1")
+    assert result.action == "deployed" and "secret mapper/API_TOKEN changed" in result.detail, result
+    assert clones.at("nao1", secret).read_text() == value and ("nao1", secret, 0o600) in clones.pushes
+    unit = clones.at("nao1", MAPPER).read_text()
+    assert f"LoadCredential=API_TOKEN:{secret}" in unit and 'Environment="MODE=fast"' in unit
+    (tmp_path / "token").write_text(value + "-rotated")
+    calls = len(clones.calls("nao1"))
+    [rotated] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1")
+    assert rotated.detail.endswith("restart mapper; secret mapper/API_TOKEN changed"), rotated
+    assert "restart ccrp-run-mapper.service" in clones.calls("nao1")[calls:]
+    assert clones.at("nao1", secret).read_text() == value + "-rotated"
+    [again] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1")
+    assert again.action == "current", again
+    write_inventory(tmp_path, run=[{k: v for k, v in node.items() if k != "secrets"}])
+    [dropped] = deploy.deploy(Fleet.open(fleet.path), clones, lines.append, robot="nao1")
+    assert dropped.action == "deployed" and not clones.at("nao1", secret).exists(), dropped
+    kept = [p for p in ccrp_home.rglob("*") if p.is_file()]
+    assert "state.json" in {p.name for p in kept}
+    shown = [*lines, *(r.detail for r in (dry, result, rotated, again, dropped)), *(p.read_text(errors="replace") for p in kept)]
+    assert lines and not [text for text in shown if value in text]
 
 
 def swapped_clone(tmp_path, systemctl: str | None = None) -> Clones:
@@ -503,3 +540,79 @@ def test_the_workspace_is_built_on_this_hosts_engine_whatever_the_backend(invent
                      ["relay", "api_manager"], "deploy build"), ("create", tag),
                     ("read", "/opt/ccrp/workspace"), ("removed", True),
                     ("list", (f"ccrp-fleet={inv.fleet}", "ccrp-role=deploy")), ("drop", "old", False), ("closed",)]
+
+
+class PerRobotStates(Clones):
+    """Clones whose node state may differ per robot: (robot, unit) -> state, then the unit's."""
+
+    def __init__(self, root: Path, robots: list[str]) -> None:
+        super().__init__(root, robots)
+        self.robot_states: dict[tuple[str, str], tuple[str, str, int]] = {}
+        self.busy, self.most = 0, 0
+        self.lock = threading.Lock()
+
+    def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
+        if argv[:2] == ["systemctl", "show"]:
+            with self.lock:
+                self.busy += 1
+                self.most = max(self.most, self.busy)
+            try:
+                time.sleep(0.05)  # clones changed at once overlap here
+                blocks = [f"Id={u}\nActiveState={a}\nSubState={s}\nNRestarts={n}\n"
+                          for u in argv[4:] for a, s, n in [self.robot_states.get((robot, u), ("active", "running", 0))]]
+                return 0, "\n".join(blocks)
+            finally:
+                with self.lock:
+                    self.busy -= 1
+        return super().exec(robot, argv, timeout)
+
+
+@pytest.fixture
+def per_robot(fleet, tmp_path):
+    fleet, clones, old = fleet
+    mine = PerRobotStates(tmp_path / "clones2", clones.robots)
+    shutil.rmtree(mine.root)
+    shutil.copytree(clones.root, mine.root, symlinks=True)
+    return fleet, mine, old
+
+
+def test_a_failing_canary_changes_no_other_clone(per_robot, built):
+    fleet, clones, old = per_robot
+    new = change_workspace(fleet)
+    clones.robot_states[("nao1", "ccrp-run-mapper.service")] = ("activating", "auto-restart", 2)
+    results = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, canary=1)
+    by = {r.robot: r for r in results}
+    assert by["nao1"].action == "failed" and "rolled back" in by["nao1"].detail, by["nao1"]
+    others = [r for r in results if r.robot != "nao1"]
+    assert others and all(r.action == "not started" and "canary nao1 did not deploy" in r.detail for r in others)
+    for r in others:  # probed, nothing more: no stage, no swap, the old workspace
+        assert clones.scripts(r.robot) == ["probe"] and clones.at(r.robot, "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+    state = Fleet.open(fleet.path).store.load_state()
+    assert {r.robot: state.robots[r.robot].software for r in results} == {r.robot: old for r in results}
+    from ccrp_cli.cli import output
+
+    assert output.results(results, as_json=True) == 1  # nothing deployed
+    # Fixed: the canary goes first again, then the others, at most 2 at once.
+    clones.robot_states.clear()
+    results = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, canary=1, max_parallel=2)
+    assert {r.action for r in results} == {"deployed"} and clones.most <= 2, (results, clones.most)
+    assert Fleet.open(fleet.path).store.load_state().robots["turtlebot1"].software == new
+
+
+def test_the_canaries_are_clones_with_something_to_change(per_robot, built):
+    fleet, clones, _ = per_robot
+    change_workspace(fleet)
+    [first] = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert first.action == "deployed"
+    clones.robot_states[("nao2", "ccrp-run-mapper.service")] = ("failed", "failed", 0)
+    results = {r.robot: r for r in deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, canary=1)}
+    # nao1 was current already: nao2 is the canary, fails, and no one else is changed.
+    assert results["nao1"].action == "current" and results["nao2"].action == "failed"
+    assert all(r.action == "not started" for n, r in results.items() if n not in ("nao1", "nao2"))
+
+
+def test_canary_and_max_parallel_refuse_bad_numbers(fleet, built):
+    fleet, _, _ = fleet
+    for args in (["--canary", "-1"], ["--max-parallel", "0"], ["--canary", "x"]):
+        code, out, err = run_ccrp_inprocess("deploy", *args, "-i", str(fleet.path), home=fleet.path.parent / "home")
+        assert code == 2 and "Traceback" not in err, (args, err)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -12,8 +13,9 @@ import yaml
 
 from ccrp_cli.errors import InputError
 from ccrp_cli.loader import parse_inventory
-from ccrp_cli.models.software import Software, merge
+from ccrp_cli.models.software import Ready, Software, merge
 from ccrp_cli.providers.docker import images
+from ccrp_cli.services import workloads
 from ccrp_cli.recipes import platform
 from ccrp_cli.services.workloads import (
     INDEX,
@@ -22,9 +24,12 @@ from ccrp_cli.services.workloads import (
     apply_nodes,
     log_units,
     node_files,
+    node_health,
     node_unit,
     read_journal,
+    ready_specs,
     snapshot_software,
+    started_nodes_failing,
     systemd_word,
 )
 from tests.conftest import LAB
@@ -105,12 +110,154 @@ def test_software_merges_fleet_then_type_then_robot():
     ({"workspace": "/abs/ws"}, "relative"),
     ({"workspace": "../outside"}, "relative"),
     ({"what": 1}, "what"),
+    ({"env": {"PATH": "/tmp"}}, "ccrp's or systemd's"),
+    ({"env": {"ROS_MASTER_URI": "http://x:11311"}}, "'ROS_MASTER_URI' is ccrp's"),
+    ({"env": {"CREDENTIALS_DIRECTORY": "/tmp"}}, "CREDENTIALS_DIRECTORY"),
+    ({"env": {"CCRP_ROBOT": "x"}}, "CCRP_ROBOT"),
+    ({"env": {"LD_PRELOAD": "/tmp/x.so"}}, "LD_PRELOAD"),
+    ({"env": {"1ST": "x"}}, "not an environment variable name"),
+    ({"env": {"A-B": "x"}}, "'A-B'"),
+    ({"env": {"A": "one\nExecStartPre=/bin/sh"}}, "control characters"),
+    ({"env": {"A": "x" * 5000}}, "4096"),
+    ({"env": {"A": True}}, "quote it"),
+    ({"env": {"A": ["x"]}}, "not text"),
+    ({"run": [{"name": "m", "command": ["a"], "env": {"HOME": "/root"}}]}, "'HOME'"),
+    ({"run": [{"name": "m", "command": ["a"], "secrets": {"TOKEN": "/etc/shadow"}}]}, "relative"),
+    ({"run": [{"name": "m", "command": ["a"], "secrets": {"TOKEN": "../../.ssh/id_ed25519"}}]}, "relative"),
+    ({"run": [{"name": "m", "command": ["a"], "secrets": {"TOKEN": "a\nb"}}]}, "not a secret file"),
+    ({"run": [{"name": "m", "command": ["a"], "secrets": {"../x": "t"}}]}, "secrets.../x"),
+    ({"run": [{"name": "m", "command": ["a"], "secrets": {"a b": "t"}}]}, "'a b' does not match"),
+    ({"secrets": {"TOKEN": "t"}}, "secrets"),  # a node's only
 ])
 def test_bad_software_is_one_line_naming_the_field(software, words):
     with pytest.raises(InputError) as bad:
         inventory(lab(software=software))
     line = bad.value.one_line()
     assert "\n" not in line and words.lower() in line.lower(), line
+
+
+def test_env_merges_fleet_then_type_then_robot_and_a_node_over_its_level():
+    data = lab(software={"env": {"LEVEL": "fleet", "MAP": "big"}, "run": [{"name": "mapper", "command": ["m"]}]},
+               types={"nao": {"software": {"env": {"LEVEL": "nao", "PORT": 8080}}}})
+    data["robots"][0]["software"] = {"env": {"LEVEL": "nao1"},
+                                     "run": [{"name": "faces", "command": ["f"], "env": {"MAP": "small"}}]}
+    inv = inventory(data)
+    nao1, nao2, turtle = inv.robots
+    assert inv.software_of(nao1).env == {"LEVEL": "nao1", "MAP": "big", "PORT": "8080"}  # a number taken as its text
+    assert inv.software_of(nao2).env == {"LEVEL": "nao", "MAP": "big", "PORT": "8080"}
+    assert inv.software_of(turtle).env == {"LEVEL": "fleet", "MAP": "big"}
+    files = {f.name: f.content for f in node_files(inv, nao1, "s1")}
+    assert 'Environment="MAP=big"' in files["ccrp-run-mapper.service"]
+    faces = files["ccrp-run-faces.service"]
+    assert 'Environment="MAP=small"' in faces and 'Environment="LEVEL=nao1"' in faces and "MAP=big" not in faces
+    # The level's env is an input of each node's digest: changed, the node restarts.
+    data["software"]["env"]["MAP"] = "huge"
+    before = json.loads(files["workloads.json"])["nodes"]
+    after = json.loads(node_files(inventory(data), nao1, "s1")[-1].content)["nodes"]
+    assert before["mapper"] != after["mapper"] and before["faces"] == after["faces"]
+
+
+def test_env_and_secrets_reach_the_unit_quoted_for_systemd(tmp_path):
+    (tmp_path / "keys").mkdir()
+    (tmp_path / "keys" / "token").write_text("s3cr3t-value\n")
+    inv = inventory(lab(software={"run": [{"name": "mapper", "command": ["m"], "secrets": {"API_TOKEN": "keys/token"},
+                                           "env": {"A": 'x "q" \\ $HOME %n ünï', "EMPTY": ""}}]}),
+                    tmp_path / "inventory.yaml")
+    files = node_files(inv, inv.robots[0], "s1", tmp_path / "inventory.yaml")
+    unit = files[0].content
+    # `%` doubled (a specifier otherwise), quotes and backslashes escaped, `$` as written (systemd
+    # expands no variable in Environment=).
+    assert 'Environment="A=x \\"q\\" \\\\ $HOME %%n ünï"' in unit and 'Environment="EMPTY="' in unit
+    path = "/etc/openvpn/server/ccrp/keys/nodes/mapper/API_TOKEN"
+    assert f"LoadCredential=API_TOKEN:{path}" in unit.splitlines()
+    # Its credentials directory made a mount of its own before each start, which systemd fills in
+    # place (a Docker clone's /run propagates no mount systemd moves there); none without secrets.
+    assert "Requires=ccrp-credentials@%n.service" in unit.splitlines()
+    [mount] = [f for f in files if f.name == "ccrp-credentials@.service"]
+    assert mount.dest == "/etc/systemd/system/ccrp-credentials@.service" and "mount -t tmpfs" in mount.content
+    plain = node_files(inventory(lab(software={"run": [{"name": "m", "command": ["m"]}]})), inv.robots[0], "s1")
+    assert "ccrp-credentials" not in "".join(f.content for f in plain)
+    [secret] = [f for f in files if f.dest == path]
+    assert secret.content == "s3cr3t-value\n" and secret.mode == 0o600 and secret.group == "root"
+    assert files[-1].dest == INDEX  # the index stays last
+    # The value is in the root-only file alone: not in the unit, nor the index, nor any digest of it.
+    for f in files:
+        if f is not secret:
+            assert "s3cr3t" not in f.content, f.dest
+    (tmp_path / "keys" / "token").write_text("other")
+    again = node_files(inv, inv.robots[0], "s1", tmp_path / "inventory.yaml")
+    assert again[-1].content == files[-1].content and again[0].content == unit
+
+
+def test_a_secret_missing_unreadable_big_binary_or_leading_out_is_one_line_without_its_value(tmp_path):
+    from ccrp_cli.services.workloads import secret_files
+
+    def refused(rel: str) -> str:
+        inv = inventory(lab(software={"run": [{"name": "m", "command": ["a"], "secrets": {"TOKEN": rel}}]}))
+        with pytest.raises(InputError) as bad:
+            secret_files(tmp_path / "inventory.yaml", "nao1", inv.software.run)
+        line = bad.value.one_line()
+        assert "\n" not in line and "robot 'nao1'" in line and "node m secret TOKEN" in line, line
+        return line
+
+    assert "no such file" in refused("missing")
+    (tmp_path / "dir").mkdir()
+    assert "no such file" in refused("dir")
+    (tmp_path / "big").write_text("s3cret" * 20000)
+    assert "64 KiB" in refused("big") and "s3cret" not in refused("big")
+    (tmp_path / "bin").write_bytes(b"\xff\xfe")
+    assert "not text" in refused("bin")
+    outside = tmp_path.parent / "outside-secret"
+    outside.write_text("s3cret")
+    (tmp_path / "link").symlink_to(outside)
+    assert "leads out" in refused("link")
+    (tmp_path / "locked").write_text("s3cret")
+    (tmp_path / "locked").chmod(0)
+    import os
+    if os.geteuid() != 0:  # root reads it anyway
+        assert "not readable" in refused("locked")
+
+
+def test_a_secret_changed_restarts_its_node_and_one_dropped_leaves_the_clone(tmp_path):
+    """apply_nodes: the secrets' directories made root-only when one is pushed, a changed secret
+    pushed alone and its node restarted, the secrets kept named to APPLY_SH (which deletes others)."""
+    import hashlib
+
+    (tmp_path / "token").write_text("one")
+    inv_path = tmp_path / "inventory.yaml"
+    data = lab(software={"run": [{"name": "a", "command": ["a"], "secrets": {"TOKEN": "token"}},
+                                 {"name": "b", "command": ["b"]}]})
+    inv = inventory(data, inv_path)
+
+    class Clone:
+        def __init__(self):
+            self.pushed, self.execs = [], []
+
+        transport = property(lambda self: self)
+        def push_files(self, robot, files, restart):
+            self.pushed += [f.dest for f in files]
+
+        def exec(self, robot, argv, timeout=60):
+            self.execs.append(argv)
+            return 0, ""
+
+    files = node_files(inv, inv.robots[0], "s1", inv_path)
+    assert "Requires=" not in files[1].content  # b has no secret
+    assert apply_nodes(Clone(), "nao1", files, {}) == ["a", "b"]  # the credentials unit is no node
+    have = {f.dest: hashlib.sha256(f.content.encode()).hexdigest() for f in files}
+    secret = "/etc/openvpn/server/ccrp/keys/nodes/a/TOKEN"
+    (tmp_path / "token").write_text("two")
+    clone = Clone()
+    assert apply_nodes(clone, "nao1", node_files(inv, inv.robots[0], "s1", inv_path), have) == ["a"]
+    assert clone.pushed == [secret]  # the unit and the index are as they were
+    assert clone.execs[0] == ["install", "-d", "-m", "0700", "/etc/openvpn/server/ccrp/keys/nodes",
+                              "/etc/openvpn/server/ccrp/keys/nodes/a"]
+    assert clone.execs[1][3:] == ["ccrp-nodes", "a b", "a/TOKEN", "a"]
+    assert all("two" not in word and "one" not in word for argv in clone.execs for word in argv[3:])
+    del data["software"]["run"][0]["secrets"]
+    clone = Clone()
+    assert apply_nodes(clone, "nao1", node_files(inventory(data, inv_path), inv.robots[0], "s1", inv_path), have) == ["a"]
+    assert clone.execs[0][3:] == ["ccrp-nodes", "a b", "", "a"]  # no secret kept: APPLY_SH deletes a/TOKEN
 
 
 def test_the_workspace_is_fleet_wide():
@@ -260,16 +407,17 @@ def test_node_files_restart_only_what_changed():
     changed = node_files(inv2, inv2.robots[0], "s1")
     assert apply_nodes(clone, "nao1", changed, have) == ["a"]
     assert clone.pushed == ["/etc/systemd/system/ccrp-run-a.service", INDEX]
-    assert clone.argv[3:] == ["ccrp-nodes", "a b", "a"]  # keep a and b, restart a
+    assert clone.argv[3:] == ["ccrp-nodes", "a b", "", "a"]  # keep a and b (no secrets), restart a
     clone = Clone()
     assert node_files(inventory(lab()), inv.robots[0], "s1") == []
     apply_nodes(clone, "nao1", [], {absent_index().dest: "x"})  # it ran nodes before: all removed
-    assert clone.argv[3:] == ["ccrp-nodes", ""] and f'rm -f "{INDEX}"' in clone.argv[2]
+    assert clone.argv[3:] == ["ccrp-nodes", "", ""] and f'rm -f "{INDEX}"' in clone.argv[2]
 
 
 def test_nodes_leave_the_clone_when_the_inventory_drops_them(tmp_path):
-    """APPLY_SH for real, against a stand-in systemctl: stale units disabled and removed."""
-    from ccrp_cli.services.workloads import APPLY_SH
+    """APPLY_SH for real, against a stand-in systemctl: stale units disabled and removed, and the
+    secrets no longer named deleted (a dropped node's directory with them)."""
+    from ccrp_cli.services.workloads import APPLY_SH, CREDENTIALS
 
     units, log = tmp_path / "units", tmp_path / "calls"
     units.mkdir()
@@ -279,11 +427,16 @@ def test_nodes_leave_the_clone_when_the_inventory_drops_them(tmp_path):
     bin_dir.mkdir()
     (bin_dir / "systemctl").write_text(f'#!/bin/sh\necho "$@" >> {log}\n')
     (bin_dir / "systemctl").chmod(0o755)
-    script = APPLY_SH.replace("/etc/systemd/system", str(units))
-    proc = subprocess.run(["sh", "-c", script, "ccrp-nodes", "a b", "b"], capture_output=True, text=True,
+    creds = tmp_path / "creds"
+    for rel in ("a/KEEP", "a/GONE", "old/TOKEN"):
+        (creds / rel).parent.mkdir(parents=True, exist_ok=True)
+        (creds / rel).write_text("s3cret")
+    script = APPLY_SH.replace("/etc/systemd/system", str(units)).replace(CREDENTIALS, str(creds))
+    proc = subprocess.run(["sh", "-c", script, "ccrp-nodes", "a b", "a/KEEP", "b"], capture_output=True, text=True,
                           env={"PATH": f"{bin_dir}:/usr/bin:/bin"})
     assert proc.returncode == 0, proc.stderr
     assert sorted(p.name for p in units.iterdir()) == ["ccrp-run-a.service"]
+    assert sorted(str(p.relative_to(creds)) for p in creds.rglob("*")) == ["a", "a/KEEP"]
     calls = log.read_text().splitlines()
     assert calls[0] == "disable --now ccrp-run-old.service" and "daemon-reload" in calls
     assert "reset-failed ccrp-run-old.service" in calls
@@ -354,3 +507,82 @@ def test_logs_cli_refuses_bad_input_in_one_line(tmp_path):
     for args in (["--robot", "nao1"], ["--robot", "nao1", "relay", "--since", "5q"], ["--robot", "ghost", "relay"]):
         code, out, err = run_ccrp_inprocess("logs", "-i", str(LAB), *args, home=tmp_path / "home")
         assert code == 2 and len(err.splitlines()) == 1 and err.startswith("ccrp: error: "), (args, err)
+
+
+# -- readiness ------------------------------------------------------------------------------------
+
+class ReadyClone:
+    """A clone whose nodes stay up; a topic echo or `ready` command fails `failures` times, then passes."""
+
+    def __init__(self, failures: int, rc: int = 1, out: str = "") -> None:
+        self.failures, self.rc, self.out, self.tries = failures, rc, out, []
+
+    @property
+    def transport(self):
+        return self
+
+    def exec(self, robot, argv, timeout=60):
+        if argv[:2] == ["systemctl", "show"]:
+            return 0, "".join(f"Id={u}\nActiveState=active\nSubState=running\nNRestarts=0\n\n" for u in argv[4:])
+        if argv[0] == "journalctl":
+            return 0, '{"__CURSOR": "c1", "MESSAGE": "waiting for the map"}\n'
+        self.tries.append(argv)
+        if len(self.tries) <= self.failures:
+            return self.rc, self.out
+        return 0, ""
+
+
+def test_ready_is_a_topic_or_a_command_and_only_the_index_carries_it(tmp_path):
+    with pytest.raises(InputError, match="either topic"):
+        inventory(lab(software={"run": [{"name": "m", "command": ["m"], "ready": {"within": 5}}]}))
+    with pytest.raises(InputError, match="either topic"):
+        inventory(lab(software={"run": [{"name": "m", "command": ["m"], "ready": {"topic": "/map", "command": ["true"]}}]}))
+    with pytest.raises(InputError, match="within"):
+        inventory(lab(software={"run": [{"name": "m", "command": ["m"], "ready": {"topic": "/map", "within": 0}}]}))
+    with pytest.raises(InputError, match="list of words"):
+        inventory(lab(software={"run": [{"name": "m", "command": ["m"], "ready": {"command": "curl -f x"}}]}))
+    plain = inventory(lab(software={"run": [{"name": "m", "command": ["m"]}]}))
+    ready = inventory(lab(software={"run": [{"name": "m", "command": ["m"], "ready": {"topic": "/map", "within": 60}}]}))
+    before, after = node_files(plain, plain.robots[0], "s1"), node_files(ready, ready.robots[0], "s1")
+    # The unit and its digest are the same (a ready check changed restarts nothing); the index says it.
+    assert before[0].content == after[0].content
+    assert "ready" not in json.loads(before[-1].content)
+    assert json.loads(after[-1].content)["ready"] == {"m": {"topic": "/map", "within": 60}}
+    assert ready_specs(after) == {"m": Ready(topic="/map", within=60)} and ready_specs(before) == {}
+
+
+def test_a_ready_topic_is_waited_for_and_a_silent_one_fails_naming_it(monkeypatch):
+    monkeypatch.setattr(workloads, "HEALTH_SECONDS", 0)
+    monkeypatch.setattr(workloads, "READY_TRY_MAX", 0.2)
+    clone = ReadyClone(failures=2)
+    assert node_health(clone, "nao1", ["mapper"], ready={"mapper": Ready(topic="/map", within=30)}) is None
+    # Heard as the node's user, in its environment (as root, Fast DDS's shared memory dropped a node's messages).
+    assert clone.tries[0][2:5] == ["runuser", "-u", "ros"] and clone.tries[0][-7:-3] == ["ccrp-topic", "echo", "/map", "-n"]
+    assert len(clone.tries) == 3
+    silent = ReadyClone(failures=10**6)
+    t0 = time.monotonic()
+    assert node_health(silent, "nao1", ["mapper"], ready={"mapper": Ready(topic="/map", within=1)}) == (
+        "ccrp-run-mapper.service", "was not ready within 1 s: no message on /map")
+    assert time.monotonic() - t0 < 10
+    # A node without a check is not waited for.
+    assert node_health(ReadyClone(failures=10**6), "nao1", ["faces"], ready={"mapper": Ready(topic="/map")}) is None
+
+
+def test_a_ready_command_runs_as_the_node_and_its_failure_is_one_line(monkeypatch):
+    monkeypatch.setattr(workloads, "HEALTH_SECONDS", 0)
+    monkeypatch.setattr(workloads, "READY_INTERVAL", 0.05)
+    clone = ReadyClone(failures=1, rc=7)
+    spec = Ready(command=["curl", "-sf", "http://localhost:8080/health"], within=30)
+    assert node_health(clone, "nao1", ["api"], ready={"api": spec}) is None
+    argv = clone.tries[0]
+    # As the `ros` user in the node's environment, the user's words as arguments (no shell string of them).
+    assert argv[0] == "timeout" and argv[2:5] == ["runuser", "-u", "ros"] and argv[-3:] == spec.command
+    assert "curl" not in argv[argv.index("-c") + 1]
+    failing = ReadyClone(failures=10**6, rc=22, out="curl: (22) The requested URL returned error: 503\n")
+    files = node_files(inventory(lab(software={"run": [{"name": "api", "command": ["api"],
+                                                        "ready": {"command": spec.command, "within": 1}}]})),
+                       inventory(lab()).robots[0], "s1")
+    line = started_nodes_failing(failing, "nao1", files, [], booted=True)
+    assert line.startswith("robot 'nao1''s node api (ccrp-run-api.service) was not ready within 1 s: its ready command "
+                           "'curl -sf http://localhost:8080/health' exited 22: ") and "503" in line, line
+    assert "it is not ready" in line and "\n" not in line
