@@ -235,7 +235,8 @@ class SshTransport:
     def open_tcp(self, host: str, port: int, timeout: float):
         """A channel from this host to host:port (OpenSSH's direct-tcpip, what ProxyJump runs over).
         The target refusing or not answering yet (a clone booting behind the gateway) comes back as
-        the ConnectionRefusedError a direct connection would give, so it is retried alike."""
+        the ConnectionRefusedError or TimeoutError a direct connection would give, so it is retried
+        alike."""
         import paramiko
 
         try:
@@ -245,6 +246,13 @@ class SshTransport:
             # RFC 4254's reasons: 2 is "connect failed" (refused, no route), the rest are the jump host's.
             if exc.code == paramiko.common.OPEN_FAILED_CONNECT_FAILED:
                 raise ConnectionRefusedError(f"{self.host} could not reach {host}:{port}: {exc.text}") from None
+            raise
+        except paramiko.SSHException as exc:
+            # The jump host still trying to connect when `timeout` ran out: a guest whose network is
+            # not up yet answers no SYN (a started server behind the gateway on a real OpenStack:
+            # `clone start` failed at once on it).
+            if "Timeout opening channel" in str(exc):
+                raise TimeoutError(f"{self.host} could not reach {host}:{port} within {timeout:.0f} s") from None
             raise
 
     # -- connection -----------------------------------------------------------------------------

@@ -231,6 +231,49 @@ def test_wait_listening_waits_for_a_late_sshd_and_gives_up_in_one_line():
         wait_listening("127.0.0.1", port, timeout=1, interval=0.1)
 
 
+def test_wait_listening_through_a_jump_host_waits_for_a_guest_still_booting(monkeypatch):
+    """Behind the entry gateway a clone is reached through a direct-tcpip channel of the gateway's.
+    While the clone boots the gateway answers "connect failed" (refused, no route) or is still
+    trying when the channel's timeout runs out (no SYN answered: paramiko's "Timeout opening
+    channel"); both mean "booting", as for a direct connection (a real OpenStack's `clone start`
+    behind the gateway failed at once on the second). The jump host's own refusals stay errors."""
+    from ccrp_cli.transport.ssh import SshTransport
+
+    answers = iter([paramiko.SSHException("Timeout opening channel."),
+                    paramiko.ChannelException(paramiko.common.OPEN_FAILED_CONNECT_FAILED, "No route to host"),
+                    "channel"])
+
+    class Transport:
+        def open_channel(self, kind, dest, src, timeout):
+            assert kind == "direct-tcpip" and dest == ("10.90.0.11", 22)
+            answer = next(answers)
+            if isinstance(answer, Exception):
+                raise answer
+            return Channel()
+
+    class Channel:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+    class Client:
+        def get_transport(self):
+            return Transport()
+
+    gateway = SshTransport.__new__(SshTransport)
+    gateway.host, gateway._client = "198.51.100.172", Client()
+    monkeypatch.setattr(SshTransport, "connect", lambda self: self)
+    wait_listening("10.90.0.11", 22, timeout=10, interval=0.01, via=gateway)
+    with pytest.raises(TimeoutError, match="could not reach 10.90.0.11:22 within 3 s"):
+        answers = iter([paramiko.SSHException("Timeout opening channel.")])
+        gateway.open_tcp("10.90.0.11", 22, 3)
+    answers = iter([paramiko.ChannelException(paramiko.common.OPEN_FAILED_ADMINISTRATIVELY_PROHIBITED, "denied")])
+    with pytest.raises(paramiko.ChannelException):
+        gateway.open_tcp("10.90.0.11", 22, 3)
+
+
 # -- what a cloud clone's user-data gives the SSH transport ----------------------------------------
 
 
