@@ -43,6 +43,10 @@ def transient(message: str, rpc: bool = False) -> bool:
         message.startswith(("Unable to read from", "Unable to write to")) and "/sys/fs/cgroup/" in message)
 
 
+# About 40 s in all (full jitter, 2 s at most between tries) for a pool busy writing a volume.
+POOL_BUSY = Backoff(attempts=40, base=0.25, cap=2.0)
+
+
 class LibvirtClient:
     backoff = Backoff()
 
@@ -153,7 +157,11 @@ class LibvirtClient:
             raise
 
     def refreshed(self, pool):
-        self.api("refresh the storage pool", pool.refresh, 0)
+        """The pool, refreshed. libvirt refuses while another of the fleet's volumes is being
+        written (a clone's disk, a golden upload: "asynchronous jobs running"), which under load
+        lasts longer than a throttled call's retries: its own patience, whatever `backoff` says
+        (CI: 20 attempts of the contract harness's fast backoff ran out in a storm of creates)."""
+        call(pool.refresh, 0, classify=self.classify_error, what="refresh the storage pool", backoff=POOL_BUSY)
         return pool
 
     def upload(self, pool, name: str, data: bytes | Path, fmt: str, capacity: int | None = None):
