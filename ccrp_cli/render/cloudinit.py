@@ -42,9 +42,9 @@ def _docstrings(tree) -> list:
 
 
 def compact_shell(src: str) -> str:
-    """A shell script as user-data carries it: its comment lines gone, the shebang kept (as agents'
-    sources are compacted: AWS takes 16 KiB gzipped). Only for scripts with no here-document or
-    multi-line string, where a line starting with # is always a comment."""
+    """A shell script (or a systemd unit) as user-data carries it: its comment lines gone, its first
+    line (a shebang) kept, as agents' sources are compacted: AWS takes 16 KiB gzipped. Only for
+    text with no here-document or multi-line string, where a line starting with # is always a comment."""
     return "".join(line for i, line in enumerate(src.splitlines(keepends=True))
                    if i == 0 or not line.lstrip().startswith("#"))
 
@@ -131,11 +131,10 @@ def _system_user(name: str, **home: Any) -> dict[str, Any]:
 
 
 def _unit(name: str) -> dict[str, Any]:
-    """A unit as user-data carries it: its comment lines gone (they say why, in templates/systemd/;
-    a bare ROS 2 clone's user-data had 265 bytes to spare under AWS's 16 KiB gzipped)."""
-    text = static(f"systemd/{name}")
-    return _file(f"/etc/systemd/system/{name}", "".join(
-        line for line in text.splitlines(keepends=True) if not line.lstrip().startswith(("#", ";"))))
+    """A unit as user-data carries it: its comment lines gone, as a script's (they say why, in
+    templates/systemd/; a bare ROS 2 clone's user-data had 265 bytes to spare under AWS's 16 KiB
+    gzipped). Its first line is its [Unit] section."""
+    return _file(f"/etc/systemd/system/{name}", compact_shell(static(f"systemd/{name}")))
 
 
 def user_data_dict(
