@@ -41,6 +41,17 @@ def clone_spec(inv: Inventory, robot: str, index: int, image: str) -> CloneSpec:
     )
 
 
+def gateway_spec(inv: Inventory, base: CloneSpec) -> CloneSpec:
+    """The entry gateway's spec as ops/gateway.py gives it (robot GATEWAY, role "gateway", the common
+    network's fixed gateway address, no VPN subnet), on a clone's image and user-data."""
+    from ccrp_cli.models.addressing import gateway_ip
+    from ccrp_cli.providers.base import GATEWAY, GATEWAY_ROLE
+
+    return base.model_copy(update={
+        "robot": GATEWAY, "role": GATEWAY_ROLE, "hostname": f"ccrp-{inv.fleet}-gateway",
+        "instance_id": f"{inv.fleet}-gateway", "common_ip": str(gateway_ip(inv)), "vpn_subnet": None})
+
+
 class Knobs:
     """The Harness knobs of fakes that count calls in `calls` and read `_fraction`, `_delay` and
     `_fail_robots` themselves (the AWS and Docker harnesses)."""

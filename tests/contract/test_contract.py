@@ -17,7 +17,7 @@ from ccrp_cli.providers.base import Ability, Origin
 from ccrp_cli.ops.snapshots import BUILDER
 
 from .harness import FLEET
-from .specs import OPERATOR_CIDR, ROBOTS
+from .specs import OPERATOR_CIDR, ROBOTS, gateway_spec
 
 
 def create(harness, robot: str):
@@ -183,7 +183,7 @@ def test_an_entry_gateway_holds_the_fleets_one_public_address(harness, tmp_path)
     clone; made again after its instance was deleted around ccrp, it has the same address; retired
     (terminate: the fleet went back to per-clone), its address goes with it; teardown leaves nothing."""
     from ccrp_cli.models.addressing import gateway_ip
-    from ccrp_cli.providers.base import GATEWAY, GATEWAY_ROLE
+    from ccrp_cli.providers.base import GATEWAY
 
     if Ability.ENTRY_GATEWAY not in harness.provider.abilities:
         pytest.skip(f"{harness.kind} makes no entry gateway")
@@ -193,9 +193,7 @@ def test_an_entry_gateway_holds_the_fleets_one_public_address(harness, tmp_path)
                               tmp_path / "gateway-store")
     gw.bootstrap()
     assert gw.gateway() is None
-    spec = harness.spec("robot1", 1).model_copy(update={
-        "robot": GATEWAY, "role": GATEWAY_ROLE, "instance_id": f"{FLEET}-gateway", "common_ip": str(gateway_ip(gw.inv)),
-        "vpn_subnet": None})
+    spec = gateway_spec(gw.inv, harness.spec("robot1", 1))
     first = gw.run_instance(spec)
     assert first.origin is Origin.CREATED and first.public_ip and first.common_ip == str(gateway_ip(gw.inv))
     clones = [gw.run_instance(harness.spec(robot, i)) for i, robot in enumerate(ROBOTS[:2], start=1)]
@@ -208,6 +206,7 @@ def test_an_entry_gateway_holds_the_fleets_one_public_address(harness, tmp_path)
     assert again.public_ip == first.public_ip and again.provider_id != first.provider_id
     assert gw.terminate(GATEWAY) is True
     assert gw.gateway() is None and all(first.public_ip not in (r.id, r.name) for r in gw.list_owned())
+    assert [r for r in gw.list_owned() if r.robot == GATEWAY] == []  # its rules, routes, ports too
     gw.teardown()
     assert harness.owned_ids() == set() and gw.leftovers() == []
 

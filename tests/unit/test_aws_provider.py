@@ -12,6 +12,7 @@ import pytest
 
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.retry import ErrorClass
+from tests.contract import specs
 from tests.contract.specs import FAST, clone_spec, inventory
 
 from .aws_fakes import REGION, inject_error
@@ -212,12 +213,7 @@ def test_debians_ssm_parameter_resolves_to_the_ami_it_names(mocked, tmp_path):
 # -- the entry gateway (provider.entry: gateway, AWS's default) -------------------------------------
 
 def gateway_spec(p, img: str):
-    from ccrp_cli.models.addressing import gateway_ip
-    from ccrp_cli.providers.base import GATEWAY, GATEWAY_ROLE
-
-    return clone_spec(p.inv, "robot1", 1, img).model_copy(update={
-        "robot": GATEWAY, "role": GATEWAY_ROLE, "hostname": "ccrp-ct-gateway", "instance_id": "ct-gateway",
-        "common_ip": str(gateway_ip(p.inv)), "vpn_subnet": None})
+    return specs.gateway_spec(p.inv, clone_spec(p.inv, "robot1", 1, img))
 
 
 def default_route(p, rt_id: str) -> dict:

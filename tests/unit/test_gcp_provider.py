@@ -506,11 +506,9 @@ def gateway_harness(tmp_path, fake: FakeProject | None = None) -> GcpHarness:
 
 
 def gateway_spec(h: GcpHarness) -> CloneSpec:
-    from ccrp_cli.models.addressing import gateway_ip
-    from ccrp_cli.providers.base import GATEWAY
+    from tests.contract import specs
 
-    return spec(GATEWAY, 0, role="gateway", instance_id="ct-gateway", common_ip=str(gateway_ip(h.inv)),
-                vpn_subnet=None)
+    return specs.gateway_spec(h.inv, spec("robot1", 1))
 
 
 def test_gcp_fleets_are_behind_a_gateway_unless_the_inventory_says_per_clone():
@@ -554,6 +552,7 @@ def test_behind_a_gateway_clones_have_no_external_ip_and_the_gateway_the_fleets_
     gw = h._clone(GATEWAY)
     assert first.public_ip and first.common_ip == gateway_spec(h).common_ip
     assert gw.can_ip_forward and list(gw.tags.items) == ["ccrp-ct-gateway"] and gw.labels["ccrp-role"] == "gateway"
+    assert tail(gw.machine_type) == "e2-micro"  # provider.gateway_machine_type: it only forwards packets
     assert [a.address for a in h.fake.addresses.values()] == [first.public_ip]
     assert h.provider.gateway() == first.model_copy(update={"origin": None})
     assert h.provider.query().keys() == {"robot1"}  # the gateway is not a clone
@@ -573,7 +572,7 @@ def test_behind_a_gateway_clones_have_no_external_ip_and_the_gateway_the_fleets_
 def test_the_gateways_resources_are_its_role_for_gc_and_go_with_it(tmp_path):
     """What the gateway holds (its instance, the fleet's address, its route and firewall rules) is
     Role.GATEWAY, which gc keeps while the state records the gateway; terminate (a fleet back to
-    per clone) deletes the instance, its route and the address."""
+    per clone) deletes the instance, its route, its firewall rules and the address."""
     from ccrp_cli.providers.base import GATEWAY, Role
 
     h = gateway_harness(tmp_path)
@@ -586,18 +585,19 @@ def test_the_gateways_resources_are_its_role_for_gc_and_go_with_it(tmp_path):
     assert roles[("instance", "ccrp-ct-cri-robot1")] is Role.CLONE
     assert h.provider.terminate(GATEWAY) is True
     assert h.fake.addresses == {} and "ccrp-ct-egress" not in h.fake.routes and h._clone(GATEWAY) is None
+    assert set(h.fake.firewalls) == {"ccrp-ct-vpn", "ccrp-ct-ssh", "ccrp-ct-common"}
 
 
 def test_behind_a_gateway_the_quotas_count_it_once_and_no_address_per_clone(tmp_path):
     """A new project's 8 addresses: a fleet of any size needs one (the gateway's), held once; its
-    vCPUs are counted beside the clones'."""
-    h = gateway_harness(tmp_path)
+    vCPUs (of provider.gateway_machine_type) are counted beside the clones'."""
+    h = GcpHarness(tmp_path, None, inventory(entry="gateway", machine_type="e2-standard-4"))
     robots = [f"robot{i}" for i in range(1, 101)]
     need = {q.name: q.need(robots) for q in h.provider.quotas(robots)}
-    assert need == {"CPUS": 2 * 101, "IN_USE_ADDRESSES": 1, "STATIC_ADDRESSES": 1}
+    assert need == {"CPUS": 4 * 100 + 2, "IN_USE_ADDRESSES": 1, "STATIC_ADDRESSES": 1}
     h.provider.run_instance(gateway_spec(h))
     need = {q.name: q.need(robots) for q in h.provider.quotas(robots)}
-    assert need == {"CPUS": 2 * 100, "IN_USE_ADDRESSES": 0, "STATIC_ADDRESSES": 0}
+    assert need == {"CPUS": 4 * 100, "IN_USE_ADDRESSES": 0, "STATIC_ADDRESSES": 0}
 
 
 def test_a_gateway_made_again_needs_no_new_address(tmp_path):

@@ -15,6 +15,7 @@ from ccrp_cli.errors import CcrpError
 from ccrp_cli.providers.base import LABEL_FLEET, LABEL_ROBOT, Origin
 from ccrp_cli.providers.openstack import network
 from ccrp_cli.retry import ErrorClass
+from tests.contract import specs
 from tests.contract.harness_openstack import make_harness
 from tests.fakes.openstack_cloud import BUILD_FAILED, NO_VALID_HOST
 
@@ -426,11 +427,7 @@ def gw(h, tmp_path):
 
 
 def gateway_spec(h, p):
-    from ccrp_cli.models.addressing import gateway_ip
-    from ccrp_cli.providers.base import GATEWAY
-
-    return h.spec("robot1", 1).model_copy(update={"robot": GATEWAY, "role": "gateway", "instance_id": "ct-gateway",
-                                                  "common_ip": str(gateway_ip(p.inv)), "vpn_subnet": None})
+    return specs.gateway_spec(p.inv, h.spec("robot1", 1))
 
 
 def test_behind_a_gateway_clones_get_no_floating_ip_and_the_gateway_keeps_the_fleets(h, gw):

@@ -79,6 +79,8 @@ class GcpProvider(CloudProvider):
         return [override.zone] if override and override.zone else list(self.settings.zones)
 
     def _machine_type(self, robot: str) -> str:
+        if robot == GATEWAY:
+            return self.settings.gateway_machine_type
         override = self.inv.robot(robot)
         return (override and override.instance_type) or self.settings.machine_type
 
@@ -369,8 +371,9 @@ class GcpProvider(CloudProvider):
             return True
 
     def terminate(self, robot: str) -> bool:
-        """Delete the robot's clone, its route and then its reserved address (owned only); False
-        when there was no clone."""
+        """Delete the robot's clone, its route and then its reserved address (owned only); the
+        entry gateway's firewall rules go with it (the fleet went back to per-clone). False when
+        there was no clone."""
         c = self.client
         with c.errors(f"delete clone of {robot}"):
             route = c.get("route", c.clients.routes.get, project=c.project, route=c.names.route(robot))
@@ -378,6 +381,12 @@ class GcpProvider(CloudProvider):
             if route is not None and c.names.owns_unlabelled(route.name, route.description):
                 ops.append(("delete route", c.delete("route", c.clients.routes.delete, project=c.project,
                                                          route=route.name)))
+            if robot == GATEWAY:  # only the gateway's rules carry a robot's mark (network.firewall_rules)
+                ops += [(f"delete firewall {rule.name}", c.delete(f"firewall {rule.name}", c.clients.firewalls.delete,
+                                                                 project=c.project, firewall=rule.name))
+                        for rule in c.list("firewalls", c.clients.firewalls.list, project=c.project)
+                        if c.names.owns_unlabelled(rule.name, rule.description)
+                        and description_marks(rule.description).get(LABEL_ROBOT) == robot]
             found = c.find(robot, role=None)
             if found is not None:
                 zone, inst = found
@@ -408,14 +417,14 @@ class GcpProvider(CloudProvider):
         what the clones of `robots` take: an instance, its machine type's vCPUs (CPUS, or the
         family's own quota: N2_CPUS...), an external IP in use and a reserved one (none for a
         robot whose address is reserved already). Behind an entry gateway a clone takes no address;
-        the gateway, while there is none, takes one instance of the fleet's machine type, one IP in
+        the gateway, while there is none, takes one instance of provider.gateway_machine_type, one IP in
         use and (while the fleet's is not reserved) one reserved address, however many clones."""
         c = self.client
         with c.errors(f"quotas of {c.region}"):
             region = c.call("get region", c.clients.regions.get, project=c.project, region=c.region)
             reserved = {a.name for a in self._addresses()} if robots else set()
             machine = {r: self._machine_type(r) for r in robots}
-            default = self.settings.machine_type
+            default, gateway_type = self.settings.machine_type, self._machine_type(GATEWAY)
             gateway = self.settings.entry == "gateway"
             making = 1.0 if gateway and robots and c.find(GATEWAY, GATEWAY_ROLE) is None else 0.0
             address = 0.0 if c.names.address(GATEWAY, GATEWAY_ROLE) in reserved else making
@@ -436,8 +445,8 @@ class GcpProvider(CloudProvider):
                 elif q.metric.endswith("CPUS") and q.metric != "CPUS_ALL_REGIONS":
                     per = cpus(default, q.metric)
                     each = {r: n for r, m in machine.items() if (n := cpus(m, q.metric)) != per}
-                    once = making * per
-                    if not per and not each:
+                    once = making * cpus(gateway_type, q.metric)
+                    if not per and not each and not once:
                         continue  # another family's CPUs: none of these clones draws on it
                 else:
                     continue

@@ -19,6 +19,7 @@ class GcpSettings(ProviderSettings):
     operator_cidr: ipaddress.IPv4Network
     # A new project has 8 external addresses per region: one per fleet by default (docs/gcp.md).
     entry: Literal["per-clone", "gateway"] = "gateway"
+    gateway_machine_type: CloudName = "e2-micro"  # the entry gateway only forwards packets
 
     def place(self) -> str:
         return self.region
