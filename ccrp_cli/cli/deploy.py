@@ -6,6 +6,7 @@ from typing import Annotated
 
 import typer
 
+from ..errors import InputError
 from . import options, output
 
 
@@ -20,19 +21,31 @@ def deploy(
     max_parallel: Annotated[int | None, typer.Option("--max-parallel", min=1, metavar="K",
                                                      help="Change at most K clones at once (default: the "
                                                           "backend's limit).")] = None,
+    rollback: Annotated[bool, typer.Option("--rollback", help="Put back the version the last deploy replaced "
+                                                             "(each clone keeps it); the inventory is not read for "
+                                                             "software.")] = False,
     as_json: options.Json = False,
 ) -> None:
     """Put the inventory's workspace and `run` nodes on the running clones without re-creating them:
     built once here in the clone image, pushed to each clone, the changed nodes restarted; a node
     that does not stay up puts its clone back on the previous version. apt/pip changes need a new
-    snapshot and new clones."""
+    snapshot and new clones. `--rollback` puts back on each clone the version its last deploy
+    replaced (then the inventory and the clones differ until the next deploy)."""
     from ..ops import deploy as core
     from ..providers import get_provider
 
     fleet = options.open_fleet(inventory)
     core.targets(fleet, fleet.store.load_state(), robot, type_)  # a bad --robot / --type: exit 2 before anything
+    if rollback and canary:
+        raise InputError("--rollback takes no --canary", hint="roll back one clone first with --robot")
     provider = get_provider(fleet.inventory)
-    if dry_run:
+    if rollback:
+        if dry_run:
+            items = core.rollback(fleet, provider, output.info, robot, type_, dry_run=True)
+        else:
+            with fleet.store.lock():
+                items = core.rollback(fleet, provider, output.info, robot, type_, max_parallel=max_parallel)
+    elif dry_run:
         items = core.deploy(fleet, provider, output.info, robot, type_, dry_run=True)
     else:
         with fleet.store.lock():

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, cast
 from .clones import CloneResult, StateWriter
 from ..errors import CcrpError, InputError
 from ..fleet import Fleet
+from ..models.software import Ready
 from ..probe import same
 from ..providers.base import CloneState
 from ..render.files import BundleFile
@@ -50,6 +51,7 @@ from ..services.workloads import (
     node_health,
     ready_specs,
     packages_record,
+    unit_name,
 )
 
 if TYPE_CHECKING:
@@ -76,7 +78,13 @@ MAX_INSTALL_BYTES = 256 << 20  # the install space's tar, pushed to every clone
 #   rollback N..        the workspace back (D/pending says it was swapped), the units and index of
 #                       D/prev back, nodes N restarted and every previous node started; each step
 #                       tried, those that failed named (exit 1)
-#   commit              forget D/pending, then W.prev and D/prev
+#   commit              forget D/pending; the version this deploy replaced becomes the one kept for
+#                       `deploy --rollback`: D/prev (with its digest) -> D/last, W.prev -> W.last
+#   last                the kept version: its digest and index, whether its workspace differs, and
+#                       a deploy pending on the clone
+#   restore             the kept version back in place as a deploy would put it (stage, swap,
+#                       units and index of D/last, enabled; nodes restarted by the caller), so its
+#                       check, commit and rollback are a deploy's
 # D/pending is there from the moment the clone's software changes until its nodes passed their check
 # (commit) or it went back (rollback): a deploy stopped in between (killed, the link lost) leaves it,
 # and the next deploy finishes the check, or rolls back, instead of taking the clone as it is.
@@ -179,7 +187,59 @@ rollback)
   ;;
 commit)
   rm -f "$D/pending"  # first: the nodes passed their check; the rest is tidying up
+  if [ -d "$D/prev" ]; then
+    # The version replaced is kept (one: the last two in all). Its workspace is W.prev when this
+    # deploy swapped it (then current.prev is its digest), else the current one: no W.last.
+    rm -rf "$W.last" "$D/last"
+    if [ -e "$D/current.prev" ]; then mv "$D/current.prev" "$D/prev/digest"
+    else cat "$D/current" > "$D/prev/digest" 2>/dev/null || : > "$D/prev/digest"; fi
+    if [ -e "$W.prev" ]; then mv -T "$W.prev" "$W.last"; fi
+    mv -T "$D/prev" "$D/last"
+  fi
   rm -rf "$W.prev" "$W.new" "$D/prev" "$D/current.prev"
+  ;;
+last)
+  printf '== digest\n'; cat "$D/last/digest" 2>/dev/null || printf '%s' '-'
+  printf '\n== index\n'; cat "$D/last/workloads.json" 2>/dev/null || true
+  printf '\n== workspace\n'; if [ -e "$W.last" ]; then echo other; else echo same; fi
+  printf '== pending\n'; cat "$D/pending" 2>/dev/null || true
+  printf '\n== current\n'; cat "$D/current" 2>/dev/null || true
+  ;;
+restore)
+  if [ ! -d "$D/last" ]; then echo "no previous version is kept on this clone" >&2; exit 1; fi
+  rm -rf "$D/prev" "$W.new"
+  mkdir -m 0700 "$D/prev"
+  for f in "$U"/ccrp-run-*.service "$I"; do
+    [ -e "$f" ] || continue
+    cp -p "$f" "$D/prev/"
+  done
+  echo nodes > "$D/pending"
+  if [ -e "$W.last" ]; then
+    echo swapping > "$D/pending"
+    rm -rf "$W.prev"
+    if [ -e "$W" ]; then mv "$W" "$W.prev"; else mkdir "$W.prev"; fi
+    if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else : > "$D/current.prev"; fi
+    mv -T "$W.last" "$W"
+    if [ -s "$D/last/digest" ]; then cp "$D/last/digest" "$D/current"; fi
+    echo swapped > "$D/pending"
+  fi
+  for f in "$U"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    [ -e "$D/last/${f##*/}" ] && continue
+    systemctl disable --now "${f##*/}" >/dev/null 2>&1 || true
+    rm -f "$f"
+  done
+  for f in "$D/last"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    cp -p "$f" "$U/"
+  done
+  if [ -e "$D/last/workloads.json" ]; then cp -p "$D/last/workloads.json" "$I"; else rm -f "$I"; fi
+  systemctl daemon-reload
+  for f in "$D/last"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    systemctl enable "${f##*/}" >/dev/null 2>&1
+  done
+  rm -rf "$D/last"
   ;;
 *)
   echo "unknown action $act" >&2; exit 2
@@ -484,7 +544,132 @@ def _quietly(fn: Callable[[], object]) -> None:
         pass  # tidying up only: the clone runs what it should
 
 
+# -- deploy --rollback: the version each clone keeps ----------------------------------------------------
+
+@dataclass
+class Kept:
+    """What robot's clone keeps for `deploy --rollback` (DEPLOY_SH's D/last): the software digest,
+    the nodes and their readiness of the version the last deploy replaced; `digest` None when it
+    keeps none. `running`: the digest it runs now."""
+
+    robot: str
+    digest: str | None
+    nodes: list[str]
+    ready: dict[str, Ready]
+    running: str
+    pending: str
+
+    def summary(self) -> str:
+        nodes = f"nodes {', '.join(self.nodes)}" if self.nodes else "no nodes"
+        return f"software {self.running} -> {self.digest}; {nodes}"
+
+
+def kept(provider: Reaches, state: FleetState, robot: str) -> Kept:
+    """The version robot's clone keeps (one round trip)."""
+    out = _script(provider, robot, "last", timeout=30)
+    _, _, rest = out.partition("== digest\n")
+    digest, _, rest = rest.partition("\n== index\n")
+    index_text, _, rest = rest.partition("\n== workspace\n")
+    _, _, rest = rest.partition("== pending\n")
+    pending, _, current = rest.partition("\n== current\n")
+    try:
+        index = json.loads(index_text) if index_text.strip() else {}
+    except ValueError:
+        index = {}
+    index = index if isinstance(index, dict) else {}
+    snapshot = (state.snapshot or {}).get("software", NO_SOFTWARE)
+    running = current.strip() or state.robots[robot].software or snapshot
+    if digest.strip() == "-":
+        return Kept(robot, None, [], {}, str(running), pending.strip())
+    # No digest: the kept version ran the software its units were made with (its snapshot's).
+    was = digest.strip() or index.get("software") or snapshot
+    nodes = [n for n in index.get("nodes", {}) if isinstance(n, str) and NODE.fullmatch(n)]
+    ready = {n: Ready.model_validate(r) for n, r in (index.get("ready") or {}).items() if n in nodes}
+    return Kept(robot, str(was), nodes, ready, str(running), pending.strip())
+
+
+def restore(provider: Reaches, writer: StateWriter, keep: Kept, progress: Progress,
+            stop: threading.Event | None = None) -> CloneResult:
+    """Put the kept version back on one clone as a deploy would (its nodes restarted and checked,
+    back to the version it ran if one fails); the version it leaves becomes the kept one."""
+    t0 = time.monotonic()
+    robot, took = keep.robot, lambda: time.monotonic() - t0
+    if keep.pending:
+        return _result(progress, robot, "failed", f"{STOPPED_BEFORE}: ccrp deploy first (it finishes or undoes it)",
+                       took())
+    changed = False
+    try:
+        _script(provider, robot, "restore")
+        changed = True
+        _check(stop)
+        if keep.nodes:
+            rc, out = provider.transport.exec(robot, ["systemctl", "restart", *(unit_name(n) for n in keep.nodes)],
+                                              timeout=120)
+            if rc != 0:
+                raise CcrpError(f"the kept nodes did not start: {' '.join(out.split())[-300:]}")
+        failing = node_health(provider, robot, keep.nodes, stop, keep.ready)
+    except BaseException as exc:
+        back = _rollback(provider, robot, keep.nodes)[1] if changed else "nothing changed"
+        if isinstance(exc, Stopped):
+            return _result(progress, robot, "interrupted", back, took())
+        if not isinstance(exc, Exception):
+            raise
+        why = exc.one_line() if isinstance(exc, CcrpError) else f"{type(exc).__name__}: {exc}"
+        raise CcrpError(f"{why}; {back}") from None
+    if failing is not None:
+        return _failed(provider, robot, failing, keep.nodes, "after the rollback", progress, took)
+    _quietly(lambda: _script(provider, robot, "commit"))
+    writer.update(robot, software=keep.digest)
+    return _result(progress, robot, "rolled back", keep.summary(), took())
+
+
 # -- the command --------------------------------------------------------------------------------------
+
+def _running(provider: Provider, names: list[str], robot: str | None) -> tuple[list[str], dict[str, CloneResult]]:
+    """The targets whose clone runs, and a result for each other: one robot asked for by name must
+    be reachable; in a whole fleet, a stopped clone is not a failure."""
+    running = {n for n, rec in provider.query().items() if rec.state is CloneState.RUNNING}
+    results = {name: CloneResult(name, "failed" if robot else "skipped",
+                                 "no running clone: ccrp fleet up (or ccrp clone start) first")
+               for name in names if name not in running}
+    return [n for n in names if n in running], results
+
+
+def rollback(fleet: Fleet, provider: Provider, progress: Progress, robot: str | None = None,
+             type_: str | None = None, dry_run: bool = False, max_parallel: int | None = None) -> list[CloneResult]:
+    """`ccrp deploy --rollback`: each target clone back to the version its last deploy replaced
+    (the caller holds the fleet lock unless dry_run). A clone that keeps none (never deployed to)
+    fails when named, else is skipped."""
+    from .reconcile import _fan_out
+
+    state = fleet.store.load_state()
+    names = targets(fleet, state, robot, type_)
+    live, results = _running(provider, names, robot)
+    found: dict[str, Kept] = {}
+    stop = threading.Event()
+
+    def look(name: str) -> CloneResult:
+        found[name] = kept(provider, state, name)
+        return CloneResult(name, "probed")
+
+    for r in _fan_out(look, live, progress, provider, stop):
+        if r.action == "failed":
+            results[r.robot] = r
+    for name, keep in found.items():
+        if keep.digest is None:
+            results[name] = CloneResult(name, "failed" if robot else "skipped",
+                                        "no previous version is kept on this clone (no deploy has changed it)")
+        elif dry_run:
+            results[name] = CloneResult(name, "would roll back", keep.summary())
+    if dry_run:
+        return [results[n] for n in names]
+    todo = [n for n in live if n in found and n not in results]
+    writer = StateWriter(fleet, state)
+    for r in _fan_out(lambda n: restore(provider, writer, found[n], progress, stop), todo, progress, provider, stop,
+                      max_parallel):
+        results[r.robot] = r
+    return [results[n] for n in names]
+
 
 def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | None = None, type_: str | None = None,
            dry_run: bool = False, canary: int = 0, max_parallel: int | None = None) -> list[CloneResult]:
@@ -498,14 +683,7 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     names = targets(fleet, state, robot, type_)
     inputs = DeployInputs.read(fleet, state, names)  # read and checked before anything
     check_packages(state, names, inputs.software)
-    running = {n for n, rec in provider.query().items() if rec.state is CloneState.RUNNING}
-    results: dict[str, CloneResult] = {}
-    for name in names:
-        if name not in running:
-            # One robot asked for by name must be deployable; in a whole fleet, a stopped clone is not a failure.
-            results[name] = CloneResult(name, "failed" if robot else "skipped",
-                                        "no running clone: ccrp fleet up (or ccrp clone start) first")
-    live = [n for n in names if n in running]
+    live, results = _running(provider, names, robot)
     changes: dict[str, Change] = {}
     stop = threading.Event()  # set by _fan_out on Ctrl-C: the pool's threads never see it
 

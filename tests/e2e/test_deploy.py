@@ -130,6 +130,27 @@ def test_a_new_version_reaches_the_running_clone(fleet: E2EFleet, up: str) -> No
     print(f"deploy of VERSION 1.1 took {took:.1f} s")
 
 
+def test_rollback_puts_the_replaced_version_back_and_again_goes_forward(fleet: E2EFleet, up: str) -> None:
+    """`deploy --rollback`: mapper 1.0 (the snapshot's, which deploy 1.1 replaced) runs again on the
+    same clone, and the state says so; rolled back again, 1.1 runs."""
+    wait_for("mapper 1.1 on nao1's clone", lambda: _started(fleet, "1.1"), timeout=60)
+    deployed, starts = _software(fleet), _starts(fleet, "1.0")
+    [dry] = fleet.json("deploy", "--rollback", "--dry-run")
+    assert dry["action"] == "would roll back" and dry["detail"].startswith(f"software {deployed} -> "), dry
+    proc = fleet.inv("deploy", "--rollback", "--json")
+    assert proc.returncode == 0, f"rollback exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr[-3000:]}"
+    [row] = json.loads(proc.stdout)
+    assert row["action"] == "rolled back" and row["detail"] == dry["detail"], row
+    wait_for("mapper 1.0 on nao1's clone again", lambda: _started(fleet, "1.0", starts), timeout=60)
+    assert _software(fleet) != deployed and _software(fleet) in row["detail"]
+    assert fleet.json("deploy", "--dry-run")[0]["action"] == "would deploy"  # the inventory says 1.1
+    starts = _starts(fleet, "1.1")
+    [row] = fleet.json("deploy", "--rollback")
+    assert row["action"] == "rolled back" and _software(fleet) == deployed, row
+    wait_for("mapper 1.1 on nao1's clone again", lambda: _started(fleet, "1.1", starts), timeout=60)
+    assert fleet.container("clone", "nao1").id == up
+
+
 def test_fleet_up_and_clone_restart_after_a_deploy_keep_the_deployed_version(fleet: E2EFleet, up: str) -> None:
     """The snapshot still holds 1.0 and the clone runs 1.1: `fleet up` and `clone restart` (stop, then
     start) go on with the clone as deploy left it. Both were refused, "the snapshot holds software

@@ -616,3 +616,81 @@ def test_canary_and_max_parallel_refuse_bad_numbers(fleet, built):
     for args in (["--canary", "-1"], ["--max-parallel", "0"], ["--canary", "x"]):
         code, out, err = run_ccrp_inprocess("deploy", *args, "-i", str(fleet.path), home=fleet.path.parent / "home")
         assert code == 2 and "Traceback" not in err, (args, err)
+
+
+# -- deploy --rollback: the version each clone keeps ------------------------------------------------
+
+def test_rollback_puts_back_the_version_the_last_deploy_replaced_and_again_goes_forward(fleet, built):
+    """A deploy keeps the version it replaced (workspace, units, index, digest) on the clone;
+    `--rollback` puts it back as a deploy would (its nodes restarted and checked, the state's
+    digest); rolled back again, the clone runs the deployed version: the last two, in turn."""
+    fleet, clones, old = fleet
+    unit_before = clones.at("nao1", MAPPER).read_text()
+    new = change_workspace(fleet)
+    [deployed] = deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert deployed.action == "deployed"
+    assert clones.at("nao1", "/opt/ccrp/workspace.last/setup.sh").read_text() == "v1"
+    assert clones.at("nao1", "/var/lib/ccrp/deploy/last/digest").read_text().strip() == ""  # the snapshot's
+    [dry] = deploy.rollback(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1", dry_run=True)
+    assert (dry.action, dry.detail) == ("would roll back", f"software {new} -> {old}; nodes mapper"), dry
+    assert clones.at("nao1", "/opt/ccrp/workspace/setup.sh").read_text() == "v2"
+    clones.execs.clear()
+    [back] = deploy.rollback(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert (back.action, back.detail) == ("rolled back", f"software {new} -> {old}; nodes mapper"), back
+    assert clones.at("nao1", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+    assert clones.at("nao1", MAPPER).read_text() == unit_before
+    assert json.loads(clones.at("nao1", INDEX).read_text())["software"] == old
+    assert not clones.at("nao1", "/var/lib/ccrp/deploy/current").exists()  # the snapshot's, as before the deploy
+    assert not clones.at("nao1", "/var/lib/ccrp/deploy/pending").exists()
+    assert clones.scripts("nao1") == ["last", "restore", "commit"] and built == [new]  # nothing built
+    assert ["systemctl", "restart", "ccrp-run-mapper.service"] in [argv for _, argv in clones.execs]
+    assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == old
+    # The version rolled back from is the one kept now: --rollback again goes forward.
+    assert clones.at("nao1", "/opt/ccrp/workspace.last/setup.sh").read_text() == "v2"
+    [forward] = deploy.rollback(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert (forward.action, forward.detail) == ("rolled back", f"software {old} -> {new}; nodes mapper"), forward
+    assert clones.at("nao1", "/opt/ccrp/workspace/setup.sh").read_text() == "v2"
+    assert clones.at("nao1", "/var/lib/ccrp/deploy/current").read_text().strip() == new
+    assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == new
+    assert deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")[0].action == "current"
+
+
+def test_rollback_of_a_run_list_change_keeps_the_workspace(fleet, built, tmp_path):
+    fleet, clones, _ = fleet
+    write_inventory(tmp_path, run=[{"name": "mapper", "command": ["mapper", "--fast"]}, {"name": "faces", "command": ["faces"]}])
+    assert deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao2")[0].action == "deployed"
+    assert not clones.at("nao2", "/opt/ccrp/workspace.last").exists()  # the same workspace
+    [back] = deploy.rollback(Fleet.open(fleet.path), clones, lambda m: None, robot="nao2")
+    assert back.action == "rolled back", back
+    assert "--fast" not in clones.at("nao2", MAPPER).read_text()
+    assert not clones.at("nao2", "/etc/systemd/system/ccrp-run-faces.service").exists()
+    assert "disable --now ccrp-run-faces.service" in clones.calls("nao2")
+    assert clones.at("nao2", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
+
+
+def test_rollback_without_a_kept_version_fails_by_name_and_skips_in_a_fleet(fleet, built):
+    fleet, clones, _ = fleet
+    [named] = deploy.rollback(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert named.action == "failed" and "no previous version is kept" in named.detail, named
+    results = deploy.rollback(Fleet.open(fleet.path), clones, lambda m: None)
+    assert {r.action for r in results} == {"skipped"} and set(clones.scripts()) == {"last"}
+
+
+def test_a_kept_version_whose_node_fails_puts_the_clone_back_on_the_deployed_one(fleet, built):
+    fleet, clones, old = fleet
+    new = change_workspace(fleet)
+    assert deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")[0].action == "deployed"
+    clones.states["ccrp-run-mapper.service"] = ("failed", "failed", 0)
+    [back] = deploy.rollback(Fleet.open(fleet.path), clones, lambda m: None, robot="nao1")
+    assert back.action == "failed" and "after the rollback" in back.detail and "rolled back" in back.detail, back
+    assert clones.at("nao1", "/opt/ccrp/workspace/setup.sh").read_text() == "v2"
+    assert clones.at("nao1", "/var/lib/ccrp/deploy/current").read_text().strip() == new
+    assert not clones.at("nao1", "/var/lib/ccrp/deploy/pending").exists()
+    assert Fleet.open(fleet.path).store.load_state().robots["nao1"].software == new != old
+
+
+def test_rollback_refuses_a_canary(fleet, built):
+    fleet, clones, _ = fleet
+    code, out, err = run_ccrp_inprocess("deploy", "--rollback", "--canary", "1", "-i", str(fleet.path),
+                                        home=fleet.path.parent / "home")
+    assert code == 2 and "--rollback takes no --canary" in err and "Traceback" not in err, err
