@@ -20,6 +20,7 @@ apt and pip packages are the snapshot's: a change of them needs a new snapshot a
 from __future__ import annotations
 
 import base64
+import gzip
 import io
 import json
 import re
@@ -69,7 +70,7 @@ MAX_INSTALL_BYTES = 256 << 20  # the install space's tar, pushed to every clone
 # [a-z][a-z0-9-]*). D: what deploy keeps; W: the install space; U: the units; I: the index.
 #   probe [PATH...]     what the clone runs: its workspace digest, the index, a deploy pending on
 #                       it, sha256 of PATHs
-#   stage DIGEST|-      unpack D/DIGEST.tar.b64 into W.new (- : no new workspace), setuid/setgid
+#   stage DIGEST|-      unpack D/DIGEST.tar.b64 (gzipped) into W.new (- : no new workspace), setuid/setgid
 #                       bits stripped, device files and FIFOs refused; keep the units
 #                       and index as they are in D/prev, for a rollback
 #   begin               D/pending says `nodes`: the units are about to change
@@ -111,7 +112,7 @@ stage)
     # checked, a device file or FIFO is refused, and setuid and setgid bits go (a 4755 file would
     # come out root's setuid program). templates/docker/software.j2 and software-bake.sh do the same.
     mkdir -p -m 0700 "$W.new"
-    base64 -d "$D/$1.tar.b64" | tar -x --no-same-owner -C "$W.new" --strip-components=1
+    base64 -d "$D/$1.tar.b64" | tar -xz --no-same-owner -C "$W.new" --strip-components=1
     rm -f "$D/$1.tar.b64"
     odd=$(find "$W.new" ! -type f ! -type d ! -type l | head -n 1)
     if [ -n "$odd" ]; then
@@ -422,6 +423,11 @@ def build_install_space(inv: Inventory, software: SnapshotSoftware, progress: Pr
     return data
 
 
+def pushed(tar: bytes) -> str:
+    """The install space as each clone gets it: gzipped, then base64 for the transports' text files."""
+    return base64.b64encode(gzip.compress(tar, compresslevel=6, mtime=0)).decode()
+
+
 # -- on each clone ----------------------------------------------------------------------------------
 
 STOPPED_BEFORE = "a deploy stopped before its check"  # what a clone's pending mark is, in results
@@ -704,7 +710,7 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     # A clone rolled back from a stopped deploy may then need the workspace.
     if any(ch.workspace or ch.unsettled for ch in changes.values()):
         # One build for every clone; a failure leaves every clone as it was.
-        tar_b64 = base64.b64encode(build_install_space(inputs.inventory, inputs.software, progress)).decode()
+        tar_b64 = pushed(build_install_space(inputs.inventory, inputs.software, progress))
     writer = StateWriter(fleet, state)
     todo = [n for n in live if n in changes]
 

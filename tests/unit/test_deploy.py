@@ -4,7 +4,6 @@ clone's paths moved under the directory and a stand-in systemctl; the build is r
 
 from __future__ import annotations
 
-import base64
 import io
 import json
 import re
@@ -314,7 +313,7 @@ def swapped_clone(tmp_path, systemctl: str | None = None) -> Clones:
     clones.at("r", "/etc/systemd/system").mkdir(parents=True)
     clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("old a")
     clones.exec("r", ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
-    clones.at("r", f"{deploy.DEPLOY_DIR}/d2.tar.b64").write_text(base64.b64encode(install_tar("v2")).decode())
+    clones.at("r", f"{deploy.DEPLOY_DIR}/d2.tar.b64").write_text(deploy.pushed(install_tar("v2")))
     for action in (["stage", "d2"], ["swap", "d2"]):
         deploy._script(clones, "r", *action)
     return clones
@@ -395,12 +394,10 @@ def test_ctrl_c_starts_no_further_clone_and_puts_the_one_mid_swap_back(fleet, bu
 def killed_after_the_swap(fleet: Fleet, clones: Clones, robot: str) -> str:
     """What a deploy killed between the swap and its health check leaves on robot's clone (its
     steps run here as apply runs them, then nothing): the new workspace and units, unchecked."""
-    import base64
-
     fleet = Fleet.open(fleet.path)
     state = fleet.store.load_state()
     change = deploy.probe(workloads.DeployInputs.read(fleet, state, [robot]), clones, state, robot)
-    tar = base64.b64encode(install_tar("v2")).decode()
+    tar = deploy.pushed(install_tar("v2"))
     clones.exec(robot, ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
     clones.at(robot, f"{deploy.DEPLOY_DIR}/{change.new}.tar.b64").write_text(tar)
     deploy._script(clones, robot, "stage", change.new)
@@ -694,3 +691,13 @@ def test_rollback_refuses_a_canary(fleet, built):
     code, out, err = run_ccrp_inprocess("deploy", "--rollback", "--canary", "1", "-i", str(fleet.path),
                                         home=fleet.path.parent / "home")
     assert code == 2 and "--rollback takes no --canary" in err and "Traceback" not in err, err
+
+
+def test_the_install_space_goes_to_the_clones_gzipped():
+    import base64
+    import gzip
+
+    tar = install_tar("print('mapper')\n" * 5000)
+    sent = base64.b64decode(deploy.pushed(tar))
+    assert sent[:2] == b"\x1f\x8b" and gzip.decompress(sent) == tar and len(sent) * 10 < len(tar)
+    assert deploy.pushed(tar) == deploy.pushed(tar)  # no timestamp: the same bytes for the same space

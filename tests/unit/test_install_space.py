@@ -6,7 +6,6 @@ The ROS 1 master runs with the nodes' hardening, as a user of its own."""
 
 from __future__ import annotations
 
-import base64
 import io
 import os
 import re
@@ -73,7 +72,7 @@ def _stage(tmp_path: Path, members) -> Clone:
     clone = Clone(tmp_path / "clone")
     pushed = clone.at(f"{deploy.DEPLOY_DIR}/d1.tar.b64")
     pushed.parent.mkdir(parents=True)
-    pushed.write_bytes(base64.b64encode(_tar(members)))
+    pushed.write_text(deploy.pushed(_tar(members)))
     deploy._script(clone, "nao1", "stage", "d1")
     return clone
 
