@@ -5,22 +5,23 @@ The workspace is built once, on this machine, in the clone image (the snapshot's
 the current software: Docker's layer cache runs only the software's layers), and its install
 space (/opt/ccrp/workspace) read out of the image as a tar (providers.build_workspace, this host's
 Docker engine whatever the fleet's backend). Every clone runs the same Debian 12 platform, so the
-same tar serves every backend. Each clone gets it base64-encoded as a root-only
-file, and one fixed script (DEPLOY_SH, names and digests as argv words) unpacks it beside the
-current one and swaps them; then the node units are brought in line (workloads.apply_nodes: only
+same tar serves every backend. Each clone gets it gzipped as a root-only file, and one fixed
+script (install_space.DEPLOY_SH, names and digests as argv words) unpacks it beside the current
+one and swaps them; then the node units are brought in line (workloads.apply_nodes: only
 those whose inputs changed restart) and each restarted unit must stay up (workloads.node_health,
 the check `fleet up` makes too). A unit that does not is reported with its last journal lines, and
 the clone goes back to the workspace and units it had: the previous version keeps running. Until
 the check passed, the clone holds a pending mark: a deploy stopped before (Ctrl-C, killed) is
 finished by the next one. Ctrl-C starts no further clone and puts those being changed back.
+The install space pushed is kept in the fleet's state directory: a clone started or made later
+gets it from `fleet up` (ops/clones.py). Each clone keeps the version the deploy replaced, which
+`--rollback` puts back.
 
 apt and pip packages are the snapshot's: a change of them needs a new snapshot and new clones.
 """
 
 from __future__ import annotations
 
-import base64
-import gzip
 import io
 import json
 import re
@@ -31,7 +32,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, cast
 
+from . import install_space
 from .clones import CloneResult, StateWriter
+from .install_space import pushed, script
 from ..errors import CcrpError, InputError
 from ..fleet import Fleet
 from ..models.software import Ready
@@ -62,200 +65,8 @@ if TYPE_CHECKING:
 
 Progress = Callable[[str], None]
 
-NODE = re.compile(r"[a-z][a-z0-9-]*")  # a NodeName: what the clone's index may pass on to its scripts
-DEPLOY_DIR = "/var/lib/ccrp/deploy"  # root-only (0700): the pushed tar, the previous units, the digest
 MAX_INSTALL_BYTES = 256 << 20  # the install space's tar, pushed to every clone
-
-# On the clone, as root: $1 the action, then its argv words (a digest: hex; node names:
-# [a-z][a-z0-9-]*). D: what deploy keeps; W: the install space; U: the units; I: the index.
-#   probe [PATH...]     what the clone runs: its workspace digest, the index, a deploy pending on
-#                       it, sha256 of PATHs
-#   stage DIGEST|-      unpack D/DIGEST.tar.b64 (gzipped) into W.new (- : no new workspace), setuid/setgid
-#                       bits stripped, device files and FIFOs refused; keep the units
-#                       and index as they are in D/prev, for a rollback
-#   begin               D/pending says `nodes`: the units are about to change
-#   swap DIGEST         D/pending says `swapping`; W -> W.prev, W.new -> W; D/current says DIGEST;
-#                       D/pending says `swapped`
-#   rollback N..        the workspace back (D/pending says it was swapped), the units and index of
-#                       D/prev back, nodes N restarted and every previous node started; each step
-#                       tried, those that failed named (exit 1)
-#   commit              forget D/pending; the version this deploy replaced becomes the one kept for
-#                       `deploy --rollback`: D/prev (with its digest) -> D/last, W.prev -> W.last
-#   last                the kept version: its digest and index, whether its workspace differs, and
-#                       a deploy pending on the clone
-#   restore             the kept version back in place as a deploy would put it (stage, swap,
-#                       units and index of D/last, enabled; nodes restarted by the caller), so its
-#                       check, commit and rollback are a deploy's
-# D/pending is there from the moment the clone's software changes until its nodes passed their check
-# (commit) or it went back (rollback): a deploy stopped in between (killed, the link lost) leaves it,
-# and the next deploy finishes the check, or rolls back, instead of taking the clone as it is.
-DEPLOY_SH = r"""set -eu
-D=/var/lib/ccrp/deploy W=/opt/ccrp/workspace U=/etc/systemd/system I=/etc/ccrp/workloads.json
-act=$1; shift
-case $act in
-probe)
-  printf '== current\n'; cat "$D/current" 2>/dev/null || true
-  printf '\n== index\n'; cat "$I" 2>/dev/null || true
-  printf '\n== pending\n'; cat "$D/pending" 2>/dev/null || true
-  printf '\n== digests\n'; [ $# -eq 0 ] || sha256sum "$@" 2>/dev/null || true
-  ;;
-stage)
-  mkdir -p -m 0700 "$D"
-  rm -rf "$D/prev" "$W.new"
-  mkdir -m 0700 "$D/prev"
-  for f in "$U"/ccrp-run-*.service "$I"; do
-    [ -e "$f" ] || continue
-    cp -p "$f" "$D/prev/"
-  done
-  if [ "$1" != - ]; then
-    # Unpacked as root, so no file of the tar's may keep a privilege: W.new stays root-only until
-    # checked, a device file or FIFO is refused, and setuid and setgid bits go (a 4755 file would
-    # come out root's setuid program). templates/docker/software.j2 and software-bake.sh do the same.
-    mkdir -p -m 0700 "$W.new"
-    base64 -d "$D/$1.tar.b64" | tar -xz --no-same-owner -C "$W.new" --strip-components=1
-    rm -f "$D/$1.tar.b64"
-    odd=$(find "$W.new" ! -type f ! -type d ! -type l | head -n 1)
-    if [ -n "$odd" ]; then
-      rm -rf "$W.new"
-      echo "the install space holds ${odd#"$W.new"/}, a device file or FIFO: refused (only files, directories and links)" >&2
-      exit 1
-    fi
-    find "$W.new" -perm /6000 ! -type l -exec chmod ug-s {} +
-    chmod 0755 "$W.new"
-  fi
-  ;;
-stage-clean)
-  rm -rf "$W.new" "$D/prev" "$D"/*.tar.b64
-  ;;
-begin)
-  echo nodes > "$D/pending"
-  ;;
-swap)
-  # Each step leaves what a rollback needs: W.prev (empty when there was no workspace) and
-  # current.prev (empty when there was no digest) once W and current have moved.
-  echo swapping > "$D/pending"
-  rm -rf "$W.prev"
-  if [ -e "$W" ]; then mv "$W" "$W.prev"; else mkdir "$W.prev"; fi
-  if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else : > "$D/current.prev"; fi
-  mv "$W.new" "$W"
-  echo "$1" > "$D/current"
-  echo swapped > "$D/pending"
-  ;;
-rollback)
-  # Every step is tried, whatever failed before it: a unit that will not enable must not keep the
-  # previous nodes from starting. The steps that failed are named at the end.
-  set +e
-  failed=
-  step() { "$@" >/dev/null 2>&1 || failed="$failed, $*"; }
-  if [ ! -d "$D/prev" ]; then echo "nothing to roll back to: $D/prev is gone" >&2; exit 1; fi
-  case $(cat "$D/pending" 2>/dev/null) in swap*)
-    if [ -e "$W.prev" ]; then
-      step rm -rf "$W.failed"
-      if [ -e "$W" ]; then step mv -T "$W" "$W.failed"; fi
-      step mv -T "$W.prev" "$W"
-      step rm -rf "$W.failed"
-    fi
-    if [ -s "$D/current.prev" ]; then step mv "$D/current.prev" "$D/current"
-    elif [ -e "$D/current.prev" ]; then step rm -f "$D/current" "$D/current.prev"; fi
-  esac
-  for f in "$U"/ccrp-run-*.service; do
-    [ -e "$f" ] || continue
-    n=${f##*/}
-    [ -e "$D/prev/$n" ] && continue
-    systemctl disable --now "$n" >/dev/null 2>&1
-    step rm -f "$f"
-  done
-  for f in "$D/prev"/ccrp-run-*.service; do
-    [ -e "$f" ] || continue
-    step cp -p "$f" "$U/"
-  done
-  if [ -e "$D/prev/workloads.json" ]; then step cp -p "$D/prev/workloads.json" "$I"; else step rm -f "$I"; fi
-  step systemctl daemon-reload
-  for f in "$D/prev"/ccrp-run-*.service; do
-    [ -e "$f" ] || continue
-    step systemctl enable "${f##*/}"
-  done
-  for n in "$@"; do
-    [ -e "$U/ccrp-run-$n.service" ] || continue
-    step systemctl restart "ccrp-run-$n.service"
-  done
-  for f in "$D/prev"/ccrp-run-*.service; do
-    [ -e "$f" ] || continue
-    step systemctl start "${f##*/}"
-  done
-  rm -f "$D/pending"
-  if [ -n "$failed" ]; then echo "steps that failed: ${failed#, }" >&2; exit 1; fi
-  ;;
-commit)
-  rm -f "$D/pending"  # first: the nodes passed their check; the rest is tidying up
-  if [ -d "$D/prev" ]; then
-    # The version replaced is kept (one: the last two in all). Its workspace is W.prev when this
-    # deploy swapped it (then current.prev is its digest), else the current one: no W.last.
-    rm -rf "$W.last" "$D/last"
-    if [ -e "$D/current.prev" ]; then mv "$D/current.prev" "$D/prev/digest"
-    else cat "$D/current" > "$D/prev/digest" 2>/dev/null || : > "$D/prev/digest"; fi
-    if [ -e "$W.prev" ]; then mv -T "$W.prev" "$W.last"; fi
-    mv -T "$D/prev" "$D/last"
-  fi
-  rm -rf "$W.prev" "$W.new" "$D/prev" "$D/current.prev"
-  ;;
-last)
-  printf '== digest\n'; cat "$D/last/digest" 2>/dev/null || printf '%s' '-'
-  printf '\n== index\n'; cat "$D/last/workloads.json" 2>/dev/null || true
-  printf '\n== workspace\n'; if [ -e "$W.last" ]; then echo other; else echo same; fi
-  printf '== pending\n'; cat "$D/pending" 2>/dev/null || true
-  printf '\n== current\n'; cat "$D/current" 2>/dev/null || true
-  ;;
-restore)
-  if [ ! -d "$D/last" ]; then echo "no previous version is kept on this clone" >&2; exit 1; fi
-  rm -rf "$D/prev" "$W.new"
-  mkdir -m 0700 "$D/prev"
-  for f in "$U"/ccrp-run-*.service "$I"; do
-    [ -e "$f" ] || continue
-    cp -p "$f" "$D/prev/"
-  done
-  echo nodes > "$D/pending"
-  if [ -e "$W.last" ]; then
-    echo swapping > "$D/pending"
-    rm -rf "$W.prev"
-    if [ -e "$W" ]; then mv "$W" "$W.prev"; else mkdir "$W.prev"; fi
-    if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else : > "$D/current.prev"; fi
-    mv -T "$W.last" "$W"
-    if [ -s "$D/last/digest" ]; then cp "$D/last/digest" "$D/current"; fi
-    echo swapped > "$D/pending"
-  fi
-  for f in "$U"/ccrp-run-*.service; do
-    [ -e "$f" ] || continue
-    [ -e "$D/last/${f##*/}" ] && continue
-    systemctl disable --now "${f##*/}" >/dev/null 2>&1 || true
-    rm -f "$f"
-  done
-  for f in "$D/last"/ccrp-run-*.service; do
-    [ -e "$f" ] || continue
-    cp -p "$f" "$U/"
-  done
-  if [ -e "$D/last/workloads.json" ]; then cp -p "$D/last/workloads.json" "$I"; else rm -f "$I"; fi
-  systemctl daemon-reload
-  for f in "$D/last"/ccrp-run-*.service; do
-    [ -e "$f" ] || continue
-    systemctl enable "${f##*/}" >/dev/null 2>&1
-  done
-  rm -rf "$D/last"
-  ;;
-*)
-  echo "unknown action $act" >&2; exit 2
-  ;;
-esac
-"""
-
-
-def _script(provider: Reaches, robot: str, action: str, *words: str, timeout: float = 180) -> str:
-    rc, out = provider.transport.exec(robot, ["sh", "-c", DEPLOY_SH, "ccrp-deploy", action, *words], timeout=timeout)
-    if rc != 0:
-        raise CcrpError(f"deploy step {action} failed on robot {robot!r}'s clone: {' '.join(out.split())[-300:]}")
-    return out
-
-
+NODE = re.compile(r"[a-z][a-z0-9-]*")  # a NodeName: what the clone's index may pass on to its scripts
 # -- what each clone runs, and what would change --------------------------------------------------
 
 @dataclass
@@ -317,7 +128,7 @@ def probe(inputs: DeployInputs, provider: Reaches, state: FleetState, robot: str
     new, files = inputs.digest, inputs.nodes[robot]
     probed = files or [absent_index()]
     # Files pushed to the clone: each has its dest.
-    out = _script(provider, robot, "probe", *(cast(str, f.dest) for f in probed), timeout=30)
+    out = script(provider, robot, "probe", *(cast(str, f.dest) for f in probed), timeout=30)
     _, _, rest = out.partition("== current\n")
     current, _, rest = rest.partition("\n== index\n")
     index_text, _, rest = rest.partition("\n== pending\n")
@@ -423,11 +234,6 @@ def build_install_space(inv: Inventory, software: SnapshotSoftware, progress: Pr
     return data
 
 
-def pushed(tar: bytes) -> str:
-    """The install space as each clone gets it: gzipped, then base64 for the transports' text files."""
-    return base64.b64encode(gzip.compress(tar, compresslevel=6, mtime=0)).decode()
-
-
 # -- on each clone ----------------------------------------------------------------------------------
 
 STOPPED_BEFORE = "a deploy stopped before its check"  # what a clone's pending mark is, in results
@@ -460,7 +266,7 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
             return _result(progress, robot, "interrupted", f"{STOPPED_BEFORE}, left for the next deploy to check", took())
         if failing is not None:
             return _failed(provider, robot, failing, change.running, f"after {STOPPED_BEFORE}", progress, took)
-        _quietly(lambda: _script(provider, robot, "commit"))
+        _quietly(lambda: script(provider, robot, "commit"))
         writer.update(robot, software=change.new)
         return _result(progress, robot, "deployed", f"{STOPPED_BEFORE} finished: its nodes stay up; software {change.new}",
                        took())
@@ -473,13 +279,11 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
     if change.workspace:
         if tar_b64 is None:  # the clone went back to a workspace this run did not build
             return _result(progress, robot, "failed", f"{note}its workspace differs: ccrp deploy again", took())
-        provider.transport.exec(robot, ["mkdir", "-p", "-m", "0700", DEPLOY_DIR], timeout=30)
-        provider.transport.push_files(robot, [BundleFile(f"{change.new}.tar.b64", tar_b64, 0o600,
-                                                         f"{DEPLOY_DIR}/{change.new}.tar.b64")], restart=[])
+        install_space.push(provider, robot, change.new, tar_b64)
     try:
-        _script(provider, robot, "stage", change.new if change.workspace else "-")
+        script(provider, robot, "stage", change.new if change.workspace else "-")
     except CcrpError:
-        _quietly(lambda: _script(provider, robot, "stage-clean"))  # nothing was swapped: only the staging goes
+        _quietly(lambda: script(provider, robot, "stage-clean"))  # nothing was swapped: only the staging goes
         raise
     changed, restarted = False, []
     try:
@@ -487,9 +291,9 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
         # From here the clone holds its pending mark until commit or rollback (DEPLOY_SH).
         changed = True
         if change.workspace:
-            _script(provider, robot, "swap", change.new)
+            script(provider, robot, "swap", change.new)
         else:
-            _script(provider, robot, "begin")
+            script(provider, robot, "begin")
         _check(stop)
         # A changed workspace changes every node's digest (it is one of their inputs): all restart.
         restarted = apply_nodes(provider, robot, change.files, change.have)
@@ -498,7 +302,7 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
         if changed:
             back = _rollback(provider, robot, restarted or change.start + change.restart)[1]
         else:
-            _quietly(lambda: _script(provider, robot, "stage-clean"))
+            _quietly(lambda: script(provider, robot, "stage-clean"))
             back = "nothing changed"
         if isinstance(exc, Stopped):
             return _result(progress, robot, "interrupted", f"{note}{back}", took())
@@ -508,7 +312,7 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
         raise CcrpError(f"{note}{why}; {back}") from None
     if failing is not None:
         return _failed(provider, robot, failing, restarted, f"{note}after the deploy", progress, took)
-    _quietly(lambda: _script(provider, robot, "commit"))
+    _quietly(lambda: script(provider, robot, "commit"))
     writer.update(robot, software=change.new)
     return _result(progress, robot, "deployed", note + change.summary(), took())
 
@@ -536,7 +340,7 @@ def _rollback(provider: Reaches, robot: str, restart: list[str]) -> tuple[bool, 
     """DEPLOY_SH's rollback, `restart` the nodes restarted on the version going away: whether it
     went through, and what to say. It tries every step, so a failed one leaves the others done."""
     try:
-        _script(provider, robot, "rollback", *restart)
+        script(provider, robot, "rollback", *restart)
         return True, "rolled back: the previous version runs"
     except CcrpError as exc:
         return False, (f"the rollback did not go through ({exc.message}): "
@@ -572,7 +376,7 @@ class Kept:
 
 def kept(provider: Reaches, state: FleetState, robot: str) -> Kept:
     """The version robot's clone keeps (one round trip)."""
-    out = _script(provider, robot, "last", timeout=30)
+    out = script(provider, robot, "last", timeout=30)
     _, _, rest = out.partition("== digest\n")
     digest, _, rest = rest.partition("\n== index\n")
     index_text, _, rest = rest.partition("\n== workspace\n")
@@ -605,7 +409,7 @@ def restore(provider: Reaches, writer: StateWriter, keep: Kept, progress: Progre
                        took())
     changed = False
     try:
-        _script(provider, robot, "restore")
+        script(provider, robot, "restore")
         changed = True
         _check(stop)
         if keep.nodes:
@@ -624,7 +428,7 @@ def restore(provider: Reaches, writer: StateWriter, keep: Kept, progress: Progre
         raise CcrpError(f"{why}; {back}") from None
     if failing is not None:
         return _failed(provider, robot, failing, keep.nodes, "after the rollback", progress, took)
-    _quietly(lambda: _script(provider, robot, "commit"))
+    _quietly(lambda: script(provider, robot, "commit"))
     writer.update(robot, software=keep.digest)
     return _result(progress, robot, "rolled back", keep.summary(), took())
 

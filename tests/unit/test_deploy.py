@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from ccrp_cli.ops import deploy
+from ccrp_cli.ops import deploy, install_space
 from ccrp_cli.services import workloads
 from ccrp_cli.errors import InputError
 from ccrp_cli.fleet import Fleet
@@ -312,10 +312,10 @@ def swapped_clone(tmp_path, systemctl: str | None = None) -> Clones:
     clones.at("r", "/opt/ccrp/workspace/setup.sh").write_text("v1")
     clones.at("r", "/etc/systemd/system").mkdir(parents=True)
     clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("old a")
-    clones.exec("r", ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
-    clones.at("r", f"{deploy.DEPLOY_DIR}/d2.tar.b64").write_text(deploy.pushed(install_tar("v2")))
+    clones.exec("r", ["mkdir", "-p", "-m", "0700", install_space.DEPLOY_DIR])
+    clones.at("r", f"{install_space.DEPLOY_DIR}/d2.tar.b64").write_text(install_space.pushed(install_tar("v2")))
     for action in (["stage", "d2"], ["swap", "d2"]):
-        deploy._script(clones, "r", *action)
+        install_space.script(clones, "r", *action)
     return clones
 
 
@@ -327,7 +327,7 @@ def test_the_install_space_swap_and_rollback_for_real(tmp_path):
     assert clones.at("r", "/opt/ccrp/workspace.prev/setup.sh").read_text() == "v1"
     clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("new a")
     clones.at("r", "/etc/systemd/system/ccrp-run-b.service").write_text("new b")
-    deploy._script(clones, "r", "rollback", "a", "b")
+    install_space.script(clones, "r", "rollback", "a", "b")
     assert clones.at("r", "/opt/ccrp/workspace/setup.sh").read_text() == "v1"
     assert clones.at("r", "/etc/systemd/system/ccrp-run-a.service").read_text() == "old a"
     assert not clones.at("r", "/etc/systemd/system/ccrp-run-b.service").exists()
@@ -345,7 +345,7 @@ def test_a_rollback_whose_enable_fails_still_starts_the_previous_nodes(tmp_path)
     assert clones.at("r", "/var/lib/ccrp/deploy/pending").read_text() == "swapped\n"
     clones.at("r", "/etc/systemd/system/ccrp-run-a.service").write_text("new a")
     with pytest.raises(deploy.CcrpError) as failed:
-        deploy._script(clones, "r", "rollback", "a")
+        install_space.script(clones, "r", "rollback", "a")
     assert "steps that failed: systemctl enable ccrp-run-a.service" in failed.value.message, failed.value.message
     calls = clones.calls("r")
     assert calls[-3:] == ["enable ccrp-run-a.service", "restart ccrp-run-a.service", "start ccrp-run-a.service"], calls
@@ -397,11 +397,11 @@ def killed_after_the_swap(fleet: Fleet, clones: Clones, robot: str) -> str:
     fleet = Fleet.open(fleet.path)
     state = fleet.store.load_state()
     change = deploy.probe(workloads.DeployInputs.read(fleet, state, [robot]), clones, state, robot)
-    tar = deploy.pushed(install_tar("v2"))
-    clones.exec(robot, ["mkdir", "-p", "-m", "0700", deploy.DEPLOY_DIR])
-    clones.at(robot, f"{deploy.DEPLOY_DIR}/{change.new}.tar.b64").write_text(tar)
-    deploy._script(clones, robot, "stage", change.new)
-    deploy._script(clones, robot, "swap", change.new)
+    tar = install_space.pushed(install_tar("v2"))
+    clones.exec(robot, ["mkdir", "-p", "-m", "0700", install_space.DEPLOY_DIR])
+    clones.at(robot, f"{install_space.DEPLOY_DIR}/{change.new}.tar.b64").write_text(tar)
+    install_space.script(clones, robot, "stage", change.new)
+    install_space.script(clones, robot, "swap", change.new)
     workloads.apply_nodes(clones, robot, change.files, change.have)
     clones.execs.clear()
     return change.new
@@ -698,6 +698,6 @@ def test_the_install_space_goes_to_the_clones_gzipped():
     import gzip
 
     tar = install_tar("print('mapper')\n" * 5000)
-    sent = base64.b64decode(deploy.pushed(tar))
+    sent = base64.b64decode(install_space.pushed(tar))
     assert sent[:2] == b"\x1f\x8b" and gzip.decompress(sent) == tar and len(sent) * 10 < len(tar)
-    assert deploy.pushed(tar) == deploy.pushed(tar)  # no timestamp: the same bytes for the same space
+    assert install_space.pushed(tar) == install_space.pushed(tar)  # no timestamp: the same bytes for the same space

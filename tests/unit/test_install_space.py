@@ -20,7 +20,7 @@ import yaml
 
 from ccrp_cli.errors import CcrpError
 from ccrp_cli.fleet import clone_view
-from ccrp_cli.ops import deploy
+from ccrp_cli.ops import deploy, install_space
 from ccrp_cli.render import cloudinit
 from ccrp_cli.services.registry import boots
 from ccrp_cli.templates import render
@@ -70,10 +70,10 @@ class Clone:
 
 def _stage(tmp_path: Path, members) -> Clone:
     clone = Clone(tmp_path / "clone")
-    pushed = clone.at(f"{deploy.DEPLOY_DIR}/d1.tar.b64")
+    pushed = clone.at(f"{install_space.DEPLOY_DIR}/d1.tar.b64")
     pushed.parent.mkdir(parents=True)
-    pushed.write_text(deploy.pushed(_tar(members)))
-    deploy._script(clone, "nao1", "stage", "d1")
+    pushed.write_text(install_space.pushed(_tar(members)))
+    install_space.script(clone, "nao1", "stage", "d1")
     return clone
 
 
@@ -90,7 +90,7 @@ def test_deploy_strips_setuid_and_setgid_bits_from_the_install_space(tmp_path):
     assert stat.S_IMODE((new / "bin").stat().st_mode) == 0o775
     assert stat.S_IMODE(new.stat().st_mode) == 0o755  # readable by the nodes once swapped in
     assert stat.S_IMODE(outside.stat().st_mode) == 0o4755  # a link is never followed
-    assert not clone.at(f"{deploy.DEPLOY_DIR}/d1.tar.b64").exists()
+    assert not clone.at(f"{install_space.DEPLOY_DIR}/d1.tar.b64").exists()
 
 
 def test_deploy_refuses_a_fifo_in_the_install_space_in_one_line(tmp_path):

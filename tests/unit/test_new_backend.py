@@ -38,7 +38,7 @@ NAMES_A_KIND: dict[str, int] = {
     # `robot sim --network`'s help: which fleets have their own network (Docker's, libvirt's).
     "ccrp_cli/cli/robot.py": 1,
     # A comment in deploy's install script citing templates/docker/software.j2, a file's path.
-    "ccrp_cli/ops/deploy.py": 1,
+    "ccrp_cli/ops/install_space.py": 1,
     # What runs on this host's Docker engine whatever the fleet's backend (robot_host, build_workspace).
     "ccrp_cli/providers/__init__.py": 2,
     # The Docker SDK's import names (the robot host and build use it whatever the fleet's backend).

@@ -1,0 +1,260 @@
+"""The install space on a clone: the one script whose steps change it (DEPLOY_SH: stage, swap,
+rollback, commit, restore), the form it travels in, and the install spaces `ccrp deploy` pushed,
+kept in the fleet's state directory so a clone that starts or is made after the deploy gets the
+deployed version (ops/clones.py) without a build."""
+
+from __future__ import annotations
+
+import base64
+import gzip
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ..errors import CcrpError
+from ..render.files import BundleFile
+from ..store import atomic_write, ensure_dir
+
+if TYPE_CHECKING:
+    from ..fleet import Fleet
+    from ..providers.base import Reaches
+
+DEPLOY_DIR = "/var/lib/ccrp/deploy"  # root-only (0700): the pushed tar, the previous units, the digest
+
+# On the clone, as root: $1 the action, then its argv words (a digest: hex; node names:
+# [a-z][a-z0-9-]*). D: what deploy keeps; W: the install space; U: the units; I: the index.
+#   probe [PATH...]     what the clone runs: its workspace digest, the index, a deploy pending on
+#                       it, sha256 of PATHs
+#   stage DIGEST|-      unpack D/DIGEST.tar.b64 (gzipped) into W.new (- : no new workspace), setuid/setgid
+#                       bits stripped, device files and FIFOs refused; keep the units
+#                       and index as they are in D/prev, for a rollback
+#   begin               D/pending says `nodes`: the units are about to change
+#   swap DIGEST         D/pending says `swapping`; W -> W.prev, W.new -> W; D/current says DIGEST;
+#                       D/pending says `swapped`
+#   rollback N..        the workspace back (D/pending says it was swapped), the units and index of
+#                       D/prev back, nodes N restarted and every previous node started; each step
+#                       tried, those that failed named (exit 1)
+#   commit              forget D/pending; the version this deploy replaced becomes the one kept for
+#                       `deploy --rollback`: D/prev (with its digest) -> D/last, W.prev -> W.last
+#   last                the kept version: its digest and index, whether its workspace differs, and
+#                       a deploy pending on the clone
+#   restore             the kept version back in place as a deploy would put it (stage, swap,
+#                       units and index of D/last, enabled; nodes restarted by the caller), so its
+#                       check, commit and rollback are a deploy's
+# D/pending is there from the moment the clone's software changes until its nodes passed their check
+# (commit) or it went back (rollback): a deploy stopped in between (killed, the link lost) leaves it,
+# and the next deploy finishes the check, or rolls back, instead of taking the clone as it is.
+DEPLOY_SH = r"""set -eu
+D=/var/lib/ccrp/deploy W=/opt/ccrp/workspace U=/etc/systemd/system I=/etc/ccrp/workloads.json
+act=$1; shift
+case $act in
+probe)
+  printf '== current\n'; cat "$D/current" 2>/dev/null || true
+  printf '\n== index\n'; cat "$I" 2>/dev/null || true
+  printf '\n== pending\n'; cat "$D/pending" 2>/dev/null || true
+  printf '\n== digests\n'; [ $# -eq 0 ] || sha256sum "$@" 2>/dev/null || true
+  ;;
+stage)
+  mkdir -p -m 0700 "$D"
+  rm -rf "$D/prev" "$W.new"
+  mkdir -m 0700 "$D/prev"
+  for f in "$U"/ccrp-run-*.service "$I"; do
+    [ -e "$f" ] || continue
+    cp -p "$f" "$D/prev/"
+  done
+  if [ "$1" != - ]; then
+    # Unpacked as root, so no file of the tar's may keep a privilege: W.new stays root-only until
+    # checked, a device file or FIFO is refused, and setuid and setgid bits go (a 4755 file would
+    # come out root's setuid program). templates/docker/software.j2 and software-bake.sh do the same.
+    mkdir -p -m 0700 "$W.new"
+    base64 -d "$D/$1.tar.b64" | tar -xz --no-same-owner -C "$W.new" --strip-components=1
+    rm -f "$D/$1.tar.b64"
+    odd=$(find "$W.new" ! -type f ! -type d ! -type l | head -n 1)
+    if [ -n "$odd" ]; then
+      rm -rf "$W.new"
+      echo "the install space holds ${odd#"$W.new"/}, a device file or FIFO: refused (only files, directories and links)" >&2
+      exit 1
+    fi
+    find "$W.new" -perm /6000 ! -type l -exec chmod ug-s {} +
+    chmod 0755 "$W.new"
+  fi
+  ;;
+stage-clean)
+  rm -rf "$W.new" "$D/prev" "$D"/*.tar.b64
+  ;;
+begin)
+  echo nodes > "$D/pending"
+  ;;
+swap)
+  # Each step leaves what a rollback needs: W.prev (empty when there was no workspace) and
+  # current.prev (empty when there was no digest) once W and current have moved.
+  echo swapping > "$D/pending"
+  rm -rf "$W.prev"
+  if [ -e "$W" ]; then mv "$W" "$W.prev"; else mkdir "$W.prev"; fi
+  if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else : > "$D/current.prev"; fi
+  mv "$W.new" "$W"
+  echo "$1" > "$D/current"
+  echo swapped > "$D/pending"
+  ;;
+rollback)
+  # Every step is tried, whatever failed before it: a unit that will not enable must not keep the
+  # previous nodes from starting. The steps that failed are named at the end.
+  set +e
+  failed=
+  step() { "$@" >/dev/null 2>&1 || failed="$failed, $*"; }
+  if [ ! -d "$D/prev" ]; then echo "nothing to roll back to: $D/prev is gone" >&2; exit 1; fi
+  case $(cat "$D/pending" 2>/dev/null) in swap*)
+    if [ -e "$W.prev" ]; then
+      step rm -rf "$W.failed"
+      if [ -e "$W" ]; then step mv -T "$W" "$W.failed"; fi
+      step mv -T "$W.prev" "$W"
+      step rm -rf "$W.failed"
+    fi
+    if [ -s "$D/current.prev" ]; then step mv "$D/current.prev" "$D/current"
+    elif [ -e "$D/current.prev" ]; then step rm -f "$D/current" "$D/current.prev"; fi
+  esac
+  for f in "$U"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    n=${f##*/}
+    [ -e "$D/prev/$n" ] && continue
+    systemctl disable --now "$n" >/dev/null 2>&1
+    step rm -f "$f"
+  done
+  for f in "$D/prev"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    step cp -p "$f" "$U/"
+  done
+  if [ -e "$D/prev/workloads.json" ]; then step cp -p "$D/prev/workloads.json" "$I"; else step rm -f "$I"; fi
+  step systemctl daemon-reload
+  for f in "$D/prev"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    step systemctl enable "${f##*/}"
+  done
+  for n in "$@"; do
+    [ -e "$U/ccrp-run-$n.service" ] || continue
+    step systemctl restart "ccrp-run-$n.service"
+  done
+  for f in "$D/prev"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    step systemctl start "${f##*/}"
+  done
+  rm -f "$D/pending"
+  if [ -n "$failed" ]; then echo "steps that failed: ${failed#, }" >&2; exit 1; fi
+  ;;
+commit)
+  rm -f "$D/pending"  # first: the nodes passed their check; the rest is tidying up
+  if [ -d "$D/prev" ]; then
+    # The version replaced is kept (one: the last two in all). Its workspace is W.prev when this
+    # deploy swapped it (then current.prev is its digest), else the current one: no W.last.
+    rm -rf "$W.last" "$D/last"
+    if [ -e "$D/current.prev" ]; then mv "$D/current.prev" "$D/prev/digest"
+    else cat "$D/current" > "$D/prev/digest" 2>/dev/null || : > "$D/prev/digest"; fi
+    if [ -e "$W.prev" ]; then mv -T "$W.prev" "$W.last"; fi
+    mv -T "$D/prev" "$D/last"
+  fi
+  rm -rf "$W.prev" "$W.new" "$D/prev" "$D/current.prev"
+  ;;
+last)
+  printf '== digest\n'; cat "$D/last/digest" 2>/dev/null || printf '%s' '-'
+  printf '\n== index\n'; cat "$D/last/workloads.json" 2>/dev/null || true
+  printf '\n== workspace\n'; if [ -e "$W.last" ]; then echo other; else echo same; fi
+  printf '== pending\n'; cat "$D/pending" 2>/dev/null || true
+  printf '\n== current\n'; cat "$D/current" 2>/dev/null || true
+  ;;
+restore)
+  if [ ! -d "$D/last" ]; then echo "no previous version is kept on this clone" >&2; exit 1; fi
+  rm -rf "$D/prev" "$W.new"
+  mkdir -m 0700 "$D/prev"
+  for f in "$U"/ccrp-run-*.service "$I"; do
+    [ -e "$f" ] || continue
+    cp -p "$f" "$D/prev/"
+  done
+  echo nodes > "$D/pending"
+  if [ -e "$W.last" ]; then
+    echo swapping > "$D/pending"
+    rm -rf "$W.prev"
+    if [ -e "$W" ]; then mv "$W" "$W.prev"; else mkdir "$W.prev"; fi
+    if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else : > "$D/current.prev"; fi
+    mv -T "$W.last" "$W"
+    if [ -s "$D/last/digest" ]; then cp "$D/last/digest" "$D/current"; fi
+    echo swapped > "$D/pending"
+  fi
+  for f in "$U"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    [ -e "$D/last/${f##*/}" ] && continue
+    systemctl disable --now "${f##*/}" >/dev/null 2>&1 || true
+    rm -f "$f"
+  done
+  for f in "$D/last"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    cp -p "$f" "$U/"
+  done
+  if [ -e "$D/last/workloads.json" ]; then cp -p "$D/last/workloads.json" "$I"; else rm -f "$I"; fi
+  systemctl daemon-reload
+  for f in "$D/last"/ccrp-run-*.service; do
+    [ -e "$f" ] || continue
+    systemctl enable "${f##*/}" >/dev/null 2>&1
+  done
+  rm -rf "$D/last"
+  ;;
+*)
+  echo "unknown action $act" >&2; exit 2
+  ;;
+esac
+"""
+
+
+def script(provider: Reaches, robot: str, action: str, *words: str, timeout: float = 180) -> str:
+    rc, out = provider.transport.exec(robot, ["sh", "-c", DEPLOY_SH, "ccrp-deploy", action, *words], timeout=timeout)
+    if rc != 0:
+        raise CcrpError(f"deploy step {action} failed on robot {robot!r}'s clone: {' '.join(out.split())[-300:]}")
+    return out
+
+
+def pushed(tar: bytes) -> str:
+    """The install space as each clone gets it: gzipped, then base64 for the transports' text files."""
+    return base64.b64encode(gzip.compress(tar, compresslevel=6, mtime=0)).decode()
+
+
+# The deployed install spaces the fleet keeps: the inventory's and the one before (as each clone
+# keeps the version its last deploy replaced).
+KEEP = 2
+
+
+def _saved_path(fleet: Fleet, digest: str) -> Path:
+    return fleet.store.root / "deploy" / f"{digest}.tgz.b64"
+
+
+def save(fleet: Fleet, digest: str, payload: str) -> None:
+    """Keep what deploy pushes (0600, as the state), the oldest beyond KEEP dropped."""
+    path = _saved_path(fleet, digest)
+    ensure_dir(path.parent)
+    atomic_write(path, payload)
+    os.utime(path)  # the newest, also when it was kept already
+    kept = sorted(path.parent.glob("*.tgz.b64"), key=lambda p: p.stat().st_mtime, reverse=True)
+    for old in kept[KEEP:]:
+        old.unlink(missing_ok=True)
+
+
+def saved(fleet: Fleet, digest: str) -> str | None:
+    """The pushed install space of software `digest`, when a deploy of it is kept."""
+    try:
+        return _saved_path(fleet, digest).read_text()
+    except FileNotFoundError:
+        return None
+
+
+def push(provider: Reaches, robot: str, digest: str, payload: str) -> None:
+    """The install space of software `digest` to robot's clone, a root-only file for `stage`."""
+    provider.transport.exec(robot, ["mkdir", "-p", "-m", "0700", DEPLOY_DIR], timeout=30)
+    provider.transport.push_files(robot, [BundleFile(f"{digest}.tar.b64", payload, 0o600,
+                                                     f"{DEPLOY_DIR}/{digest}.tar.b64")], restart=[])
+
+
+def install(provider: Reaches, robot: str, digest: str, payload: str) -> None:
+    """Put a kept install space on a clone before its nodes start (a clone started or made after
+    the deploy): staged, swapped and committed at once, since its nodes are then started and
+    checked as at any `fleet up`."""
+    push(provider, robot, digest, payload)
+    for action in (("stage", digest), ("swap", digest), ("commit",)):
+        script(provider, robot, *action)
