@@ -63,3 +63,6 @@ class FleetState(BaseModel):
     robots: dict[str, RobotRecord] = {}
     snapshot: dict[str, str] | None = None
     gateway: GatewayRecord | None = None
+    # The software digest `ccrp deploy` last pushed: its install space is kept in the state
+    # directory (ops/install_space.py), and a clone started or made later gets it.
+    deployed: str | None = None

@@ -100,6 +100,9 @@ class StatusRow(BaseModel):
     autostop_idle_s: int | None = None
     stopped_idle: str | None = None  # the autostop agent's note, when it powered the clone off
     unreachable: str | None = None  # why the health check of a running clone failed
+    software: str | None = None  # the software digest the clone runs, as ccrp recorded it
+    # The last `ccrp deploy`'s software, which this clone (not running) gets when it starts.
+    software_pending: str | None = None
     api_manager: ApiManager | None = None
     knowledge: Knowledge | None = None
     power: Power | None = None  # None: no device reported since the clone booted

@@ -20,7 +20,7 @@ from ..models.names import clone_host
 from ..models.state import FleetState
 from ..render.files import applied_marker
 from ..probe import files_current, health, kill_session, remote_digests, same
-from . import gateway
+from . import gateway, install_space
 from ..providers.base import (
     CloneSpec,
     CloneState,
@@ -202,9 +202,13 @@ def clone_user_data(view: CloneView, provider: Housekeeping, bare: bool) -> str:
     return cloudinit.user_data(view, boots(), login_keys=provider.login_keys(), install_packages=bare)
 
 
-def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress) -> CloneResult:
+def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: str, progress: Progress,
+                 deployed: tuple[str, str] | None = None) -> CloneResult:
     """Create or reuse the clone of `robot`, push its secrets, wait until it serves, then bring each
-    clone service (services/registry.py) in line, in the registry's order."""
+    clone service (services/registry.py) in line, in the registry's order. `deployed`: (digest,
+    install space) of the inventory's software as `ccrp deploy` pushed it, which a clone made or
+    started now gets before its nodes are brought in line (a clone that was running keeps what it
+    runs: `ccrp deploy` changes it, and `deploy --rollback` may have put it back on purpose)."""
     from ..services.registry import SERVICES
     from ..providers import info
     from ..render import bundles
@@ -243,9 +247,11 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         crl = [f for f in secrets if f.name == "crl.pem"]
         applied = applied_marker(keys)
         # A clone kept runs the software it has (`ccrp deploy` may have changed it since its snapshot).
-        software = (state.snapshot or {}).get("software", NO_SOFTWARE)
+        runs = (state.snapshot or {}).get("software", NO_SOFTWARE)
         if not record.created and rec.software:
-            software = rec.software
+            runs = rec.software
+        install = deployed if deployed and record.origin is not Origin.REUSED and runs != deployed[0] else None
+        software = install[0] if install else runs
         ctx = ServiceContext(fleet, state, view.robot, writer.live(), software)
         wanted = {s.name: s.files(ctx) for s in SERVICES}
         settings = [f for s in SERVICES if s.settings for f in wanted[s.name]]
@@ -277,6 +283,9 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
             provider.transport.push_files(robot, crl, restart=[])
         if pushed or seen is None or not seen.serving:
             wait_serving(provider, robot, port)
+        if install:  # before its nodes are brought in line: they restart on it (ccrp deploy's install space)
+            install_space.install(provider, robot, *install)
+            progress(f"[{robot}] workspace {runs} -> {software}: the deployed software")
         # What a service started must stay up (the robot's nodes: deploy's health check, one window
         # for them all): a node that crash-loops is not "started". A clone just created or started
         # has booted, and its enabled units with it.
@@ -303,7 +312,7 @@ def ensure_clone(fleet: Fleet, provider: Provider, writer: StateWriter, robot: s
         robot, phase="ready", provider_id=record.provider_id, public_endpoint=endpoint,
         # The snapshot's id (one image may carry several names): a reused clone keeps its own.
         image=((state.snapshot or {}).get("id") or image) if record.created else rec.image,
-        software=(state.snapshot or {}).get("software", NO_SOFTWARE) if record.created else rec.software,
+        software=software if install or record.created else rec.software,
         packages=(state.snapshot or {}).get("packages") if record.created else rec.packages,
         addresses={"public": record.public_ip or "", "common": str(view.addr.common_ip),
                    "vpn": str(view.addr.clone_vpn_ip), "robot_vpn": str(view.addr.robot_vpn_ip)},

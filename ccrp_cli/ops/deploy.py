@@ -510,12 +510,25 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
             results[name] = CloneResult(name, "current" if quiet else "would deploy",
                                         f"software {ch.new}" if quiet else ch.summary())
         return [results[n] for n in names]
+    # A stopped clone gets the deployed software when it starts (ops/clones.py), from the install
+    # space kept in the state directory: it is built for it too.
+    digest = inputs.software.digest
+    waiting = [n for n in results if state.robots[n].provider_id and state.robots[n].software != digest]
+    for name in waiting:
+        results[name] = CloneResult(name, "skipped", f"not running: gets software {digest} when it starts "
+                                                     "(ccrp clone start, or fleet up)")
     tar_b64 = None
     # A clone rolled back from a stopped deploy may then need the workspace.
-    if any(ch.workspace or ch.unsettled for ch in changes.values()):
+    if any(ch.workspace or ch.unsettled for ch in changes.values()) or (
+            waiting and install_space.saved(fleet, digest) is None):
         # One build for every clone; a failure leaves every clone as it was.
         tar_b64 = pushed(build_install_space(inputs.inventory, inputs.software, progress))
     writer = StateWriter(fleet, state)
+    if tar_b64 is not None:
+        install_space.save(fleet, digest, tar_b64)
+        with writer.lock:
+            state.deployed = digest
+            fleet.store.save_state(state)
     todo = [n for n in live if n in changes]
 
     def one(name: str) -> CloneResult:

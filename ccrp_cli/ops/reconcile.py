@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 from ..models.addressing import allocate, entry_port
 from . import gateway
+from . import install_space
 from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
 from ..errors import CcrpError, InputError
 from ..fleet import Fleet
@@ -37,6 +38,7 @@ def plan(fleet: Fleet, provider: Lifecycle) -> list[dict[str, Any]]:
     index = fleet.pki.load_index() if fleet.pki.exists() else None
     revoked = {name for name in members if index and fleet.pki.revoked_since(name, index)}
     stale = stale_snapshot(fleet, state, inventory_software)
+    deployed = install_space.saved(fleet, inventory_software) is not None
     check_secrets(fleet, state, members)
     for name in members:
         rec = actual.get(name)
@@ -50,8 +52,10 @@ def plan(fleet: Fleet, provider: Lifecycle) -> list[dict[str, Any]]:
             action = "keep"
         else:
             action = "configure"
+        note = _software_note(state, name, stale, inventory_software,
+                              deployed and rec.state is not CloneState.RUNNING) if rec is not None else None
         rows.append({"robot": name, "action": action, "provider_id": rec.provider_id if rec else None,
-                     "software": _software_note(state, name, stale, inventory_software) if rec is not None else None,
+                     "software": note,
                      "endpoint": _endpoint_note(fleet, state, name)})
     for name, rec in actual.items():
         if name not in members:
@@ -74,9 +78,14 @@ def _endpoint_note(fleet: Fleet, state: FleetState, robot: str) -> str | None:
     return want if have in (None, want) else f"{want} (was {have}: new robot bundle)"
 
 
-def _software_note(state: FleetState, robot: str, stale: str | None, inventory_software: str | None = None) -> str | None:
-    """Whether robot's clone runs the inventory's software (docs/workloads.md): None when it does."""
+def _software_note(state: FleetState, robot: str, stale: str | None, inventory_software: str | None = None,
+                   pending: bool = False) -> str | None:
+    """Whether robot's clone runs the inventory's software (docs/workloads.md): None when it does.
+    `pending`: the clone is not running and `ccrp deploy` kept the inventory's software, which it
+    gets when it starts."""
     rec = state.robots.get(robot)
+    if pending and rec is not None and rec.software != inventory_software:
+        return f"pending: runs software {rec.software or NO_SOFTWARE}, gets the deployed {inventory_software} when it starts"
     if stale is not None:
         if rec is not None and rec.software is not None and rec.software == inventory_software:
             return None  # deployed (`ccrp deploy`)
@@ -157,7 +166,7 @@ def up(fleet: Fleet, provider: Provider, progress: Progress, only: list[str] | N
     writer = StateWriter(fleet, state)
     members = [r.name for r in fleet.members(state)]
     targets = [r for r in members if only is None or r in only]
-    _check_software(fleet, state, provider, targets)  # before any clone changes
+    deployed = _check_software(fleet, state, provider, targets)  # before any clone changes
     if not quotas_checked:
         check_growth(fleet, provider, targets, progress)
     provider.bootstrap()
@@ -169,7 +178,8 @@ def up(fleet: Fleet, provider: Provider, progress: Progress, only: list[str] | N
     # costs the same in a fleet of 10 or of 1,000.
     plan = fleet.plan(state)
     fleet.pki.issue_fleet({r: str(plan[r].common_ip) for r in targets}, fleet.inventory.vpn.cert_days)
-    results = _fan_out(lambda r: ensure_clone(fleet, provider, writer, r, progress), targets, progress, provider)
+    results = _fan_out(lambda r: ensure_clone(fleet, provider, writer, r, progress, deployed), targets, progress,
+                       provider)
     if only is None:
         strays = [name for name in provider.query() if name not in members]
         results += retire(fleet, provider, writer, strays, progress, forget=True)
@@ -177,19 +187,24 @@ def up(fleet: Fleet, provider: Provider, progress: Progress, only: list[str] | N
     return results
 
 
-def _check_software(fleet: Fleet, state: FleetState, provider: Lifecycle, targets: list[str]) -> None:
+def _check_software(fleet: Fleet, state: FleetState, provider: Lifecycle, targets: list[str]) -> tuple[str, str] | None:
     """Refuse when a clone would not run the inventory's software: one the snapshot would make while
     it holds other software, or one that runs other software. A clone `ccrp deploy` brought to the
     inventory's software is started or reused as it is: after a deploy, `clone start` and `fleet up`
-    were refused for the snapshot's older version (met on a real OpenStack, docs/openstack.md)."""
+    were refused for the snapshot's older version (met on a real OpenStack, docs/openstack.md).
+    Returns (digest, install space) when a deploy of the inventory's software is kept: the clones
+    made or started then get it (ensure_clone)."""
     check_secrets(fleet, state, targets)
     want = snapshot_software(fleet.inventory, fleet.path).digest
-    if stale_snapshot(fleet, state, want) is None:
-        return
+    payload = install_space.saved(fleet, want)
+    deployed = (want, payload) if payload is not None else None
+    if deployed is not None or stale_snapshot(fleet, state, want) is None:
+        return deployed
     existing = provider.query()
     if all(r in existing and state.robots.get(r) is not None and state.robots[r].software == want for r in targets):
-        return
+        return None
     check_snapshot(fleet, state, provider.kind)
+    return None
 
 
 # The agents on a clone that reopen a Zenoh session when their peer list changes, by their reports.

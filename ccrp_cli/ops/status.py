@@ -36,6 +36,7 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
         rec = actual.get(robot)
         a = plan[robot]
         member = fleet.robot(state, robot)
+        ran = state.robots.get(robot)
         row = StatusRow(
             robot=robot,
             clone=a.clone_host,
@@ -48,12 +49,16 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
             vpn_subnet=str(a.vpn_subnet),
             ros_distro=fleet.inventory.ros.distro,
             revoked_at=when.isoformat() if (when := revoked.get(robot)) else None,
+            software=ran.software if ran else None,
             **service_fields(fleet, state, member, None),
         )
         if rec and rec.state is CloneState.STOPPED:
             note = provider.stop_note(robot)
             if note:  # its robot stayed away: the clone's autostop agent powered it off
                 row.status, row.stopped_idle = "stopped (idle)", note
+        if rec and rec.state is not CloneState.RUNNING and ran and state.deployed and ran.software != state.deployed:
+            row.software_pending = state.deployed  # the last deploy's: ensure_clone gives it at the start
+            row.status = f"{row.status} (deploy pending)"
         if rec and rec.state is CloneState.RUNNING:
             try:
                 h = health(provider, robot)

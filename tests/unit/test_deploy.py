@@ -701,3 +701,51 @@ def test_the_install_space_goes_to_the_clones_gzipped():
     sent = base64.b64decode(install_space.pushed(tar))
     assert sent[:2] == b"\x1f\x8b" and gzip.decompress(sent) == tar and len(sent) * 10 < len(tar)
     assert install_space.pushed(tar) == install_space.pushed(tar)  # no timestamp: the same bytes for the same space
+
+
+# -- a clone not running when the deploy ran gets it when it starts ----------------------------------
+
+def test_a_stopped_clone_is_pending_and_the_install_space_is_kept_for_it(fleet, built, monkeypatch):
+    from ccrp_cli.ops import reconcile
+
+    fleet, clones, old = fleet
+    running = clones.query
+    monkeypatch.setattr(clones, "query", lambda: {r: rec.model_copy(update={"state": CloneState.STOPPED})
+                                                  if r == "nao2" else rec for r, rec in running().items()})
+    new = change_workspace(fleet)
+    results = {r.robot: r for r in deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, type_="nao")}
+    assert results["nao1"].action == "deployed", results
+    assert (results["nao2"].action, results["nao2"].detail) == (
+        "skipped", f"not running: gets software {new} when it starts (ccrp clone start, or fleet up)")
+    assert clones.scripts("nao2") == [] and built == [new]
+    fleet = Fleet.open(fleet.path)
+    state = fleet.store.load_state()
+    assert state.deployed == new and state.robots["nao2"].software == old
+    kept = fleet.store.root / "deploy" / f"{new}.tgz.b64"
+    assert kept.stat().st_mode & 0o777 == 0o600 and install_space.saved(fleet, new) == kept.read_text()
+    note = reconcile._software_note(state, "nao2", None, new, pending=True)
+    assert note == f"pending: runs software {old}, gets the deployed {new} when it starts", note
+    # Deployed again with nothing running to change: the kept install space serves, nothing is built.
+    deploy.deploy(fleet, clones, lambda m: None, type_="nao")
+    assert built == [new]
+
+
+def test_a_stopped_clone_behind_gets_a_build_when_no_running_one_needs_it(fleet, built, monkeypatch):
+    fleet, clones, old = fleet
+    running = clones.query
+    monkeypatch.setattr(clones, "query", lambda: {r: rec for r, rec in running().items() if r != "nao2"})
+    state = fleet.store.load_state()
+    state.robots["nao2"].software = "0123456789abcdef"  # ran another version when it stopped
+    fleet.store.save_state(state)
+    results = {r.robot: r for r in deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, type_="nao")}
+    assert results["nao1"].action == "current" and results["nao2"].action == "skipped", results
+    assert built == [old] and install_space.saved(Fleet.open(fleet.path), old) is not None
+
+
+def test_the_fleet_keeps_the_last_two_install_spaces(fleet):
+    fleet, _, _ = fleet
+    for digest in ("a" * 16, "b" * 16, "c" * 16):
+        install_space.save(fleet, digest, digest)
+        time.sleep(0.01)
+    assert sorted(p.name for p in (fleet.store.root / "deploy").iterdir()) == [f"{'b' * 16}.tgz.b64", f"{'c' * 16}.tgz.b64"]
+    assert install_space.saved(fleet, "a" * 16) is None and install_space.saved(fleet, "c" * 16) == "c" * 16
