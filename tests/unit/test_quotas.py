@@ -41,7 +41,7 @@ def created(monkeypatch):
     is recorded (ensure_clone stubbed); the gate and bootstrap run for real."""
     robots: list[str] = []
 
-    def ensure(fleet, provider, writer, robot, progress):
+    def ensure(fleet, provider, writer, robot, progress, deployed=None):
         robots.append(robot)
         return CloneResult(robot, "created")
 

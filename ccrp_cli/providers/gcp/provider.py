@@ -445,7 +445,7 @@ class GcpProvider(CloudProvider):
                 elif q.metric.endswith("CPUS") and q.metric != "CPUS_ALL_REGIONS":
                     per = cpus(default, q.metric)
                     each = {r: n for r, m in machine.items() if (n := cpus(m, q.metric)) != per}
-                    once = making * cpus(gateway_type, q.metric)
+                    once = cpus(gateway_type, q.metric) if making else 0.0  # looked up only when it is made
                     if not per and not each and not once:
                         continue  # another family's CPUs: none of these clones draws on it
                 else:
