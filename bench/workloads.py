@@ -21,6 +21,11 @@ the change once (only the workspace's layer runs) and pushes it to its clones in
 fleet (N clones of examples/offload/ros2.yaml's software, subnets no Docker network here uses)
 is removed at the end, even on failure.
 
+Beside the times, per round: the bytes each clone was sent for the one-line change (deploy's
+`sent_bytes`: the files that changed, gzipped, base64) against the whole install space (as a tar,
+gzipped, and base64 as pushed: the one kept in the state directory), and once at the end `deploy --canary 1` of one more change to all N (the canary,
+then the others) and `deploy --rollback` of all N (no build).
+
 Run: .venv/bin/python bench/workloads.py --deploy 10 [--rounds 3] [--out PATH]
 Writes bench/results/workloads_deploy.json.
 """
@@ -113,7 +118,7 @@ def deploy_bench(args) -> dict:
     fleet = "bdp" + secrets.token_hex(3)
     tmp = Path(tempfile.mkdtemp(prefix="ccrp-bench-deploy-"))
     home = tmp / "home"
-    one, many, up_s = [], [], None
+    one, many, up_s, canary, rollback = [], [], None, None, None
     try:
         shutil.copytree(EXAMPLE / "ros2", tmp / "ros2")
         data = yaml.safe_load((EXAMPLE / "ros2.yaml").read_text())
@@ -132,7 +137,16 @@ def deploy_bench(args) -> dict:
                 node.write_text(node.read_text() + f"\n# bench round {k} {secrets.token_hex(4)}\n")
                 wall, rows = deploy_json(home, inventory, *target)
                 assert all(r["action"] == "deployed" for r in rows) and len(rows) == (1 if target else n), rows
-                runs.append({"wall_s": round(wall, 1), "clone_s": sorted(round(r["seconds"], 1) for r in rows)})
+                runs.append({"wall_s": round(wall, 1), "clone_s": sorted(round(r["seconds"], 1) for r in rows),
+                             "sent_bytes": sorted(r["sent_bytes"] for r in rows), **whole(home, fleet)})
+        node.write_text(node.read_text() + f"\n# bench canary {secrets.token_hex(4)}\n")
+        wall, rows = deploy_json(home, inventory, "--canary", "1")
+        assert all(r["action"] == "deployed" for r in rows), rows
+        canary = {"wall_s": round(wall, 1), "canary_s": round(rows[0]["seconds"], 1),
+                  "others_s": sorted(round(r["seconds"], 1) for r in rows[1:])}
+        wall, rows = deploy_json(home, inventory, "--rollback")
+        assert all(r["action"] == "rolled back" for r in rows), rows
+        rollback = {"wall_s": round(wall, 1), "clone_s": sorted(round(r["seconds"], 1) for r in rows)}
     finally:
         try:
             ccrp(home, inventory, "fleet", "down")
@@ -150,7 +164,21 @@ def deploy_bench(args) -> dict:
         "deploy_1_s": {"median": round(one_s, 1), "runs": one},
         f"deploy_{n}_s": {"median": round(many_s, 1), "runs": many},
         f"ratio_{n}_over_1": round(many_s / one_s, 2),
+        f"canary_1_then_{n - 1}_s": canary,
+        f"rollback_{n}_s": rollback,
     }
+
+
+def whole(home: Path, fleet: str) -> dict:
+    """The whole install space of the last deploy (the newest the state directory keeps), as a tar,
+    gzipped, and base64-encoded as pushed: what each clone would be sent without the delta."""
+    import base64
+    import gzip
+
+    kept = max((home / fleet / "deploy").glob("*.tgz.b64"), key=lambda p: p.stat().st_mtime)
+    pushed = kept.read_bytes()
+    gz = base64.b64decode(pushed)
+    return {"tar_bytes": len(gzip.decompress(gz)), "gzip_bytes": len(gz), "pushed_bytes": len(pushed)}
 
 
 def main() -> None:

@@ -91,7 +91,8 @@ def emit(data: Any, as_json: bool, columns: Sequence[str] = (), rows: Sequence[S
 def results(items: list, as_json: bool, title: str | None = None) -> int:
     """Per-robot results of a fan-out command; returns the exit code (0, 1 all failed, 3 partial).
     A robot "not started" (a canary failed before its turn) counts as failed."""
-    data = [{"robot": r.robot, "action": r.action, "seconds": round(r.seconds, 2), "detail": r.detail} for r in items]
+    data = [{"robot": r.robot, "action": r.action, "seconds": round(r.seconds, 2), "detail": r.detail,
+             **({"sent_bytes": r.sent_bytes} if r.sent_bytes is not None else {})} for r in items]
     emit(data, as_json, ["ROBOT", "RESULT", "TIME", "DETAIL"], [r.row() for r in items], title)
     failed = sum(r.action in ("failed", "not started") for r in items)
     if failed == 0:

@@ -72,6 +72,7 @@ class CloneResult:
     detail: str = ""
     seconds: float = 0.0
     origin: Origin | None = None  # what the provider did to have the clone (ensure_clone)
+    sent_bytes: int | None = None  # what `ccrp deploy` pushed to the clone (its install space's part)
 
     def row(self) -> tuple[str, str, str, str]:
         return (self.robot, self.action, f"{self.seconds:.1f}s", self.detail)

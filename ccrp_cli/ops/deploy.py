@@ -79,6 +79,9 @@ class Change:
     new: str
     files: list[BundleFile]
     have: dict[str, str]
+    # ./PATH -> (sha256, octal mode) of each file of the clone's install space: deploy sends only
+    # the others (install_space.delta).
+    on_clone: dict[str, tuple[str, str]]
     start: list[str] = field(default_factory=list)
     restart: list[str] = field(default_factory=list)
     stop: list[str] = field(default_factory=list)
@@ -132,7 +135,8 @@ def probe(inputs: DeployInputs, provider: Reaches, state: FleetState, robot: str
     _, _, rest = out.partition("== current\n")
     current, _, rest = rest.partition("\n== index\n")
     index_text, _, rest = rest.partition("\n== pending\n")
-    pending, _, digests = rest.partition("\n== digests\n")
+    pending, _, rest = rest.partition("\n== digests\n")
+    digests, _, listing = rest.partition("\n== workspace\n")
     have = {line.split()[1]: line.split()[0] for line in digests.splitlines() if len(line.split()) == 2}
     try:
         index = json.loads(index_text) if index_text.strip() else {}
@@ -149,11 +153,24 @@ def probe(inputs: DeployInputs, provider: Reaches, state: FleetState, robot: str
     # file's, which the probe compared.
     secrets = [f for f in files if is_secret(f) and not same(have, [f])]
     resecret = {node_of(f) for f in secrets}
-    return Change(robot, str(old), new, files, have,
+    return Change(robot, str(old), new, files, have, workspace_files(listing),
                   start=[n for n in new_nodes if n not in old_nodes],
                   restart=[n for n in new_nodes if n in old_nodes and (old_nodes[n] != new_nodes[n] or n in resecret)],
                   stop=[n for n in old_nodes if n not in new_nodes], secrets=[f.name for f in secrets],
                   pending=pending.strip(), running=[n for n in old_nodes if isinstance(n, str) and NODE.fullmatch(n)])
+
+
+def workspace_files(listing: str) -> dict[str, tuple[str, str]]:
+    """The probe's list of the clone's install space: `sha256  ./PATH` lines, then `== modes` and
+    `MODE ./PATH` lines. A name sha256sum escaped (a backslash first: a newline in it) is left out,
+    so that file is sent."""
+    sums, _, modes = listing.partition("== modes\n")
+    digest = {line[66:]: line[:64] for line in sums.splitlines() if len(line) > 66 and line[64:66] == "  "}
+    mode: dict[str, str] = {}
+    for line in modes.splitlines():
+        bits, _, path = line.partition(" ")
+        mode[path] = bits
+    return {path: (digest[path], mode[path]) for path in digest if path in mode}
 
 
 # -- which clones -----------------------------------------------------------------------------------
@@ -239,13 +256,14 @@ def build_install_space(inv: Inventory, software: SnapshotSoftware, progress: Pr
 STOPPED_BEFORE = "a deploy stopped before its check"  # what a clone's pending mark is, in results
 
 
-def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str | None, progress: Progress,
+def apply(provider: Reaches, writer: StateWriter, change: Change, tar: bytes | None, progress: Progress,
           stop: threading.Event | None = None, reprobe: Callable[[], Change] | None = None) -> CloneResult:
     """Bring one clone to the inventory's software and nodes; back to what it ran if a restarted
     node fails its health check. A deploy stopped before its check on this clone (its pending mark)
     is finished first: checked and committed when it brought the inventory's software, else rolled
     back (then `reprobe` says what the clone runs). `stop` set (Ctrl-C): a clone being changed goes
-    back as it was, its result `interrupted`."""
+    back as it was, its result `interrupted`. `tar`: the install space built, of which the clone
+    is sent what it lacks (the whole of it if that delta does not unpack)."""
     t0 = time.monotonic()
     robot = change.robot
     took = lambda: time.monotonic() - t0  # noqa: E731
@@ -276,12 +294,28 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
         if note:
             return _result(progress, robot, "deployed", f"{note}software {change.new}", took())
         return CloneResult(robot, "current", f"software {change.new}", took())
-    if change.workspace:
-        if tar_b64 is None:  # the clone went back to a workspace this run did not build
-            return _result(progress, robot, "failed", f"{note}its workspace differs: ccrp deploy again", took())
-        install_space.push(provider, robot, change.new, tar_b64)
+    if change.workspace and tar is None:  # the clone went back to a workspace this run did not build
+        return _result(progress, robot, "failed", f"{note}its workspace differs: ccrp deploy again", took())
+    sent = 0
+
+    def stage(space: bytes, *how: str) -> None:
+        nonlocal sent
+        payload = pushed(space)
+        install_space.push(provider, robot, change.new, payload)
+        sent += len(payload)
+        script(provider, robot, "stage", change.new, *how)
+
     try:
-        script(provider, robot, "stage", change.new if change.workspace else "-")
+        if not change.workspace:
+            script(provider, robot, "stage", "-")
+        elif change.on_clone:
+            try:
+                stage(install_space.delta(cast(bytes, tar), change.on_clone), "delta")
+            except CcrpError as exc:  # a path that changed kind (a directory now a file): the whole space
+                progress(f"[{robot}] the changed files did not unpack ({exc.message[-200:]}): sending the whole install space")
+                stage(cast(bytes, tar))
+        else:
+            stage(cast(bytes, tar))
     except CcrpError:
         _quietly(lambda: script(provider, robot, "stage-clean"))  # nothing was swapped: only the staging goes
         raise
@@ -314,7 +348,14 @@ def apply(provider: Reaches, writer: StateWriter, change: Change, tar_b64: str |
         return _failed(provider, robot, failing, restarted, f"{note}after the deploy", progress, took)
     _quietly(lambda: script(provider, robot, "commit"))
     writer.update(robot, software=change.new)
-    return _result(progress, robot, "deployed", note + change.summary(), took())
+    result = _result(progress, robot, "deployed", note + change.summary() + (f"; sent {_size(sent)}" if sent else ""),
+                     took())
+    result.sent_bytes = sent
+    return result
+
+
+def _size(n: int) -> str:
+    return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} kB"
 
 
 def _check(stop: threading.Event | None) -> None:
@@ -435,14 +476,15 @@ def restore(provider: Reaches, writer: StateWriter, keep: Kept, progress: Progre
 
 # -- the command --------------------------------------------------------------------------------------
 
-def _running(provider: Provider, names: list[str], robot: str | None) -> tuple[list[str], dict[str, CloneResult]]:
-    """The targets whose clone runs, and a result for each other: one robot asked for by name must
-    be reachable; in a whole fleet, a stopped clone is not a failure."""
-    running = {n for n, rec in provider.query().items() if rec.state is CloneState.RUNNING}
+def _running(provider: Provider, names: list[str], robot: str | None) -> tuple[list[str], dict[str, CloneResult], set[str]]:
+    """The targets whose clone runs, a result for each other (one robot asked for by name must be
+    reachable; in a whole fleet, a stopped clone is not a failure), and the robots that have a clone."""
+    existing = provider.query()
+    running = {n for n, rec in existing.items() if rec.state is CloneState.RUNNING}
     results = {name: CloneResult(name, "failed" if robot else "skipped",
                                  "no running clone: ccrp fleet up (or ccrp clone start) first")
                for name in names if name not in running}
-    return [n for n in names if n in running], results
+    return [n for n in names if n in running], results, set(existing)
 
 
 def rollback(fleet: Fleet, provider: Provider, progress: Progress, robot: str | None = None,
@@ -454,7 +496,7 @@ def rollback(fleet: Fleet, provider: Provider, progress: Progress, robot: str | 
 
     state = fleet.store.load_state()
     names = targets(fleet, state, robot, type_)
-    live, results = _running(provider, names, robot)
+    live, results, _ = _running(provider, names, robot)
     found: dict[str, Kept] = {}
     stop = threading.Event()
 
@@ -492,8 +534,9 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     state = fleet.store.load_state()
     names = targets(fleet, state, robot, type_)
     inputs = DeployInputs.read(fleet, state, names)  # read and checked before anything
-    check_packages(state, names, inputs.software)
-    live, results = _running(provider, names, robot)
+    live, results, existing = _running(provider, names, robot)
+    # The clones there are (a robot whose clone failed and went has none: fleet up makes it anew).
+    check_packages(state, [n for n in names if n in existing], inputs.software)
     changes: dict[str, Change] = {}
     stop = threading.Event()  # set by _fan_out on Ctrl-C: the pool's threads never see it
 
@@ -513,26 +556,26 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     # A stopped clone gets the deployed software when it starts (ops/clones.py), from the install
     # space kept in the state directory: it is built for it too.
     digest = inputs.software.digest
-    waiting = [n for n in results if state.robots[n].provider_id and state.robots[n].software != digest]
+    waiting = [n for n in results if n in existing and state.robots[n].software != digest]
     for name in waiting:
         results[name] = CloneResult(name, "skipped", f"not running: gets software {digest} when it starts "
                                                      "(ccrp clone start, or fleet up)")
-    tar_b64 = None
+    tar = None
     # A clone rolled back from a stopped deploy may then need the workspace.
     if any(ch.workspace or ch.unsettled for ch in changes.values()) or (
             waiting and install_space.saved(fleet, digest) is None):
         # One build for every clone; a failure leaves every clone as it was.
-        tar_b64 = pushed(build_install_space(inputs.inventory, inputs.software, progress))
+        tar = build_install_space(inputs.inventory, inputs.software, progress)
     writer = StateWriter(fleet, state)
-    if tar_b64 is not None:
-        install_space.save(fleet, digest, tar_b64)
+    if tar is not None:
+        install_space.save(fleet, digest, pushed(tar))
         with writer.lock:
             state.deployed = digest
             fleet.store.save_state(state)
     todo = [n for n in live if n in changes]
 
     def one(name: str) -> CloneResult:
-        return apply(provider, writer, changes[name], tar_b64, progress, stop,
+        return apply(provider, writer, changes[name], tar, progress, stop,
                      lambda: probe(inputs, provider, state, name))
 
     # The canaries are the first clones with something to change: a clone already current proves nothing.

@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import base64
 import gzip
+import hashlib
+import io
 import os
+import tarfile
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import IO, TYPE_CHECKING, cast
 
 from ..errors import CcrpError
 from ..render.files import BundleFile
@@ -24,8 +27,8 @@ DEPLOY_DIR = "/var/lib/ccrp/deploy"  # root-only (0700): the pushed tar, the pre
 # On the clone, as root: $1 the action, then its argv words (a digest: hex; node names:
 # [a-z][a-z0-9-]*). D: what deploy keeps; W: the install space; U: the units; I: the index.
 #   probe [PATH...]     what the clone runs: its workspace digest, the index, a deploy pending on
-#                       it, sha256 of PATHs
-#   stage DIGEST|-      unpack D/DIGEST.tar.b64 (gzipped) into W.new (- : no new workspace), setuid/setgid
+#                       it, sha256 of PATHs, sha256 and mode of each file of W
+#   stage DIGEST|- [delta]  unpack D/DIGEST.tar.b64 (gzipped) into W.new (a delta over a copy of W) (- : no new workspace), setuid/setgid
 #                       bits stripped, device files and FIFOs refused; keep the units
 #                       and index as they are in D/prev, for a rollback
 #   begin               D/pending says `nodes`: the units are about to change
@@ -53,6 +56,13 @@ probe)
   printf '\n== index\n'; cat "$I" 2>/dev/null || true
   printf '\n== pending\n'; cat "$D/pending" 2>/dev/null || true
   printf '\n== digests\n'; [ $# -eq 0 ] || sha256sum "$@" 2>/dev/null || true
+  printf '\n== workspace\n'
+  if [ -d "$W" ]; then
+    cd "$W"
+    find . -type f -exec sha256sum {} + 2>/dev/null || true
+    printf '== modes\n'
+    find . -type f -printf '%m %p\n'
+  fi
   ;;
 stage)
   mkdir -p -m 0700 "$D"
@@ -67,8 +77,18 @@ stage)
     # checked, a device file or FIFO is refused, and setuid and setgid bits go (a 4755 file would
     # come out root's setuid program). templates/docker/software.j2 and software-bake.sh do the same.
     mkdir -p -m 0700 "$W.new"
+    # A delta (delta()) holds only the files this clone lacks, and the list of every path of the
+    # version (.ccrp-manifest, NUL-separated): the rest comes from the current workspace, and what
+    # the version does not have goes.
+    if [ "${2:-}" = delta ] && [ -d "$W" ]; then cp -a "$W/." "$W.new/"; fi
     base64 -d "$D/$1.tar.b64" | tar -xz --no-same-owner -C "$W.new" --strip-components=1
     rm -f "$D/$1.tar.b64"
+    if [ -e "$W.new/.ccrp-manifest" ]; then
+      (cd "$W.new" && find . -mindepth 1 ! -path ./.ccrp-manifest -print0 | LC_ALL=C sort -z) > "$D/have"
+      LC_ALL=C sort -z "$W.new/.ccrp-manifest" > "$D/want"
+      (cd "$W.new" && LC_ALL=C comm -z -23 "$D/have" "$D/want" | xargs -0 -r rm -rf --)
+      rm -f "$W.new/.ccrp-manifest" "$D/have" "$D/want"
+    fi
     odd=$(find "$W.new" ! -type f ! -type d ! -type l | head -n 1)
     if [ -n "$odd" ]; then
       rm -rf "$W.new"
@@ -209,6 +229,38 @@ def script(provider: Reaches, robot: str, action: str, *words: str, timeout: flo
     if rc != 0:
         raise CcrpError(f"deploy step {action} failed on robot {robot!r}'s clone: {' '.join(out.split())[-300:]}")
     return out
+
+
+MANIFEST = ".ccrp-manifest"
+
+
+def delta(tar: bytes, have: dict[str, tuple[str, str]]) -> bytes:
+    """The install space's tar (top directory `workspace/`) with only what a clone lacks: every
+    directory and link, the files whose sha256 or mode differ from `have` (./PATH -> (sha256,
+    octal mode), what the clone's probe listed), and MANIFEST, every path of the version."""
+    src = tarfile.open(fileobj=io.BytesIO(tar))
+    out, paths = io.BytesIO(), []
+    top = "workspace"
+    with tarfile.open(fileobj=out, mode="w") as dst:
+        for member in src.getmembers():
+            head, _, rest = member.name.strip("/").partition("/")
+            if not rest:
+                top = head
+                dst.addfile(member)
+                continue
+            path = f"./{rest}"
+            paths.append(path)
+            if not member.isfile():
+                dst.addfile(member)
+                continue
+            data = cast(IO[bytes], src.extractfile(member)).read()
+            if have.get(path) != (hashlib.sha256(data).hexdigest(), f"{member.mode & 0o7777:o}"):
+                dst.addfile(member, io.BytesIO(data))
+        listing = "".join(f"{p}\0" for p in paths).encode()
+        info = tarfile.TarInfo(f"{top}/{MANIFEST}")
+        info.size, info.mode = len(listing), 0o600
+        dst.addfile(info, io.BytesIO(listing))
+    return out.getvalue()
 
 
 def pushed(tar: bytes) -> str:

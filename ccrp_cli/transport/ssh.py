@@ -239,9 +239,9 @@ class SshTransport:
         alike."""
         import paramiko
 
+        transport = self.connect()._client.get_transport()
         try:
-            return self.connect()._client.get_transport().open_channel(
-                "direct-tcpip", (host, port), ("127.0.0.1", 0), timeout=timeout)
+            return transport.open_channel("direct-tcpip", (host, port), ("127.0.0.1", 0), timeout=timeout)
         except paramiko.ChannelException as exc:
             # RFC 4254's reasons: 2 is "connect failed" (refused, no route), the rest are the jump host's.
             if exc.code == paramiko.common.OPEN_FAILED_CONNECT_FAILED:
@@ -253,6 +253,12 @@ class SshTransport:
             # `clone start` failed at once on it).
             if "Timeout opening channel" in str(exc):
                 raise TimeoutError(f"{self.host} could not reach {host}:{port} within {timeout:.0f} s") from None
+            # paramiko keeps one failure reason per connection: with channels opened at once through
+            # the gateway (clones booting behind it), one thread's "connect failed" can be taken by
+            # another, which leaves this one no reason. The jump host still up, its target refused
+            # (two clones behind a real OpenStack's gateway: `fleet up` failed one of them on it).
+            if str(exc) == "Unable to open channel." and transport.is_active():
+                raise ConnectionRefusedError(f"{self.host} could not reach {host}:{port}") from None
             raise
 
     # -- connection -----------------------------------------------------------------------------

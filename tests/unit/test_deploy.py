@@ -174,6 +174,10 @@ def test_a_changed_workspace_reaches_the_clones_and_restarts_their_nodes(fleet, 
     assert [(r.robot, r.action) for r in results] == [("nao1", "deployed"), ("nao2", "deployed")], results
     assert built == [new]  # one build for every clone
     assert f"workspace {old} -> {new}" in results[0].detail and "restart mapper" in results[0].detail
+    # The clones had setup.sh (v1): sent as a delta over it, named in the result.
+    assert results[0].sent_bytes and f"; sent {results[0].sent_bytes / 1e3:.1f} kB" in results[0].detail
+    stages = [argv[5:] for r, argv in clones.execs if argv[:2] == ["sh", "-c"] and argv[4] == "stage"]
+    assert stages == [[new, "delta"], [new, "delta"]], stages
     for robot in ("nao1", "nao2"):
         assert clones.at(robot, "/opt/ccrp/workspace/setup.sh").read_text() == "v2"
         for gone in ("/opt/ccrp/workspace.prev", "/opt/ccrp/workspace.new", f"/var/lib/ccrp/deploy/{new}.tar.b64",
@@ -733,7 +737,8 @@ def test_a_stopped_clone_is_pending_and_the_install_space_is_kept_for_it(fleet, 
 def test_a_stopped_clone_behind_gets_a_build_when_no_running_one_needs_it(fleet, built, monkeypatch):
     fleet, clones, old = fleet
     running = clones.query
-    monkeypatch.setattr(clones, "query", lambda: {r: rec for r, rec in running().items() if r != "nao2"})
+    monkeypatch.setattr(clones, "query", lambda: {r: rec.model_copy(update={"state": CloneState.STOPPED})
+                                                  if r == "nao2" else rec for r, rec in running().items()})
     state = fleet.store.load_state()
     state.robots["nao2"].software = "0123456789abcdef"  # ran another version when it stopped
     fleet.store.save_state(state)
@@ -749,3 +754,18 @@ def test_the_fleet_keeps_the_last_two_install_spaces(fleet):
         time.sleep(0.01)
     assert sorted(p.name for p in (fleet.store.root / "deploy").iterdir()) == [f"{'b' * 16}.tgz.b64", f"{'c' * 16}.tgz.b64"]
     assert install_space.saved(fleet, "a" * 16) is None and install_space.saved(fleet, "c" * 16) == "c" * 16
+
+
+def test_a_robot_whose_clone_failed_and_went_does_not_hold_the_deploy_back(fleet, built, monkeypatch):
+    """A clone that failed at `fleet up` is deleted, its record keeping no packages: deploy refused the
+    whole fleet for it ("does not record the apt/pip packages", on a real OpenStack)."""
+    fleet, clones, _ = fleet
+    running = clones.query
+    monkeypatch.setattr(clones, "query", lambda: {r: rec for r, rec in running().items() if r != "nao2"})
+    state = fleet.store.load_state()
+    state.robots["nao2"].phase, state.robots["nao2"].packages, state.robots["nao2"].software = "failed", None, None
+    fleet.store.save_state(state)
+    new = change_workspace(fleet)
+    results = {r.robot: r for r in deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, type_="nao")}
+    assert results["nao1"].action == "deployed" and results["nao2"].action == "skipped", results
+    assert "no running clone" in results["nao2"].detail and built == [new]

@@ -167,3 +167,69 @@ def test_the_ros1_master_has_the_nodes_hardening_and_a_home_they_cannot_write(la
                        "RestrictSUIDSGID": "yes"}.items():
         assert settings.get(key) == value, (key, unit)
     assert settings["ExecStart"] == "/usr/local/lib/ccrp/ros-run roscore --port ${ROS_MASTER_PORT}"  # no workspace
+
+
+# -- only what a clone lacks: install_space.delta and stage's delta ----------------------------------
+
+def _probed(clone: Clone) -> dict[str, tuple[str, str]]:
+    """What deploy's probe reads of the clone's install space."""
+    out = install_space.script(clone, "nao1", "probe")
+    return deploy.workspace_files(out.partition("\n== workspace\n")[2])
+
+
+def test_a_clone_is_sent_only_the_files_it_lacks_and_ends_with_the_whole_version(tmp_path):
+    import hashlib
+
+    old = _tar([("workspace/same.py", b"same", 0o644), ("workspace/changed.py", b"v1", 0o644),
+                ("workspace/chmod.sh", b"#!/bin/sh\n", 0o644), ("workspace/gone.py", b"x", 0o644),
+                ("workspace/olddir", None, 0o755), ("workspace/olddir/f", b"f", 0o644),
+                ("workspace/odd\nname", b"n", 0o644)])
+    new_members = [("workspace/same.py", b"same", 0o644), ("workspace/changed.py", b"v2", 0o644),
+                   ("workspace/chmod.sh", b"#!/bin/sh\n", 0o755), ("workspace/lib", None, 0o755),
+                   ("workspace/lib/new.py", b"new", 0o644), ("workspace/lib/link", "new.py", 0o777),
+                   ("workspace/odd\nname", b"n", 0o644)]
+    clone = Clone(tmp_path / "clone")
+    pushed = clone.at(f"{install_space.DEPLOY_DIR}/d1.tar.b64")
+    pushed.parent.mkdir(parents=True)
+    pushed.write_text(install_space.pushed(old))
+    for action in (("stage", "d1"), ("swap", "d1"), ("commit",)):
+        install_space.script(clone, "nao1", *action)
+    have = _probed(clone)
+    assert have["./same.py"] == (hashlib.sha256(b"same").hexdigest(), "644") and len(have) == 5, have  # odd\nname: unread
+    sent = tarfile.open(fileobj=io.BytesIO(install_space.delta(_tar(new_members), have)))
+    files = {m.name: sent.extractfile(m).read() for m in sent.getmembers() if m.isfile()}
+    assert set(files) == {"workspace/changed.py", "workspace/chmod.sh", "workspace/lib/new.py", "workspace/odd\nname",
+                          "workspace/.ccrp-manifest"}, set(files)  # not same.py
+    assert files["workspace/.ccrp-manifest"].split(b"\0")[:-1] == [
+        b"./same.py", b"./changed.py", b"./chmod.sh", b"./lib", b"./lib/new.py", b"./lib/link", b"./odd\nname"]
+    pushed.with_name("d2.tar.b64").write_text(install_space.pushed(install_space.delta(_tar(new_members), have)))
+    install_space.script(clone, "nao1", "stage", "d2", "delta")
+    staged = clone.at("/opt/ccrp/workspace.new")
+    got = {str(p.relative_to(staged)): (p.readlink().as_posix() if p.is_symlink() else p.read_bytes() if p.is_file() else None,
+                                        stat.S_IMODE(p.lstat().st_mode)) for p in staged.rglob("*")}
+    assert got == {"same.py": (b"same", 0o644), "changed.py": (b"v2", 0o644), "chmod.sh": (b"#!/bin/sh\n", 0o755),
+                   "lib": (None, 0o755), "lib/new.py": (b"new", 0o644), "lib/link": ("new.py", 0o777),
+                   "odd\nname": (b"n", 0o644)}, got
+    assert stat.S_IMODE(staged.stat().st_mode) == 0o755
+    assert sorted(p.name for p in clone.at(install_space.DEPLOY_DIR).iterdir()) == ["current", "last", "prev"]
+
+
+def test_a_delta_that_does_not_unpack_is_followed_by_the_whole_install_space(tmp_path):
+    """A path that was a directory and is a file now: the delta over the copy cannot unpack, and
+    deploy sends the whole install space."""
+    from ccrp_cli.ops.deploy import Change, apply
+
+    clone = Clone(tmp_path / "clone")
+    pushed = clone.at(f"{install_space.DEPLOY_DIR}/d1.tar.b64")
+    pushed.parent.mkdir(parents=True)
+    pushed.write_text(install_space.pushed(_tar([("workspace/x", None, 0o755), ("workspace/x/y", b"y", 0o644)])))
+    for action in (("stage", "d1"), ("swap", "d1"), ("commit",)):
+        install_space.script(clone, "nao1", *action)
+    clone.push_files = lambda robot, files, restart=(): [clone.at(f.dest).write_text(f.content) for f in files]
+    said: list[str] = []
+    change = Change("nao1", "d1", "d2", [], {}, _probed(clone))
+    writer = SimpleNamespace(state=SimpleNamespace(robots={}), update=lambda *a, **k: None)
+    tar = _tar([("workspace/x", b"now a file", 0o644)])
+    apply(clone, writer, change, tar, said.append)
+    assert any("sending the whole install space" in line for line in said), said
+    assert clone.at("/opt/ccrp/workspace/x").read_bytes() == b"now a file"

@@ -236,14 +236,21 @@ def test_wait_listening_through_a_jump_host_waits_for_a_guest_still_booting(monk
     While the clone boots the gateway answers "connect failed" (refused, no route) or is still
     trying when the channel's timeout runs out (no SYN answered: paramiko's "Timeout opening
     channel"); both mean "booting", as for a direct connection (a real OpenStack's `clone start`
-    behind the gateway failed at once on the second). The jump host's own refusals stay errors."""
+    behind the gateway failed at once on the second). So does paramiko's "Unable to open channel."
+    while the gateway's connection is up: a "connect failed" that a concurrent open took (a real
+    OpenStack's `fleet up` failed a clone on it). The jump host's own refusals stay errors."""
     from ccrp_cli.transport.ssh import SshTransport
 
     answers = iter([paramiko.SSHException("Timeout opening channel."),
                     paramiko.ChannelException(paramiko.common.OPEN_FAILED_CONNECT_FAILED, "No route to host"),
+                    # Another thread's channel took this one's reason (paramiko keeps one per connection).
+                    paramiko.SSHException("Unable to open channel."),
                     "channel"])
 
     class Transport:
+        def is_active(self):
+            return True
+
         def open_channel(self, kind, dest, src, timeout):
             assert kind == "direct-tcpip" and dest == ("10.90.0.11", 22)
             answer = next(answers)
