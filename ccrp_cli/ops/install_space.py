@@ -50,6 +50,25 @@ DEPLOY_DIR = "/var/lib/ccrp/deploy"  # root-only (0700): the pushed tar, the pre
 DEPLOY_SH = r"""set -eu
 D=/var/lib/ccrp/deploy W=/opt/ccrp/workspace U=/etc/systemd/system I=/etc/ccrp/workloads.json
 act=$1; shift
+keep() {  # the current units and index, what a rollback puts back
+  rm -rf "$D/prev" "$W.new"
+  mkdir -m 0700 "$D/prev"
+  for f in "$U"/ccrp-run-*.service "$I"; do
+    [ -e "$f" ] || continue
+    cp -p "$f" "$D/prev/"
+  done
+}
+swap_in() {  # $1 the install space to run, $2 its digest (empty: none, the snapshot's)
+  # Each step leaves what a rollback needs: W.prev (empty when there was no workspace) and
+  # current.prev (empty when there was no digest) once W and current have moved.
+  echo swapping > "$D/pending"
+  rm -rf "$W.prev"
+  if [ -e "$W" ]; then mv "$W" "$W.prev"; else mkdir "$W.prev"; fi
+  if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else : > "$D/current.prev"; fi
+  mv -T "$1" "$W"
+  if [ -n "$2" ]; then echo "$2" > "$D/current"; fi
+  echo swapped > "$D/pending"
+}
 case $act in
 probe)
   printf '== current\n'; cat "$D/current" 2>/dev/null || true
@@ -66,12 +85,7 @@ probe)
   ;;
 stage)
   mkdir -p -m 0700 "$D"
-  rm -rf "$D/prev" "$W.new"
-  mkdir -m 0700 "$D/prev"
-  for f in "$U"/ccrp-run-*.service "$I"; do
-    [ -e "$f" ] || continue
-    cp -p "$f" "$D/prev/"
-  done
+  keep
   if [ "$1" != - ]; then
     # Unpacked as root, so no file of the tar's may keep a privilege: W.new stays root-only until
     # checked, a device file or FIFO is refused, and setuid and setgid bits go (a 4755 file would
@@ -106,15 +120,7 @@ begin)
   echo nodes > "$D/pending"
   ;;
 swap)
-  # Each step leaves what a rollback needs: W.prev (empty when there was no workspace) and
-  # current.prev (empty when there was no digest) once W and current have moved.
-  echo swapping > "$D/pending"
-  rm -rf "$W.prev"
-  if [ -e "$W" ]; then mv "$W" "$W.prev"; else mkdir "$W.prev"; fi
-  if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else : > "$D/current.prev"; fi
-  mv "$W.new" "$W"
-  echo "$1" > "$D/current"
-  echo swapped > "$D/pending"
+  swap_in "$W.new" "$1"
   ;;
 rollback)
   # Every step is tried, whatever failed before it: a unit that will not enable must not keep the
@@ -183,22 +189,9 @@ last)
   ;;
 restore)
   if [ ! -d "$D/last" ]; then echo "no previous version is kept on this clone" >&2; exit 1; fi
-  rm -rf "$D/prev" "$W.new"
-  mkdir -m 0700 "$D/prev"
-  for f in "$U"/ccrp-run-*.service "$I"; do
-    [ -e "$f" ] || continue
-    cp -p "$f" "$D/prev/"
-  done
+  keep
   echo nodes > "$D/pending"
-  if [ -e "$W.last" ]; then
-    echo swapping > "$D/pending"
-    rm -rf "$W.prev"
-    if [ -e "$W" ]; then mv "$W" "$W.prev"; else mkdir "$W.prev"; fi
-    if [ -e "$D/current" ]; then mv "$D/current" "$D/current.prev"; else : > "$D/current.prev"; fi
-    mv -T "$W.last" "$W"
-    if [ -s "$D/last/digest" ]; then cp "$D/last/digest" "$D/current"; fi
-    echo swapped > "$D/pending"
-  fi
+  if [ -e "$W.last" ]; then swap_in "$W.last" "$(cat "$D/last/digest")"; fi
   for f in "$U"/ccrp-run-*.service; do
     [ -e "$f" ] || continue
     [ -e "$D/last/${f##*/}" ] && continue
