@@ -420,8 +420,7 @@ def kept(provider: Reaches, state: FleetState, robot: str) -> Kept:
     out = script(provider, robot, "last", timeout=30)
     _, _, rest = out.partition("== digest\n")
     digest, _, rest = rest.partition("\n== index\n")
-    index_text, _, rest = rest.partition("\n== workspace\n")
-    _, _, rest = rest.partition("== pending\n")
+    index_text, _, rest = rest.partition("\n== pending\n")
     pending, _, current = rest.partition("\n== current\n")
     try:
         index = json.loads(index_text) if index_text.strip() else {}
@@ -547,12 +546,6 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     for r in _fan_out(look, live, progress, provider, stop):
         if r.action == "failed":
             results[r.robot] = r
-    if dry_run:
-        for name, ch in changes.items():
-            quiet = ch.current and not ch.pending
-            results[name] = CloneResult(name, "current" if quiet else "would deploy",
-                                        f"software {ch.new}" if quiet else ch.summary())
-        return [results[n] for n in names]
     # A stopped clone gets the deployed software when it starts (ops/clones.py), from the install
     # space kept in the state directory: it is built for it too.
     digest = inputs.software.digest
@@ -560,6 +553,12 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     for name in waiting:
         results[name] = CloneResult(name, "skipped", f"not running: gets software {digest} when it starts "
                                                      "(ccrp clone start, or fleet up)")
+    if dry_run:
+        for name, ch in changes.items():
+            quiet = ch.current and not ch.pending
+            results[name] = CloneResult(name, "current" if quiet else "would deploy",
+                                        f"software {ch.new}" if quiet else ch.summary())
+        return [results[n] for n in names]
     tar = None
     # A clone rolled back from a stopped deploy may then need the workspace.
     if any(ch.workspace or ch.unsettled for ch in changes.values()) or (

@@ -39,8 +39,8 @@ DEPLOY_DIR = "/var/lib/ccrp/deploy"  # root-only (0700): the pushed tar, the pre
 #                       tried, those that failed named (exit 1)
 #   commit              forget D/pending; the version this deploy replaced becomes the one kept for
 #                       `deploy --rollback`: D/prev (with its digest) -> D/last, W.prev -> W.last
-#   last                the kept version: its digest and index, whether its workspace differs, and
-#                       a deploy pending on the clone
+#   last                the kept version: its digest and index; a deploy pending on the clone, and
+#                       the digest it runs
 #   restore             the kept version back in place as a deploy would put it (stage, swap,
 #                       units and index of D/last, enabled; nodes restarted by the caller), so its
 #                       check, commit and rollback are a deploy's
@@ -183,8 +183,7 @@ commit)
 last)
   printf '== digest\n'; cat "$D/last/digest" 2>/dev/null || printf '%s' '-'
   printf '\n== index\n'; cat "$D/last/workloads.json" 2>/dev/null || true
-  printf '\n== workspace\n'; if [ -e "$W.last" ]; then echo other; else echo same; fi
-  printf '== pending\n'; cat "$D/pending" 2>/dev/null || true
+  printf '\n== pending\n'; cat "$D/pending" 2>/dev/null || true
   printf '\n== current\n'; cat "$D/current" 2>/dev/null || true
   ;;
 restore)
