@@ -10,8 +10,7 @@ from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import TYPE_CHECKING, Any, cast
 
 from ..models.addressing import allocate, entry_port
-from . import gateway
-from . import install_space
+from . import gateway, install_space
 from .clones import CloneResult, Progress, StateWriter, delete_clone, ensure_clone, push_relay_config
 from ..errors import CcrpError, InputError
 from ..fleet import Fleet
