@@ -171,7 +171,6 @@ def install_software(provider: Baker, builder: CloneRecord, software: SnapshotSo
     root-only file, then templates/image/software-bake.sh installs the packages, builds it into
     /opt/ccrp/workspace and takes the builder's login away."""
     import base64
-    import re
     import time
 
     from ..render.files import BundleFile
@@ -191,14 +190,19 @@ def install_software(provider: Baker, builder: CloneRecord, software: SnapshotSo
     if rc != 0 or "ccrp-software built" not in out:
         lines = [line.strip() for line in out.strip().splitlines() if line.strip()]
         steps = [line[3:] for line in lines if line.startswith("== ")]
-        # The first line saying error (CMake's, apt's E:, pip's ERROR:) and the last ones: the build
-        # tools' own summary lines ("Invoking cmake failed") rarely say why.
-        first = next((line for line in lines if re.search(r"\berror\b|^E: ", line, re.IGNORECASE)), None)
-        said = " | ".join(([first] if first and first not in lines[-3:] else []) + lines[-3:])[-500:]
-        raise CcrpError(f"the builder could not build the software (at {steps[-1] if steps else 'the start'}): {said}",
+        raise CcrpError(f"the builder could not build the software (at {steps[-1] if steps else 'the start'}): {_why(lines)}",
                         hint="the same recipe builds on Docker: `ccrp snapshot build` on a Docker inventory shows "
                              "the error faster; check software.apt/pip and the workspace")
     progress(f"software {software.digest} built on the builder after {time.monotonic() - t0:.0f} s")
+
+
+def _why(lines: list[str]) -> str:
+    """The first line saying error (CMake's, apt's E:, pip's ERROR:) and the last three: the tools'
+    own summary lines ("Invoking cmake failed", "finished after") rarely say why."""
+    import re
+
+    first = next((line for line in lines if re.search(r"\berror\b|(^|\s)E: ", line, re.IGNORECASE)), None)
+    return " | ".join(([first] if first and first not in lines[-3:] else []) + lines[-3:])[-500:]
 
 
 def _wait_baked(provider: Bake, token: str, proofs: list[str], timeout: float, poll: float, progress: Progress) -> None:
@@ -225,8 +229,9 @@ def _wait_baked(provider: Bake, token: str, proofs: list[str], timeout: float, p
                         hint="look at its console output; a larger --timeout helps on slow mirrors") from None
     missing = [p for p in proofs if f"ccrp-bake {token} {p}-ok" not in console]
     if missing:
-        tail = " | ".join(console.strip().splitlines()[-5:])[-300:]
-        raise CcrpError(f"the builder finished but its {' and '.join(missing)} install failed: {tail}",
+        # What cloud-init ran printed (the kernel's lines and cloud-init's network tables aside).
+        said = [line.strip() for line in console.splitlines() if "cloud-init[" in line and "ci-info:" not in line]
+        raise CcrpError(f"the builder finished but its {' and '.join(missing)} install failed: {_why(said)}",
                         hint="check that the base image is Debian 12 and can reach deb.debian.org and PyPI")
     progress(f"builder finished installing after {time.monotonic() - t0:.0f} s")
 

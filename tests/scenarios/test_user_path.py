@@ -126,6 +126,46 @@ def test_the_snapshots_software_runs_on_every_clone(run):
     assert [r["software"] for r in run.json("fleet", "plan")] == [None, None]
 
 
+def _last_lines(run, name: str) -> dict[str, str]:
+    """The last line each robot's node `name` printed, from one `ccrp logs` of both robots (merged)."""
+    lines = [json.loads(line) for line in run.ccrp("logs", "--robot", ",".join(ROBOTS), name, "--json").stdout.splitlines()]
+    return {e["robot"]: e["message"] for e in lines}
+
+
+def _wait_for_lines(run, name: str, text: str) -> None:
+    deadline, last = time.monotonic() + 120, {}
+    while not all(text in last.get(r, "") for r in ROBOTS) and time.monotonic() < deadline:
+        time.sleep(2)
+        last = _last_lines(run, name)
+    assert all(text in last.get(r, "") for r in ROBOTS), (text, last)
+
+
+def test_deploy_and_rollback_reach_every_clone_over_ssh(run, clone_images):
+    """`ccrp deploy` on a cloud (docs/workloads.md): the changed workspace built on this machine in
+    the clone image and each clone sent what it lacks over SSH (through the gateway where there is
+    one); `ccrp logs` of both robots, merged, shows each clone's node printing the new line;
+    `deploy --rollback` puts the snapshot's version back on both, without a build."""
+    if not run.b.nodes:
+        pytest.skip(f"the {run.b.kind} scenario's inventory has no software:")
+    run.needs("up")
+    clone_images("noetic")  # deploy's build then runs only the workspace's layer (Docker's cache)
+    node = run.b.inventory.parent / "ws" / "src" / "ccrp_hello" / "scripts" / "hello"
+    original = node.read_text()
+    node.write_text(original.replace("from the snapshot's workspace", "from a deployed workspace"))
+    try:
+        rows = {r["robot"]: r for r in run.json("deploy")}
+        assert all(rows[r]["action"] == "deployed" and "restart hello, launched" in rows[r]["detail"]
+                   and 0 < rows[r]["sent_bytes"] for r in ROBOTS), rows
+        _wait_for_lines(run, "hello", "from a deployed workspace")
+        back = {r["robot"]: r for r in run.json("deploy", "--rollback")}
+        assert all(back[r]["action"] == "rolled back" for r in ROBOTS), back
+        _wait_for_lines(run, "hello", "from the snapshot's workspace")
+    finally:
+        node.write_text(original)
+    assert [r["action"] for r in run.json("deploy", "--dry-run")] == ["current", "current"]
+    assert [r["software"] for r in run.json("fleet", "plan")] == [None, None]
+
+
 def test_status_shows_every_clone_running_with_its_master(run):
     run.needs("up")
     rows = run.status()

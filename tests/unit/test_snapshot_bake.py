@@ -186,6 +186,17 @@ def test_missing_install_proof_fails_and_terminates(fleet):
     assert fleet.store.load_state().snapshot is None
 
 
+def test_a_failed_install_names_its_error_not_cloud_inits_tables(fleet):
+    """The error said the console's last lines: cloud-init's network table on a real OpenStack."""
+    failed = DONE.replace("[  640.9] cloud-init[1502]: ccrp-bake TOKEN pip-ok\n",
+                          "[  630.0] cloud-init[1502]: ERROR: Could not find a version that satisfies ros-jazzy-rclpy\n"
+                          "[  630.1] cloud-init[1502]: ci-info: +------+------+\n")
+    with pytest.raises(CcrpError) as err:
+        _bake(fleet, FakeCloud("openstack", ["[    1.2] ACPI: no errors here\n" + failed]))
+    assert "its pip install failed:" in err.value.message and "ERROR: Could not find a version" in err.value.message
+    assert "ci-info" not in err.value.message and "ACPI" not in err.value.message
+
+
 @pytest.mark.parametrize("where", ["run_instance", "console_output", "create_snapshot"])
 def test_failure_anywhere_terminates_the_builder(fleet, where):
     cloud = FakeCloud("openstack", [DONE])
