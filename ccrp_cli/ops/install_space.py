@@ -28,9 +28,10 @@ DEPLOY_DIR = "/var/lib/ccrp/deploy"  # root-only (0700): the pushed tar, the pre
 # [a-z][a-z0-9-]*). D: what deploy keeps; W: the install space; U: the units; I: the index.
 #   probe [PATH...]     what the clone runs: its workspace digest, the index, a deploy pending on
 #                       it, sha256 of PATHs, sha256 and mode of each file of W
-#   stage DIGEST|- [delta]  unpack D/DIGEST.tar.b64 (gzipped) into W.new (a delta over a copy of W) (- : no new workspace), setuid/setgid
-#                       bits stripped, device files and FIFOs refused; keep the units
-#                       and index as they are in D/prev, for a rollback
+#   stage DIGEST|- [delta]
+#                       unpack D/DIGEST.tar.b64 (gzipped) into W.new (- : no new workspace; delta:
+#                       over a copy of W), setuid/setgid bits stripped, device files and FIFOs
+#                       refused; keep the units and index as they are in D/prev, for a rollback
 #   begin               D/pending says `nodes`: the units are about to change
 #   swap DIGEST         D/pending says `swapping`; W -> W.prev, W.new -> W; D/current says DIGEST;
 #                       D/pending says `swapped`
