@@ -468,8 +468,13 @@ start() {  # start NAME: unless running, start it as its user, pid file, log fil
     # passes a stop signal to the whole process group (rabbitmq-server is a shell over Erlang).
     # setsid: the daemon leaves this script's session (a Ctrl-C here does not stop it); this
     # shell is no process-group leader, so setsid execs instead of forking and $! is tini's pid.
+    # From /: a daemon keeps its working directory, which the agents' haproxy (the metadata proxy)
+    # inherits, and fails in once it is gone ("Impossible to retrieve startup directory name"): a
+    # checkout this was started from, removed, left Nova's guests with no metadata and no DNS.
+    cd /
     HOME=$(getent passwd "$user" | cut -d: -f6) setsid tini -s -g -- "${run[@]}" $cmd </dev/null >>"$LOGS/$name.log" 2>&1 &
     echo $! >"$RUN/$name.pid"
+    cd - >/dev/null
     say "started $name (pid $!, log $LOGS/$name.log)"
   fi
   [ "$port" = 0 ] && { sleep 1; pid_of "$name" >/dev/null || fail "$name died at start" "$LOGS/$name.log"; return 0; }
