@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
 from ..services.registry import SERVICES
+from ..services.workloads import snapshot_software
+from . import install_space
 from ..errors import CcrpError
 from ..fleet import Fleet
 from ..models.status import StatusRow
@@ -32,6 +35,17 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
     index = fleet.pki.load_index() if fleet.pki.exists() else None
     revoked = {r: fleet.pki.revoked_since(r, index) for r in plan} if index else {}
 
+    @functools.cache
+    def pending() -> str | None:
+        """The inventory's software when `ccrp deploy` kept it (a clone not running gets it when it
+        starts), else None. Read (the workspace hashed) only when a stopped clone runs other
+        software than the last deploy's: the inventory may have moved on, or back, since."""
+        try:
+            want = snapshot_software(fleet.inventory, fleet.path).digest
+        except CcrpError:  # the inventory's software does not read: `fleet plan` says why
+            return None
+        return want if install_space.saved(fleet, want) is not None else None
+
     def one(robot: str) -> StatusRow:
         rec = actual.get(robot)
         a = plan[robot]
@@ -56,8 +70,9 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
             note = provider.stop_note(robot)
             if note:  # its robot stayed away: the clone's autostop agent powered it off
                 row.status, row.stopped_idle = "stopped (idle)", note
-        if rec and rec.state is not CloneState.RUNNING and ran and state.deployed and ran.software != state.deployed:
-            row.software_pending = state.deployed  # the last deploy's: ensure_clone gives it at the start
+        if rec and rec.state is not CloneState.RUNNING and ran and state.deployed and ran.software != state.deployed \
+                and pending() == state.deployed:
+            row.software_pending = state.deployed  # ensure_clone gives it at the start
             row.status = f"{row.status} (deploy pending)"
         if rec and rec.state is CloneState.RUNNING:
             try:
