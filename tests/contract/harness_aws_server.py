@@ -71,6 +71,14 @@ class AwsServerHarness(AwsHarness):
             with self._lock:
                 self.server_errors[f"{operation_model.name} {response_dict['status_code']}"] += 1
 
+    def new_provider(self, inv, workdir):
+        """An AwsProvider of another inventory on the same server (built in the server's
+        environment, as make_harness builds the first), its 5xx answers counted too."""
+        with server_env(self.server.url, Path(workdir)):
+            provider = super().new_provider(inv, workdir)
+        provider.client.ec2.meta.events.register("before-parse.ec2", self._count_5xx)
+        return provider
+
     def fake_cpu(self) -> float:
         """CPU seconds (user + system) the moto server process has used so far."""
         return self.server.cpu_seconds()
@@ -140,6 +148,21 @@ class MotoServer:
 
 
 @contextmanager
+def server_env(url: str, tmp: Path):
+    """os.environ as botocore reads it when a client is built: the server's URL, dummy credentials,
+    none of the variables that would override them; restored on exit."""
+    empty = tmp / "aws-config"  # not /dev/null: where it is a regular file, it is not empty
+    tmp.mkdir(parents=True, exist_ok=True)
+    empty.write_text("")
+    env = {"AWS_ENDPOINT_URL": url, "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
+           "AWS_DEFAULT_REGION": REGION, "AWS_CONFIG_FILE": str(empty), "AWS_SHARED_CREDENTIALS_FILE": str(empty)}
+    with mock.patch.dict(os.environ, env):
+        for var in ("AWS_SESSION_TOKEN", "AWS_PROFILE", "AWS_IGNORE_CONFIGURED_ENDPOINT_URLS"):
+            os.environ.pop(var, None)
+        yield
+
+
+@contextmanager
 def make_harness(tmp_path, threaded: bool = True):
     import boto3
 
@@ -152,14 +175,8 @@ def make_harness(tmp_path, threaded: bool = True):
     server = MotoServer(Path(tmp_path) / "moto-server.log", threaded=threaded)
     try:
         server.wait_ready()
-        empty = Path(tmp_path) / "aws-config"  # not /dev/null: where it is a regular file, it is not empty
-        empty.write_text("")
-        env = {"AWS_ENDPOINT_URL": server.url, "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
-               "AWS_DEFAULT_REGION": REGION, "AWS_CONFIG_FILE": str(empty), "AWS_SHARED_CREDENTIALS_FILE": str(empty)}
         # Only while the clients are built: botocore reads the endpoint and credentials then.
-        with mock.patch.dict(os.environ, env):
-            for var in ("AWS_SESSION_TOKEN", "AWS_PROFILE", "AWS_IGNORE_CONFIGURED_ENDPOINT_URLS"):
-                os.environ.pop(var, None)
+        with server_env(server.url, Path(tmp_path)):
             provider = AwsProvider(inv, Path(tmp_path) / "store")
             raw = boto3.Session(region_name=REGION).client("ec2")
         for client in (provider.client.ec2, raw):

@@ -11,6 +11,7 @@ import gzip
 import pytest
 
 from ccrp_cli.errors import CcrpError
+from ccrp_cli.providers.base import Origin
 from ccrp_cli.retry import ErrorClass
 from tests.contract import specs
 from tests.contract.specs import FAST, clone_spec, inventory
@@ -314,3 +315,20 @@ def test_a_bakes_builder_behind_a_gateway_is_in_the_public_subnet_with_its_own_a
     rec = p.run_instance(spec)
     inst = p.client.ec2.describe_instances(InstanceIds=[rec.provider_id])["Reservations"][0]["Instances"][0]
     assert rec.public_ip and inst["SubnetId"] == p.network.gateway_subnet_id
+
+
+def test_a_route_left_to_a_dead_instance_of_the_robot_is_replaced_and_a_kept_one_untouched(mocked, tmp_path):
+    p = make(tmp_path, **PER_CLONE)
+    spec = clone_spec(p.inv, "robot2", 2, image(p))
+    first = p.run_instance(spec)
+    p.client.ec2.terminate_instances(InstanceIds=[first.provider_id])  # by hand: its route stays (a blackhole)
+
+    def routes() -> dict:
+        rt = p.client.ec2.describe_route_tables(RouteTableIds=[p.network.route_table_id])["RouteTables"][0]
+        return {r["DestinationCidrBlock"]: r["InstanceId"] for r in rt["Routes"] if r.get("InstanceId")}
+
+    assert routes() == {"10.80.2.0/24": first.provider_id}
+    second = p.run_instance(spec)
+    assert second.created and second.provider_id != first.provider_id
+    assert routes() == {"10.80.2.0/24": second.provider_id}
+    assert p.run_instance(spec).origin is Origin.REUSED and routes() == {"10.80.2.0/24": second.provider_id}

@@ -483,3 +483,17 @@ def test_a_clone_kept_when_its_fleet_moves_behind_a_gateway_gives_its_floating_i
     again = p.run_instance(h.spec("robot1", 1))
     assert again.origin is Origin.REUSED and again.provider_id == rec.provider_id
     assert again.public_ip is None and fips_of(h, "robot1") == []
+
+
+def test_a_robots_lookup_asks_nova_for_that_robots_servers_only(h, monkeypatch):
+    """Nova filters names by regex: robot1's lookup does not list robot2's server (nor any other's),
+    so `fleet up` of N clones reads N servers, not N²."""
+    one = h.provider.run_instance(h.spec("robot1", 1))
+    two = h.provider.run_instance(h.spec("robot2", 2))
+    assert [s.id for s in h.provider.client.servers("robot1")] == [one.provider_id]
+    assert {s.id for s in h.provider.client.servers()} == {one.provider_id, two.provider_id}
+    shown = []
+    show = h.fake._show_server
+    monkeypatch.setattr(h.fake, "_show_server", lambda server: shown.append(server["name"]) or show(server))
+    h.provider.client.servers("robot1")
+    assert shown == ["ccrp-ct-cri-robot1"]  # what Nova sent: one server

@@ -215,12 +215,17 @@ class AwsProvider(CloudProvider):
     def _route(self, net: Network, cidr: str, **target: str) -> None:
         """`cidr` in the clones' route table leads to `target` (InstanceId= or NetworkInterfaceId=)."""
         c = self.client
+        # Created first, looked at only when it exists: a new clone's route is one call, and no
+        # clone reads the whole table (every robot's route) while a fleet of N is made.
+        try:
+            c.api("create route", c.ec2.create_route, RouteTableId=net.route_table_id, DestinationCidrBlock=cidr, **target)
+            return
+        except CcrpError as exc:
+            if error_code(exc.__cause__) != "RouteAlreadyExists":
+                raise
         rt = c.api("describe route table", c.ec2.describe_route_tables, RouteTableIds=[net.route_table_id])["RouteTables"][0]
-        current = next((r for r in rt["Routes"] if r.get("DestinationCidrBlock") == cidr), None)
-        if current is None:
-            c.api("create route", c.ec2.create_route, RouteTableId=net.route_table_id,
-                     DestinationCidrBlock=cidr, **target)
-        elif any(current.get(k) != v for k, v in target.items()):  # left by an earlier instance of this robot
+        current = next((r for r in rt["Routes"] if r.get("DestinationCidrBlock") == cidr), {})
+        if any(current.get(k) != v for k, v in target.items()):  # left by an earlier instance of this robot
             c.api("replace route", c.ec2.replace_route, RouteTableId=net.route_table_id,
                      DestinationCidrBlock=cidr, **target)
 

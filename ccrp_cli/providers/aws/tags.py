@@ -16,12 +16,11 @@ def spec(resource_types: list[str], fleet: str, role: str, robot: str | None = N
 
 
 def filters(fleet: str, role: str | None = None, robot: str | None = None) -> list[dict]:
-    wanted = {LABEL_MANAGED: "true", LABEL_FLEET: fleet}
-    if role:
-        wanted[LABEL_ROLE] = role
-    if robot:
-        wanted[LABEL_ROBOT] = robot
-    return [{"Name": f"tag:{k}", "Values": [v]} for k, v in wanted.items()]
+    """Most specific first: a describe that tests filters one resource at a time stops at the first
+    mismatch (moto does, scanning its whole tag store per tag filter: the robot's tag first keeps a
+    robot's lookup in a fleet of N from N times four scans to N)."""
+    wanted = {LABEL_ROBOT: robot, LABEL_ROLE: role, LABEL_FLEET: fleet, LABEL_MANAGED: "true"}
+    return [{"Name": f"tag:{k}", "Values": [v]} for k, v in wanted.items() if v]
 
 
 def as_dict(resource: dict) -> dict[str, str]:

@@ -6,6 +6,8 @@ servers, find)."""
 
 from __future__ import annotations
 
+import re
+
 import threading
 from pathlib import Path
 
@@ -170,9 +172,11 @@ class OpenStackClient:
     # -- the fleet's servers -----------------------------------------------------------------------
     def servers(self, robot: str | None = None) -> list:
         """This fleet's servers: Nova has no idempotency token, so name AND metadata identify them."""
-        pattern = f"^{self.name()}-"
+        # Nova filters names by regex on its side: one robot's lookup lists that robot's servers
+        # only, not the whole fleet (which made `fleet up` of N clones read N² servers).
+        pattern = f"^{self.name()}-" + ("" if robot is None else f"[a-z]+-{robot}$")
         found = self.listing("servers", self.compute.servers, name=pattern)
-        return [s for s in found if s.name.startswith(pattern[1:]) and self.is_owned(s.metadata, robot)]
+        return [s for s in found if re.search(pattern, s.name) and self.is_owned(s.metadata, robot)]
 
     def server(self, robot: str, role: str | None = None):
         found = [s for s in self.servers(robot) if role is None or s.metadata.get(LABEL_ROLE) == role]
