@@ -195,12 +195,15 @@ def power():
 
 def nodes(index_path="/etc/ccrp/workloads.json"):
     """The robot's own nodes (docs/workloads.md) as systemd sees them, or None when ccrp put none
-    here: state, restarts so far, and the digest of what each runs."""
+    here: state, restarts so far, the digest of what each runs and its `ready` check (as the clone
+    keeps it: `ccrp status --ready` runs it)."""
     try:
         with open(index_path) as fh:
-            index = json.load(fh)["nodes"]
-    except (OSError, ValueError, KeyError, TypeError):
+            doc = json.load(fh)
+        index, ready = doc["nodes"], doc.get("ready") or {}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None
+    ready = ready if isinstance(ready, dict) else {}
     names = [n for n in index if isinstance(n, str) and n.replace("-", "").isalnum()]
     if not names:
         return []
@@ -215,7 +218,8 @@ def nodes(index_path="/etc/ccrp/workloads.json"):
     for name, b in zip(names, blocks + [{}] * len(names)):
         restarts = b.get("NRestarts", "")
         rows.append({"name": name, "state": b.get("ActiveState") or "unknown", "sub": b.get("SubState") or "",
-                     "restarts": int(restarts) if restarts.isdigit() else None, "digest": index[name]})
+                     "restarts": int(restarts) if restarts.isdigit() else None, "digest": index[name],
+                     "ready_check": ready.get(name)})
     return rows
 
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Annotated
+
+import typer
 
 from . import options, output
 
@@ -10,7 +12,9 @@ if TYPE_CHECKING:
     from ..models.status import ApiManager, Knowledge, Node, StatusRow
 
 
-def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
+def status(inventory: options.Inventory, as_json: options.Json = False,
+           ready: Annotated[bool, typer.Option("--ready", help="check each running node's readiness now: one try of its "
+                                                "`ready` check (a topic or a command; up to 15 s each)")] = False) -> None:
     """Per robot: clone state, addresses, VPN connected, master reachable, robot nodes on its master,
     the robot's watchdog (connected / brainless); then the fleet's alerts (clone down, robot
     brainless, certificate or CRL near expiry...), as the dashboard shows them."""
@@ -21,7 +25,7 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
     from ..robot.watchdog import power_cell
 
     fleet = options.open_fleet(inventory)
-    rows = fleet_status(fleet, get_provider(fleet.inventory))
+    rows = fleet_status(fleet, get_provider(fleet.inventory), ready=ready)
     alerts = fleet_alerts(fleet, rows)
     for r in rows:  # --json: each row with its alerts and the fleet's own (CRL, CAs), which touch every robot
         r.alerts = [a for a in alerts if a["robot"] in (None, r.robot)]
@@ -52,8 +56,15 @@ def status(inventory: options.Inventory, as_json: options.Json = False) -> None:
 
 
 def own_nodes_cell(nodes: list[Node] | None) -> str:
-    """The robot's own nodes: `mapper active`, `mapper failed (4 restarts)`."""
-    return ", ".join(f"{n.name} {n.state}" + (f" ({n.restarts} restarts)" if n.restarts else "") for n in nodes or [])
+    """The robot's own nodes: `mapper active`, `mapper failed (4 restarts)`; with --ready,
+    `mapper active ready`, `mapper active NOT READY (no message on /map ...)`."""
+    def cell(n: Node) -> str:
+        text = f"{n.name} {n.state}" + (f" ({n.restarts} restarts)" if n.restarts else "")
+        if n.ready is None or n.state != "active":
+            return text
+        return f"{text} ready" if n.ready else f"{text} NOT READY ({n.not_ready})"
+
+    return ", ".join(cell(n) for n in nodes or [])
 
 
 def nodes_cell(row: StatusRow) -> str:

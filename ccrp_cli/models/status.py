@@ -12,6 +12,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict
 
+from .software import Ready
+
 
 class _Part(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -46,6 +48,10 @@ class Node(_Part):
     sub: str = ""
     restarts: int | None = None
     digest: str | None = None  # of what it runs: the software of the snapshot or of a deploy
+    ready_check: Ready | None = None  # its `ready` as the clone keeps it
+    # `ccrp status --ready` only (None: not checked): whether it is ready now, and why not.
+    ready: bool | None = None
+    not_ready: str | None = None
 
 
 class ApiManager(_Part):

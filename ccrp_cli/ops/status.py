@@ -7,11 +7,11 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
 from ..services.registry import SERVICES
-from ..services.workloads import snapshot_software
+from ..services.workloads import ready_now, snapshot_software
 from . import install_space
 from ..errors import CcrpError
 from ..fleet import Fleet
-from ..models.status import StatusRow
+from ..models.status import Node, StatusRow
 from ..probe import health, robot_link
 from ..providers.base import CloneState
 
@@ -27,7 +27,24 @@ def service_fields(fleet: Fleet, state: FleetState, robot: Robot, h: dict[str, A
     return {k: v for service in SERVICES for k, v in service.status(fleet, state, robot, h).items()}
 
 
-def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
+def checked_nodes(provider: Provider, robot: str, nodes: list[Node]) -> list[Node]:
+    """`status --ready`: each node's readiness now. A node with a `ready` check is ready when one try
+    of it passes (ready_now: a message on its topic, its command exiting 0); one without, when
+    systemd has it active (its check at start was staying up)."""
+    def one(node: Node) -> Node:
+        if node.state != "active":
+            why = f"is {node.state}"
+        elif node.ready_check is None:
+            why = None
+        else:
+            why = ready_now(provider, robot, node.ready_check)
+        return node.model_copy(update={"ready": why is None, "not_ready": why})
+
+    return [one(n) for n in nodes]
+
+
+def fleet_status(fleet: Fleet, provider: Provider, ready: bool = False) -> list[StatusRow]:
+    """Every robot's row; `ready`: each running clone's nodes are checked now (checked_nodes)."""
     state = fleet.store.load_state()
     actual = provider.query()
     plan = fleet.plan(state)
@@ -90,6 +107,8 @@ def fleet_status(fleet: Fleet, provider: Provider) -> list[StatusRow]:
                     **service_fields(fleet, state, member, h),
                 }
                 row = StatusRow.model_validate(row.model_dump() | update)
+                if ready and row.nodes:
+                    row.nodes = checked_nodes(provider, robot, row.nodes)
             except (CcrpError, KeyError, TypeError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
                 # Running to the cloud but not answering (booting, or shutting down: autostop, a
                 # poweroff), or answering with a report that is not one. One such clone must not

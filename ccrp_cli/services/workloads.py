@@ -537,9 +537,18 @@ READY_INTERVAL = 1.0  # between two tries of a command
 NOT_READY = "was not ready within"
 
 
-def not_ready(provider: Reaches, robot: str, spec: Ready, since: float, stop: threading.Event | None = None) -> str | None:
+def ready_now(provider: Reaches, robot: str, spec: Ready) -> str | None:
+    """One try of `spec` now (`ccrp status --ready`), waiting at most READY_TRY_MAX seconds (or its
+    `within`) for a message or for the command: None when it passes, else why not."""
+    return not_ready(provider, robot, spec.model_copy(update={"within": min(spec.within, int(READY_TRY_MAX))}),
+                     time.monotonic(), once=True)
+
+
+def not_ready(provider: Reaches, robot: str, spec: Ready, since: float, stop: threading.Event | None = None,
+              once: bool = False) -> str | None:
     """None once `spec` passes on robot's clone (a message on its topic, its command exiting 0),
-    tried again until `spec.within` seconds after `since` (a time.monotonic()); else why not."""
+    tried again until `spec.within` seconds after `since` (a time.monotonic()), or tried once
+    (`once`); else why not."""
     deadline = since + spec.within
     while True:
         if stop is not None and stop.is_set():
@@ -556,7 +565,7 @@ def not_ready(provider: Reaches, robot: str, spec: Ready, since: float, stop: th
         rc, out = provider.transport.exec(robot, argv, timeout=wait + 30)
         if rc == 0:
             return None
-        if time.monotonic() >= deadline:
+        if once or time.monotonic() >= deadline:
             if spec.topic is not None:
                 return f"{NOT_READY} {spec.within} s: no message on {spec.topic}"
             return (f"{NOT_READY} {spec.within} s: its ready command {shown(' '.join(spec.command or []))} "

@@ -256,6 +256,11 @@ def test_nodes_must_be_ready_and_one_that_is_not_rolls_the_clone_back(fleet: E2E
         fleet.inventory.write_text(yaml.safe_dump(data, sort_keys=False))
         [row] = fleet.json("deploy")
         assert row["action"] == "deployed" and "start beacon, worker" in row["detail"], row
+        # `status --ready`: each check tried once now, as the clone keeps it.
+        [status] = fleet.json("status", "--ready")
+        nodes = {n["name"]: n for n in status["nodes"]}
+        assert nodes["beacon"]["ready_check"]["topic"] == "/e2e/beacon" and nodes["beacon"]["ready"] is True, nodes
+        assert nodes["worker"]["ready"] is True and nodes["worker"]["not_ready"] is None, nodes
         data["software"]["run"].append(SILENT)
         fleet.inventory.write_text(yaml.safe_dump(data, sort_keys=False))
         proc = fleet.inv("deploy", "--json")

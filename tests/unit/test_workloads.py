@@ -455,7 +455,8 @@ def test_health_reports_each_node_with_its_restarts(tmp_path, monkeypatch):
     health = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(health)
     index = tmp_path / "workloads.json"
-    index.write_text(json.dumps({"nodes": {"mapper": "d1", "faces": "d2"}, "software": "s"}))
+    index.write_text(json.dumps({"nodes": {"mapper": "d1", "faces": "d2"}, "software": "s",
+                                 "ready": {"mapper": {"topic": "/map", "within": 60}}}))
 
     def show(argv, **kw):
         assert argv[:4] == ["systemctl", "show", "--property", "ActiveState,SubState,NRestarts"]
@@ -464,8 +465,10 @@ def test_health_reports_each_node_with_its_restarts(tmp_path, monkeypatch):
 
     monkeypatch.setattr(health.subprocess, "run", show)
     rows = health.nodes(str(index))
-    assert rows == [{"name": "mapper", "state": "active", "sub": "running", "restarts": 0, "digest": "d1"},
-                    {"name": "faces", "state": "activating", "sub": "auto-restart", "restarts": 7, "digest": "d2"}]
+    assert rows == [{"name": "mapper", "state": "active", "sub": "running", "restarts": 0, "digest": "d1",
+                     "ready_check": {"topic": "/map", "within": 60}},  # what `status --ready` tries
+                    {"name": "faces", "state": "activating", "sub": "auto-restart", "restarts": 7, "digest": "d2",
+                     "ready_check": None}]
     assert health.nodes(str(tmp_path / "none.json")) is None
     from ccrp_cli.alerts import clone_alerts
     from ccrp_cli.models.status import StatusRow
@@ -586,3 +589,25 @@ def test_a_ready_command_runs_as_the_node_and_its_failure_is_one_line(monkeypatc
     assert line.startswith("robot 'nao1''s node api (ccrp-run-api.service) was not ready within 1 s: its ready command "
                            "'curl -sf http://localhost:8080/health' exited 22: ") and "503" in line, line
     assert "it is not ready" in line and "\n" not in line
+
+
+def test_status_ready_tries_each_check_once_and_says_why_not(monkeypatch):
+    """`ccrp status --ready`: one try of each active node's check (a topic heard once, a command
+    run once), a node without one is ready while active, an inactive one is not checked."""
+    from ccrp_cli.models.status import Node
+    from ccrp_cli.ops.status import checked_nodes
+
+    monkeypatch.setattr(workloads, "READY_TRY_MAX", 1)
+    clone = ReadyClone(failures=1, rc=124)
+    nodes = [Node(name="mapper", state="active", ready_check=Ready(topic="/map", within=60)),
+             Node(name="api", state="active", ready_check=Ready(command=["curl", "-sf", "http://localhost/health"])),
+             Node(name="plain", state="active"),
+             Node(name="broken", state="failed", ready_check=Ready(topic="/x"))]
+    t0 = time.monotonic()
+    mapper, api, plain, broken = checked_nodes(clone, "nao1", nodes)
+    assert time.monotonic() - t0 < 5  # one try each, not their `within`
+    assert (mapper.ready, mapper.not_ready) == (False, "was not ready within 1 s: no message on /map")
+    assert clone.tries[0][-2:] == ["-t", "1"]  # the echo waits READY_TRY_MAX, not the check's 60 s
+    assert api.ready is True and api.not_ready is None and len(clone.tries) == 2
+    assert plain.ready is True and (broken.ready, broken.not_ready) == (False, "is failed")
+    assert len(clone.tries) == 2  # neither the plain node nor the failed one was tried
