@@ -354,8 +354,32 @@ def test_aws_without_service_quotas_counts_running_instances(aws_env, tmp_path):
         p = AwsProvider(specs.inventory({"kind": "aws", "region": REGION, "zones": ["us-east-1a"],
                                          "operator_cidr": specs.OPERATOR_CIDR}), tmp_path / "store")
         got = {q.name: (q.limit, q.used, q.per_clone, q.once) for q in p.quotas(["robot1"])}
-        # behind the entry gateway (AWS's default): its instance and the fleet's one address, once
-        assert got == {"EC2-VPC Elastic IPs": (5, 0, 0, 1), "max-instances (running instances)": (20, 0, 1, 1)}
+        # behind the entry gateway (AWS's default): its instance and the fleet's one address, once;
+        # moto's Service Quotas knows the VPC's defaults (50 routes per table), not EC2's.
+        assert got == {"EC2-VPC Elastic IPs": (5, 0, 0, 1), "max-instances (running instances)": (20, 0, 1, 1),
+                       "Routes per route table": (50, 1, 1, 0)}
+
+
+def test_aws_routes_per_route_table_hold_a_fleet_of_48_clones(aws_env, tmp_path):
+    """Each clone has a route in the clones' route table (its robot's VPN subnet): AWS's default of 50
+    routes per table (Service Quotas L-93826ACB) holds the default route and 49 clones, so a fleet of 100
+    needs that quota raised even behind the entry gateway (one address)."""
+    from moto import mock_aws
+
+    from ccrp_cli.providers.aws.provider import AwsProvider
+
+    with mock_aws():
+        p = AwsProvider(specs.inventory({"kind": "aws", "region": REGION, "zones": ["us-east-1a"],
+                                         "operator_cidr": specs.OPERATOR_CIDR}), tmp_path / "store")
+        robots = [f"robot{i}" for i in range(1, 101)]
+        [routes] = [q for q in p.quotas(robots) if q.name == "Routes per route table"]
+        assert (routes.limit, routes.used, routes.need(robots[:49]), routes.need(robots)) == (50, 1, 49, 100)
+        assert "L-93826ACB" in routes.hint
+        p.bootstrap()
+        p.client.ec2.create_route(RouteTableId=p.network.route_table_id, DestinationCidrBlock="10.80.7.0/24",
+                                  GatewayId=p.client.ec2.describe_internet_gateways()["InternetGateways"][0]["InternetGatewayId"])
+        [routes] = [q for q in p.quotas(robots) if q.name == "Routes per route table"]
+        assert (routes.used, routes.free) == (2, 48)  # the default route and the one above; not the local one
 
 
 # -- the fakes hold their cloud's default address quotas and refuse the one over as the cloud does ----
@@ -423,7 +447,9 @@ def test_aws_fleet_plan_of_ten_robots_does_not_fit_the_default_elastic_ips(aws_b
     assert plan.returncode == 0, plan.stderr
     assert quota_rows(plan.stdout) == {  # where, limit, used, per clone, this needs, free after
         "EC2-VPC Elastic IPs": ["region us-east-1", "5", "0", "1", "10", "-5 (short)"],
-        "max-instances (running instances)": ["region us-east-1", "20", "0", "1", "10", "10"]}
+        "max-instances (running instances)": ["region us-east-1", "20", "0", "1", "10", "10"],
+        # moto's Service Quotas answers AWS's default for the VPC's (50): the default route and a route a clone
+        "Routes per route table": ["the clones' route table of fleet 'quotas'", "50", "1", "1", "10", "39"]}
     assert "`fleet up` would refuse, creating nothing: aws quota EC2-VPC Elastic IPs in region us-east-1: " \
            "5 free, this needs 10 (hint: " in plan.stderr  # the addresses alone are short
 
@@ -443,6 +469,10 @@ def test_aws_fleet_plan_behind_the_default_gateway_needs_one_elastic_ip_whatever
     after = 20 - robots - 1
     assert rows["max-instances (running instances)"] == \
         ["region us-east-1", "20", "0", "1", str(robots + 1), str(after) if after >= 0 else f"{after} (short)"]
+    # Each clone's route (its robot's VPN subnet) in the clones' table: 50 hold the default route and 49.
+    routes = 49 - robots
+    assert rows["Routes per route table"] == ["the clones' route table of fleet 'quotas'", "50", "1", "1", str(robots),
+                                              str(routes) if routes >= 0 else f"{routes} (short)"]
     assert "Elastic IPs" not in plan.stderr
     refused = "`fleet up` would refuse, creating nothing: aws quota max-instances (running instances) in region " \
               f"us-east-1: 20 free, this needs {robots + 1}"

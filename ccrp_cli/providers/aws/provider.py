@@ -319,7 +319,8 @@ class AwsProvider(CloudProvider):
         running = self._running_on_demand()
         types = {r: self._instance_type(r) for r in robots}
         gateway_type = self._instance_type(GATEWAY)
-        vcpus = self._vcpu_quota()
+        # Running On-Demand Standard instances, in vCPUs; unreadable: account attributes below.
+        vcpus = self._service_quota("ec2", "L-1216C47A")
         if vcpus is not None:
             sizes = self._type_vcpus({i["InstanceType"] for i in running} | set(types.values())
                                      | {self.settings.instance_type, gateway_type})
@@ -336,6 +337,16 @@ class AwsProvider(CloudProvider):
         elif values.get("max-instances", "").isdigit():
             found.append(Quota(name="max-instances (running instances)", scope=where,
                                limit=float(values["max-instances"]), used=len(running), per_clone=1, once=instance))
+        routes = self._service_quota("vpc", "L-93826ACB")
+        if routes is not None:
+            # Each clone has a route in the clones' route table (its robot's VPN subnet): AWS's
+            # default of 50 per table holds a fleet of about 48, whatever its entry.
+            net = network.find(c) if c.net is None else c.net
+            table = (c.api("describe route table", c.ec2.describe_route_tables, RouteTableIds=[net.route_table_id])
+                     ["RouteTables"][0]["Routes"] if net else [{"DestinationCidrBlock": "0.0.0.0/0"}])  # bootstrap makes it
+            found.append(Quota(name="Routes per route table", scope=f"the clones' route table of fleet {self.fleet!r}",
+                               limit=routes, used=sum(1 for r in table if r.get("GatewayId") != "local"), per_clone=1,
+                               hint="raise Routes per route table (L-93826ACB; up to 1000) in the Service Quotas console"))
         return found
 
     def _instance_type(self, robot: str) -> str:
@@ -363,15 +374,15 @@ class AwsProvider(CloudProvider):
                 sizes[t["InstanceType"]] = t["VCpuInfo"]["DefaultVCpus"]
         return sizes
 
-    def _vcpu_quota(self) -> float | None:
-        """Service Quotas L-1216C47A (Running On-Demand Standard instances, in vCPUs), if readable."""
+    def _service_quota(self, service: str, code: str) -> float | None:
+        """A quota's value from Service Quotas (the account's, raised or AWS's default), if readable."""
         c = self.client
         from botocore.exceptions import BotoCoreError, ClientError
 
         try:
             if self._service_quotas is None:
                 self._service_quotas = c.session.client("service-quotas", config=c.config)
-            return float(c.api("get service quota", self._service_quotas.get_service_quota, ServiceCode="ec2",
-                                  QuotaCode="L-1216C47A")["Quota"]["Value"])
+            return float(c.api("get service quota", self._service_quotas.get_service_quota, ServiceCode=service,
+                               QuotaCode=code)["Quota"]["Value"])
         except (CcrpError, BotoCoreError, ClientError):
-            return None  # no permission, or not offered here: fall back to account attributes
+            return None  # no permission, or not offered here: the cloud's refusal stays the last word
