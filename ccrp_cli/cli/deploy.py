@@ -24,10 +24,14 @@ def deploy(
     rollback: Annotated[bool, typer.Option("--rollback", help="Put back the version the last deploy replaced "
                                                              "(each clone keeps it); the inventory is not read for "
                                                              "software.")] = False,
+    build_on: Annotated[str, typer.Option("--build-on", metavar="auto|local|clone",
+                                          help="Where the workspace is built: this host's Docker engine (local), "
+                                               "one running clone of the deploy, in its image (clone); auto: local "
+                                               "when an engine answers here, else a clone.")] = "auto",
     as_json: options.Json = False,
 ) -> None:
     """Put the inventory's workspace and `run` nodes on the running clones without re-creating them:
-    built once here in the clone image, pushed to each clone, the changed nodes restarted; a node
+    built once in the clone image (here, or on one of the clones), pushed to each clone, the changed nodes restarted; a node
     that does not stay up puts its clone back on the previous version. apt/pip changes need a new
     snapshot and new clones. `--rollback` puts back on each clone the version its last deploy
     replaced (then the inventory and the clones differ until the next deploy)."""
@@ -36,6 +40,8 @@ def deploy(
 
     fleet = options.open_fleet(inventory)
     core.targets(fleet, fleet.store.load_state(), robot, type_)  # a bad --robot / --type: exit 2 before anything
+    if build_on not in core.BUILD_ON:
+        raise InputError(f"--build-on {build_on!r}: give one of {', '.join(core.BUILD_ON)}")
     if rollback and canary:
         raise InputError("--rollback takes no --canary", hint="roll back one clone first with --robot")
     provider = get_provider(fleet.inventory)
@@ -49,5 +55,6 @@ def deploy(
         items = core.deploy(fleet, provider, output.info, robot, type_, dry_run=True)
     else:
         with fleet.store.lock():
-            items = core.deploy(fleet, provider, output.info, robot, type_, canary=canary, max_parallel=max_parallel)
+            items = core.deploy(fleet, provider, output.info, robot, type_, canary=canary, max_parallel=max_parallel,
+                                build_on=build_on)
     raise typer.Exit(output.results(items, as_json))

@@ -4,9 +4,11 @@ without re-creating them.
 The workspace is built once, on this machine, in the clone image (the snapshot's Dockerfile with
 the current software: Docker's layer cache runs only the software's layers), and its install
 space (/opt/ccrp/workspace) read out of the image as a tar (providers.build_workspace, this host's
-Docker engine whatever the fleet's backend). Every clone runs the same Debian 12 platform, so the
-same tar serves every backend. Each clone gets it gzipped as a root-only file, and one fixed
-script (install_space.DEPLOY_SH, names and digests as argv words) unpacks it beside the current
+Docker engine whatever the fleet's backend). Where this machine has no Docker engine (or with
+`--build-on clone`), one running clone of the deploy builds it in its own image, as a bake's
+builder does (templates/image/software-bake.sh), beside its own install space (build_on_clone).
+Every clone runs the same Debian 12 platform, so the same tar serves every backend. Each clone
+gets it gzipped as a root-only file, and one fixed script (install_space.DEPLOY_SH, names and digests as argv words) unpacks it beside the current
 one and swaps them; then the node units are brought in line (workloads.apply_nodes: only
 those whose inputs changed restart) and each restarted unit must stay up (workloads.node_health,
 the check `fleet up` makes too). A unit that does not is reported with its last journal lines, and
@@ -230,9 +232,57 @@ def _package_diff(have: str, want: str) -> str:
 
 # -- the build --------------------------------------------------------------------------------------
 
-def build_install_space(inv: Inventory, software: SnapshotSoftware, progress: Progress) -> bytes:
+BUILD_ON = ("auto", "local", "clone")
+CLONE_BUILD_OUT = "/var/lib/ccrp/deploy-build.tgz"  # on the clone a deploy builds on, until read back
+CLONE_BUILD_TIMEOUT = 1800.0
+
+
+def builder(provider: Provider, build_on: str, live: list[str]) -> str | None:
+    """Where the install space is built: None for this host's Docker engine, else the robot whose
+    running clone builds it (`auto`: the first of `live` when no engine answers here)."""
+    from ..providers import local_engine_answers
+
+    if build_on == "local" or provider.kind == "docker" or (build_on == "auto" and local_engine_answers()):
+        return None
+    if not live:
+        why = "this host has no Docker engine, and" if build_on == "auto" else "--build-on clone:"
+        raise CcrpError(f"{why} no clone of this deploy is running to build the workspace on",
+                        hint="start one (`ccrp clone start --robot R`), or install Docker here")
+    return live[0]
+
+
+def build_on_clone(provider: Reaches, robot: str, software: SnapshotSoftware, progress: Progress) -> bytes:
+    """The install space's tar built on robot's running clone, in its own image: the workspace's
+    sources pushed, templates/image/software-bake.sh building under a root of its own (the clone's
+    install space and nodes untouched; apt and pip are the snapshot's, as deploy checked), the
+    result read back and removed."""
+    import base64
+    import binascii
+    import gzip
+
+    from .snapshots import run_software_script, software_env
+
+    t0 = time.monotonic()
+    progress(f"building workspace {software.digest} on robot {robot!r}'s clone, in its image")
+    env = software_env(software) | {"CCRP_APT": "", "CCRP_PIP": "", "CCRP_LOGIN": "", "CCRP_OUT": CLONE_BUILD_OUT}
+    run_software_script(provider, robot, software, env, f"robot {robot!r}'s clone", CLONE_BUILD_TIMEOUT)
+    rc, out = provider.transport.exec(robot, ["sh", "-c", 'base64 -w0 "$0" && rm -f "$0"', CLONE_BUILD_OUT], timeout=300)
+    try:
+        data = gzip.decompress(base64.b64decode(out.strip(), validate=True)) if rc == 0 else None
+    except (ValueError, binascii.Error, OSError, EOFError):
+        data = None
+    if data is None:
+        raise CcrpError(f"the install space built on robot {robot!r}'s clone could not be read back: {out.strip()[-200:]}")
+    progress(f"workspace {software.digest} built on robot {robot!r}'s clone after {time.monotonic() - t0:.0f} s "
+             f"({len(data) >> 10} kB)")
+    return data
+
+
+def build_install_space(inv: Inventory, software: SnapshotSoftware, progress: Progress,
+                        provider: Reaches | None = None, on: str | None = None) -> bytes:
     """The tar of the install space (top directory `workspace/`) built from `software` in the
-    fleet's clone image, on this host's Docker engine whatever the fleet's backend."""
+    fleet's clone image: on this host's Docker engine whatever the fleet's backend, or on robot
+    `on`'s running clone (build_on_clone)."""
     from ..providers import build_workspace
     from ..services.registry import image_agents
 
@@ -244,7 +294,10 @@ def build_install_space(inv: Inventory, software: SnapshotSoftware, progress: Pr
             tar.addfile(info)
         return buf.getvalue()
     # In the snapshot's own image (its agents too), so the build finds the snapshot's layers cached.
-    data = build_workspace(inv, software, image_agents(), progress)
+    if on is not None and provider is not None:
+        data = build_on_clone(provider, on, software, progress)
+    else:
+        data = build_workspace(inv, software, image_agents(), progress)
     if len(data) > MAX_INSTALL_BYTES:
         raise CcrpError(f"the workspace's install space is {len(data) >> 20} MB, more than deploy pushes "
                         f"({MAX_INSTALL_BYTES >> 20} MB)", hint="build a new snapshot and re-create the clones")
@@ -523,10 +576,12 @@ def rollback(fleet: Fleet, provider: Provider, progress: Progress, robot: str | 
 
 
 def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | None = None, type_: str | None = None,
-           dry_run: bool = False, canary: int = 0, max_parallel: int | None = None) -> list[CloneResult]:
+           dry_run: bool = False, canary: int = 0, max_parallel: int | None = None,
+           build_on: str = "auto") -> list[CloneResult]:
     """`ccrp deploy`: the caller holds the fleet lock unless dry_run. `canary` clones first (in
     the fleet's order): when one of them fails, no other is changed. `max_parallel`: at most that
-    many clones changed at once. Ctrl-C: no further clone is started, those being changed go back
+    many clones changed at once. `build_on` (BUILD_ON): where the workspace is built (builder).
+    Ctrl-C: no further clone is started, those being changed go back
     as they were, each robot's line says which (then the interruption goes on)."""
     from .reconcile import _fan_out
 
@@ -564,7 +619,8 @@ def deploy(fleet: Fleet, provider: Provider, progress: Progress, robot: str | No
     if any(ch.workspace or ch.unsettled for ch in changes.values()) or (
             waiting and install_space.saved(fleet, digest) is None):
         # One build for every clone; a failure leaves every clone as it was.
-        tar = build_install_space(inputs.inventory, inputs.software, progress)
+        on = builder(provider, build_on, live) if inputs.software.build_type is not None else None
+        tar = build_install_space(inputs.inventory, inputs.software, progress, provider, on)
     writer = StateWriter(fleet, state)
     if tar is not None:
         install_space.save(fleet, digest, pushed(tar))

@@ -170,30 +170,39 @@ def install_software(provider: Baker, builder: CloneRecord, software: SnapshotSo
     has a size limit, and the workspace is the user's whole source): its workspace pushed as a
     root-only file, then templates/image/software-bake.sh installs the packages, builds it into
     /opt/ccrp/workspace and takes the builder's login away."""
-    import base64
     import time
-
-    from ..render.files import BundleFile
-    from ..templates import static
 
     t0 = time.monotonic()
     progress(f"building software {software.digest} on the builder")
     provider.connect(BUILDER, builder)
+    run_software_script(provider, BUILDER, software, software_env(software), "the builder", timeout)
+    progress(f"software {software.digest} built on the builder after {time.monotonic() - t0:.0f} s")
+
+
+def run_software_script(provider: Reaches, robot: str, software: SnapshotSoftware, env: dict[str, str], where: str,
+                        timeout: float) -> None:
+    """templates/image/software-bake.sh on robot's machine (a bake's builder, or the clone `ccrp
+    deploy` builds on) with `env`, the workspace's sources pushed first as a root-only file; a
+    failure is one line naming the step and the tools' error."""
+    import base64
+
+    from ..render.files import BundleFile
+    from ..templates import static
+
     if software.build_type is not None:
-        provider.transport.exec(BUILDER, ["mkdir", "-p", "-m", "0700", BAKE_DIR], timeout=30)
+        provider.transport.exec(robot, ["mkdir", "-p", "-m", "0700", BAKE_DIR], timeout=30)
         tar = base64.b64encode(workspace_tar(software)).decode()
-        provider.transport.push_files(BUILDER, [BundleFile("workspace.tar.b64", tar, 0o600, f"{BAKE_DIR}/workspace.tar.b64")],
+        provider.transport.push_files(robot, [BundleFile("workspace.tar.b64", tar, 0o600, f"{BAKE_DIR}/workspace.tar.b64")],
                                       restart=[])
-    env = [f"{k}={v}" for k, v in software_env(software).items()]
-    rc, out = provider.transport.exec(BUILDER, ["env", *env, "sh", "-c", static("image/software-bake.sh"), "ccrp-software"],
+    words = [f"{k}={v}" for k, v in env.items()]
+    rc, out = provider.transport.exec(robot, ["env", *words, "sh", "-c", static("image/software-bake.sh"), "ccrp-software"],
                                       timeout=timeout)
     if rc != 0 or "ccrp-software built" not in out:
         lines = [line.strip() for line in out.strip().splitlines() if line.strip()]
         steps = [line[3:] for line in lines if line.startswith("== ")]
-        raise CcrpError(f"the builder could not build the software (at {steps[-1] if steps else 'the start'}): {_why(lines)}",
+        raise CcrpError(f"{where} could not build the software (at {steps[-1] if steps else 'the start'}): {_why(lines)}",
                         hint="the same recipe builds on Docker: `ccrp snapshot build` on a Docker inventory shows "
                              "the error faster; check software.apt/pip and the workspace")
-    progress(f"software {software.digest} built on the builder after {time.monotonic() - t0:.0f} s")
 
 
 def _why(lines: list[str]) -> str:

@@ -21,8 +21,8 @@ if TYPE_CHECKING:
     # __init__ first, while the inventory module is still half-made.
     from ..models.inventory import Inventory
 
-__all__ = ["REGISTRY", "Ability", "build_workspace", "close_opened", "get_provider", "info", "register", "require",
-           "robot_host"]
+__all__ = ["REGISTRY", "Ability", "build_workspace", "close_opened", "get_provider", "info", "local_engine_answers",
+           "register", "require", "robot_host"]
 
 # Every provider this process made and still holds: the CLI closes them when its command ends
 # (cli/main.py run), so no command leaves an SSH session or API connection to the interpreter's
@@ -35,6 +35,7 @@ _OPENED: weakref.WeakSet = weakref.WeakSet()
 # deploy`'s workspace build. Factories as a ProviderInfo's: loaded by the commands that use them.
 ROBOT_HOST = ".docker.robots:RobotContainers"
 WORKSPACE_BUILD = ".docker.workspace:build_workspace"
+LOCAL_ENGINE = ".docker.client:engine_answers"
 
 
 def _load(factory: str) -> Any:
@@ -64,6 +65,11 @@ def build_workspace(inv: Inventory, software: ImageSoftware, agents: tuple[str, 
     workspace) built in the fleet's clone image, with the `agents` its snapshot holds (as
     LocalBuild.build_snapshot is given them), on this host (CcrpError when no engine answers)."""
     return _load(WORKSPACE_BUILD)(inv, software, agents, progress)
+
+
+def local_engine_answers() -> bool:
+    """Whether this host's Docker engine answers (ccrp deploy builds there when it does)."""
+    return _load(LOCAL_ENGINE)()
 
 
 def close_opened() -> None:

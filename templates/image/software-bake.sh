@@ -9,21 +9,27 @@
 #   CCRP_PIP        the software's pip requirements;  CCRP_PIP_CMD: the clone's ROS pip
 #   CCRP_DIRS       the workspace's package directories (ament_python)
 #   CCRP_PYTHON     the ROS 2 venv's python (ament_python)
-#   CCRP_LOGIN      the login user the builder's user-data made (its key goes)
+#   CCRP_LOGIN      the login user the builder's user-data made (its key goes); empty: none
+#   CCRP_OUT        `ccrp deploy` building on a running clone: the install space is built under
+#                   the root $R (DESTDIR, pip --root: its files name /opt/ccrp/workspace, where it
+#                   goes), the clone's own left alone, and written to this gzipped tar (top
+#                   directory workspace/); no apt or pip then (deploy checked they are in place)
 # The workspace's sources are the base64 tar $B/workspace.tar.b64. Last, the builder's login is
 # taken away (its key and sudo rule, both from the builder's user-data): the snapshot must not
 # carry them; a clone's own user-data gives its login the fleet's key again.
 set -euf
 # The sources and the build beside the tar, not in /tmp: an image may mount /tmp noexec (the fake
 # clouds do), and catkin runs what it generates there.
-W=/opt/ccrp/workspace B=/var/lib/ccrp/bake S=/var/lib/ccrp/bake/ws
+W=/opt/ccrp/workspace B=/var/lib/ccrp/bake S=/var/lib/ccrp/bake/ws R=""
+CCRP_OUT=${CCRP_OUT:-}
+if [ -n "$CCRP_OUT" ]; then R=/var/lib/ccrp/bake/root; fi
 export DEBIAN_FRONTEND=noninteractive
 step() { echo "== $*"; }
 step "apt"
 apt-get update -q >/dev/null
 if [ -n "$CCRP_APT" ]; then apt-get install -y -q --no-install-recommends $CCRP_APT; fi
 if [ -n "$CCRP_PIP" ]; then step "pip"; $CCRP_PIP_CMD install --no-cache-dir $CCRP_PIP; fi
-rm -rf "$S" "$W"
+rm -rf "$S" "$R$W"
 mkdir -p "$S"
 if [ "$CCRP_BUILD" != none ]; then base64 -d "$B/workspace.tar.b64" | tar -xz --no-same-owner -C "$S"; fi
 case $CCRP_BUILD in
@@ -35,7 +41,7 @@ catkin)
   apt-get install -y -q --no-install-recommends $CCRP_BUILD_APT
   dpkg-query -W -f '${Package}\n' | sort > "$B/after"
   step "catkin_make install"
-  (cd "$S" && catkin_make install -DCMAKE_BUILD_TYPE=Release -DCMAKE_INSTALL_PREFIX="$W" -DCATKIN_ENABLE_TESTING=OFF)
+  (cd "$S" && DESTDIR=$R catkin_make install -DCMAKE_BUILD_TYPE=Release -DCMAKE_INSTALL_PREFIX="$W" -DCATKIN_ENABLE_TESTING=OFF)
   added=$(comm -13 "$B/before" "$B/after" | tr '\n' ' ')
   if [ -n "$added" ]; then step "purge build tools"; apt-get purge -y -q --auto-remove $added >/dev/null; fi
   ;;
@@ -43,21 +49,28 @@ ament_python)
   step "pip install (ament_python)"
   dirs=""
   for d in $CCRP_DIRS; do dirs="$dirs $S/$d"; done
-  $CCRP_PIP_CMD install --no-index --no-deps --no-build-isolation --no-cache-dir --prefix "$W" $dirs
+  $CCRP_PIP_CMD install --no-index --no-deps --no-build-isolation --no-cache-dir --prefix "$W" ${R:+--root "$R"} $dirs
   site=$("$CCRP_PYTHON" -c 'import sysconfig; print(sysconfig.get_path("purelib", vars={"base": "'"$W"'"}))')
   printf '%s\n' "export PYTHONPATH=$site\${PYTHONPATH:+:\$PYTHONPATH}" \
-    "export AMENT_PREFIX_PATH=$W\${AMENT_PREFIX_PATH:+:\$AMENT_PREFIX_PATH}" "export PATH=$W/bin:\$PATH" > "$W/setup.sh"
+    "export AMENT_PREFIX_PATH=$W\${AMENT_PREFIX_PATH:+:\$AMENT_PREFIX_PATH}" "export PATH=$W/bin:\$PATH" > "$R$W/setup.sh"
   ;;
 none) ;;
 *) echo "unknown build type $CCRP_BUILD" >&2; exit 2 ;;
 esac
-if [ -d "$W" ]; then
+if [ -d "$R$W" ]; then
   # Built as root: a device file or FIFO is refused, setuid and setgid bits go (a 4755 file would be
   # root's setuid program on every clone), as templates/docker/software.j2 and ccrp deploy do.
   step "install space checked"
-  bad=$(find "$W" ! -type f ! -type d ! -type l | head -n 1)
+  bad=$(find "$R$W" ! -type f ! -type d ! -type l | head -n 1)
   if [ -n "$bad" ]; then echo "the install space holds $bad, a device file or FIFO: refused (only files, directories and links)" >&2; exit 1; fi
-  find "$W" -perm /6000 ! -type l -exec chmod ug-s {} +
+  find "$R$W" -perm /6000 ! -type l -exec chmod ug-s {} +
+fi
+if [ -n "$CCRP_OUT" ]; then
+  mkdir -p "$R$W"  # a workspace of no package: an empty install space
+  tar -C "$R${W%/*}" -czf "$CCRP_OUT" "${W##*/}"
+  rm -rf "$B"
+  echo "ccrp-software built"
+  exit 0
 fi
 rm -rf "$B"
 apt-get clean

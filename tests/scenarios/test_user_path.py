@@ -141,27 +141,34 @@ def _wait_for_lines(run, name: str, text: str) -> None:
 
 
 def test_deploy_and_rollback_reach_every_clone_over_ssh(run, clone_images):
-    """`ccrp deploy` on a cloud (docs/workloads.md): the changed workspace built on this machine in
-    the clone image and each clone sent what it lacks over SSH (through the gateway where there is
-    one); `ccrp logs` of both robots, merged, shows each clone's node printing the new line;
-    `deploy --rollback` puts the snapshot's version back on both, without a build."""
+    """`ccrp deploy` on a cloud (docs/workloads.md) from a machine without Docker: the changed
+    workspace built on nao1's clone in its image (no engine answers here), and each clone sent what
+    it lacks over SSH (through the gateway where there is one); `ccrp logs` of both robots, merged,
+    shows each clone's node printing the new line; `deploy --rollback` puts the snapshot's version
+    back on both, without a build."""
     if not run.b.nodes:
         pytest.skip(f"the {run.b.kind} scenario's inventory has no software:")
     run.needs("up")
-    clone_images("noetic")  # deploy's build then runs only the workspace's layer (Docker's cache)
     node = run.b.inventory.parent / "ws" / "src" / "ccrp_hello" / "scripts" / "hello"
     original = node.read_text()
     node.write_text(original.replace("from the snapshot's workspace", "from a deployed workspace"))
+    run.b.env["DOCKER_HOST"] = "unix:///nonexistent/docker.sock"  # this machine has no Docker engine
     try:
-        rows = {r["robot"]: r for r in run.json("deploy")}
+        deploy = run.ccrp("deploy", "--json")
+        assert "building workspace" in deploy.stderr and "on robot 'nao1''s clone, in its image" in deploy.stderr, \
+            deploy.stderr[-2000:]
+        rows = {r["robot"]: r for r in json.loads(deploy.stdout)}
         assert all(rows[r]["action"] == "deployed" and "restart hello, launched" in rows[r]["detail"]
                    and 0 < rows[r]["sent_bytes"] for r in ROBOTS), rows
+        # The build left nao1's own install space and nodes alone until the swap, and nothing behind.
+        assert run.ccrp("clone", "exec", "--robot", "nao1", "--", "ls", "/var/lib/ccrp/bake", code=2).returncode == 2
         _wait_for_lines(run, "hello", "from a deployed workspace")
         back = {r["robot"]: r for r in run.json("deploy", "--rollback")}
         assert all(back[r]["action"] == "rolled back" for r in ROBOTS), back
         _wait_for_lines(run, "hello", "from the snapshot's workspace")
     finally:
         node.write_text(original)
+        run.b.env.pop("DOCKER_HOST", None)
     assert [r["action"] for r in run.json("deploy", "--dry-run")] == ["current", "current"]
     assert [r["software"] for r in run.json("fleet", "plan")] == [None, None]
 

@@ -19,7 +19,7 @@ import yaml
 
 from ccrp_cli.ops import deploy, install_space
 from ccrp_cli.services import workloads
-from ccrp_cli.errors import InputError
+from ccrp_cli.errors import CcrpError, InputError
 from ccrp_cli.fleet import Fleet
 from ccrp_cli.providers.base import CloneRecord, CloneState
 from ccrp_cli.services.workloads import INDEX, node_files, packages_record, snapshot_software
@@ -157,7 +157,8 @@ def built(monkeypatch):
     """deploy's build, replaced by an install space whose setup.sh says v2; records its calls."""
     calls = []
 
-    def build(fleet, software, progress):
+    def build(fleet, software, progress, provider=None, on=None):
+        assert on is None  # a Docker fleet: this host's engine builds
         calls.append(software.digest)
         return install_tar("v2")
 
@@ -769,3 +770,24 @@ def test_a_robot_whose_clone_failed_and_went_does_not_hold_the_deploy_back(fleet
     results = {r.robot: r for r in deploy.deploy(Fleet.open(fleet.path), clones, lambda m: None, type_="nao")}
     assert results["nao1"].action == "deployed" and results["nao2"].action == "skipped", results
     assert "no running clone" in results["nao2"].detail and built == [new]
+
+
+def test_the_build_runs_here_when_an_engine_answers_else_on_a_running_clone(monkeypatch):
+    """--build-on auto: this host's Docker engine when it answers, else the first running clone of the
+    deploy; `clone` always a clone; a Docker fleet always here; no running clone to build on is one line."""
+    import ccrp_cli.providers as providers
+
+    class Cloud:
+        kind = "openstack"
+
+    answers = []
+    monkeypatch.setattr(providers, "local_engine_answers", lambda: answers[-1])
+    answers.append(True)
+    assert deploy.builder(Cloud(), "auto", ["nao1", "nao2"]) is None
+    assert deploy.builder(Cloud(), "clone", ["nao1", "nao2"]) == "nao1"
+    answers.append(False)
+    assert deploy.builder(Cloud(), "auto", ["nao2"]) == "nao2"
+    assert deploy.builder(Cloud(), "local", ["nao2"]) is None
+    assert deploy.builder(Clones.__new__(Clones), "clone", ["nao1"]) is None  # kind docker
+    with pytest.raises(CcrpError, match="this host has no Docker engine, and no clone of this deploy is running"):
+        deploy.builder(Cloud(), "auto", [])

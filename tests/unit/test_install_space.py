@@ -135,14 +135,35 @@ def test_the_clouds_bake_strips_setuid_bits_and_refuses_a_fifo(tmp_path):
     prefix = _tree(tmp_path / "ws")
     script = (ROOT / "templates" / "image" / "software-bake.sh").read_text()
     # The step after the build, run on its own with W moved (the rest installs packages as root).
-    block = script[script.index('if [ -d "$W" ]; then'):script.index('rm -rf "$B"')]
-    run = lambda: subprocess.run(["sh", "-euc", f'step() {{ echo "== $*"; }}; W={prefix}\n{block}'],  # noqa: E731
+    block = script[script.index('if [ -d "$R$W" ]; then'):script.index('if [ -n "$CCRP_OUT" ]; then\n  mkdir')]
+    run = lambda: subprocess.run(["sh", "-euc", f'step() {{ echo "== $*"; }}; R=""; W={prefix}\n{block}'],  # noqa: E731
                                  capture_output=True, text=True)
     assert run().returncode == 0
     assert _modes(prefix) == {"su": 0o755, "sg": 0o755, "plain": 0o755}
     os.mkfifo(prefix / "lib" / "pkg" / "pipe")
     proc = run()
     assert proc.returncode == 1 and "the install space holds" in proc.stderr and "pipe, a device file or FIFO" in proc.stderr
+
+
+def test_a_deploys_build_on_a_clone_writes_its_install_space_as_a_tar_of_workspace(tmp_path):
+    """`ccrp deploy --build-on clone`: the install space built under the root R goes into CCRP_OUT
+    (top directory workspace/, as Docker's build gives it), the build's directory goes, and the bake's
+    last steps (the login taken away, sync) do not run on a clone."""
+    import tarfile
+
+    root = tmp_path / "root"
+    _tree(root / "opt" / "ccrp" / "workspace")
+    script = (ROOT / "templates" / "image" / "software-bake.sh").read_text()
+    block = script[script.index('if [ -n "$CCRP_OUT" ]; then\n  mkdir'):]
+    out, bake = tmp_path / "out.tgz", tmp_path / "bake"
+    bake.mkdir()
+    proc = subprocess.run(["sh", "-euc", f'step() {{ echo "== $*"; }}; R={root}; W=/opt/ccrp/workspace; B={bake}; '
+                                         f'CCRP_OUT={out}; CCRP_LOGIN=nobody-here\n{block}'], capture_output=True, text=True)
+    assert proc.returncode == 0 and proc.stdout.strip().splitlines()[-1] == "ccrp-software built", proc
+    assert "login removed" not in proc.stdout and not bake.exists()
+    with tarfile.open(out) as tar:
+        names = tar.getnames()
+    assert names[0] == "workspace" and "workspace/lib/pkg/plain" in names, names
 
 
 def test_the_clouds_bake_writes_the_install_space_back_before_it_says_built():

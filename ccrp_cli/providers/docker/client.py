@@ -37,6 +37,15 @@ def _client():
     return client
 
 
+def engine_answers() -> bool:
+    """Whether this host's Docker engine answers a ping (the SDK installed, DOCKER_HOST reachable)."""
+    try:
+        _client().close()
+    except CcrpError:
+        return False
+    return True
+
+
 class _EngineBusy(Exception):
     """The engine (or a proxy in front of it) shed load: 429 / 503."""
 
