@@ -1,7 +1,7 @@
 # ccrp developer entry points. `make test` is the command CI runs (see README).
 PY := .venv/bin/python
 
-.PHONY: setup quickstart test unit quick bench clean openstack e2e-openstack-real e2e-openstack-real-gateway contract-openstack-real
+.PHONY: setup quickstart test unit quick bench clean openstack e2e-openstack-real e2e-openstack-real-gateway contract-openstack-real e2e-offload-ros1
 
 setup:
 	bash scripts/setup.sh
@@ -24,6 +24,11 @@ unit:
 # examples instead of 1000.
 quick:
 	CCRP_FUZZ_EXAMPLES=100 $(PY) -m pytest -n 3 --dist loadgroup --basetemp=/tmp/ccrpquick tests/unit tests/contract
+
+# The offloading example's ROS 1 fleet (C++ node, catkin) on Docker: fleet up, the robot's scan answered
+# with a map, a changed C++ source deployed and rolled back (about 10 minutes: C++ builds). Not part of `make test`.
+e2e-offload-ros1:
+	CCRP_E2E_OFFLOAD_ROS1=1 $(PY) -m pytest tests/e2e/test_offload_ros1.py -v
 
 # A real single-node OpenStack on this machine (docs/openstack.md), and ccrp's user path on it: init, bake,
 # fleet up of two clones, a robot through its floating IP, a shared topic, deploy, stop/start, fleet

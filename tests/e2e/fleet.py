@@ -192,6 +192,20 @@ def sweep(client, fleet: str) -> list[str]:
     return problems + left
 
 
+def example_inventory(example: Path, robots: tuple[str, ...]) -> Callable[[dict], None]:
+    """start_fleet's `edit` for an example's inventory (examples/...yaml): the example with
+    start_fleet's fleet name and networks, and `robots` alone."""
+    def edit(data: dict) -> None:
+        loaded = yaml.safe_load(example.read_text())
+        keep = {k: data[k] for k in ("fleet", "provider", "vpn", "common")}
+        data.clear()
+        data.update(loaded)
+        data.update(keep)
+        data["robots"] = [r for r in loaded["robots"] if r["name"] in robots]
+
+    return edit
+
+
 def start_fleet(request, tmp_path_factory, prefix: str, edit: Callable[[dict], None] = lambda data: None,
                 copy: dict[str, Path] | None = None) -> E2EFleet:
     """A fleet of its own from inventories/lab.yaml (`edit` changes the inventory), with its CA and

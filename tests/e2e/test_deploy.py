@@ -17,7 +17,7 @@ import yaml
 
 from ccrp_cli.services.workloads import read_journal
 from tests.conftest import ROOT
-from tests.e2e.fleet import NO_DOCKER, E2EFleet, exec_in, start_fleet, wait_for
+from tests.e2e.fleet import NO_DOCKER, E2EFleet, example_inventory, exec_in, start_fleet, wait_for
 
 pytestmark = [
     pytest.mark.slow,
@@ -28,19 +28,10 @@ OFFLOAD = ROOT / "examples" / "offload"
 PACKAGE = Path("ros2/ws/src/ccrp_offload")
 
 
-def _offload(data: dict) -> None:
-    """examples/offload/ros2.yaml with start_fleet's fleet name and networks, and nao1 alone."""
-    example = yaml.safe_load((OFFLOAD / "ros2.yaml").read_text())
-    keep = {k: data[k] for k in ("fleet", "provider", "vpn", "common")}
-    data.clear()
-    data.update(example)
-    data.update(keep)
-    data["robots"] = [r for r in example["robots"] if r["name"] == "nao1"]
-
-
 @pytest.fixture(scope="module")
 def fleet(request, tmp_path_factory) -> E2EFleet:
-    return start_fleet(request, tmp_path_factory, "e2d", _offload, copy={"ros2": OFFLOAD / "ros2"})
+    return start_fleet(request, tmp_path_factory, "e2d",
+                       example_inventory(OFFLOAD / "ros2.yaml", ("nao1",)), copy={"ros2": OFFLOAD / "ros2"})
 
 
 @pytest.fixture(scope="module")
