@@ -23,7 +23,7 @@ import pytest
 
 from tests.libvirt_host import URI, gate
 
-from .backend import Backend, free_cidr, inventory_text
+from .backend import Backend, free_cidr, hello_software, inventory_text
 
 def unavailable() -> str | None:
     """Why the scenario cannot run here (None: it can)."""
@@ -92,7 +92,9 @@ def _remove(fleet: str) -> None:
 def open_backend(tmp_path: Path, fleet: str):
     inv = tmp_path / "inventory.yaml"
     provider = PROVIDER.format(public=free_cidr("192.168.144.0/20"))
-    inv.write_text(inventory_text(fleet, provider, free_cidr("10.220.0.0/16"), "10.86.0.0/16"))
+    # The fleet's own software (a catkin workspace; docs/workloads.md): in the golden volume `snapshot
+    # build` makes, then deployed to the VMs over SSH by the deploy step.
+    inv.write_text(inventory_text(fleet, provider, free_cidr("10.220.0.0/16"), "10.86.0.0/16") + hello_software(tmp_path))
 
     @contextmanager
     def quota():  # the host's vCPUs (its CPUs x vcpu_overcommit) no more than the fleet's two clones take
@@ -115,6 +117,6 @@ def open_backend(tmp_path: Path, fleet: str):
 
     try:
         yield Backend(kind="libvirt", inventory=inv, home=tmp_path / "home", owned=lambda: _owned(fleet),
-                      faults={"quota": quota})
+                      faults={"quota": quota}, nodes=["hello", "launched"])
     finally:
         _remove(fleet)
