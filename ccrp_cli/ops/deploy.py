@@ -242,7 +242,7 @@ def builder(provider: Provider, build_on: str, live: list[str]) -> str | None:
     running clone builds it (`auto`: the first of `live` when no engine answers here)."""
     from ..providers import local_engine_answers
 
-    if build_on == "local" or provider.kind == "docker" or (build_on == "auto" and local_engine_answers()):
+    if build_on == "local" or (build_on == "auto" and local_engine_answers()):
         return None
     if not live:
         why = "this host has no Docker engine, and" if build_on == "auto" else "--build-on clone:"

@@ -158,10 +158,13 @@ def built(monkeypatch):
     calls = []
 
     def build(fleet, software, progress, provider=None, on=None):
-        assert on is None  # a Docker fleet: this host's engine builds
+        assert on is None  # this host's engine builds (it answers, below)
         calls.append(software.digest)
         return install_tar("v2")
 
+    import ccrp_cli.providers as providers
+
+    monkeypatch.setattr(providers, "local_engine_answers", lambda: True)
     monkeypatch.setattr(deploy, "build_install_space", build)
     monkeypatch.setattr(workloads, "HEALTH_SECONDS", 0.2)
     monkeypatch.setattr(workloads, "HEALTH_INTERVAL", 0.05)
@@ -774,7 +777,7 @@ def test_a_robot_whose_clone_failed_and_went_does_not_hold_the_deploy_back(fleet
 
 def test_the_build_runs_here_when_an_engine_answers_else_on_a_running_clone(monkeypatch):
     """--build-on auto: this host's Docker engine when it answers, else the first running clone of the
-    deploy; `clone` always a clone; a Docker fleet always here; no running clone to build on is one line."""
+    deploy; `clone` always a clone; no running clone to build on is one line."""
     import ccrp_cli.providers as providers
 
     class Cloud:
@@ -788,6 +791,5 @@ def test_the_build_runs_here_when_an_engine_answers_else_on_a_running_clone(monk
     answers.append(False)
     assert deploy.builder(Cloud(), "auto", ["nao2"]) == "nao2"
     assert deploy.builder(Cloud(), "local", ["nao2"]) is None
-    assert deploy.builder(Clones.__new__(Clones), "clone", ["nao1"]) is None  # kind docker
     with pytest.raises(CcrpError, match="this host has no Docker engine, and no clone of this deploy is running"):
         deploy.builder(Cloud(), "auto", [])

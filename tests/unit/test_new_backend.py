@@ -39,8 +39,9 @@ NAMES_A_KIND: dict[str, int] = {
     "ccrp_cli/cli/robot.py": 1,
     # A comment in deploy's install script citing templates/docker/software.j2, a file's path.
     "ccrp_cli/ops/install_space.py": 1,
-    # What runs on this host's Docker engine whatever the fleet's backend (robot_host, build_workspace).
-    "ccrp_cli/providers/__init__.py": 2,
+    # What runs on this host's Docker engine whatever the fleet's backend (robot_host, build_workspace,
+    # and whether it answers: local_engine_answers, where ccrp deploy builds).
+    "ccrp_cli/providers/__init__.py": 3,
     # The Docker SDK's import names (the robot host and build use it whatever the fleet's backend).
     "ccrp_cli/providers/sdk.py": 2,
     # `robot sim`'s hint for robots outside the host: a libvirt fleet's vpn_forward.

@@ -224,7 +224,7 @@ class AwsProvider(CloudProvider):
             if error_code(exc.__cause__) != "RouteAlreadyExists":
                 raise
         rt = c.api("describe route table", c.ec2.describe_route_tables, RouteTableIds=[net.route_table_id])["RouteTables"][0]
-        current = next((r for r in rt["Routes"] if r.get("DestinationCidrBlock") == cidr), {})
+        current: dict = next((r for r in rt["Routes"] if r.get("DestinationCidrBlock") == cidr), {})
         if any(current.get(k) != v for k, v in target.items()):  # left by an earlier instance of this robot
             c.api("replace route", c.ec2.replace_route, RouteTableId=net.route_table_id,
                      DestinationCidrBlock=cidr, **target)
