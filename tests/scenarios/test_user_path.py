@@ -141,7 +141,7 @@ def _wait_for_lines(run, name: str, text: str) -> None:
     assert all(text in last.get(r, "") for r in ROBOTS), (text, last)
 
 
-def test_deploy_and_rollback_reach_every_clone_over_ssh(run, clone_images):
+def test_deploy_and_rollback_reach_every_clone_over_ssh(run):
     """`ccrp deploy` over SSH (docs/workloads.md). On a cloud from a machine without Docker: the
     changed workspace built on nao1's clone in its image (no engine answers here); on libvirt (whose
     snapshots this host's Docker builds) here. Each clone is sent what it lacks over SSH (through
