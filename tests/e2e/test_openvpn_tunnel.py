@@ -108,7 +108,11 @@ def clone(lab: Lab, namespaces: None, tmp_path_factory: pytest.TempPathFactory) 
     view, creds = lab.views["nao1"], lab.creds["nao1"]
     log = tmp_path_factory.mktemp("clone") / "server.log"
     with serve_clone(NS_CLONE, view, creds, log) as (vpn_dir, server):
-        yield Clone(vpn_dir, server, view)
+        served = Clone(vpn_dir, server, view)
+        try:
+            yield served
+        finally:
+            served.server.stop()  # serve() restarts it: serve_clone stops only the first one
 
 
 @dataclass
