@@ -7,7 +7,6 @@ servers, find)."""
 from __future__ import annotations
 
 import re
-
 import threading
 from pathlib import Path
 
