@@ -360,7 +360,7 @@ def test_aws_without_service_quotas_counts_running_instances(aws_env, tmp_path):
                        "Routes per route table": (50, 1, 1, 0)}
 
 
-def test_aws_routes_per_route_table_hold_a_fleet_of_48_clones(aws_env, tmp_path):
+def test_aws_routes_per_route_table_hold_a_fleet_of_49_clones(aws_env, tmp_path):
     """Each clone has a route in the clones' route table (its robot's VPN subnet): AWS's default of 50
     routes per table (Service Quotas L-93826ACB) holds the default route and 49 clones, so a fleet of 100
     needs that quota raised even behind the entry gateway (one address)."""

@@ -340,7 +340,7 @@ class AwsProvider(CloudProvider):
         routes = self._service_quota("vpc", "L-93826ACB")
         if routes is not None:
             # Each clone has a route in the clones' route table (its robot's VPN subnet): AWS's
-            # default of 50 per table holds a fleet of about 48, whatever its entry.
+            # default of 50 per table holds the default route and 49 clones, whatever the entry.
             net = network.find(c) if c.net is None else c.net
             table = (c.api("describe route table", c.ec2.describe_route_tables, RouteTableIds=[net.route_table_id])
                      ["RouteTables"][0]["Routes"] if net else [{"DestinationCidrBlock": "0.0.0.0/0"}])  # bootstrap makes it
