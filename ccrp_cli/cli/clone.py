@@ -76,12 +76,19 @@ def exec_(
     robot: options.Robot,
     command: Annotated[list[str], typer.Argument(help="Command and arguments, after --.")],
     timeout: Annotated[float, typer.Option(help="Seconds before the command is killed.")] = 600,
+    as_node: Annotated[bool, typer.Option("--as-node", help="Run it as the clone's nodes run: their user, the clone's ROS "
+                                                            "environment and the workspace's (its message types; on ROS 2, "
+                                                            "root does not hear the nodes' shared-memory DDS).")] = False,
 ) -> None:
     """Run a command inside the robot's clone: ccrp clone exec -i INV --robot nao1 -- rostopic list"""
     fleet = options.open_fleet(inventory)
     fleet.robot(fleet.store.load_state(), robot)  # a robot the fleet does not have is bad input
     from ..providers import get_provider
 
+    if as_node:
+        from ..services.workloads import AS_NODE
+
+        command = [*AS_NODE, *command]
     rc, out = get_provider(fleet.inventory).transport.exec(robot, command, timeout=timeout)
     output.command_output(out)
     raise typer.Exit(rc)

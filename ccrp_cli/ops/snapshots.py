@@ -133,7 +133,7 @@ BAKE_DIR = "/var/lib/ccrp/bake"  # on the builder: the workspace's tar; removed 
 def software_env(software: SnapshotSoftware) -> dict[str, str]:
     """What templates/image/software-bake.sh is given: the same lists the Docker snapshot's
     software layers take (providers/docker/images.py dockerfile)."""
-    from ..recipes import is_ros2, recipe
+    from ..recipes import is_ros2
     from ..render.cloudinit import ros2_prefix
     from ..models.layout import LOGIN_USER
 
@@ -142,23 +142,34 @@ def software_env(software: SnapshotSoftware) -> dict[str, str]:
     return {
         "CCRP_BUILD": software.build_type or "none",
         "CCRP_APT": " ".join(software.apt),
-        "CCRP_BUILD_APT": " ".join(recipe(software.distro).build_tools.apt),
+        "CCRP_BUILD_APT": " ".join(software.build_tools.apt),
         "CCRP_PIP": " ".join(software.pip_install),
         "CCRP_PIP_CMD": f"{prefix}/bin/pip" if ros2 else "env PIP_BREAK_SYSTEM_PACKAGES=1 pip3",
         "CCRP_PYTHON": f"{prefix}/bin/python" if ros2 else "python3",
-        "CCRP_DIRS": " ".join(sorted({p.path.rsplit("/", 1)[0] if "/" in p.path else "." for p in software.packages})),
+        "CCRP_DIRS": " ".join(software.python_dirs),
+        "CCRP_IFACE": " ".join(software.interface_words),
+        "CCRP_TOOLS_PIP": " ".join(software.build_tools.pip),
         "CCRP_LOGIN": LOGIN_USER,
     }
 
 
 def workspace_tar(software: SnapshotSoftware) -> bytes:
-    """The workspace's source files (what its digest covers) as a tar."""
+    """The workspace's source files (what its digest covers) as a tar, and under ccrp-tools/ the
+    wheels of its build tools (fetched here: the machine building it needs no index for them)."""
     import io
     import tarfile
 
+    files = list(software.workspace)
+    if software.build_tools.pip:
+        from ..providers import fetch_wheels
+        from ..recipes import platform
+
+        plat = platform(software.distro, software.platform)
+        files += [(f"ccrp-tools/{name.rsplit('/', 1)[-1]}", data)
+                  for name, data in fetch_wheels(software.build_tools.pip, tuple(plat.wheel_platforms)).items()]
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w:gz") as tar:
-        for rel, data in software.workspace:
+        for rel, data in files:
             info = tarfile.TarInfo(rel)
             info.size, info.mode = len(data), 0o644
             tar.addfile(info, io.BytesIO(data))
@@ -195,7 +206,8 @@ def run_software_script(provider: Reaches, robot: str, software: SnapshotSoftwar
         provider.transport.push_files(robot, [BundleFile("workspace.tar.b64", tar, 0o600, f"{BAKE_DIR}/workspace.tar.b64")],
                                       restart=[])
     words = [f"{k}={v}" for k, v in env.items()]
-    rc, out = provider.transport.exec(robot, ["env", *words, "sh", "-c", static("image/software-bake.sh"), "ccrp-software"],
+    script = static("image/interfaces-build.sh") + static("image/software-bake.sh")  # the first defines build_interfaces
+    rc, out = provider.transport.exec(robot, ["env", *words, "sh", "-c", script, "ccrp-software"],
                                       timeout=timeout)
     if rc != 0 or "ccrp-software built" not in out:
         lines = [line.strip() for line in out.strip().splitlines() if line.strip()]

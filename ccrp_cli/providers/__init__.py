@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     # __init__ first, while the inventory module is still half-made.
     from ..models.inventory import Inventory
 
-__all__ = ["REGISTRY", "Ability", "build_workspace", "close_opened", "get_provider", "info", "local_engine_answers",
+__all__ = ["REGISTRY", "Ability", "build_workspace", "close_opened", "fetch_wheels", "get_provider", "info", "local_engine_answers",
            "register", "require", "robot_host"]
 
 # Every provider this process made and still holds: the CLI closes them when its command ends
@@ -32,10 +32,12 @@ _OPENED: weakref.WeakSet = weakref.WeakSet()
 
 # What runs on this host's Docker engine whatever the fleet's backend: every fleet's simulated
 # robots (where each sits on its fleet's network is the backend's: Ability.ROBOT_ATTACH) and `ccrp
-# deploy`'s workspace build. Factories as a ProviderInfo's: loaded by the commands that use them.
+# deploy`'s workspace build; and the host's wheel cache, which the Docker images' builds fill and
+# a bake or a clone's build takes the workspace's build tools from. Factories as a ProviderInfo's: loaded by the commands that use them.
 ROBOT_HOST = ".docker.robots:RobotContainers"
 WORKSPACE_BUILD = ".docker.workspace:build_workspace"
 LOCAL_ENGINE = ".docker.client:engine_answers"
+WHEELS = ".docker.wheels:fetch"
 
 
 def _load(factory: str) -> Any:
@@ -70,6 +72,12 @@ def build_workspace(inv: Inventory, software: ImageSoftware, agents: tuple[str, 
 def local_engine_answers() -> bool:
     """Whether this host's Docker engine answers (ccrp deploy builds there when it does)."""
     return _load(LOCAL_ENGINE)()
+
+
+def fetch_wheels(requirements: list[str], platforms: tuple[str, ...]) -> dict[str, bytes]:
+    """`wheels/<file>` -> content: the wheels of `requirements` and all they require, for the
+    clones' python on `platforms`, from this host's wheel cache (or the index, once)."""
+    return _load(WHEELS)(requirements, platforms)
 
 
 def close_opened() -> None:

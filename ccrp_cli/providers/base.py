@@ -483,13 +483,6 @@ class HostImages(Protocol):
     def images_finding(self) -> Finding: ...
 
 
-class WorkspacePackage(Protocol):
-    """A package of the fleet's workspace, as an image build places it (services/workloads.py Package)."""
-
-    @property
-    def path(self) -> str: ...  # its package.xml, relative to the workspace
-
-
 class ImageSoftware(Protocol):
     """The fleet's own software as a LocalBuild puts it in the image (services/workloads.py
     SnapshotSoftware, which the core reads and checks; templates/docker/software.j2)."""
@@ -507,7 +500,20 @@ class ImageSoftware(Protocol):
     @property
     def workspace(self) -> Sequence[tuple[str, bytes]]: ...  # (path in the workspace, content)
     @property
-    def packages(self) -> Sequence[WorkspacePackage]: ...
+    def python_dirs(self) -> list[str]: ...  # the ament_python packages' directories
+    @property
+    def interface_words(self) -> list[str]: ...  # the interface packages, NAME=DIR, in build order
+    @property
+    def build_tools(self) -> ImageBuildTools: ...
+
+
+class ImageBuildTools(Protocol):
+    """What building the workspace needs beside its packages' own (the recipe's build_tools)."""
+
+    @property
+    def apt(self) -> list[str]: ...
+    @property
+    def pip(self) -> list[str]: ...
 
 
 class LocalBuild(Protocol):

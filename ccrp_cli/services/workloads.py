@@ -57,6 +57,10 @@ NO_SOFTWARE = "none"  # the digest of a snapshot (or inventory) without software
 SKIP_DIRS = {"build", "devel", "install", "log", "logs", "__pycache__", ".git", ".hg", ".svn"}
 MAX_WORKSPACE_BYTES = 64 << 20  # goes into a build context (Docker) or over SSH (clouds)
 SAFE_PATH = re.compile(r"[A-Za-z0-9._+/-]{1,200}")
+# A ROS 2 workspace: Python packages, and interface packages built with CMake from the wheels'
+# ament_cmake and rosidl generators (no rclcpp*: PyPI has no wheel of them).
+ROS2_BUILD_TYPES = ("ament_python", "ament_cmake")
+ROS_PACKAGE_NAME = re.compile(r"[a-z][a-z0-9_]{0,99}")
 DEPEND_TAGS = ("depend", "build_depend", "exec_depend", "run_depend", "buildtool_depend", "build_export_depend",
                "test_depend")
 
@@ -73,6 +77,12 @@ class Package:
     build_type: str  # catkin | ament_python | ament_cmake | cmake
     depends: tuple[str, ...]  # rosdep keys, the workspace's own packages left out
     path: str  # package.xml, relative to the workspace
+    uses: tuple[str, ...] = ()  # the workspace's own packages it depends on
+
+
+def package_dir(pkg: Package) -> str:
+    """The package's directory, relative to the workspace: a word of the snapshot's build."""
+    return pkg.path.rsplit("/", 1)[0] if "/" in pkg.path else "."
 
 
 def workspace_dir(inv_path: Path | None, software: Software) -> Path | None:
@@ -143,7 +153,8 @@ def scan_packages(root: Path, files: list[tuple[str, bytes]]) -> list[Package]:
             raise InputError(f"workspace {root}: package path {shown(rel)} has characters other than letters, digits and ._+-/",
                              hint="rename the package's directory")
     own = {name for name, *_ in parsed}
-    return [Package(name, bt, tuple(dict.fromkeys(k for k in keys if k and k not in own)), rel)
+    return [Package(name, bt, tuple(dict.fromkeys(k for k in keys if k and k not in own)), rel,
+                    tuple(dict.fromkeys(k for k in keys if k in own and k != name)))
             for name, bt, keys, rel in parsed]
 
 
@@ -163,15 +174,18 @@ def resolve(distro: str, packages: list[Package]) -> Resolved:
     table = recipe(distro).rosdep
     out = Resolved()
     for pkg in packages:
-        if is_ros2(distro) and pkg.build_type != "ament_python":
+        if is_ros2(distro) and pkg.build_type not in ROS2_BUILD_TYPES:
             raise InputError(f"package {shown(pkg.name)} ({pkg.path}) is {shown(pkg.build_type)}: a ROS 2 workspace here builds "
-                             "ament_python packages only (the ROS 2 wheels have no rclcpp)")
+                             "ament_python packages and ament_cmake interface packages (.msg, .srv, .action)")
         if not is_ros2(distro) and pkg.build_type != "catkin":
             raise InputError(f"package {shown(pkg.name)} ({pkg.path}) is {shown(pkg.build_type)}: a ROS 1 workspace builds catkin packages")
+        if pkg.build_type == "ament_cmake" and not ROS_PACKAGE_NAME.fullmatch(pkg.name):
+            raise InputError(f"package {shown(pkg.name)} ({pkg.path}): an interface package's name is lower-case letters, "
+                             "digits and _ (REP 144), starting with a letter")
         for key in pkg.depends:
-            if key in ("rclcpp", "rclcpp_components", "ament_cmake") and is_ros2(distro):
+            if is_ros2(distro) and key.startswith("rclcpp"):
                 raise InputError(f"package {shown(pkg.name)} depends on {key}: the ROS 2 wheels have no rclcpp (C++); "
-                                 "write the node in Python (rclpy)")
+                                 "write the node in Python (rclpy), and keep ament_cmake packages to interfaces")
             entry = table.get(key)
             if entry is None:
                 raise InputError(f"package {shown(pkg.name)} depends on {shown(key)}, which resolves to no "
@@ -193,6 +207,7 @@ class SnapshotSoftware:
     spec: Software
     distro: str
     workspace: list[tuple[str, bytes]] = field(default_factory=list)
+    platform: str = "debian-bookworm"  # the recipe's platform the clones run (Inventory.clone_platform)
     packages: list[Package] = field(default_factory=list)
     resolved: Resolved = field(default_factory=Resolved)
 
@@ -210,13 +225,54 @@ class SnapshotSoftware:
 
     @property
     def build_type(self) -> str | None:
-        return self.packages[0].build_type if self.packages else None
+        """How the workspace is built: `catkin` (ROS 1), `ament` (ROS 2: its interface packages
+        with CMake, then its Python packages with pip), None without a workspace."""
+        if not self.packages:
+            return None
+        return "catkin" if self.packages[0].build_type == "catkin" else "ament"
+
+    @property
+    def interfaces(self) -> list[Package]:
+        """The ament_cmake (interface) packages, each after those of the workspace it depends on."""
+        left = {p.name: p for p in self.packages if p.build_type == "ament_cmake"}
+        out: list[Package] = []
+        while left:
+            ready = [p for p in left.values() if not set(p.uses) & set(left)]
+            if not ready:
+                raise InputError(f"the workspace's interface packages depend on each other in a cycle: {', '.join(sorted(left))}")
+            for p in sorted(ready, key=lambda p: p.name):
+                out.append(left.pop(p.name))
+        return out
+
+    @property
+    def interface_words(self) -> list[str]:
+        """The interface packages as the build takes them: NAME=DIR, in build order."""
+        return [f"{p.name}={package_dir(p)}" for p in self.interfaces]
+
+    @property
+    def python_dirs(self) -> list[str]:
+        """The directories of the ament_python packages, which pip installs."""
+        return sorted({package_dir(p) for p in self.packages if p.build_type == "ament_python"})
+
+    @property
+    def build_tools(self) -> Resolved:
+        """What building the workspace needs beside its packages' own keys, from the recipe: catkin's
+        compiler and tools, or for interface packages CMake, the compiler and the wheels of ament_cmake
+        and the rosidl generators (none on a platform whose ROS is installed: its own has them)."""
+        from ..recipes import platform, recipe
+
+        tools = recipe(self.distro).build_tools
+        if self.build_type == "catkin":
+            return Resolved(apt=list(tools.apt))
+        if not self.interfaces:
+            return Resolved()
+        return Resolved(apt=list(tools.apt), pip=[] if platform(self.distro, self.platform).ros_installed else list(tools.pip))
 
     @property
     def pip_install(self) -> list[str]:
         """What pip installs: the requirements, and `wheel` for ament_python packages (it builds
         them in the venv, whose setuptools has no bdist_wheel of its own)."""
-        return self.pip + (["wheel"] if self.build_type == "ament_python" else [])
+        return self.pip + (["wheel"] if self.python_dirs else [])
 
     @property
     def digest(self) -> str:
@@ -238,12 +294,13 @@ def packages_record(software: SnapshotSoftware) -> str:
 def snapshot_software(inv: Inventory, inv_path: Path | None) -> SnapshotSoftware:
     """Read and check everything the snapshot will hold, before anything is built or changed."""
     spec = inv.snapshot_software()
-    out = SnapshotSoftware(spec=spec, distro=inv.ros.distro)
+    out = SnapshotSoftware(spec=spec, distro=inv.ros.distro, platform=inv.clone_platform)
     root = workspace_dir(inv_path, spec)
     if root is not None:
         out.workspace = workspace_files(root)
         out.packages = scan_packages(root, out.workspace)
         out.resolved = resolve(inv.ros.distro, out.packages)
+        out.interfaces  # noqa: B018 - a cycle among them is refused here, before anything is built
     programs.check(inv, out.apt, out.workspace)  # a node whose program the clone lacks: refused here
     return out
 

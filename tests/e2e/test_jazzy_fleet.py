@@ -119,6 +119,10 @@ def _lab_on(distro: str, data: dict) -> None:
                       {"name": "nao2", "type": "nao", "imports": {"nao1": ["/chatter"]}}]
     if distro == "jazzy":
         data["software"] = {"workspace": "ws", "run": [MAPPER]}
+        # The mapper's summaries, of the workspace's own message type (its interface package
+        # ccrp_offload_msgs), shared as any topic: on nao2's clone as /nao1/map_stats.
+        data["robots"][0]["exports"].append("/map_stats")
+        data["robots"][1]["imports"]["nao1"].append("/map_stats")
         # The platform services on ROS 2 (docs/services.md): nao1's API manager recognises faces of the
         # dataset both clones share. Its camera is a topic of the test's own (the demo node's
         # /camera/image_raw shows no face).
@@ -351,7 +355,7 @@ def test_a_topic_nao1_exports_reaches_nao2s_clone_with_its_type_and_qos(fleet: E
     assert "/camera/image_raw" in home, home  # the robot publishes it, unexported: it never leaves
     assert not [t for t in there if "camera" in t or t == "/chatter"], there
     rc, status = exec_in(clone1, ["cat", "/run/ccrp-relay/status.json"])
-    assert list(json.loads(status)["exports"]) == ["/chatter"], status
+    assert list(json.loads(status)["exports"]) == (["/chatter", "/map_stats"] if _distro(fleet) == "jazzy" else ["/chatter"]), status
     rows = fleet.status()
     assert rows["nao2"]["relay_peers"] == {"nao1": True} and rows["nao1"]["relay_peers"] == {"nao2": True}, rows
     # Restarted, the agent stops at once and cleanly (no wait for systemd's stop timeout, no abort),
@@ -461,6 +465,22 @@ def test_the_robots_own_node_on_its_clone_answers_its_scan_with_a_map(fleet: E2E
                      f"--- the clone's mapper:\n{mapper_log}")
     grid = json.loads(out.strip().splitlines()[-1])
     assert grid["width"] == 100 and grid["occupied"] > 0 and grid["free"] > 0, grid
+    # The workspace's own interface package (ament_cmake, rosidl): its message and its service used
+    # by the workspace's nodes on nao1's clone, and the message shared to nao2's clone, whose relay
+    # loaded the code ccrp generated for it (and only that: the shadowing zenoh stays out).
+    # As a user reads them: `ccrp clone exec --as-node` (the nodes' user and environment).
+    last = fleet.inv("clone", "exec", "--robot", "nao1", "--as-node", "--timeout", "60", "--",
+                     "python3", "-m", "ccrp_offload.map_stats", "--service", "/last_map", "--timeout", "30")
+    assert last.returncode == 0, f"{last.stdout}{last.stderr}\n{mapper_log}"
+    summary = json.loads(last.stdout.strip().splitlines()[-1])
+    assert summary["robot"] == "nao1" and summary["version"] == "1.0", summary
+    assert (summary["width"], summary["occupied"], summary["free"]) == (100, grid["occupied"], grid["free"]), (summary, grid)
+    shared = fleet.inv("clone", "exec", "--robot", "nao2", "--as-node", "--timeout", "90", "--",
+                       "python3", "-m", "ccrp_offload.map_stats", "/nao1/map_stats", "--timeout", "60")
+    assert shared.returncode == 0, f"{shared.stdout}{shared.stderr}\n{agent_journals(fleet, ['nao1', 'nao2'])}"
+    assert json.loads(shared.stdout.strip().splitlines()[-1])["robot"] == "nao1", shared.stdout
+    journal = exec_in(fleet.container("clone", "nao2"), ["journalctl", "-u", "ccrp-relay", "--no-pager", "-o", "cat"])[1]
+    assert "workspace interfaces: ccrp_offload_msgs loaded" in journal and SHADOW not in journal, journal[-2000:]
 
 
 def test_a_clone_made_again_from_the_snapshot_runs_the_same_software(fleet: E2EFleet, up) -> None:

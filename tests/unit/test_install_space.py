@@ -114,11 +114,11 @@ def _modes(root: Path) -> dict[str, int]:
     return {p.name: stat.S_IMODE(p.stat().st_mode) for p in (root / "lib" / "pkg").iterdir()}
 
 
-@pytest.mark.parametrize("build_type", ["catkin", "ament_python"])
+@pytest.mark.parametrize("build_type", ["catkin", "ament"])
 def test_the_docker_snapshot_strips_setuid_bits_and_refuses_a_fifo(tmp_path, build_type):
     prefix = _tree(tmp_path / "ws")
     text = render("docker/software.j2", software=SimpleNamespace(build_type=build_type, digest="d1"), prefix=str(prefix),
-                  build_apt=["catkin"], sw_apt=[], sw_pip=[], pip_command="pip", package_dirs=["src/a"],
+                  build_apt=["catkin"], sw_apt=[], sw_pip=[], pip_command="pip", python_dirs=["src/a"], interfaces=[],
                   ros2_prefix="/opt/ros/jazzy")
     # The build's RUN step after the install: the lines from the check on, as its shell runs them.
     [check] = [line.strip().removeprefix("&& ").removesuffix(" \\") for line in text.splitlines()

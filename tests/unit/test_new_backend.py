@@ -40,8 +40,9 @@ NAMES_A_KIND: dict[str, int] = {
     # A comment in deploy's install script citing templates/docker/software.j2, a file's path.
     "ccrp_cli/ops/install_space.py": 1,
     # What runs on this host's Docker engine whatever the fleet's backend (robot_host, build_workspace,
-    # and whether it answers: local_engine_answers, where ccrp deploy builds).
-    "ccrp_cli/providers/__init__.py": 3,
+    # and whether it answers: local_engine_answers, where ccrp deploy builds), and the wheel cache
+    # its image builds fill (fetch_wheels: a bake's build tools).
+    "ccrp_cli/providers/__init__.py": 4,
     # The Docker SDK's import names (the robot host and build use it whatever the fleet's backend).
     "ccrp_cli/providers/sdk.py": 2,
     # `robot sim`'s hint for robots outside the host: a libvirt fleet's vpn_forward.

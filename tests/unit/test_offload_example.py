@@ -218,13 +218,29 @@ def depends(root, tag):
 def test_the_ros2_package_is_ament_python_and_depends_on_rclpy_and_the_messages():
     root = ET.parse(ROS2_PKG / "package.xml").getroot()
     assert root.get("format") == "3" and root.findtext("name") == "ccrp_offload"
-    assert depends(root, "exec_depend") == {"rclpy", "sensor_msgs", "nav_msgs"}
+    assert depends(root, "exec_depend") == {"rclpy", "sensor_msgs", "nav_msgs", "ccrp_offload_msgs"}
     assert root.findtext("export/build_type") == "ament_python"
     assert (ROS2_PKG / "resource" / "ccrp_offload").is_file()
     setup = (ROS2_PKG / "setup.py").read_text()
     assert '"scan_to_map = ccrp_offload.scan_to_map:main"' in setup
     assert "share/ament_index/resource_index/packages" in setup
     assert 'if __name__ == "__main__":\n    main()' in (ROS2_PKG / "ccrp_offload" / "scan_to_map.py").read_text()
+
+
+def test_the_ros2_interface_package_generates_the_map_summary_and_its_service():
+    """ccrp_offload_msgs: ament_cmake with rosidl, every interface file named in its CMakeLists, the
+    node publishing one and serving the other (map_stats.py reads both)."""
+    pkg = ROS2_PKG.parent / "ccrp_offload_msgs"
+    root = ET.parse(pkg / "package.xml").getroot()
+    assert root.findtext("export/build_type") == "ament_cmake"
+    assert depends(root, "buildtool_depend") == {"ament_cmake", "rosidl_default_generators"}
+    assert root.findtext("member_of_group") == "rosidl_interface_packages"
+    cmake = (pkg / "CMakeLists.txt").read_text()
+    files = sorted(p.relative_to(pkg).as_posix() for p in pkg.rglob("*.*") if p.suffix in (".msg", ".srv", ".action"))
+    assert files == ["msg/MapStats.msg", "srv/LastMap.srv"] and all(f'"{f}"' in cmake for f in files)
+    node = (ROS2_PKG / "ccrp_offload" / "scan_to_map.py").read_text()
+    assert 'create_publisher(MapStats, "/map_stats"' in node and 'create_service(LastMap, "/last_map"' in node
+    assert '"map_stats = ccrp_offload.map_stats:main"' in (ROS2_PKG / "setup.py").read_text()
 
 
 def test_the_ros1_package_is_catkin_with_a_cpp_node():
@@ -269,7 +285,7 @@ def test_the_inventories_run_the_workspace_on_two_nao_clones(ros, fleet, distro,
     from ccrp_cli.services.workloads import snapshot_software
 
     snap = snapshot_software(inv, path)
-    assert snap.build_type == ("catkin" if ros == "ros1" else "ament_python") and snap.digest != "none"
+    assert snap.build_type == ("catkin" if ros == "ros1" else "ament") and snap.digest != "none"
 
 
 def test_the_two_example_fleets_can_run_side_by_side():

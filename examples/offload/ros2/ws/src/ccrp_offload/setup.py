@@ -19,6 +19,7 @@ setup(
     entry_points={
         "console_scripts": [
             "scan_to_map = ccrp_offload.scan_to_map:main",
+            "map_stats = ccrp_offload.map_stats:main",
         ],
     },
 )

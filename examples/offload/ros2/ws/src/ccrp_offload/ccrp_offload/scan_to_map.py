@@ -1,7 +1,10 @@
 """The clone's half of the offloading example: /scan (sensor_msgs/LaserScan) from the robot in,
 /map (nav_msgs/OccupancyGrid, transient local: a late subscriber gets the last one) out, one map
-per scan. Run: python3 -m ccrp_offload.scan_to_map (ccrp's unit ccrp-run-mapper on the clone)."""
+per scan, with /map_stats (the workspace's own ccrp_offload_msgs/MapStats: a summary another
+clone can import) and the service /last_map (ccrp_offload_msgs/LastMap). Run: python3 -m
+ccrp_offload.scan_to_map (ccrp's unit ccrp-run-mapper on the clone)."""
 import array
+import os
 
 import rclpy
 from nav_msgs.msg import OccupancyGrid
@@ -9,6 +12,9 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
+
+from ccrp_offload_msgs.msg import MapStats
+from ccrp_offload_msgs.srv import LastMap
 
 from ccrp_offload import VERSION, grid
 
@@ -20,6 +26,9 @@ class ScanToMap(Node):
     def __init__(self):
         super().__init__("scan_to_map")
         self.maps = self.create_publisher(OccupancyGrid, "/map", MAP_QOS)
+        self.stats = self.create_publisher(MapStats, "/map_stats", MAP_QOS)
+        self.last = None
+        self.create_service(LastMap, "/last_map", self.on_last_map)
         self.create_subscription(LaserScan, "/scan", self.on_scan, 10)
         self.get_logger().info(f"ccrp_offload {VERSION} started")
 
@@ -35,6 +44,16 @@ class ScanToMap(Node):
         m.info.origin.orientation.w = 1.0
         m.data = array.array("b", cells)
         self.maps.publish(m)
+        stats = MapStats(header=scan.header, robot=os.environ.get("CCRP_ROBOT", ""), version=VERSION,
+                         width=grid.WIDTH, height=grid.HEIGHT, occupied=cells.count(grid.OCCUPIED), free=cells.count(grid.FREE))
+        self.stats.publish(stats)
+        self.last = stats
+
+    def on_last_map(self, request, response):
+        response.found = self.last is not None
+        if self.last is not None:
+            response.stats = self.last
+        return response
 
 
 def main():
