@@ -33,7 +33,8 @@ _OPENED: weakref.WeakSet = weakref.WeakSet()
 # What runs on this host's Docker engine whatever the fleet's backend: every fleet's simulated
 # robots (where each sits on its fleet's network is the backend's: Ability.ROBOT_ATTACH) and `ccrp
 # deploy`'s workspace build; and the host's wheel cache, which the Docker images' builds fill and
-# a bake or a clone's build takes the workspace's build tools from. Factories as a ProviderInfo's: loaded by the commands that use them.
+# a bake or a clone's build takes the workspace's build tools from. Factories as a ProviderInfo's:
+# loaded by the commands that use them.
 ROBOT_HOST = ".docker.robots:RobotContainers"
 WORKSPACE_BUILD = ".docker.workspace:build_workspace"
 LOCAL_ENGINE = ".docker.client:engine_answers"

@@ -20,8 +20,11 @@ build_interfaces() {
   # Where a prefix's Python modules go for this python (lib/python3.X/site-packages): the tools'
   # under $tools, the generated ones under the prefix (rosidl's install rule takes the same path).
   site() { "$CCRP_PYTHON" -c 'import sys, sysconfig; print(sysconfig.get_path("platlib", vars={"base": sys.argv[1], "platbase": sys.argv[1]}))' "$1"; }
-  "$CCRP_PYTHON" -m pip install -q --no-index --no-cache-dir --no-warn-script-location --find-links "$CCRP_TOOLS" \
-    --prefix "$tools" $CCRP_TOOLS_PIP
+  # (None on a platform whose ROS is installed: its own ament_cmake and generators build.)
+  if [ -n "$CCRP_TOOLS_PIP" ]; then
+    "$CCRP_PYTHON" -m pip install -q --no-index --no-cache-dir --no-warn-script-location --find-links "$CCRP_TOOLS" \
+      --prefix "$tools" $CCRP_TOOLS_PIP
+  fi
   export PYTHONPATH="$(site "$tools")${PYTHONPATH:+:$PYTHONPATH}"
   # The workspace's own interface packages first: one may use another's messages.
   export AMENT_PREFIX_PATH="$root$prefix:$tools:$ros" CMAKE_PREFIX_PATH="$root$prefix:$tools:$ros"

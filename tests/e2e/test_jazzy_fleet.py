@@ -546,6 +546,47 @@ def test_logs_of_every_clone_come_merged_by_time_and_follow_a_new_line(fleet: E2
     assert all(x.startswith("nao2/mapper | ") for x in lines), lines  # nao1 wrote nothing new, nothing old came
 
 
+def test_a_changed_interface_package_deploys_built_on_a_clone_and_rolls_back(fleet: E2EFleet, up) -> None:
+    """A field added to the workspace's message and a new node version, deployed as from a machine
+    without Docker (`--build-on clone`: templates/image/software-bake.sh on nao1's clone builds the
+    interface package with the build tools' wheels, then the Python package, under a root of its
+    own), reach both clones; the build leaves no compiler, tool or source behind and the clone's
+    venv as it was; `deploy --rollback` puts 1.0 back."""
+    _jazzy_only(fleet)
+    ws = fleet.inventory.parent / "ws" / "src"
+    files = {ws / "ccrp_offload_msgs" / "msg" / "MapStats.msg": None, ws / "ccrp_offload" / "ccrp_offload" / "__init__.py": None}
+    for path in files:
+        files[path] = path.read_text()
+    clone1 = fleet.container("clone", "nao1")
+    venv_before = exec_in(clone1, ["ls", "/opt/ros/jazzy/lib/python3.11/site-packages"])[1]
+    try:
+        (ws / "ccrp_offload_msgs" / "msg" / "MapStats.msg").write_text(files[ws / "ccrp_offload_msgs" / "msg" / "MapStats.msg"]
+                                                                        + "uint32 unknown  # added by the e2e test\n")
+        (ws / "ccrp_offload" / "ccrp_offload" / "__init__.py").write_text(
+            files[ws / "ccrp_offload" / "ccrp_offload" / "__init__.py"].replace('VERSION = "1.0"', 'VERSION = "1.1"'))
+        proc = fleet.inv("deploy", "--build-on", "clone")
+        assert proc.returncode == 0, f"{proc.stdout}\n{proc.stderr[-3000:]}"
+        assert "built on robot 'nao1''s clone" in proc.stderr, proc.stderr
+        for robot in ("nao1", "nao2"):
+            field = fleet.inv("clone", "exec", "--robot", robot, "--as-node", "--", "python3", "-c",
+                              "from ccrp_offload_msgs.msg import MapStats; print('unknown' in MapStats.get_fields_and_field_types())")
+            assert field.returncode == 0 and field.stdout.strip() == "True", (robot, field.stdout, field.stderr)
+            wait_for(f"{robot}'s mapper 1.1", lambda r=robot: (
+                "ccrp_offload 1.1 started" in (out := fleet.inv("logs", "--robot", r, "mapper", "-n", "5").stdout), out), 30)
+        rc, left = exec_in(clone1, ["sh", "-c", "command -v g++ || ls /var/lib/ccrp/bake 2>/dev/null || echo clean"])
+        assert left.strip() == "clean", left
+        assert exec_in(clone1, ["ls", "/opt/ros/jazzy/lib/python3.11/site-packages"])[1] == venv_before
+    finally:
+        for path, text in files.items():
+            path.write_text(text)
+    back = fleet.json("deploy", "--rollback")
+    assert [r["action"] for r in back] == ["rolled back", "rolled back"], back
+    wait_for("nao1's mapper 1.0 again", lambda: (
+        (out := fleet.inv("logs", "--robot", "nao1", "mapper", "-n", "1").stdout).rstrip().endswith("ccrp_offload 1.0 started"), out), 30)
+    # The inventory's software is the snapshot's again.
+    assert [r["action"] for r in fleet.json("deploy", "--dry-run")] == ["current", "current"]
+
+
 def test_a_node_dropped_from_the_inventory_leaves_the_clones(fleet: E2EFleet, up) -> None:
     """fleet up after the run list lost mapper: its unit is stopped and removed on every clone, and
     status and logs no longer name it."""

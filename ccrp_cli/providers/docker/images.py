@@ -91,7 +91,7 @@ def dockerfile(fleet: str, distro: str, base_image: str, plat: Platform, softwar
     /usr/local/lib/ccrp; a ROS 2 distro's has its `pip` list (the ros-<distro>-* wheels) in a venv at
     /opt/ros/<distro> (docs/ros2.md) and no agents. The fleet's own software
     (workloads.SnapshotSoftware), when it has some, comes last (templates/docker/software.j2)."""
-    from ...recipes import is_ros2, recipe
+    from ...recipes import is_ros2
 
     prefix = f"/opt/ros/{distro}" if is_ros2(distro) and plat.pip else ""
     extra: dict = {"software": None}
