@@ -76,8 +76,8 @@ class WorkspaceInterfaces(importlib.abc.MetaPathFinder):
 
     def __init__(self, root: str) -> None:
         self.root = root
-        # package -> its site directory, None when refused: checked once per process (a deploy's new
-        # interfaces reach the relay when it restarts, as the modules it imported stay loaded).
+        # package -> its site directory, None when refused: checked once per process, as the modules
+        # it imported stay loaded (a deploy that changes them restarts the relay: install_space.py).
         self.checked: dict[str, str | None] = {}
 
     @classmethod

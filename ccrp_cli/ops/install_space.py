@@ -59,6 +59,13 @@ keep() {  # the current units and index, what a rollback puts back
     cp -p "$f" "$D/prev/"
   done
 }
+relay_types() {  # $1 the install space W replaced
+  # The relay loads the workspace's ROS 2 message types once (agent/relay_ros2.py): when the
+  # interface packages changed, it restarts to take the new ones (a running one only).
+  if [ -e "$1/share/ccrp/interfaces.json" ] || [ -e "$W/share/ccrp/interfaces.json" ]; then
+    cmp -s "$1/share/ccrp/interfaces.json" "$W/share/ccrp/interfaces.json" || systemctl try-restart ccrp-relay.service >/dev/null 2>&1 || true
+  fi
+}
 swap_in() {  # $1 the install space to run, $2 its digest (empty: none, the snapshot's)
   # Each step leaves what a rollback needs: W.prev (empty when there was no workspace) and
   # current.prev (empty when there was no digest) once W and current have moved.
@@ -69,6 +76,7 @@ swap_in() {  # $1 the install space to run, $2 its digest (empty: none, the snap
   mv -T "$1" "$W"
   if [ -n "$2" ]; then echo "$2" > "$D/current"; fi
   echo swapped > "$D/pending"
+  relay_types "$W.prev"
 }
 case $act in
 probe)
@@ -135,6 +143,7 @@ rollback)
       step rm -rf "$W.failed"
       if [ -e "$W" ]; then step mv -T "$W" "$W.failed"; fi
       step mv -T "$W.prev" "$W"
+      relay_types "$W.failed"
       step rm -rf "$W.failed"
     fi
     if [ -s "$D/current.prev" ]; then step mv "$D/current.prev" "$D/current"

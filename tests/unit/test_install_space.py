@@ -54,9 +54,10 @@ def _tar(members: list[tuple[str, bytes | str | None, int]]) -> bytes:
 class Clone:
     """A clone that is a directory: DEPLOY_SH runs for real with the clone's paths moved under it."""
 
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, path: str = "/usr/bin:/bin") -> None:
         self.root = root
         self.transport = self
+        self.path = path  # a directory of stand-ins first: what the script asks of systemctl
 
     def at(self, path: str) -> Path:
         return self.root / path.lstrip("/")
@@ -64,7 +65,7 @@ class Clone:
     def exec(self, robot: str, argv: list[str], timeout: float = 60) -> tuple[int, str]:
         base = str(self.root)
         proc = subprocess.run([MOVED.sub(lambda m: base + m.group(1), w) for w in argv], capture_output=True,
-                              text=True, check=False, env={"PATH": "/usr/bin:/bin"})
+                              text=True, check=False, env={"PATH": self.path})
         return proc.returncode, (proc.stdout + proc.stderr).replace(base, "")
 
 
@@ -233,6 +234,40 @@ def test_a_clone_is_sent_only_the_files_it_lacks_and_ends_with_the_whole_version
                    "odd\nname": (b"n", 0o644)}, got
     assert stat.S_IMODE(staged.stat().st_mode) == 0o755
     assert sorted(p.name for p in clone.at(install_space.DEPLOY_DIR).iterdir()) == ["current", "last", "prev"]
+
+
+def test_the_relay_restarts_when_a_swap_or_a_rollback_changes_the_interface_packages(tmp_path):
+    """The relay loads the workspace's message types once: a deploy (or its rollback) that changes
+    the build's list of them restarts it; one that changes only a node's code does not."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    calls = tmp_path / "systemctl.log"
+    (bin_dir / "systemctl").write_text(f'#!/bin/sh\necho "$*" >> {calls}\n')
+    (bin_dir / "systemctl").chmod(0o755)
+    clone = Clone(tmp_path / "clone", path=f"{bin_dir}:/usr/bin:/bin")
+    pushed = clone.at(f"{install_space.DEPLOY_DIR}/x")
+    pushed.parent.mkdir(parents=True)
+    listing = "workspace/share/ccrp/interfaces.json"
+
+    def deploy(digest: str, members) -> list[str]:
+        calls.write_text("")
+        pushed.with_name(f"{digest}.tar.b64").write_text(install_space.pushed(_tar(
+            [("workspace/share", None, 0o755), ("workspace/share/ccrp", None, 0o755), *members])))
+        for action in (("stage", digest), ("swap", digest)):
+            install_space.script(clone, "nao1", *action)
+        return calls.read_text().splitlines()
+
+    restart = ["try-restart ccrp-relay.service"]
+    assert deploy("d1", [("workspace/node.py", b"v1", 0o644)]) == []  # no interface package: nothing
+    install_space.script(clone, "nao1", "commit")
+    assert deploy("d2", [("workspace/node.py", b"v1", 0o644), (listing, b'{"packages": {"a": 1}}', 0o644)]) == restart
+    install_space.script(clone, "nao1", "commit")
+    assert deploy("d3", [("workspace/node.py", b"v2", 0o644), (listing, b'{"packages": {"a": 1}}', 0o644)]) == []
+    install_space.script(clone, "nao1", "commit")
+    assert deploy("d4", [("workspace/node.py", b"v2", 0o644), (listing, b'{"packages": {"a": 2}}', 0o644)]) == restart
+    calls.write_text("")
+    install_space.script(clone, "nao1", "rollback")  # its nodes failed: d3's types back, the relay with them
+    assert "try-restart ccrp-relay.service" in calls.read_text().splitlines()
 
 
 def test_a_delta_that_does_not_unpack_is_followed_by_the_whole_install_space(tmp_path):
