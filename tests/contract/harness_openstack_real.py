@@ -310,6 +310,24 @@ class RealOpenStackHarness:
     def instances_for(self, robot: str) -> int:
         return len(self._servers(robot))
 
+    def new_provider(self, inv, workdir):
+        """An OpenStackProvider of another inventory on the same cloud, its calls counted and
+        faulted as the first's."""
+        from ccrp_cli.providers.openstack.provider import OpenStackProvider
+
+        provider = OpenStackProvider(inv, workdir)
+        provider.client.backoff, provider.client.poll_interval = BACKOFF, POLL
+        for prefix in ("http://", "https://"):
+            provider.client.conn.session.session.mount(prefix, _http_adapter(self))
+        return provider
+
+    def kill(self, provider_id: str) -> None:
+        """The server deleted around ccrp, as an operator does (its port and floating IP stay)."""
+        server = self.cloud.compute.find_server(provider_id, ignore_missing=True)
+        if server is not None:
+            self.cloud.compute.delete_server(server)
+            self.cloud.compute.wait_for_delete(server, interval=POLL, wait=300)
+
     def cleanup(self) -> None:
         """What the harness made itself (foreign servers, leaks the test left)."""
         for server_id in self.foreign:

@@ -559,6 +559,8 @@ def test_a_changed_interface_package_deploys_built_on_a_clone_and_rolls_back(fle
         files[path] = path.read_text()
     clone1 = fleet.container("clone", "nao1")
     venv_before = exec_in(clone1, ["ls", "/opt/ros/jazzy/lib/python3.11/site-packages"])[1]
+    relay_run = lambda: exec_in(clone1, ["systemctl", "show", "-p", "InvocationID", "--value", "ccrp-relay"])[1]  # noqa: E731
+    relay_before = relay_run()
     try:
         (ws / "ccrp_offload_msgs" / "msg" / "MapStats.msg").write_text(files[ws / "ccrp_offload_msgs" / "msg" / "MapStats.msg"]
                                                                         + "uint32 unknown  # added by the e2e test\n")
@@ -576,6 +578,8 @@ def test_a_changed_interface_package_deploys_built_on_a_clone_and_rolls_back(fle
         rc, left = exec_in(clone1, ["sh", "-c", "command -v g++ || ls /var/lib/ccrp/bake 2>/dev/null || echo clean"])
         assert left.strip() == "clean", left
         assert exec_in(clone1, ["ls", "/opt/ros/jazzy/lib/python3.11/site-packages"])[1] == venv_before
+        # The relay loads the message types once: restarted, it has the new ones.
+        assert relay_run() != relay_before
     finally:
         for path, text in files.items():
             path.write_text(text)
