@@ -93,7 +93,10 @@ def main() -> int:
         # Parts of an upload interrupted before its root image go the same way.
         for old in current:
             conn.image.delete_image(old, ignore_missing=True)
-        named = {(i.properties or {}).get(k) for i in conn.image.images() for k in ("kernel_id", "ramdisk_id")}
+        # openstacksdk gives kernel_id and ramdisk_id as the Image's own fields, not in `properties`
+        # (which held neither: every upload deleted its own kernel and initramfs, and Nova then
+        # refused the image: "Can not find requested image").
+        named = {getattr(i, k, None) or (i.properties or {}).get(k) for i in conn.image.images() for k in ("kernel_id", "ramdisk_id")}
         for part in [*conn.image.images(name=f"{NAME}-vmlinuz"), *conn.image.images(name=f"{NAME}-initrd")]:
             if part.id not in named:
                 conn.image.delete_image(part, ignore_missing=True)

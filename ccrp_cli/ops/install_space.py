@@ -60,7 +60,7 @@ keep() {  # the current units and index, what a rollback puts back
   done
 }
 relay_types() {  # $1 the install space W replaced
-  # The relay loads the workspace's ROS 2 message types once (agent/relay_ros2.py): when the
+  # The relay loads the workspace's ROS 2 message types once (agent/relay_interfaces.py): when the
   # interface packages changed, it restarts to take the new ones (a running one only).
   if [ -e "$1/share/ccrp/interfaces.json" ] || [ -e "$W/share/ccrp/interfaces.json" ]; then
     cmp -s "$1/share/ccrp/interfaces.json" "$W/share/ccrp/interfaces.json" || systemctl try-restart ccrp-relay.service >/dev/null 2>&1 || true

@@ -12,7 +12,7 @@ import json
 from dataclasses import asdict, dataclass
 
 from ..fleet import Fleet
-from ..models.layout import CCRP_ETC, RELAY_USER
+from ..models.layout import CCRP_ETC, CCRP_LIB, RELAY_USER
 from ..models.inventory import Robot
 from ..models.state import FleetState
 from ..render.files import BundleFile
@@ -127,7 +127,16 @@ class Relay(CloneService):
                 ros2_agents=("relay", "relay_ros2"), users=(RELAY_USER,))
 
     def files(self, ctx: ServiceContext) -> list[BundleFile]:
-        return [relay_config_file(ctx.fleet, ctx.state, ctx.robot.name, ctx.live)]
+        files = [relay_config_file(ctx.fleet, ctx.state, ctx.robot.name, ctx.live)]
+        if ctx.fleet.inventory.ros.ros2:
+            # The loader of the workspace's message types (ROS 2 interface packages): pushed as the
+            # knowledge agent is, since a bare AWS clone's user-data had no room left for it (and a
+            # bare clone has no workspace). relay_ros2.py imports it when a type is not the distro's.
+            from ..resources import agent_source
+
+            files.append(BundleFile("relay_interfaces.py", agent_source("relay_interfaces"), 0o644,
+                                    f"{CCRP_LIB}/relay_interfaces.py"))
+        return files
 
     def status(self, fleet: Fleet, state: FleetState, robot: Robot, health: dict | None) -> dict:
         if health is None:

@@ -122,10 +122,16 @@ def agent(monkeypatch):
     # What message_class adds to the import system (WorkspaceInterfaces) goes with the test.
     monkeypatch.setattr(sys, "meta_path", list(sys.meta_path))
     monkeypatch.setattr(sys, "path_importer_cache", dict(sys.path_importer_cache))
-    spec = importlib.util.spec_from_file_location(
-        "relay_ros2", Path(__file__).resolve().parents[2] / "ccrp_cli" / "agent" / "relay_ros2.py")
+    agents = Path(__file__).resolve().parents[2] / "ccrp_cli" / "agent"
+    # Its loader of the workspace's message types, which fleet up pushes beside it.
+    spec = importlib.util.spec_from_file_location("relay_interfaces", agents / "relay_interfaces.py")
+    interfaces = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(interfaces)
+    monkeypatch.setitem(sys.modules, "relay_interfaces", interfaces)
+    spec = importlib.util.spec_from_file_location("relay_ros2", agents / "relay_ros2.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    module.interfaces = interfaces
     qos = types.ModuleType("rclpy.qos")
     qos.QoSProfile, qos.ReliabilityPolicy, qos.DurabilityPolicy = QoSProfile, ReliabilityPolicy, DurabilityPolicy
     msgs = {"std_msgs.msg": {"String": String}, "geometry_msgs.msg": {"Twist": Twist}}
@@ -431,7 +437,7 @@ def test_a_subscription_destroyed_before_the_spinner_holds_it_is_passed_over(age
     assert attempts == [[sub], [sub], []] and waits == [[]]
 
 
-# -- the workspace's interface packages (WorkspaceInterfaces) ----------------------------------------
+# -- the workspace's interface packages (relay_interfaces.py WorkspaceInterfaces) -------------------
 
 GENUINE = "X = 'genuine'\n"
 
@@ -455,13 +461,13 @@ def _interfaces(agent, monkeypatch, tmp_path, files: dict[str, str], listed: dic
         for pkg, rels in listed.items()}}
     (tmp_path / "share" / "ccrp").mkdir(parents=True)
     (tmp_path / "share" / "ccrp" / "interfaces.json").write_text(json.dumps(manifest))
-    monkeypatch.setattr(agent.WorkspaceInterfaces, "ROOT", str(tmp_path))
-    monkeypatch.setattr(agent.WorkspaceInterfaces, "_installed", None)
+    monkeypatch.setattr(agent.interfaces.WorkspaceInterfaces, "ROOT", str(tmp_path))
+    monkeypatch.setattr(agent.interfaces.WorkspaceInterfaces, "_installed", None)
     for pkg in {rel.split("/", 1)[0] for rel in files}:
         for mod in [m for m in sys.modules if m == pkg or m.startswith(pkg + ".")]:
             monkeypatch.delitem(sys.modules, mod)
     logged = []
-    monkeypatch.setattr(agent, "log", logged.append)
+    monkeypatch.setattr(agent.interfaces, "log", logged.append)
     return site, logged
 
 

@@ -277,6 +277,18 @@ def test_a_jazzy_clone_runs_no_master_and_rclpy_agents(jazzy):
     # pushed by fleet up).
     assert {"/usr/local/lib/ccrp/relay.py", "/usr/local/lib/ccrp/relay_ros2.py"} <= paths
     assert "/usr/local/lib/ccrp/api_manager.py" not in paths
+    # Its loader of the workspace's message types is fleet up's to push (a ROS 2 clone's only).
+    from ccrp_cli.services.base import ServiceContext
+    from ccrp_cli.services.sharing import Relay
+
+    assert "/usr/local/lib/ccrp/relay_interfaces.py" not in paths
+    pushed = {f.dest: f.content for f in Relay().files(ServiceContext(jazzy, jazzy.store.load_state(), jazzy.inventory.robots[1]))}
+    assert pushed["/usr/local/lib/ccrp/relay_interfaces.py"] == (ROOT / "ccrp_cli/agent/relay_interfaces.py").read_text()
+    from ccrp_cli.ops import vpn
+
+    fleet, state, robot = _noetic(jazzy)
+    vpn.init(fleet)
+    assert [f.name for f in Relay().files(ServiceContext(fleet, state, fleet.inventory.robots[0]))] == ["relay.json"]
     # Both new units run their agent in the clone's ROS environment, as the relay's does: ros-run
     # sources the distro's setup.sh, which puts the venv (rclpy, cv2, Zenoh) on python3's path.
     units = {f["path"].rsplit("/", 1)[1]: f["content"] for f in data["write_files"] if f["path"].endswith(".service")}
