@@ -373,6 +373,18 @@ def test_ros2_interface_packages_build_first_each_after_those_it_uses_with_the_r
     assert env["CCRP_TOOLS_PIP"] == " ".join(snap.build_tools.pip)
 
 
+def test_an_interface_only_workspace_keeps_its_sources_out_of_the_image(tmp_path):
+    """No Python package to install: the final image copies the interface stage's install, never the
+    workspace's sources (an image layer keeps what it copied, even once removed)."""
+    workspace(tmp_path / "ws", "a_msgs", AMENT_XML.format(name="a_msgs", build_type="ament_cmake", deps=IFACE_DEPS.format(deps="")))
+    snap = snapshot_software(inventory(_jazzy_lab()), tmp_path / "inventory.yaml")
+    assert snap.python_dirs == [] and snap.pip_install == []
+    text = images.dockerfile("lab", "jazzy", images.DEFAULT_BASE, platform("jazzy", "debian-bookworm"), snap, agents=())
+    final = text.rsplit("FROM image\n", 1)[-1]
+    assert "COPY workspace/" not in final and "COPY --from=interfaces /opt/ccrp/workspace /opt/ccrp/workspace" in final
+    assert "/opt/ccrp/workspace/setup.sh" in final and "ccrp-ws" not in final
+
+
 def test_interface_packages_in_a_cycle_or_with_a_name_rosidl_cannot_take_are_refused(tmp_path):
     ws = tmp_path / "ws"
     workspace(ws, "a_msgs", AMENT_XML.format(name="a_msgs", build_type="ament_cmake", deps=IFACE_DEPS.format(deps="<depend>b_msgs</depend>")))
